@@ -1,0 +1,218 @@
+//! Scalar encodings used by the node record. Each function states its error bound; the
+//! property tests in `tests/roundtrip.rs` check those bounds.
+
+/// Mantissa widths of the 64-bit shared-exponent HDR colour (004 §4.2: E8 R19 G19 B18).
+const RGBE_BITS: [u32; 3] = [19, 19, 18];
+const RGBE_BIAS: i32 = 128;
+
+/// Encodes a non-negative RGB radiance as E8R19G19B18 (bits 63..56 exponent, then R, G, B).
+///
+/// Negative, NaN and values below 2^-128 encode as zero; values are clamped to 2^127.
+/// Error bound per channel: |c - decode(c)| <= max(r, g, b) * 2^-17.
+pub fn rgbe64_encode(rgb: [f32; 3]) -> u64 {
+    let c = rgb.map(|v| if v.is_finite() && v > 0.0 { v.min(1.7e38) } else { 0.0 });
+    let m = c[0].max(c[1]).max(c[2]);
+    if m < f32::MIN_POSITIVE {
+        return 0;
+    }
+    // Exponent e with m / 2^(e-bias) in [0.5, 1).
+    let e = (m.log2().floor() as i32 + 1).clamp(1 - RGBE_BIAS, 127);
+    let scale = (2.0f64).powi(-e);
+    let mut bits = ((e + RGBE_BIAS) as u64) << 56;
+    let mut shift = 56;
+    for (v, b) in c.iter().zip(RGBE_BITS) {
+        shift -= b;
+        let max = (1u64 << b) - 1;
+        let q = ((*v as f64) * scale * (1u64 << b) as f64 + 0.5).floor() as u64;
+        bits |= q.min(max) << shift;
+    }
+    bits
+}
+
+/// Decodes an E8R19G19B18 colour.
+pub fn rgbe64_decode(bits: u64) -> [f32; 3] {
+    let e = (bits >> 56) as i32;
+    if e == 0 {
+        return [0.0; 3];
+    }
+    let scale = (2.0f64).powi(e - RGBE_BIAS);
+    let mut out = [0.0f32; 3];
+    let mut shift = 56;
+    for (o, b) in out.iter_mut().zip(RGBE_BITS) {
+        shift -= b;
+        let q = (bits >> shift) & ((1u64 << b) - 1);
+        *o = (q as f64 / (1u64 << b) as f64 * scale) as f32;
+    }
+    out
+}
+
+/// [0, 1] as value/255, rounded to nearest. Error <= 0.5/255; out-of-range input is clamped.
+pub fn unorm8(v: f32) -> u8 {
+    if v.is_nan() {
+        return 0;
+    }
+    (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
+}
+
+pub fn unorm8_decode(q: u8) -> f32 {
+    q as f32 / 255.0
+}
+
+/// [-1, 1] as value*32767, rounded to nearest. Error <= 0.5/32767.
+pub fn snorm16(v: f32) -> i16 {
+    if v.is_nan() {
+        return 0;
+    }
+    (v.clamp(-1.0, 1.0) * 32767.0).round() as i16
+}
+
+pub fn snorm16_decode(q: i16) -> f32 {
+    (q as f32 / 32767.0).max(-1.0)
+}
+
+/// IEEE 754 binary16 bits, round to nearest even (relative error <= 2^-11 in the normal range).
+pub fn f16_encode(v: f32) -> u16 {
+    half::f16::from_f32(v).to_bits()
+}
+
+pub fn f16_decode(bits: u16) -> f32 {
+    half::f16::from_bits(bits).to_f32()
+}
+
+/// Unit vector as two snorm16 octahedral coordinates packed in a u32 (x low, y high).
+/// Angular error below 1e-4 rad.
+pub fn oct_encode(n: [f32; 3]) -> u32 {
+    let l1 = n[0].abs() + n[1].abs() + n[2].abs();
+    if !(l1 > 0.0) || !l1.is_finite() {
+        return oct_pack(0.0, 0.0);
+    }
+    let (mut x, mut y) = (n[0] / l1, n[1] / l1);
+    if n[2] < 0.0 {
+        let (ox, oy) = (x, y);
+        x = (1.0 - oy.abs()) * ox.signum();
+        y = (1.0 - ox.abs()) * oy.signum();
+    }
+    oct_pack(x, y)
+}
+
+fn oct_pack(x: f32, y: f32) -> u32 {
+    (snorm16(x) as u16 as u32) | ((snorm16(y) as u16 as u32) << 16)
+}
+
+pub fn oct_decode(bits: u32) -> [f32; 3] {
+    let x = snorm16_decode(bits as u16 as i16);
+    let y = snorm16_decode((bits >> 16) as u16 as i16);
+    let z = 1.0 - x.abs() - y.abs();
+    let t = (-z).max(0.0);
+    let (x, y) = (x - t * x.signum(), y - t * y.signum());
+    let l = (x * x + y * y + z * z).sqrt();
+    [x / l, y / l, z / l]
+}
+
+/// The grid a page quantizes its node bounds on: 65535 steps per axis between `lo` and `hi`.
+///
+/// `dequant(0) == lo`, `dequant(65535) == hi` exactly, and `dequant` is monotone, so
+/// `quantize_down`/`quantize_up` can pick codes whose decoded value is provably on the
+/// conservative side: the decoded box always contains the true box (004 §4.2 keeps positions
+/// in float for that reason; we keep the guarantee and spend 2 bytes per coordinate).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Grid {
+    pub lo: [f32; 3],
+    pub hi: [f32; 3],
+}
+
+pub const QMAX: u16 = u16::MAX;
+
+impl Grid {
+    pub fn dequant(&self, axis: usize, q: u16) -> f32 {
+        let (lo, hi) = (self.lo[axis], self.hi[axis]);
+        match q {
+            0 => lo,
+            QMAX => hi,
+            _ => (lo + (hi - lo) * (q as f32 / QMAX as f32)).clamp(lo, hi),
+        }
+    }
+
+    fn estimate(&self, axis: usize, v: f32) -> u16 {
+        let (lo, hi) = (self.lo[axis] as f64, self.hi[axis] as f64);
+        let t = if hi > lo { (v as f64 - lo) / (hi - lo) } else { 0.0 };
+        (t * QMAX as f64).clamp(0.0, QMAX as f64) as u16
+    }
+
+    /// Largest code whose decoded value is <= v (0 when v <= lo).
+    pub fn quantize_down(&self, axis: usize, v: f32) -> u16 {
+        let ok = |q: u16| self.dequant(axis, q) <= v;
+        let q = self.estimate(axis, v);
+        if ok(q) && (q == QMAX || !ok(q + 1)) {
+            return q;
+        }
+        // Rounding put the estimate off; binary search the monotone predicate.
+        let (mut a, mut b) = (0u32, QMAX as u32 + 1); // ok(a) assumed, !ok(b)
+        if !ok(0) {
+            return 0;
+        }
+        while b - a > 1 {
+            let m = (a + b) / 2;
+            if ok(m as u16) {
+                a = m
+            } else {
+                b = m
+            }
+        }
+        a as u16
+    }
+
+    /// Smallest code whose decoded value is >= v (QMAX when v >= hi).
+    pub fn quantize_up(&self, axis: usize, v: f32) -> u16 {
+        let ok = |q: u16| self.dequant(axis, q) >= v;
+        let q = self.estimate(axis, v).saturating_add(1).min(QMAX);
+        if ok(q) && (q == 0 || !ok(q - 1)) {
+            return q;
+        }
+        if !ok(QMAX) {
+            return QMAX;
+        }
+        let (mut a, mut b) = (-1i32, QMAX as i32); // !ok(a), ok(b)
+        while b - a > 1 {
+            let m = (a + b) / 2;
+            if ok(m as u16) {
+                b = m
+            } else {
+                a = m
+            }
+        }
+        b as u16
+    }
+
+    /// Conservative quantization of a box, clamped inside `parent` codes so that nesting in
+    /// code space (and therefore in decoded space) holds by construction.
+    pub fn quantize_box(&self, lo: [f32; 3], hi: [f32; 3], parent: Option<&[u16; 6]>) -> [u16; 6] {
+        let mut q = [0u16; 6];
+        for a in 0..3 {
+            q[a] = self.quantize_down(a, lo[a]);
+            q[a + 3] = self.quantize_up(a, hi[a]);
+            if let Some(p) = parent {
+                q[a] = q[a].max(p[a]);
+                q[a + 3] = q[a + 3].min(p[a + 3]);
+            }
+        }
+        q
+    }
+
+    pub fn dequant_box(&self, q: &[u16; 6]) -> ([f32; 3], [f32; 3]) {
+        let lo = [0, 1, 2].map(|a| self.dequant(a, q[a]));
+        let hi = [0, 1, 2].map(|a| self.dequant(a, q[a + 3]));
+        (lo, hi)
+    }
+
+    /// Nearest code (not conservative), for points such as the cluster centroid.
+    /// Error <= one grid step per axis.
+    pub fn quantize_nearest(&self, axis: usize, v: f32) -> u16 {
+        let lo = self.quantize_down(axis, v);
+        if lo < QMAX && (self.dequant(axis, lo + 1) - v).abs() < (v - self.dequant(axis, lo)).abs() {
+            lo + 1
+        } else {
+            lo
+        }
+    }
+}

@@ -1,0 +1,228 @@
+//! Fixed-size records of the archive: header, page table, page header, materials, cameras,
+//! lights. All little-endian, `#[repr(C)]`, no implicit padding.
+
+use bytemuck::{Pod, Zeroable};
+
+pub const MAGIC: [u8; 8] = *b"CANOPY\x00\x1a";
+pub const VERSION_MAJOR: u16 = 1;
+pub const VERSION_MINOR: u16 = 0;
+pub const PAGE_MAGIC: [u8; 4] = *b"PAGE";
+/// Page-table value for "no parent".
+pub const NONE: u32 = u32::MAX;
+
+/// Scene features, recorded by the converter so the renderer can skip what a scene cannot use.
+pub struct Features;
+impl Features {
+    pub const EMITTERS: u64 = 1;
+    pub const GLOSSY: u64 = 2;
+    pub const TRANSMISSIVE: u64 = 4;
+    /// The input referenced textures; they are not stored (factors only), see FORMAT.md.
+    pub const TEXTURED_INPUT: u64 = 8;
+    /// Pages carry a per-vertex shading-normal stream.
+    pub const SHADING_NORMALS: u64 = 16;
+    pub const PUNCTUAL_LIGHTS: u64 = 32;
+    /// Pages carry per-node coefficient streams.
+    pub const COEFFICIENTS: u64 = 64;
+    pub const ALL: u64 = 127;
+
+    pub fn names(bits: u64) -> Vec<&'static str> {
+        [
+            (Self::EMITTERS, "emitters"),
+            (Self::GLOSSY, "glossy"),
+            (Self::TRANSMISSIVE, "transmissive"),
+            (Self::TEXTURED_INPUT, "textured-input"),
+            (Self::SHADING_NORMALS, "shading-normals"),
+            (Self::PUNCTUAL_LIGHTS, "punctual-lights"),
+            (Self::COEFFICIENTS, "coefficients"),
+        ]
+        .iter()
+        .filter(|(b, _)| bits & b != 0)
+        .map(|(_, n)| *n)
+        .collect()
+    }
+}
+
+/// Location of a table in the file.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct TableRef {
+    pub offset: u64,
+    pub count: u32,
+    pub record_size: u32,
+}
+
+/// The 256-byte file header at offset 0.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct Header {
+    pub magic: [u8; 8],
+    pub version_major: u16,
+    pub version_minor: u16,
+    pub header_size: u32,
+    pub features: u64,
+    pub input_triangles: u64,
+    pub triangles: u64,
+    pub nodes: u64,
+    pub vertices: u64,
+    pub file_len: u64,
+    pub bounds_min: [f32; 3],
+    pub bounds_max: [f32; 3],
+    pub root_page: u32,
+    pub depth: u32,
+    pub max_leaf_triangles: u32,
+    pub page_nodes_max: u32,
+    pub materials: TableRef,
+    pub cameras: TableRef,
+    pub lights: TableRef,
+    pub pages: TableRef,
+    /// xxh3-64 of every byte from the first table to the end of the file.
+    pub tables_checksum: u64,
+    /// xxh3-64 of this header with this field zeroed.
+    pub header_checksum: u64,
+    pub reserved: [u8; 72],
+}
+
+const _: () = assert!(std::mem::size_of::<Header>() == 256);
+
+/// One page-table entry (96 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct PageEntry {
+    pub offset: u64,
+    pub compressed_len: u32,
+    pub raw_len: u32,
+    /// xxh3-64 of the compressed bytes.
+    pub checksum: u64,
+    /// Global index of this page's node 0; nodes are numbered page by page.
+    pub first_node: u64,
+    pub node_count: u32,
+    pub tri_count: u32,
+    pub vert_count: u32,
+    pub coef_bytes: u32,
+    /// Page holding the node whose children are this page's roots (NONE for the root page).
+    pub parent_page: u32,
+    /// Local index of that node in the parent page.
+    pub parent_node: u32,
+    /// Pages between this one and the root page.
+    pub level: u16,
+    /// 1 for the root page, 2 (a sibling pair) otherwise.
+    pub root_count: u16,
+    /// The quantization grid: the exact union of the root nodes' bounds.
+    pub bounds_min: [f32; 3],
+    pub bounds_max: [f32; 3],
+    pub reserved: [u8; 12],
+}
+
+const _: () = assert!(std::mem::size_of::<PageEntry>() == 96);
+
+impl PageEntry {
+    pub fn grid(&self) -> crate::codec::Grid {
+        crate::codec::Grid { lo: self.bounds_min, hi: self.bounds_max }
+    }
+}
+
+/// The 32-byte header at the start of each decompressed page.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct PageHeader {
+    pub magic: [u8; 4],
+    pub node_count: u32,
+    pub tri_count: u32,
+    pub vert_count: u32,
+    pub coef_bytes: u32,
+    /// 1 when a shading-normal stream follows the vertices.
+    pub has_normals: u32,
+    pub reserved: [u8; 8],
+}
+
+const _: () = assert!(std::mem::size_of::<PageHeader>() == 32);
+
+/// A fixed-length UTF-8 name, zero padded; longer names are cut at a char boundary.
+pub fn name_bytes<const N: usize>(s: &str) -> [u8; N] {
+    let mut out = [0u8; N];
+    let mut end = s.len().min(N);
+    while !s.is_char_boundary(end) {
+        end -= 1;
+    }
+    out[..end].copy_from_slice(&s.as_bytes()[..end]);
+    out
+}
+
+pub fn name_str(b: &[u8]) -> String {
+    let end = b.iter().position(|&c| c == 0).unwrap_or(b.len());
+    String::from_utf8_lossy(&b[..end]).into_owned()
+}
+
+/// glTF metallic-roughness material in full precision (128 bytes). Leaves shade with these.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct MaterialRecord {
+    pub name: [u8; 48],
+    pub base_color: [f32; 4],
+    /// emissiveFactor × KHR_materials_emissive_strength.
+    pub emission: [f32; 3],
+    pub metallic: f32,
+    pub roughness: f32,
+    pub ior: f32,
+    pub transmission: f32,
+    /// KHR_materials_specular specularFactor and specularColorFactor.
+    pub specular: f32,
+    pub specular_color: [f32; 3],
+    pub flags: u32,
+    pub reserved: [u8; 16],
+}
+
+const _: () = assert!(std::mem::size_of::<MaterialRecord>() == 128);
+
+impl MaterialRecord {
+    pub const DOUBLE_SIDED: u32 = 1;
+    pub const TEXTURED: u32 = 2;
+}
+
+/// Perspective camera (128 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct CameraRecord {
+    pub name: [u8; 48],
+    /// Camera-to-world, column-major 3×4 (x axis, y axis, z axis, position); looks down −z.
+    pub to_world: [f32; 12],
+    pub yfov: f32,
+    /// Width / height; 0 when the input left it open.
+    pub aspect: f32,
+    pub znear: f32,
+    /// 0 for infinite.
+    pub zfar: f32,
+    pub width: u32,
+    pub height: u32,
+    pub reserved: [u8; 8],
+}
+
+const _: () = assert!(std::mem::size_of::<CameraRecord>() == 128);
+
+/// KHR_lights_punctual light (96 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct LightRecord {
+    pub name: [u8; 32],
+    /// 0 point, 1 spot, 2 directional.
+    pub kind: u32,
+    pub color: [f32; 3],
+    /// Candela for point and spot, lux for directional (glTF units).
+    pub intensity: f32,
+    pub position: [f32; 3],
+    /// Direction the light shines in (world space, unit).
+    pub direction: [f32; 3],
+    /// 0 for infinite.
+    pub range: f32,
+    pub inner_cone: f32,
+    pub outer_cone: f32,
+    pub reserved: [u8; 8],
+}
+
+const _: () = assert!(std::mem::size_of::<LightRecord>() == 96);
+
+impl LightRecord {
+    pub const POINT: u32 = 0;
+    pub const SPOT: u32 = 1;
+    pub const DIRECTIONAL: u32 = 2;
+}

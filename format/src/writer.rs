@@ -1,0 +1,280 @@
+//! Writing an archive: pages are appended as they are produced, the tables and the header go
+//! in last, and the file only appears at its final path once complete (write to a temporary
+//! name in the same directory, fsync, rename).
+
+use crate::error::{FormatError, Result};
+use crate::node::{Node, Tri};
+use crate::records::*;
+use std::fs::File;
+use std::io::{BufWriter, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+
+/// The decoded contents of one page.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PageContents {
+    pub nodes: Vec<Node>,
+    pub tris: Vec<Tri>,
+    pub verts: Vec<[f32; 3]>,
+    /// Octahedral shading normals, one per vertex, or empty.
+    pub normals: Vec<u32>,
+    pub coefs: Vec<u8>,
+}
+
+/// A page compressed and checksummed, ready to append.
+pub struct EncodedPage {
+    pub bytes: Vec<u8>,
+    pub raw_len: u32,
+    pub checksum: u64,
+    pub node_count: u32,
+    pub tri_count: u32,
+    pub vert_count: u32,
+    pub coef_bytes: u32,
+}
+
+/// Where a page sits in the page tree.
+#[derive(Clone, Copy, Debug)]
+pub struct PageMeta {
+    pub parent_page: u32,
+    pub parent_node: u32,
+    pub root_count: u16,
+    pub bounds_min: [f32; 3],
+    pub bounds_max: [f32; 3],
+}
+
+/// Serializes and compresses a page. Pure, so callers can encode pages in parallel.
+pub fn encode_page(p: &PageContents, zstd_level: i32) -> std::io::Result<EncodedPage> {
+    assert!(p.normals.is_empty() || p.normals.len() == p.verts.len());
+    let header = PageHeader {
+        magic: PAGE_MAGIC,
+        node_count: p.nodes.len() as u32,
+        tri_count: p.tris.len() as u32,
+        vert_count: p.verts.len() as u32,
+        coef_bytes: p.coefs.len() as u32,
+        has_normals: !p.normals.is_empty() as u32,
+        reserved: [0; 8],
+    };
+    let mut raw = Vec::with_capacity(raw_page_len(&header));
+    raw.extend_from_slice(bytemuck::bytes_of(&header));
+    raw.extend_from_slice(bytemuck::cast_slice(&p.nodes));
+    raw.extend_from_slice(bytemuck::cast_slice(&p.tris));
+    raw.extend_from_slice(bytemuck::cast_slice(&p.verts));
+    raw.extend_from_slice(bytemuck::cast_slice(&p.normals));
+    raw.extend_from_slice(&p.coefs);
+    let bytes = zstd::bulk::compress(&raw, zstd_level)?;
+    Ok(EncodedPage {
+        checksum: xxhash_rust::xxh3::xxh3_64(&bytes),
+        raw_len: raw.len() as u32,
+        bytes,
+        node_count: header.node_count,
+        tri_count: header.tri_count,
+        vert_count: header.vert_count,
+        coef_bytes: header.coef_bytes,
+    })
+}
+
+/// Decompressed size a page header implies.
+pub fn raw_page_len(h: &PageHeader) -> usize {
+    let normals = if h.has_normals != 0 { h.vert_count as usize * 4 } else { 0 };
+    std::mem::size_of::<PageHeader>()
+        + h.node_count as usize * std::mem::size_of::<Node>()
+        + h.tri_count as usize * std::mem::size_of::<Tri>()
+        + h.vert_count as usize * 12
+        + normals
+        + h.coef_bytes as usize
+}
+
+/// Scene-level values the header carries.
+#[derive(Clone, Debug, Default)]
+pub struct SceneInfo {
+    pub features: u64,
+    pub input_triangles: u64,
+    pub bounds_min: [f32; 3],
+    pub bounds_max: [f32; 3],
+    pub root_page: u32,
+    pub depth: u32,
+    pub max_leaf_triangles: u32,
+    pub page_nodes_max: u32,
+    pub materials: Vec<MaterialRecord>,
+    pub cameras: Vec<CameraRecord>,
+    pub lights: Vec<LightRecord>,
+}
+
+pub struct ArchiveWriter {
+    path: PathBuf,
+    tmp: PathBuf,
+    out: Option<BufWriter<File>>,
+    offset: u64,
+    pages: Vec<PageEntry>,
+    nodes: u64,
+    tris: u64,
+    verts: u64,
+    done: bool,
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> FormatError + '_ {
+    move |source| FormatError::Io { path: path.to_path_buf(), source }
+}
+
+impl ArchiveWriter {
+    /// Starts an archive that will appear at `path` when `finish` succeeds. Until then the
+    /// bytes live in a hidden temporary file beside it, removed if the writer is dropped.
+    pub fn create(path: &Path) -> Result<Self> {
+        let dir = match path.parent() {
+            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+            _ => PathBuf::from("."),
+        };
+        let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
+        let file = File::create(&tmp).map_err(io(path))?;
+        let mut out = BufWriter::with_capacity(1 << 20, file);
+        out.write_all(&[0u8; 256]).map_err(io(&tmp))?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            tmp,
+            out: Some(out),
+            offset: 256,
+            pages: Vec::new(),
+            nodes: 0,
+            tris: 0,
+            verts: 0,
+            done: false,
+        })
+    }
+
+    pub fn node_count(&self) -> u64 {
+        self.nodes
+    }
+
+    pub fn page_count(&self) -> u32 {
+        self.pages.len() as u32
+    }
+
+    /// Appends a page; returns its index. Pages get global node numbers in append order.
+    pub fn push(&mut self, page: &EncodedPage, meta: PageMeta) -> Result<u32> {
+        let out = self.out.as_mut().expect("writer used after finish");
+        out.write_all(&page.bytes).map_err(io(&self.tmp))?;
+        self.pages.push(PageEntry {
+            offset: self.offset,
+            compressed_len: page.bytes.len() as u32,
+            raw_len: page.raw_len,
+            checksum: page.checksum,
+            first_node: self.nodes,
+            node_count: page.node_count,
+            tri_count: page.tri_count,
+            vert_count: page.vert_count,
+            coef_bytes: page.coef_bytes,
+            parent_page: meta.parent_page,
+            parent_node: meta.parent_node,
+            level: 0,
+            root_count: meta.root_count,
+            bounds_min: meta.bounds_min,
+            bounds_max: meta.bounds_max,
+            reserved: [0; 12],
+        });
+        self.offset += page.bytes.len() as u64;
+        self.nodes += page.node_count as u64;
+        self.tris += page.tri_count as u64;
+        self.verts += page.vert_count as u64;
+        Ok(self.pages.len() as u32 - 1)
+    }
+
+    /// Records a page's parent once it is known (pages below are often written first).
+    pub fn set_parent(&mut self, page: u32, parent_page: u32, parent_node: u32) {
+        let e = &mut self.pages[page as usize];
+        e.parent_page = parent_page;
+        e.parent_node = parent_node;
+    }
+
+    /// Page levels from the parent links (parents may come after their children in the file).
+    fn fill_levels(&mut self) {
+        let mut level: Vec<Option<u16>> = vec![None; self.pages.len()];
+        for start in 0..self.pages.len() {
+            let mut chain = Vec::new();
+            let mut p = start;
+            let mut base = loop {
+                if let Some(l) = level[p] {
+                    break l;
+                }
+                chain.push(p);
+                match self.pages[p].parent_page {
+                    NONE => break u16::MAX,
+                    parent if (parent as usize) < self.pages.len() && chain.len() <= self.pages.len() => p = parent as usize,
+                    _ => break u16::MAX,
+                }
+            };
+            for &q in chain.iter().rev() {
+                base = base.wrapping_add(1);
+                level[q] = Some(base);
+            }
+        }
+        for (e, l) in self.pages.iter_mut().zip(level) {
+            e.level = l.unwrap_or(0);
+        }
+    }
+
+    /// Writes the tables and header, syncs, and renames into place.
+    pub fn finish(mut self, info: &SceneInfo) -> Result<()> {
+        self.fill_levels();
+        let mut tables = Vec::new();
+        let mut table = |bytes: &[u8], count: usize, size: usize, base: u64| {
+            let t = TableRef { offset: base + tables.len() as u64, count: count as u32, record_size: size as u32 };
+            tables.extend_from_slice(bytes);
+            t
+        };
+        let base = self.offset;
+        let materials = table(bytemuck::cast_slice(&info.materials), info.materials.len(), 128, base);
+        let cameras = table(bytemuck::cast_slice(&info.cameras), info.cameras.len(), 128, base);
+        let lights = table(bytemuck::cast_slice(&info.lights), info.lights.len(), 96, base);
+        let pages = table(bytemuck::cast_slice(&self.pages), self.pages.len(), 96, base);
+        let mut header = Header {
+            magic: MAGIC,
+            version_major: VERSION_MAJOR,
+            version_minor: VERSION_MINOR,
+            header_size: 256,
+            features: info.features,
+            input_triangles: info.input_triangles,
+            triangles: self.tris,
+            nodes: self.nodes,
+            vertices: self.verts,
+            file_len: base + tables.len() as u64,
+            bounds_min: info.bounds_min,
+            bounds_max: info.bounds_max,
+            root_page: info.root_page,
+            depth: info.depth,
+            max_leaf_triangles: info.max_leaf_triangles,
+            page_nodes_max: info.page_nodes_max,
+            materials,
+            cameras,
+            lights,
+            pages,
+            tables_checksum: xxhash_rust::xxh3::xxh3_64(&tables),
+            header_checksum: 0,
+            reserved: [0; 72],
+        };
+        header.header_checksum = xxhash_rust::xxh3::xxh3_64(bytemuck::bytes_of(&header));
+        let mut out = self.out.take().expect("finish called twice");
+        let tmp = self.tmp.clone();
+        out.write_all(&tables).map_err(io(&tmp))?;
+        let mut file = out.into_inner().map_err(|e| FormatError::Io { path: tmp.clone(), source: e.into_error() })?;
+        file.seek(SeekFrom::Start(0)).map_err(io(&tmp))?;
+        file.write_all(bytemuck::bytes_of(&header)).map_err(io(&tmp))?;
+        file.sync_all().map_err(io(&tmp))?;
+        drop(file);
+        std::fs::rename(&tmp, &self.path).map_err(io(&self.path))?;
+        self.done = true;
+        if let Some(dir) = self.path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            // Persist the rename; not every filesystem supports syncing a directory.
+            let _ = File::open(dir).and_then(|d| d.sync_all());
+        }
+        Ok(())
+    }
+}
+
+impl Drop for ArchiveWriter {
+    fn drop(&mut self) {
+        if !self.done {
+            self.out.take();
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
+}

@@ -1,0 +1,131 @@
+//! An in-memory binary tree over one chunk of triangles (built with obvhs's PLOC builder),
+//! with exact f32 bounds and aggregated cluster attributes per node.
+
+use super::cluster::{Cluster, MatSummary};
+use crate::import::SpillTri;
+use glam::Vec3A;
+use obvhs::{bvh2::builder::build_bvh2_from_tris, triangle::Triangle, BvhBuildParams};
+
+/// Most triangles a leaf holds.
+pub const MAX_LEAF_TRIS: u32 = 8;
+
+#[derive(Clone, Copy, Debug)]
+pub enum Kind {
+    Inner([u32; 2]),
+    /// Range in the tree's triangle array.
+    Leaf { first: u32, count: u32 },
+    /// Children already written as the two roots of a page.
+    External { page: u32 },
+}
+
+#[derive(Clone, Debug)]
+pub struct BNode {
+    pub lo: [f32; 3],
+    pub hi: [f32; 3],
+    pub kind: Kind,
+    pub cluster: Cluster,
+    /// Levels below this node (0 for a leaf).
+    pub height: u32,
+}
+
+pub struct Tree {
+    pub nodes: Vec<BNode>,
+    /// Triangles in leaf order.
+    pub tris: Vec<SpillTri>,
+    pub root: u32,
+}
+
+fn union(a: &BNode, b: &BNode) -> ([f32; 3], [f32; 3]) {
+    ([0, 1, 2].map(|i| a.lo[i].min(b.lo[i])), [0, 1, 2].map(|i| a.hi[i].max(b.hi[i])))
+}
+
+impl Tree {
+    /// Appends an inner node over two existing nodes, aggregating their attributes.
+    pub fn join(&mut self, l: u32, r: u32) -> u32 {
+        let (a, b) = (&self.nodes[l as usize], &self.nodes[r as usize]);
+        let (lo, hi) = union(a, b);
+        let node = BNode {
+            lo,
+            hi,
+            kind: Kind::Inner([l, r]),
+            cluster: Cluster::merge(&a.cluster, &b.cluster),
+            height: a.height.max(b.height) + 1,
+        };
+        self.nodes.push(node);
+        self.nodes.len() as u32 - 1
+    }
+
+    /// A leaf over `tris[first..first+count]`.
+    pub fn leaf(&mut self, first: u32, count: u32, mats: &[MatSummary]) -> u32 {
+        let ts = &self.tris[first as usize..(first + count) as usize];
+        let mut lo = [f32::INFINITY; 3];
+        let mut hi = [f32::NEG_INFINITY; 3];
+        let mut cluster: Option<Cluster> = None;
+        for t in ts {
+            for v in &t.p {
+                for a in 0..3 {
+                    lo[a] = lo[a].min(v[a]);
+                    hi[a] = hi[a].max(v[a]);
+                }
+            }
+            let c = Cluster::triangle(&t.p, t.curvature, &mats[t.material as usize]);
+            cluster = Some(match cluster {
+                Some(s) => Cluster::merge(&s, &c),
+                None => c,
+            });
+        }
+        self.nodes.push(BNode { lo, hi, kind: Kind::Leaf { first, count }, cluster: cluster.expect("empty leaf"), height: 0 });
+        self.nodes.len() as u32 - 1
+    }
+
+    /// Builds the chunk's hierarchy with PLOC (obvhs) and aggregates clusters bottom-up.
+    pub fn build(tris: Vec<SpillTri>, mats: &[MatSummary]) -> Tree {
+        let prims: Vec<Triangle> = tris
+            .iter()
+            .map(|t| Triangle { v0: Vec3A::from(t.p[0]), v1: Vec3A::from(t.p[1]), v2: Vec3A::from(t.p[2]) })
+            .collect();
+        let mut params = BvhBuildParams::medium_build();
+        params.max_prims_per_leaf = MAX_LEAF_TRIS;
+        let bvh = build_bvh2_from_tris(&prims, params, &mut Default::default());
+        drop(prims);
+        let children = |i: usize| {
+            let n = &bvh.nodes[i];
+            (n.prim_count == 0).then(|| [n.first_index as usize, n.first_index as usize + 1])
+        };
+        // Pass 1: triangles in depth-first leaf order, so each leaf's range is contiguous.
+        let mut order = Vec::with_capacity(tris.len());
+        let mut stack = vec![0usize];
+        while let Some(i) = stack.pop() {
+            match children(i) {
+                Some([l, r]) => stack.extend([r, l]),
+                None => {
+                    let n = &bvh.nodes[i];
+                    order.extend_from_slice(&bvh.primitive_indices[n.first_index as usize..(n.first_index + n.prim_count) as usize]);
+                }
+            }
+        }
+        let mut tree = Tree { nodes: Vec::with_capacity(bvh.nodes.len()), tris: order.iter().map(|&i| tris[i as usize]).collect(), root: 0 };
+        drop((tris, order));
+        // Pass 2: post-order, the same leaf order; inner nodes join the two latest results.
+        let mut next_tri = 0u32;
+        let mut built: Vec<u32> = Vec::new();
+        let mut stack = vec![(0usize, false)];
+        while let Some((i, visited)) = stack.pop() {
+            match children(i) {
+                None => {
+                    let count = bvh.nodes[i].prim_count;
+                    built.push(tree.leaf(next_tri, count, mats));
+                    next_tri += count;
+                }
+                Some(_) if visited => {
+                    let r = built.pop().expect("right child");
+                    let l = built.pop().expect("left child");
+                    built.push(tree.join(l, r));
+                }
+                Some([l, r]) => stack.extend([(i, true), (r, false), (l, false)]),
+            }
+        }
+        tree.root = built[0];
+        tree
+    }
+}

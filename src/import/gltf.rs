@@ -1,0 +1,181 @@
+//! glTF 2.0 (.gltf/.glb): mesh primitives under the default scene with node transforms
+//! applied (instances flattened), perspective cameras, metallic-roughness materials with the
+//! KHR extensions Canopy models, and KHR_lights_punctual.
+
+use super::{make_tri, SceneDesc, TriangleSink};
+use anyhow::{anyhow, bail, Result};
+use canopy_format::{name_bytes, CameraRecord, LightRecord, MaterialRecord};
+use glam::{Mat3, Mat4, Vec3};
+use gltf::mesh::Mode;
+use std::path::Path;
+
+pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -> Result<u64> {
+    let (doc, buffers, _images) = ::gltf::import(path).map_err(|e| anyhow!("{}: not a valid glTF file: {e}", path.display()))?;
+    let (width, height) = render_size(&doc);
+    let base = scene.materials.len() as u32;
+    for m in doc.materials() {
+        let rec = material(&m);
+        if rec.flags & MaterialRecord::TEXTURED != 0 {
+            scene.textured = true;
+        }
+        scene.add_material(rec)?;
+    }
+    let mut default_mat = None;
+    let gscene = doc.default_scene().or_else(|| doc.scenes().next()).ok_or_else(|| anyhow!("{}: no scene", path.display()))?;
+    let mut count = 0u64;
+    let mut stack: Vec<(gltf::Node, Mat4)> = gscene.nodes().map(|n| (n, Mat4::IDENTITY)).collect();
+    let mut depth_guard = 0usize;
+    while let Some((node, parent)) = stack.pop() {
+        depth_guard += 1;
+        if depth_guard > 10_000_000 {
+            bail!("{}: node hierarchy too large or cyclic", path.display());
+        }
+        let world = parent * Mat4::from_cols_array_2d(&node.transform().matrix());
+        if !world.is_finite() {
+            bail!("{}: node '{}' has a non-finite transform", path.display(), node.name().unwrap_or("?"));
+        }
+        for child in node.children() {
+            stack.push((child, world));
+        }
+        if let Some(cam) = node.camera() {
+            if let Some(rec) = camera(&cam, &node, world, width, height) {
+                scene.cameras.push(rec);
+            }
+        }
+        if let Some(light) = node.light() {
+            scene.lights.push(punctual(&light, world));
+        }
+        let Some(mesh) = node.mesh() else { continue };
+        let normal_m = Mat3::from_mat4(world).inverse().transpose();
+        let flip = world.determinant() < 0.0;
+        for (pi, prim) in mesh.primitives().enumerate() {
+            let what = |t: usize| format!("{}: mesh '{}' primitive {pi} triangle {t}", path.display(), mesh.name().unwrap_or("?"));
+            let mat = match prim.material().index() {
+                Some(i) => base + i as u32,
+                None => *default_mat.get_or_insert(scene.add_material(super::default_material("default"))?),
+            };
+            let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
+            let Some(pos) = reader.read_positions() else { continue };
+            let pos: Vec<Vec3> = pos.map(|p| world.transform_point3(Vec3::from(p))).collect();
+            let nrm: Option<Vec<Vec3>> = reader
+                .read_normals()
+                .map(|n| n.map(|n| (normal_m * Vec3::from(n)).normalize_or_zero()).collect::<Vec<_>>())
+                .filter(|n| n.len() == pos.len());
+            if nrm.is_some() {
+                scene.has_normals = true;
+            }
+            let idx: Vec<u32> = match reader.read_indices() {
+                Some(i) => i.into_u32().collect(),
+                None => (0..pos.len() as u32).collect(),
+            };
+            for (t, mut tri) in triangles(prim.mode(), &idx).enumerate() {
+                if flip {
+                    tri.swap(1, 2);
+                }
+                if let Some(&bad) = tri.iter().find(|&&i| i as usize >= pos.len()) {
+                    bail!("{}: index {bad} out of range ({} vertices)", what(t), pos.len());
+                }
+                let p = tri.map(|i| pos[i as usize].to_array());
+                let n = nrm.as_ref().map(|n| tri.map(|i| n[i as usize].to_array()));
+                sink.push(make_tri(p, n, mat, &|| what(t))?)?;
+                count += 1;
+            }
+        }
+    }
+    Ok(count)
+}
+
+/// Triangle index triples for a primitive's topology; points and lines give none.
+fn triangles(mode: Mode, idx: &[u32]) -> Box<dyn Iterator<Item = [u32; 3]> + '_> {
+    match mode {
+        Mode::Triangles => Box::new(idx.chunks_exact(3).map(|c| [c[0], c[1], c[2]])),
+        Mode::TriangleStrip => Box::new((2..idx.len()).map(move |i| {
+            if i % 2 == 0 {
+                [idx[i - 2], idx[i - 1], idx[i]]
+            } else {
+                [idx[i - 1], idx[i - 2], idx[i]]
+            }
+        })),
+        Mode::TriangleFan => Box::new((2..idx.len()).map(move |i| [idx[0], idx[i - 1], idx[i]])),
+        _ => Box::new(std::iter::empty()),
+    }
+}
+
+/// The render resolution the bundled scenes carry in top-level `extras.render`.
+fn render_size(doc: &gltf::Document) -> (u32, u32) {
+    let extras = doc.as_json().extras.as_ref().and_then(|e| serde_json::from_str::<serde_json::Value>(e.get()).ok());
+    let get = |k: &str| extras.as_ref().and_then(|e| e["render"][k].as_u64()).map(|v| v as u32).unwrap_or(0);
+    (get("width"), get("height"))
+}
+
+fn material(m: &gltf::Material) -> MaterialRecord {
+    let pbr = m.pbr_metallic_roughness();
+    let strength = m.emissive_strength().unwrap_or(1.0);
+    let spec = m.specular();
+    let textured = pbr.base_color_texture().is_some()
+        || pbr.metallic_roughness_texture().is_some()
+        || m.emissive_texture().is_some()
+        || m.normal_texture().is_some();
+    let mut flags = 0;
+    if m.double_sided() {
+        flags |= MaterialRecord::DOUBLE_SIDED;
+    }
+    if textured {
+        flags |= MaterialRecord::TEXTURED;
+    }
+    MaterialRecord {
+        name: name_bytes(m.name().unwrap_or("")),
+        base_color: pbr.base_color_factor(),
+        emission: m.emissive_factor().map(|e| e * strength),
+        metallic: pbr.metallic_factor(),
+        roughness: pbr.roughness_factor(),
+        ior: m.ior().unwrap_or(1.5),
+        transmission: m.transmission().map(|t| t.transmission_factor()).unwrap_or(0.0),
+        specular: spec.as_ref().map(|s| s.specular_factor()).unwrap_or(1.0),
+        specular_color: spec.as_ref().map(|s| s.specular_color_factor()).unwrap_or([1.0; 3]),
+        flags,
+        reserved: [0; 16],
+    }
+}
+
+fn camera(cam: &gltf::Camera, node: &gltf::Node, world: Mat4, width: u32, height: u32) -> Option<CameraRecord> {
+    let gltf::camera::Projection::Perspective(p) = cam.projection() else { return None };
+    let c = world.to_cols_array();
+    let mut to_world = [0.0f32; 12];
+    for col in 0..4 {
+        to_world[col * 3..col * 3 + 3].copy_from_slice(&c[col * 4..col * 4 + 3]);
+    }
+    let name = node.name().or(cam.name()).map(str::to_string).unwrap_or_else(|| format!("camera{}", cam.index()));
+    Some(CameraRecord {
+        name: name_bytes(&name),
+        to_world,
+        yfov: p.yfov(),
+        aspect: p.aspect_ratio().unwrap_or(0.0),
+        znear: p.znear(),
+        zfar: p.zfar().unwrap_or(0.0),
+        width,
+        height,
+        reserved: [0; 8],
+    })
+}
+
+fn punctual(l: &gltf::khr_lights_punctual::Light, world: Mat4) -> LightRecord {
+    use gltf::khr_lights_punctual::Kind;
+    let (kind, inner, outer) = match l.kind() {
+        Kind::Point => (LightRecord::POINT, 0.0, 0.0),
+        Kind::Spot { inner_cone_angle, outer_cone_angle } => (LightRecord::SPOT, inner_cone_angle, outer_cone_angle),
+        Kind::Directional => (LightRecord::DIRECTIONAL, 0.0, 0.0),
+    };
+    LightRecord {
+        name: name_bytes(l.name().unwrap_or("")),
+        kind,
+        color: l.color(),
+        intensity: l.intensity(),
+        position: world.transform_point3(Vec3::ZERO).to_array(),
+        direction: world.transform_vector3(Vec3::NEG_Z).normalize_or_zero().to_array(),
+        range: l.range().unwrap_or(0.0),
+        inner_cone: inner,
+        outer_cone: outer,
+        reserved: [0; 8],
+    }
+}

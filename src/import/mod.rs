@@ -1,0 +1,143 @@
+//! Importers: turn glTF, PLY and OBJ inputs into a stream of triangles plus the scene's
+//! materials, cameras and lights. Triangles are pushed to a sink one by one so no importer
+//! has to hold more than its input's vertex array.
+
+mod gltf;
+mod obj;
+mod ply;
+mod scene_file;
+
+pub use scene_file::SceneFile;
+
+use anyhow::{bail, Result};
+use bytemuck::{Pod, Zeroable};
+use canopy_format::codec::oct_encode;
+use canopy_format::{CameraRecord, LightRecord, MaterialRecord};
+use std::path::Path;
+
+/// One input triangle as the converter spills it (56 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct SpillTri {
+    pub p: [[f32; 3]; 3],
+    /// Octahedral shading normals; zero when the input had none.
+    pub n: [u32; 3],
+    pub material: u32,
+    /// Mean curvature κ_s (004 eq. 4.23, edge-wise form), 0 without vertex normals.
+    pub curvature: f32,
+}
+
+impl SpillTri {
+    pub fn centroid(&self) -> [f32; 3] {
+        [0, 1, 2].map(|a| (self.p[0][a] + self.p[1][a] + self.p[2][a]) / 3.0)
+    }
+}
+
+/// Receives the triangles an importer produces.
+pub trait TriangleSink {
+    fn push(&mut self, t: SpillTri) -> Result<()>;
+}
+
+/// Scene-level records collected from all inputs.
+#[derive(Default)]
+pub struct SceneDesc {
+    pub materials: Vec<MaterialRecord>,
+    pub cameras: Vec<CameraRecord>,
+    pub lights: Vec<LightRecord>,
+    pub has_normals: bool,
+    pub textured: bool,
+}
+
+impl SceneDesc {
+    pub fn add_material(&mut self, m: MaterialRecord) -> Result<u32> {
+        if self.materials.len() >= u16::MAX as usize {
+            bail!("more than {} materials", u16::MAX);
+        }
+        self.materials.push(m);
+        Ok(self.materials.len() as u32 - 1)
+    }
+}
+
+/// A diffuse grey for meshes that carry no material and get none from the scene file.
+pub fn default_material(name: &str) -> MaterialRecord {
+    MaterialRecord {
+        name: canopy_format::name_bytes(name),
+        base_color: [0.8, 0.8, 0.8, 1.0],
+        emission: [0.0; 3],
+        metallic: 0.0,
+        roughness: 1.0,
+        ior: 1.5,
+        transmission: 0.0,
+        specular: 0.0,
+        specular_color: [1.0; 3],
+        flags: MaterialRecord::DOUBLE_SIDED,
+        reserved: [0; 16],
+    }
+}
+
+/// Mean curvature of a triangle from its vertex normals. 004 eq. 4.23 divides by the edge's
+/// projection on tangent axes, which is zero for edges along an axis; this uses the edge
+/// itself as the direction: κ_e = ⟨n_i − n_j, p_i − p_j⟩ / |p_i − p_j|², averaged over the
+/// three edges. Exactly 1/r on a sphere, like 4.23.
+pub fn mean_curvature(p: &[[f32; 3]; 3], n: &[[f32; 3]; 3]) -> f32 {
+    let mut sum = 0.0f64;
+    let mut count = 0;
+    for (i, j) in [(2, 1), (0, 2), (1, 0)] {
+        let dp = [0, 1, 2].map(|a| p[i][a] as f64 - p[j][a] as f64);
+        let dn = [0, 1, 2].map(|a| n[i][a] as f64 - n[j][a] as f64);
+        let l2: f64 = dp.iter().map(|x| x * x).sum();
+        if l2 > 0.0 {
+            sum += (0..3).map(|a| dn[a] * dp[a]).sum::<f64>() / l2;
+            count += 1;
+        }
+    }
+    if count == 0 {
+        0.0
+    } else {
+        (sum / count as f64) as f32
+    }
+}
+
+/// Builds a spill record, validating the vertices. `what` names the triangle for errors.
+pub fn make_tri(p: [[f32; 3]; 3], n: Option<[[f32; 3]; 3]>, material: u32, what: &dyn Fn() -> String) -> Result<SpillTri> {
+    if p.iter().flatten().any(|x| !x.is_finite()) {
+        bail!("{}: non-finite vertex coordinate {:?}", what(), p);
+    }
+    let (n_enc, curvature) = match n {
+        Some(n) if n.iter().flatten().all(|x| x.is_finite()) => (n.map(oct_encode), mean_curvature(&p, &n)),
+        _ => ([0; 3], 0.0),
+    };
+    Ok(SpillTri { p, n: n_enc, material, curvature })
+}
+
+/// Reads one input file into the sink, adding its materials, cameras and lights to `scene`.
+pub fn import(path: &Path, scene: &mut SceneDesc, file: &SceneFile, sink: &mut dyn TriangleSink) -> Result<u64> {
+    if !path.exists() {
+        bail!("{}: no such file", path.display());
+    }
+    let ext = path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).unwrap_or_default();
+    let n = match ext.as_str() {
+        "gltf" | "glb" => gltf::import(path, scene, sink)?,
+        "ply" => ply::import(path, scene, file, sink)?,
+        "obj" => obj::import(path, scene, file, sink)?,
+        _ => bail!("{}: unknown input type '.{ext}' (expected .gltf, .glb, .ply or .obj)", path.display()),
+    };
+    if n == 0 {
+        bail!("{}: the mesh is empty (no triangles)", path.display());
+    }
+    Ok(n)
+}
+
+/// Material index for a raw mesh (PLY/OBJ without MTL): the scene file's choice or a default.
+fn raw_mesh_material(path: &Path, scene: &mut SceneDesc, file: &SceneFile) -> Result<u32> {
+    let m = file.material_for(path).unwrap_or_else(|| default_material("default"));
+    if let Some(i) = scene.materials.iter().position(|x| *x == m) {
+        return Ok(i as u32);
+    }
+    scene.add_material(m)
+}
+
+/// Maps an I/O error to one that names the file.
+pub(crate) fn context(path: &Path) -> impl Fn(std::io::Error) -> anyhow::Error + '_ {
+    move |e| anyhow::anyhow!("{}: {e}", path.display())
+}

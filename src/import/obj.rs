@@ -1,0 +1,150 @@
+//! Wavefront OBJ with MTL: `v`, `vn`, `f` (polygons fan-triangulated, negative indices
+//! allowed), `usemtl`, `mtllib`. Vertices are held in memory; faces stream.
+
+use super::{context, make_tri, raw_mesh_material, SceneDesc, SceneFile, TriangleSink};
+use anyhow::{bail, Result};
+use canopy_format::{name_bytes, MaterialRecord};
+use std::collections::HashMap;
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+
+fn floats<const N: usize>(w: &[&str], path: &Path, line: usize) -> Result<[f32; N]> {
+    let mut out = [0.0; N];
+    if w.len() < N {
+        bail!("{}:{line}: expected {N} numbers", path.display());
+    }
+    for (o, s) in out.iter_mut().zip(w) {
+        *o = s.parse().map_err(|_| anyhow::anyhow!("{}:{line}: '{s}' is not a number", path.display()))?;
+    }
+    Ok(out)
+}
+
+/// Parses an MTL library into named materials (Kd, Ks, Ns, Ke, Ni, d/Tr).
+fn read_mtl(path: &Path) -> Result<HashMap<String, MaterialRecord>> {
+    let f = std::fs::File::open(path).map_err(context(path))?;
+    let mut out = HashMap::new();
+    let mut cur: Option<(String, MaterialRecord)> = None;
+    for (ln, line) in BufReader::new(f).lines().enumerate() {
+        let line = line.map_err(context(path))?;
+        let w: Vec<&str> = line.split_whitespace().collect();
+        let Some((&key, rest)) = w.split_first() else { continue };
+        if key == "newmtl" {
+            if let Some((n, m)) = cur.take() {
+                out.insert(n, m);
+            }
+            let name = rest.join(" ");
+            let mut m = super::default_material(&name);
+            m.name = name_bytes(&name);
+            cur = Some((name, m));
+            continue;
+        }
+        let Some((_, m)) = cur.as_mut() else { continue };
+        let ln = ln + 1;
+        match key {
+            "Kd" => {
+                let [r, g, b] = floats::<3>(rest, path, ln)?;
+                m.base_color = [r, g, b, 1.0];
+            }
+            "Ke" => m.emission = floats::<3>(rest, path, ln)?,
+            "Ns" => {
+                // Phong exponent to GGX roughness: α² = 2/(Ns+2), roughness = √α.
+                let [ns] = floats::<1>(rest, path, ln)?;
+                m.roughness = (2.0 / (ns.max(0.0) + 2.0)).sqrt().sqrt();
+            }
+            "Ks" => {
+                let [r, g, b] = floats::<3>(rest, path, ln)?;
+                let s = r.max(g).max(b);
+                m.specular = if s > 0.0 { 1.0 } else { 0.0 };
+                if s > 0.0 {
+                    m.specular_color = [r / s, g / s, b / s];
+                }
+            }
+            "Ni" => m.ior = floats::<1>(rest, path, ln)?[0],
+            "d" => m.transmission = 1.0 - floats::<1>(rest, path, ln)?[0].clamp(0.0, 1.0),
+            "Tr" => m.transmission = floats::<1>(rest, path, ln)?[0].clamp(0.0, 1.0),
+            _ => {}
+        }
+    }
+    if let Some((n, m)) = cur {
+        out.insert(n, m);
+    }
+    Ok(out)
+}
+
+pub fn import(path: &Path, scene: &mut SceneDesc, file: &SceneFile, sink: &mut dyn TriangleSink) -> Result<u64> {
+    let f = std::fs::File::open(path).map_err(context(path))?;
+    let dir = path.parent().unwrap_or(Path::new("."));
+    let mut pos: Vec<[f32; 3]> = Vec::new();
+    let mut nrm: Vec<[f32; 3]> = Vec::new();
+    let mut library: HashMap<String, MaterialRecord> = HashMap::new();
+    let mut indices: HashMap<String, u32> = HashMap::new();
+    let mut material = None;
+    let mut count = 0u64;
+    let mut face: Vec<(u32, Option<u32>)> = Vec::new();
+    for (ln, line) in BufReader::with_capacity(1 << 20, f).lines().enumerate() {
+        let line = line.map_err(context(path))?;
+        let ln = ln + 1;
+        let w: Vec<&str> = line.split_whitespace().collect();
+        let Some((&key, rest)) = w.split_first() else { continue };
+        match key {
+            "v" => pos.push(floats::<3>(rest, path, ln)?),
+            "vn" => nrm.push(floats::<3>(rest, path, ln)?),
+            "mtllib" => {
+                for lib in rest {
+                    library.extend(read_mtl(&dir.join(lib))?);
+                }
+            }
+            "usemtl" => {
+                let name = rest.join(" ");
+                let Some(m) = library.get(&name) else {
+                    bail!("{}:{ln}: material '{name}' is not in any mtllib", path.display());
+                };
+                if m.flags & MaterialRecord::TEXTURED != 0 {
+                    scene.textured = true;
+                }
+                material = Some(match indices.get(&name) {
+                    Some(&i) => i,
+                    None => {
+                        let i = scene.add_material(*m)?;
+                        indices.insert(name, i);
+                        i
+                    }
+                });
+            }
+            "f" => {
+                let mat = match material {
+                    Some(m) => m,
+                    None => *material.insert(raw_mesh_material(path, scene, file)?),
+                };
+                face.clear();
+                for v in rest {
+                    let mut parts = v.split('/');
+                    let resolve = |s: Option<&str>, n: usize| -> Result<Option<u32>> {
+                        let Some(s) = s.filter(|s| !s.is_empty()) else { return Ok(None) };
+                        let i: i64 = s.parse().map_err(|_| anyhow::anyhow!("{}:{ln}: bad index '{s}'", path.display()))?;
+                        let r = if i < 0 { n as i64 + i } else { i - 1 };
+                        if r < 0 || r >= n as i64 {
+                            bail!("{}:{ln}: index {i} out of range ({n} defined so far)", path.display());
+                        }
+                        Ok(Some(r as u32))
+                    };
+                    let Some(p) = resolve(parts.next(), pos.len())? else { bail!("{}:{ln}: face without vertex index", path.display()) };
+                    let _uv = parts.next();
+                    face.push((p, resolve(parts.next(), nrm.len())?));
+                }
+                for k in 2..face.len() {
+                    let tri = [face[0], face[k - 1], face[k]];
+                    let p = tri.map(|(v, _)| pos[v as usize]);
+                    let n = tri.iter().all(|(_, n)| n.is_some()).then(|| tri.map(|(_, n)| nrm[n.unwrap() as usize]));
+                    if n.is_some() {
+                        scene.has_normals = true;
+                    }
+                    sink.push(make_tri(p, n, mat, &|| format!("{}:{ln}", path.display()))?)?;
+                    count += 1;
+                }
+            }
+            _ => {}
+        }
+    }
+    Ok(count)
+}

@@ -1,0 +1,269 @@
+//! PLY, ASCII and binary (either endianness): vertices with x, y, z and optional nx, ny, nz;
+//! faces as a vertex-index list, fan-triangulated. Vertex positions are held in memory
+//! (12 bytes a vertex, 24 with normals); faces stream.
+
+use super::{context, make_tri, raw_mesh_material, SceneDesc, SceneFile, TriangleSink};
+use anyhow::{bail, Context, Result};
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Scalar {
+    I8,
+    U8,
+    I16,
+    U16,
+    I32,
+    U32,
+    F32,
+    F64,
+}
+
+impl Scalar {
+    fn parse(s: &str) -> Option<Self> {
+        Some(match s {
+            "char" | "int8" => Self::I8,
+            "uchar" | "uint8" => Self::U8,
+            "short" | "int16" => Self::I16,
+            "ushort" | "uint16" => Self::U16,
+            "int" | "int32" => Self::I32,
+            "uint" | "uint32" => Self::U32,
+            "float" | "float32" => Self::F32,
+            "double" | "float64" => Self::F64,
+            _ => return None,
+        })
+    }
+    fn size(self) -> usize {
+        match self {
+            Self::I8 | Self::U8 => 1,
+            Self::I16 | Self::U16 => 2,
+            Self::I32 | Self::U32 | Self::F32 => 4,
+            Self::F64 => 8,
+        }
+    }
+    fn decode(self, b: &[u8], big: bool) -> f64 {
+        macro_rules! num {
+            ($t:ty) => {{
+                let a = b[..std::mem::size_of::<$t>()].try_into().unwrap();
+                (if big { <$t>::from_be_bytes(a) } else { <$t>::from_le_bytes(a) }) as f64
+            }};
+        }
+        match self {
+            Self::I8 => b[0] as i8 as f64,
+            Self::U8 => b[0] as f64,
+            Self::I16 => num!(i16),
+            Self::U16 => num!(u16),
+            Self::I32 => num!(i32),
+            Self::U32 => num!(u32),
+            Self::F32 => num!(f32),
+            Self::F64 => num!(f64),
+        }
+    }
+}
+
+#[derive(Debug)]
+struct Property {
+    name: String,
+    ty: Scalar,
+    /// Count type for list properties.
+    list: Option<Scalar>,
+}
+
+#[derive(Debug)]
+struct Element {
+    name: String,
+    count: u64,
+    props: Vec<Property>,
+}
+
+#[derive(PartialEq)]
+enum Encoding {
+    Ascii,
+    Binary { big: bool },
+}
+
+fn read_header(r: &mut impl BufRead, path: &Path) -> Result<(Encoding, Vec<Element>)> {
+    let mut line = String::new();
+    let mut next = |line: &mut String| -> Result<bool> {
+        line.clear();
+        Ok(r.read_line(line).map_err(context(path))? > 0)
+    };
+    if !next(&mut line)? || line.trim_end() != "ply" {
+        bail!("{}: not a PLY file (missing 'ply' magic)", path.display());
+    }
+    let mut enc = None;
+    let mut elems: Vec<Element> = Vec::new();
+    loop {
+        if !next(&mut line)? {
+            bail!("{}: truncated PLY header (no end_header)", path.display());
+        }
+        let w: Vec<&str> = line.split_whitespace().collect();
+        match w.as_slice() {
+            ["end_header"] => break,
+            ["format", f, _] => {
+                enc = Some(match *f {
+                    "ascii" => Encoding::Ascii,
+                    "binary_little_endian" => Encoding::Binary { big: false },
+                    "binary_big_endian" => Encoding::Binary { big: true },
+                    _ => bail!("{}: unknown PLY format '{f}'", path.display()),
+                })
+            }
+            ["element", name, count] => elems.push(Element {
+                name: name.to_string(),
+                count: count.parse().with_context(|| format!("{}: bad element count '{count}'", path.display()))?,
+                props: Vec::new(),
+            }),
+            ["property", "list", ct, it, name] => {
+                let (Some(ct), Some(it)) = (Scalar::parse(ct), Scalar::parse(it)) else {
+                    bail!("{}: bad list property types in '{}'", path.display(), line.trim());
+                };
+                let Some(e) = elems.last_mut() else { bail!("{}: property before any element", path.display()) };
+                e.props.push(Property { name: name.to_string(), ty: it, list: Some(ct) });
+            }
+            ["property", ty, name] => {
+                let Some(ty) = Scalar::parse(ty) else { bail!("{}: unknown property type '{ty}'", path.display()) };
+                let Some(e) = elems.last_mut() else { bail!("{}: property before any element", path.display()) };
+                e.props.push(Property { name: name.to_string(), ty, list: None });
+            }
+            ["comment", ..] | ["obj_info", ..] | [] => {}
+            _ => bail!("{}: unexpected PLY header line '{}'", path.display(), line.trim()),
+        }
+    }
+    let Some(enc) = enc else { bail!("{}: PLY header has no format line", path.display()) };
+    Ok((enc, elems))
+}
+
+/// Reads one element record's values: scalars as one value each, lists as their items.
+struct RecordReader<R> {
+    r: R,
+    enc: Encoding,
+    tokens: Vec<String>,
+    at: usize,
+    buf: [u8; 8],
+}
+
+impl<R: BufRead> RecordReader<R> {
+    fn scalar(&mut self, ty: Scalar) -> std::io::Result<f64> {
+        match self.enc {
+            Encoding::Binary { big } => {
+                let n = ty.size();
+                self.r.read_exact(&mut self.buf[..n])?;
+                Ok(ty.decode(&self.buf, big))
+            }
+            Encoding::Ascii => {
+                while self.at >= self.tokens.len() {
+                    let mut line = String::new();
+                    if self.r.read_line(&mut line)? == 0 {
+                        return Err(std::io::ErrorKind::UnexpectedEof.into());
+                    }
+                    self.tokens = line.split_whitespace().map(str::to_string).collect();
+                    self.at = 0;
+                }
+                self.at += 1;
+                self.tokens[self.at - 1].parse().map_err(|_| std::io::Error::new(std::io::ErrorKind::InvalidData, format!("'{}' is not a number", self.tokens[self.at - 1])))
+            }
+        }
+    }
+}
+
+pub fn import(path: &Path, scene: &mut SceneDesc, file: &SceneFile, sink: &mut dyn TriangleSink) -> Result<u64> {
+    let f = std::fs::File::open(path).map_err(context(path))?;
+    let file_len = f.metadata().map_err(context(path))?.len();
+    let mut r = BufReader::with_capacity(1 << 20, f);
+    let (enc, elems) = read_header(&mut r, path)?;
+    let material = raw_mesh_material(path, scene, file)?;
+    let mut rr = RecordReader { r, enc, tokens: Vec::new(), at: 0, buf: [0; 8] };
+    let mut pos: Vec<[f32; 3]> = Vec::new();
+    let mut nrm: Vec<[f32; 3]> = Vec::new();
+    let mut count = 0u64;
+    let mut vals = Vec::new();
+    for e in &elems {
+        // Every record takes at least a byte: refuse absurd counts before allocating.
+        if e.count > file_len {
+            bail!("{}: element '{}' claims {} records, more than the file's {file_len} bytes", path.display(), e.name, e.count);
+        }
+        let eof = |i: u64| move |err: std::io::Error| anyhow::anyhow!("{}: truncated or malformed PLY: {} {i} of {}: {err}", path.display(), e.name, e.count);
+        match e.name.as_str() {
+            "vertex" => {
+                let find = |n: &str| e.props.iter().position(|p| p.name == n && p.list.is_none());
+                let (Some(x), Some(y), Some(z)) = (find("x"), find("y"), find("z")) else {
+                    bail!("{}: vertex element lacks x, y, z", path.display());
+                };
+                let normals = match (find("nx"), find("ny"), find("nz")) {
+                    (Some(a), Some(b), Some(c)) => Some([a, b, c]),
+                    _ => None,
+                };
+                pos.reserve(e.count as usize);
+                for i in 0..e.count {
+                    vals.clear();
+                    for p in &e.props {
+                        if let Some(ct) = p.list {
+                            let n = rr.scalar(ct).map_err(eof(i))? as usize;
+                            for _ in 0..n {
+                                rr.scalar(p.ty).map_err(eof(i))?;
+                            }
+                            vals.push(0.0);
+                        } else {
+                            vals.push(rr.scalar(p.ty).map_err(eof(i))?);
+                        }
+                    }
+                    pos.push([vals[x] as f32, vals[y] as f32, vals[z] as f32]);
+                    if let Some([a, b, c]) = normals {
+                        nrm.push([vals[a] as f32, vals[b] as f32, vals[c] as f32]);
+                    }
+                }
+                if normals.is_some() {
+                    scene.has_normals = true;
+                }
+            }
+            "face" => {
+                let Some(li) = e.props.iter().position(|p| p.list.is_some() && (p.name == "vertex_indices" || p.name == "vertex_index")) else {
+                    bail!("{}: face element lacks a vertex_indices list", path.display());
+                };
+                let mut idx: Vec<u32> = Vec::new();
+                for i in 0..e.count {
+                    for (pi, p) in e.props.iter().enumerate() {
+                        if let Some(ct) = p.list {
+                            let n = rr.scalar(ct).map_err(eof(i))?;
+                            if pi == li {
+                                idx.clear();
+                            }
+                            for _ in 0..n as usize {
+                                let v = rr.scalar(p.ty).map_err(eof(i))?;
+                                if pi == li {
+                                    if v < 0.0 || v >= pos.len() as f64 {
+                                        bail!("{}: face {i}: vertex index {v} out of range ({} vertices)", path.display(), pos.len());
+                                    }
+                                    idx.push(v as u32);
+                                }
+                            }
+                        } else {
+                            rr.scalar(p.ty).map_err(eof(i))?;
+                        }
+                    }
+                    for k in 2..idx.len() {
+                        let tri = [idx[0], idx[k - 1], idx[k]];
+                        let p = tri.map(|v| pos[v as usize]);
+                        let n = (!nrm.is_empty()).then(|| tri.map(|v| nrm[v as usize]));
+                        sink.push(make_tri(p, n, material, &|| format!("{}: face {i}", path.display()))?)?;
+                        count += 1;
+                    }
+                }
+            }
+            _ => {
+                for i in 0..e.count {
+                    for p in &e.props {
+                        let n = match p.list {
+                            Some(ct) => rr.scalar(ct).map_err(eof(i))? as usize,
+                            None => 1,
+                        };
+                        for _ in 0..n {
+                            rr.scalar(p.ty).map_err(eof(i))?;
+                        }
+                    }
+                }
+            }
+        }
+    }
+    Ok(count)
+}

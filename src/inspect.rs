@@ -1,0 +1,115 @@
+//! `canopy inspect`: what an archive holds and how compactly, and with `--verify` a full
+//! check of every page.
+
+use crate::progress;
+use anyhow::Result;
+use canopy_format::{name_str, Archive, Features, Node, PageReport};
+use rayon::prelude::*;
+use serde::Serialize;
+
+#[derive(Debug, Serialize)]
+pub struct Summary {
+    pub path: String,
+    pub version: String,
+    pub node_bytes: usize,
+    pub input_triangles: u64,
+    pub triangles: u64,
+    pub vertices: u64,
+    pub nodes: u64,
+    pub pages: u64,
+    pub depth: u32,
+    pub file_bytes: u64,
+    pub decoded_bytes: u64,
+    pub compression_ratio: f64,
+    pub bytes_per_node_on_disk: f64,
+    pub bytes_per_input_triangle: f64,
+    pub mean_nodes_per_page: f64,
+    pub mean_pages_per_path: f64,
+    pub max_pages_per_path: u64,
+    /// "triangle-weighted" from the page table, or "exact per leaf" after `--verify`.
+    pub pages_per_path_method: &'static str,
+    pub features: Vec<&'static str>,
+    pub materials: Vec<String>,
+    pub cameras: Vec<String>,
+    pub lights: usize,
+    pub bounds_min: [f32; 3],
+    pub bounds_max: [f32; 3],
+    pub verified: bool,
+}
+
+pub fn summarize(a: &Archive) -> Summary {
+    let h = &a.header;
+    let file_bytes = std::fs::metadata(a.path()).map(|m| m.len()).unwrap_or(0);
+    let compressed: u64 = a.pages.iter().map(|e| e.compressed_len as u64).sum();
+    let decoded: u64 = a.pages.iter().map(|e| e.raw_len as u64).sum();
+    let tri_paths: u64 = a.pages.iter().map(|e| e.tri_count as u64 * (e.level as u64 + 1)).sum();
+    Summary {
+        path: a.path().display().to_string(),
+        version: format!("{}.{}", h.version_major, h.version_minor),
+        node_bytes: std::mem::size_of::<Node>(),
+        input_triangles: h.input_triangles,
+        triangles: h.triangles,
+        vertices: h.vertices,
+        nodes: h.nodes,
+        pages: a.pages.len() as u64,
+        depth: h.depth,
+        file_bytes,
+        decoded_bytes: decoded,
+        compression_ratio: decoded as f64 / compressed.max(1) as f64,
+        bytes_per_node_on_disk: file_bytes as f64 / h.nodes.max(1) as f64,
+        bytes_per_input_triangle: file_bytes as f64 / h.input_triangles.max(1) as f64,
+        mean_nodes_per_page: h.nodes as f64 / a.pages.len().max(1) as f64,
+        mean_pages_per_path: tri_paths as f64 / h.triangles.max(1) as f64,
+        max_pages_per_path: a.pages.iter().filter(|e| e.tri_count > 0).map(|e| e.level as u64 + 1).max().unwrap_or(0),
+        pages_per_path_method: "triangle-weighted",
+        features: Features::names(h.features),
+        materials: a.materials.iter().map(|m| name_str(&m.name)).collect(),
+        cameras: a.cameras.iter().map(|c| format!("{} {}x{}", name_str(&c.name), c.width, c.height)).collect(),
+        lights: a.lights.len(),
+        bounds_min: h.bounds_min,
+        bounds_max: h.bounds_max,
+        verified: false,
+    }
+}
+
+/// Decodes and checks every page (in parallel), then the cross-page totals.
+pub fn verify(a: &Archive, s: &mut Summary, show_progress: bool) -> Result<()> {
+    let bar = progress::bar(show_progress, a.pages.len() as u64, "verifying");
+    let reports: Vec<PageReport> = (0..a.pages.len() as u32)
+        .into_par_iter()
+        .map(|p| {
+            let r = a.verify_page(p);
+            bar.inc(1);
+            r
+        })
+        .collect::<Result<_, _>>()?;
+    bar.finish_and_clear();
+    a.verify_totals(&reports)?;
+    let leaves: u64 = reports.iter().map(|r| r.leaves).sum();
+    s.mean_pages_per_path = reports.iter().map(|r| r.path_pages_sum).sum::<u64>() as f64 / leaves.max(1) as f64;
+    s.pages_per_path_method = "exact per leaf";
+    s.verified = true;
+    Ok(())
+}
+
+pub fn print(s: &Summary) {
+    let mib = |b: u64| b as f64 / (1 << 20) as f64;
+    println!("{}", s.path);
+    println!("  format version      {}", s.version);
+    println!("  node size           {} bytes", s.node_bytes);
+    println!("  input triangles     {}", s.input_triangles);
+    println!("  stored triangles    {} ({} vertices)", s.triangles, s.vertices);
+    println!("  nodes               {} (depth {})", s.nodes, s.depth);
+    println!("  pages               {} ({:.0} nodes per page)", s.pages, s.mean_nodes_per_page);
+    println!("  size on disk        {:.2} MiB ({:.1} bytes per node, {:.1} bytes per input triangle)", mib(s.file_bytes), s.bytes_per_node_on_disk, s.bytes_per_input_triangle);
+    println!("  decoded size        {:.2} MiB (compression ratio {:.2})", mib(s.decoded_bytes), s.compression_ratio);
+    println!("  pages per path      mean {:.2}, max {} ({})", s.mean_pages_per_path, s.max_pages_per_path, s.pages_per_path_method);
+    println!("  features            {}", if s.features.is_empty() { "none".to_string() } else { s.features.join(", ") });
+    println!("  materials           {}: {}", s.materials.len(), s.materials.join(", "));
+    println!("  cameras             {}", if s.cameras.is_empty() { "none".to_string() } else { s.cameras.join(", ") });
+    println!("  punctual lights     {}", s.lights);
+    println!("  bounds              {:?} .. {:?}", s.bounds_min, s.bounds_max);
+    if s.verified {
+        println!("  verify              ok: every page decodes, checksums match, links and bounds are consistent");
+    }
+}

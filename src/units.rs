@@ -1,0 +1,71 @@
+//! Parsing of user-facing quantities: sizes (`512MiB`, `2GiB`, `1.5G`, `1000000`) and
+//! durations (`90s`, `5m`, `1h`, `250ms`).
+
+use anyhow::{bail, Result};
+
+/// Bytes from a size with an optional unit; K/M/G/T and KiB/MiB/GiB/TiB are both binary
+/// (powers of 1024), KB/MB/GB/TB decimal.
+pub fn parse_size(s: &str) -> Result<u64> {
+    let t = s.trim();
+    let split = t.find(|c: char| !(c.is_ascii_digit() || c == '.')).unwrap_or(t.len());
+    let (num, unit) = t.split_at(split);
+    let Ok(v) = num.parse::<f64>() else { bail!("'{s}' is not a size (try 512MiB, 2GiB, 1.5G)") };
+    let mult: f64 = match unit.trim().to_ascii_lowercase().as_str() {
+        "" | "b" => 1.0,
+        "k" | "kib" => 1024.0,
+        "m" | "mib" => 1024.0 * 1024.0,
+        "g" | "gib" => 1024.0 * 1024.0 * 1024.0,
+        "t" | "tib" => 1024f64.powi(4),
+        "kb" => 1e3,
+        "mb" => 1e6,
+        "gb" => 1e9,
+        "tb" => 1e12,
+        u => bail!("'{s}': unknown size unit '{u}' (use B, KiB, MiB, GiB, TiB, K, M, G, T, KB, MB, GB, TB)"),
+    };
+    let bytes = v * mult;
+    if !bytes.is_finite() || bytes >= u64::MAX as f64 {
+        bail!("'{s}' is too large");
+    }
+    Ok(bytes as u64)
+}
+
+/// Seconds from a duration with a unit (ms, s, m, h); a bare number is seconds.
+pub fn parse_duration(s: &str) -> Result<std::time::Duration> {
+    let t = s.trim();
+    let split = t.find(|c: char| !(c.is_ascii_digit() || c == '.')).unwrap_or(t.len());
+    let (num, unit) = t.split_at(split);
+    let Ok(v) = num.parse::<f64>() else { bail!("'{s}' is not a duration (try 90s, 5m)") };
+    let secs = match unit.trim() {
+        "" | "s" => v,
+        "ms" => v / 1000.0,
+        "m" | "min" => v * 60.0,
+        "h" => v * 3600.0,
+        u => bail!("'{s}': unknown duration unit '{u}' (use ms, s, m, h)"),
+    };
+    std::time::Duration::try_from_secs_f64(secs).map_err(|_| anyhow::anyhow!("'{s}' is not a valid duration"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sizes() {
+        assert_eq!(parse_size("512MiB").unwrap(), 512 << 20);
+        assert_eq!(parse_size("2GiB").unwrap(), 2 << 30);
+        assert_eq!(parse_size("1.5G").unwrap(), 3 << 29);
+        assert_eq!(parse_size("10KB").unwrap(), 10_000);
+        assert_eq!(parse_size("4096").unwrap(), 4096);
+        assert!(parse_size("12 parsecs").is_err());
+        assert!(parse_size("GiB").is_err());
+        assert!(parse_size("1e400G").is_err());
+    }
+
+    #[test]
+    fn durations() {
+        assert_eq!(parse_duration("90s").unwrap().as_secs(), 90);
+        assert_eq!(parse_duration("5m").unwrap().as_secs(), 300);
+        assert_eq!(parse_duration("250ms").unwrap().as_millis(), 250);
+        assert!(parse_duration("5 fortnights").is_err());
+    }
+}
