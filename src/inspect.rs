@@ -42,7 +42,11 @@ pub fn summarize(a: &Archive) -> Summary {
     let file_bytes = std::fs::metadata(a.path()).map(|m| m.len()).unwrap_or(0);
     let compressed: u64 = a.pages.iter().map(|e| e.compressed_len as u64).sum();
     let decoded: u64 = a.pages.iter().map(|e| e.raw_len as u64).sum();
-    let tri_paths: u64 = a.pages.iter().map(|e| e.tri_count as u64 * (e.level as u64 + 1)).sum();
+    let tri_paths: u64 = a
+        .pages
+        .iter()
+        .map(|e| e.tri_count as u64 * (e.level as u64 + 1))
+        .sum();
     Summary {
         path: a.path().display().to_string(),
         version: format!("{}.{}", h.version_major, h.version_minor),
@@ -60,11 +64,21 @@ pub fn summarize(a: &Archive) -> Summary {
         bytes_per_input_triangle: file_bytes as f64 / h.input_triangles.max(1) as f64,
         mean_nodes_per_page: h.nodes as f64 / a.pages.len().max(1) as f64,
         mean_pages_per_path: tri_paths as f64 / h.triangles.max(1) as f64,
-        max_pages_per_path: a.pages.iter().filter(|e| e.tri_count > 0).map(|e| e.level as u64 + 1).max().unwrap_or(0),
+        max_pages_per_path: a
+            .pages
+            .iter()
+            .filter(|e| e.tri_count > 0)
+            .map(|e| e.level as u64 + 1)
+            .max()
+            .unwrap_or(0),
         pages_per_path_method: "triangle-weighted",
         features: Features::names(h.features),
         materials: a.materials.iter().map(|m| name_str(&m.name)).collect(),
-        cameras: a.cameras.iter().map(|c| format!("{} {}x{}", name_str(&c.name), c.width, c.height)).collect(),
+        cameras: a
+            .cameras
+            .iter()
+            .map(|c| format!("{} {}x{}", name_str(&c.name), c.width, c.height))
+            .collect(),
         lights: a.lights.len(),
         bounds_min: h.bounds_min,
         bounds_max: h.bounds_max,
@@ -86,7 +100,8 @@ pub fn verify(a: &Archive, s: &mut Summary, show_progress: bool) -> Result<()> {
     bar.finish_and_clear();
     a.verify_totals(&reports)?;
     let leaves: u64 = reports.iter().map(|r| r.leaves).sum();
-    s.mean_pages_per_path = reports.iter().map(|r| r.path_pages_sum).sum::<u64>() as f64 / leaves.max(1) as f64;
+    s.mean_pages_per_path =
+        reports.iter().map(|r| r.path_pages_sum).sum::<u64>() as f64 / leaves.max(1) as f64;
     s.pages_per_path_method = "exact per leaf";
     s.verified = true;
     Ok(())
@@ -98,17 +113,56 @@ pub fn print(s: &Summary) {
     println!("  format version      {}", s.version);
     println!("  node size           {} bytes", s.node_bytes);
     println!("  input triangles     {}", s.input_triangles);
-    println!("  stored triangles    {} ({} vertices)", s.triangles, s.vertices);
+    println!(
+        "  stored triangles    {} ({} vertices)",
+        s.triangles, s.vertices
+    );
     println!("  nodes               {} (depth {})", s.nodes, s.depth);
-    println!("  pages               {} ({:.0} nodes per page)", s.pages, s.mean_nodes_per_page);
-    println!("  size on disk        {:.2} MiB ({:.1} bytes per node, {:.1} bytes per input triangle)", mib(s.file_bytes), s.bytes_per_node_on_disk, s.bytes_per_input_triangle);
-    println!("  decoded size        {:.2} MiB (compression ratio {:.2})", mib(s.decoded_bytes), s.compression_ratio);
-    println!("  pages per path      mean {:.2}, max {} ({})", s.mean_pages_per_path, s.max_pages_per_path, s.pages_per_path_method);
-    println!("  features            {}", if s.features.is_empty() { "none".to_string() } else { s.features.join(", ") });
-    println!("  materials           {}: {}", s.materials.len(), s.materials.join(", "));
-    println!("  cameras             {}", if s.cameras.is_empty() { "none".to_string() } else { s.cameras.join(", ") });
+    println!(
+        "  pages               {} ({:.0} nodes per page)",
+        s.pages, s.mean_nodes_per_page
+    );
+    println!(
+        "  size on disk        {:.2} MiB ({:.1} bytes per node, {:.1} bytes per input triangle)",
+        mib(s.file_bytes),
+        s.bytes_per_node_on_disk,
+        s.bytes_per_input_triangle
+    );
+    println!(
+        "  decoded size        {:.2} MiB (compression ratio {:.2})",
+        mib(s.decoded_bytes),
+        s.compression_ratio
+    );
+    println!(
+        "  pages per path      mean {:.2}, max {} ({})",
+        s.mean_pages_per_path, s.max_pages_per_path, s.pages_per_path_method
+    );
+    println!(
+        "  features            {}",
+        if s.features.is_empty() {
+            "none".to_string()
+        } else {
+            s.features.join(", ")
+        }
+    );
+    println!(
+        "  materials           {}: {}",
+        s.materials.len(),
+        s.materials.join(", ")
+    );
+    println!(
+        "  cameras             {}",
+        if s.cameras.is_empty() {
+            "none".to_string()
+        } else {
+            s.cameras.join(", ")
+        }
+    );
     println!("  punctual lights     {}", s.lights);
-    println!("  bounds              {:?} .. {:?}", s.bounds_min, s.bounds_max);
+    println!(
+        "  bounds              {:?} .. {:?}",
+        s.bounds_min, s.bounds_max
+    );
     if s.verified {
         println!("  verify              ok: every page decodes, checksums match, links and bounds are consistent");
     }

@@ -59,8 +59,24 @@ enum Cmd {
 fn run(cli: Cli) -> Result<()> {
     let show = progress::wanted(cli.quiet);
     match cli.cmd {
-        Cmd::Convert { inputs, output, mem_budget, scene, page_nodes, zstd_level, json } => {
-            let opts = ConvertOptions { inputs, output: output.clone(), mem_budget, scene, page_nodes: page_nodes as usize, zstd_level, progress: show };
+        Cmd::Convert {
+            inputs,
+            output,
+            mem_budget,
+            scene,
+            page_nodes,
+            zstd_level,
+            json,
+        } => {
+            let opts = ConvertOptions {
+                inputs,
+                output: output.clone(),
+                mem_budget,
+                scene,
+                page_nodes: page_nodes as usize,
+                zstd_level,
+                progress: show,
+            };
             let r = convert(&opts)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&r)?);
@@ -79,11 +95,19 @@ fn run(cli: Cli) -> Result<()> {
                 );
                 println!(
                     "  {:.2} s (import {:.2}, partition {:.2}, build {:.2}), {:.2} M triangles/s",
-                    r.seconds_total, r.seconds_import, r.seconds_partition, r.seconds_build, per_s / 1e6
+                    r.seconds_total,
+                    r.seconds_import,
+                    r.seconds_partition,
+                    r.seconds_build,
+                    per_s / 1e6
                 );
             }
         }
-        Cmd::Inspect { archive, verify, json } => {
+        Cmd::Inspect {
+            archive,
+            verify,
+            json,
+        } => {
             let a = canopy_format::Archive::open(&archive)?;
             let mut s = inspect::summarize(&a);
             if verify {

@@ -13,7 +13,13 @@ pub fn bar(enabled: bool, len: u64, what: &str) -> ProgressBar {
         return ProgressBar::hidden();
     }
     let b = ProgressBar::with_draw_target(Some(len), ProgressDrawTarget::stderr());
-    b.set_style(ProgressStyle::with_template("{msg:>12} [{bar:40}] {percent:>3}% {human_pos}/{human_len} ({per_sec}, eta {eta})").unwrap().progress_chars("=> "));
+    b.set_style(
+        ProgressStyle::with_template(
+            "{msg:>12} [{bar:40}] {percent:>3}% {human_pos}/{human_len} ({per_sec}, eta {eta})",
+        )
+        .unwrap()
+        .progress_chars("=> "),
+    );
     b.set_message(what.to_string());
     b
 }
@@ -24,7 +30,12 @@ pub fn counter(enabled: bool, what: &str, unit: &str) -> ProgressBar {
         return ProgressBar::hidden();
     }
     let b = ProgressBar::with_draw_target(None, ProgressDrawTarget::stderr());
-    b.set_style(ProgressStyle::with_template(&format!("{{msg:>12}} {{spinner}} {{human_pos}} {unit} ({{per_sec}})")).unwrap());
+    b.set_style(
+        ProgressStyle::with_template(&format!(
+            "{{msg:>12}} {{spinner}} {{human_pos}} {unit} ({{per_sec}})"
+        ))
+        .unwrap(),
+    );
     b.set_message(what.to_string());
     b
 }

@@ -7,9 +7,13 @@ use anyhow::{bail, Result};
 /// (powers of 1024), KB/MB/GB/TB decimal.
 pub fn parse_size(s: &str) -> Result<u64> {
     let t = s.trim();
-    let split = t.find(|c: char| !(c.is_ascii_digit() || c == '.')).unwrap_or(t.len());
+    let split = t
+        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .unwrap_or(t.len());
     let (num, unit) = t.split_at(split);
-    let Ok(v) = num.parse::<f64>() else { bail!("'{s}' is not a size (try 512MiB, 2GiB, 1.5G)") };
+    let Ok(v) = num.parse::<f64>() else {
+        bail!("'{s}' is not a size (try 512MiB, 2GiB, 1.5G)")
+    };
     let mult: f64 = match unit.trim().to_ascii_lowercase().as_str() {
         "" | "b" => 1.0,
         "k" | "kib" => 1024.0,
@@ -32,9 +36,13 @@ pub fn parse_size(s: &str) -> Result<u64> {
 /// Seconds from a duration with a unit (ms, s, m, h); a bare number is seconds.
 pub fn parse_duration(s: &str) -> Result<std::time::Duration> {
     let t = s.trim();
-    let split = t.find(|c: char| !(c.is_ascii_digit() || c == '.')).unwrap_or(t.len());
+    let split = t
+        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .unwrap_or(t.len());
     let (num, unit) = t.split_at(split);
-    let Ok(v) = num.parse::<f64>() else { bail!("'{s}' is not a duration (try 90s, 5m)") };
+    let Ok(v) = num.parse::<f64>() else {
+        bail!("'{s}' is not a duration (try 90s, 5m)")
+    };
     let secs = match unit.trim() {
         "" | "s" => v,
         "ms" => v / 1000.0,
@@ -42,7 +50,8 @@ pub fn parse_duration(s: &str) -> Result<std::time::Duration> {
         "h" => v * 3600.0,
         u => bail!("'{s}': unknown duration unit '{u}' (use ms, s, m, h)"),
     };
-    std::time::Duration::try_from_secs_f64(secs).map_err(|_| anyhow::anyhow!("'{s}' is not a valid duration"))
+    std::time::Duration::try_from_secs_f64(secs)
+        .map_err(|_| anyhow::anyhow!("'{s}' is not a valid duration"))
 }
 
 #[cfg(test)]

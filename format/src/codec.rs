@@ -10,7 +10,13 @@ const RGBE_BIAS: i32 = 128;
 /// Negative, NaN and values below 2^-128 encode as zero; values are clamped to 2^127.
 /// Error bound per channel: |c - decode(c)| <= max(r, g, b) * 2^-17.
 pub fn rgbe64_encode(rgb: [f32; 3]) -> u64 {
-    let c = rgb.map(|v| if v.is_finite() && v > 0.0 { v.min(1.7e38) } else { 0.0 });
+    let c = rgb.map(|v| {
+        if v.is_finite() && v > 0.0 {
+            v.min(1.7e38)
+        } else {
+            0.0
+        }
+    });
     let m = c[0].max(c[1]).max(c[2]);
     if m < f32::MIN_POSITIVE {
         return 0;
@@ -135,7 +141,11 @@ impl Grid {
 
     fn estimate(&self, axis: usize, v: f32) -> u16 {
         let (lo, hi) = (self.lo[axis] as f64, self.hi[axis] as f64);
-        let t = if hi > lo { (v as f64 - lo) / (hi - lo) } else { 0.0 };
+        let t = if hi > lo {
+            (v as f64 - lo) / (hi - lo)
+        } else {
+            0.0
+        };
         (t * QMAX as f64).clamp(0.0, QMAX as f64) as u16
     }
 
@@ -209,7 +219,8 @@ impl Grid {
     /// Error <= one grid step per axis.
     pub fn quantize_nearest(&self, axis: usize, v: f32) -> u16 {
         let lo = self.quantize_down(axis, v);
-        if lo < QMAX && (self.dequant(axis, lo + 1) - v).abs() < (v - self.dequant(axis, lo)).abs() {
+        if lo < QMAX && (self.dequant(axis, lo + 1) - v).abs() < (v - self.dequant(axis, lo)).abs()
+        {
             lo + 1
         } else {
             lo

@@ -4,17 +4,33 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 pub enum FormatError {
     #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
     #[error("{path}: not a Canopy archive (bad magic)")]
     BadMagic { path: PathBuf },
     #[error("{path}: archive format version {major}.{minor} is newer than this canopy reads ({}.x); upgrade canopy", crate::VERSION_MAJOR)]
-    NewerVersion { path: PathBuf, major: u16, minor: u16 },
+    NewerVersion {
+        path: PathBuf,
+        major: u16,
+        minor: u16,
+    },
     #[error("{path}: truncated archive: {what} needs bytes up to {needed}, file has {len}")]
-    Truncated { path: PathBuf, what: String, needed: u64, len: u64 },
+    Truncated {
+        path: PathBuf,
+        what: String,
+        needed: u64,
+        len: u64,
+    },
     #[error("{path}: corrupt archive: {what}")]
     Corrupt { path: PathBuf, what: String },
     #[error("{path}: page {page}: {what}")]
-    BadPage { path: PathBuf, page: u32, what: String },
+    BadPage {
+        path: PathBuf,
+        page: u32,
+        what: String,
+    },
 }
 
 pub type Result<T> = std::result::Result<T, FormatError>;

@@ -2,7 +2,9 @@
 //! never leaves a half-written file at its target path, and a bounds-checked mmap reader.
 
 #[cfg(not(target_endian = "little"))]
-compile_error!("the archive format is little-endian and read by casting; big-endian hosts are not supported");
+compile_error!(
+    "the archive format is little-endian and read by casting; big-endian hosts are not supported"
+);
 
 pub mod codec;
 pub mod error;

@@ -23,54 +23,105 @@ pub struct Archive {
 impl Archive {
     pub fn open(path: &Path) -> Result<Self> {
         let p = path.to_path_buf();
-        let file = std::fs::File::open(path).map_err(|source| FormatError::Io { path: p.clone(), source })?;
-        let len = file.metadata().map_err(|source| FormatError::Io { path: p.clone(), source })?.len();
+        let file = std::fs::File::open(path).map_err(|source| FormatError::Io {
+            path: p.clone(),
+            source,
+        })?;
+        let len = file
+            .metadata()
+            .map_err(|source| FormatError::Io {
+                path: p.clone(),
+                source,
+            })?
+            .len();
         if len < 8 {
-            return Err(FormatError::Truncated { path: p, what: "the header".into(), needed: 256, len });
+            return Err(FormatError::Truncated {
+                path: p,
+                what: "the header".into(),
+                needed: 256,
+                len,
+            });
         }
         // SAFETY: the map is read-only and every access below is bounds-checked against `len`.
-        let map = unsafe { memmap2::Mmap::map(&file) }.map_err(|source| FormatError::Io { path: p.clone(), source })?;
+        let map = unsafe { memmap2::Mmap::map(&file) }.map_err(|source| FormatError::Io {
+            path: p.clone(),
+            source,
+        })?;
         if map[..8] != MAGIC {
             return Err(FormatError::BadMagic { path: p });
         }
         if len < 256 {
-            return Err(FormatError::Truncated { path: p, what: "the header".into(), needed: 256, len });
+            return Err(FormatError::Truncated {
+                path: p,
+                what: "the header".into(),
+                needed: 256,
+                len,
+            });
         }
         let header: Header = bytemuck::pod_read_unaligned(&map[..256]);
         if header.version_major > VERSION_MAJOR {
-            return Err(FormatError::NewerVersion { path: p, major: header.version_major, minor: header.version_minor });
+            return Err(FormatError::NewerVersion {
+                path: p,
+                major: header.version_major,
+                minor: header.version_minor,
+            });
         }
-        let corrupt = |what: String| FormatError::Corrupt { path: p.clone(), what };
+        let corrupt = |what: String| FormatError::Corrupt {
+            path: p.clone(),
+            what,
+        };
         let mut check = header;
         check.header_checksum = 0;
         if xxhash_rust::xxh3::xxh3_64(bytemuck::bytes_of(&check)) != header.header_checksum {
             return Err(corrupt("header checksum mismatch".into()));
         }
         if header.header_size != 256 {
-            return Err(corrupt(format!("header size {} (expected 256)", header.header_size)));
+            return Err(corrupt(format!(
+                "header size {} (expected 256)",
+                header.header_size
+            )));
         }
         if header.file_len != len {
-            return Err(FormatError::Truncated { path: p, what: "the archive".into(), needed: header.file_len, len });
+            return Err(FormatError::Truncated {
+                path: p,
+                what: "the archive".into(),
+                needed: header.file_len,
+                len,
+            });
         }
         let tables_start = header.materials.offset;
         if tables_start < 256 || tables_start > len {
-            return Err(corrupt(format!("table offset {tables_start} outside the file")));
+            return Err(corrupt(format!(
+                "table offset {tables_start} outside the file"
+            )));
         }
         if xxhash_rust::xxh3::xxh3_64(&map[tables_start as usize..]) != header.tables_checksum {
             return Err(corrupt("table checksum mismatch".into()));
         }
-        let materials = read_table::<MaterialRecord>(&map, &header.materials, 128, "material table", &p)?;
+        let materials =
+            read_table::<MaterialRecord>(&map, &header.materials, 128, "material table", &p)?;
         let cameras = read_table::<CameraRecord>(&map, &header.cameras, 128, "camera table", &p)?;
         let lights = read_table::<LightRecord>(&map, &header.lights, 96, "light table", &p)?;
         let pages = read_table::<PageEntry>(&map, &header.pages, 96, "page table", &p)?;
         if pages.is_empty() || header.root_page as usize >= pages.len() {
-            return Err(corrupt(format!("root page {} of {} pages", header.root_page, pages.len())));
+            return Err(corrupt(format!(
+                "root page {} of {} pages",
+                header.root_page,
+                pages.len()
+            )));
         }
         let mut nodes = 0u64;
         for (i, e) in pages.iter().enumerate() {
             let end = e.offset.checked_add(e.compressed_len as u64);
             if e.offset < 256 || end.is_none_or(|end| end > tables_start) {
-                return Err(FormatError::BadPage { path: p, page: i as u32, what: format!("bytes {}+{} outside the page area", e.offset, e.compressed_len) });
+                return Err(FormatError::BadPage {
+                    path: p,
+                    page: i as u32,
+                    what: format!(
+                        "bytes {}+{} outside the page area",
+                        e.offset, e.compressed_len
+                    ),
+                });
             }
             let h = PageHeader {
                 magic: PAGE_MAGIC,
@@ -81,15 +132,31 @@ impl Archive {
                 has_normals: (header.features & Features::SHADING_NORMALS != 0) as u32,
                 reserved: [0; 8],
             };
-            if raw_page_len(&h) != e.raw_len as usize || e.first_node != nodes || e.node_count == 0 {
-                return Err(FormatError::BadPage { path: p, page: i as u32, what: "page-table counts are inconsistent".into() });
+            if raw_page_len(&h) != e.raw_len as usize || e.first_node != nodes || e.node_count == 0
+            {
+                return Err(FormatError::BadPage {
+                    path: p,
+                    page: i as u32,
+                    what: "page-table counts are inconsistent".into(),
+                });
             }
             nodes += e.node_count as u64;
         }
         if nodes != header.nodes {
-            return Err(corrupt(format!("page table holds {nodes} nodes, header says {}", header.nodes)));
+            return Err(corrupt(format!(
+                "page table holds {nodes} nodes, header says {}",
+                header.nodes
+            )));
         }
-        Ok(Self { path: p, map, header, materials, cameras, lights, pages })
+        Ok(Self {
+            path: p,
+            map,
+            header,
+            materials,
+            cameras,
+            lights,
+            pages,
+        })
     }
 
     pub fn path(&self) -> &Path {
@@ -97,12 +164,19 @@ impl Archive {
     }
 
     fn page_err(&self, page: u32, what: impl Into<String>) -> FormatError {
-        FormatError::BadPage { path: self.path.clone(), page, what: what.into() }
+        FormatError::BadPage {
+            path: self.path.clone(),
+            page,
+            what: what.into(),
+        }
     }
 
     /// The compressed bytes of a page, after checking its checksum.
     pub fn page_bytes(&self, page: u32) -> Result<&[u8]> {
-        let e = self.pages.get(page as usize).ok_or_else(|| self.page_err(page, "no such page"))?;
+        let e = self
+            .pages
+            .get(page as usize)
+            .ok_or_else(|| self.page_err(page, "no such page"))?;
         let bytes = &self.map[e.offset as usize..(e.offset + e.compressed_len as u64) as usize];
         if xxhash_rust::xxh3::xxh3_64(bytes) != e.checksum {
             return Err(self.page_err(page, "checksum mismatch (the page is corrupt)"));
@@ -115,14 +189,23 @@ impl Archive {
     pub fn read_page(&self, page: u32) -> Result<PageContents> {
         let bytes = self.page_bytes(page)?;
         let e = &self.pages[page as usize];
-        let raw = zstd::bulk::decompress(bytes, e.raw_len as usize).map_err(|err| self.page_err(page, format!("zstd: {err}")))?;
+        let raw = zstd::bulk::decompress(bytes, e.raw_len as usize)
+            .map_err(|err| self.page_err(page, format!("zstd: {err}")))?;
         if raw.len() != e.raw_len as usize {
-            return Err(self.page_err(page, format!("decompressed to {} bytes, page table says {}", raw.len(), e.raw_len)));
+            return Err(self.page_err(
+                page,
+                format!(
+                    "decompressed to {} bytes, page table says {}",
+                    raw.len(),
+                    e.raw_len
+                ),
+            ));
         }
         let h: PageHeader = bytemuck::pod_read_unaligned(&raw[..32]);
         let has_normals = self.header.features & Features::SHADING_NORMALS != 0;
         if h.magic != PAGE_MAGIC
-            || (h.node_count, h.tri_count, h.vert_count, h.coef_bytes) != (e.node_count, e.tri_count, e.vert_count, e.coef_bytes)
+            || (h.node_count, h.tri_count, h.vert_count, h.coef_bytes)
+                != (e.node_count, e.tri_count, e.vert_count, e.coef_bytes)
             || (h.has_normals != 0) != has_normals
         {
             return Err(self.page_err(page, "page header disagrees with the page table"));
@@ -136,9 +219,19 @@ impl Archive {
         let nodes: Vec<Node> = bytemuck::pod_collect_to_vec(take(h.node_count as usize * 128));
         let tris: Vec<Tri> = bytemuck::pod_collect_to_vec(take(h.tri_count as usize * 8));
         let verts: Vec<[f32; 3]> = bytemuck::pod_collect_to_vec(take(h.vert_count as usize * 12));
-        let normals: Vec<u32> = if has_normals { bytemuck::pod_collect_to_vec(take(h.vert_count as usize * 4)) } else { Vec::new() };
+        let normals: Vec<u32> = if has_normals {
+            bytemuck::pod_collect_to_vec(take(h.vert_count as usize * 4))
+        } else {
+            Vec::new()
+        };
         let coefs = take(h.coef_bytes as usize).to_vec();
-        let contents = PageContents { nodes, tris, verts, normals, coefs };
+        let contents = PageContents {
+            nodes,
+            tris,
+            verts,
+            normals,
+            coefs,
+        };
         self.check_indices(page, &contents)?;
         Ok(contents)
     }
@@ -157,16 +250,27 @@ impl Archive {
                 }
             } else if node.has_child_page() {
                 let child = self.pages.get(a);
-                if child.is_none_or(|e| e.parent_page != page || e.parent_node != i as u32 || e.root_count != 2) {
-                    return bad(format!("child page {a} does not name this node as its parent"));
+                if child.is_none_or(|e| {
+                    e.parent_page != page || e.parent_node != i as u32 || e.root_count != 2
+                }) {
+                    return bad(format!(
+                        "child page {a} does not name this node as its parent"
+                    ));
                 }
             } else if a <= i || b <= i || a >= n || b >= n || a == b {
-                return bad(format!("children {a}, {b} not after it inside the page ({n} nodes)"));
+                return bad(format!(
+                    "children {a}, {b} not after it inside the page ({n} nodes)"
+                ));
             }
         }
         for (i, tri) in c.tris.iter().enumerate() {
-            if tri.v.iter().any(|&x| x as usize >= v) || tri.material as usize >= self.materials.len() {
-                return Err(self.page_err(page, format!("triangle {i}: vertex or material index out of range")));
+            if tri.v.iter().any(|&x| x as usize >= v)
+                || tri.material as usize >= self.materials.len()
+            {
+                return Err(self.page_err(
+                    page,
+                    format!("triangle {i}: vertex or material index out of range"),
+                ));
             }
         }
         Ok(())
@@ -178,13 +282,32 @@ impl Archive {
     }
 }
 
-fn read_table<T: bytemuck::Pod>(map: &[u8], t: &TableRef, size: u32, what: &str, p: &Path) -> Result<Vec<T>> {
+fn read_table<T: bytemuck::Pod>(
+    map: &[u8],
+    t: &TableRef,
+    size: u32,
+    what: &str,
+    p: &Path,
+) -> Result<Vec<T>> {
     if t.record_size != size {
-        return Err(FormatError::Corrupt { path: p.to_path_buf(), what: format!("{what}: record size {} (expected {size})", t.record_size) });
+        return Err(FormatError::Corrupt {
+            path: p.to_path_buf(),
+            what: format!("{what}: record size {} (expected {size})", t.record_size),
+        });
     }
-    let end = t.offset.checked_add(t.count as u64 * size as u64).filter(|&e| e <= map.len() as u64);
+    let end = t
+        .offset
+        .checked_add(t.count as u64 * size as u64)
+        .filter(|&e| e <= map.len() as u64);
     let Some(end) = end else {
-        return Err(FormatError::Truncated { path: p.to_path_buf(), what: what.into(), needed: t.offset + t.count as u64 * size as u64, len: map.len() as u64 });
+        return Err(FormatError::Truncated {
+            path: p.to_path_buf(),
+            what: what.into(),
+            needed: t.offset + t.count as u64 * size as u64,
+            len: map.len() as u64,
+        });
     };
-    Ok(bytemuck::pod_collect_to_vec(&map[t.offset as usize..end as usize]))
+    Ok(bytemuck::pod_collect_to_vec(
+        &map[t.offset as usize..end as usize],
+    ))
 }

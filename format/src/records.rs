@@ -117,7 +117,10 @@ const _: () = assert!(std::mem::size_of::<PageEntry>() == 96);
 
 impl PageEntry {
     pub fn grid(&self) -> crate::codec::Grid {
-        crate::codec::Grid { lo: self.bounds_min, hi: self.bounds_max }
+        crate::codec::Grid {
+            lo: self.bounds_min,
+            hi: self.bounds_max,
+        }
     }
 }
 

@@ -26,15 +26,25 @@ impl Archive {
     pub fn verify_page(&self, page: u32) -> Result<PageReport> {
         let c = self.read_page(page)?;
         let e = self.pages[page as usize];
-        let err = |what: String| FormatError::BadPage { path: self.path().to_path_buf(), page, what };
+        let err = |what: String| FormatError::BadPage {
+            path: self.path().to_path_buf(),
+            page,
+            what,
+        };
         let is_root = page == self.header.root_page;
         if is_root != (e.parent_page == NONE) || e.root_count != if is_root { 1 } else { 2 } {
             return Err(err("root/parent fields are inconsistent".into()));
         }
         if !is_root {
-            let parent = self.pages.get(e.parent_page as usize).ok_or_else(|| err("parent page out of range".into()))?;
+            let parent = self
+                .pages
+                .get(e.parent_page as usize)
+                .ok_or_else(|| err("parent page out of range".into()))?;
             if e.level != parent.level + 1 {
-                return Err(err(format!("level {} under a page of level {}", e.level, parent.level)));
+                return Err(err(format!(
+                    "level {} under a page of level {}",
+                    e.level, parent.level
+                )));
             }
         }
         if c.verts.iter().flatten().any(|x| !x.is_finite()) {
@@ -43,16 +53,25 @@ impl Archive {
         let grid = e.grid();
         let mut seen = vec![false; c.nodes.len()];
         let mut report = PageReport::default();
-        let mut stack: Vec<(usize, u32)> = (0..e.root_count as usize).rev().map(|r| (r, 0)).collect();
+        let mut stack: Vec<(usize, u32)> =
+            (0..e.root_count as usize).rev().map(|r| (r, 0)).collect();
         let mut root_box: Option<([f32; 3], [f32; 3])> = None;
         while let Some((i, depth)) = stack.pop() {
-            let node: &Node = c.nodes.get(i).ok_or_else(|| err(format!("root {i} missing")))?;
+            let node: &Node = c
+                .nodes
+                .get(i)
+                .ok_or_else(|| err(format!("root {i} missing")))?;
             if std::mem::replace(&mut seen[i], true) {
                 return Err(err(format!("node {i} reached twice")));
             }
             let b = grid.dequant_box(&node.bounds);
             if i < e.root_count as usize {
-                root_box = Some(root_box.map_or(b, |r| ([0, 1, 2].map(|a| r.0[a].min(b.0[a])), [0, 1, 2].map(|a| r.1[a].max(b.1[a])))));
+                root_box = Some(root_box.map_or(b, |r| {
+                    (
+                        [0, 1, 2].map(|a| r.0[a].min(b.0[a])),
+                        [0, 1, 2].map(|a| r.1[a].max(b.1[a])),
+                    )
+                }));
             }
             report.max_node_depth = report.max_node_depth.max(depth);
             if node.is_leaf() {
@@ -63,14 +82,19 @@ impl Archive {
                     for &v in &t.v {
                         let p = c.verts[v as usize];
                         if !contains(&b, &(p, p)) {
-                            return Err(err(format!("leaf {i}: vertex {p:?} outside its bounds {b:?}")));
+                            return Err(err(format!(
+                                "leaf {i}: vertex {p:?} outside its bounds {b:?}"
+                            )));
                         }
                     }
                 }
             } else if node.has_child_page() {
                 let child = &self.pages[node.link[0] as usize];
                 if !contains(&b, &(child.bounds_min, child.bounds_max)) {
-                    return Err(err(format!("node {i}: child page {} extends outside it", node.link[0])));
+                    return Err(err(format!(
+                        "node {i}: child page {} extends outside it",
+                        node.link[0]
+                    )));
                 }
                 report.child_pages.push(node.link[0]);
             } else {
@@ -84,7 +108,9 @@ impl Archive {
             }
         }
         if let Some(i) = seen.iter().position(|s| !s) {
-            return Err(err(format!("node {i} is not reachable from the page roots")));
+            return Err(err(format!(
+                "node {i} is not reachable from the page roots"
+            )));
         }
         if let Some(r) = root_box {
             if !contains(&r, &(e.bounds_min, e.bounds_max)) {
@@ -96,7 +122,10 @@ impl Archive {
 
     /// Combines per-page reports: every non-root page linked exactly once, totals match.
     pub fn verify_totals(&self, reports: &[PageReport]) -> Result<()> {
-        let corrupt = |what: String| FormatError::Corrupt { path: self.path().to_path_buf(), what };
+        let corrupt = |what: String| FormatError::Corrupt {
+            path: self.path().to_path_buf(),
+            what,
+        };
         let mut linked = vec![0u32; self.pages.len()];
         for r in reports {
             for &c in &r.child_pages {
@@ -106,12 +135,17 @@ impl Archive {
         for (i, &n) in linked.iter().enumerate() {
             let want = (i as u32 != self.header.root_page) as u32;
             if n != want {
-                return Err(corrupt(format!("page {i} is linked {n} times (expected {want})")));
+                return Err(corrupt(format!(
+                    "page {i} is linked {n} times (expected {want})"
+                )));
             }
         }
         let tris: u64 = reports.iter().map(|r| r.triangles).sum();
         if tris != self.header.triangles {
-            return Err(corrupt(format!("leaves hold {tris} triangles, header says {}", self.header.triangles)));
+            return Err(corrupt(format!(
+                "leaves hold {tris} triangles, header says {}",
+                self.header.triangles
+            )));
         }
         Ok(())
     }

@@ -74,7 +74,11 @@ pub fn encode_page(p: &PageContents, zstd_level: i32) -> std::io::Result<Encoded
 
 /// Decompressed size a page header implies.
 pub fn raw_page_len(h: &PageHeader) -> usize {
-    let normals = if h.has_normals != 0 { h.vert_count as usize * 4 } else { 0 };
+    let normals = if h.has_normals != 0 {
+        h.vert_count as usize * 4
+    } else {
+        0
+    };
     std::mem::size_of::<PageHeader>()
         + h.node_count as usize * std::mem::size_of::<Node>()
         + h.tri_count as usize * std::mem::size_of::<Tri>()
@@ -112,7 +116,10 @@ pub struct ArchiveWriter {
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> FormatError + '_ {
-    move |source| FormatError::Io { path: path.to_path_buf(), source }
+    move |source| FormatError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
 }
 
 impl ArchiveWriter {
@@ -123,7 +130,10 @@ impl ArchiveWriter {
             Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
             _ => PathBuf::from("."),
         };
-        let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
         let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
         let file = File::create(&tmp).map_err(io(path))?;
         let mut out = BufWriter::with_capacity(1 << 20, file);
@@ -198,7 +208,12 @@ impl ArchiveWriter {
                 chain.push(p);
                 match self.pages[p].parent_page {
                     NONE => break u16::MAX,
-                    parent if (parent as usize) < self.pages.len() && chain.len() <= self.pages.len() => p = parent as usize,
+                    parent
+                        if (parent as usize) < self.pages.len()
+                            && chain.len() <= self.pages.len() =>
+                    {
+                        p = parent as usize
+                    }
                     _ => break u16::MAX,
                 }
             };
@@ -217,15 +232,39 @@ impl ArchiveWriter {
         self.fill_levels();
         let mut tables = Vec::new();
         let mut table = |bytes: &[u8], count: usize, size: usize, base: u64| {
-            let t = TableRef { offset: base + tables.len() as u64, count: count as u32, record_size: size as u32 };
+            let t = TableRef {
+                offset: base + tables.len() as u64,
+                count: count as u32,
+                record_size: size as u32,
+            };
             tables.extend_from_slice(bytes);
             t
         };
         let base = self.offset;
-        let materials = table(bytemuck::cast_slice(&info.materials), info.materials.len(), 128, base);
-        let cameras = table(bytemuck::cast_slice(&info.cameras), info.cameras.len(), 128, base);
-        let lights = table(bytemuck::cast_slice(&info.lights), info.lights.len(), 96, base);
-        let pages = table(bytemuck::cast_slice(&self.pages), self.pages.len(), 96, base);
+        let materials = table(
+            bytemuck::cast_slice(&info.materials),
+            info.materials.len(),
+            128,
+            base,
+        );
+        let cameras = table(
+            bytemuck::cast_slice(&info.cameras),
+            info.cameras.len(),
+            128,
+            base,
+        );
+        let lights = table(
+            bytemuck::cast_slice(&info.lights),
+            info.lights.len(),
+            96,
+            base,
+        );
+        let pages = table(
+            bytemuck::cast_slice(&self.pages),
+            self.pages.len(),
+            96,
+            base,
+        );
         let mut header = Header {
             magic: MAGIC,
             version_major: VERSION_MAJOR,
@@ -255,9 +294,13 @@ impl ArchiveWriter {
         let mut out = self.out.take().expect("finish called twice");
         let tmp = self.tmp.clone();
         out.write_all(&tables).map_err(io(&tmp))?;
-        let mut file = out.into_inner().map_err(|e| FormatError::Io { path: tmp.clone(), source: e.into_error() })?;
+        let mut file = out.into_inner().map_err(|e| FormatError::Io {
+            path: tmp.clone(),
+            source: e.into_error(),
+        })?;
         file.seek(SeekFrom::Start(0)).map_err(io(&tmp))?;
-        file.write_all(bytemuck::bytes_of(&header)).map_err(io(&tmp))?;
+        file.write_all(bytemuck::bytes_of(&header))
+            .map_err(io(&tmp))?;
         file.sync_all().map_err(io(&tmp))?;
         drop(file);
         std::fs::rename(&tmp, &self.path).map_err(io(&self.path))?;

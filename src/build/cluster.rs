@@ -41,7 +41,8 @@ impl MatSummary {
         let f0_max = f0[0].max(f0[1]).max(f0[2]);
         let f0d_max = f0_d[0].max(f0_d[1]).max(f0_d[2]);
         let bmax = base[0].max(base[1]).max(base[2]);
-        let reflect = REFLECT_COS.map(|c| (1.0 - metal) * spec * schlick(f0d_max, c) + metal * schlick(bmax, c));
+        let reflect = REFLECT_COS
+            .map(|c| (1.0 - metal) * spec * schlick(f0d_max, c) + metal * schlick(bmax, c));
         let mut flags = 0;
         if m.emission.iter().any(|&e| e > 0.0) {
             flags |= NodeFlags::EMISSIVE;
@@ -57,7 +58,11 @@ impl MatSummary {
             refractiveness: trans,
             translucency: if trans > 0.0 { base } else { [0.0; 3] },
             reflect,
-            tint: if f0_max > 0.0 { f0.map(|c| c / f0_max) } else { [0.0; 3] },
+            tint: if f0_max > 0.0 {
+                f0.map(|c| c / f0_max)
+            } else {
+                [0.0; 3]
+            },
             roughness: m.roughness.clamp(0.0, 1.0),
             ior: m.ior,
             emission: m.emission.map(|e| e.max(0.0)),
@@ -90,17 +95,37 @@ impl Cluster {
     pub fn triangle(p: &[[f32; 3]; 3], curvature: f32, m: &MatSummary) -> Self {
         let e1 = [0, 1, 2].map(|a| p[1][a] as f64 - p[0][a] as f64);
         let e2 = [0, 1, 2].map(|a| p[2][a] as f64 - p[0][a] as f64);
-        let c = [e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]];
+        let c = [
+            e1[1] * e2[2] - e1[2] * e2[1],
+            e1[2] * e2[0] - e1[0] * e2[2],
+            e1[0] * e2[1] - e1[1] * e2[0],
+        ];
         let len = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt();
         let area = (0.5 * len) as f32;
-        let normal = if len > 0.0 { c.map(|x| (x / len) as f32) } else { [0.0; 3] };
-        let centroid = [0, 1, 2].map(|a| ((p[0][a] as f64 + p[1][a] as f64 + p[2][a] as f64) / 3.0) as f32);
+        let normal = if len > 0.0 {
+            c.map(|x| (x / len) as f32)
+        } else {
+            [0.0; 3]
+        };
+        let centroid =
+            [0, 1, 2].map(|a| ((p[0][a] as f64 + p[1][a] as f64 + p[2][a] as f64) / 3.0) as f32);
         let radius = p
             .iter()
-            .map(|v| (0..3).map(|a| (v[a] - centroid[a]).powi(2)).sum::<f32>().sqrt())
+            .map(|v| {
+                (0..3)
+                    .map(|a| (v[a] - centroid[a]).powi(2))
+                    .sum::<f32>()
+                    .sqrt()
+            })
             .fold(0.0, f32::max);
         let w = area.max(1e-30);
-        let mut s = Cluster { area, weight: w, radius, curvature: curvature * w, ..Default::default() };
+        let mut s = Cluster {
+            area,
+            weight: w,
+            radius,
+            curvature: curvature * w,
+            ..Default::default()
+        };
         add3(&mut s.normal, normal, w);
         add3(&mut s.centroid, centroid, w);
         s.add_material(m, w);

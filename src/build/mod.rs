@@ -78,7 +78,9 @@ impl TriangleSink for Spill {
             self.materials_used.resize(m + 1, false);
         }
         self.materials_used[m] = true;
-        self.out.write_all(bytemuck::bytes_of(&t)).with_context(|| format!("{}: writing spill file", self.path.display()))?;
+        self.out
+            .write_all(bytemuck::bytes_of(&t))
+            .with_context(|| format!("{}: writing spill file", self.path.display()))?;
         self.count += 1;
         if self.count % 65536 == 0 {
             self.bar.set_position(self.count);
@@ -89,14 +91,19 @@ impl TriangleSink for Spill {
 
 /// Streams spill records from a file in blocks.
 fn for_each_spilled(path: &Path, mut f: impl FnMut(&[SpillTri]) -> Result<()>) -> Result<()> {
-    let mut r = BufReader::with_capacity(1 << 20, File::open(path).with_context(|| format!("{}: reopening spill", path.display()))?);
+    let mut r = BufReader::with_capacity(
+        1 << 20,
+        File::open(path).with_context(|| format!("{}: reopening spill", path.display()))?,
+    );
     let mut block: Vec<SpillTri> = vec![SpillTri::default(); 16384];
     loop {
         let bytes: &mut [u8] = bytemuck::cast_slice_mut(&mut block);
         let full = bytes.len();
         let mut n = 0;
         while n < full {
-            let k = r.read(&mut bytes[n..]).with_context(|| format!("{}: reading spill", path.display()))?;
+            let k = r
+                .read(&mut bytes[n..])
+                .with_context(|| format!("{}: reading spill", path.display()))?;
             if k == 0 {
                 break;
             }
@@ -163,7 +170,11 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         bail!("no input files");
     }
     if opts.mem_budget < FIXED_BYTES + 1024 * BUILD_BYTES_PER_TRI {
-        bail!("--mem-budget {} is too small: converting needs at least {} MiB", opts.mem_budget, (FIXED_BYTES + 1024 * BUILD_BYTES_PER_TRI) >> 20);
+        bail!(
+            "--mem-budget {} is too small: converting needs at least {} MiB",
+            opts.mem_budget,
+            (FIXED_BYTES + 1024 * BUILD_BYTES_PER_TRI) >> 20
+        );
     }
     let file = match &opts.scene {
         Some(p) => SceneFile::load(p)?,
@@ -174,11 +185,22 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
     };
-    let spill_dir = tempfile::Builder::new().prefix(".canopy-spill-").tempdir_in(&dir).with_context(|| format!("{}: cannot create a spill directory", dir.display()))?;
+    let spill_dir = tempfile::Builder::new()
+        .prefix(".canopy-spill-")
+        .tempdir_in(&dir)
+        .with_context(|| format!("{}: cannot create a spill directory", dir.display()))?;
     let spill_path = spill_dir.path().join("triangles.bin");
-    let mut scene = SceneDesc { cameras: file.cameras(), lights: file.lights(), ..Default::default() };
+    let mut scene = SceneDesc {
+        cameras: file.cameras(),
+        lights: file.lights(),
+        ..Default::default()
+    };
     let mut spill = Spill {
-        out: BufWriter::with_capacity(1 << 20, File::create(&spill_path).with_context(|| format!("{}: cannot create", spill_path.display()))?),
+        out: BufWriter::with_capacity(
+            1 << 20,
+            File::create(&spill_path)
+                .with_context(|| format!("{}: cannot create", spill_path.display()))?,
+        ),
         path: spill_path.clone(),
         count: 0,
         lo: [f32::INFINITY; 3],
@@ -189,11 +211,24 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     for input in &opts.inputs {
         import::import(input, &mut scene, &file, &mut spill)?;
     }
-    let Spill { mut out, count: total, lo: clo, hi: chi, materials_used, bar, .. } = spill;
+    let Spill {
+        mut out,
+        count: total,
+        lo: clo,
+        hi: chi,
+        materials_used,
+        bar,
+        ..
+    } = spill;
     bar.finish_and_clear();
-    out.flush().with_context(|| format!("{}: writing spill file", spill_path.display()))?;
+    out.flush()
+        .with_context(|| format!("{}: writing spill file", spill_path.display()))?;
     drop(out);
-    let mut report = ConvertReport { input_triangles: total, seconds_import: t0.elapsed().as_secs_f64(), ..Default::default() };
+    let mut report = ConvertReport {
+        input_triangles: total,
+        seconds_import: t0.elapsed().as_secs_f64(),
+        ..Default::default()
+    };
 
     let mats: Vec<MatSummary> = scene.materials.iter().map(MatSummary::of).collect();
     let mut features = 0;
@@ -233,16 +268,24 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         })?;
         let (chunk, n) = chunk_of_bins(&hist, cap);
         drop(hist);
-        let paths: Vec<PathBuf> = (0..n).map(|i| spill_dir.path().join(format!("chunk{i:05}.bin"))).collect();
+        let paths: Vec<PathBuf> = (0..n)
+            .map(|i| spill_dir.path().join(format!("chunk{i:05}.bin")))
+            .collect();
         let mut outs = paths
             .iter()
-            .map(|p| File::create(p).map(|f| BufWriter::with_capacity(256 << 10, f)).with_context(|| format!("{}: cannot create", p.display())))
+            .map(|p| {
+                File::create(p)
+                    .map(|f| BufWriter::with_capacity(256 << 10, f))
+                    .with_context(|| format!("{}: cannot create", p.display()))
+            })
             .collect::<Result<Vec<_>>>()?;
         let bar = progress::bar(opts.progress, total, "partitioning");
         for_each_spilled(&spill_path, |b| {
             for t in b {
                 let c = chunk[morton(t.centroid(), clo, chi) as usize] as usize;
-                outs[c].write_all(bytemuck::bytes_of(t)).context("writing chunk file")?;
+                outs[c]
+                    .write_all(bytemuck::bytes_of(t))
+                    .context("writing chunk file")?;
             }
             bar.inc(b.len() as u64);
             Ok(())
@@ -262,7 +305,11 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     let normals = features & Features::SHADING_NORMALS != 0;
     let bar = progress::bar(opts.progress, total, "building");
     let single = chunk_files.len() == 1;
-    let mut top = Tree { nodes: Vec::new(), tris: Vec::new(), root: 0 };
+    let mut top = Tree {
+        nodes: Vec::new(),
+        tris: Vec::new(),
+        root: 0,
+    };
     let mut root_page = 0;
     let mut scene_root: Option<BNode> = None;
     for path in &chunk_files {
@@ -279,11 +326,18 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
             scene_root = Some(root.clone());
         } else if let Kind::Inner(children) = root.kind {
             let page = write_pages(&mut writer, &tree, children.to_vec(), opts, normals)?;
-            top.nodes.push(BNode { kind: Kind::External { page }, ..root.clone() });
+            top.nodes.push(BNode {
+                kind: Kind::External { page },
+                ..root.clone()
+            });
         } else if let Kind::Leaf { first, count } = root.kind {
             let at = top.tris.len() as u32;
-            top.tris.extend_from_slice(&tree.tris[first as usize..(first + count) as usize]);
-            top.nodes.push(BNode { kind: Kind::Leaf { first: at, count }, ..root.clone() });
+            top.tris
+                .extend_from_slice(&tree.tris[first as usize..(first + count) as usize]);
+            top.nodes.push(BNode {
+                kind: Kind::Leaf { first: at, count },
+                ..root.clone()
+            });
         }
         bar.inc(n);
     }
@@ -294,7 +348,9 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         root_page = write_pages(&mut writer, &top, vec![top.root], opts, normals)?;
         scene_root = Some(top.nodes[top.root as usize].clone());
     }
-    let Some(scene_root) = scene_root else { bail!("no triangles in the inputs") };
+    let Some(scene_root) = scene_root else {
+        bail!("no triangles in the inputs")
+    };
     report.seconds_build = t2.elapsed().as_secs_f64();
     let info = SceneInfo {
         features,
@@ -312,7 +368,9 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     report.pages = writer.page_count() as u64;
     report.nodes = writer.node_count();
     writer.finish(&info)?;
-    report.archive_bytes = std::fs::metadata(&opts.output).map(|m| m.len()).unwrap_or(0);
+    report.archive_bytes = std::fs::metadata(&opts.output)
+        .map(|m| m.len())
+        .unwrap_or(0);
     report.seconds_total = t0.elapsed().as_secs_f64();
     Ok(report)
 }
@@ -331,7 +389,13 @@ fn balanced(tree: &mut Tree, items: &[u32]) -> u32 {
 
 /// Cuts the subtrees under `roots` into pages, encodes them in parallel and appends them.
 /// Returns the archive index of the first (top) page.
-fn write_pages(writer: &mut ArchiveWriter, tree: &Tree, roots: Vec<u32>, opts: &ConvertOptions, normals: bool) -> Result<u32> {
+fn write_pages(
+    writer: &mut ArchiveWriter,
+    tree: &Tree,
+    roots: Vec<u32>,
+    opts: &ConvertOptions,
+    normals: bool,
+) -> Result<u32> {
     let plan = Plan::new(tree, roots, opts.page_nodes);
     let base = writer.page_count();
     let encoded: Vec<_> = (0..plan.pages.len())

@@ -37,7 +37,9 @@ impl Plan {
         let mut cut = std::collections::HashSet::new();
         for (i, n) in tree.nodes.iter().enumerate() {
             open[i] = match n.kind {
-                Kind::Inner([l, r]) if 1 + open[l as usize] + open[r as usize] <= half => 1 + open[l as usize] + open[r as usize],
+                Kind::Inner([l, r]) if 1 + open[l as usize] + open[r as usize] <= half => {
+                    1 + open[l as usize] + open[r as usize]
+                }
                 Kind::Inner(_) => {
                     cut.insert(i as u32);
                     1
@@ -45,7 +47,11 @@ impl Plan {
                 _ => 1,
             };
         }
-        let mut plan = Plan { pages: Vec::new(), place: HashMap::new(), child_plan: HashMap::new() };
+        let mut plan = Plan {
+            pages: Vec::new(),
+            place: HashMap::new(),
+            child_plan: HashMap::new(),
+        };
         let mut pending = VecDeque::from([(roots, None)]);
         while let Some((roots, parent)) = pending.pop_front() {
             let idx = plan.pages.len() as u32;
@@ -62,7 +68,17 @@ impl Plan {
                 if !is_root {
                     nodes.push(n);
                 }
-                plan.place.insert(n, (idx, if is_root { roots.iter().position(|&x| x == n).unwrap() as u32 } else { nodes.len() as u32 - 1 }));
+                plan.place.insert(
+                    n,
+                    (
+                        idx,
+                        if is_root {
+                            roots.iter().position(|&x| x == n).unwrap() as u32
+                        } else {
+                            nodes.len() as u32 - 1
+                        },
+                    ),
+                );
                 if let Kind::Inner([l, r]) = tree.nodes[n as usize].kind {
                     if cut.contains(&n) {
                         pending.push_back((vec![l, r], Some((idx, n))));
@@ -71,7 +87,11 @@ impl Plan {
                     }
                 }
             }
-            plan.pages.push(PagePlan { roots, nodes, parent });
+            plan.pages.push(PagePlan {
+                roots,
+                nodes,
+                parent,
+            });
         }
         plan
     }
@@ -83,7 +103,10 @@ impl Plan {
 
     /// The page grid: exact union of the roots' bounds.
     pub fn grid(&self, tree: &Tree, page: usize) -> Grid {
-        let mut g = Grid { lo: [f32::INFINITY; 3], hi: [f32::NEG_INFINITY; 3] };
+        let mut g = Grid {
+            lo: [f32::INFINITY; 3],
+            hi: [f32::NEG_INFINITY; 3],
+        };
         for &r in &self.pages[page].roots {
             let n = &tree.nodes[r as usize];
             for a in 0..3 {
@@ -96,7 +119,13 @@ impl Plan {
 
     /// Encodes page `page`; `base` is the archive index of plan page 0. Returns the contents
     /// and the (external page, local node) links whose parents the writer must record.
-    pub fn encode(&self, tree: &Tree, page: usize, base: u32, normals: bool) -> (PageContents, Vec<(u32, u32)>) {
+    pub fn encode(
+        &self,
+        tree: &Tree,
+        page: usize,
+        base: u32,
+        normals: bool,
+    ) -> (PageContents, Vec<(u32, u32)>) {
         let p = &self.pages[page];
         let grid = self.grid(tree, page);
         let mut out = PageContents::default();
@@ -108,7 +137,8 @@ impl Plan {
             let mut node = b.cluster.encode();
             node.bounds = grid.quantize_box(b.lo, b.hi, parent_q.get(&id));
             let c = b.cluster.mean_centroid();
-            node.centroid = [0, 1, 2].map(|a| grid.quantize_nearest(a, c[a].clamp(b.lo[a], b.hi[a])));
+            node.centroid =
+                [0, 1, 2].map(|a| grid.quantize_nearest(a, c[a].clamp(b.lo[a], b.hi[a])));
             match b.kind {
                 Kind::Inner([l, r]) => match self.child_plan.get(&id) {
                     Some(&child) => {
@@ -136,12 +166,20 @@ impl Plan {
                             v[k] = *verts.entry(key).or_insert_with(|| {
                                 out.verts.push(t.p[k]);
                                 if normals {
-                                    out.normals.push(if t.n[k] == 0 { oct_encode([0.0, 0.0, 1.0]) } else { t.n[k] });
+                                    out.normals.push(if t.n[k] == 0 {
+                                        oct_encode([0.0, 0.0, 1.0])
+                                    } else {
+                                        t.n[k]
+                                    });
                                 }
-                                u16::try_from(out.verts.len() - 1).expect("page vertex count fits u16")
+                                u16::try_from(out.verts.len() - 1)
+                                    .expect("page vertex count fits u16")
                             });
                         }
-                        out.tris.push(Tri { v, material: t.material as u16 });
+                        out.tris.push(Tri {
+                            v,
+                            material: t.material as u16,
+                        });
                     }
                 }
             }

@@ -13,9 +13,14 @@ pub const MAX_LEAF_TRIS: u32 = 8;
 pub enum Kind {
     Inner([u32; 2]),
     /// Range in the tree's triangle array.
-    Leaf { first: u32, count: u32 },
+    Leaf {
+        first: u32,
+        count: u32,
+    },
     /// Children already written as the two roots of a page.
-    External { page: u32 },
+    External {
+        page: u32,
+    },
 }
 
 #[derive(Clone, Debug)]
@@ -36,7 +41,10 @@ pub struct Tree {
 }
 
 fn union(a: &BNode, b: &BNode) -> ([f32; 3], [f32; 3]) {
-    ([0, 1, 2].map(|i| a.lo[i].min(b.lo[i])), [0, 1, 2].map(|i| a.hi[i].max(b.hi[i])))
+    (
+        [0, 1, 2].map(|i| a.lo[i].min(b.lo[i])),
+        [0, 1, 2].map(|i| a.hi[i].max(b.hi[i])),
+    )
 }
 
 impl Tree {
@@ -74,7 +82,13 @@ impl Tree {
                 None => c,
             });
         }
-        self.nodes.push(BNode { lo, hi, kind: Kind::Leaf { first, count }, cluster: cluster.expect("empty leaf"), height: 0 });
+        self.nodes.push(BNode {
+            lo,
+            hi,
+            kind: Kind::Leaf { first, count },
+            cluster: cluster.expect("empty leaf"),
+            height: 0,
+        });
         self.nodes.len() as u32 - 1
     }
 
@@ -82,7 +96,11 @@ impl Tree {
     pub fn build(tris: Vec<SpillTri>, mats: &[MatSummary]) -> Tree {
         let prims: Vec<Triangle> = tris
             .iter()
-            .map(|t| Triangle { v0: Vec3A::from(t.p[0]), v1: Vec3A::from(t.p[1]), v2: Vec3A::from(t.p[2]) })
+            .map(|t| Triangle {
+                v0: Vec3A::from(t.p[0]),
+                v1: Vec3A::from(t.p[1]),
+                v2: Vec3A::from(t.p[2]),
+            })
             .collect();
         let mut params = BvhBuildParams::medium_build();
         params.max_prims_per_leaf = MAX_LEAF_TRIS;
@@ -100,11 +118,18 @@ impl Tree {
                 Some([l, r]) => stack.extend([r, l]),
                 None => {
                     let n = &bvh.nodes[i];
-                    order.extend_from_slice(&bvh.primitive_indices[n.first_index as usize..(n.first_index + n.prim_count) as usize]);
+                    order.extend_from_slice(
+                        &bvh.primitive_indices
+                            [n.first_index as usize..(n.first_index + n.prim_count) as usize],
+                    );
                 }
             }
         }
-        let mut tree = Tree { nodes: Vec::with_capacity(bvh.nodes.len()), tris: order.iter().map(|&i| tris[i as usize]).collect(), root: 0 };
+        let mut tree = Tree {
+            nodes: Vec::with_capacity(bvh.nodes.len()),
+            tris: order.iter().map(|&i| tris[i as usize]).collect(),
+            root: 0,
+        };
         drop((tris, order));
         // Pass 2: post-order, the same leaf order; inner nodes join the two latest results.
         let mut next_tri = 0u32;

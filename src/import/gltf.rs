@@ -10,7 +10,8 @@ use gltf::mesh::Mode;
 use std::path::Path;
 
 pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -> Result<u64> {
-    let (doc, buffers, _images) = ::gltf::import(path).map_err(|e| anyhow!("{}: not a valid glTF file: {e}", path.display()))?;
+    let (doc, buffers, _images) = ::gltf::import(path)
+        .map_err(|e| anyhow!("{}: not a valid glTF file: {e}", path.display()))?;
     let (width, height) = render_size(&doc);
     let base = scene.materials.len() as u32;
     for m in doc.materials() {
@@ -21,7 +22,10 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
         scene.add_material(rec)?;
     }
     let mut default_mat = None;
-    let gscene = doc.default_scene().or_else(|| doc.scenes().next()).ok_or_else(|| anyhow!("{}: no scene", path.display()))?;
+    let gscene = doc
+        .default_scene()
+        .or_else(|| doc.scenes().next())
+        .ok_or_else(|| anyhow!("{}: no scene", path.display()))?;
     let mut count = 0u64;
     let mut stack: Vec<(gltf::Node, Mat4)> = gscene.nodes().map(|n| (n, Mat4::IDENTITY)).collect();
     let mut depth_guard = 0usize;
@@ -32,7 +36,11 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
         }
         let world = parent * Mat4::from_cols_array_2d(&node.transform().matrix());
         if !world.is_finite() {
-            bail!("{}: node '{}' has a non-finite transform", path.display(), node.name().unwrap_or("?"));
+            bail!(
+                "{}: node '{}' has a non-finite transform",
+                path.display(),
+                node.name().unwrap_or("?")
+            );
         }
         for child in node.children() {
             stack.push((child, world));
@@ -49,17 +57,29 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
         let normal_m = Mat3::from_mat4(world).inverse().transpose();
         let flip = world.determinant() < 0.0;
         for (pi, prim) in mesh.primitives().enumerate() {
-            let what = |t: usize| format!("{}: mesh '{}' primitive {pi} triangle {t}", path.display(), mesh.name().unwrap_or("?"));
+            let what = |t: usize| {
+                format!(
+                    "{}: mesh '{}' primitive {pi} triangle {t}",
+                    path.display(),
+                    mesh.name().unwrap_or("?")
+                )
+            };
             let mat = match prim.material().index() {
                 Some(i) => base + i as u32,
-                None => *default_mat.get_or_insert(scene.add_material(super::default_material("default"))?),
+                None => *default_mat
+                    .get_or_insert(scene.add_material(super::default_material("default"))?),
             };
             let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d.0[..]));
-            let Some(pos) = reader.read_positions() else { continue };
+            let Some(pos) = reader.read_positions() else {
+                continue;
+            };
             let pos: Vec<Vec3> = pos.map(|p| world.transform_point3(Vec3::from(p))).collect();
             let nrm: Option<Vec<Vec3>> = reader
                 .read_normals()
-                .map(|n| n.map(|n| (normal_m * Vec3::from(n)).normalize_or_zero()).collect::<Vec<_>>())
+                .map(|n| {
+                    n.map(|n| (normal_m * Vec3::from(n)).normalize_or_zero())
+                        .collect::<Vec<_>>()
+                })
                 .filter(|n| n.len() == pos.len());
             if nrm.is_some() {
                 scene.has_normals = true;
@@ -73,7 +93,11 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
                     tri.swap(1, 2);
                 }
                 if let Some(&bad) = tri.iter().find(|&&i| i as usize >= pos.len()) {
-                    bail!("{}: index {bad} out of range ({} vertices)", what(t), pos.len());
+                    bail!(
+                        "{}: index {bad} out of range ({} vertices)",
+                        what(t),
+                        pos.len()
+                    );
                 }
                 let p = tri.map(|i| pos[i as usize].to_array());
                 let n = nrm.as_ref().map(|n| tri.map(|i| n[i as usize].to_array()));
@@ -103,8 +127,18 @@ fn triangles(mode: Mode, idx: &[u32]) -> Box<dyn Iterator<Item = [u32; 3]> + '_>
 
 /// The render resolution the bundled scenes carry in top-level `extras.render`.
 fn render_size(doc: &gltf::Document) -> (u32, u32) {
-    let extras = doc.as_json().extras.as_ref().and_then(|e| serde_json::from_str::<serde_json::Value>(e.get()).ok());
-    let get = |k: &str| extras.as_ref().and_then(|e| e["render"][k].as_u64()).map(|v| v as u32).unwrap_or(0);
+    let extras = doc
+        .as_json()
+        .extras
+        .as_ref()
+        .and_then(|e| serde_json::from_str::<serde_json::Value>(e.get()).ok());
+    let get = |k: &str| {
+        extras
+            .as_ref()
+            .and_then(|e| e["render"][k].as_u64())
+            .map(|v| v as u32)
+            .unwrap_or(0)
+    };
     (get("width"), get("height"))
 }
 
@@ -130,22 +164,40 @@ fn material(m: &gltf::Material) -> MaterialRecord {
         metallic: pbr.metallic_factor(),
         roughness: pbr.roughness_factor(),
         ior: m.ior().unwrap_or(1.5),
-        transmission: m.transmission().map(|t| t.transmission_factor()).unwrap_or(0.0),
+        transmission: m
+            .transmission()
+            .map(|t| t.transmission_factor())
+            .unwrap_or(0.0),
         specular: spec.as_ref().map(|s| s.specular_factor()).unwrap_or(1.0),
-        specular_color: spec.as_ref().map(|s| s.specular_color_factor()).unwrap_or([1.0; 3]),
+        specular_color: spec
+            .as_ref()
+            .map(|s| s.specular_color_factor())
+            .unwrap_or([1.0; 3]),
         flags,
         reserved: [0; 16],
     }
 }
 
-fn camera(cam: &gltf::Camera, node: &gltf::Node, world: Mat4, width: u32, height: u32) -> Option<CameraRecord> {
-    let gltf::camera::Projection::Perspective(p) = cam.projection() else { return None };
+fn camera(
+    cam: &gltf::Camera,
+    node: &gltf::Node,
+    world: Mat4,
+    width: u32,
+    height: u32,
+) -> Option<CameraRecord> {
+    let gltf::camera::Projection::Perspective(p) = cam.projection() else {
+        return None;
+    };
     let c = world.to_cols_array();
     let mut to_world = [0.0f32; 12];
     for col in 0..4 {
         to_world[col * 3..col * 3 + 3].copy_from_slice(&c[col * 4..col * 4 + 3]);
     }
-    let name = node.name().or(cam.name()).map(str::to_string).unwrap_or_else(|| format!("camera{}", cam.index()));
+    let name = node
+        .name()
+        .or(cam.name())
+        .map(str::to_string)
+        .unwrap_or_else(|| format!("camera{}", cam.index()));
     Some(CameraRecord {
         name: name_bytes(&name),
         to_world,
@@ -163,7 +215,10 @@ fn punctual(l: &gltf::khr_lights_punctual::Light, world: Mat4) -> LightRecord {
     use gltf::khr_lights_punctual::Kind;
     let (kind, inner, outer) = match l.kind() {
         Kind::Point => (LightRecord::POINT, 0.0, 0.0),
-        Kind::Spot { inner_cone_angle, outer_cone_angle } => (LightRecord::SPOT, inner_cone_angle, outer_cone_angle),
+        Kind::Spot {
+            inner_cone_angle,
+            outer_cone_angle,
+        } => (LightRecord::SPOT, inner_cone_angle, outer_cone_angle),
         Kind::Directional => (LightRecord::DIRECTIONAL, 0.0, 0.0),
     };
     LightRecord {
@@ -172,7 +227,10 @@ fn punctual(l: &gltf::khr_lights_punctual::Light, world: Mat4) -> LightRecord {
         color: l.color(),
         intensity: l.intensity(),
         position: world.transform_point3(Vec3::ZERO).to_array(),
-        direction: world.transform_vector3(Vec3::NEG_Z).normalize_or_zero().to_array(),
+        direction: world
+            .transform_vector3(Vec3::NEG_Z)
+            .normalize_or_zero()
+            .to_array(),
         range: l.range().unwrap_or(0.0),
         inner_cone: inner,
         outer_cone: outer,

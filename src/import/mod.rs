@@ -4,7 +4,7 @@
 
 mod gltf;
 mod obj;
-mod ply;
+pub mod ply;
 mod scene_file;
 
 pub use scene_file::SceneFile;
@@ -99,28 +99,52 @@ pub fn mean_curvature(p: &[[f32; 3]; 3], n: &[[f32; 3]; 3]) -> f32 {
 }
 
 /// Builds a spill record, validating the vertices. `what` names the triangle for errors.
-pub fn make_tri(p: [[f32; 3]; 3], n: Option<[[f32; 3]; 3]>, material: u32, what: &dyn Fn() -> String) -> Result<SpillTri> {
+pub fn make_tri(
+    p: [[f32; 3]; 3],
+    n: Option<[[f32; 3]; 3]>,
+    material: u32,
+    what: &dyn Fn() -> String,
+) -> Result<SpillTri> {
     if p.iter().flatten().any(|x| !x.is_finite()) {
         bail!("{}: non-finite vertex coordinate {:?}", what(), p);
     }
     let (n_enc, curvature) = match n {
-        Some(n) if n.iter().flatten().all(|x| x.is_finite()) => (n.map(oct_encode), mean_curvature(&p, &n)),
+        Some(n) if n.iter().flatten().all(|x| x.is_finite()) => {
+            (n.map(oct_encode), mean_curvature(&p, &n))
+        }
         _ => ([0; 3], 0.0),
     };
-    Ok(SpillTri { p, n: n_enc, material, curvature })
+    Ok(SpillTri {
+        p,
+        n: n_enc,
+        material,
+        curvature,
+    })
 }
 
 /// Reads one input file into the sink, adding its materials, cameras and lights to `scene`.
-pub fn import(path: &Path, scene: &mut SceneDesc, file: &SceneFile, sink: &mut dyn TriangleSink) -> Result<u64> {
+pub fn import(
+    path: &Path,
+    scene: &mut SceneDesc,
+    file: &SceneFile,
+    sink: &mut dyn TriangleSink,
+) -> Result<u64> {
     if !path.exists() {
         bail!("{}: no such file", path.display());
     }
-    let ext = path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).unwrap_or_default();
+    let ext = path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| e.to_ascii_lowercase())
+        .unwrap_or_default();
     let n = match ext.as_str() {
         "gltf" | "glb" => gltf::import(path, scene, sink)?,
         "ply" => ply::import(path, scene, file, sink)?,
         "obj" => obj::import(path, scene, file, sink)?,
-        _ => bail!("{}: unknown input type '.{ext}' (expected .gltf, .glb, .ply or .obj)", path.display()),
+        _ => bail!(
+            "{}: unknown input type '.{ext}' (expected .gltf, .glb, .ply or .obj)",
+            path.display()
+        ),
     };
     if n == 0 {
         bail!("{}: the mesh is empty (no triangles)", path.display());
@@ -130,7 +154,9 @@ pub fn import(path: &Path, scene: &mut SceneDesc, file: &SceneFile, sink: &mut d
 
 /// Material index for a raw mesh (PLY/OBJ without MTL): the scene file's choice or a default.
 fn raw_mesh_material(path: &Path, scene: &mut SceneDesc, file: &SceneFile) -> Result<u32> {
-    let m = file.material_for(path).unwrap_or_else(|| default_material("default"));
+    let m = file
+        .material_for(path)
+        .unwrap_or_else(|| default_material("default"));
     if let Some(i) = scene.materials.iter().position(|x| *x == m) {
         return Ok(i as u32);
     }

@@ -14,7 +14,9 @@ fn floats<const N: usize>(w: &[&str], path: &Path, line: usize) -> Result<[f32; 
         bail!("{}:{line}: expected {N} numbers", path.display());
     }
     for (o, s) in out.iter_mut().zip(w) {
-        *o = s.parse().map_err(|_| anyhow::anyhow!("{}:{line}: '{s}' is not a number", path.display()))?;
+        *o = s
+            .parse()
+            .map_err(|_| anyhow::anyhow!("{}:{line}: '{s}' is not a number", path.display()))?;
     }
     Ok(out)
 }
@@ -27,7 +29,9 @@ fn read_mtl(path: &Path) -> Result<HashMap<String, MaterialRecord>> {
     for (ln, line) in BufReader::new(f).lines().enumerate() {
         let line = line.map_err(context(path))?;
         let w: Vec<&str> = line.split_whitespace().collect();
-        let Some((&key, rest)) = w.split_first() else { continue };
+        let Some((&key, rest)) = w.split_first() else {
+            continue;
+        };
         if key == "newmtl" {
             if let Some((n, m)) = cur.take() {
                 out.insert(n, m);
@@ -71,7 +75,12 @@ fn read_mtl(path: &Path) -> Result<HashMap<String, MaterialRecord>> {
     Ok(out)
 }
 
-pub fn import(path: &Path, scene: &mut SceneDesc, file: &SceneFile, sink: &mut dyn TriangleSink) -> Result<u64> {
+pub fn import(
+    path: &Path,
+    scene: &mut SceneDesc,
+    file: &SceneFile,
+    sink: &mut dyn TriangleSink,
+) -> Result<u64> {
     let f = std::fs::File::open(path).map_err(context(path))?;
     let dir = path.parent().unwrap_or(Path::new("."));
     let mut pos: Vec<[f32; 3]> = Vec::new();
@@ -85,7 +94,9 @@ pub fn import(path: &Path, scene: &mut SceneDesc, file: &SceneFile, sink: &mut d
         let line = line.map_err(context(path))?;
         let ln = ln + 1;
         let w: Vec<&str> = line.split_whitespace().collect();
-        let Some((&key, rest)) = w.split_first() else { continue };
+        let Some((&key, rest)) = w.split_first() else {
+            continue;
+        };
         match key {
             "v" => pos.push(floats::<3>(rest, path, ln)?),
             "vn" => nrm.push(floats::<3>(rest, path, ln)?),
@@ -97,7 +108,10 @@ pub fn import(path: &Path, scene: &mut SceneDesc, file: &SceneFile, sink: &mut d
             "usemtl" => {
                 let name = rest.join(" ");
                 let Some(m) = library.get(&name) else {
-                    bail!("{}:{ln}: material '{name}' is not in any mtllib", path.display());
+                    bail!(
+                        "{}:{ln}: material '{name}' is not in any mtllib",
+                        path.display()
+                    );
                 };
                 if m.flags & MaterialRecord::TEXTURED != 0 {
                     scene.textured = true;
@@ -120,22 +134,34 @@ pub fn import(path: &Path, scene: &mut SceneDesc, file: &SceneFile, sink: &mut d
                 for v in rest {
                     let mut parts = v.split('/');
                     let resolve = |s: Option<&str>, n: usize| -> Result<Option<u32>> {
-                        let Some(s) = s.filter(|s| !s.is_empty()) else { return Ok(None) };
-                        let i: i64 = s.parse().map_err(|_| anyhow::anyhow!("{}:{ln}: bad index '{s}'", path.display()))?;
+                        let Some(s) = s.filter(|s| !s.is_empty()) else {
+                            return Ok(None);
+                        };
+                        let i: i64 = s.parse().map_err(|_| {
+                            anyhow::anyhow!("{}:{ln}: bad index '{s}'", path.display())
+                        })?;
                         let r = if i < 0 { n as i64 + i } else { i - 1 };
                         if r < 0 || r >= n as i64 {
-                            bail!("{}:{ln}: index {i} out of range ({n} defined so far)", path.display());
+                            bail!(
+                                "{}:{ln}: index {i} out of range ({n} defined so far)",
+                                path.display()
+                            );
                         }
                         Ok(Some(r as u32))
                     };
-                    let Some(p) = resolve(parts.next(), pos.len())? else { bail!("{}:{ln}: face without vertex index", path.display()) };
+                    let Some(p) = resolve(parts.next(), pos.len())? else {
+                        bail!("{}:{ln}: face without vertex index", path.display())
+                    };
                     let _uv = parts.next();
                     face.push((p, resolve(parts.next(), nrm.len())?));
                 }
                 for k in 2..face.len() {
                     let tri = [face[0], face[k - 1], face[k]];
                     let p = tri.map(|(v, _)| pos[v as usize]);
-                    let n = tri.iter().all(|(_, n)| n.is_some()).then(|| tri.map(|(_, n)| nrm[n.unwrap() as usize]));
+                    let n = tri
+                        .iter()
+                        .all(|(_, n)| n.is_some())
+                        .then(|| tri.map(|(_, n)| nrm[n.unwrap() as usize]));
                     if n.is_some() {
                         scene.has_normals = true;
                     }

@@ -45,7 +45,11 @@ impl Scalar {
         macro_rules! num {
             ($t:ty) => {{
                 let a = b[..std::mem::size_of::<$t>()].try_into().unwrap();
-                (if big { <$t>::from_be_bytes(a) } else { <$t>::from_le_bytes(a) }) as f64
+                (if big {
+                    <$t>::from_be_bytes(a)
+                } else {
+                    <$t>::from_le_bytes(a)
+                }) as f64
             }};
         }
         match self {
@@ -110,26 +114,52 @@ fn read_header(r: &mut impl BufRead, path: &Path) -> Result<(Encoding, Vec<Eleme
             }
             ["element", name, count] => elems.push(Element {
                 name: name.to_string(),
-                count: count.parse().with_context(|| format!("{}: bad element count '{count}'", path.display()))?,
+                count: count
+                    .parse()
+                    .with_context(|| format!("{}: bad element count '{count}'", path.display()))?,
                 props: Vec::new(),
             }),
             ["property", "list", ct, it, name] => {
                 let (Some(ct), Some(it)) = (Scalar::parse(ct), Scalar::parse(it)) else {
-                    bail!("{}: bad list property types in '{}'", path.display(), line.trim());
+                    bail!(
+                        "{}: bad list property types in '{}'",
+                        path.display(),
+                        line.trim()
+                    );
                 };
-                let Some(e) = elems.last_mut() else { bail!("{}: property before any element", path.display()) };
-                e.props.push(Property { name: name.to_string(), ty: it, list: Some(ct) });
+                let Some(e) = elems.last_mut() else {
+                    bail!("{}: property before any element", path.display())
+                };
+                e.props.push(Property {
+                    name: name.to_string(),
+                    ty: it,
+                    list: Some(ct),
+                });
             }
             ["property", ty, name] => {
-                let Some(ty) = Scalar::parse(ty) else { bail!("{}: unknown property type '{ty}'", path.display()) };
-                let Some(e) = elems.last_mut() else { bail!("{}: property before any element", path.display()) };
-                e.props.push(Property { name: name.to_string(), ty, list: None });
+                let Some(ty) = Scalar::parse(ty) else {
+                    bail!("{}: unknown property type '{ty}'", path.display())
+                };
+                let Some(e) = elems.last_mut() else {
+                    bail!("{}: property before any element", path.display())
+                };
+                e.props.push(Property {
+                    name: name.to_string(),
+                    ty,
+                    list: None,
+                });
             }
             ["comment", ..] | ["obj_info", ..] | [] => {}
-            _ => bail!("{}: unexpected PLY header line '{}'", path.display(), line.trim()),
+            _ => bail!(
+                "{}: unexpected PLY header line '{}'",
+                path.display(),
+                line.trim()
+            ),
         }
     }
-    let Some(enc) = enc else { bail!("{}: PLY header has no format line", path.display()) };
+    let Some(enc) = enc else {
+        bail!("{}: PLY header has no format line", path.display())
+    };
     Ok((enc, elems))
 }
 
@@ -160,29 +190,108 @@ impl<R: BufRead> RecordReader<R> {
                     self.at = 0;
                 }
                 self.at += 1;
-                self.tokens[self.at - 1].parse().map_err(|_| std::io::Error::new(std::io::ErrorKind::InvalidData, format!("'{}' is not a number", self.tokens[self.at - 1])))
+                self.tokens[self.at - 1].parse().map_err(|_| {
+                    std::io::Error::new(
+                        std::io::ErrorKind::InvalidData,
+                        format!("'{}' is not a number", self.tokens[self.at - 1]),
+                    )
+                })
             }
         }
     }
 }
 
-pub fn import(path: &Path, scene: &mut SceneDesc, file: &SceneFile, sink: &mut dyn TriangleSink) -> Result<u64> {
+type FaceFn<'a> = dyn FnMut(u64, &[u32], &[[f32; 3]], &[[f32; 3]]) -> Result<()> + 'a;
+
+pub fn import(
+    path: &Path,
+    scene: &mut SceneDesc,
+    file: &SceneFile,
+    sink: &mut dyn TriangleSink,
+) -> Result<u64> {
+    let material = raw_mesh_material(path, scene, file)?;
+    let mut count = 0u64;
+    let has_normals = parse(path, &mut |i, idx, pos, nrm| {
+        for k in 2..idx.len() {
+            let tri = [idx[0], idx[k - 1], idx[k]];
+            let p = tri.map(|v| pos[v as usize]);
+            let n = (!nrm.is_empty()).then(|| tri.map(|v| nrm[v as usize]));
+            sink.push(make_tri(p, n, material, &|| {
+                format!("{}: face {i}", path.display())
+            })?)?;
+            count += 1;
+        }
+        Ok(())
+    })?;
+    scene.has_normals |= has_normals;
+    Ok(count)
+}
+
+/// An indexed triangle mesh read whole (for tools that transform small meshes).
+pub fn read_mesh(path: &Path) -> Result<(Vec<[f32; 3]>, Vec<[u32; 3]>)> {
+    let mut tris = Vec::new();
+    let mut verts = Vec::new();
+    parse(path, &mut |i, idx, pos, _| {
+        if verts.is_empty() {
+            verts = pos.to_vec();
+        }
+        for k in 2..idx.len() {
+            if let Some(p) = [idx[0], idx[k - 1], idx[k]]
+                .iter()
+                .map(|&v| pos[v as usize])
+                .flatten()
+                .find(|x| !x.is_finite())
+            {
+                bail!(
+                    "{}: face {i}: non-finite vertex coordinate {p}",
+                    path.display()
+                );
+            }
+            tris.push([idx[0], idx[k - 1], idx[k]]);
+        }
+        Ok(())
+    })?;
+    Ok((verts, tris))
+}
+
+/// Streams a PLY file: vertices are read into memory, each face is handed to `face` with
+/// its validated indices. Returns whether the vertices carried normals.
+fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
     let f = std::fs::File::open(path).map_err(context(path))?;
     let file_len = f.metadata().map_err(context(path))?.len();
     let mut r = BufReader::with_capacity(1 << 20, f);
     let (enc, elems) = read_header(&mut r, path)?;
-    let material = raw_mesh_material(path, scene, file)?;
-    let mut rr = RecordReader { r, enc, tokens: Vec::new(), at: 0, buf: [0; 8] };
+    let mut rr = RecordReader {
+        r,
+        enc,
+        tokens: Vec::new(),
+        at: 0,
+        buf: [0; 8],
+    };
     let mut pos: Vec<[f32; 3]> = Vec::new();
     let mut nrm: Vec<[f32; 3]> = Vec::new();
-    let mut count = 0u64;
+    let mut has_normals = false;
     let mut vals = Vec::new();
     for e in &elems {
         // Every record takes at least a byte: refuse absurd counts before allocating.
         if e.count > file_len {
-            bail!("{}: element '{}' claims {} records, more than the file's {file_len} bytes", path.display(), e.name, e.count);
+            bail!(
+                "{}: element '{}' claims {} records, more than the file's {file_len} bytes",
+                path.display(),
+                e.name,
+                e.count
+            );
         }
-        let eof = |i: u64| move |err: std::io::Error| anyhow::anyhow!("{}: truncated or malformed PLY: {} {i} of {}: {err}", path.display(), e.name, e.count);
+        let eof = |i: u64| {
+            move |err: std::io::Error| {
+                anyhow::anyhow!(
+                    "{}: truncated or malformed PLY: {} {i} of {}: {err}",
+                    path.display(),
+                    e.name,
+                    e.count
+                )
+            }
+        };
         match e.name.as_str() {
             "vertex" => {
                 let find = |n: &str| e.props.iter().position(|p| p.name == n && p.list.is_none());
@@ -212,13 +321,16 @@ pub fn import(path: &Path, scene: &mut SceneDesc, file: &SceneFile, sink: &mut d
                         nrm.push([vals[a] as f32, vals[b] as f32, vals[c] as f32]);
                     }
                 }
-                if normals.is_some() {
-                    scene.has_normals = true;
-                }
+                has_normals = normals.is_some();
             }
             "face" => {
-                let Some(li) = e.props.iter().position(|p| p.list.is_some() && (p.name == "vertex_indices" || p.name == "vertex_index")) else {
-                    bail!("{}: face element lacks a vertex_indices list", path.display());
+                let Some(li) = e.props.iter().position(|p| {
+                    p.list.is_some() && (p.name == "vertex_indices" || p.name == "vertex_index")
+                }) else {
+                    bail!(
+                        "{}: face element lacks a vertex_indices list",
+                        path.display()
+                    );
                 };
                 let mut idx: Vec<u32> = Vec::new();
                 for i in 0..e.count {
@@ -241,13 +353,7 @@ pub fn import(path: &Path, scene: &mut SceneDesc, file: &SceneFile, sink: &mut d
                             rr.scalar(p.ty).map_err(eof(i))?;
                         }
                     }
-                    for k in 2..idx.len() {
-                        let tri = [idx[0], idx[k - 1], idx[k]];
-                        let p = tri.map(|v| pos[v as usize]);
-                        let n = (!nrm.is_empty()).then(|| tri.map(|v| nrm[v as usize]));
-                        sink.push(make_tri(p, n, material, &|| format!("{}: face {i}", path.display()))?)?;
-                        count += 1;
-                    }
+                    face(i, &idx, &pos, &nrm)?;
                 }
             }
             _ => {
@@ -265,5 +371,5 @@ pub fn import(path: &Path, scene: &mut SceneDesc, file: &SceneFile, sink: &mut d
             }
         }
     }
-    Ok(count)
+    Ok(has_normals)
 }

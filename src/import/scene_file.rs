@@ -142,8 +142,10 @@ fn outer() -> f32 {
 
 impl SceneFile {
     pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read scene file", path.display()))?;
-        let file: SceneFile = toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("{}: cannot read scene file", path.display()))?;
+        let file: SceneFile =
+            toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
         for (input, m) in &file.assign {
             if !file.material.iter().any(|d| &d.name == m) {
                 bail!("{}: [assign] gives '{input}' the material '{m}', which no [[material]] defines", path.display());
@@ -151,7 +153,11 @@ impl SceneFile {
         }
         for l in &file.light {
             if !["point", "spot", "directional"].contains(&l.kind.as_str()) {
-                bail!("{}: light type '{}' (expected point, spot or directional)", path.display(), l.kind);
+                bail!(
+                    "{}: light type '{}' (expected point, spot or directional)",
+                    path.display(),
+                    l.kind
+                );
             }
         }
         Ok(file)
@@ -160,7 +166,11 @@ impl SceneFile {
     /// The material a raw mesh gets: its `[assign]` entry, else the one named "default".
     pub fn material_for(&self, input: &Path) -> Option<MaterialRecord> {
         let file = input.file_name()?.to_string_lossy();
-        let name = self.assign.get(file.as_ref()).map(String::as_str).unwrap_or("default");
+        let name = self
+            .assign
+            .get(file.as_ref())
+            .map(String::as_str)
+            .unwrap_or("default");
         let d = self.material.iter().find(|d| d.name == name)?;
         let mut m = super::default_material(&d.name);
         m.name = name_bytes(&d.name);

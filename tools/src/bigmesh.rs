@@ -1,1 +1,125 @@
-fn main(){}
+//! Makes a huge binary PLY from a real mesh: `--copies` (or enough copies for
+//! `--triangles`) of the input, each rotated about y, scaled and placed on a jittered grid,
+//! streamed to disk with memory for one copy of the input only.
+//!
+//!     bigmesh ../shared/data/bunny.ply --triangles 50000000 -o big.ply
+
+use anyhow::{bail, Context, Result};
+use clap::Parser;
+use std::io::{BufWriter, Write};
+use std::path::PathBuf;
+
+#[derive(Parser)]
+#[command(
+    about = "Generate a huge mesh (binary PLY) from copies of a real one, with bounded memory"
+)]
+struct Args {
+    /// Input mesh (PLY).
+    input: PathBuf,
+    /// Output PLY.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Number of triangles wanted (rounded up to whole copies).
+    #[arg(long, conflicts_with = "copies")]
+    triangles: Option<u64>,
+    /// Number of copies.
+    #[arg(long)]
+    copies: Option<u64>,
+    /// Seed for the placement jitter.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+}
+
+/// SplitMix64: small, deterministic, good enough for placement jitter.
+struct Rng(u64);
+impl Rng {
+    fn next(&mut self) -> f32 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
+    }
+}
+
+fn main() -> Result<()> {
+    let a = Args::parse();
+    let (verts, tris) = canopy::import::ply::read_mesh(&a.input)?;
+    if tris.is_empty() {
+        bail!("{}: the mesh is empty (no triangles)", a.input.display());
+    }
+    let copies = match (a.copies, a.triangles) {
+        (Some(c), _) => c,
+        (None, Some(t)) => t.div_ceil(tris.len() as u64),
+        (None, None) => bail!("give --triangles or --copies"),
+    }
+    .max(1);
+    if (verts.len() as u64).saturating_mul(copies) > u32::MAX as u64 {
+        bail!(
+            "{} copies need more than 2^32 vertices, which PLY indices here cannot address",
+            copies
+        );
+    }
+    let mut lo = [f32::INFINITY; 3];
+    let mut hi = [f32::NEG_INFINITY; 3];
+    for v in &verts {
+        for k in 0..3 {
+            lo[k] = lo[k].min(v[k]);
+            hi[k] = hi[k].max(v[k]);
+        }
+    }
+    let size = (0..3).map(|k| hi[k] - lo[k]).fold(0.0f32, f32::max);
+    let side = (copies as f64).sqrt().ceil() as u64;
+    // Placement of every copy: angle, scale, offset on an x/z grid.
+    let mut rng = Rng(a.seed);
+    let place: Vec<(f32, f32, [f32; 3])> = (0..copies)
+        .map(|c| {
+            let (gx, gz) = ((c % side) as f32, (c / side) as f32);
+            let jitter = [rng.next() - 0.5, rng.next() - 0.5];
+            (
+                rng.next() * std::f32::consts::TAU,
+                0.7 + 0.6 * rng.next(),
+                [
+                    (gx + 0.3 * jitter[0]) * size * 1.2,
+                    0.0,
+                    (gz + 0.3 * jitter[1]) * size * 1.2,
+                ],
+            )
+        })
+        .collect();
+    let f = std::fs::File::create(&a.output)
+        .with_context(|| format!("{}: cannot create", a.output.display()))?;
+    let mut w = BufWriter::with_capacity(4 << 20, f);
+    let nv = verts.len() as u64 * copies;
+    let nf = tris.len() as u64 * copies;
+    write!(w, "ply\nformat binary_little_endian 1.0\ncomment bigmesh: {copies} copies of {}\nelement vertex {nv}\nproperty float x\nproperty float y\nproperty float z\nelement face {nf}\nproperty list uchar uint vertex_indices\nend_header\n", a.input.display())?;
+    for &(angle, scale, off) in &place {
+        let (s, c) = angle.sin_cos();
+        for v in &verts {
+            let p = [v[0] - lo[0], v[1] - lo[1], v[2] - lo[2]].map(|x| x * scale);
+            let q = [
+                c * p[0] + s * p[2] + off[0],
+                p[1],
+                -s * p[0] + c * p[2] + off[2],
+            ];
+            for x in q {
+                w.write_all(&x.to_le_bytes())?;
+            }
+        }
+    }
+    for copy in 0..copies {
+        let base = (copy * verts.len() as u64) as u32;
+        for t in &tris {
+            w.write_all(&[3u8])?;
+            for i in t {
+                w.write_all(&(base + i).to_le_bytes())?;
+            }
+        }
+    }
+    w.into_inner().map_err(|e| e.into_error())?.sync_all()?;
+    eprintln!(
+        "{}: {nf} triangles, {nv} vertices ({copies} copies)",
+        a.output.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,125 @@
+//! Property tests of the encodings: conservative quantization on random and adversarial
+//! boxes, and every encoded field within the error bound FORMAT.md states.
+
+use canopy_format::codec::*;
+use canopy_format::Grid;
+use proptest::prelude::*;
+
+fn contains(outer: &([f32; 3], [f32; 3]), inner: &([f32; 3], [f32; 3])) -> bool {
+    (0..3).all(|a| outer.0[a] <= inner.0[a] && inner.1[a] <= outer.1[a])
+}
+
+/// A coordinate from one of the adversarial regimes: ordinary, near ±1e7, tiny.
+fn coord() -> impl Strategy<Value = f32> {
+    prop_oneof![
+        -1000.0f32..1000.0,
+        (-1.0f32..1.0).prop_map(|x| 1.0e7 + x),
+        (-1.0f32..1.0).prop_map(|x| -1.0e7 + x * 1e-3),
+        (-1.0f32..1.0).prop_map(|x| x * 1e-6),
+        (-1.0f32..1.0).prop_map(|x| 3.0e5 + x * 1e-6),
+    ]
+}
+
+/// A parent box and a child box inside it (possibly flat or a single point).
+fn nested() -> impl Strategy<Value = (([f32; 3], [f32; 3]), ([f32; 3], [f32; 3]))> {
+    (
+        prop::array::uniform3(coord()),
+        prop::array::uniform3(0.0f32..1.0),
+        prop::array::uniform3(0.0f32..1.0),
+        prop::array::uniform3(prop_oneof![Just(0.0f32), 1e-6f32..1e-3, 0.1f32..1e4]),
+        any::<bool>(),
+    )
+        .prop_map(|(lo, a, b, ext, flat)| {
+            let hi = [0, 1, 2].map(|i| {
+                if flat && i == 1 {
+                    lo[i]
+                } else {
+                    lo[i] + ext[i]
+                }
+            });
+            let c0 =
+                [0, 1, 2].map(|i| (lo[i] + (hi[i] - lo[i]) * a[i].min(b[i])).clamp(lo[i], hi[i]));
+            let c1 =
+                [0, 1, 2].map(|i| (lo[i] + (hi[i] - lo[i]) * a[i].max(b[i])).clamp(c0[i], hi[i]));
+            ((lo, hi), (c0, c1))
+        })
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(4000))]
+
+    #[test]
+    fn quantized_boxes_are_conservative_and_nested(((plo, phi), (clo, chi)) in nested()) {
+        let grid = Grid { lo: plo, hi: phi };
+        let parent_q = grid.quantize_box(plo, phi, None);
+        let parent = grid.dequant_box(&parent_q);
+        prop_assert!(contains(&parent, &(plo, phi)), "parent {parent:?} misses {plo:?}..{phi:?}");
+        let child_q = grid.quantize_box(clo, chi, Some(&parent_q));
+        let child = grid.dequant_box(&child_q);
+        prop_assert!(contains(&child, &(clo, chi)), "child {child:?} misses {clo:?}..{chi:?}");
+        prop_assert!(contains(&parent, &child));
+        // Tightness: at most one grid step of slack per side (plus float rounding).
+        for a in 0..3 {
+            let step = (phi[a] - plo[a]) / 65535.0;
+            let slack = step + 4.0 * f32::EPSILON * plo[a].abs().max(phi[a].abs());
+            prop_assert!(clo[a] - child.0[a] <= slack && child.1[a] - chi[a] <= slack);
+        }
+    }
+
+    #[test]
+    fn points_inside_are_inside_the_quantized_box(lo in prop::array::uniform3(coord()), ext in prop::array::uniform3(0.0f32..10.0), t in prop::array::uniform3(0.0f32..1.0)) {
+        let hi = [0, 1, 2].map(|i| lo[i] + ext[i]);
+        let p = [0, 1, 2].map(|i| (lo[i] + ext[i] * t[i]).clamp(lo[i], hi[i]));
+        let grid = Grid { lo, hi };
+        let q = grid.quantize_box(p, p, None);
+        prop_assert!(contains(&grid.dequant_box(&q), &(p, p)));
+        let c = [0, 1, 2].map(|a| grid.dequant(a, grid.quantize_nearest(a, p[a])));
+        for a in 0..3 {
+            prop_assert!((c[a] - p[a]).abs() <= ext[a] / 65535.0 + 4.0 * f32::EPSILON * p[a].abs().max(1e-30));
+        }
+    }
+
+    #[test]
+    fn rgbe64_within_bound(rgb in prop::array::uniform3(prop_oneof![0.0f32..1.0, 0.0f32..1e6, 0.0f32..1e-20])) {
+        let d = rgbe64_decode(rgbe64_encode(rgb));
+        let m = rgb[0].max(rgb[1]).max(rgb[2]);
+        for i in 0..3 {
+            prop_assert!((d[i] - rgb[i]).abs() <= m * 2f32.powi(-17) + 1e-38, "{rgb:?} -> {d:?}");
+        }
+    }
+
+    #[test]
+    fn unorm8_snorm16_f16_within_bound(x in 0.0f32..1.0, y in -1.0f32..1.0, z in -60000.0f32..60000.0) {
+        prop_assert!((unorm8_decode(unorm8(x)) - x).abs() <= 0.5 / 255.0 + 1e-7);
+        prop_assert!((snorm16_decode(snorm16(y)) - y).abs() <= 0.5 / 32767.0 + 1e-7);
+        prop_assert!((f16_decode(f16_encode(z)) - z).abs() <= z.abs() * 2f32.powi(-11) + 6e-8);
+    }
+
+    #[test]
+    fn octahedral_normals_within_bound(v in prop::array::uniform3(-1.0f32..1.0)) {
+        let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        prop_assume!(l > 1e-3);
+        let n = v.map(|x| x / l);
+        let d = oct_decode(oct_encode(n));
+        let dot = n[0] * d[0] + n[1] * d[1] + n[2] * d[2];
+        let cross = [n[1] * d[2] - n[2] * d[1], n[2] * d[0] - n[0] * d[2], n[0] * d[1] - n[1] * d[0]];
+        let angle = (cross[0] * cross[0] + cross[1] * cross[1] + cross[2] * cross[2]).sqrt().atan2(dot);
+        prop_assert!(angle < 1e-4, "{n:?} -> {d:?}: {angle} rad");
+    }
+}
+
+#[test]
+fn rgbe64_special_values() {
+    assert_eq!(rgbe64_encode([0.0; 3]), 0);
+    assert_eq!(
+        rgbe64_decode(rgbe64_encode([f32::NAN, -1.0, 0.0])),
+        [0.0; 3]
+    );
+    let big = rgbe64_decode(rgbe64_encode([f32::INFINITY, 1.0, 0.0]));
+    assert_eq!(
+        big[0], 0.0,
+        "infinity is not a radiance; it encodes as zero"
+    );
+    let d = rgbe64_decode(rgbe64_encode([1e30, 1.0, 0.0]));
+    assert!((d[0] - 1e30).abs() <= 1e30 * 2f32.powi(-17));
+}

@@ -1,0 +1,175 @@
+//! Watertightness: rays that hit the input mesh hit the archive's leaves at the same
+//! triangle, found by walking the archive's (quantized, conservative) hierarchy.
+
+mod common;
+use canopy::import::ply::read_mesh;
+use canopy_format::{Archive, PageContents};
+use common::*;
+
+type V = [f64; 3];
+
+fn sub(a: V, b: V) -> V {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+fn cross(a: V, b: V) -> V {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+fn dot(a: V, b: V) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+fn v(p: [f32; 3]) -> V {
+    p.map(f64::from)
+}
+
+/// Möller–Trumbore in f64; the same function on both sides, so identical vertices give
+/// identical answers.
+fn hit(o: V, d: V, t: [[f32; 3]; 3]) -> Option<f64> {
+    let (p0, p1, p2) = (v(t[0]), v(t[1]), v(t[2]));
+    let (e1, e2) = (sub(p1, p0), sub(p2, p0));
+    let p = cross(d, e2);
+    let det = dot(e1, p);
+    if det.abs() < 1e-300 {
+        return None;
+    }
+    let s = sub(o, p0);
+    let u = dot(s, p) / det;
+    let q = cross(s, e1);
+    let w = dot(d, q) / det;
+    let t = dot(e2, q) / det;
+    (u >= 0.0 && w >= 0.0 && u + w <= 1.0 && t > 0.0).then_some(t)
+}
+
+/// Slab test with the box widened by a few ulps (robust traversal, Ize 2013).
+fn hits_box(o: V, d: V, lo: [f32; 3], hi: [f32; 3], tmax: f64) -> bool {
+    let (mut t0, mut t1) = (0.0f64, tmax);
+    for a in 0..3 {
+        let inv = 1.0 / d[a];
+        let (mut n, mut f) = ((lo[a] as f64 - o[a]) * inv, (hi[a] as f64 - o[a]) * inv);
+        if n > f {
+            std::mem::swap(&mut n, &mut f);
+        }
+        t0 = t0.max(n);
+        t1 = t1.min(f * (1.0 + 1e-12));
+        if t0 > t1 {
+            return false;
+        }
+    }
+    true
+}
+
+/// Closest hit through the archive hierarchy: (t, triangle vertices).
+fn trace(a: &Archive, pages: &[PageContents], o: V, d: V) -> Option<(f64, [[f32; 3]; 3])> {
+    let mut best: Option<(f64, [[f32; 3]; 3])> = None;
+    let root = a.header.root_page;
+    let mut stack: Vec<(u32, u32)> = vec![(root, 0)];
+    while let Some((page, i)) = stack.pop() {
+        let c = &pages[page as usize];
+        let n = &c.nodes[i as usize];
+        let (lo, hi) = a.grid(page).dequant_box(&n.bounds);
+        if !hits_box(o, d, lo, hi, best.map_or(f64::INFINITY, |b| b.0)) {
+            continue;
+        }
+        if n.is_leaf() {
+            for t in &c.tris[n.link[0] as usize..(n.link[0] + n.link[1]) as usize] {
+                let tri = t.v.map(|k| c.verts[k as usize]);
+                if let Some(th) = hit(o, d, tri) {
+                    if best.is_none_or(|b| th < b.0) {
+                        best = Some((th, tri));
+                    }
+                }
+            }
+        } else if n.has_child_page() {
+            stack.extend([(n.link[0], 0), (n.link[0], 1)]);
+        } else {
+            stack.extend([(page, n.link[0]), (page, n.link[1])]);
+        }
+    }
+    best
+}
+
+fn check(budget: &str) {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("bunny.canopy");
+    ok(&[
+        "convert",
+        s(&scene("bunny.ply")),
+        "-o",
+        s(&out),
+        "--mem-budget",
+        budget,
+    ]);
+    let a = Archive::open(&out).unwrap();
+    let pages: Vec<PageContents> = (0..a.pages.len() as u32)
+        .map(|p| a.read_page(p).unwrap())
+        .collect();
+    let (verts, tris) = read_mesh(&scene("bunny.ply")).unwrap();
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for p in &verts {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k] as f64);
+            hi[k] = hi[k].max(p[k] as f64);
+        }
+    }
+    let centre = [0, 1, 2].map(|k| (lo[k] + hi[k]) / 2.0);
+    let radius = (0..3).map(|k| (hi[k] - lo[k]).powi(2)).sum::<f64>().sqrt();
+    let mut state = 12345u64;
+    let mut rnd = || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let (mut hits, mut mismatches) = (0, 0);
+    for _ in 0..600 {
+        // From a random point on a sphere around the mesh towards a random point inside it.
+        let z = 2.0 * rnd() - 1.0;
+        let phi = std::f64::consts::TAU * rnd();
+        let r = (1.0 - z * z).sqrt();
+        let o = [
+            centre[0] + radius * r * phi.cos(),
+            centre[1] + radius * r * phi.sin(),
+            centre[2] + radius * z,
+        ];
+        let target = [0, 1, 2].map(|k| lo[k] + (hi[k] - lo[k]) * rnd());
+        let d = sub(target, o);
+        let truth = tris
+            .iter()
+            .filter_map(|t| {
+                let tri = t.map(|i| verts[i as usize]);
+                hit(o, d, tri).map(|th| (th, tri))
+            })
+            .min_by(|a, b| a.0.total_cmp(&b.0));
+        let got = trace(&a, &pages, o, d);
+        if let Some((t, tri)) = truth {
+            hits += 1;
+            match got {
+                Some((tg, trig)) if tg == t && trig == tri => {}
+                _ => mismatches += 1,
+            }
+        } else if got.is_some() {
+            mismatches += 1;
+        }
+    }
+    assert!(
+        hits > 200,
+        "too few rays hit the bunny ({hits}) for the test to mean anything"
+    );
+    assert_eq!(
+        mismatches, 0,
+        "{mismatches} of {hits} hits differ between input and archive"
+    );
+}
+
+#[test]
+fn archive_leaves_are_the_input_triangles() {
+    check("2GiB");
+}
+
+#[test]
+fn chunked_archive_leaves_are_the_input_triangles() {
+    check("100MiB");
+}
