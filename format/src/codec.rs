@@ -152,9 +152,11 @@ impl Grid {
     /// Largest code whose decoded value is <= v (0 when v <= lo).
     pub fn quantize_down(&self, axis: usize, v: f32) -> u16 {
         let ok = |q: u16| self.dequant(axis, q) <= v;
-        let q = self.estimate(axis, v);
-        if ok(q) && (q == QMAX || !ok(q + 1)) {
-            return q;
+        let e = self.estimate(axis, v);
+        for q in [e, e.saturating_sub(1), e.saturating_add(1), e.saturating_sub(2)] {
+            if ok(q) && (q == QMAX || !ok(q + 1)) {
+                return q;
+            }
         }
         // Rounding put the estimate off; binary search the monotone predicate.
         let (mut a, mut b) = (0u32, QMAX as u32 + 1); // ok(a) assumed, !ok(b)
@@ -175,9 +177,11 @@ impl Grid {
     /// Smallest code whose decoded value is >= v (QMAX when v >= hi).
     pub fn quantize_up(&self, axis: usize, v: f32) -> u16 {
         let ok = |q: u16| self.dequant(axis, q) >= v;
-        let q = self.estimate(axis, v).saturating_add(1).min(QMAX);
-        if ok(q) && (q == 0 || !ok(q - 1)) {
-            return q;
+        let e = self.estimate(axis, v).saturating_add(1);
+        for q in [e, e.saturating_sub(1), e.saturating_add(1), e.saturating_add(2)] {
+            if ok(q) && (q == 0 || !ok(q - 1)) {
+                return q;
+            }
         }
         if !ok(QMAX) {
             return QMAX;

@@ -169,7 +169,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     if opts.inputs.is_empty() {
         bail!("no input files");
     }
-    if opts.mem_budget < FIXED_BYTES + 1024 * BUILD_BYTES_PER_TRI {
+    if opts.mem_budget < FIXED_BYTES + 4096 * BUILD_BYTES_PER_TRI {
         bail!(
             "--mem-budget {} is too small: converting needs at least {} MiB",
             opts.mem_budget,
@@ -255,7 +255,8 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
 
     // Partition.
     let t1 = Instant::now();
-    let cap = (opts.mem_budget - FIXED_BYTES) / BUILD_BYTES_PER_TRI;
+    let threads = rayon::current_num_threads().max(1);
+    let cap = (opts.mem_budget - FIXED_BYTES) / BUILD_BYTES_PER_TRI / threads as u64;
     let chunk_files: Vec<PathBuf> = if total <= cap {
         vec![spill_path.clone()]
     } else {
@@ -312,34 +313,32 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     };
     let mut root_page = 0;
     let mut scene_root: Option<BNode> = None;
-    for path in &chunk_files {
-        let tris = read_all(path)?;
-        std::fs::remove_file(path).ok();
-        let n = tris.len() as u64;
-        if n == 0 {
-            continue;
+    // One chunk per worker at a time (the chunk size was divided accordingly); pages are
+    // written in chunk order, so the archive does not depend on scheduling.
+    for batch in chunk_files.chunks(threads) {
+        let trees = batch
+            .par_iter()
+            .map(|path| {
+                let tris = read_all(path)?;
+                std::fs::remove_file(path).ok();
+                Ok((!tris.is_empty()).then(|| Tree::build(tris, &mats)))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        for tree in trees.into_iter().flatten() {
+            let root = &tree.nodes[tree.root as usize];
+            if single {
+                root_page = write_pages(&mut writer, &tree, vec![tree.root], opts, normals)?;
+                scene_root = Some(root.clone());
+            } else if let Kind::Inner(children) = root.kind {
+                let page = write_pages(&mut writer, &tree, children.to_vec(), opts, normals)?;
+                top.nodes.push(BNode { kind: Kind::External { page }, ..root.clone() });
+            } else if let Kind::Leaf { first, count } = root.kind {
+                let at = top.tris.len() as u32;
+                top.tris.extend_from_slice(&tree.tris[first as usize..(first + count) as usize]);
+                top.nodes.push(BNode { kind: Kind::Leaf { first: at, count }, ..root.clone() });
+            }
+            bar.inc(tree.tris.len() as u64);
         }
-        let tree = Tree::build(tris, &mats);
-        let root = &tree.nodes[tree.root as usize];
-        if single {
-            root_page = write_pages(&mut writer, &tree, vec![tree.root], opts, normals)?;
-            scene_root = Some(root.clone());
-        } else if let Kind::Inner(children) = root.kind {
-            let page = write_pages(&mut writer, &tree, children.to_vec(), opts, normals)?;
-            top.nodes.push(BNode {
-                kind: Kind::External { page },
-                ..root.clone()
-            });
-        } else if let Kind::Leaf { first, count } = root.kind {
-            let at = top.tris.len() as u32;
-            top.tris
-                .extend_from_slice(&tree.tris[first as usize..(first + count) as usize]);
-            top.nodes.push(BNode {
-                kind: Kind::Leaf { first: at, count },
-                ..root.clone()
-            });
-        }
-        bar.inc(n);
     }
     bar.finish_and_clear();
     if !single {

@@ -20,11 +20,35 @@ pub struct PagePlan {
 
 pub struct Plan {
     pub pages: Vec<PagePlan>,
-    /// For each tree node in a page: (plan index, local index).
-    place: HashMap<u32, (u32, u32)>,
-    /// Cut nodes: tree node -> plan index of the page holding its children.
-    child_plan: HashMap<u32, u32>,
+    /// Per tree node: (plan index, local index); NONE for nodes outside the plan.
+    place: Vec<(u32, u32)>,
+    /// Per tree node: plan index of the page holding its children if it is a cut, else NONE.
+    child_plan: Vec<u32>,
 }
+
+const NONE: u32 = u32::MAX;
+
+/// FxHash-style multiplicative hasher: the vertex keys are not attacker-chosen and SipHash
+/// cost a tenth of conversion time.
+#[derive(Default)]
+struct FastHasher(u64);
+impl std::hash::Hasher for FastHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(b as u64);
+        }
+    }
+    fn write_u32(&mut self, v: u32) {
+        self.write_u64(v as u64);
+    }
+    fn write_u64(&mut self, v: u64) {
+        self.0 = (self.0.rotate_left(5) ^ v).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    }
+}
+type FastMap<K, V> = HashMap<K, V, std::hash::BuildHasherDefault<FastHasher>>;
 
 impl Plan {
     pub fn new(tree: &Tree, roots: Vec<u32>, max_nodes: usize) -> Plan {
@@ -34,14 +58,14 @@ impl Plan {
         // but the top ones holds between about max/2 and max nodes.
         let half = (max_nodes / 2).max(1) as u32;
         let mut open = vec![0u32; tree.nodes.len()];
-        let mut cut = std::collections::HashSet::new();
+        let mut cut = vec![false; tree.nodes.len()];
         for (i, n) in tree.nodes.iter().enumerate() {
             open[i] = match n.kind {
                 Kind::Inner([l, r]) if 1 + open[l as usize] + open[r as usize] <= half => {
                     1 + open[l as usize] + open[r as usize]
                 }
                 Kind::Inner(_) => {
-                    cut.insert(i as u32);
+                    cut[i] = true;
                     1
                 }
                 _ => 1,
@@ -49,14 +73,14 @@ impl Plan {
         }
         let mut plan = Plan {
             pages: Vec::new(),
-            place: HashMap::new(),
-            child_plan: HashMap::new(),
+            place: vec![(NONE, NONE); tree.nodes.len()],
+            child_plan: vec![NONE; tree.nodes.len()],
         };
         let mut pending = VecDeque::from([(roots, None)]);
         while let Some((roots, parent)) = pending.pop_front() {
             let idx = plan.pages.len() as u32;
             if let Some((_, n)) = parent {
-                plan.child_plan.insert(n, idx);
+                plan.child_plan[n as usize] = idx;
             }
             // Roots take local indices 0 and 1; then each root's subtree depth-first.
             let mut nodes = roots.clone();
@@ -68,19 +92,10 @@ impl Plan {
                 if !is_root {
                     nodes.push(n);
                 }
-                plan.place.insert(
-                    n,
-                    (
-                        idx,
-                        if is_root {
-                            roots.iter().position(|&x| x == n).unwrap() as u32
-                        } else {
-                            nodes.len() as u32 - 1
-                        },
-                    ),
-                );
+                let local = if is_root { roots.iter().position(|&x| x == n).unwrap() } else { nodes.len() - 1 };
+                plan.place[n as usize] = (idx, local as u32);
                 if let Kind::Inner([l, r]) = tree.nodes[n as usize].kind {
-                    if cut.contains(&n) {
+                    if cut[n as usize] {
                         pending.push_back((vec![l, r], Some((idx, n))));
                     } else {
                         stack.extend([(r, false), (l, false)]);
@@ -98,7 +113,7 @@ impl Plan {
 
     /// Where the page's parent node sits, as (plan index, local index).
     pub fn parent_of(&self, page: usize) -> Option<(u32, u32)> {
-        self.pages[page].parent.map(|(_, n)| self.place[&n])
+        self.pages[page].parent.map(|(_, n)| self.place[n as usize])
     }
 
     /// The page grid: exact union of the roots' bounds.
@@ -130,25 +145,27 @@ impl Plan {
         let grid = self.grid(tree, page);
         let mut out = PageContents::default();
         let mut externals = Vec::new();
-        let mut verts: HashMap<([u32; 3], u32), u16> = HashMap::new();
-        let mut parent_q: HashMap<u32, [u16; 6]> = HashMap::new();
+        let mut verts: FastMap<([u32; 3], u32), u16> = FastMap::default();
+        // Quantized bounds of each node's parent, by local index (roots have none).
+        let mut parent_q: Vec<Option<[u16; 6]>> = vec![None; p.nodes.len()];
         for (local, &id) in p.nodes.iter().enumerate() {
             let b = &tree.nodes[id as usize];
             let mut node = b.cluster.encode();
-            node.bounds = grid.quantize_box(b.lo, b.hi, parent_q.get(&id));
+            node.bounds = grid.quantize_box(b.lo, b.hi, parent_q[local].as_ref());
             let c = b.cluster.mean_centroid();
             node.centroid =
                 [0, 1, 2].map(|a| grid.quantize_nearest(a, c[a].clamp(b.lo[a], b.hi[a])));
             match b.kind {
-                Kind::Inner([l, r]) => match self.child_plan.get(&id) {
-                    Some(&child) => {
+                Kind::Inner([l, r]) => match self.child_plan[id as usize] {
+                    NONE => {
+                        node.link = [self.place[l as usize].1, self.place[r as usize].1];
+                        for c in node.link {
+                            parent_q[c as usize] = Some(node.bounds);
+                        }
+                    }
+                    child => {
                         node.flags |= NodeFlags::CHILD_PAGE;
                         node.link = [base + child, 0];
-                    }
-                    None => {
-                        node.link = [self.place[&l].1, self.place[&r].1];
-                        parent_q.insert(l, node.bounds);
-                        parent_q.insert(r, node.bounds);
                     }
                 },
                 Kind::External { page } => {
