@@ -1,1 +1,59 @@
-fn main() {}
+//! Converter triangles/s (bundled scenes, end to end: import, build, compress, write) and
+//! page decode MB/s (checksum + zstd + parse + index checks, per decoded byte).
+
+use canopy::build::{convert, ConvertOptions};
+use canopy_format::Archive;
+use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use std::path::{Path, PathBuf};
+
+fn scene(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("scenes")
+        .join(name)
+}
+
+fn options(input: &str, output: &Path) -> ConvertOptions {
+    ConvertOptions {
+        inputs: vec![scene(input)],
+        output: output.to_path_buf(),
+        mem_budget: 2 << 30,
+        scene: None,
+        page_nodes: 512,
+        zstd_level: 3,
+        progress: false,
+    }
+}
+
+fn bench_convert(c: &mut Criterion) {
+    let dir = tempfile::tempdir().unwrap();
+    let mut g = c.benchmark_group("convert");
+    g.sample_size(10);
+    for (name, tris) in [("bunny_box.glb", 69_465u64), ("sponza.glb", 263_167)] {
+        let out = dir.path().join("out.canopy");
+        g.throughput(Throughput::Elements(tris));
+        g.bench_function(name, |b| b.iter(|| convert(&options(name, &out)).unwrap()));
+    }
+    g.finish();
+}
+
+fn bench_decode(c: &mut Criterion) {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("sponza.canopy");
+    convert(&options("sponza.glb", &out)).unwrap();
+    let a = Archive::open(&out).unwrap();
+    let raw: u64 = a.pages.iter().map(|e| e.raw_len as u64).sum();
+    let mut g = c.benchmark_group("page_decode");
+    g.sample_size(20);
+    g.throughput(Throughput::Bytes(raw));
+    g.bench_function("sponza_all_pages", |b| {
+        b.iter(|| {
+            for p in 0..a.pages.len() as u32 {
+                std::hint::black_box(a.read_page(p).unwrap());
+            }
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench_convert, bench_decode);
+criterion_main!(benches);

@@ -89,7 +89,7 @@ pub fn f16_decode(bits: u16) -> f32 {
 /// Angular error below 1e-4 rad.
 pub fn oct_encode(n: [f32; 3]) -> u32 {
     let l1 = n[0].abs() + n[1].abs() + n[2].abs();
-    if !(l1 > 0.0) || !l1.is_finite() {
+    if l1.is_nan() || l1 <= 0.0 || !l1.is_finite() {
         return oct_pack(0.0, 0.0);
     }
     let (mut x, mut y) = (n[0] / l1, n[1] / l1);
@@ -153,7 +153,12 @@ impl Grid {
     pub fn quantize_down(&self, axis: usize, v: f32) -> u16 {
         let ok = |q: u16| self.dequant(axis, q) <= v;
         let e = self.estimate(axis, v);
-        for q in [e, e.saturating_sub(1), e.saturating_add(1), e.saturating_sub(2)] {
+        for q in [
+            e,
+            e.saturating_sub(1),
+            e.saturating_add(1),
+            e.saturating_sub(2),
+        ] {
             if ok(q) && (q == QMAX || !ok(q + 1)) {
                 return q;
             }
@@ -178,7 +183,12 @@ impl Grid {
     pub fn quantize_up(&self, axis: usize, v: f32) -> u16 {
         let ok = |q: u16| self.dequant(axis, q) >= v;
         let e = self.estimate(axis, v).saturating_add(1);
-        for q in [e, e.saturating_sub(1), e.saturating_add(1), e.saturating_add(2)] {
+        for q in [
+            e,
+            e.saturating_sub(1),
+            e.saturating_add(1),
+            e.saturating_add(2),
+        ] {
             if ok(q) && (q == 0 || !ok(q - 1)) {
                 return q;
             }

@@ -5,7 +5,7 @@ use canopy_format::codec::*;
 use canopy_format::Grid;
 use proptest::prelude::*;
 
-fn contains(outer: &([f32; 3], [f32; 3]), inner: &([f32; 3], [f32; 3])) -> bool {
+fn contains(outer: &Box3, inner: &Box3) -> bool {
     (0..3).all(|a| outer.0[a] <= inner.0[a] && inner.1[a] <= outer.1[a])
 }
 
@@ -21,7 +21,9 @@ fn coord() -> impl Strategy<Value = f32> {
 }
 
 /// A parent box and a child box inside it (possibly flat or a single point).
-fn nested() -> impl Strategy<Value = (([f32; 3], [f32; 3]), ([f32; 3], [f32; 3]))> {
+type Box3 = ([f32; 3], [f32; 3]);
+
+fn nested() -> impl Strategy<Value = (Box3, Box3)> {
     (
         prop::array::uniform3(coord()),
         prop::array::uniform3(0.0f32..1.0),

@@ -68,10 +68,9 @@ struct Spill {
 
 impl TriangleSink for Spill {
     fn push(&mut self, t: SpillTri) -> Result<()> {
-        let c = t.centroid();
-        for a in 0..3 {
-            self.lo[a] = self.lo[a].min(c[a]);
-            self.hi[a] = self.hi[a].max(c[a]);
+        for (a, c) in t.centroid().into_iter().enumerate() {
+            self.lo[a] = self.lo[a].min(c);
+            self.hi[a] = self.hi[a].max(c);
         }
         let m = t.material as usize;
         if m >= self.materials_used.len() {
@@ -82,7 +81,7 @@ impl TriangleSink for Spill {
             .write_all(bytemuck::bytes_of(&t))
             .with_context(|| format!("{}: writing spill file", self.path.display()))?;
         self.count += 1;
-        if self.count % 65536 == 0 {
+        if self.count.is_multiple_of(65536) {
             self.bar.set_position(self.count);
         }
         Ok(())
@@ -331,11 +330,18 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
                 scene_root = Some(root.clone());
             } else if let Kind::Inner(children) = root.kind {
                 let page = write_pages(&mut writer, &tree, children.to_vec(), opts, normals)?;
-                top.nodes.push(BNode { kind: Kind::External { page }, ..root.clone() });
+                top.nodes.push(BNode {
+                    kind: Kind::External { page },
+                    ..root.clone()
+                });
             } else if let Kind::Leaf { first, count } = root.kind {
                 let at = top.tris.len() as u32;
-                top.tris.extend_from_slice(&tree.tris[first as usize..(first + count) as usize]);
-                top.nodes.push(BNode { kind: Kind::Leaf { first: at, count }, ..root.clone() });
+                top.tris
+                    .extend_from_slice(&tree.tris[first as usize..(first + count) as usize]);
+                top.nodes.push(BNode {
+                    kind: Kind::Leaf { first: at, count },
+                    ..root.clone()
+                });
             }
             bar.inc(tree.tris.len() as u64);
         }

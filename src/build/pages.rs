@@ -92,7 +92,11 @@ impl Plan {
                 if !is_root {
                     nodes.push(n);
                 }
-                let local = if is_root { roots.iter().position(|&x| x == n).unwrap() } else { nodes.len() - 1 };
+                let local = if is_root {
+                    roots.iter().position(|&x| x == n).unwrap()
+                } else {
+                    nodes.len() - 1
+                };
                 plan.place[n as usize] = (idx, local as u32);
                 if let Kind::Inner([l, r]) = tree.nodes[n as usize].kind {
                     if cut[n as usize] {
@@ -177,10 +181,9 @@ impl Plan {
                     node.flags |= NodeFlags::LEAF;
                     node.link = [out.tris.len() as u32, count];
                     for t in &tree.tris[first as usize..(first + count) as usize] {
-                        let mut v = [0u16; 3];
-                        for k in 0..3 {
+                        let v = [0, 1, 2].map(|k| {
                             let key = (t.p[k].map(f32::to_bits), if normals { t.n[k] } else { 0 });
-                            v[k] = *verts.entry(key).or_insert_with(|| {
+                            *verts.entry(key).or_insert_with(|| {
                                 out.verts.push(t.p[k]);
                                 if normals {
                                     out.normals.push(if t.n[k] == 0 {
@@ -191,8 +194,8 @@ impl Plan {
                                 }
                                 u16::try_from(out.verts.len() - 1)
                                     .expect("page vertex count fits u16")
-                            });
-                        }
+                            })
+                        });
                         out.tris.push(Tri {
                             v,
                             material: t.material as u16,

@@ -227,8 +227,11 @@ pub fn import(
     Ok(count)
 }
 
+/// Vertex positions and triangle index triples.
+pub type IndexedMesh = (Vec<[f32; 3]>, Vec<[u32; 3]>);
+
 /// An indexed triangle mesh read whole (for tools that transform small meshes).
-pub fn read_mesh(path: &Path) -> Result<(Vec<[f32; 3]>, Vec<[u32; 3]>)> {
+pub fn read_mesh(path: &Path) -> Result<IndexedMesh> {
     let mut tris = Vec::new();
     let mut verts = Vec::new();
     parse(path, &mut |i, idx, pos, _| {
@@ -238,8 +241,7 @@ pub fn read_mesh(path: &Path) -> Result<(Vec<[f32; 3]>, Vec<[u32; 3]>)> {
         for k in 2..idx.len() {
             if let Some(p) = [idx[0], idx[k - 1], idx[k]]
                 .iter()
-                .map(|&v| pos[v as usize])
-                .flatten()
+                .flat_map(|&v| pos[v as usize])
                 .find(|x| !x.is_finite())
             {
                 bail!(
