@@ -14,7 +14,7 @@ pub fn parse_size(s: &str) -> Result<u64> {
     let Ok(v) = num.parse::<f64>() else {
         bail!("'{s}' is not a size (try 512MiB, 2GiB, 1.5G)")
     };
-    let mult: f64 = match unit.trim().to_ascii_lowercase().as_str() {
+    let mult: f64 = match unit.to_ascii_lowercase().as_str() {
         "" | "b" => 1.0,
         "k" | "kib" => 1024.0,
         "m" | "mib" => 1024.0 * 1024.0,

@@ -209,31 +209,12 @@ fn missing_archive_and_bad_sizes() {
     let dir = tempfile::tempdir().unwrap();
     inspect_fails(&dir.path().join("nothing.canopy"), "No such file");
     let out = dir.path().join("o.canopy");
-    let err = fails(&[
-        "convert",
-        s(&scene("cbox.glb")),
-        "-o",
-        s(&out),
-        "--mem-budget",
-        "12 parsecs",
-    ]);
-    assert!(err.contains("unknown size unit"), "{err}");
-    let err = fails(&[
-        "convert",
-        s(&scene("cbox.glb")),
-        "-o",
-        s(&out),
-        "--mem-budget",
-        "1MiB",
-    ]);
-    assert!(err.contains("too small"), "{err}");
-    let err = fails(&[
-        "convert",
-        s(&scene("cbox.glb")),
-        "-o",
-        "/nonexistent-dir/x.canopy",
-    ]);
-    assert!(err.contains("/nonexistent-dir"), "{err}");
+    let cbox = scene("cbox.glb");
+    let convert =
+        |out: &str, budget: &str| fails(&["convert", s(&cbox), "-o", out, "--mem-budget", budget]);
+    assert!(convert(s(&out), "12 parsecs").contains("unknown size unit"));
+    assert!(convert(s(&out), "1MiB").contains("too small"));
+    assert!(convert("/nonexistent-dir/x.canopy", "1GiB").contains("/nonexistent-dir"));
     assert!(!out.exists());
 }
 
