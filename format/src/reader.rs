@@ -99,10 +99,10 @@ impl Archive {
             return Err(corrupt("table checksum mismatch".into()));
         }
         let materials =
-            read_table::<MaterialRecord>(&map, &header.materials, 128, "material table", &p)?;
-        let cameras = read_table::<CameraRecord>(&map, &header.cameras, 128, "camera table", &p)?;
-        let lights = read_table::<LightRecord>(&map, &header.lights, 96, "light table", &p)?;
-        let pages = read_table::<PageEntry>(&map, &header.pages, 96, "page table", &p)?;
+            read_table::<MaterialRecord>(&map, &header.materials, "material table", &p)?;
+        let cameras = read_table::<CameraRecord>(&map, &header.cameras, "camera table", &p)?;
+        let lights = read_table::<LightRecord>(&map, &header.lights, "light table", &p)?;
+        let pages = read_table::<PageEntry>(&map, &header.pages, "page table", &p)?;
         if pages.is_empty() || header.root_page as usize >= pages.len() {
             return Err(corrupt(format!(
                 "root page {} of {} pages",
@@ -282,13 +282,8 @@ impl Archive {
     }
 }
 
-fn read_table<T: bytemuck::Pod>(
-    map: &[u8],
-    t: &TableRef,
-    size: u32,
-    what: &str,
-    p: &Path,
-) -> Result<Vec<T>> {
+fn read_table<T: bytemuck::Pod>(map: &[u8], t: &TableRef, what: &str, p: &Path) -> Result<Vec<T>> {
+    let size = std::mem::size_of::<T>() as u32;
     if t.record_size != size {
         return Err(FormatError::Corrupt {
             path: p.to_path_buf(),

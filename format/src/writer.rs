@@ -230,41 +230,12 @@ impl ArchiveWriter {
     /// Writes the tables and header, syncs, and renames into place.
     pub fn finish(mut self, info: &SceneInfo) -> Result<()> {
         self.fill_levels();
-        let mut tables = Vec::new();
-        let mut table = |bytes: &[u8], count: usize, size: usize, base: u64| {
-            let t = TableRef {
-                offset: base + tables.len() as u64,
-                count: count as u32,
-                record_size: size as u32,
-            };
-            tables.extend_from_slice(bytes);
-            t
-        };
         let base = self.offset;
-        let materials = table(
-            bytemuck::cast_slice(&info.materials),
-            info.materials.len(),
-            128,
-            base,
-        );
-        let cameras = table(
-            bytemuck::cast_slice(&info.cameras),
-            info.cameras.len(),
-            128,
-            base,
-        );
-        let lights = table(
-            bytemuck::cast_slice(&info.lights),
-            info.lights.len(),
-            96,
-            base,
-        );
-        let pages = table(
-            bytemuck::cast_slice(&self.pages),
-            self.pages.len(),
-            96,
-            base,
-        );
+        let mut tables = Vec::new();
+        let materials = append_table(&mut tables, base, &info.materials);
+        let cameras = append_table(&mut tables, base, &info.cameras);
+        let lights = append_table(&mut tables, base, &info.lights);
+        let pages = append_table(&mut tables, base, &self.pages);
         let mut header = Header {
             magic: MAGIC,
             version_major: VERSION_MAJOR,
@@ -311,6 +282,17 @@ impl ArchiveWriter {
         }
         Ok(())
     }
+}
+
+/// Appends a table's records and returns where they sit; the record size is the type's.
+fn append_table<T: bytemuck::Pod>(tables: &mut Vec<u8>, base: u64, records: &[T]) -> TableRef {
+    let t = TableRef {
+        offset: base + tables.len() as u64,
+        count: records.len() as u32,
+        record_size: std::mem::size_of::<T>() as u32,
+    };
+    tables.extend_from_slice(bytemuck::cast_slice(records));
+    t
 }
 
 impl Drop for ArchiveWriter {
