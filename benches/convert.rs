@@ -1,7 +1,7 @@
 //! Converter triangles/s (bundled scenes, end to end: import, build, compress, write) and
 //! page decode MB/s (checksum + zstd + parse + index checks, per decoded byte).
 
-use canopy::build::{convert, ConvertOptions};
+use canopy::build::{convert, BvhQuality, ConvertOptions};
 use canopy_format::Archive;
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use std::path::{Path, PathBuf};
@@ -19,7 +19,8 @@ fn options(input: &str, output: &Path) -> ConvertOptions {
         mem_budget: 2 << 30,
         scene: None,
         page_nodes: 512,
-        zstd_level: 3,
+        zstd_level: 1,
+        bvh: BvhQuality::Auto,
         progress: false,
     }
 }

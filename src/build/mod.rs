@@ -1,6 +1,7 @@
 //! `canopy convert`: inputs → node archive with bounded memory.
 //!
-//! 1. Import streams every triangle into a spill file (56 bytes each) while tracking bounds.
+//! 1. Import streams every triangle into a spill file (40 bytes each, 56 with normals) while
+//!    tracking bounds.
 //! 2. If the triangles exceed one chunk's budget, a Morton histogram of their centroids
 //!    splits space into chunks that fit, and a second pass distributes them to chunk files.
 //! 3. Each chunk is loaded alone, built (PLOC via obvhs), aggregated, cut into pages and
@@ -9,6 +10,7 @@
 
 mod cluster;
 mod pages;
+mod spill;
 mod tree;
 
 pub use cluster::{MatSummary, REFLECT_COS};
@@ -17,12 +19,15 @@ pub use tree::MAX_LEAF_TRIS;
 use crate::import::{self, SceneDesc, SceneFile, SpillTri, TriangleSink};
 use crate::progress;
 use anyhow::{bail, Context, Result};
-use canopy_format::{encode_page, ArchiveWriter, Features, PageMeta, SceneInfo, NONE};
+use canopy_format::{encode_page, ArchiveWriter, EncodedPage, Features, PageMeta, SceneInfo, NONE};
 use pages::Plan;
 use rayon::prelude::*;
-use std::fs::File;
-use std::io::{BufReader, BufWriter, Read, Write};
-use std::path::{Path, PathBuf};
+use spill::SpillWriter;
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::mpsc::Sender;
+use std::sync::{Condvar, Mutex};
 use std::time::Instant;
 use tree::{BNode, Kind, Tree};
 
@@ -40,8 +45,22 @@ pub struct ConvertOptions {
     pub scene: Option<PathBuf>,
     pub page_nodes: usize,
     pub zstd_level: i32,
+    pub bvh: BvhQuality,
     pub progress: bool,
 }
+
+/// How hard the hierarchy builder works (obvhs presets).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum BvhQuality {
+    /// `Medium` for inputs up to `AUTO_FAST_ABOVE` triangles, `Fast` beyond.
+    Auto,
+    Fast,
+    Medium,
+}
+
+/// Above this many triangles `auto` picks the fast build: reinsertion costs a fifth of
+/// conversion time, which matters at scale; small scenes keep the better tree.
+const AUTO_FAST_ABOVE: u64 = 8_000_000;
 
 #[derive(Debug, Default, serde::Serialize)]
 pub struct ConvertReport {
@@ -57,8 +76,7 @@ pub struct ConvertReport {
 }
 
 struct Spill {
-    out: BufWriter<File>,
-    path: PathBuf,
+    out: SpillWriter,
     count: u64,
     lo: [f32; 3],
     hi: [f32; 3],
@@ -77,57 +95,13 @@ impl TriangleSink for Spill {
             self.materials_used.resize(m + 1, false);
         }
         self.materials_used[m] = true;
-        self.out
-            .write_all(bytemuck::bytes_of(&t))
-            .with_context(|| format!("{}: writing spill file", self.path.display()))?;
+        self.out.write(&t)?;
         self.count += 1;
         if self.count.is_multiple_of(65536) {
             self.bar.set_position(self.count);
         }
         Ok(())
     }
-}
-
-/// Streams spill records from a file in blocks.
-fn for_each_spilled(path: &Path, mut f: impl FnMut(&[SpillTri]) -> Result<()>) -> Result<()> {
-    let mut r = BufReader::with_capacity(
-        1 << 20,
-        File::open(path).with_context(|| format!("{}: reopening spill", path.display()))?,
-    );
-    let mut block: Vec<SpillTri> = vec![SpillTri::default(); 16384];
-    loop {
-        let bytes: &mut [u8] = bytemuck::cast_slice_mut(&mut block);
-        let full = bytes.len();
-        let mut n = 0;
-        while n < full {
-            let k = r
-                .read(&mut bytes[n..])
-                .with_context(|| format!("{}: reading spill", path.display()))?;
-            if k == 0 {
-                break;
-            }
-            n += k;
-        }
-        if n % std::mem::size_of::<SpillTri>() != 0 {
-            bail!("{}: spill file has a partial record", path.display());
-        }
-        let m = n / std::mem::size_of::<SpillTri>();
-        if m > 0 {
-            f(&block[..m])?;
-        }
-        if n < full {
-            return Ok(());
-        }
-    }
-}
-
-fn read_all(path: &Path) -> Result<Vec<SpillTri>> {
-    let mut out = Vec::new();
-    for_each_spilled(path, |b| {
-        out.extend_from_slice(b);
-        Ok(())
-    })?;
-    Ok(out)
 }
 
 /// 21-bit Morton code of a point in the box (7 bits an axis): the histogram bin.
@@ -195,12 +169,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         ..Default::default()
     };
     let mut spill = Spill {
-        out: BufWriter::with_capacity(
-            1 << 20,
-            File::create(&spill_path)
-                .with_context(|| format!("{}: cannot create", spill_path.display()))?,
-        ),
-        path: spill_path.clone(),
+        out: SpillWriter::create(&spill_path, 1 << 20)?,
         count: 0,
         lo: [f32::INFINITY; 3],
         hi: [f32::NEG_INFINITY; 3],
@@ -211,7 +180,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         import::import(input, &mut scene, &file, &mut spill)?;
     }
     let Spill {
-        mut out,
+        out,
         count: total,
         lo: clo,
         hi: chi,
@@ -220,9 +189,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         ..
     } = spill;
     bar.finish_and_clear();
-    out.flush()
-        .with_context(|| format!("{}: writing spill file", spill_path.display()))?;
-    drop(out);
+    out.finish()?;
     let mut report = ConvertReport {
         input_triangles: total,
         seconds_import: t0.elapsed().as_secs_f64(),
@@ -260,10 +227,8 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         vec![spill_path.clone()]
     } else {
         let mut hist = vec![0u64; 1 << (3 * MORTON_BITS)];
-        for_each_spilled(&spill_path, |b| {
-            for t in b {
-                hist[morton(t.centroid(), clo, chi) as usize] += 1;
-            }
+        spill::for_each(&spill_path, |t| {
+            hist[morton(t.centroid(), clo, chi) as usize] += 1;
             Ok(())
         })?;
         let (chunk, n) = chunk_of_bins(&hist, cap);
@@ -273,26 +238,21 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
             .collect();
         let mut outs = paths
             .iter()
-            .map(|p| {
-                File::create(p)
-                    .map(|f| BufWriter::with_capacity(256 << 10, f))
-                    .with_context(|| format!("{}: cannot create", p.display()))
-            })
+            .map(|p| SpillWriter::create(p, 256 << 10))
             .collect::<Result<Vec<_>>>()?;
         let bar = progress::bar(opts.progress, total, "partitioning");
-        for_each_spilled(&spill_path, |b| {
-            for t in b {
-                let c = chunk[morton(t.centroid(), clo, chi) as usize] as usize;
-                outs[c]
-                    .write_all(bytemuck::bytes_of(t))
-                    .context("writing chunk file")?;
+        let mut done = 0u64;
+        spill::for_each(&spill_path, |t| {
+            outs[chunk[morton(t.centroid(), clo, chi) as usize] as usize].write(t)?;
+            done += 1;
+            if done.is_multiple_of(65536) {
+                bar.set_position(done);
             }
-            bar.inc(b.len() as u64);
             Ok(())
         })?;
         bar.finish_and_clear();
-        for o in outs.iter_mut() {
-            o.flush().context("writing chunk file")?;
+        for o in outs {
+            o.finish()?;
         }
         std::fs::remove_file(&spill_path).ok();
         paths
@@ -312,40 +272,70 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     };
     let mut root_page = 0;
     let mut scene_root: Option<BNode> = None;
-    // One chunk per worker at a time (the chunk size was divided accordingly); pages are
-    // written in chunk order, so the archive does not depend on scheduling.
-    for batch in chunk_files.chunks(threads) {
-        let trees = batch
-            .par_iter()
-            .map(|path| {
-                let tris = read_all(path)?;
-                std::fs::remove_file(path).ok();
-                Ok((!tris.is_empty()).then(|| Tree::build(tris, &mats)))
-            })
-            .collect::<Result<Vec<_>>>()?;
-        for tree in trees.into_iter().flatten() {
-            let root = &tree.nodes[tree.root as usize];
-            if single {
-                root_page = write_pages(&mut writer, &tree, vec![tree.root], opts, normals)?;
-                scene_root = Some(root.clone());
-            } else if let Kind::Inner(children) = root.kind {
-                let page = write_pages(&mut writer, &tree, children.to_vec(), opts, normals)?;
-                top.nodes.push(BNode {
-                    kind: Kind::External { page },
-                    ..root.clone()
-                });
-            } else if let Kind::Leaf { first, count } = root.kind {
-                let at = top.tris.len() as u32;
-                top.tris
-                    .extend_from_slice(&tree.tris[first as usize..(first + count) as usize]);
-                top.nodes.push(BNode {
-                    kind: Kind::Leaf { first: at, count },
-                    ..root.clone()
-                });
-            }
-            bar.inc(tree.tris.len() as u64);
+    let job = ChunkJob {
+        files: &chunk_files,
+        mats: &mats,
+        single,
+        fast: match opts.bvh {
+            BvhQuality::Auto => total > AUTO_FAST_ABOVE,
+            q => q == BvhQuality::Fast,
+        },
+        opts,
+        normals,
+        claim: AtomicUsize::new(0),
+        turn: Mutex::new(Turn {
+            next: 0,
+            base: writer.page_count(),
+            failed: false,
+        }),
+        turn_changed: Condvar::new(),
+    };
+    // One chunk per worker at a time (the chunk size was divided accordingly). Workers build
+    // and compress pages concurrently; page numbers are handed out in chunk order and pages
+    // are appended in chunk order, so the archive does not depend on scheduling.
+    std::thread::scope(|s| -> Result<()> {
+        let (tx, rx) = std::sync::mpsc::channel();
+        for _ in 0..threads.min(chunk_files.len()) {
+            let tx = tx.clone();
+            let job = &job;
+            s.spawn(move || job.work(tx));
         }
-    }
+        drop(tx);
+        let mut arrived = BTreeMap::new();
+        let mut next = 0;
+        for (i, out) in rx {
+            arrived.insert(i, out?);
+            while let Some(out) = arrived.remove(&next) {
+                next += 1;
+                let ChunkOut {
+                    root,
+                    leaf_tris,
+                    pages,
+                    triangles,
+                } = out;
+                let first = append_pages(&mut writer, pages)?;
+                bar.inc(triangles);
+                let Some(root) = root else { continue };
+                if single {
+                    root_page = first;
+                    scene_root = Some(root);
+                } else if let Kind::Leaf { count, .. } = root.kind {
+                    let at = top.tris.len() as u32;
+                    top.tris.extend_from_slice(&leaf_tris);
+                    top.nodes.push(BNode {
+                        kind: Kind::Leaf { first: at, count },
+                        ..root
+                    });
+                } else {
+                    top.nodes.push(BNode {
+                        kind: Kind::External { page: first },
+                        ..root
+                    });
+                }
+            }
+        }
+        Ok(())
+    })?;
     bar.finish_and_clear();
     if !single {
         let leaves: Vec<u32> = (0..top.nodes.len() as u32).collect();
@@ -392,8 +382,177 @@ fn balanced(tree: &mut Tree, items: &[u32]) -> u32 {
     }
 }
 
-/// Cuts the subtrees under `roots` into pages, encodes them in parallel and appends them.
-/// Returns the archive index of the first (top) page.
+/// A chunk's pages, compressed and numbered from `base`, ready to append in order.
+struct EncodedPages {
+    base: u32,
+    pages: Vec<(EncodedPage, PageMeta, Externals)>,
+}
+
+/// Per cut node of a page: (page holding its children, its local index).
+type Externals = Vec<(u32, u32)>;
+
+struct ChunkOut {
+    /// The chunk's root (None for an empty chunk).
+    root: Option<BNode>,
+    /// The triangles of a root that is a leaf (such a chunk writes no pages).
+    leaf_tris: Vec<SpillTri>,
+    pages: EncodedPages,
+    triangles: u64,
+}
+
+/// Next chunk allowed to take page numbers, and the first free number.
+struct Turn {
+    next: usize,
+    base: u32,
+    failed: bool,
+}
+
+struct ChunkJob<'a> {
+    files: &'a [PathBuf],
+    mats: &'a [MatSummary],
+    single: bool,
+    fast: bool,
+    opts: &'a ConvertOptions,
+    normals: bool,
+    claim: AtomicUsize,
+    turn: Mutex<Turn>,
+    turn_changed: Condvar,
+}
+
+impl ChunkJob<'_> {
+    /// Claims chunks in increasing order until none is left, sending each result.
+    fn work(&self, tx: Sender<(usize, Result<ChunkOut>)>) {
+        loop {
+            let i = self.claim.fetch_add(1, Ordering::Relaxed);
+            if i >= self.files.len() {
+                return;
+            }
+            let out = self.chunk(i);
+            let failed = out.is_err();
+            // Send before raising the flag, so the first error received is the real one.
+            let gone = tx.send((i, out)).is_err();
+            if failed {
+                self.turn.lock().expect("turn lock").failed = true;
+                self.turn_changed.notify_all();
+            }
+            if failed || gone {
+                return;
+            }
+        }
+    }
+
+    fn chunk(&self, i: usize) -> Result<ChunkOut> {
+        let path = &self.files[i];
+        let tris = spill::read_all(path)?;
+        std::fs::remove_file(path).ok();
+        let triangles = tris.len() as u64;
+        let tree = (!tris.is_empty()).then(|| Tree::build(tris, self.mats, self.fast));
+        let roots = match &tree {
+            Some(t) if self.single => vec![t.root],
+            Some(t) => match t.nodes[t.root as usize].kind {
+                Kind::Inner(children) => children.to_vec(),
+                _ => Vec::new(),
+            },
+            None => Vec::new(),
+        };
+        let plan = tree
+            .as_ref()
+            .map(|t| Plan::new(t, roots, self.opts.page_nodes));
+        let count = plan.as_ref().map_or(0, |p| p.pages.len() as u32);
+        let base = {
+            let mut turn = self.turn.lock().expect("turn lock");
+            while turn.next != i && !turn.failed {
+                turn = self.turn_changed.wait(turn).expect("turn lock");
+            }
+            if turn.failed {
+                bail!("stopped: another chunk failed");
+            }
+            let base = turn.base;
+            turn.base += count;
+            turn.next += 1;
+            base
+        };
+        self.turn_changed.notify_all();
+        let Some(tree) = tree else {
+            return Ok(ChunkOut {
+                root: None,
+                leaf_tris: Vec::new(),
+                pages: EncodedPages {
+                    base,
+                    pages: Vec::new(),
+                },
+                triangles,
+            });
+        };
+        let pages = match &plan {
+            Some(plan) if count > 0 => encode_pages(&tree, plan, base, self.opts, self.normals)?,
+            _ => EncodedPages {
+                base,
+                pages: Vec::new(),
+            },
+        };
+        let root = tree.nodes[tree.root as usize].clone();
+        let leaf_tris = match root.kind {
+            Kind::Leaf { first, count } if !self.single => {
+                tree.tris[first as usize..(first + count) as usize].to_vec()
+            }
+            _ => Vec::new(),
+        };
+        Ok(ChunkOut {
+            root: Some(root),
+            leaf_tris,
+            pages,
+            triangles,
+        })
+    }
+}
+
+/// Encodes and compresses a plan's pages (in parallel), numbering them from `base`.
+fn encode_pages(
+    tree: &Tree,
+    plan: &Plan,
+    base: u32,
+    opts: &ConvertOptions,
+    normals: bool,
+) -> Result<EncodedPages> {
+    let pages = (0..plan.pages.len())
+        .into_par_iter()
+        .map(|i| {
+            let (contents, externals) = plan.encode(tree, i, base, normals);
+            let grid = plan.grid(tree, i);
+            let (parent_page, parent_node) = match plan.parent_of(i) {
+                Some((p, local)) => (base + p, local),
+                None => (NONE, NONE),
+            };
+            let meta = PageMeta {
+                parent_page,
+                parent_node,
+                root_count: plan.pages[i].roots.len() as u16,
+                bounds_min: grid.lo,
+                bounds_max: grid.hi,
+            };
+            encode_page(&contents, opts.zstd_level).map(|e| (e, meta, externals))
+        })
+        .collect::<std::io::Result<_>>()
+        .context("compressing pages")?;
+    Ok(EncodedPages { base, pages })
+}
+
+/// Appends encoded pages; they must be numbered from the writer's next page. Returns that
+/// first number.
+fn append_pages(writer: &mut ArchiveWriter, enc: EncodedPages) -> Result<u32> {
+    debug_assert!(enc.pages.is_empty() || enc.base == writer.page_count());
+    for (page, meta, externals) in enc.pages {
+        let index = writer.push(&page, meta)?;
+        for (child, local) in externals {
+            writer.set_parent(child, index, local);
+        }
+    }
+    Ok(enc.base)
+}
+
+/// Cuts the subtrees under `roots` into pages, encodes them and appends them. Returns the
+/// archive index of the first (top) page.
 fn write_pages(
     writer: &mut ArchiveWriter,
     tree: &Tree,
@@ -402,32 +561,6 @@ fn write_pages(
     normals: bool,
 ) -> Result<u32> {
     let plan = Plan::new(tree, roots, opts.page_nodes);
-    let base = writer.page_count();
-    let encoded: Vec<_> = (0..plan.pages.len())
-        .into_par_iter()
-        .map(|i| {
-            let (contents, externals) = plan.encode(tree, i, base, normals);
-            let grid = plan.grid(tree, i);
-            encode_page(&contents, opts.zstd_level).map(|e| (e, externals, grid))
-        })
-        .collect::<std::io::Result<_>>()
-        .context("compressing pages")?;
-    for (i, (page, externals, grid)) in encoded.into_iter().enumerate() {
-        let (parent_page, parent_node) = match plan.parent_of(i) {
-            Some((p, local)) => (base + p, local),
-            None => (NONE, NONE),
-        };
-        let meta = PageMeta {
-            parent_page,
-            parent_node,
-            root_count: plan.pages[i].roots.len() as u16,
-            bounds_min: grid.lo,
-            bounds_max: grid.hi,
-        };
-        let index = writer.push(&page, meta)?;
-        for (child, local) in externals {
-            writer.set_parent(child, index, local);
-        }
-    }
-    Ok(base)
+    let enc = encode_pages(tree, &plan, writer.page_count(), opts, normals)?;
+    append_pages(writer, enc)
 }

@@ -93,7 +93,8 @@ impl Tree {
     }
 
     /// Builds the chunk's hierarchy with PLOC (obvhs) and aggregates clusters bottom-up.
-    pub fn build(tris: Vec<SpillTri>, mats: &[MatSummary]) -> Tree {
+    /// `fast` picks obvhs's fast preset (no post-collapse reinsertion) over medium.
+    pub fn build(tris: Vec<SpillTri>, mats: &[MatSummary], fast: bool) -> Tree {
         let prims: Vec<Triangle> = tris
             .iter()
             .map(|t| Triangle {
@@ -102,7 +103,11 @@ impl Tree {
                 v2: Vec3A::from(t.p[2]),
             })
             .collect();
-        let mut params = BvhBuildParams::medium_build();
+        let mut params = if fast {
+            BvhBuildParams::fast_build()
+        } else {
+            BvhBuildParams::medium_build()
+        };
         params.max_prims_per_leaf = MAX_LEAF_TRIS;
         let bvh = build_bvh2_from_tris(&prims, params, &mut Default::default());
         drop(prims);

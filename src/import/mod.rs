@@ -15,7 +15,7 @@ use canopy_format::codec::oct_encode;
 use canopy_format::{CameraRecord, LightRecord, MaterialRecord};
 use std::path::Path;
 
-/// One input triangle as the converter spills it (56 bytes).
+/// One input triangle as the importers produce it (spilled as 40 or 56 bytes, see `build::spill`).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
 pub struct SpillTri {

@@ -1,0 +1,155 @@
+//! Spill files: triangles streamed to disk between conversion passes.
+//!
+//! A record is 40 bytes (positions and material). Triangles with shading normals or
+//! curvature add a 16-byte attribute record, flagged in the material's top bit, so meshes
+//! without normals cost 40 bytes a triangle on disk instead of 56: spill I/O is most of the
+//! time a conversion larger than the page cache's dirty limit spends.
+
+use crate::import::SpillTri;
+use anyhow::{bail, Context, Result};
+use bytemuck::{Pod, Zeroable};
+use std::fs::File;
+use std::io::{BufRead, BufReader, BufWriter, Read, Write};
+use std::path::{Path, PathBuf};
+
+const HAS_ATTR: u32 = 1 << 31;
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct Rec {
+    p: [[f32; 3]; 3],
+    material: u32,
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct Attr {
+    n: [u32; 3],
+    curvature: f32,
+}
+
+pub struct SpillWriter {
+    out: BufWriter<File>,
+    path: PathBuf,
+}
+
+impl SpillWriter {
+    pub fn create(path: &Path, buffer: usize) -> Result<SpillWriter> {
+        let file =
+            File::create(path).with_context(|| format!("{}: cannot create", path.display()))?;
+        Ok(SpillWriter {
+            out: BufWriter::with_capacity(buffer, file),
+            path: path.to_path_buf(),
+        })
+    }
+
+    pub fn write(&mut self, t: &SpillTri) -> Result<()> {
+        if t.material & HAS_ATTR != 0 {
+            bail!("material index {} is out of range", t.material);
+        }
+        let attr = t.n != [0; 3] || t.curvature != 0.0;
+        let rec = Rec {
+            p: t.p,
+            material: t.material | if attr { HAS_ATTR } else { 0 },
+        };
+        let mut r = self.out.write_all(bytemuck::bytes_of(&rec));
+        if attr && r.is_ok() {
+            let a = Attr {
+                n: t.n,
+                curvature: t.curvature,
+            };
+            r = self.out.write_all(bytemuck::bytes_of(&a));
+        }
+        r.with_context(|| format!("{}: writing spill file", self.path.display()))
+    }
+
+    pub fn finish(mut self) -> Result<()> {
+        self.out
+            .flush()
+            .with_context(|| format!("{}: writing spill file", self.path.display()))
+    }
+}
+
+/// Calls `f` on every triangle of a spill file, in order.
+pub fn for_each(path: &Path, mut f: impl FnMut(&SpillTri) -> Result<()>) -> Result<()> {
+    let file = File::open(path).with_context(|| format!("{}: reopening spill", path.display()))?;
+    let mut r = BufReader::with_capacity(1 << 20, file);
+    let err = || format!("{}: reading spill", path.display());
+    loop {
+        if r.fill_buf().with_context(err)?.is_empty() {
+            return Ok(());
+        }
+        let mut rec = Rec::zeroed();
+        r.read_exact(bytemuck::bytes_of_mut(&mut rec))
+            .with_context(err)?;
+        let mut t = SpillTri {
+            p: rec.p,
+            material: rec.material & !HAS_ATTR,
+            ..Default::default()
+        };
+        if rec.material & HAS_ATTR != 0 {
+            let mut a = Attr::zeroed();
+            r.read_exact(bytemuck::bytes_of_mut(&mut a))
+                .with_context(err)?;
+            t.n = a.n;
+            t.curvature = a.curvature;
+        }
+        f(&t)?;
+    }
+}
+
+pub fn read_all(path: &Path) -> Result<Vec<SpillTri>> {
+    let mut out = Vec::new();
+    for_each(path, |t| {
+        out.push(*t);
+        Ok(())
+    })?;
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_trips_with_and_without_attributes() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("s.bin");
+        let tris: Vec<SpillTri> = (0..1000u32)
+            .map(|i| SpillTri {
+                p: [
+                    [i as f32, -1.5, 2.0],
+                    [0.25, i as f32 * 1e-3, 7.0],
+                    [1e7, -1e-7, 3.0],
+                ],
+                n: if i % 3 == 0 { [i, i + 1, 7] } else { [0; 3] },
+                material: i % 5,
+                curvature: if i % 7 == 0 { i as f32 * 0.5 } else { 0.0 },
+            })
+            .collect();
+        let mut w = SpillWriter::create(&path, 4096).unwrap();
+        for t in &tris {
+            w.write(t).unwrap();
+        }
+        w.finish().unwrap();
+        let plain = tris
+            .iter()
+            .filter(|t| t.n == [0; 3] && t.curvature == 0.0)
+            .count() as u64;
+        let len = std::fs::metadata(&path).unwrap().len();
+        assert_eq!(len, plain * 40 + (tris.len() as u64 - plain) * 56);
+        assert_eq!(read_all(&path).unwrap(), tris);
+    }
+
+    #[test]
+    fn a_truncated_record_is_an_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("s.bin");
+        let mut w = SpillWriter::create(&path, 4096).unwrap();
+        w.write(&SpillTri::default()).unwrap();
+        w.finish().unwrap();
+        let f = std::fs::OpenOptions::new().write(true).open(&path).unwrap();
+        f.set_len(30).unwrap();
+        assert!(read_all(&path).is_err());
+    }
+}
