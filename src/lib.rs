@@ -1,8 +1,19 @@
 //! Canopy: an out-of-core streaming renderer. This crate holds the importers, the archive
-//! builder and the command-line front end; `canopy-format` holds the on-disk format.
+//! builder, the paged renderer and the command-line front end; `canopy-format` holds the
+//! on-disk format.
 
 pub mod build;
+pub mod camera;
+pub mod film;
 pub mod import;
 pub mod inspect;
+pub mod integrator;
+pub mod light;
+pub mod material;
+pub mod metrics;
+pub mod paging;
 pub mod progress;
+pub mod render;
+pub mod sampler;
+pub mod trace;
 pub mod units;

@@ -1,6 +1,8 @@
 use anyhow::Result;
 use canopy::build::{convert, BvhQuality, ConvertOptions};
-use canopy::{inspect, progress, units};
+use canopy::metrics::{self, Metric};
+use canopy::render::{render, Integrator, RenderOptions};
+use canopy::{film, inspect, progress, units};
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
 
@@ -45,6 +47,72 @@ enum Cmd {
         #[arg(long, value_enum, default_value_t = BvhQuality::Auto)]
         bvh: BvhQuality,
         /// Also print the summary as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Render an archive to a linear OpenEXR image (and a PNG preview) under a memory budget.
+    ///
+    /// Pages are decoded on demand into a cache bounded by --mem-budget; the top pages stay
+    /// pinned. The same archive, settings and seed give the same image whatever the thread
+    /// count. `-o x.png` writes x.png and x.exr beside it.
+    Render {
+        archive: PathBuf,
+        /// Output image: .exr, or .png (which also writes the .exr).
+        #[arg(short, long)]
+        output: PathBuf,
+        /// `path`: exact path tracing of the leaf triangles (the ground truth).
+        #[arg(long, value_enum, default_value_t = Integrator::Path)]
+        integrator: Integrator,
+        /// Samples per pixel.
+        #[arg(long, default_value_t = 64)]
+        spp: u32,
+        /// Render until this much time is spent (e.g. 90s, 5m) instead of a fixed --spp.
+        #[arg(long, value_parser = units::parse_duration)]
+        time: Option<std::time::Duration>,
+        /// Memory for decoded pages and per-node state, e.g. 256MiB (default: unlimited).
+        #[arg(long, value_parser = units::parse_size)]
+        mem_budget: Option<u64>,
+        /// Image width (default: the scene's, else 512 high at the camera's aspect).
+        #[arg(long)]
+        width: Option<u32>,
+        /// Image height.
+        #[arg(long)]
+        height: Option<u32>,
+        /// Camera name (default: the first camera).
+        #[arg(long)]
+        camera: Option<String>,
+        /// Seed of the sample sequences.
+        #[arg(long, default_value_t = 0)]
+        seed: u32,
+        /// Worker threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+        /// Longest path in segments (1: only emitters seen directly); default unbounded.
+        #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+        max_depth: Option<u32>,
+        /// Render only the window X0,X1,Y0,Y1 (pixels, half-open); the image is the window.
+        #[arg(long, value_parser = parse_crop)]
+        crop: Option<[u32; 4]>,
+        /// Also write a tone-mapped sRGB PNG beside the EXR.
+        #[arg(long)]
+        preview: bool,
+        /// Scale applied before tone mapping the PNG.
+        #[arg(long, default_value_t = 1.0)]
+        exposure: f32,
+        /// Write render statistics as JSON here.
+        #[arg(long)]
+        stats: Option<PathBuf>,
+    },
+    /// Compare two images: an error metric, the mean ratio, and a false-colour difference.
+    Compare {
+        test: PathBuf,
+        reference: PathBuf,
+        #[arg(long, value_enum, default_value_t = Metric::Rmse)]
+        metric: Metric,
+        /// Write a false-colour |luminance difference| PNG (black none, red the 99th percentile).
+        #[arg(long)]
+        diff: Option<PathBuf>,
+        /// Print JSON.
         #[arg(long)]
         json: bool,
     },
@@ -109,6 +177,92 @@ fn run(cli: Cli) -> Result<()> {
                 );
             }
         }
+        Cmd::Render {
+            archive,
+            output,
+            integrator,
+            spp,
+            time,
+            mem_budget,
+            width,
+            height,
+            camera,
+            seed,
+            threads,
+            max_depth,
+            crop,
+            preview,
+            exposure,
+            stats,
+        } => {
+            let opts = RenderOptions {
+                archive,
+                output: output.clone(),
+                integrator,
+                spp,
+                time,
+                mem_budget,
+                width,
+                height,
+                camera,
+                seed,
+                threads,
+                max_depth,
+                crop,
+                preview,
+                exposure,
+                stats,
+                progress: show,
+            };
+            let (_, s) = render(&opts)?;
+            println!(
+                "{}: {}x{}, {} spp, {:.2} s ({:.2} M rays/s, {:.3} M paths/s), peak RSS {:.1} MiB, {} pages loaded, {} evicted, hit rate {:.4}",
+                output.display(),
+                s.width,
+                s.height,
+                s.spp,
+                s.seconds.render,
+                s.rays_per_second / 1e6,
+                s.paths_per_second / 1e6,
+                s.peak_rss_bytes as f64 / 1048576.0,
+                s.pages_loaded,
+                s.pages_evicted,
+                s.cache_hit_rate
+            );
+        }
+        Cmd::Compare {
+            test,
+            reference,
+            metric,
+            diff,
+            json,
+        } => {
+            let t = film::Image::read_exr(&test)?;
+            let r = film::Image::read_exr(&reference)?;
+            let e = metrics::error(&t, &r, metric)?;
+            let ratio = metrics::mean_ratio(&t, &r);
+            let scale = match &diff {
+                Some(p) => Some(metrics::write_diff(&t, &r, p)?),
+                None => None,
+            };
+            if json {
+                let v = serde_json::json!({
+                    "metric": metric, "error": e, "mean_test": t.mean(), "mean_reference": r.mean(),
+                    "mean_relative_difference": ratio, "diff_scale": scale,
+                });
+                println!("{}", serde_json::to_string_pretty(&v)?);
+            } else {
+                println!("{metric:?}: {e:.6e}");
+                println!(
+                    "mean: test {:?}, reference {:?}, relative difference {:+.4} {:+.4} {:+.4}",
+                    t.mean(),
+                    r.mean(),
+                    ratio[0],
+                    ratio[1],
+                    ratio[2]
+                );
+            }
+        }
         Cmd::Inspect {
             archive,
             verify,
@@ -127,6 +281,18 @@ fn run(cli: Cli) -> Result<()> {
         }
     }
     Ok(())
+}
+
+fn parse_crop(s: &str) -> Result<[u32; 4]> {
+    let v: Vec<u32> = s
+        .split(',')
+        .map(|x| x.trim().parse::<u32>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| anyhow::anyhow!("'{s}' is not X0,X1,Y0,Y1 (four whole numbers)"))?;
+    match v[..] {
+        [a, b, c, d] => Ok([a, b, c, d]),
+        _ => anyhow::bail!("'{s}' is not X0,X1,Y0,Y1 (four whole numbers)"),
+    }
 }
 
 fn main() {

@@ -1,0 +1,146 @@
+//! `--integrator path`: the exact reference. Unidirectional path tracing over the leaf
+//! triangles (no level of detail) with next-event estimation and multiple importance
+//! sampling (power heuristic, Veach 1997 §9.2), Russian roulette after the second bounce
+//! (pbrt-v4 `PathIntegrator`), unbounded depth unless `--max-depth` caps it.
+//!
+//! Parameters: `max_depth` (longest path in segments, default unbounded), the sampler's
+//! seed. Emitters are one-sided unless their material is double-sided; a single-sided
+//! opaque surface hit from behind absorbs.
+
+use super::{Counters, Scene};
+use crate::material::Frame;
+use crate::sampler::PixelSampler;
+use crate::trace::{closest_hit, occluded, offset_origin, Ray};
+use glam::Vec3A as V;
+
+/// Sampler dimensions one bounce uses: light choice, light point (2), lobe, direction (2),
+/// roulette.
+pub const DIMS_PER_BOUNCE: u32 = 7;
+
+fn power_heuristic(a: f32, b: f32) -> f32 {
+    let (a2, b2) = (a * a, b * b);
+    if a2 + b2 > 0.0 {
+        a2 / (a2 + b2)
+    } else {
+        0.0
+    }
+}
+
+/// Radiance arriving along `ray`.
+pub fn radiance(scene: &Scene, mut ray: Ray, s: &mut PixelSampler, c: &mut Counters) -> V {
+    let mut l = V::ZERO;
+    let mut beta = V::ONE;
+    let mut prev_pdf = 0.0f32;
+    let mut prev_delta = true;
+    let mut depth = 0u32;
+    loop {
+        s.start_bounce(depth, DIMS_PER_BOUNCE);
+        c.rays += 1;
+        let Some(hit) = closest_hit(&scene.cache, &ray) else {
+            break;
+        };
+        let first = scene.cache.archive.pages[hit.page as usize].first_node;
+        scene.touched.insert(first + hit.leaf as u64);
+        let m = &scene.materials[hit.tri.material as usize];
+        let ng_raw = hit.ng();
+        let area = 0.5 * ng_raw.length();
+        if !(area > 0.0) {
+            break;
+        }
+        let ng = ng_raw / (2.0 * area);
+        let wo = -ray.d.normalize();
+        let front = ng.dot(wo) > 0.0;
+        if m.is_emissive() && (front || m.double_sided) {
+            if prev_delta {
+                l += beta * m.emission;
+            } else {
+                let cos_l = ng.dot(wo).abs();
+                let dist2 = (hit.t * ray.d.length()).powi(2);
+                let light_pdf = scene.lights.pick_pdf(m.emission, area, m.double_sided) * dist2
+                    / (cos_l * area);
+                l += beta * m.emission * power_heuristic(prev_pdf, light_pdf);
+            }
+        }
+        if scene.max_depth.is_some_and(|d| depth + 1 >= d) {
+            break;
+        }
+        if !front && !m.double_sided && m.transmission == 0.0 {
+            break;
+        }
+        let (p, err) = hit.point();
+        let n = if front { ng } else { -ng };
+        let frame = Frame::new(n);
+        let bsdf = m.bsdf(front);
+        let wo_l = frame.to_local(wo);
+
+        // Next-event estimation.
+        let u_pick = s.next();
+        let u_light = s.next2();
+        if !bsdf.has_smooth_only() {
+            if let Some(ls) = scene.lights.sample(p, u_pick, u_light) {
+                let wi_l = frame.to_local(ls.wi);
+                let (f, pdf_b) = bsdf.eval(wo_l, wi_l);
+                if wi_l.z > 0.0 && f.max_element() > 0.0 {
+                    let from = offset_origin(p, err, ng, ls.wi);
+                    let shadow = match ls.point {
+                        Some((q, qerr, qn)) => {
+                            let to = offset_origin(q, qerr, qn, from - q);
+                            Ray {
+                                o: from,
+                                d: to - from,
+                                t_max: 1.0 - 1e-4,
+                            }
+                        }
+                        None => Ray {
+                            o: from,
+                            d: ls.wi,
+                            t_max: f32::INFINITY,
+                        },
+                    };
+                    c.rays += 1;
+                    if !occluded(&scene.cache, &shadow) {
+                        let w = if ls.pdf > 0.0 {
+                            power_heuristic(ls.pdf, pdf_b)
+                        } else {
+                            1.0
+                        };
+                        l += beta * f * wi_l.z * ls.weight * w;
+                    }
+                }
+            }
+        }
+
+        // Continue the path by sampling the BSDF.
+        let u_lobe = s.next();
+        let u_dir = s.next2();
+        let Some(bs) = bsdf.sample(wo_l, u_lobe, u_dir) else {
+            break;
+        };
+        beta *= bs.weight;
+        if !beta.is_finite() || beta.max_element() <= 0.0 {
+            break;
+        }
+        prev_pdf = bs.pdf;
+        prev_delta = bs.delta;
+        let wi = frame.to_world(bs.wi).normalize();
+        ray = Ray {
+            o: offset_origin(p, err, ng, wi),
+            d: wi,
+            t_max: f32::INFINITY,
+        };
+        depth += 1;
+        let q = beta.max_element();
+        if depth > 1 && q < 1.0 {
+            if s.next() >= q {
+                break;
+            }
+            beta /= q;
+        }
+    }
+    c.paths += 1;
+    if l.is_finite() {
+        l
+    } else {
+        V::ZERO
+    }
+}

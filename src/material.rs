@@ -1,0 +1,332 @@
+//! Materials: the glTF 2.0 metallic-roughness model (spec Appendix B) with
+//! `KHR_materials_specular`, `_ior`, `_transmission` and `_emissive_strength`.
+//!
+//! Lobes, in the shading frame (z = normal on the side of the outgoing direction):
+//! - Lambert, albedo baseColor·(1−metallic)·(1−transmission), weighted by 1 − F(cos θo) of
+//!   the specular layer above it (the layer's reflectance at the viewing angle, so the sum
+//!   never exceeds one);
+//! - GGX/Smith reflection (height-correlated G2, visible-normal sampling) with Schlick
+//!   Fresnel: dielectric F0 = ((η−1)/(η+1))²·specularColor·specular and F90 = specular,
+//!   blended with the metal's F0 = baseColor, F90 = 1 by metallic;
+//! - transmission·(1−metallic) of a dielectric interface with relative index η (exact
+//!   Fresnel), smooth (a delta lobe) when roughness is below `SMOOTH_ALPHA`, otherwise GGX
+//!   (Walter et al. 2007), tinted by baseColor. Without `KHR_materials_volume` glTF calls
+//!   transmission thin-walled; we refract (as Mitsuba's `dielectric`), which caustics need.
+//!   Rough transmission is not implemented yet: a rough transmissive material renders as
+//!   smooth.
+
+use canopy_format::MaterialRecord;
+use glam::Vec3A as V;
+use std::f32::consts::{FRAC_1_PI, PI};
+
+/// GGX α below which a lobe is treated as a perfect mirror / smooth interface.
+pub const SMOOTH_ALPHA: f32 = 1e-3;
+
+#[derive(Clone, Copy, Debug)]
+pub struct Material {
+    pub base: V,
+    pub metallic: f32,
+    /// GGX α = roughness².
+    pub alpha: f32,
+    pub ior: f32,
+    pub transmission: f32,
+    pub specular: f32,
+    pub specular_color: V,
+    pub emission: V,
+    pub double_sided: bool,
+}
+
+impl Material {
+    pub fn from_record(m: &MaterialRecord) -> Material {
+        let r = m.roughness.clamp(0.0, 1.0);
+        Material {
+            base: V::new(m.base_color[0], m.base_color[1], m.base_color[2]).clamp(V::ZERO, V::ONE),
+            metallic: m.metallic.clamp(0.0, 1.0),
+            alpha: r * r,
+            ior: if m.ior >= 1.0 { m.ior } else { 1.5 },
+            transmission: m.transmission.clamp(0.0, 1.0),
+            specular: m.specular.clamp(0.0, 1.0),
+            specular_color: V::from(m.specular_color).max(V::ZERO),
+            emission: V::from(m.emission).max(V::ZERO),
+            double_sided: m.flags & MaterialRecord::DOUBLE_SIDED != 0,
+        }
+    }
+
+    pub fn is_emissive(&self) -> bool {
+        self.emission.max_element() > 0.0
+    }
+
+    /// The BSDF seen from outside (`front`: the ray arrived on the front face).
+    pub fn bsdf(&self, front: bool) -> Bsdf {
+        let f0_ior = ((self.ior - 1.0) / (self.ior + 1.0)).powi(2);
+        let f0_d = (self.specular_color * f0_ior).min(V::ONE) * self.specular;
+        let f90_d = V::splat(self.specular);
+        let m = self.metallic;
+        Bsdf {
+            diffuse: self.base * ((1.0 - m) * (1.0 - self.transmission)),
+            f0: f0_d * (1.0 - m) + self.base * m,
+            f90: f90_d * (1.0 - m) + V::ONE * m,
+            alpha: self.alpha.max(1e-4),
+            trans: self.transmission * (1.0 - m),
+            tint: self.base,
+            eta: if front { self.ior } else { 1.0 / self.ior },
+        }
+    }
+}
+
+/// A BSDF in the local frame (z up = the side the outgoing direction is on).
+#[derive(Clone, Copy, Debug)]
+pub struct Bsdf {
+    pub diffuse: V,
+    pub f0: V,
+    pub f90: V,
+    pub alpha: f32,
+    /// Weight of the dielectric interface (transmission·(1−metallic)).
+    pub trans: f32,
+    pub tint: V,
+    /// Relative index of refraction across the surface (inside / outside).
+    pub eta: f32,
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct BsdfSample {
+    pub wi: V,
+    /// BSDF value times |cos θi| / pdf.
+    pub weight: V,
+    pub pdf: f32,
+    pub delta: bool,
+}
+
+fn schlick(f0: V, f90: V, c: f32) -> V {
+    let k = (1.0 - c.clamp(0.0, 1.0)).powi(5);
+    f0 + (f90 - f0) * k
+}
+
+/// Exact unpolarized Fresnel reflectance of a dielectric interface, `cos_i` on the side
+/// whose relative index is `eta` (inside/outside).
+pub fn fresnel_dielectric(cos_i: f32, eta: f32) -> f32 {
+    let c = cos_i.clamp(0.0, 1.0);
+    let s2 = (1.0 - c * c) / (eta * eta);
+    if s2 >= 1.0 {
+        return 1.0;
+    }
+    let ct = (1.0 - s2).sqrt();
+    let rs = (c - eta * ct) / (c + eta * ct);
+    let rp = (eta * c - ct) / (eta * c + ct);
+    0.5 * (rs * rs + rp * rp)
+}
+
+fn luminance(c: V) -> f32 {
+    0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
+}
+
+/// GGX normal distribution D(h), h in the local frame.
+pub fn ggx_d(h: V, a: f32) -> f32 {
+    let c2 = h.z * h.z;
+    if c2 <= 0.0 {
+        return 0.0;
+    }
+    let a2 = a * a;
+    let k = c2 * (a2 - 1.0) + 1.0;
+    a2 / (PI * k * k)
+}
+
+/// Smith Λ for GGX.
+fn ggx_lambda(w: V, a: f32) -> f32 {
+    let c2 = w.z * w.z;
+    if c2 <= 0.0 {
+        return f32::INFINITY;
+    }
+    let t2 = (1.0 - c2).max(0.0) / c2;
+    0.5 * ((1.0 + a * a * t2).sqrt() - 1.0)
+}
+
+fn ggx_g1(w: V, a: f32) -> f32 {
+    1.0 / (1.0 + ggx_lambda(w, a))
+}
+
+/// Visible-normal sample (Heitz 2018, spherical-cap form of Dupuy & Benyoub 2023).
+pub fn ggx_sample_vn(wo: V, a: f32, u: [f32; 2]) -> V {
+    let wh = V::new(a * wo.x, a * wo.y, wo.z).normalize();
+    let phi = 2.0 * PI * u[0];
+    let z = (1.0 - u[1]) * (1.0 + wh.z) - wh.z;
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    let c = V::new(r * phi.cos(), r * phi.sin(), z) + wh;
+    V::new(a * c.x, a * c.y, c.z.max(1e-7)).normalize()
+}
+
+/// pdf of `ggx_sample_vn` over half vectors: G1(wo)·max(0, wo·h)·D(h)/cos θo.
+pub fn ggx_pdf_vn(wo: V, h: V, a: f32) -> f32 {
+    if wo.z <= 0.0 {
+        return 0.0;
+    }
+    ggx_g1(wo, a) * wo.dot(h).max(0.0) * ggx_d(h, a) / wo.z
+}
+
+fn reflect(w: V, n: V) -> V {
+    2.0 * w.dot(n) * n - w
+}
+
+impl Bsdf {
+    fn spec_on(&self) -> bool {
+        self.f90.max_element() > 0.0 || self.f0.max_element() > 0.0
+    }
+
+    /// Lobe selection probabilities (diffuse, glossy reflection, dielectric interface).
+    fn lobe_probs(&self, wo: V) -> [f32; 3] {
+        let f = schlick(self.f0, self.f90, wo.z);
+        let d = luminance(self.diffuse * (V::ONE - f)).max(0.0);
+        let s = if self.spec_on() {
+            luminance(f) * (1.0 - self.trans)
+        } else {
+            0.0
+        };
+        let t = self.trans * luminance(self.tint).max(0.05);
+        let sum = d + s + t;
+        if sum <= 0.0 {
+            return [0.0; 3];
+        }
+        [d / sum, s / sum, t / sum]
+    }
+
+    /// Value f(wo, wi) (non-delta lobes) and the pdf of sampling wi.
+    pub fn eval(&self, wo: V, wi: V) -> (V, f32) {
+        if wo.z <= 0.0 {
+            return (V::ZERO, 0.0);
+        }
+        let probs = self.lobe_probs(wo);
+        let mut f = V::ZERO;
+        let mut pdf = 0.0;
+        if wi.z > 0.0 {
+            let fr = schlick(self.f0, self.f90, wo.z);
+            if probs[0] > 0.0 {
+                f += self.diffuse * (V::ONE - fr) * FRAC_1_PI;
+                pdf += probs[0] * wi.z * FRAC_1_PI;
+            }
+            if probs[1] > 0.0 && self.alpha >= SMOOTH_ALPHA {
+                let h = (wo + wi).normalize();
+                let fh = schlick(self.f0, self.f90, wo.dot(h));
+                let d = ggx_d(h, self.alpha);
+                let g2 = 1.0 / (1.0 + ggx_lambda(wo, self.alpha) + ggx_lambda(wi, self.alpha));
+                f += fh * (d * g2 / (4.0 * wo.z * wi.z)) * (1.0 - self.trans);
+                pdf += probs[1] * ggx_pdf_vn(wo, h, self.alpha) / (4.0 * wo.dot(h));
+            }
+        }
+        (f, pdf)
+    }
+
+    /// Samples an incident direction with three uniforms (lobe choice, then two).
+    pub fn sample(&self, wo: V, u_lobe: f32, u: [f32; 2]) -> Option<BsdfSample> {
+        if wo.z <= 0.0 {
+            return None;
+        }
+        let probs = self.lobe_probs(wo);
+        if u_lobe < probs[2] {
+            return self.sample_interface(wo, u_lobe / probs[2], u, probs[2]);
+        }
+        let u_lobe = u_lobe - probs[2];
+        let smooth = self.alpha < SMOOTH_ALPHA;
+        if u_lobe < probs[1] && smooth {
+            let wi = V::new(-wo.x, -wo.y, wo.z);
+            let f = schlick(self.f0, self.f90, wo.z) * (1.0 - self.trans);
+            return Some(BsdfSample {
+                wi,
+                weight: f / probs[1],
+                pdf: probs[1],
+                delta: true,
+            });
+        }
+        let wi = if u_lobe < probs[1] {
+            let h = ggx_sample_vn(wo, self.alpha, u);
+            reflect(wo, h)
+        } else if probs[0] > 0.0 {
+            cosine_hemisphere(u)
+        } else {
+            return None;
+        };
+        if wi.z <= 0.0 {
+            return None;
+        }
+        let (f, pdf) = self.eval(wo, wi);
+        if pdf <= 0.0 {
+            return None;
+        }
+        Some(BsdfSample {
+            wi,
+            weight: f * wi.z / pdf,
+            pdf,
+            delta: false,
+        })
+    }
+
+    /// The smooth dielectric interface: reflect with the exact Fresnel, else refract.
+    fn sample_interface(&self, wo: V, u: f32, _u2: [f32; 2], p_lobe: f32) -> Option<BsdfSample> {
+        let fr = fresnel_dielectric(wo.z, self.eta);
+        if u < fr {
+            return Some(BsdfSample {
+                wi: V::new(-wo.x, -wo.y, wo.z),
+                weight: V::splat(self.trans / p_lobe),
+                pdf: p_lobe * fr,
+                delta: true,
+            });
+        }
+        let eta = self.eta;
+        let s2 = (1.0 - wo.z * wo.z) / (eta * eta);
+        let ct = (1.0 - s2).max(0.0).sqrt();
+        let wi = V::new(-wo.x / eta, -wo.y / eta, -ct);
+        // Radiance is scaled by 1/η² crossing into the denser medium (pbrt-v4 §9.5.2).
+        Some(BsdfSample {
+            wi,
+            weight: self.tint * (self.trans / p_lobe / (eta * eta)),
+            pdf: p_lobe * (1.0 - fr),
+            delta: true,
+        })
+    }
+
+    /// Whether the BSDF has any non-delta lobe (next-event estimation is useful).
+    pub fn has_smooth_only(&self) -> bool {
+        let p = self.lobe_probs(V::Z);
+        p[0] == 0.0 && (p[1] == 0.0 || self.alpha < SMOOTH_ALPHA)
+    }
+}
+
+/// Cosine-weighted hemisphere direction (concentric disk mapping).
+pub fn cosine_hemisphere(u: [f32; 2]) -> V {
+    let (a, b) = (2.0 * u[0] - 1.0, 2.0 * u[1] - 1.0);
+    let (r, phi) = if a == 0.0 && b == 0.0 {
+        (0.0, 0.0)
+    } else if a.abs() > b.abs() {
+        (a, PI / 4.0 * (b / a))
+    } else {
+        (b, PI / 2.0 - PI / 4.0 * (a / b))
+    };
+    let (x, y) = (r * phi.cos(), r * phi.sin());
+    V::new(x, y, (1.0 - x * x - y * y).max(0.0).sqrt())
+}
+
+/// Orthonormal basis around a unit normal (Duff et al. 2017).
+#[derive(Clone, Copy, Debug)]
+pub struct Frame {
+    pub t: V,
+    pub b: V,
+    pub n: V,
+}
+
+impl Frame {
+    pub fn new(n: V) -> Frame {
+        let s = 1f32.copysign(n.z);
+        let a = -1.0 / (s + n.z);
+        let b = n.x * n.y * a;
+        Frame {
+            t: V::new(1.0 + s * n.x * n.x * a, s * b, -s * n.x),
+            b: V::new(b, s + n.y * n.y * a, -n.y),
+            n,
+        }
+    }
+    pub fn to_local(&self, v: V) -> V {
+        V::new(v.dot(self.t), v.dot(self.b), v.dot(self.n))
+    }
+    pub fn to_world(&self, v: V) -> V {
+        self.t * v.x + self.b * v.y + self.n * v.z
+    }
+}

@@ -1,0 +1,406 @@
+//! Decoded pages under a byte budget.
+//!
+//! Every page of the archive has a slot. A hit takes the slot's read lock and clones an
+//! `Arc`; there is no global lock on that path. A miss decodes the page (outside any lock),
+//! then makes room with CLOCK: the hand sweeps the slots, clearing reference bits and
+//! evicting unpinned pages whose bit is clear. The top pages (levels below `PIN_LEVELS`)
+//! are pinned. A page still referenced by a traversal when it is evicted stays alive until
+//! that traversal drops it, so the budget can be exceeded by at most the pages the workers
+//! are holding (a few per thread).
+//!
+//! A page that fails to decode (corrupt archive) is recorded as the cache's error and served
+//! as an empty page, so traversal never panics; the renderer checks `error()` and fails.
+//! Background prefetch: `prefetch` queues a page for a loader thread (crossbeam channel).
+
+use anyhow::{bail, Result};
+use canopy_format::{Archive, Node, NodeFlags, Tri};
+use crossbeam_channel::{Receiver, Sender, TrySendError};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
+use std::sync::{Arc, Mutex, RwLock};
+
+/// Pages this many levels from the root are pinned.
+pub const PIN_LEVELS: u16 = 2;
+
+/// Traversal view of a node: decoded bounds and links.
+#[derive(Clone, Copy, Debug, Default)]
+#[repr(C, align(32))]
+pub struct TNode {
+    pub lo: [f32; 3],
+    /// Kind in the top two bits (`INNER`, `LEAF`, `CHILD_PAGE`), then a child index, first
+    /// triangle, or page number.
+    pub a: u32,
+    pub hi: [f32; 3],
+    /// Second child, or triangle count.
+    pub b: u32,
+}
+const _: () = assert!(std::mem::size_of::<TNode>() == 32);
+
+pub const KIND_MASK: u32 = 3 << 30;
+pub const INNER: u32 = 0;
+pub const LEAF: u32 = 1 << 30;
+pub const CHILD_PAGE: u32 = 2 << 30;
+
+/// A triangle with its vertices expanded, as intersection wants it.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct TriW {
+    pub p: [[f32; 3]; 3],
+    pub material: u32,
+}
+
+/// One decoded page.
+pub struct Page {
+    pub id: u32,
+    /// Global number of node 0.
+    pub first_node: u64,
+    pub roots: u32,
+    pub nodes: Vec<Node>,
+    pub bvh: Vec<TNode>,
+    pub tris: Vec<TriW>,
+    /// Per triangle, octahedral shading normals of its vertices (empty without normals).
+    pub shading: Vec<[u32; 3]>,
+    pub bytes: u64,
+}
+
+impl Page {
+    pub fn decode(archive: &Archive, id: u32) -> Result<Page> {
+        let c = archive.read_page(id)?;
+        let grid = archive.grid(id);
+        if c.nodes.iter().any(|n| n.link[0] >= 1 << 30) {
+            bail!(
+                "{}: page {id}: a link does not fit 30 bits",
+                archive.path().display()
+            );
+        }
+        let bvh = c
+            .nodes
+            .iter()
+            .map(|n| {
+                let (lo, hi) = grid.dequant_box(&n.bounds);
+                let (a, b) = if n.flags & NodeFlags::LEAF != 0 {
+                    (LEAF | n.link[0], n.link[1])
+                } else if n.flags & NodeFlags::CHILD_PAGE != 0 {
+                    (CHILD_PAGE | n.link[0], 0)
+                } else {
+                    (INNER | n.link[0], n.link[1])
+                };
+                TNode { lo, a, hi, b }
+            })
+            .collect::<Vec<_>>();
+        let tris: Vec<TriW> = c
+            .tris
+            .iter()
+            .map(|t: &Tri| TriW {
+                p: t.v.map(|v| c.verts[v as usize]),
+                material: t.material as u32,
+            })
+            .collect();
+        let shading: Vec<[u32; 3]> = if c.normals.is_empty() {
+            Vec::new()
+        } else {
+            c.tris
+                .iter()
+                .map(|t| t.v.map(|v| c.normals[v as usize]))
+                .collect()
+        };
+        let e = &archive.pages[id as usize];
+        let bytes = (std::mem::size_of::<Page>()
+            + c.nodes.len() * std::mem::size_of::<Node>()
+            + bvh.len() * std::mem::size_of::<TNode>()
+            + tris.len() * std::mem::size_of::<TriW>()
+            + shading.len() * 12) as u64;
+        Ok(Page {
+            id,
+            first_node: e.first_node,
+            roots: e.root_count as u32,
+            nodes: c.nodes,
+            bvh,
+            tris,
+            shading,
+            bytes,
+        })
+    }
+
+    fn empty(id: u32) -> Page {
+        Page {
+            id,
+            first_node: 0,
+            roots: 0,
+            nodes: Vec::new(),
+            bvh: Vec::new(),
+            tris: Vec::new(),
+            shading: Vec::new(),
+            bytes: 0,
+        }
+    }
+}
+
+#[derive(Default)]
+struct Slot {
+    page: RwLock<Option<Arc<Page>>>,
+    referenced: AtomicBool,
+    pinned: bool,
+}
+
+/// Cache counters, read at the end of a render.
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct CacheStats {
+    pub pages_loaded: u64,
+    pub pages_evicted: u64,
+    pub hits: u64,
+    pub misses: u64,
+    pub bytes_decoded: u64,
+    pub resident_bytes_peak: u64,
+    pub pinned_bytes: u64,
+    pub pages_touched: u64,
+    pub cache_hit_rate: f64,
+}
+
+pub struct PageCache {
+    pub archive: Arc<Archive>,
+    slots: Vec<Slot>,
+    budget: u64,
+    resident: AtomicU64,
+    resident_peak: AtomicU64,
+    pinned_bytes: u64,
+    hand: Mutex<usize>,
+    loads: AtomicU64,
+    evictions: AtomicU64,
+    hits: AtomicU64,
+    misses: AtomicU64,
+    decoded: AtomicU64,
+    touched: Vec<AtomicBool>,
+    error: Mutex<Option<String>>,
+    prefetch_tx: Mutex<Option<Sender<u32>>>,
+}
+
+/// Decoded size of a page without decoding it (from its page-table counts).
+pub fn decoded_size(archive: &Archive, id: u32) -> u64 {
+    let e = &archive.pages[id as usize];
+    let normals = archive.header.features & canopy_format::Features::SHADING_NORMALS != 0;
+    (std::mem::size_of::<Page>()
+        + e.node_count as usize * (std::mem::size_of::<Node>() + std::mem::size_of::<TNode>())
+        + e.tri_count as usize * (std::mem::size_of::<TriW>() + if normals { 12 } else { 0 }))
+        as u64
+}
+
+impl PageCache {
+    /// Pins and loads the top pages. `budget` bounds decoded pages (None: unlimited); a
+    /// budget that cannot hold the pinned pages plus a working set is an error naming the
+    /// minimum.
+    pub fn new(archive: Arc<Archive>, budget: Option<u64>, threads: usize) -> Result<Arc<Self>> {
+        let n = archive.pages.len();
+        let slots: Vec<Slot> = archive
+            .pages
+            .iter()
+            .map(|e| Slot {
+                pinned: e.level < PIN_LEVELS,
+                ..Default::default()
+            })
+            .collect();
+        let pinned: u64 = (0..n as u32)
+            .filter(|&i| slots[i as usize].pinned)
+            .map(|i| decoded_size(&archive, i))
+            .sum();
+        let largest = (0..n as u32)
+            .map(|i| decoded_size(&archive, i))
+            .max()
+            .unwrap_or(0);
+        let minimum = Self::minimum(pinned, largest, threads);
+        if let Some(b) = budget {
+            if b < minimum {
+                bail!(
+                    "--mem-budget {} is too small for {}: the pinned top pages take {:.1} MiB and each of {threads} threads needs room for a path of pages; the minimum is {:.1} MiB",
+                    b,
+                    archive.path().display(),
+                    pinned as f64 / 1048576.0,
+                    minimum as f64 / 1048576.0,
+                );
+            }
+        }
+        let cache = Arc::new(PageCache {
+            slots,
+            budget: budget.unwrap_or(u64::MAX),
+            resident: AtomicU64::new(0),
+            resident_peak: AtomicU64::new(0),
+            pinned_bytes: pinned,
+            hand: Mutex::new(0),
+            loads: AtomicU64::new(0),
+            evictions: AtomicU64::new(0),
+            hits: AtomicU64::new(0),
+            misses: AtomicU64::new(0),
+            decoded: AtomicU64::new(0),
+            touched: (0..n).map(|_| AtomicBool::new(false)).collect(),
+            error: Mutex::new(None),
+            prefetch_tx: Mutex::new(None),
+            archive,
+        });
+        for i in 0..n as u32 {
+            if cache.slots[i as usize].pinned {
+                cache.load(i);
+            }
+        }
+        if let Some(e) = cache.error() {
+            bail!(e);
+        }
+        Ok(cache)
+    }
+
+    /// Smallest budget accepted: the pinned pages plus, per thread, a root-to-leaf path of
+    /// the largest pages (16 levels) so concurrent traversals do not thrash.
+    pub fn minimum(pinned: u64, largest: u64, threads: usize) -> u64 {
+        pinned + threads as u64 * 16 * largest
+    }
+
+    /// Starts the background loader; `prefetch` is a no-op until this is called.
+    pub fn start_prefetch(self: &Arc<Self>) -> std::thread::JoinHandle<()> {
+        let (tx, rx): (Sender<u32>, Receiver<u32>) = crossbeam_channel::bounded(256);
+        *self.prefetch_tx.lock().expect("prefetch lock") = Some(tx);
+        let me = Arc::clone(self);
+        std::thread::spawn(move || {
+            for id in rx {
+                if me.slots[id as usize].page.read().expect("slot").is_none() {
+                    me.load(id);
+                }
+            }
+        })
+    }
+
+    /// Ends the background loader (drops the sender; the thread exits when drained).
+    pub fn stop_prefetch(&self) {
+        self.prefetch_tx.lock().expect("prefetch lock").take();
+    }
+
+    /// Queues a page for the background loader unless it is resident or the queue is full.
+    pub fn prefetch(&self, id: u32) {
+        if self.slots[id as usize].page.read().expect("slot").is_some() {
+            return;
+        }
+        if let Some(tx) = self.prefetch_tx.lock().expect("prefetch lock").as_ref() {
+            // A full queue drops the hint: the page is then loaded on demand.
+            let _: Result<(), TrySendError<u32>> = tx.try_send(id);
+        }
+    }
+
+    /// The page, loading it if needed.
+    #[inline]
+    pub fn get(&self, id: u32) -> Arc<Page> {
+        let slot = &self.slots[id as usize];
+        if let Some(p) = slot.page.read().expect("slot").as_ref() {
+            if !slot.referenced.load(Relaxed) {
+                slot.referenced.store(true, Relaxed);
+            }
+            self.hits.fetch_add(1, Relaxed);
+            return Arc::clone(p);
+        }
+        self.misses.fetch_add(1, Relaxed);
+        let page = self.load(id);
+        // Children of a page just needed are likely next; hint them while there is room.
+        if self.resident.load(Relaxed) < self.budget / 4 * 3 {
+            for n in page.bvh.iter().filter(|n| n.a & KIND_MASK == CHILD_PAGE) {
+                self.prefetch(n.a & !KIND_MASK);
+            }
+        }
+        page
+    }
+
+    fn load(&self, id: u32) -> Arc<Page> {
+        let page = match Page::decode(&self.archive, id) {
+            Ok(p) => p,
+            Err(e) => {
+                self.error
+                    .lock()
+                    .expect("error lock")
+                    .get_or_insert_with(|| format!("{e:#}"));
+                Page::empty(id)
+            }
+        };
+        let page = Arc::new(page);
+        let slot = &self.slots[id as usize];
+        {
+            let mut w = slot.page.write().expect("slot");
+            if let Some(p) = w.as_ref() {
+                return Arc::clone(p);
+            }
+            *w = Some(Arc::clone(&page));
+        }
+        slot.referenced.store(true, Relaxed);
+        self.touched[id as usize].store(true, Relaxed);
+        self.loads.fetch_add(1, Relaxed);
+        self.decoded.fetch_add(page.bytes, Relaxed);
+        let now = self.resident.fetch_add(page.bytes, Relaxed) + page.bytes;
+        if now > self.budget {
+            self.evict(id);
+        }
+        self.resident_peak
+            .fetch_max(self.resident.load(Relaxed), Relaxed);
+        page
+    }
+
+    /// CLOCK sweep until resident bytes fit the budget (at most two turns of the hand).
+    fn evict(&self, keep: u32) {
+        let mut hand = self.hand.lock().expect("clock lock");
+        let n = self.slots.len();
+        for _ in 0..2 * n {
+            if self.resident.load(Relaxed) <= self.budget {
+                break;
+            }
+            let i = *hand;
+            *hand = (i + 1) % n;
+            let slot = &self.slots[i];
+            if slot.pinned || i as u32 == keep {
+                continue;
+            }
+            if slot.referenced.swap(false, Relaxed) {
+                continue;
+            }
+            if let Some(p) = slot.page.write().expect("slot").take() {
+                self.resident.fetch_sub(p.bytes, Relaxed);
+                self.evictions.fetch_add(1, Relaxed);
+            }
+        }
+    }
+
+    /// The first page error met, if any.
+    pub fn error(&self) -> Option<String> {
+        self.error.lock().expect("error lock").clone()
+    }
+
+    /// Whether the page was ever loaded.
+    pub fn was_touched(&self, id: u32) -> bool {
+        self.touched[id as usize].load(Relaxed)
+    }
+
+    pub fn resident_bytes(&self) -> u64 {
+        self.resident.load(Relaxed)
+    }
+
+    pub fn stats(&self) -> CacheStats {
+        let (hits, misses) = (self.hits.load(Relaxed), self.misses.load(Relaxed));
+        CacheStats {
+            pages_loaded: self.loads.load(Relaxed),
+            pages_evicted: self.evictions.load(Relaxed),
+            hits,
+            misses,
+            bytes_decoded: self.decoded.load(Relaxed),
+            resident_bytes_peak: self.resident_peak.load(Relaxed),
+            pinned_bytes: self.pinned_bytes,
+            pages_touched: self.touched.iter().filter(|t| t.load(Relaxed)).count() as u64,
+            cache_hit_rate: if hits + misses > 0 {
+                hits as f64 / (hits + misses) as f64
+            } else {
+                1.0
+            },
+        }
+    }
+
+    /// Total decoded size of the whole archive (what an unlimited budget could reach).
+    pub fn archive_decoded_bytes(&self) -> u64 {
+        (0..self.slots.len() as u32)
+            .map(|i| decoded_size(&self.archive, i))
+            .sum()
+    }
+
+    pub fn root_page(&self) -> u32 {
+        self.archive.header.root_page
+    }
+}

@@ -1,0 +1,438 @@
+//! `canopy render`: an archive to an image under a memory budget.
+
+use crate::camera::Camera;
+use crate::film::{check_writable, Image};
+use crate::integrator::{path, Counters, NodeSet, Scene};
+use crate::light::Lights;
+use crate::material::Material;
+use crate::paging::{Page, PageCache, CHILD_PAGE, INNER, KIND_MASK};
+use crate::progress;
+use crate::sampler::PixelSampler;
+use crate::trace::MAX_DEPTH;
+use anyhow::{bail, Context, Result};
+use canopy_format::Archive;
+use glam::Vec3A as V;
+use rayon::prelude::*;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Largest image side accepted.
+pub const MAX_SIDE: u32 = 32768;
+const TILE: u32 = 16;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Integrator {
+    /// Exact path tracing of the leaf triangles: the ground truth.
+    Path,
+}
+
+#[derive(Clone, Debug)]
+pub struct RenderOptions {
+    pub archive: PathBuf,
+    pub output: PathBuf,
+    pub integrator: Integrator,
+    pub spp: u32,
+    pub time: Option<Duration>,
+    pub mem_budget: Option<u64>,
+    pub width: Option<u32>,
+    pub height: Option<u32>,
+    pub camera: Option<String>,
+    pub seed: u32,
+    pub threads: Option<usize>,
+    pub max_depth: Option<u32>,
+    /// x0, x1, y0, y1 in pixels (half-open).
+    pub crop: Option<[u32; 4]>,
+    pub preview: bool,
+    pub exposure: f32,
+    pub stats: Option<PathBuf>,
+    pub progress: bool,
+}
+
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct Seconds {
+    pub setup: f64,
+    pub render: f64,
+    pub write: f64,
+    pub total: f64,
+}
+
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct RenderStats {
+    pub integrator: Integrator,
+    pub spp: u32,
+    pub width: u32,
+    pub height: u32,
+    pub crop: Option<[u32; 4]>,
+    pub threads: usize,
+    pub seconds: Seconds,
+    pub peak_rss_bytes: u64,
+    pub mem_budget: Option<u64>,
+    pub archive_decoded_bytes: u64,
+    pub resident_bytes_peak: u64,
+    pub pinned_bytes: u64,
+    pub film_bytes: u64,
+    pub pages_loaded: u64,
+    pub pages_evicted: u64,
+    pub pages_touched: u64,
+    pub cache_hits: u64,
+    pub cache_misses: u64,
+    pub cache_hit_rate: f64,
+    pub bytes_decoded: u64,
+    pub unique_nodes_touched: u64,
+    pub nodes_per_pixel: f64,
+    pub rays: u64,
+    pub paths: u64,
+    pub rays_per_second: f64,
+    pub paths_per_second: f64,
+    pub emitters: u64,
+    pub punctual_lights: u64,
+    /// Which passes ran and why (the scene's features decide).
+    pub passes: Vec<String>,
+    pub image_mean: [f64; 3],
+}
+
+/// Peak resident set of this process (VmHWM), 0 where /proc is unavailable.
+pub fn peak_rss_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1)?.parse::<u64>().ok())
+        })
+        .map_or(0, |kb| kb * 1024)
+}
+
+/// Where the EXR and (if asked) the PNG go: `-o x.png` writes x.png and x.exr beside it.
+fn outputs(o: &RenderOptions) -> Result<(PathBuf, Option<PathBuf>)> {
+    let ext = o
+        .output
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase);
+    match ext.as_deref() {
+        Some("exr") => Ok((
+            o.output.clone(),
+            o.preview.then(|| o.output.with_extension("png")),
+        )),
+        Some("png") => Ok((o.output.with_extension("exr"), Some(o.output.clone()))),
+        _ => bail!("{}: output must end in .exr or .png", o.output.display()),
+    }
+}
+
+pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
+    let t0 = Instant::now();
+    let (exr_path, png_path) = outputs(o)?;
+    check_writable(&exr_path)?;
+    if let Some(p) = &png_path {
+        check_writable(p)?;
+    }
+    if let Some(s) = &o.stats {
+        check_writable(s)?;
+    }
+    if o.spp == 0 && o.time.is_none() {
+        bail!("--spp must be at least 1");
+    }
+    let archive = Arc::new(Archive::open(&o.archive)?);
+    if archive.header.depth as usize > MAX_DEPTH {
+        bail!(
+            "{}: tree depth {} exceeds the {} this renderer traverses",
+            o.archive.display(),
+            archive.header.depth,
+            MAX_DEPTH
+        );
+    }
+    let cam_rec = match &o.camera {
+        Some(name) => archive
+            .cameras
+            .iter()
+            .find(|c| canopy_format::name_str(&c.name) == *name)
+            .with_context(|| {
+                let names: Vec<_> = archive
+                    .cameras
+                    .iter()
+                    .map(|c| canopy_format::name_str(&c.name).to_string())
+                    .collect();
+                format!(
+                    "{}: no camera named {name:?} (cameras: {})",
+                    o.archive.display(),
+                    if names.is_empty() {
+                        "none".into()
+                    } else {
+                        names.join(", ")
+                    }
+                )
+            })?,
+        None => archive.cameras.first().with_context(|| {
+            format!(
+                "{}: the archive has no camera; convert with a glTF camera or --scene",
+                o.archive.display()
+            )
+        })?,
+    };
+    let (width, height) = resolution(o, cam_rec)?;
+    let crop = match o.crop {
+        Some([x0, x1, y0, y1]) => {
+            if x0 >= x1 || y0 >= y1 || x1 > width || y1 > height {
+                bail!(
+                    "--crop {x0},{x1},{y0},{y1} is not a non-empty window inside {width}x{height}"
+                );
+            }
+            [x0, x1, y0, y1]
+        }
+        None => [0, width, 0, height],
+    };
+    let threads = o.threads.unwrap_or_else(rayon::current_num_threads).max(1);
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .context("starting worker threads")?;
+    let touched = NodeSet::new(archive.header.nodes);
+    let budget =
+        match o.mem_budget {
+            Some(b) => Some(b.checked_sub(touched.bytes()).with_context(|| {
+                format!("--mem-budget {b} cannot even hold the node statistics")
+            })?),
+            None => None,
+        };
+    let cache = PageCache::new(Arc::clone(&archive), budget, threads)?;
+    let prefetcher = cache.start_prefetch();
+    let materials: Vec<Material> = archive
+        .materials
+        .iter()
+        .map(Material::from_record)
+        .collect();
+    let (lo, hi) = (
+        V::from(archive.header.bounds_min),
+        V::from(archive.header.bounds_max),
+    );
+    let lights = Lights::gather(&archive, &materials, 0.5 * (hi - lo).length())?;
+    let mut passes = vec!["path: eye paths with next-event estimation and MIS".to_string()];
+    if lights.is_empty() {
+        passes.push("no light sources: the image is black".into());
+    }
+    let scene = Scene {
+        cache: Arc::clone(&cache),
+        materials,
+        camera: Camera::new(cam_rec, width, height),
+        lights,
+        max_depth: o.max_depth,
+        touched,
+    };
+    let setup = t0.elapsed().as_secs_f64();
+
+    let t1 = Instant::now();
+    let (cw, ch) = (crop[1] - crop[0], crop[3] - crop[2]);
+    let tiles: Vec<[u32; 4]> = (0..ch.div_ceil(TILE))
+        .flat_map(|ty| (0..cw.div_ceil(TILE)).map(move |tx| [tx, ty, 0, 0]))
+        .map(|[tx, ty, ..]| {
+            let x0 = crop[0] + tx * TILE;
+            let y0 = crop[2] + ty * TILE;
+            [x0, (x0 + TILE).min(crop[1]), y0, (y0 + TILE).min(crop[3])]
+        })
+        .collect();
+    let mut sums = vec![[0f64; 3]; (cw * ch) as usize];
+    let rays = AtomicU64::new(0);
+    let paths = AtomicU64::new(0);
+    let mut done = 0u32;
+    let bar = match o.time {
+        Some(t) => progress::bar(o.progress, t.as_secs().max(1), "rendering (s)"),
+        None => progress::bar(o.progress, tiles.len() as u64 * o.spp as u64, "rendering"),
+    };
+    loop {
+        // With a time budget, passes of one sample each until the next would overrun it.
+        let count = match o.time {
+            Some(_) => 1,
+            None => o.spp,
+        };
+        let pass_start = Instant::now();
+        let results: Vec<Vec<[f64; 3]>> = pool.install(|| {
+            tiles
+                .par_iter()
+                .map(|t| {
+                    let mut c = Counters::default();
+                    let out = render_tile(&scene, *t, done, count, o.seed, &mut c);
+                    rays.fetch_add(c.rays, Relaxed);
+                    paths.fetch_add(c.paths, Relaxed);
+                    if o.time.is_none() {
+                        bar.inc(count as u64);
+                    }
+                    out
+                })
+                .collect()
+        });
+        for (t, px) in tiles.iter().zip(results) {
+            let w = t[1] - t[0];
+            for (i, v) in px.into_iter().enumerate() {
+                let (x, y) = (t[0] + i as u32 % w - crop[0], t[2] + i as u32 / w - crop[2]);
+                let s = &mut sums[(y * cw + x) as usize];
+                for k in 0..3 {
+                    s[k] += v[k];
+                }
+            }
+        }
+        done += count;
+        if let Some(err) = cache.error() {
+            bail!("{err}");
+        }
+        match o.time {
+            None => break,
+            Some(limit) => {
+                bar.set_position(t1.elapsed().as_secs());
+                let spent = t1.elapsed();
+                if spent + pass_start.elapsed() > limit || done >= u32::MAX - 1 {
+                    break;
+                }
+            }
+        }
+    }
+    bar.finish_and_clear();
+    let render_s = t1.elapsed().as_secs_f64();
+    cache.stop_prefetch();
+    prefetcher.join().ok();
+
+    let mut img = Image::new(cw, ch);
+    for (p, s) in img.pixels.iter_mut().zip(&sums) {
+        *p = s.map(|v| (v / done as f64) as f32);
+    }
+    let t2 = Instant::now();
+    img.write_exr(&exr_path)?;
+    if let Some(p) = &png_path {
+        img.write_png(p, o.exposure)?;
+    }
+    let write_s = t2.elapsed().as_secs_f64();
+
+    let unique = ancestors_closure(&scene)?;
+    let cs = cache.stats();
+    let (rays, paths) = (rays.load(Relaxed), paths.load(Relaxed));
+    let stats = RenderStats {
+        integrator: o.integrator,
+        spp: done,
+        width,
+        height,
+        crop: o.crop,
+        threads,
+        seconds: Seconds {
+            setup,
+            render: render_s,
+            write: write_s,
+            total: t0.elapsed().as_secs_f64(),
+        },
+        peak_rss_bytes: peak_rss_bytes(),
+        mem_budget: o.mem_budget,
+        archive_decoded_bytes: cache.archive_decoded_bytes(),
+        resident_bytes_peak: cs.resident_bytes_peak + scene.touched.bytes(),
+        pinned_bytes: cs.pinned_bytes,
+        film_bytes: (sums.len() * 24 + img.pixels.len() * 12) as u64,
+        pages_loaded: cs.pages_loaded,
+        pages_evicted: cs.pages_evicted,
+        pages_touched: cs.pages_touched,
+        cache_hits: cs.hits,
+        cache_misses: cs.misses,
+        cache_hit_rate: cs.cache_hit_rate,
+        bytes_decoded: cs.bytes_decoded,
+        unique_nodes_touched: unique,
+        nodes_per_pixel: unique as f64 / (cw as f64 * ch as f64),
+        rays,
+        paths,
+        rays_per_second: rays as f64 / render_s.max(1e-9),
+        paths_per_second: paths as f64 / render_s.max(1e-9),
+        emitters: scene.lights.emitters.len() as u64,
+        punctual_lights: scene.lights.punctual.len() as u64,
+        passes,
+        image_mean: img.mean(),
+    };
+    if let Some(p) = &o.stats {
+        let json = serde_json::to_string_pretty(&stats)?;
+        crate::film::write_atomically(p, |tmp| Ok(std::fs::write(tmp, json)?))?;
+    }
+    Ok((img, stats))
+}
+
+fn resolution(o: &RenderOptions, cam: &canopy_format::CameraRecord) -> Result<(u32, u32)> {
+    let (w, h) = match (o.width, o.height) {
+        (Some(w), Some(h)) => (w, h),
+        (Some(w), None) if cam.width > 0 => {
+            (w, (w as u64 * cam.height as u64 / cam.width as u64) as u32)
+        }
+        (None, Some(h)) if cam.height > 0 => {
+            ((h as u64 * cam.width as u64 / cam.height as u64) as u32, h)
+        }
+        (None, None) if cam.width > 0 && cam.height > 0 => (cam.width, cam.height),
+        (w, h) => {
+            let aspect = if cam.aspect > 0.0 { cam.aspect } else { 1.0 };
+            match (w, h) {
+                (Some(w), _) => (w, (w as f32 / aspect).round() as u32),
+                (_, Some(h)) => ((h as f32 * aspect).round() as u32, h),
+                _ => ((512.0 * aspect).round() as u32, 512),
+            }
+        }
+    };
+    if w == 0 || h == 0 || w > MAX_SIDE || h > MAX_SIDE {
+        bail!("resolution {w}x{h} is out of range (each side 1..={MAX_SIDE})");
+    }
+    Ok((w, h))
+}
+
+/// Renders samples [first, first + count) of every pixel in a tile; returns the sums.
+fn render_tile(
+    scene: &Scene,
+    t: [u32; 4],
+    first: u32,
+    count: u32,
+    seed: u32,
+    c: &mut Counters,
+) -> Vec<[f64; 3]> {
+    let mut out = Vec::with_capacity(((t[1] - t[0]) * (t[3] - t[2])) as usize);
+    for y in t[2]..t[3] {
+        for x in t[0]..t[1] {
+            let pixel = y * scene.camera.width + x;
+            let mut sum = [0f64; 3];
+            for s in first..first + count {
+                let mut smp = PixelSampler::new(seed, pixel, s);
+                let [jx, jy] = smp.next2();
+                let ray = scene.camera.ray(x as f32 + jx, y as f32 + jy);
+                let l = path::radiance(scene, ray, &mut smp, c);
+                for k in 0..3 {
+                    sum[k] += l[k] as f64;
+                }
+            }
+            out.push(sum);
+        }
+    }
+    out
+}
+
+/// Nodes touched = leaves hit plus all their ancestors (004 §5.2). Walks the pages that
+/// were loaded, deepest first, marking a node when a child is marked.
+fn ancestors_closure(scene: &Scene) -> Result<u64> {
+    let archive = &scene.cache.archive;
+    let mut pages: Vec<u32> = (0..archive.pages.len() as u32)
+        .filter(|&i| scene.cache.was_touched(i))
+        .collect();
+    pages.sort_by_key(|&i| std::cmp::Reverse(archive.pages[i as usize].level));
+    for id in pages {
+        let page = Page::decode(archive, id)?;
+        let first = page.first_node;
+        for (i, n) in page.bvh.iter().enumerate().rev() {
+            let a = (n.a & !KIND_MASK) as u64;
+            let marked = match n.a & KIND_MASK {
+                INNER => {
+                    scene.touched.contains(first + a) || scene.touched.contains(first + n.b as u64)
+                }
+                CHILD_PAGE => {
+                    let f = archive.pages[a as usize].first_node;
+                    scene.touched.contains(f) || scene.touched.contains(f + 1)
+                }
+                _ => false,
+            };
+            if marked {
+                scene.touched.insert(first + i as u64);
+            }
+        }
+    }
+    Ok(scene.touched.count())
+}
