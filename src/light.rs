@@ -117,7 +117,7 @@ impl Lights {
         let punctual = archive
             .lights
             .iter()
-            .filter_map(|l| punctual(l))
+            .filter_map(punctual)
             .collect::<Vec<_>>();
         let mut cdf = Vec::with_capacity(emitters.len() + punctual.len());
         let mut total = 0.0f64;

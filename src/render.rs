@@ -8,7 +8,7 @@ use crate::material::Material;
 use crate::paging::{Page, PageCache, CHILD_PAGE, INNER, KIND_MASK};
 use crate::progress;
 use crate::sampler::PixelSampler;
-use crate::trace::MAX_DEPTH;
+use crate::trace::{Tracer, MAX_DEPTH};
 use anyhow::{bail, Context, Result};
 use canopy_format::Archive;
 use glam::Vec3A as V;
@@ -254,9 +254,11 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
                 .par_iter()
                 .map(|t| {
                     let mut c = Counters::default();
-                    let out = render_tile(&scene, *t, done, count, o.seed, &mut c);
-                    rays.fetch_add(c.rays, Relaxed);
+                    let mut tr = Tracer::new(&scene.cache);
+                    let out = render_tile(&scene, &mut tr, *t, done, count, o.seed, &mut c);
+                    rays.fetch_add(tr.rays, Relaxed);
                     paths.fetch_add(c.paths, Relaxed);
+                    scene.cache.add_lookups(tr.page_lookups);
                     if o.time.is_none() {
                         bar.inc(count as u64);
                     }
@@ -380,6 +382,7 @@ fn resolution(o: &RenderOptions, cam: &canopy_format::CameraRecord) -> Result<(u
 /// Renders samples [first, first + count) of every pixel in a tile; returns the sums.
 fn render_tile(
     scene: &Scene,
+    tr: &mut Tracer,
     t: [u32; 4],
     first: u32,
     count: u32,
@@ -392,10 +395,10 @@ fn render_tile(
             let pixel = y * scene.camera.width + x;
             let mut sum = [0f64; 3];
             for s in first..first + count {
-                let mut smp = PixelSampler::new(seed, pixel, s);
-                let [jx, jy] = smp.next2();
+                let smp = PixelSampler::new(seed, pixel, s);
+                let [jx, jy, ..] = smp.get4(0);
                 let ray = scene.camera.ray(x as f32 + jx, y as f32 + jy);
-                let l = path::radiance(scene, ray, &mut smp, c);
+                let l = path::radiance(scene, tr, ray, &smp, c);
                 for k in 0..3 {
                     sum[k] += l[k] as f64;
                 }

@@ -1,13 +1,12 @@
 //! Owen-scrambled Sobol samples (Burley 2020, via `sobol_burley`), one independent
-//! sequence per pixel. Past the table's dimensions a hash of (pixel, sample, dimension)
-//! takes over, so unbounded path depth never runs out of numbers.
+//! sequence per pixel. Past the table's dimensions a hash of (pixel, sample, set) takes
+//! over, so unbounded path depth never runs out of numbers.
 
-/// Samples for one pixel sample: `next` walks the dimensions in a fixed order, so a given
-/// (seed, pixel, sample index) always draws the same numbers, whatever thread renders it.
+/// Samples for one pixel sample, drawn in 4-D sets (one SIMD evaluation each): a given
+/// (seed, pixel, sample index, set) always gives the same numbers, whatever thread renders.
 pub struct PixelSampler {
     seed: u32,
     index: u32,
-    dim: u32,
 }
 
 fn hash(mut x: u32) -> u32 {
@@ -26,29 +25,17 @@ impl PixelSampler {
         PixelSampler {
             seed: hash(seed ^ hash(pixel ^ hash(sample >> 16))),
             index: sample & 0xffff,
-            dim: 0,
         }
     }
 
-    pub fn next(&mut self) -> f32 {
-        let d = self.dim;
-        self.dim += 1;
-        if d < sobol_burley::NUM_DIMENSIONS {
-            sobol_burley::sample(self.index, d, self.seed)
+    /// Dimensions 4·set .. 4·set + 4.
+    pub fn get4(&self, set: u32) -> [f32; 4] {
+        if set < sobol_burley::NUM_DIMENSION_SETS_4D {
+            sobol_burley::sample_4d(self.index, set, self.seed)
         } else {
-            let h = hash(self.seed ^ hash(self.index ^ hash(d)));
-            (h >> 8) as f32 * (1.0 / (1u32 << 24) as f32)
+            let h = hash(self.seed ^ hash(self.index ^ hash(set)));
+            [0u32, 1, 2, 3].map(|k| (hash(h ^ k) >> 8) as f32 * (1.0 / (1u32 << 24) as f32))
         }
-    }
-
-    pub fn next2(&mut self) -> [f32; 2] {
-        [self.next(), self.next()]
-    }
-
-    /// Jumps to the start of a bounce's dimensions, so every bounce uses the same slots
-    /// whatever the previous bounce consumed.
-    pub fn start_bounce(&mut self, bounce: u32, per_bounce: u32) {
-        self.dim = 2 + bounce.saturating_mul(per_bounce);
     }
 }
 
@@ -62,16 +49,15 @@ mod tests {
         // (Sobol (0,2)-sequence property, kept by Owen scrambling).
         let mut cells = [0u32; 256];
         for s in 0..256 {
-            let mut p = PixelSampler::new(7, 12345, s);
-            let [x, y] = p.next2();
+            let [x, y, ..] = PixelSampler::new(7, 12345, s).get4(0);
             assert!((0.0..1.0).contains(&x) && (0.0..1.0).contains(&y));
             cells[(x * 16.0) as usize * 16 + (y * 16.0) as usize] += 1;
         }
         assert!(cells.iter().all(|&c| c == 1), "{cells:?}");
-        let mut deep = PixelSampler::new(1, 2, 3);
-        deep.start_bounce(1000, 7);
-        for _ in 0..100 {
-            assert!((0.0..1.0).contains(&deep.next()));
+        // Past the Sobol table the hash takes over, still in [0, 1).
+        let deep = PixelSampler::new(1, 2, 3);
+        for set in 60..200 {
+            assert!(deep.get4(set).iter().all(|v| (0.0..1.0).contains(v)));
         }
     }
 }

@@ -23,7 +23,6 @@ pub struct Scene {
 /// Per-thread counters, summed once per tile.
 #[derive(Default, Clone, Copy)]
 pub struct Counters {
-    pub rays: u64,
     pub paths: u64,
 }
 

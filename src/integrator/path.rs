@@ -10,12 +10,8 @@
 use super::{Counters, Scene};
 use crate::material::Frame;
 use crate::sampler::PixelSampler;
-use crate::trace::{closest_hit, occluded, offset_origin, Ray};
+use crate::trace::{offset_origin, Ray, Tracer};
 use glam::Vec3A as V;
-
-/// Sampler dimensions one bounce uses: light choice, light point (2), lobe, direction (2),
-/// roulette.
-pub const DIMS_PER_BOUNCE: u32 = 7;
 
 fn power_heuristic(a: f32, b: f32) -> f32 {
     let (a2, b2) = (a * a, b * b);
@@ -27,16 +23,24 @@ fn power_heuristic(a: f32, b: f32) -> f32 {
 }
 
 /// Radiance arriving along `ray`.
-pub fn radiance(scene: &Scene, mut ray: Ray, s: &mut PixelSampler, c: &mut Counters) -> V {
+pub fn radiance(
+    scene: &Scene,
+    tr: &mut Tracer,
+    mut ray: Ray,
+    s: &PixelSampler,
+    c: &mut Counters,
+) -> V {
     let mut l = V::ZERO;
     let mut beta = V::ONE;
     let mut prev_pdf = 0.0f32;
     let mut prev_delta = true;
     let mut depth = 0u32;
     loop {
-        s.start_bounce(depth, DIMS_PER_BOUNCE);
-        c.rays += 1;
-        let Some(hit) = closest_hit(&scene.cache, &ray) else {
+        // Sample sets: 0 is the pixel position; bounce k uses sets 2k+1 (light choice, light
+        // point, lobe) and 2k+2 (direction, roulette).
+        let [u_pick, ul0, ul1, u_lobe] = s.get4(2 * depth + 1);
+        let [ud0, ud1, u_rr, _] = s.get4(2 * depth + 2);
+        let Some(hit) = tr.closest_hit(&ray) else {
             break;
         };
         let first = scene.cache.archive.pages[hit.page as usize].first_node;
@@ -44,7 +48,7 @@ pub fn radiance(scene: &Scene, mut ray: Ray, s: &mut PixelSampler, c: &mut Count
         let m = &scene.materials[hit.tri.material as usize];
         let ng_raw = hit.ng();
         let area = 0.5 * ng_raw.length();
-        if !(area > 0.0) {
+        if area.is_nan() || area <= 0.0 {
             break;
         }
         let ng = ng_raw / (2.0 * area);
@@ -74,10 +78,8 @@ pub fn radiance(scene: &Scene, mut ray: Ray, s: &mut PixelSampler, c: &mut Count
         let wo_l = frame.to_local(wo);
 
         // Next-event estimation.
-        let u_pick = s.next();
-        let u_light = s.next2();
         if !bsdf.has_smooth_only() {
-            if let Some(ls) = scene.lights.sample(p, u_pick, u_light) {
+            if let Some(ls) = scene.lights.sample(p, u_pick, [ul0, ul1]) {
                 let wi_l = frame.to_local(ls.wi);
                 let (f, pdf_b) = bsdf.eval(wo_l, wi_l);
                 if wi_l.z > 0.0 && f.max_element() > 0.0 {
@@ -97,8 +99,7 @@ pub fn radiance(scene: &Scene, mut ray: Ray, s: &mut PixelSampler, c: &mut Count
                             t_max: f32::INFINITY,
                         },
                     };
-                    c.rays += 1;
-                    if !occluded(&scene.cache, &shadow) {
+                    if !tr.occluded(&shadow) {
                         let w = if ls.pdf > 0.0 {
                             power_heuristic(ls.pdf, pdf_b)
                         } else {
@@ -111,9 +112,7 @@ pub fn radiance(scene: &Scene, mut ray: Ray, s: &mut PixelSampler, c: &mut Count
         }
 
         // Continue the path by sampling the BSDF.
-        let u_lobe = s.next();
-        let u_dir = s.next2();
-        let Some(bs) = bsdf.sample(wo_l, u_lobe, u_dir) else {
+        let Some(bs) = bsdf.sample(wo_l, u_lobe, [ud0, ud1]) else {
             break;
         };
         beta *= bs.weight;
@@ -131,7 +130,7 @@ pub fn radiance(scene: &Scene, mut ray: Ray, s: &mut PixelSampler, c: &mut Count
         depth += 1;
         let q = beta.max_element();
         if depth > 1 && q < 1.0 {
-            if s.next() >= q {
+            if u_rr >= q {
                 break;
             }
             beta /= q;

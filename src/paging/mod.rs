@@ -163,6 +163,7 @@ pub struct PageCache {
     resident_peak: AtomicU64,
     pinned_bytes: u64,
     hand: Mutex<usize>,
+    epoch: AtomicU64,
     loads: AtomicU64,
     evictions: AtomicU64,
     hits: AtomicU64,
@@ -224,6 +225,7 @@ impl PageCache {
             resident_peak: AtomicU64::new(0),
             pinned_bytes: pinned,
             hand: Mutex::new(0),
+            epoch: AtomicU64::new(0),
             loads: AtomicU64::new(0),
             evictions: AtomicU64::new(0),
             hits: AtomicU64::new(0),
@@ -289,7 +291,6 @@ impl PageCache {
             if !slot.referenced.load(Relaxed) {
                 slot.referenced.store(true, Relaxed);
             }
-            self.hits.fetch_add(1, Relaxed);
             return Arc::clone(p);
         }
         self.misses.fetch_add(1, Relaxed);
@@ -356,6 +357,7 @@ impl PageCache {
             if let Some(p) = slot.page.write().expect("slot").take() {
                 self.resident.fetch_sub(p.bytes, Relaxed);
                 self.evictions.fetch_add(1, Relaxed);
+                self.epoch.fetch_add(1, Relaxed);
             }
         }
     }
@@ -363,6 +365,12 @@ impl PageCache {
     /// The first page error met, if any.
     pub fn error(&self) -> Option<String> {
         self.error.lock().expect("error lock").clone()
+    }
+
+    /// Moves whenever a page is evicted: handles taken before must be dropped.
+    #[inline]
+    pub fn epoch(&self) -> u64 {
+        self.epoch.load(Relaxed)
     }
 
     /// Whether the page was ever loaded.
@@ -374,8 +382,14 @@ impl PageCache {
         self.resident.load(Relaxed)
     }
 
+    /// Adds page lookups served without a load (counted by the tracers, off the hot path).
+    pub fn add_lookups(&self, lookups: u64) {
+        self.hits.fetch_add(lookups, Relaxed);
+    }
+
     pub fn stats(&self) -> CacheStats {
-        let (hits, misses) = (self.hits.load(Relaxed), self.misses.load(Relaxed));
+        let misses = self.misses.load(Relaxed);
+        let hits = self.hits.load(Relaxed).saturating_sub(misses);
         CacheStats {
             pages_loaded: self.loads.load(Relaxed),
             pages_evicted: self.evictions.load(Relaxed),

@@ -11,8 +11,7 @@ use crate::paging::{Page, PageCache, TNode, TriW, CHILD_PAGE, INNER, KIND_MASK, 
 use glam::Vec3A as V;
 use std::sync::Arc;
 
-/// Deepest stack a traversal may need (the tree's depth plus one); archives deeper than
-/// this are refused when rendering starts.
+/// Deepest tree the renderer accepts (the traversal stack holds at most depth + 1 entries).
 pub const MAX_DEPTH: usize = 250;
 
 /// γ_n = nε/(1−nε) with ε the f32 unit roundoff (pbrt-v4 §6.8.1).
@@ -131,8 +130,14 @@ impl Prep {
         let [kx, ky, kz] = self.k;
         let [sx, sy, sz] = self.s;
         let o = self.o.to_array();
-        let t = tri.p.map(|p| [p[kx] - o[kx], p[ky] - o[ky], p[kz] - o[kz]]);
-        let xy = t.map(|p| (p[0] + sx * p[2], p[1] + sy * p[2]));
+        let tr = |p: &[f32; 3]| {
+            let z = p[kz] - o[kz];
+            ((p[kx] - o[kx] + sx * z, p[ky] - o[ky] + sy * z), z)
+        };
+        let (xy0, z0) = tr(&tri.p[0]);
+        let (xy1, z1) = tr(&tri.p[1]);
+        let (xy2, z2) = tr(&tri.p[2]);
+        let xy = [xy0, xy1, xy2];
         let edge = |a: (f32, f32), b: (f32, f32)| {
             let e = a.0 * b.1 - a.1 * b.0;
             if e == 0.0 {
@@ -152,7 +157,7 @@ impl Prep {
         if det == 0.0 {
             return None;
         }
-        let z = t.map(|p| p[2] * sz);
+        let z = [z0 * sz, z1 * sz, z2 * sz];
         let ts = e0 * z[0] + e1 * z[1] + e2 * z[2];
         if det < 0.0 && (ts >= 0.0 || ts < t_max * det) {
             return None;
@@ -163,10 +168,10 @@ impl Prep {
         let inv = 1.0 / det;
         let tt = ts * inv;
         // pbrt-v4: reject hits closer than the error bound of t (behind the origin).
-        let max_z = z.iter().fold(0f32, |m, v| m.max(v.abs()));
+        let max_z = z[0].abs().max(z[1].abs()).max(z[2].abs());
         let delta_z = gamma(3) * max_z;
-        let max_x = xy.iter().fold(0f32, |m, v| m.max(v.0.abs()));
-        let max_y = xy.iter().fold(0f32, |m, v| m.max(v.1.abs()));
+        let max_x = xy[0].0.abs().max(xy[1].0.abs()).max(xy[2].0.abs());
+        let max_y = xy[0].1.abs().max(xy[1].1.abs()).max(xy[2].1.abs());
         let delta_x = gamma(5) * (max_x + max_z);
         let delta_y = gamma(5) * (max_y + max_z);
         let delta_e = 2.0 * (gamma(2) * max_x * max_y + delta_y * max_x + delta_x * max_y);
@@ -180,123 +185,169 @@ impl Prep {
     }
 }
 
-/// Walks the paged tree front to back. `on_tri` gets each triangle the ray meets and returns
-/// the new `t_max` to accept it; with `any`, the first accepted hit ends the walk.
-#[inline]
-fn traverse(
-    cache: &PageCache,
-    ray: &Ray,
-    mut on_tri: impl FnMut(&Page, u32, u32, f32, [f32; 3]) -> Option<f32>,
-    any: bool,
-) -> bool {
-    let prep = Prep::new(ray);
-    let mut t_max = ray.t_max;
-    let mut cur: Arc<Page> = cache.get(cache.root_page());
-    let mut stack: [(u32, u32, f32); MAX_DEPTH + 2] = [(0, 0, 0.0); MAX_DEPTH + 2];
-    let mut sp = 0;
-    for r in 0..cur.roots.min(cur.bvh.len() as u32) {
-        if let Some(t) = prep.box_hit(&cur.bvh[r as usize], t_max) {
-            stack[sp] = (cur.id, r, t);
-            sp += 1;
+/// Page handles a worker thread keeps between rays: looking a page up here costs no shared
+/// atomic write, unlike the cache's lock and `Arc` count. Handles are dropped whenever
+/// the cache has evicted anything since they were taken (its eviction epoch moved), so
+/// evicted pages are freed at the thread's next lookup.
+pub struct Tracer<'a> {
+    pub cache: &'a PageCache,
+    held: Vec<(u32, Arc<Page>)>,
+    next_victim: usize,
+    epoch: u64,
+    stack: Vec<(u32, u32, f32)>,
+    pub rays: u64,
+    pub page_lookups: u64,
+}
+
+/// Page handles a thread holds at most.
+const HELD: usize = 32;
+
+impl<'a> Tracer<'a> {
+    pub fn new(cache: &'a PageCache) -> Tracer<'a> {
+        Tracer {
+            cache,
+            held: Vec::with_capacity(HELD),
+            next_victim: 0,
+            epoch: cache.epoch(),
+            stack: Vec::with_capacity(64),
+            rays: 0,
+            page_lookups: 0,
         }
     }
-    let mut found = false;
-    while sp > 0 {
-        sp -= 1;
-        let (pid, ni, tn) = stack[sp];
-        if tn > t_max {
-            continue;
+
+    /// Index in `held` of the page.
+    #[inline]
+    fn page(&mut self, id: u32) -> usize {
+        self.page_lookups += 1;
+        let e = self.cache.epoch();
+        if e != self.epoch {
+            self.held.clear();
+            self.epoch = e;
         }
-        if pid != cur.id {
-            cur = cache.get(pid);
+        if let Some(i) = self.held.iter().position(|(p, _)| *p == id) {
+            return i;
         }
-        let Some(node) = cur.bvh.get(ni as usize) else {
-            continue;
-        };
-        let kind = node.a & KIND_MASK;
-        let a = node.a & !KIND_MASK;
-        let (page, l, r) = match kind {
-            LEAF => {
-                let end = (a + node.b).min(cur.tris.len() as u32);
-                for ti in a..end {
-                    if let Some((t, b)) = prep.tri_hit(&cur.tris[ti as usize], t_max) {
-                        if let Some(nt) = on_tri(&cur, ni, ti, t, b) {
-                            found = true;
-                            if any {
-                                return true;
-                            }
-                            t_max = nt;
-                        }
-                    }
+        let page = self.cache.get(id);
+        if self.held.len() < HELD {
+            self.held.push((id, page));
+            self.held.len() - 1
+        } else {
+            let i = self.next_victim;
+            self.next_victim = (i + 1) % HELD;
+            self.held[i] = (id, page);
+            i
+        }
+    }
+
+    /// Walks the paged tree front to back. `on_tri` gets each triangle the ray meets and
+    /// returns true to accept it (closing `t_max` to its distance); with `any`, the first
+    /// accepted hit ends the walk.
+    #[inline]
+    fn traverse(
+        &mut self,
+        ray: &Ray,
+        mut on_tri: impl FnMut(&Page, u32, u32, f32, [f32; 3]),
+        any: bool,
+    ) -> bool {
+        self.rays += 1;
+        let prep = Prep::new(ray);
+        let mut t_max = ray.t_max;
+        let mut stack = std::mem::take(&mut self.stack);
+        stack.clear();
+        let mut cur = self.page(self.cache.root_page());
+        {
+            let page = &self.held[cur].1;
+            for r in 0..page.roots.min(page.bvh.len() as u32) {
+                if let Some(t) = prep.box_hit(&page.bvh[r as usize], t_max) {
+                    stack.push((page.id, r, t));
                 }
+            }
+        }
+        let mut found = false;
+        'walk: while let Some((pid, ni, tn)) = stack.pop() {
+            if tn > t_max {
                 continue;
             }
-            INNER => (cur.id, a, node.b),
-            CHILD_PAGE => {
-                cur = cache.get(a);
-                if cur.roots < 2 {
+            if self.held[cur].0 != pid {
+                cur = self.page(pid);
+            }
+            let page = &self.held[cur].1;
+            let Some(node) = page.bvh.get(ni as usize) else {
+                continue;
+            };
+            let kind = node.a & KIND_MASK;
+            let a = node.a & !KIND_MASK;
+            let (l, r) = match kind {
+                LEAF => {
+                    let end = (a + node.b).min(page.tris.len() as u32);
+                    for ti in a..end {
+                        if let Some((t, b)) = prep.tri_hit(&page.tris[ti as usize], t_max) {
+                            on_tri(page, ni, ti, t, b);
+                            found = true;
+                            if any {
+                                break 'walk;
+                            }
+                            t_max = t;
+                        }
+                    }
                     continue;
                 }
-                (a, 0, 1)
+                INNER => (a, node.b),
+                CHILD_PAGE => {
+                    cur = self.page(a);
+                    if self.held[cur].1.roots < 2 {
+                        continue;
+                    }
+                    (0, 1)
+                }
+                _ => continue,
+            };
+            let page = &self.held[cur].1;
+            let (Some(ln), Some(rn)) = (page.bvh.get(l as usize), page.bvh.get(r as usize)) else {
+                continue;
+            };
+            let id = page.id;
+            match (prep.box_hit(ln, t_max), prep.box_hit(rn, t_max)) {
+                (Some(a), Some(b)) => {
+                    let (near, far) = if a <= b {
+                        ((l, a), (r, b))
+                    } else {
+                        ((r, b), (l, a))
+                    };
+                    stack.push((id, far.0, far.1));
+                    stack.push((id, near.0, near.1));
+                }
+                (Some(a), None) => stack.push((id, l, a)),
+                (None, Some(b)) => stack.push((id, r, b)),
+                (None, None) => {}
             }
-            _ => continue,
-        };
-        let (Some(ln), Some(rn)) = (cur.bvh.get(l as usize), cur.bvh.get(r as usize)) else {
-            continue;
-        };
-        let tl = prep.box_hit(ln, t_max);
-        let tr = prep.box_hit(rn, t_max);
-        if sp + 2 > stack.len() {
-            continue;
         }
-        match (tl, tr) {
-            (Some(a), Some(b)) => {
-                let (near, far) = if a <= b {
-                    ((l, a), (r, b))
-                } else {
-                    ((r, b), (l, a))
-                };
-                stack[sp] = (page, far.0, far.1);
-                stack[sp + 1] = (page, near.0, near.1);
-                sp += 2;
-            }
-            (Some(a), None) => {
-                stack[sp] = (page, l, a);
-                sp += 1;
-            }
-            (None, Some(b)) => {
-                stack[sp] = (page, r, b);
-                sp += 1;
-            }
-            (None, None) => {}
-        }
+        self.stack = stack;
+        found
     }
-    found
-}
 
-/// Nearest intersection along the ray, if any, before `ray.t_max`.
-pub fn closest_hit(cache: &PageCache, ray: &Ray) -> Option<Hit> {
-    let mut best: Option<Hit> = None;
-    traverse(
-        cache,
-        ray,
-        |page, leaf, ti, t, b| {
-            best = Some(Hit {
-                t,
-                b,
-                tri: page.tris[ti as usize],
-                page: page.id,
-                leaf,
-                index: ti,
-            });
-            Some(t)
-        },
-        false,
-    );
-    best
-}
+    /// Nearest intersection along the ray, if any, before `ray.t_max`.
+    pub fn closest_hit(&mut self, ray: &Ray) -> Option<Hit> {
+        let mut best: Option<Hit> = None;
+        self.traverse(
+            ray,
+            |page, leaf, ti, t, b| {
+                best = Some(Hit {
+                    t,
+                    b,
+                    tri: page.tris[ti as usize],
+                    page: page.id,
+                    leaf,
+                    index: ti,
+                })
+            },
+            false,
+        );
+        best
+    }
 
-/// Whether anything blocks the ray before `ray.t_max`.
-pub fn occluded(cache: &PageCache, ray: &Ray) -> bool {
-    traverse(cache, ray, |_, _, _, t, _| Some(t), true)
+    /// Whether anything blocks the ray before `ray.t_max`.
+    pub fn occluded(&mut self, ray: &Ray) -> bool {
+        self.traverse(ray, |_, _, _, _, _| {}, true)
+    }
 }

@@ -1,0 +1,183 @@
+#!/usr/bin/env python3
+"""Render a glTF binary (.glb) with Mitsuba 3 as an independent reference for Canopy.
+
+    pip install mitsuba
+    python3 tools/crosscheck.py scenes/cbox.glb -o cbox_mitsuba.exr --spp 1024 [--threads N]
+
+Uses the `scalar_rgb` variant and the `path` integrator (unbounded depth, Russian roulette),
+a box pixel filter and the independent sampler, as the bundled references in scenes/refs
+were made. Supported: triangle meshes under node transforms (matrix or TRS, instances),
+the first perspective camera (resolution from extras.render, else --width/--height),
+metallic-roughness materials (pure Lambert when metallic = 0, roughness = 1 and
+KHR_materials_specular.specularFactor = 0; Mitsuba's `principled` otherwise), emission
+(emissiveFactor × KHR_materials_emissive_strength, front face only unless double-sided).
+Prints the render time and paths per second (spp × pixels / seconds) and writes a JSON
+beside the EXR, so `canopy render` can be timed against it on the same machine.
+"""
+import argparse, json, shutil, struct, sys, tempfile, time
+import numpy as np
+
+
+def load_glb(path):
+    data = open(path, "rb").read()
+    if data[:4] != b"glTF":
+        sys.exit(f"{path}: not a glTF binary")
+    off, doc, binary = 12, None, b""
+    while off < len(data):
+        length, kind = struct.unpack_from("<I4s", data, off)
+        chunk = data[off + 8 : off + 8 + length]
+        if kind == b"JSON":
+            doc = json.loads(chunk)
+        elif kind == b"BIN\x00":
+            binary = chunk
+        off += 8 + length
+    return doc, binary
+
+
+def accessor(doc, binary, i):
+    a = doc["accessors"][i]
+    view = doc["bufferViews"][a["bufferView"]]
+    comps = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}[a["type"]]
+    dtype = {5126: np.float32, 5125: np.uint32, 5123: np.uint16, 5121: np.uint8}[a["componentType"]]
+    start = view.get("byteOffset", 0) + a.get("byteOffset", 0)
+    stride = view.get("byteStride", 0)
+    item = np.dtype(dtype).itemsize * comps
+    if stride and stride != item:
+        raw = np.frombuffer(binary, np.uint8, count=stride * a["count"], offset=start)
+        raw = raw.reshape(a["count"], stride)[:, :item].copy()
+        return raw.view(dtype).reshape(a["count"], comps)
+    return np.frombuffer(binary, dtype, count=a["count"] * comps, offset=start).reshape(a["count"], comps)
+
+
+def node_matrix(n):
+    if "matrix" in n:
+        return np.array(n["matrix"], dtype=np.float64).reshape(4, 4).T
+    t = np.eye(4)
+    t[:3, 3] = n.get("translation", [0, 0, 0])
+    x, y, z, w = n.get("rotation", [0, 0, 0, 1])
+    r = np.eye(4)
+    r[:3, :3] = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ]
+    s = np.diag(list(n.get("scale", [1, 1, 1])) + [1])
+    return t @ r @ s
+
+
+def bsdf_of(mi, m):
+    pbr = m.get("pbrMetallicRoughness", {})
+    base = pbr.get("baseColorFactor", [1, 1, 1, 1])[:3]
+    metallic = pbr.get("metallicFactor", 1.0)
+    rough = pbr.get("roughnessFactor", 1.0)
+    ext = m.get("extensions", {})
+    spec = ext.get("KHR_materials_specular", {}).get("specularFactor", 1.0)
+    trans = ext.get("KHR_materials_transmission", {}).get("transmissionFactor", 0.0)
+    if metallic == 0 and spec == 0 and trans == 0:
+        b = {"type": "diffuse", "reflectance": {"type": "rgb", "value": base}}
+    else:
+        b = {
+            "type": "principled",
+            "base_color": {"type": "rgb", "value": base},
+            "metallic": metallic,
+            "roughness": rough,
+            "specular": spec * 0.5,
+            "spec_trans": trans,
+            "eta": ext.get("KHR_materials_ior", {}).get("ior", 1.5),
+        }
+    if m.get("doubleSided", False):
+        b = {"type": "twosided", "material": b}
+    return b
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scene")
+    ap.add_argument("-o", "--output", required=True)
+    ap.add_argument("--spp", type=int, default=256)
+    ap.add_argument("--width", type=int)
+    ap.add_argument("--height", type=int)
+    ap.add_argument("--threads", type=int, default=0, help="0: all cores")
+    ap.add_argument("--seed", type=int, default=0)
+    a = ap.parse_args()
+
+    import mitsuba as mi
+
+    mi.set_variant("scalar_rgb")
+    doc, binary = load_glb(a.scene)
+    render = doc.get("extras", {}).get("render", {})
+    width = a.width or render.get("width", 512)
+    height = a.height or render.get("height", 512)
+    scene = {"type": "scene", "integrator": {"type": "path", "max_depth": -1}}
+    mats = doc.get("materials", [])
+    count = 0
+    tmp = tempfile.mkdtemp(prefix="crosscheck-")
+
+    def visit(ni, parent):
+        nonlocal count
+        n = doc["nodes"][ni]
+        m = parent @ node_matrix(n)
+        if "camera" in n and "sensor" not in scene:
+            cam = doc["cameras"][n["camera"]]["perspective"]
+            flip = np.diag([-1.0, 1.0, -1.0, 1.0])  # glTF looks down -z, Mitsuba down +z
+            scene["sensor"] = {
+                "type": "perspective",
+                "fov_axis": "y",
+                "fov": float(np.degrees(cam["yfov"])),
+                "near_clip": cam.get("znear", 0.01),
+                "to_world": mi.ScalarTransform4f((m @ flip).tolist()),
+                "film": {"type": "hdrfilm", "width": width, "height": height,
+                         "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+                "sampler": {"type": "independent", "sample_count": a.spp, "seed": a.seed},
+            }
+        if "mesh" in n:
+            for p in doc["meshes"][n["mesh"]]["primitives"]:
+                if p.get("mode", 4) != 4:
+                    continue
+                pos = accessor(doc, binary, p["attributes"]["POSITION"]).astype(np.float64)
+                pos = (np.c_[pos, np.ones(len(pos))] @ m.T)[:, :3]
+                idx = accessor(doc, binary, p["indices"]).reshape(-1, 3) if "indices" in p \
+                    else np.arange(len(pos)).reshape(-1, 3)
+                if np.linalg.det(m[:3, :3]) < 0:
+                    idx = idx[:, ::-1]
+                mesh = mi.Mesh(f"m{count}", len(pos), len(idx))
+                params = mi.traverse(mesh)
+                params["vertex_positions"] = pos.astype(np.float32).ravel()
+                params["faces"] = idx.astype(np.uint32).ravel()
+                params.update()
+                mat = mats[p["material"]] if "material" in p else {}
+                ply = f"{tmp}/m{count}.ply"
+                mesh.write_ply(ply)
+                entry = {"type": "ply", "filename": ply, "face_normals": True,
+                         "bsdf": bsdf_of(mi, mat)}
+                strength = mat.get("extensions", {}).get("KHR_materials_emissive_strength", {}).get("emissiveStrength", 1.0)
+                le = [c * strength for c in mat.get("emissiveFactor", [0, 0, 0])]
+                if max(le) > 0:
+                    entry["emitter"] = {"type": "area", "radiance": {"type": "rgb", "value": le}}
+                scene[f"m{count}"] = entry
+                count += 1
+        for c in n.get("children", []):
+            visit(c, m)
+
+    for ni in doc["scenes"][doc.get("scene", 0)]["nodes"]:
+        visit(ni, np.eye(4))
+    if "sensor" not in scene:
+        sys.exit(f"{a.scene}: no camera")
+    if a.threads:
+        mi.Thread.thread_count = a.threads
+    s = mi.load_dict(scene)
+    shutil.rmtree(tmp, ignore_errors=True)
+    t0 = time.time()
+    img = mi.render(s, spp=a.spp)
+    seconds = time.time() - t0
+    mi.util.write_bitmap(a.output, img)
+    paths = a.spp * width * height
+    info = {"scene": a.scene, "spp": a.spp, "width": width, "height": height,
+            "seconds": seconds, "paths_per_s": paths / seconds,
+            "mean": float(np.array(img).mean())}
+    json.dump(info, open(a.output.rsplit(".", 1)[0] + ".json", "w"))
+    print(json.dumps(info))
+
+
+if __name__ == "__main__":
+    main()
