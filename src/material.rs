@@ -339,7 +339,10 @@ mod tests {
     struct Rng(u64);
     impl Rng {
         fn next(&mut self) -> f32 {
-            self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             ((self.0 >> 40) as f32) / (1u64 << 24) as f32
         }
     }
@@ -507,7 +510,10 @@ mod tests {
             }
         }
         let got = refl as f32 / n as f32;
-        assert!((got - fr).abs() < 0.005, "reflected share {got}, Fresnel {fr}");
+        assert!(
+            (got - fr).abs() < 0.005,
+            "reflected share {got}, Fresnel {fr}"
+        );
         // Normal incidence on η = 1.5: F = 0.04.
         assert!((fresnel_dielectric(1.0, 1.5) - 0.04).abs() < 1e-6);
         // Total internal reflection from inside beyond the critical angle.

@@ -1,0 +1,492 @@
+//! `canopy render` end to end: agreement with the Mitsuba 3 references, the white furnace,
+//! the memory budget, hard numerical cases and bad input.
+
+mod common;
+use canopy::film::Image;
+use common::*;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+fn convert(input: &Path, out: &Path, scene: Option<&Path>) {
+    let mut args = vec!["--quiet", "convert", s(input), "-o", s(out)];
+    if let Some(sc) = scene {
+        args.extend(["--scene", s(sc)]);
+    }
+    ok(&args);
+}
+
+/// Renders and returns the image and the stats JSON.
+fn render(archive: &Path, out: &Path, extra: &[&str]) -> (Image, serde_json::Value) {
+    let stats = out.with_extension("json");
+    let mut args = vec![
+        "--quiet",
+        "render",
+        s(archive),
+        "-o",
+        s(out),
+        "--stats",
+        s(&stats),
+    ];
+    args.extend_from_slice(extra);
+    ok(&args);
+    let img = Image::read_exr(&out.with_extension("exr")).unwrap();
+    let json = serde_json::from_str(&std::fs::read_to_string(&stats).unwrap()).unwrap();
+    (img, json)
+}
+
+fn all_finite(img: &Image) -> bool {
+    img.pixels
+        .iter()
+        .flatten()
+        .all(|v| v.is_finite() && *v >= 0.0)
+}
+
+fn rmse(a: &Image, b: &Image) -> f64 {
+    canopy::metrics::error(a, b, canopy::metrics::Metric::Rmse).unwrap()
+}
+
+fn reference(name: &str) -> Image {
+    Image::read_exr(&scene(&format!("refs/{name}.exr"))).unwrap()
+}
+
+fn assert_mean_within(img: &Image, refimg: &Image, tol: f64, what: &str) {
+    let (a, b) = (img.mean(), refimg.mean());
+    for c in 0..3 {
+        let rel = a[c] / b[c] - 1.0;
+        assert!(
+            rel.abs() < tol,
+            "{what}: channel {c} mean {} vs reference {} ({rel:+.4})",
+            a[c],
+            b[c]
+        );
+    }
+}
+
+#[test]
+fn path_tracer_mean_matches_mitsuba() {
+    let dir = tempfile::tempdir().unwrap();
+    for (name, spp) in [("cbox", "256"), ("bunny_box", "128")] {
+        let arc = dir.path().join(format!("{name}.canopy"));
+        convert(&scene(&format!("{name}.glb")), &arc, None);
+        let (img, stats) = render(
+            &arc,
+            &dir.path().join(format!("{name}.exr")),
+            &["--spp", spp],
+        );
+        assert_mean_within(&img, &reference(name), 0.01, name);
+        assert!(all_finite(&img));
+        for key in [
+            "integrator",
+            "spp",
+            "width",
+            "height",
+            "seconds",
+            "peak_rss_bytes",
+            "resident_bytes_peak",
+            "pages_loaded",
+            "pages_evicted",
+            "cache_hit_rate",
+            "unique_nodes_touched",
+            "nodes_per_pixel",
+            "rays",
+        ] {
+            assert!(stats.get(key).is_some(), "stats lack {key}");
+        }
+        assert!(stats["unique_nodes_touched"].as_u64().unwrap() > 0);
+    }
+}
+
+/// RMSE against the reference at spp s: the error ratio per doubling, and the ideal √2
+/// corrected for the reference's own noise (its spp in refs/*.json).
+fn rmse_ratios(name: &str, spps: &[u32]) -> Vec<(u32, f64, f64, f64)> {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("a.canopy");
+    convert(&scene(&format!("{name}.glb")), &arc, None);
+    let r = reference(name);
+    let ref_spp: f64 = serde_json::from_str::<serde_json::Value>(
+        &std::fs::read_to_string(scene(&format!("refs/{name}.json"))).unwrap(),
+    )
+    .unwrap()["spp"]
+        .as_f64()
+        .unwrap();
+    let errs: Vec<f64> = spps
+        .iter()
+        .map(|n| {
+            let (img, _) = render(
+                &arc,
+                &dir.path().join(format!("{n}.exr")),
+                &["--spp", &n.to_string()],
+            );
+            rmse(&img, &r)
+        })
+        .collect();
+    spps.windows(2)
+        .zip(errs.windows(2))
+        .map(|(s, e)| {
+            let ideal =
+                ((1.0 / s[0] as f64 + 1.0 / ref_spp) / (1.0 / s[1] as f64 + 1.0 / ref_spp)).sqrt();
+            (s[1], e[1], e[0] / e[1], ideal)
+        })
+        .collect()
+}
+
+#[test]
+fn rmse_falls_as_one_over_sqrt_spp() {
+    for (spp, e, ratio, ideal) in rmse_ratios("cbox", &[16, 32, 64]) {
+        assert!(
+            (ratio / ideal - 1.0).abs() < 0.2,
+            "cbox at {spp} spp: RMSE {e:.3e}, ratio {ratio:.3} against the ideal {ideal:.3}"
+        );
+    }
+}
+
+/// The full acceptance run (about 6 minutes): 64..1024 spp on both scenes.
+#[test]
+#[ignore]
+fn reference_agreement_64_to_1024_spp() {
+    for name in ["cbox", "bunny_box"] {
+        for (spp, e, ratio, ideal) in rmse_ratios(name, &[64, 128, 256, 512, 1024]) {
+            println!("{name} {spp} spp: RMSE {e:.4e}, ratio {ratio:.3} (ideal {ideal:.3})");
+            assert!((ratio / ideal - 1.0).abs() < 0.2);
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let arc = dir.path().join("a.canopy");
+        convert(&scene(&format!("{name}.glb")), &arc, None);
+        let (img, _) = render(&arc, &dir.path().join("x.exr"), &["--spp", "1024"]);
+        let (a, b) = (img.mean(), reference(name).mean());
+        println!("{name} 1024 spp mean {a:?} vs reference {b:?}");
+        assert_mean_within(&img, &reference(name), 0.01, name);
+    }
+}
+
+/// A UV sphere as OBJ text, triangles wound to face the centre.
+fn sphere_obj(radius: f32, rings: usize, segments: usize) -> String {
+    let mut s = String::new();
+    let v = |s: &mut String, x: f32, y: f32, z: f32| writeln!(s, "v {x} {y} {z}").unwrap();
+    v(&mut s, 0.0, radius, 0.0);
+    for i in 1..rings {
+        let th = std::f32::consts::PI * i as f32 / rings as f32;
+        for j in 0..segments {
+            let ph = 2.0 * std::f32::consts::PI * j as f32 / segments as f32;
+            v(
+                &mut s,
+                radius * th.sin() * ph.cos(),
+                radius * th.cos(),
+                radius * th.sin() * ph.sin(),
+            );
+        }
+    }
+    v(&mut s, 0.0, -radius, 0.0);
+    let ring = |i: usize, j: usize| 2 + (i - 1) * segments + j % segments;
+    let bottom = 2 + (rings - 1) * segments;
+    for j in 0..segments {
+        writeln!(s, "f 1 {} {}", ring(1, j), ring(1, j + 1)).unwrap();
+        writeln!(
+            s,
+            "f {bottom} {} {}",
+            ring(rings - 1, j + 1),
+            ring(rings - 1, j)
+        )
+        .unwrap();
+        for i in 1..rings - 1 {
+            let (a, b, c, d) = (
+                ring(i, j),
+                ring(i, j + 1),
+                ring(i + 1, j),
+                ring(i + 1, j + 1),
+            );
+            writeln!(s, "f {a} {c} {b}\nf {b} {c} {d}").unwrap();
+        }
+    }
+    s
+}
+
+fn camera_toml(pos: [f32; 3], look: [f32; 3], res: u32) -> String {
+    format!(
+        "[[camera]]\nposition = {pos:?}\nlook_at = {look:?}\nwidth = {res}\nheight = {res}\nyfov_degrees = 60.0\n"
+    )
+}
+
+fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
+    let p = dir.join(name);
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+#[test]
+fn white_furnace_converges_to_le_over_one_minus_albedo() {
+    let dir = tempfile::tempdir().unwrap();
+    let obj = write(dir.path(), "sphere.obj", &sphere_obj(1.0, 24, 48));
+    let (a, le) = (0.7f32, 0.3f32);
+    let toml = camera_toml([0.1, 0.05, 0.0], [1.0, 0.2, 0.3], 32)
+        + &format!("[[material]]\nname = \"default\"\nbase_color = [{a}, {a}, {a}]\nemission = [{le}, {le}, {le}]\n");
+    let sc = write(dir.path(), "scene.toml", &toml);
+    let arc = dir.path().join("f.canopy");
+    convert(&obj, &arc, Some(&sc));
+    let (img, _) = render(&arc, &dir.path().join("f.exr"), &["--spp", "128"]);
+    let expect = le as f64 / (1.0 - a as f64);
+    for (c, m) in img.mean().iter().enumerate() {
+        assert!(
+            (m / expect - 1.0).abs() < 0.01,
+            "channel {c}: {m} against {expect}"
+        );
+    }
+}
+
+#[test]
+fn quarter_budget_gives_the_same_image_within_its_memory() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("s.canopy");
+    convert(&scene("sponza.glb"), &arc, None);
+    let common = [
+        "--spp",
+        "2",
+        "--width",
+        "96",
+        "--height",
+        "64",
+        "--threads",
+        "1",
+    ];
+    let (full, fs) = render(&arc, &dir.path().join("full.exr"), &common);
+    let decoded = fs["archive_decoded_bytes"].as_u64().unwrap();
+    let budget = (decoded / 4).to_string();
+    let mut args = common.to_vec();
+    args.extend(["--mem-budget", &budget]);
+    let (part, ps) = render(&arc, &dir.path().join("part.exr"), &args);
+    assert_eq!(full.pixels, part.pixels, "the budget changed the image");
+    assert!(
+        ps["pages_evicted"].as_u64().unwrap() > 0,
+        "no evictions: {ps}"
+    );
+    let hit = ps["cache_hit_rate"].as_f64().unwrap();
+    assert!(hit > 0.0 && hit < 1.0, "hit rate {hit}");
+    let peak = ps["peak_rss_bytes"].as_u64().unwrap();
+    let film = ps["film_bytes"].as_u64().unwrap();
+    let limit = decoded / 4 + film + (64 << 20);
+    assert!(
+        peak <= limit,
+        "peak RSS {peak} above budget + film + 64 MiB = {limit}"
+    );
+    assert!(ps["resident_bytes_peak"].as_u64().unwrap() <= decoded / 4 + decoded / 8);
+}
+
+#[test]
+fn same_image_whatever_the_thread_count() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("b.canopy");
+    convert(&scene("bunny_box.glb"), &arc, None);
+    let a = ["--spp", "2", "--width", "64", "--height", "64"];
+    let (one, _) = render(
+        &arc,
+        &dir.path().join("1.exr"),
+        &[&a[..], &["--threads", "1"]].concat(),
+    );
+    let (two, _) = render(
+        &arc,
+        &dir.path().join("2.exr"),
+        &[&a[..], &["--threads", "2"]].concat(),
+    );
+    assert_eq!(one.pixels, two.pixels);
+}
+
+/// Rewrites a glb with every scene node translated by `offset` (cameras included).
+fn translated_glb(src: &Path, dst: &Path, offset: f64) {
+    let data = std::fs::read(src).unwrap();
+    let jlen = u32::from_le_bytes(data[12..16].try_into().unwrap()) as usize;
+    let mut doc: serde_json::Value = serde_json::from_slice(&data[20..20 + jlen]).unwrap();
+    for n in doc["nodes"].as_array_mut().unwrap() {
+        if let Some(m) = n.get_mut("matrix") {
+            for k in 12..15 {
+                m[k] = (m[k].as_f64().unwrap() + offset).into();
+            }
+        } else {
+            n["translation"] = serde_json::json!([offset, offset, offset]);
+        }
+    }
+    let mut json = serde_json::to_vec(&doc).unwrap();
+    while json.len() % 4 != 0 {
+        json.push(b' ');
+    }
+    let rest = &data[20 + jlen..];
+    let mut out = Vec::new();
+    out.extend_from_slice(&data[0..8]);
+    out.extend_from_slice(&((12 + 8 + json.len() + rest.len()) as u32).to_le_bytes());
+    out.extend_from_slice(&(json.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"JSON");
+    out.extend_from_slice(&json);
+    out.extend_from_slice(rest);
+    std::fs::write(dst, out).unwrap();
+}
+
+#[test]
+fn scene_moved_a_million_units_renders_the_same() {
+    let dir = tempfile::tempdir().unwrap();
+    let far = dir.path().join("far.glb");
+    translated_glb(&scene("cbox.glb"), &far, 1e6);
+    let (a, b) = (
+        dir.path().join("near.canopy"),
+        dir.path().join("far.canopy"),
+    );
+    convert(&scene("cbox.glb"), &a, None);
+    convert(&far, &b, None);
+    let (near_img, _) = render(&a, &dir.path().join("near.exr"), &["--spp", "32"]);
+    let (far_img, _) = render(&b, &dir.path().join("far.exr"), &["--spp", "32"]);
+    assert!(all_finite(&far_img));
+    let r = reference("cbox");
+    assert_mean_within(&far_img, &r, 0.01, "moved by 1e6");
+    let (en, ef) = (rmse(&near_img, &r), rmse(&far_img, &r));
+    assert!(
+        ef < en * 1.2,
+        "RMSE {ef:.3e} moved against {en:.3e} at the origin"
+    );
+}
+
+/// Floor quad (y = 0, 10×10) as OBJ.
+const FLOOR: &str = "v -5 0 -5\nv 5 0 -5\nv 5 0 5\nv -5 0 5\nf 1 3 2\nf 1 4 3\n";
+
+#[test]
+fn camera_inside_geometry_is_black_and_finite() {
+    let dir = tempfile::tempdir().unwrap();
+    let obj = write(dir.path(), "sphere.obj", &sphere_obj(1.0, 12, 24));
+    let toml = camera_toml([0.0, 0.0, 0.0], [0.0, 0.0, -1.0], 16)
+        + "[[light]]\ntype = \"point\"\nposition = [0.0, 5.0, 0.0]\nintensity = 100.0\n";
+    let sc = write(dir.path(), "s.toml", &toml);
+    let arc = dir.path().join("a.canopy");
+    convert(&obj, &arc, Some(&sc));
+    let (img, _) = render(&arc, &dir.path().join("a.exr"), &["--spp", "8"]);
+    assert!(
+        img.pixels.iter().flatten().all(|&v| v == 0.0),
+        "light leaked inside"
+    );
+}
+
+#[test]
+fn grazing_incidence_is_finite() {
+    let dir = tempfile::tempdir().unwrap();
+    let obj = write(dir.path(), "floor.obj", FLOOR);
+    let toml = camera_toml([0.0, 1e-4, 4.9], [0.0, 1e-4, -5.0], 32)
+        + "[[light]]\ntype = \"directional\"\ndirection = [0.0, -0.001, -1.0]\nintensity = 3.0\n";
+    let sc = write(dir.path(), "s.toml", &toml);
+    let arc = dir.path().join("a.canopy");
+    convert(&obj, &arc, Some(&sc));
+    let (img, _) = render(&arc, &dir.path().join("a.exr"), &["--spp", "16"]);
+    assert!(all_finite(&img));
+    assert!(img.mean()[0] > 0.0, "grazing light lit nothing");
+}
+
+/// A one-sided emitter quad facing +z at z = 0 and a camera on either side.
+fn emitter_quad_scene(dir: &Path, cam_z: f32, degenerate: bool, size: f32, le: f32) -> Image {
+    let mut obj = format!(
+        "v {0} {0} 0\nv {1} {0} 0\nv {1} {1} 0\nv {0} {1} 0\nf 1 2 3\nf 1 3 4\n",
+        -size, size
+    );
+    if degenerate {
+        // Zero-area triangles: a repeated vertex and three collinear points.
+        obj += "v 0.1 0.1 0\nv 0.2 0.2 0\nv 0.3 0.3 0\nf 1 1 2\nf 5 6 7\n";
+    }
+    let e = write(dir, "e.obj", &obj);
+    let f = write(dir, "f.obj", &FLOOR.replace(" 0 ", " -1 "));
+    let toml = camera_toml([0.0, 0.0, cam_z], [0.0, -0.2, 0.0], 16)
+        + &format!(
+            "[[material]]\nname = \"lamp\"\nbase_color = [0.0, 0.0, 0.0]\nemission = [{le}, {le}, {le}]\ndouble_sided = false\n\
+             [[material]]\nname = \"default\"\n[assign]\n\"e.obj\" = \"lamp\"\n"
+        );
+    let sc = write(dir, "s.toml", &toml);
+    let arc = dir.join("a.canopy");
+    ok(&[
+        "--quiet",
+        "convert",
+        s(&e),
+        s(&f),
+        "-o",
+        s(&arc),
+        "--scene",
+        s(&sc),
+    ]);
+    render(&arc, &dir.join("a.exr"), &["--spp", "16"]).0
+}
+
+#[test]
+fn emitters_are_dark_from_behind() {
+    let dir = tempfile::tempdir().unwrap();
+    let front = emitter_quad_scene(dir.path(), 3.0, false, 0.5, 2.0);
+    let back = emitter_quad_scene(dir.path(), -3.0, false, 0.5, 2.0);
+    // Looking at the lamp's front the centre pixel sees its radiance exactly; from behind,
+    // the lamp neither emits nor reflects (base colour black), and lights only the floor
+    // in front of it.
+    let centre = |img: &Image| img.pixels[(8 * 16 + 8) as usize];
+    assert_eq!(centre(&front), [2.0; 3]);
+    assert_eq!(centre(&back), [0.0; 3]);
+    assert!(all_finite(&front) && all_finite(&back));
+}
+
+#[test]
+fn degenerate_triangles_render_finite() {
+    let dir = tempfile::tempdir().unwrap();
+    let img = emitter_quad_scene(dir.path(), 3.0, true, 0.5, 2.0);
+    assert!(all_finite(&img));
+    assert!(img.mean()[0] > 0.0);
+}
+
+#[test]
+fn tiny_bright_light_is_finite() {
+    let dir = tempfile::tempdir().unwrap();
+    let img = emitter_quad_scene(dir.path(), 3.0, false, 1e-4, 1e9);
+    assert!(all_finite(&img));
+    assert!(img.mean()[0] > 0.0, "the floor is unlit");
+}
+
+fn render_fails(args: &[&str], expect: &str, no_file: &Path) {
+    let err = fails(args);
+    assert!(err.contains(expect), "error lacks '{expect}': {err}");
+    assert!(!no_file.exists(), "{} was written", no_file.display());
+}
+
+#[test]
+fn bad_render_input_fails_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("c.canopy");
+    convert(&scene("cbox.glb"), &arc, None);
+    let out = dir.path().join("o.exr");
+    let (a, o) = (s(&arc), s(&out));
+    render_fails(
+        &["render", a, "-o", o, "--camera", "nope"],
+        "no camera named \"nope\"",
+        &out,
+    );
+    render_fails(
+        &["render", a, "-o", o, "--width", "0", "--height", "10"],
+        "out of range",
+        &out,
+    );
+    render_fails(
+        &["render", a, "-o", o, "--width", "1000000", "--height", "10"],
+        "out of range",
+        &out,
+    );
+    let bad = dir.path().join("missing/dir/o.exr");
+    render_fails(&["render", a, "-o", s(&bad)], "cannot write", &bad);
+    render_fails(
+        &["render", a, "-o", o, "--mem-budget", "1KiB"],
+        "minimum is",
+        &out,
+    );
+    render_fails(
+        &["render", a, "-o", s(&dir.path().join("o.tiff"))],
+        ".exr or .png",
+        &out,
+    );
+    render_fails(
+        &["render", s(&dir.path().join("none.canopy")), "-o", o],
+        "none.canopy",
+        &out,
+    );
+    let stray: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n != "c.canopy")
+        .collect();
+    assert!(stray.is_empty(), "files left behind: {stray:?}");
+}
