@@ -305,7 +305,7 @@ fn translated_glb(src: &Path, dst: &Path, offset: f64) {
         }
     }
     let mut json = serde_json::to_vec(&doc).unwrap();
-    while json.len() % 4 != 0 {
+    while !json.len().is_multiple_of(4) {
         json.push(b' ');
     }
     let rest = &data[20 + jlen..];
