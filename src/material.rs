@@ -11,9 +11,8 @@
 //! - transmission·(1−metallic) of a dielectric interface with relative index η (exact
 //!   Fresnel), smooth (a delta lobe) when roughness is below `SMOOTH_ALPHA`, otherwise GGX
 //!   (Walter et al. 2007), tinted by baseColor. Without `KHR_materials_volume` glTF calls
-//!   transmission thin-walled; we refract (as Mitsuba's `dielectric`), which caustics need.
-//!   Rough transmission is not implemented yet: a rough transmissive material renders as
-//!   smooth.
+//!   transmission thin-walled; we refract (as Mitsuba's `dielectric`/`roughdielectric`),
+//!   which caustics need.
 
 use canopy_format::MaterialRecord;
 use glam::Vec3A as V;
@@ -167,6 +166,18 @@ fn reflect(w: V, n: V) -> V {
     2.0 * w.dot(n) * n - w
 }
 
+/// Refraction of `wo` about normal `m` (on wo's side) into the medium of relative index
+/// `eta`; None under total internal reflection.
+fn refract(wo: V, m: V, eta: f32) -> Option<V> {
+    let c = wo.dot(m);
+    let s2 = (1.0 - c * c).max(0.0) / (eta * eta);
+    if s2 >= 1.0 {
+        return None;
+    }
+    let ct = (1.0 - s2).sqrt();
+    Some((-wo / eta + (c / eta - ct) * m).normalize())
+}
+
 impl Bsdf {
     fn spec_on(&self) -> bool {
         self.f90.max_element() > 0.0 || self.f0.max_element() > 0.0
@@ -212,7 +223,53 @@ impl Bsdf {
                 pdf += probs[1] * ggx_pdf_vn(wo, h, self.alpha) / (4.0 * wo.dot(h));
             }
         }
+        if probs[2] > 0.0 && self.alpha >= SMOOTH_ALPHA && wi.z != 0.0 {
+            let (fi, pi) = self.eval_interface(wo, wi);
+            f += fi;
+            pdf += probs[2] * pi;
+        }
         (f, pdf)
+    }
+
+    /// The rough dielectric interface (Walter et al. 2007, as pbrt-v4
+    /// `DielectricBxDF::f/PDF` writes it): value and the pdf of sampling wi given this lobe.
+    fn eval_interface(&self, wo: V, wi: V) -> (V, f32) {
+        let (a, eta) = (self.alpha, self.eta);
+        let reflect = wi.z > 0.0;
+        let etap = if reflect { 1.0 } else { eta };
+        let wm = wi * etap + wo;
+        if wm.length_squared() == 0.0 {
+            return (V::ZERO, 0.0);
+        }
+        let mut wm = wm.normalize();
+        if wm.z < 0.0 {
+            wm = -wm;
+        }
+        // Microfacets seen from behind by either direction contribute nothing.
+        if wm.dot(wi) * wi.z < 0.0 || wm.dot(wo) * wo.z < 0.0 {
+            return (V::ZERO, 0.0);
+        }
+        let fr = fresnel_dielectric(wo.dot(wm), eta);
+        let d = ggx_d(wm, a);
+        let g = 1.0 / (1.0 + ggx_lambda(wo, a) + ggx_lambda(V::new(wi.x, wi.y, wi.z.abs()), a));
+        let pdf_vn = ggx_pdf_vn(wo, wm, a);
+        if reflect {
+            let f = self.trans * fr * d * g / (4.0 * wo.z * wi.z).abs();
+            (V::splat(f), pdf_vn / (4.0 * wo.dot(wm).abs()) * fr)
+        } else {
+            let denom = (wi.dot(wm) + wo.dot(wm) / etap).powi(2);
+            if denom == 0.0 {
+                return (V::ZERO, 0.0);
+            }
+            // Radiance is scaled by 1/η'² across the interface (pbrt-v4 §9.5.2).
+            let f = self.trans * (1.0 - fr) * d * g * (wi.dot(wm) * wo.dot(wm)).abs()
+                / (wi.z * wo.z * denom).abs()
+                / (etap * etap);
+            (
+                self.tint * f,
+                pdf_vn * (1.0 - fr) * wi.dot(wm).abs() / denom,
+            )
+        }
     }
 
     /// Samples an incident direction with three uniforms (lobe choice, then two).
@@ -259,8 +316,28 @@ impl Bsdf {
         })
     }
 
-    /// The smooth dielectric interface: reflect with the exact Fresnel, else refract.
-    fn sample_interface(&self, wo: V, u: f32, _u2: [f32; 2], p_lobe: f32) -> Option<BsdfSample> {
+    /// The dielectric interface: reflect with the exact Fresnel, else refract; about a GGX
+    /// microfacet sampled from the visible normals when rough.
+    fn sample_interface(&self, wo: V, u: f32, u2: [f32; 2], p_lobe: f32) -> Option<BsdfSample> {
+        if self.alpha >= SMOOTH_ALPHA {
+            let wm = ggx_sample_vn(wo, self.alpha, u2);
+            let fr = fresnel_dielectric(wo.dot(wm), self.eta);
+            let wi = if u < fr {
+                Some(reflect(wo, wm)).filter(|w| w.z > 0.0)
+            } else {
+                refract(wo, wm, self.eta).filter(|w| w.z < 0.0)
+            }?;
+            let (f, pdf) = self.eval(wo, wi);
+            if pdf <= 0.0 {
+                return None;
+            }
+            return Some(BsdfSample {
+                wi,
+                weight: f * wi.z.abs() / pdf,
+                pdf,
+                delta: false,
+            });
+        }
         let fr = fresnel_dielectric(wo.z, self.eta);
         if u < fr {
             return Some(BsdfSample {
@@ -286,7 +363,7 @@ impl Bsdf {
     /// Whether the BSDF has any non-delta lobe (next-event estimation is useful).
     pub fn has_smooth_only(&self) -> bool {
         let p = self.lobe_probs(V::Z);
-        p[0] == 0.0 && (p[1] == 0.0 || self.alpha < SMOOTH_ALPHA)
+        p[0] == 0.0 && ((p[1] == 0.0 && p[2] == 0.0) || self.alpha < SMOOTH_ALPHA)
     }
 }
 
@@ -370,6 +447,7 @@ mod tests {
             ("mirror", mat(1.0, 1.0, 0.0, 1.0, 0.0)),
             ("glass", mat(1.0, 0.0, 0.0, 1.0, 1.0)),
             ("half glass", mat(0.7, 0.0, 0.4, 1.0, 0.5)),
+            ("rough glass", mat(1.0, 0.0, 0.3, 1.0, 1.0)),
         ]
     }
 

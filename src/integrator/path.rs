@@ -82,7 +82,7 @@ pub fn radiance(
             if let Some(ls) = scene.lights.sample(p, u_pick, [ul0, ul1]) {
                 let wi_l = frame.to_local(ls.wi);
                 let (f, pdf_b) = bsdf.eval(wo_l, wi_l);
-                if wi_l.z > 0.0 && f.max_element() > 0.0 {
+                if wi_l.z != 0.0 && f.max_element() > 0.0 {
                     let from = offset_origin(p, err, ng, ls.wi);
                     let shadow = match ls.point {
                         Some((q, qerr, qn)) => {
@@ -105,7 +105,7 @@ pub fn radiance(
                         } else {
                             1.0
                         };
-                        l += beta * f * wi_l.z * ls.weight * w;
+                        l += beta * f * wi_l.z.abs() * ls.weight * w;
                     }
                 }
             }

@@ -1,0 +1,96 @@
+//! Traversal rays/s on the paged tree (one thread, all pages resident): primary rays
+//! through the scene camera, and incoherent rays (closest hit and any hit) from points on
+//! surfaces in random directions, as a path tracer's bounces are.
+
+use canopy::build::{convert, BvhQuality, ConvertOptions};
+use canopy::camera::Camera;
+use canopy::paging::PageCache;
+use canopy::trace::{Ray, Tracer};
+use canopy_format::Archive;
+use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use glam::Vec3A as V;
+use std::path::Path;
+use std::sync::Arc;
+
+const RAYS: usize = 4096;
+
+fn rays(cache: &PageCache) -> (Vec<Ray>, Vec<Ray>) {
+    let a = &cache.archive;
+    let cam = Camera::new(&a.cameras[0], 64, 64);
+    let primary: Vec<Ray> = (0..RAYS)
+        .map(|i| cam.ray((i % 64) as f32 + 0.5, (i / 64 % 64) as f32 + 0.5))
+        .collect();
+    // Bounce rays: start where primary rays hit, leave in hashed directions.
+    let mut tr = Tracer::new(cache);
+    let mut seed = 1u64;
+    let mut u = || {
+        seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (seed >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0
+    };
+    let bounce: Vec<Ray> = primary
+        .iter()
+        .filter_map(|r| tr.closest_hit(r))
+        .map(|h| {
+            let (p, _) = h.point();
+            let n = h.ng().normalize();
+            let d = V::new(u(), u(), u()).normalize();
+            let d = if d.dot(n) < 0.0 { -d } else { d };
+            Ray {
+                o: p + n * 1e-3,
+                d,
+                t_max: f32::INFINITY,
+            }
+        })
+        .collect();
+    (primary, bounce)
+}
+
+fn bench_trace(c: &mut Criterion) {
+    let dir = tempfile::tempdir().unwrap();
+    let mut g = c.benchmark_group("trace");
+    for name in ["bunny_box", "sponza"] {
+        let out = dir.path().join(format!("{name}.canopy"));
+        let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("scenes/{name}.glb"));
+        convert(&ConvertOptions {
+            inputs: vec![scene],
+            output: out.clone(),
+            mem_budget: 2 << 30,
+            scene: None,
+            page_nodes: 512,
+            zstd_level: 1,
+            bvh: BvhQuality::Auto,
+            progress: false,
+        })
+        .unwrap();
+        let cache = PageCache::new(Arc::new(Archive::open(&out).unwrap()), None, 1).unwrap();
+        let (primary, bounce) = rays(&cache);
+        let mut tr = Tracer::new(&cache);
+        g.throughput(Throughput::Elements(primary.len() as u64));
+        g.bench_function(format!("{name}/primary closest"), |b| {
+            b.iter(|| {
+                primary
+                    .iter()
+                    .filter(|r| tr.closest_hit(r).is_some())
+                    .count()
+            })
+        });
+        g.throughput(Throughput::Elements(bounce.len() as u64));
+        g.bench_function(format!("{name}/bounce closest"), |b| {
+            b.iter(|| {
+                bounce
+                    .iter()
+                    .filter(|r| tr.closest_hit(r).is_some())
+                    .count()
+            })
+        });
+        g.bench_function(format!("{name}/bounce any"), |b| {
+            b.iter(|| bounce.iter().filter(|r| tr.occluded(r)).count())
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, bench_trace);
+criterion_main!(benches);
