@@ -188,26 +188,25 @@ impl Prep {
 /// Page handles a worker thread keeps between rays: looking a page up here costs no shared
 /// atomic write, unlike the cache's lock and `Arc` count. Handles are dropped whenever
 /// the cache has evicted anything since they were taken (its eviction epoch moved), so
-/// evicted pages are freed at the thread's next lookup.
+/// evicted pages are freed by the thread's next ray.
 pub struct Tracer<'a> {
     pub cache: &'a PageCache,
-    held: Vec<(u32, Arc<Page>)>,
-    next_victim: usize,
+    /// Direct-mapped by page number (`id % HELD`).
+    held: Vec<Option<(u32, Arc<Page>)>>,
     epoch: u64,
     stack: Vec<(u32, u32, f32)>,
     pub rays: u64,
     pub page_lookups: u64,
 }
 
-/// Page handles a thread holds at most.
-const HELD: usize = 32;
+/// Page handles a thread holds at most (a power of two).
+const HELD: usize = 64;
 
 impl<'a> Tracer<'a> {
     pub fn new(cache: &'a PageCache) -> Tracer<'a> {
         Tracer {
             cache,
-            held: Vec::with_capacity(HELD),
-            next_victim: 0,
+            held: vec![None; HELD],
             epoch: cache.epoch(),
             stack: Vec::with_capacity(64),
             rays: 0,
@@ -215,28 +214,29 @@ impl<'a> Tracer<'a> {
         }
     }
 
-    /// Index in `held` of the page.
+    /// Drops every handle if the cache evicted anything since they were taken.
+    fn check_epoch(&mut self) {
+        let e = self.cache.epoch();
+        if e != self.epoch {
+            self.held.iter_mut().for_each(|h| *h = None);
+            self.epoch = e;
+        }
+    }
+
+    /// The page's slot in `held`, loading it if needed.
     #[inline]
     fn page(&mut self, id: u32) -> usize {
         self.page_lookups += 1;
-        let e = self.cache.epoch();
-        if e != self.epoch {
-            self.held.clear();
-            self.epoch = e;
+        let i = id as usize % HELD;
+        if !matches!(&self.held[i], Some((p, _)) if *p == id) {
+            self.held[i] = Some((id, self.cache.get(id)));
         }
-        if let Some(i) = self.held.iter().position(|(p, _)| *p == id) {
-            return i;
-        }
-        let page = self.cache.get(id);
-        if self.held.len() < HELD {
-            self.held.push((id, page));
-            self.held.len() - 1
-        } else {
-            let i = self.next_victim;
-            self.next_victim = (i + 1) % HELD;
-            self.held[i] = (id, page);
-            i
-        }
+        i
+    }
+
+    #[inline]
+    fn held(&self, slot: usize) -> &Page {
+        &self.held[slot].as_ref().expect("held page").1
     }
 
     /// Walks the paged tree front to back. `on_tri` gets each triangle the ray meets and
@@ -254,9 +254,10 @@ impl<'a> Tracer<'a> {
         let mut t_max = ray.t_max;
         let mut stack = std::mem::take(&mut self.stack);
         stack.clear();
+        self.check_epoch();
         let mut cur = self.page(self.cache.root_page());
         {
-            let page = &self.held[cur].1;
+            let page = self.held(cur);
             for r in 0..page.roots.min(page.bvh.len() as u32) {
                 if let Some(t) = prep.box_hit(&page.bvh[r as usize], t_max) {
                     stack.push((page.id, r, t));
@@ -268,10 +269,10 @@ impl<'a> Tracer<'a> {
             if tn > t_max {
                 continue;
             }
-            if self.held[cur].0 != pid {
+            if self.held(cur).id != pid {
                 cur = self.page(pid);
             }
-            let page = &self.held[cur].1;
+            let page = self.held(cur);
             let Some(node) = page.bvh.get(ni as usize) else {
                 continue;
             };
@@ -295,14 +296,14 @@ impl<'a> Tracer<'a> {
                 INNER => (a, node.b),
                 CHILD_PAGE => {
                     cur = self.page(a);
-                    if self.held[cur].1.roots < 2 {
+                    if self.held(cur).roots < 2 {
                         continue;
                     }
                     (0, 1)
                 }
                 _ => continue,
             };
-            let page = &self.held[cur].1;
+            let page = self.held(cur);
             let (Some(ln), Some(rn)) = (page.bvh.get(l as usize), page.bvh.get(r as usize)) else {
                 continue;
             };
