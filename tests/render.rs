@@ -490,3 +490,37 @@ fn bad_render_input_fails_cleanly() {
         .collect();
     assert!(stray.is_empty(), "files left behind: {stray:?}");
 }
+
+#[test]
+fn crop_renders_the_same_pixels_as_the_full_image() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("c.canopy");
+    convert(&scene("cbox.glb"), &arc, None);
+    let a = ["--spp", "4", "--width", "64", "--height", "48"];
+    let (full, _) = render(&arc, &dir.path().join("full.exr"), &a);
+    let crop = [&a[..], &["--crop", "10,30,5,20"]].concat();
+    let (part, stats) = render(&arc, &dir.path().join("part.exr"), &crop);
+    assert_eq!((part.width, part.height), (20, 15));
+    assert_eq!(stats["width"], 64);
+    for y in 0..15 {
+        for x in 0..20 {
+            assert_eq!(part.pixels[y * 20 + x], full.pixels[(y + 5) * 64 + x + 10]);
+        }
+    }
+}
+
+#[test]
+fn time_budget_renders_many_passes() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("c.canopy");
+    convert(&scene("cbox.glb"), &arc, None);
+    let (img, stats) = render(
+        &arc,
+        &dir.path().join("t.exr"),
+        &["--time", "1s", "--width", "32", "--height", "32"],
+    );
+    assert!(stats["spp"].as_u64().unwrap() >= 1);
+    assert!(all_finite(&img));
+    // A pass at this size takes about a millisecond: a second holds many.
+    assert!(stats["spp"].as_u64().unwrap() > 1, "{stats}");
+}
