@@ -10,7 +10,7 @@ pub struct Camera {
     x: V,
     y: V,
     z: V,
-    tan_half: f32,
+    pub tan_half: f32,
     pub width: u32,
     pub height: u32,
 }

@@ -13,6 +13,7 @@ pub mod material;
 pub mod metrics;
 pub mod paging;
 pub mod progress;
+pub mod radiance;
 pub mod render;
 pub mod sampler;
 pub mod trace;

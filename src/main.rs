@@ -60,9 +60,18 @@ enum Cmd {
         /// Output image: .exr, or .png (which also writes the .exr).
         #[arg(short, long)]
         output: PathBuf,
-        /// `path`: exact path tracing of the leaf triangles (the ground truth).
+        /// `path`: exact path tracing of the leaf triangles (the ground truth); `cone`: cone
+        /// casts with level of detail and diffuse light stored per node.
         #[arg(long, value_enum, default_value_t = Integrator::Path)]
         integrator: Integrator,
+        /// Cone integrator: the cone radius in the LOD rule is multiplied by this; 0 traces
+        /// exact rays (with stored-light reuse), larger values stop at coarser nodes.
+        #[arg(long, default_value_t = 1.0)]
+        cone_scale: f32,
+        /// Cone integrator: samples after which a node's stored light is converged and its
+        /// paths stop there (004 §4.6.1 used 65536).
+        #[arg(long, default_value_t = 1024)]
+        cone_samples: u32,
         /// Samples per pixel.
         #[arg(long, default_value_t = 64)]
         spp: u32,
@@ -181,6 +190,8 @@ fn run(cli: Cli) -> Result<()> {
             archive,
             output,
             integrator,
+            cone_scale,
+            cone_samples,
             spp,
             time,
             mem_budget,
@@ -213,6 +224,8 @@ fn run(cli: Cli) -> Result<()> {
                 exposure,
                 stats,
                 progress: show,
+                cone_scale,
+                cone_samples,
             };
             let (_, s) = render(&opts)?;
             println!(

@@ -2,15 +2,16 @@
 
 use crate::camera::Camera;
 use crate::film::{check_writable, Image};
-use crate::integrator::{path, Counters, NodeSet, Scene};
+use crate::integrator::{cone, path, Counters, NodeSet, Scene};
 use crate::light::Lights;
 use crate::material::Material;
 use crate::paging::{Page, PageCache, CHILD_PAGE, INNER, KIND_MASK};
 use crate::progress;
+use crate::radiance::RadianceStore;
 use crate::sampler::PixelSampler;
-use crate::trace::{Tracer, MAX_DEPTH};
+use crate::trace::{Cone, Tracer, MAX_DEPTH};
 use anyhow::{bail, Context, Result};
-use canopy_format::Archive;
+use canopy_format::{Archive, Features};
 use glam::Vec3A as V;
 use rayon::prelude::*;
 use std::path::PathBuf;
@@ -27,6 +28,9 @@ const TILE: u32 = 16;
 pub enum Integrator {
     /// Exact path tracing of the leaf triangles: the ground truth.
     Path,
+    /// Cone casts that stop at the level of detail the cone resolves, with diffuse light
+    /// stored per node and reused (004 §4.5–4.8).
+    Cone,
 }
 
 #[derive(Clone, Debug)]
@@ -49,6 +53,10 @@ pub struct RenderOptions {
     pub exposure: f32,
     pub stats: Option<PathBuf>,
     pub progress: bool,
+    /// Cone integrator: multiplier of the cone radius in the LOD rule (0: exact rays).
+    pub cone_scale: f32,
+    /// Cone integrator: samples after which a node's stored light counts as converged.
+    pub cone_samples: u32,
 }
 
 #[derive(Clone, Debug, Default, serde::Serialize)]
@@ -91,6 +99,10 @@ pub struct RenderStats {
     pub punctual_lights: u64,
     /// Which passes ran and why (the scene's features decide).
     pub passes: Vec<String>,
+    pub cone_scale: Option<f32>,
+    pub stored_nodes: u64,
+    pub stored_bytes: u64,
+    pub converged_nodes: u64,
     pub image_mean: [f64; 3],
 }
 
@@ -210,7 +222,22 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         V::from(archive.header.bounds_max),
     );
     let lights = Lights::gather(&archive, &materials, 0.5 * (hi - lo).length())?;
-    let mut passes = vec!["path: eye paths with next-event estimation and MIS".to_string()];
+    let mut passes = match o.integrator {
+        Integrator::Path => vec!["path: eye paths with next-event estimation and MIS".to_string()],
+        Integrator::Cone => {
+            let mut v = vec![
+                format!("cone: eye pass, cone scale {}, diffuse light stored per node (converged at {} samples)", o.cone_scale, o.cone_samples),
+                "pull after every eye pass".to_string(),
+            ];
+            let f = archive.header.features;
+            if f & (Features::GLOSSY | Features::TRANSMISSIVE) != 0 {
+                v.push("light pass: needed for caustics (glossy or transmissive surfaces) but not implemented; caustic paths come from the eye pass only".into());
+            } else {
+                v.push("light pass: skipped, no glossy or transmissive surfaces".into());
+            }
+            v
+        }
+    };
     if lights.is_empty() {
         passes.push("no light sources: the image is black".into());
     }
@@ -222,6 +249,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         max_depth: o.max_depth,
         touched,
     };
+    let store = RadianceStore::new(o.cone_samples);
     let setup = t0.elapsed().as_secs_f64();
 
     let t1 = Instant::now();
@@ -244,9 +272,12 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     };
     loop {
         // With a time budget, passes of one sample each until the next would overrun it.
-        let count = match o.time {
-            Some(_) => 1,
-            None => o.spp,
+        // Passes of one sample when the time decides, and for the cone integrator, whose
+        // store is pulled between passes.
+        let count = match (o.time, o.integrator) {
+            (None, Integrator::Path) => o.spp,
+            (None, Integrator::Cone) => 1,
+            (Some(_), _) => 1,
         };
         let pass_start = Instant::now();
         let results: Vec<Vec<[f64; 3]>> = pool.install(|| {
@@ -255,7 +286,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
                 .map(|t| {
                     let mut c = Counters::default();
                     let mut tr = Tracer::new(&scene.cache);
-                    let out = render_tile(&scene, &mut tr, *t, done, count, o.seed, &mut c);
+                    let out = render_tile(&scene, &store, &mut tr, *t, done, count, o, &mut c);
                     rays.fetch_add(tr.rays, Relaxed);
                     paths.fetch_add(c.paths, Relaxed);
                     scene.cache.add_lookups(tr.page_lookups);
@@ -280,7 +311,11 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         if let Some(err) = cache.error() {
             bail!("{err}");
         }
+        if o.integrator == Integrator::Cone {
+            cone::pull(&scene, &store);
+        }
         match o.time {
+            None if done < o.spp => {}
             None => break,
             Some(limit) => {
                 bar.set_position(t1.elapsed().as_secs());
@@ -326,7 +361,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         peak_rss_bytes: peak_rss_bytes(),
         mem_budget: o.mem_budget,
         archive_decoded_bytes: cache.archive_decoded_bytes(),
-        resident_bytes_peak: cs.resident_bytes_peak + scene.touched.bytes(),
+        resident_bytes_peak: cs.resident_bytes_peak + scene.touched.bytes() + store.bytes(),
         pinned_bytes: cs.pinned_bytes,
         film_bytes: (sums.len() * 24 + img.pixels.len() * 12) as u64,
         pages_loaded: cs.pages_loaded,
@@ -345,6 +380,10 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         emitters: scene.lights.emitters.len() as u64,
         punctual_lights: scene.lights.punctual.len() as u64,
         passes,
+        cone_scale: (o.integrator == Integrator::Cone).then_some(o.cone_scale),
+        stored_nodes: store.len() as u64,
+        stored_bytes: store.bytes(),
+        converged_nodes: store.converged() as u64,
         image_mean: img.mean(),
     };
     if let Some(p) = &o.stats {
@@ -380,25 +419,39 @@ fn resolution(o: &RenderOptions, cam: &canopy_format::CameraRecord) -> Result<(u
 }
 
 /// Renders samples [first, first + count) of every pixel in a tile; returns the sums.
+#[allow(clippy::too_many_arguments)]
 fn render_tile(
     scene: &Scene,
+    store: &RadianceStore,
     tr: &mut Tracer,
     t: [u32; 4],
     first: u32,
     count: u32,
-    seed: u32,
+    o: &RenderOptions,
     c: &mut Counters,
 ) -> Vec<[f64; 3]> {
+    // Primary cones open by one pixel (004 eq. 4.19).
+    let pixel_tan = 2.0 * scene.camera.tan_half / scene.camera.height as f32;
     let mut out = Vec::with_capacity(((t[1] - t[0]) * (t[3] - t[2])) as usize);
     for y in t[2]..t[3] {
         for x in t[0]..t[1] {
             let pixel = y * scene.camera.width + x;
             let mut sum = [0f64; 3];
             for s in first..first + count {
-                let smp = PixelSampler::new(seed, pixel, s);
+                let smp = PixelSampler::new(o.seed, pixel, s);
                 let [jx, jy, ..] = smp.get4(0);
                 let ray = scene.camera.ray(x as f32 + jx, y as f32 + jy);
-                let l = path::radiance(scene, tr, ray, &smp, c);
+                let l = match o.integrator {
+                    Integrator::Path => path::radiance(scene, tr, ray, &smp, c),
+                    Integrator::Cone => {
+                        let cone = Cone {
+                            r0: 0.0,
+                            tan_a: pixel_tan,
+                            scale: o.cone_scale,
+                        };
+                        cone::radiance(scene, store, tr, ray, cone, &smp, c)
+                    }
+                };
                 for k in 0..3 {
                     sum[k] += l[k] as f64;
                 }

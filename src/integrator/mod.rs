@@ -1,5 +1,6 @@
 //! Integrators and the scene state they share.
 
+pub mod cone;
 pub mod path;
 
 use crate::camera::Camera;

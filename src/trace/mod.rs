@@ -185,6 +185,38 @@ impl Prep {
     }
 }
 
+/// A cone (frustum) along a ray: radius r(t) = |r0 + tan α · t| (004 eq. 4.17). The LOD
+/// rule compares r(t)·`scale` (the user's `--cone-scale`; 0: never stop early, exact rays).
+#[derive(Clone, Copy, Debug)]
+pub struct Cone {
+    pub r0: f32,
+    pub tan_a: f32,
+    pub scale: f32,
+}
+
+impl Cone {
+    #[inline]
+    pub fn radius(&self, t: f32) -> f32 {
+        (self.r0 + self.tan_a * t).abs()
+    }
+}
+
+/// What a cone meets.
+#[derive(Clone, Copy, Debug)]
+pub enum ConeHit {
+    Tri(Hit),
+    /// A node accepted as a whole, at its box entry distance.
+    Node {
+        page: u32,
+        node: u32,
+        t: f32,
+    },
+}
+
+fn inside(p: V, n: &TNode) -> bool {
+    p.cmpge(V::from(n.lo)).all() && p.cmple(V::from(n.hi)).all()
+}
+
 /// Page handles a worker thread keeps between rays: looking a page up here costs no shared
 /// atomic write, unlike the cache's lock and `Arc` count. Handles are dropped whenever
 /// the cache has evicted anything since they were taken (its eviction epoch moved), so
@@ -248,6 +280,7 @@ impl<'a> Tracer<'a> {
         ray: &Ray,
         mut on_tri: impl FnMut(&Page, u32, u32, f32, [f32; 3]),
         any: bool,
+        mut lod: Option<(&Cone, &mut dyn FnMut(&Page, u32, f32))>,
     ) -> bool {
         self.rays += 1;
         let prep = Prep::new(ray);
@@ -276,6 +309,17 @@ impl<'a> Tracer<'a> {
             let Some(node) = page.bvh.get(ni as usize) else {
                 continue;
             };
+            if let Some((cone, on_node)) = lod.as_mut() {
+                // 004 eq. 4.12: stop at a node the cone cannot resolve, unless the ray
+                // starts inside it (end of §4.5.2).
+                let side = (V::from(node.hi) - V::from(node.lo)).max_element();
+                if cone.radius(tn) * cone.scale > side && !inside(ray.o, node) {
+                    on_node(page, ni, tn);
+                    found = true;
+                    t_max = tn;
+                    continue;
+                }
+            }
             let kind = node.a & KIND_MASK;
             let a = node.a & !KIND_MASK;
             let (l, r) = match kind {
@@ -343,12 +387,42 @@ impl<'a> Tracer<'a> {
                 })
             },
             false,
+            None,
         );
         best
     }
 
     /// Whether anything blocks the ray before `ray.t_max`.
     pub fn occluded(&mut self, ray: &Ray) -> bool {
-        self.traverse(ray, |_, _, _, _, _| {}, true)
+        self.traverse(ray, |_, _, _, _, _| {}, true, None)
+    }
+
+    /// Nearest hit of a cone: a leaf triangle, or the first node whose box the cone's
+    /// radius outgrows (004 §4.5.1); `ray.d` must be unit length.
+    pub fn cone_hit(&mut self, ray: &Ray, cone: &Cone) -> Option<ConeHit> {
+        let mut tri_best: Option<Hit> = None;
+        let mut node_best: Option<(u32, u32, f32)> = None;
+        let mut on_node = |page: &Page, ni: u32, t: f32| node_best = Some((page.id, ni, t));
+        self.traverse(
+            ray,
+            |page, leaf, ti, t, b| {
+                tri_best = Some(Hit {
+                    t,
+                    b,
+                    tri: page.tris[ti as usize],
+                    page: page.id,
+                    leaf,
+                    index: ti,
+                })
+            },
+            false,
+            Some((cone, &mut on_node)),
+        );
+        // Both callbacks close t_max, so whichever came last is the nearest.
+        match (tri_best, node_best) {
+            (Some(h), Some((_, _, t))) if h.t <= t => Some(ConeHit::Tri(h)),
+            (_, Some((page, node, t))) => Some(ConeHit::Node { page, node, t }),
+            (h, None) => h.map(ConeHit::Tri),
+        }
     }
 }

@@ -1,0 +1,486 @@
+//! `--integrator cone`: stochastic cone casts with diffuse radiance stored in the nodes
+//! (004 §4.5–4.6, §4.8).
+//!
+//! Each cast is a ray jittered uniformly inside its cone (eq. 4.14–4.16) that stops at the
+//! first node the cone's radius outgrows (eq. 4.12, scaled by `--cone-scale`; 0 traces
+//! exact rays). Primary cones open by one pixel (eq. 4.19); after a diffuse bounce
+//! tan α = 0.3 (eq. 4.20). Every diffuse hit — a leaf's triangle or a whole node — adds a
+//! fresh sample of its incident radiance (one light sample, one cosine-sampled bounce,
+//! emission masked at the next hit as eq. 4.27 does) to the node's store and returns the
+//! node's mean (eq. 4.24–4.25); a node whose counter reached the limit returns its mean
+//! without recursing (§4.6.1). The pixel itself takes the fresh sample at the primary hit,
+//! so visibility and direct light on screen are exact; stored means serve the bounces.
+//! After each pass the store is pulled up the tree (§4.8) so nodes first met by wide cones
+//! start from their children's light.
+//!
+//! Surfaces with specular or transmissive lobes are traced as the path tracer does (no
+//! storage); nodes are shaded as Lambertian clusters with the area-weighted albedo and
+//! the Θ heuristic of eq. 4.4 for light samples. The light distribution pass (§4.7) is not
+//! implemented: scenes with glossy or transmissive surfaces say so in the stats.
+
+use super::{Counters, Scene};
+use crate::build::MAX_LEAF_TRIS;
+use crate::material::{cosine_hemisphere, Frame};
+use crate::paging::{Page, CHILD_PAGE, INNER, KIND_MASK, LEAF};
+use crate::radiance::RadianceStore;
+use crate::sampler::PixelSampler;
+use crate::trace::{offset_origin, Cone, ConeHit, Ray, Tracer};
+use canopy_format::codec::{rgbe64_decode, snorm16_decode, unorm8_decode};
+use glam::Vec3A as V;
+
+/// Hits, counted from the eye, whose diffuse light the pixel takes from its own fresh
+/// sample; deeper hits answer with their node's stored mean.
+pub const FRESH: u32 = 2;
+
+/// tan α after a diffuse bounce (004 eq. 4.20, d = 0.3).
+pub const DIFFUSE_TAN: f32 = 0.3;
+
+/// Store key of a node's own light.
+pub fn node_key(node: u64) -> u64 {
+    node * (MAX_LEAF_TRIS as u64 + 1)
+}
+
+/// Store key of the k-th triangle of a leaf: leaves keep light per triangle, since their
+/// triangles may face different ways; the leaf's own key gets their area-weighted mean.
+pub fn tri_key(leaf: u64, k: u32) -> u64 {
+    node_key(leaf) + 1 + k as u64
+}
+
+/// First triangle of a leaf (page-local).
+fn pg_first_tri(scene: &Scene, page: u32, leaf: u32) -> u32 {
+    let pg = scene.cache.get(page);
+    pg.bvh.get(leaf as usize).map_or(0, |n| n.a & !KIND_MASK)
+}
+
+/// What one bounce needs to finish once the rest of the path is known.
+struct Pending {
+    /// Store key (global node number) when this bounce's diffuse light is stored.
+    node: Option<u64>,
+    /// Radiance gathered here independent of the continuation: emission and light samples.
+    direct: V,
+    emission: V,
+    albedo: V,
+    /// Continuation weight (BSDF value · cos / pdf, roulette included).
+    weight: V,
+    diffuse: bool,
+}
+
+/// Jitters a direction uniformly inside the cone of half-angle atan(tan α) (eq. 4.14–4.16)
+/// and moves the origin so the cone's virtual apex stays put (Fig. 7).
+pub fn jitter(o: V, d: V, cone: &Cone, u: [f32; 2]) -> (V, V) {
+    if cone.tan_a <= 0.0 {
+        return (o, d);
+    }
+    let cos_a = 1.0 / (1.0 + cone.tan_a * cone.tan_a).sqrt();
+    let z = (1.0 - cos_a) * u[0] + cos_a;
+    let phi = 2.0 * std::f32::consts::PI * u[1];
+    let s = (1.0 - z * z).max(0.0).sqrt();
+    let f = Frame::new(d);
+    let nd = f
+        .to_world(V::new(s * phi.cos(), s * phi.sin(), z))
+        .normalize();
+    // The apex sits r0 / tan α behind the origin; keep it and start on the old origin plane.
+    let apex = o - d * (cone.r0 / cone.tan_a);
+    let t = (o - apex).dot(d) / nd.dot(d).max(1e-6);
+    (apex + nd * t, nd)
+}
+
+/// Radiance along a primary cone.
+pub fn radiance(
+    scene: &Scene,
+    store: &RadianceStore,
+    tr: &mut Tracer,
+    ray: Ray,
+    cone: Cone,
+    s: &PixelSampler,
+    c: &mut Counters,
+) -> V {
+    let mut stack: Vec<Pending> = Vec::new();
+    let mut ray = ray;
+    let mut cone = cone;
+    let mut prev_delta = true;
+    let mut prev_pdf = 0.0f32;
+    let mut tail = V::ZERO;
+    let mut depth = 0u32;
+    loop {
+        let [u_pick, ul0, ul1, u_lobe] = s.get4(2 * depth + 1);
+        let [ud0, ud1, u_rr, u_j] = s.get4(2 * depth + 2);
+        let Some(hit) = tr.cone_hit(&ray, &cone) else {
+            break;
+        };
+        let (p, err, ng, wo) = match &hit {
+            ConeHit::Tri(h) => {
+                let (p, err) = h.point();
+                (p, err, h.ng().normalize_or_zero(), -ray.d)
+            }
+            ConeHit::Node { t, .. } => {
+                let p = ray.o + ray.d * *t;
+                (
+                    p,
+                    p.abs() * crate::trace::gamma(7) + V::splat(1e-6),
+                    V::ZERO,
+                    -ray.d,
+                )
+            }
+        };
+        let mut pend = Pending {
+            node: None,
+            direct: V::ZERO,
+            emission: V::ZERO,
+            albedo: V::ZERO,
+            weight: V::ZERO,
+            diffuse: false,
+        };
+        // Shading frame and material.
+        // A cluster is shaded at its box entry point, which can lie next to a lamp inside the
+        // same box; light closer than the cluster's radius is taken at that radius, as a
+        // disc of that size would receive it (bounded, like clamping virtual point lights).
+        let mut min_dist = 0.0f32;
+        let (frame, albedo, node_key, cluster_n) = match &hit {
+            ConeHit::Tri(h) => {
+                let m = &scene.materials[h.tri.material as usize];
+                let area = 0.5 * h.ng().length();
+                if area.is_nan() || area <= 0.0 {
+                    break;
+                }
+                let front = ng.dot(wo) > 0.0;
+                if m.is_emissive() && (front || m.double_sided) {
+                    let le = m.emission;
+                    if prev_delta {
+                        pend.emission = le;
+                    } else if matches!(stack.last(), Some(p) if !p.diffuse) {
+                        // After a glossy bounce: MIS against the light sample, as the path
+                        // tracer does; after a diffuse bounce emission is masked (eq. 4.27).
+                        let dist2 = h.t * h.t;
+                        let lp = scene.lights.pick_pdf(le, area, m.double_sided) * dist2
+                            / (ng.dot(wo).abs() * area);
+                        pend.emission = le * power(prev_pdf, lp);
+                    }
+                }
+                if !front && !m.double_sided && m.transmission == 0.0 {
+                    stack.push(pend);
+                    break;
+                }
+                let n = if front { ng } else { -ng };
+                let bsdf = m.bsdf(front);
+                let first = scene.cache.archive.pages[h.page as usize].first_node;
+                scene.touched.insert(first + h.leaf as u64);
+                if m.metallic > 0.0 || m.transmission > 0.0 || m.specular > 0.0 {
+                    // Not purely diffuse: one exact path-tracing step, nothing stored.
+                    let frame = Frame::new(n);
+                    let wo_l = frame.to_local(wo);
+                    if !bsdf.has_smooth_only() {
+                        pend.direct +=
+                            light_sample(scene, tr, p, err, ng, 0.0, [u_pick, ul0, ul1], |wi| {
+                                let wl = frame.to_local(wi);
+                                let (f, pdf) = bsdf.eval(wo_l, wl);
+                                (f * wl.z.abs(), pdf)
+                            });
+                    }
+                    let Some(bs) = bsdf.sample(wo_l, u_lobe, [ud0, ud1]) else {
+                        stack.push(pend);
+                        break;
+                    };
+                    let wi = frame.to_world(bs.wi).normalize();
+                    pend.weight = bs.weight;
+                    prev_delta = bs.delta;
+                    prev_pdf = bs.pdf;
+                    // A mirror reflects the cone: same opening, its footprint as r0, and the
+                    // direction resampled inside it about the virtual apex (eq. 4.14–4.16,
+                    // Fig. 7). A glossy bounce starts a fresh diffuse-width cone.
+                    let o = offset_origin(p, err, ng, wi);
+                    let (o, d) = if bs.delta && cone.scale > 0.0 {
+                        cone = Cone {
+                            r0: cone.radius(h.t),
+                            ..cone
+                        };
+                        jitter(o, wi, &cone, [u_j, u_rr])
+                    } else {
+                        cone = Cone {
+                            r0: 0.0,
+                            tan_a: DIFFUSE_TAN,
+                            scale: cone.scale,
+                        };
+                        (o, wi)
+                    };
+                    ray = Ray {
+                        o,
+                        d,
+                        t_max: f32::INFINITY,
+                    };
+                    stack.push(pend);
+                    depth += 1;
+                    if !roulette(&mut stack, depth, u_rr) {
+                        break;
+                    }
+                    continue;
+                }
+                let k = h.index - pg_first_tri(scene, h.page, h.leaf);
+                (
+                    Frame::new(n),
+                    bsdf.diffuse,
+                    tri_key(first + h.leaf as u64, k),
+                    None,
+                )
+            }
+            ConeHit::Node { page, node, .. } => {
+                let pg: std::sync::Arc<Page> = scene.cache.get(*page);
+                let Some(raw) = pg.nodes.get(*node as usize) else {
+                    break;
+                };
+                scene.touched.insert(pg.first_node + *node as u64);
+                let key = node_key(pg.first_node + *node as u64);
+                let nn = V::from(raw.normal.map(snorm16_decode));
+                let len = nn.length();
+                let n = if len > 1e-6 { nn / len } else { wo };
+                let n = if n.dot(wo) < 0.0 { -n } else { n };
+                if prev_delta {
+                    let le = V::from(rgbe64_decode(raw.emission));
+                    if nn.dot(wo) > 0.0 || len <= 1e-6 {
+                        pend.emission = le;
+                    }
+                }
+                let rho = V::from(raw.diffuse.map(unorm8_decode));
+                min_dist = raw.radius;
+                (
+                    Frame::new(n),
+                    rho,
+                    key,
+                    Some(if nn.dot(n) < 0.0 { -nn } else { nn }),
+                )
+            }
+        };
+        pend.albedo = albedo;
+        pend.diffuse = true;
+        pend.node = Some(node_key);
+        // A converged node answers from its store (§4.6.1), except on screen.
+        if depth >= FRESH {
+            if let Some(e) = store.get(node_key) {
+                if e.n >= store.limit {
+                    let (v, _) = e.value().unwrap_or(([0.0; 3], 0));
+                    pend.node = None;
+                    pend.direct = V::from(v);
+                    stack.push(pend);
+                    break;
+                }
+            }
+        }
+        // Light sample: cos θ, or Θ = (1−|n|)/4 + ⟨n, ω⟩ for a cluster (eq. 4.4). Emission
+        // is masked at the next hit (eq. 4.27), so the light sample takes full weight.
+        let theta = |wi: V| match cluster_n {
+            Some(nn) => ((1.0 - nn.length()) / 4.0 + nn.dot(wi)).max(0.0),
+            None => frame.n.dot(wi).max(0.0),
+        };
+        let shade_n = if ng == V::ZERO { frame.n } else { ng };
+        pend.direct = light_sample(
+            scene,
+            tr,
+            p,
+            err,
+            shade_n,
+            min_dist,
+            [u_pick, ul0, ul1],
+            |wi| (V::splat(theta(wi) * std::f32::consts::FRAC_1_PI), 0.0),
+        );
+        // Cosine-sampled bounce; weight 1 (the albedo is applied when unwinding).
+        let wi = frame.to_world(cosine_hemisphere([ud0, ud1])).normalize();
+        pend.weight = V::ONE;
+        stack.push(pend);
+        // A diffuse bounce starts a fresh cone of tan α = 0.3 at the surface (eq. 4.20); its
+        // direction is already random (cosine-weighted), so it is not jittered again, and
+        // starting at r0 = 0 keeps the origin on the surface: a frustum whose first disc is
+        // the incoming footprint would start rays beside walls and leak light.
+        cone = Cone {
+            r0: 0.0,
+            tan_a: DIFFUSE_TAN,
+            scale: cone.scale,
+        };
+        let (o, d) = (offset_origin(p, err, shade_n, wi), wi);
+        ray = Ray {
+            o,
+            d,
+            t_max: f32::INFINITY,
+        };
+        prev_delta = false;
+        prev_pdf = 0.0;
+        depth += 1;
+        if scene.max_depth.is_some_and(|m| depth >= m) {
+            break;
+        }
+        if !roulette(&mut stack, depth, u_rr) {
+            break;
+        }
+    }
+    // Unwind: each bounce's value is its emission plus what it scatters of the next.
+    while let Some(b) = stack.pop() {
+        let incoming = b.direct + b.weight * tail;
+        tail = if b.diffuse {
+            let scattered = match b.node {
+                // Near the eye the fresh sample is the path's; it also feeds the store.
+                Some(key) if stack.len() < FRESH as usize => {
+                    store.add(key, incoming.to_array());
+                    incoming
+                }
+                Some(key) => V::from(store.add(key, incoming.to_array()).0),
+                None => b.direct,
+            };
+            b.emission + b.albedo * scattered
+        } else {
+            b.emission + incoming
+        };
+    }
+    c.paths += 1;
+    if tail.is_finite() {
+        tail
+    } else {
+        V::ZERO
+    }
+}
+
+/// Russian roulette after the second bounce on the product of the bounces' weights and
+/// albedos; a survivor's weight is divided by its survival probability.
+fn roulette(stack: &mut [Pending], depth: u32, u: f32) -> bool {
+    if depth <= 1 {
+        return true;
+    }
+    let beta = stack.iter().fold(V::ONE, |b, p| {
+        b * p.weight * if p.diffuse { p.albedo } else { V::ONE }
+    });
+    let q = beta.max_element().min(1.0);
+    if q <= 0.0 || u >= q {
+        return false;
+    }
+    if let Some(last) = stack.last_mut() {
+        last.weight /= q;
+    }
+    true
+}
+
+fn power(a: f32, b: f32) -> f32 {
+    let (a2, b2) = (a * a, b * b);
+    if a2 + b2 > 0.0 {
+        a2 / (a2 + b2)
+    } else {
+        0.0
+    }
+}
+
+/// One light sample with MIS against the BSDF: `f(wi)` returns (value · cos, BSDF pdf).
+/// Light nearer than `min_dist` counts as if at `min_dist` (1/d² clamped).
+#[allow(clippy::too_many_arguments)]
+fn light_sample(
+    scene: &Scene,
+    tr: &mut Tracer,
+    p: V,
+    err: V,
+    n: V,
+    min_dist: f32,
+    u: [f32; 3],
+    f: impl Fn(V) -> (V, f32),
+) -> V {
+    let Some(ls) = scene.lights.sample(p, u[0], [u[1], u[2]]) else {
+        return V::ZERO;
+    };
+    let (fv, pdf_b) = f(ls.wi);
+    if fv.max_element() <= 0.0 {
+        return V::ZERO;
+    }
+    let from = offset_origin(p, err, n, ls.wi);
+    let shadow = match ls.point {
+        Some((q, qerr, qn)) => {
+            let to = offset_origin(q, qerr, qn, from - q);
+            Ray {
+                o: from,
+                d: to - from,
+                t_max: 1.0 - 1e-4,
+            }
+        }
+        None => Ray {
+            o: from,
+            d: ls.wi,
+            t_max: f32::INFINITY,
+        },
+    };
+    if tr.occluded(&shadow) {
+        return V::ZERO;
+    }
+    let w = if ls.pdf > 0.0 {
+        power(ls.pdf, pdf_b)
+    } else {
+        1.0
+    };
+    let clamp = if ls.dist < min_dist {
+        (ls.dist / min_dist).powi(2)
+    } else {
+        1.0
+    };
+    fv * ls.weight * w * clamp
+}
+
+/// Pull (004 §4.8): every inner node of the touched pages gets the area-weighted mean of
+/// its children's stored light, deepest pages first so page roots are ready for their
+/// parents.
+pub fn pull(scene: &Scene, store: &RadianceStore) {
+    let archive = &scene.cache.archive;
+    let mut pages: Vec<u32> = (0..archive.pages.len() as u32)
+        .filter(|&i| scene.cache.was_touched(i))
+        .collect();
+    pages.sort_by_key(|&i| std::cmp::Reverse(archive.pages[i as usize].level));
+    for id in pages {
+        let page = scene.cache.get(id);
+        for (i, n) in page.bvh.iter().enumerate().rev() {
+            let a = n.a & !KIND_MASK;
+            let here = page.first_node + i as u64;
+            if n.a & KIND_MASK == LEAF {
+                // A leaf's light: the area-weighted mean over its triangles that have some.
+                let (mut sum, mut area, mut count) = ([0f32; 3], 0f32, u32::MAX);
+                for k in 0..n.b {
+                    let Some(t) = page.tris.get((a + k) as usize) else {
+                        continue;
+                    };
+                    if let Some((v, c)) = store.get(tri_key(here, k)).and_then(|e| e.value()) {
+                        let p = t.p.map(V::from);
+                        let ar = 0.5 * (p[1] - p[0]).cross(p[2] - p[0]).length();
+                        for j in 0..3 {
+                            sum[j] += v[j] * ar;
+                        }
+                        area += ar;
+                        count = count.min(c);
+                    }
+                }
+                if area > 0.0 {
+                    store.set_pulled(node_key(here), sum.map(|v| v / area), count);
+                }
+                continue;
+            }
+            let kids = match n.a & KIND_MASK {
+                INNER => [page.first_node + a as u64, page.first_node + n.b as u64].map(node_key),
+                CHILD_PAGE => {
+                    let f = archive.pages[a as usize].first_node;
+                    [node_key(f), node_key(f + 1)]
+                }
+                _ => continue,
+            };
+            let areas = match n.a & KIND_MASK {
+                INNER => [page.nodes[a as usize].area, page.nodes[n.b as usize].area],
+                _ => {
+                    let child = scene.cache.get(a);
+                    match (child.nodes.first(), child.nodes.get(1)) {
+                        (Some(l), Some(r)) => [l.area, r.area],
+                        _ => continue,
+                    }
+                }
+            };
+            let vals: Vec<_> = kids
+                .iter()
+                .map(|&k| store.get(k).and_then(|e| e.value()))
+                .collect();
+            if let (Some((vl, nl)), Some((vr, nr))) = (vals[0], vals[1]) {
+                let (al, ar) = (areas[0], areas[1]);
+                let a = (al + ar).max(f32::MIN_POSITIVE);
+                let v = [0, 1, 2].map(|k| (vl[k] * al + vr[k] * ar) / a);
+                store.set_pulled(node_key(here), v, nl.min(nr));
+            }
+        }
+    }
+}

@@ -1,0 +1,276 @@
+//! Diffuse radiance stored per node (004 §4.6) and the push-pull that keeps levels
+//! consistent (§4.8).
+//!
+//! State lives here, keyed by the node's global number, never in the pages: evicting a page
+//! loses nothing (FORMAT.md keeps the node's illumination fields for baked archives only).
+//! What is stored is the cosine-weighted incident radiance E/π, not ρ·E/π as in the thesis,
+//! so the hit triangle's own albedo multiplies it: a leaf mixes up to 8 triangles and their
+//! materials, and the average incident light is what they share.
+
+use std::collections::HashMap;
+use std::sync::Mutex;
+
+const SHARDS: usize = 64;
+
+/// One node's accumulated samples.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Entry {
+    pub sum: [f32; 3],
+    pub n: u32,
+    /// Area-weighted average of the children (after a pull) and the samples behind it.
+    pub pulled: [f32; 3],
+    pub pulled_n: u32,
+}
+
+impl Entry {
+    /// The best estimate: own samples, or the children's when they hold more.
+    pub fn value(&self) -> Option<([f32; 3], u32)> {
+        if self.pulled_n > self.n {
+            Some((self.pulled, self.pulled_n))
+        } else if self.n > 0 {
+            Some((self.sum.map(|v| v / self.n as f32), self.n))
+        } else {
+            None
+        }
+    }
+}
+
+/// Concurrent map from global node number to its entry (sharded mutexes).
+pub struct RadianceStore {
+    shards: Vec<Mutex<HashMap<u64, Entry>>>,
+    /// Samples after which a node counts as converged (004 §4.6.1 used 65536).
+    pub limit: u32,
+}
+
+/// Bytes an entry costs in the map (key, value, hash-table overhead).
+pub const ENTRY_BYTES: u64 = 64;
+
+impl RadianceStore {
+    pub fn new(limit: u32) -> RadianceStore {
+        RadianceStore {
+            shards: (0..SHARDS).map(|_| Mutex::new(HashMap::new())).collect(),
+            limit: limit.max(1),
+        }
+    }
+
+    fn shard(&self, node: u64) -> &Mutex<HashMap<u64, Entry>> {
+        &self.shards[(node.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 58) as usize % SHARDS]
+    }
+
+    pub fn get(&self, node: u64) -> Option<Entry> {
+        self.shard(node).lock().expect("store").get(&node).copied()
+    }
+
+    /// Adds a sample (unless the node has converged) and returns the node's average after it
+    /// (004 eq. 4.24–4.25) and whether it has converged.
+    pub fn add(&self, node: u64, sample: [f32; 3]) -> ([f32; 3], bool) {
+        let mut m = self.shard(node).lock().expect("store");
+        let e = m.entry(node).or_default();
+        if e.n < self.limit && sample.iter().all(|v| v.is_finite()) {
+            for (s, v) in e.sum.iter_mut().zip(sample) {
+                *s += v;
+            }
+            e.n += 1;
+        }
+        let avg = e.sum.map(|v| v / e.n.max(1) as f32);
+        (avg, e.n >= self.limit)
+    }
+
+    /// Sets a node's pulled value.
+    pub fn set_pulled(&self, node: u64, value: [f32; 3], n: u32) {
+        let mut m = self.shard(node).lock().expect("store");
+        let e = m.entry(node).or_default();
+        e.pulled = value;
+        e.pulled_n = n;
+    }
+
+    pub fn len(&self) -> usize {
+        self.shards
+            .iter()
+            .map(|s| s.lock().expect("store").len())
+            .sum()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    pub fn bytes(&self) -> u64 {
+        self.len() as u64 * ENTRY_BYTES
+    }
+
+    /// Nodes whose counter reached the limit.
+    pub fn converged(&self) -> usize {
+        self.shards
+            .iter()
+            .map(|s| {
+                s.lock()
+                    .expect("store")
+                    .values()
+                    .filter(|e| e.n >= self.limit)
+                    .count()
+            })
+            .sum()
+    }
+}
+
+/// Received radiance on a binary tree for the push-pull of §4.8: `received[i]` is light a
+/// light pass deposited at node i (over its whole area), `area[i]` the node's area.
+pub struct FluxTree {
+    /// Children of each node (None for a leaf); parents come before children.
+    pub children: Vec<Option<[usize; 2]>>,
+    pub area: Vec<f32>,
+    pub received: Vec<[f32; 3]>,
+}
+
+impl FluxTree {
+    /// Push (pre-order): a node's received radiance is added to both children, which cover
+    /// its area, and cleared; afterwards only leaves hold light.
+    pub fn push(&mut self) {
+        for i in 0..self.children.len() {
+            if let Some([l, r]) = self.children[i] {
+                let v = std::mem::take(&mut self.received[i]);
+                for c in [l, r] {
+                    for k in 0..3 {
+                        self.received[c][k] += v[k];
+                    }
+                }
+            }
+        }
+    }
+
+    /// Pull (post-order): every inner node becomes the area-weighted mean of its children.
+    pub fn pull(&mut self) {
+        for i in (0..self.children.len()).rev() {
+            if let Some([l, r]) = self.children[i] {
+                let (al, ar) = (self.area[l], self.area[r]);
+                let a = (al + ar).max(f32::MIN_POSITIVE);
+                self.received[i] =
+                    [0, 1, 2].map(|k| (self.received[l][k] * al + self.received[r][k] * ar) / a);
+            }
+        }
+    }
+
+    /// Flux over the leaves: Σ area · radiance (what push-pull must conserve).
+    pub fn leaf_flux(&self) -> [f64; 3] {
+        let mut f = [0f64; 3];
+        for (i, c) in self.children.iter().enumerate() {
+            if c.is_none() {
+                for (k, fk) in f.iter_mut().enumerate() {
+                    *fk += self.area[i] as f64 * self.received[i][k] as f64;
+                }
+            }
+        }
+        f
+    }
+
+    /// Flux a node at each level carries before the push: its own deposit over its area.
+    pub fn total_flux(&self) -> [f64; 3] {
+        let mut f = [0f64; 3];
+        for i in 0..self.children.len() {
+            for (k, fk) in f.iter_mut().enumerate() {
+                *fk += self.area[i] as f64 * self.received[i][k] as f64;
+            }
+        }
+        f
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A random binary tree with areas that add up (a parent's area is its children's sum)
+    /// and light deposited at every level.
+    fn random_tree(seed: u64, leaves: usize) -> FluxTree {
+        let mut s = seed;
+        let mut rnd = move || {
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (s >> 40) as f32 / (1u64 << 24) as f32
+        };
+        // Build top-down by splitting leaves at random.
+        let mut children: Vec<Option<[usize; 2]>> = vec![None];
+        let mut open = vec![0usize];
+        while open.len() < leaves {
+            let k = (rnd() * open.len() as f32) as usize % open.len();
+            let n = open.swap_remove(k);
+            let (l, r) = (children.len(), children.len() + 1);
+            children.push(None);
+            children.push(None);
+            children[n] = Some([l, r]);
+            open.extend([l, r]);
+        }
+        let mut area = vec![0f32; children.len()];
+        for i in (0..children.len()).rev() {
+            area[i] = match children[i] {
+                Some([l, r]) => area[l] + area[r],
+                None => 0.01 + rnd() * 10.0,
+            };
+        }
+        let received = (0..children.len())
+            .map(|_| {
+                if rnd() < 0.3 {
+                    [rnd(), rnd() * 2.0, rnd() * 0.5]
+                } else {
+                    [0.0; 3]
+                }
+            })
+            .collect();
+        FluxTree {
+            children,
+            area,
+            received,
+        }
+    }
+
+    #[test]
+    fn push_then_pull_conserves_flux() {
+        for seed in 1..20 {
+            let mut t = random_tree(seed, 200);
+            // A deposit at an inner node is radiance over its area: the same flux as that
+            // radiance over each leaf below it.
+            let before = t.total_flux();
+            t.push();
+            let after_push = t.leaf_flux();
+            t.pull();
+            let after_pull = t.leaf_flux();
+            // The root's area-weighted mean carries the whole flux, too.
+            let root = [0, 1, 2].map(|k| t.area[0] as f64 * t.received[0][k] as f64);
+            for k in 0..3 {
+                let tol = 1e-5 * before[k].abs().max(1.0);
+                assert!(
+                    (before[k] - after_push[k]).abs() < tol,
+                    "push: {before:?} {after_push:?}"
+                );
+                assert!(
+                    (after_push[k] - after_pull[k]).abs() < tol,
+                    "pull changed leaves"
+                );
+                assert!(
+                    (root[k] - after_pull[k]).abs() < tol * 10.0,
+                    "root {root:?} {after_pull:?}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn counter_saturates_and_stops_accumulating() {
+        let s = RadianceStore::new(4);
+        for i in 0..10 {
+            let (avg, conv) = s.add(7, [i as f32; 3]);
+            assert_eq!(conv, i >= 3, "sample {i}");
+            // Samples past the limit are ignored: the mean stays that of the first four.
+            if i >= 3 {
+                assert_eq!(avg, [1.5; 3]);
+            }
+        }
+        assert_eq!(s.get(7).unwrap().n, 4);
+        assert_eq!(s.converged(), 1);
+        // A non-finite sample is dropped rather than poisoning the node.
+        let (avg, _) = s.add(8, [f32::NAN, 1.0, 1.0]);
+        assert!(avg.iter().all(|v| v.is_finite()));
+    }
+}
