@@ -131,8 +131,8 @@ impl FluxTree {
             if let Some([l, r]) = self.children[i] {
                 let v = std::mem::take(&mut self.received[i]);
                 for c in [l, r] {
-                    for k in 0..3 {
-                        self.received[c][k] += v[k];
+                    for (dst, add) in self.received[c].iter_mut().zip(v) {
+                        *dst += add;
                     }
                 }
             }

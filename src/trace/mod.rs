@@ -201,6 +201,9 @@ impl Cone {
     }
 }
 
+/// Called with (page, node, entry distance) when a cone stops at a node.
+type NodeVisitor<'v> = dyn FnMut(&Page, u32, f32) + 'v;
+
 /// What a cone meets.
 #[derive(Clone, Copy, Debug)]
 pub enum ConeHit {
@@ -280,7 +283,7 @@ impl<'a> Tracer<'a> {
         ray: &Ray,
         mut on_tri: impl FnMut(&Page, u32, u32, f32, [f32; 3]),
         any: bool,
-        mut lod: Option<(&Cone, &mut dyn FnMut(&Page, u32, f32))>,
+        mut lod: Option<(&Cone, &mut NodeVisitor)>,
     ) -> bool {
         self.rays += 1;
         let prep = Prep::new(ray);
