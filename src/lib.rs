@@ -15,6 +15,7 @@ pub mod paging;
 pub mod progress;
 pub mod radiance;
 pub mod render;
+pub mod report;
 pub mod sampler;
 pub mod trace;
 pub mod units;

@@ -2,8 +2,9 @@ use anyhow::Result;
 use canopy::build::{convert, BvhQuality, ConvertOptions};
 use canopy::metrics::{self, Metric};
 use canopy::render::{render, Integrator, RenderOptions};
+use canopy::report::{self, SweepOptions};
 use canopy::{film, inspect, progress, units};
-use clap::{Parser, Subcommand};
+use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
 
 /// Canopy: an out-of-core streaming renderer for scenes bigger than the machine.
@@ -15,6 +16,64 @@ struct Cli {
     quiet: bool,
     #[command(subcommand)]
     cmd: Cmd,
+}
+
+/// Render settings shared by `render`, `npp` and `eval`.
+#[derive(Args, Clone)]
+struct Settings {
+    /// `path`: exact path tracing of the leaf triangles (the ground truth); `cone`: cone
+    /// casts with level of detail and diffuse light stored per node.
+    #[arg(long, value_enum, default_value_t = Integrator::Path)]
+    integrator: Integrator,
+    /// Cone integrator: the cone radius in the LOD rule is multiplied by this; 0 traces
+    /// exact rays (with stored-light reuse), larger values stop at coarser nodes.
+    #[arg(long, default_value_t = 1.0)]
+    cone_scale: f32,
+    /// Cone integrator: samples after which a node's stored light is converged and its
+    /// paths stop there (004 §4.6.1 used 65536).
+    #[arg(long, default_value_t = 1024)]
+    cone_samples: u32,
+    /// Memory for decoded pages and per-node state, e.g. 256MiB (default: unlimited).
+    #[arg(long, value_parser = units::parse_size)]
+    mem_budget: Option<u64>,
+    /// Camera name (default: the first camera).
+    #[arg(long)]
+    camera: Option<String>,
+    /// Seed of the sample sequences.
+    #[arg(long, default_value_t = 0)]
+    seed: u32,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Longest path in segments (1: only emitters seen directly); default unbounded.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    max_depth: Option<u32>,
+}
+
+impl Settings {
+    fn options(self, archive: PathBuf, output: PathBuf, spp: u32, progress: bool) -> RenderOptions {
+        RenderOptions {
+            archive,
+            output,
+            integrator: self.integrator,
+            spp,
+            time: None,
+            mem_budget: self.mem_budget,
+            width: None,
+            height: None,
+            camera: self.camera,
+            seed: self.seed,
+            threads: self.threads,
+            max_depth: self.max_depth,
+            crop: None,
+            preview: false,
+            exposure: 1.0,
+            stats: None,
+            progress,
+            cone_scale: self.cone_scale,
+            cone_samples: self.cone_samples,
+        }
+    }
 }
 
 #[derive(Subcommand)]
@@ -60,45 +119,20 @@ enum Cmd {
         /// Output image: .exr, or .png (which also writes the .exr).
         #[arg(short, long)]
         output: PathBuf,
-        /// `path`: exact path tracing of the leaf triangles (the ground truth); `cone`: cone
-        /// casts with level of detail and diffuse light stored per node.
-        #[arg(long, value_enum, default_value_t = Integrator::Path)]
-        integrator: Integrator,
-        /// Cone integrator: the cone radius in the LOD rule is multiplied by this; 0 traces
-        /// exact rays (with stored-light reuse), larger values stop at coarser nodes.
-        #[arg(long, default_value_t = 1.0)]
-        cone_scale: f32,
-        /// Cone integrator: samples after which a node's stored light is converged and its
-        /// paths stop there (004 §4.6.1 used 65536).
-        #[arg(long, default_value_t = 1024)]
-        cone_samples: u32,
+        #[command(flatten)]
+        settings: Settings,
         /// Samples per pixel.
         #[arg(long, default_value_t = 64)]
         spp: u32,
         /// Render until this much time is spent (e.g. 90s, 5m) instead of a fixed --spp.
         #[arg(long, value_parser = units::parse_duration)]
         time: Option<std::time::Duration>,
-        /// Memory for decoded pages and per-node state, e.g. 256MiB (default: unlimited).
-        #[arg(long, value_parser = units::parse_size)]
-        mem_budget: Option<u64>,
         /// Image width (default: the scene's, else 512 high at the camera's aspect).
         #[arg(long)]
         width: Option<u32>,
         /// Image height.
         #[arg(long)]
         height: Option<u32>,
-        /// Camera name (default: the first camera).
-        #[arg(long)]
-        camera: Option<String>,
-        /// Seed of the sample sequences.
-        #[arg(long, default_value_t = 0)]
-        seed: u32,
-        /// Worker threads (default: all cores).
-        #[arg(long)]
-        threads: Option<usize>,
-        /// Longest path in segments (1: only emitters seen directly); default unbounded.
-        #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
-        max_depth: Option<u32>,
         /// Render only the window X0,X1,Y0,Y1 (pixels, half-open); the image is the window.
         #[arg(long, value_parser = parse_crop)]
         crop: Option<[u32; 4]>,
@@ -111,6 +145,40 @@ enum Cmd {
         /// Write render statistics as JSON here.
         #[arg(long)]
         stats: Option<PathBuf>,
+    },
+    /// Nodes per pixel: render at several resolutions and count the unique nodes touched
+    /// (leaves hit and their ancestors, 004 §5.2). Writes npp.csv and npp.svg.
+    Npp {
+        archive: PathBuf,
+        /// Image heights to render (widths follow the camera's aspect).
+        #[arg(long, value_delimiter = ',', default_value = "32,64,128,256,512")]
+        resolutions: Vec<u32>,
+        /// Samples per pixel at each resolution.
+        #[arg(long, default_value_t = 1)]
+        spp: u32,
+        /// Directory for the CSV, the plot and the images.
+        #[arg(short, long, default_value = "npp")]
+        output: PathBuf,
+        #[command(flatten)]
+        settings: Settings,
+    },
+    /// Speed against error: render each integrator for each time budget, compare with a
+    /// reference; writes eval.csv, eval.svg (log-log) and eval.md with c = RMSE·√s.
+    Eval {
+        archive: PathBuf,
+        /// Reference image (a long path-traced render or a Mitsuba 3 render).
+        #[arg(long)]
+        reference: PathBuf,
+        #[arg(long, value_delimiter = ',', default_value = "path,cone")]
+        integrators: Vec<Integrator>,
+        /// Time budgets.
+        #[arg(long, value_delimiter = ',', value_parser = units::parse_duration, default_value = "5s,15s,60s")]
+        times: Vec<std::time::Duration>,
+        /// Directory for the CSV, the plot, the table and the images.
+        #[arg(short, long, default_value = "eval")]
+        output: PathBuf,
+        #[command(flatten)]
+        settings: Settings,
     },
     /// Compare two images: an error metric, the mean ratio, and a false-colour difference.
     Compare {
@@ -189,43 +257,25 @@ fn run(cli: Cli) -> Result<()> {
         Cmd::Render {
             archive,
             output,
-            integrator,
-            cone_scale,
-            cone_samples,
+            settings,
             spp,
             time,
-            mem_budget,
             width,
             height,
-            camera,
-            seed,
-            threads,
-            max_depth,
             crop,
             preview,
             exposure,
             stats,
         } => {
             let opts = RenderOptions {
-                archive,
-                output: output.clone(),
-                integrator,
-                spp,
                 time,
-                mem_budget,
                 width,
                 height,
-                camera,
-                seed,
-                threads,
-                max_depth,
                 crop,
                 preview,
                 exposure,
                 stats,
-                progress: show,
-                cone_scale,
-                cone_samples,
+                ..settings.options(archive, output.clone(), spp, show)
             };
             let (_, s) = render(&opts)?;
             println!(
@@ -242,6 +292,57 @@ fn run(cli: Cli) -> Result<()> {
                 s.pages_evicted,
                 s.cache_hit_rate
             );
+        }
+        Cmd::Npp {
+            archive,
+            resolutions,
+            spp,
+            output,
+            settings,
+        } => {
+            let o = SweepOptions {
+                archive: archive.clone(),
+                out_dir: output.clone(),
+                base: settings.options(archive, output.join("x.exr"), spp, show),
+            };
+            println!("pixels      unique nodes  nodes/pixel  pages  resident MiB  seconds");
+            for r in report::npp(&o, &resolutions)? {
+                println!(
+                    "{:>10}  {:>12}  {:>11.2}  {:>5}  {:>12.1}  {:>7.2}",
+                    r.pixels,
+                    r.unique_nodes,
+                    r.nodes_per_pixel,
+                    r.pages_touched,
+                    r.resident_bytes_peak as f64 / 1048576.0,
+                    r.seconds
+                );
+            }
+            println!("wrote {}/npp.csv and npp.svg", output.display());
+        }
+        Cmd::Eval {
+            archive,
+            reference,
+            integrators,
+            times,
+            output,
+            settings,
+        } => {
+            let o = SweepOptions {
+                archive: archive.clone(),
+                out_dir: output.clone(),
+                base: settings.options(archive, output.join("x.exr"), 1, show),
+            };
+            let rows = report::eval(&o, &reference, &integrators, &times)?;
+            for r in &rows {
+                println!(
+                    "{:?} {:>6.1}s: {} spp, RMSE {:.4e}, c {:.4e}",
+                    r.integrator, r.seconds, r.spp, r.rmse, r.c
+                );
+            }
+            if let Some(line) = report::time_to_match(&rows) {
+                println!("{line}");
+            }
+            println!("wrote {}/eval.csv, eval.svg and eval.md", output.display());
         }
         Cmd::Compare {
             test,

@@ -287,6 +287,10 @@ impl PageCache {
     #[inline]
     pub fn get(&self, id: u32) -> Arc<Page> {
         let slot = &self.slots[id as usize];
+        // Pages a traversal asked for (not those only prefetched).
+        if !self.touched[id as usize].load(Relaxed) {
+            self.touched[id as usize].store(true, Relaxed);
+        }
         if let Some(p) = slot.page.read().expect("slot").as_ref() {
             if !slot.referenced.load(Relaxed) {
                 slot.referenced.store(true, Relaxed);
@@ -325,7 +329,6 @@ impl PageCache {
             *w = Some(Arc::clone(&page));
         }
         slot.referenced.store(true, Relaxed);
-        self.touched[id as usize].store(true, Relaxed);
         self.loads.fetch_add(1, Relaxed);
         self.decoded.fetch_add(page.bytes, Relaxed);
         let now = self.resident.fetch_add(page.bytes, Relaxed) + page.bytes;
@@ -373,7 +376,7 @@ impl PageCache {
         self.epoch.load(Relaxed)
     }
 
-    /// Whether the page was ever loaded.
+    /// Whether a traversal ever asked for the page.
     pub fn was_touched(&self, id: u32) -> bool {
         self.touched[id as usize].load(Relaxed)
     }

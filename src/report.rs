@@ -1,0 +1,298 @@
+//! Measurement reports: `canopy npp` (nodes per pixel as resolution grows, 004 §5.2) and
+//! `canopy eval` (error against time for each integrator). Both write CSV, an SVG plot
+//! (plotters) and, for `eval`, a Markdown table with c = RMSE·√seconds per row.
+
+use crate::film::{write_atomically, Image};
+use crate::metrics::{error, Metric};
+use crate::render::{render, Integrator, RenderOptions, RenderStats};
+use anyhow::{bail, Context, Result};
+use plotters::prelude::*;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+/// One plotted line.
+pub struct Series {
+    pub name: String,
+    pub points: Vec<(f64, f64)>,
+}
+
+/// A log-log line plot as SVG.
+pub fn plot_loglog(path: &Path, title: &str, x: &str, y: &str, series: &[Series]) -> Result<()> {
+    let pts: Vec<(f64, f64)> = series
+        .iter()
+        .flat_map(|s| s.points.iter().copied())
+        .filter(|(a, b)| *a > 0.0 && *b > 0.0 && a.is_finite() && b.is_finite())
+        .collect();
+    if pts.is_empty() {
+        bail!("{}: nothing to plot", path.display());
+    }
+    let (x0, x1) = pts
+        .iter()
+        .fold((f64::MAX, f64::MIN), |(a, b), p| (a.min(p.0), b.max(p.0)));
+    let (y0, y1) = pts
+        .iter()
+        .fold((f64::MAX, f64::MIN), |(a, b), p| (a.min(p.1), b.max(p.1)));
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (720, 480)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| anyhow::anyhow!("{e}"))?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(title, ("sans-serif", 20))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(70)
+            .build_cartesian_2d(
+                (x0 / 1.5..x1 * 1.5).log_scale(),
+                (y0 / 1.5..y1 * 1.5).log_scale(),
+            )
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        chart
+            .configure_mesh()
+            .x_desc(x)
+            .y_desc(y)
+            .draw()
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        for (i, s) in series.iter().enumerate() {
+            let colour = Palette99::pick(i).to_rgba();
+            chart
+                .draw_series(LineSeries::new(s.points.clone(), colour.stroke_width(2)))
+                .map_err(|e| anyhow::anyhow!("{e}"))?
+                .label(s.name.clone())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], colour));
+            chart
+                .draw_series(s.points.iter().map(|&p| Circle::new(p, 3, colour.filled())))
+                .map_err(|e| anyhow::anyhow!("{e}"))?;
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|e| anyhow::anyhow!("{e}"))?;
+        root.present().map_err(|e| anyhow::anyhow!("{e}"))?;
+    }
+    write_atomically(path, |tmp| Ok(std::fs::write(tmp, svg)?))
+}
+
+fn write_text(path: &Path, text: &str) -> Result<()> {
+    write_atomically(path, |tmp| Ok(std::fs::write(tmp, text)?))
+}
+
+/// Settings shared by the sweeps: everything of a render but the output, size and time.
+#[derive(Clone)]
+pub struct SweepOptions {
+    pub archive: PathBuf,
+    pub out_dir: PathBuf,
+    pub base: RenderOptions,
+}
+
+fn render_into(
+    o: &SweepOptions,
+    name: &str,
+    f: impl FnOnce(&mut RenderOptions),
+) -> Result<(Image, RenderStats)> {
+    let mut r = o.base.clone();
+    r.archive = o.archive.clone();
+    r.output = o.out_dir.join(format!("{name}.exr"));
+    r.stats = Some(o.out_dir.join(format!("{name}.json")));
+    f(&mut r);
+    render(&r)
+}
+
+#[derive(Debug, serde::Serialize)]
+pub struct NppRow {
+    pub width: u32,
+    pub height: u32,
+    pub pixels: u64,
+    pub unique_nodes: u64,
+    pub nodes_per_pixel: f64,
+    pub pages_touched: u64,
+    pub resident_bytes_peak: u64,
+    pub seconds: f64,
+}
+
+/// `canopy npp`: one render per height in `resolutions` (width from the camera's aspect).
+pub fn npp(o: &SweepOptions, resolutions: &[u32]) -> Result<Vec<NppRow>> {
+    std::fs::create_dir_all(&o.out_dir)
+        .with_context(|| format!("{}: cannot create", o.out_dir.display()))?;
+    let mut rows = Vec::new();
+    let mut csv = String::from("width,height,pixels,unique_nodes,nodes_per_pixel,pages_touched,resident_bytes_peak,seconds\n");
+    for &h in resolutions {
+        let (_, s) = render_into(o, &format!("npp_{h}"), |r| {
+            r.height = Some(h);
+            r.width = None;
+        })?;
+        let row = NppRow {
+            width: s.width,
+            height: s.height,
+            pixels: s.width as u64 * s.height as u64,
+            unique_nodes: s.unique_nodes_touched,
+            nodes_per_pixel: s.nodes_per_pixel,
+            pages_touched: s.pages_touched,
+            resident_bytes_peak: s.resident_bytes_peak,
+            seconds: s.seconds.render,
+        };
+        writeln!(
+            csv,
+            "{},{},{},{},{:.3},{},{},{:.3}",
+            row.width,
+            row.height,
+            row.pixels,
+            row.unique_nodes,
+            row.nodes_per_pixel,
+            row.pages_touched,
+            row.resident_bytes_peak,
+            row.seconds
+        )?;
+        rows.push(row);
+    }
+    write_text(&o.out_dir.join("npp.csv"), &csv)?;
+    plot_loglog(
+        &o.out_dir.join("npp.svg"),
+        "Unique nodes touched against pixels",
+        "pixels",
+        "nodes",
+        &[
+            Series {
+                name: "unique nodes (hit + ancestors)".into(),
+                points: rows
+                    .iter()
+                    .map(|r| (r.pixels as f64, r.unique_nodes as f64))
+                    .collect(),
+            },
+            Series {
+                name: "pixels (slope 1)".into(),
+                points: rows
+                    .iter()
+                    .map(|r| (r.pixels as f64, r.pixels as f64))
+                    .collect(),
+            },
+        ],
+    )?;
+    Ok(rows)
+}
+
+#[derive(Debug, serde::Serialize)]
+pub struct EvalRow {
+    pub integrator: Integrator,
+    pub budget_seconds: f64,
+    pub seconds: f64,
+    pub spp: u32,
+    pub rmse: f64,
+    /// RMSE·√seconds: lower is better; (c₁/c₂)² is the equal-error speed ratio.
+    pub c: f64,
+}
+
+/// `canopy eval`: each integrator at each time budget against a reference.
+pub fn eval(
+    o: &SweepOptions,
+    reference: &Path,
+    integrators: &[Integrator],
+    times: &[Duration],
+) -> Result<Vec<EvalRow>> {
+    std::fs::create_dir_all(&o.out_dir)
+        .with_context(|| format!("{}: cannot create", o.out_dir.display()))?;
+    let r = Image::read_exr(reference)?;
+    let mut rows = Vec::new();
+    for &i in integrators {
+        for &t in times {
+            let name = format!("eval_{i:?}_{}s", t.as_secs_f64()).to_lowercase();
+            let (img, s) = render_into(o, &name, |ro| {
+                ro.integrator = i;
+                ro.time = Some(t);
+                ro.width = Some(r.width);
+                ro.height = Some(r.height);
+            })?;
+            let rmse = error(&img, &r, Metric::Rmse)?;
+            rows.push(EvalRow {
+                integrator: i,
+                budget_seconds: t.as_secs_f64(),
+                seconds: s.seconds.render,
+                spp: s.spp,
+                rmse,
+                c: rmse * s.seconds.render.sqrt(),
+            });
+        }
+    }
+    let mut csv = String::from("integrator,budget_seconds,seconds,spp,rmse,c\n");
+    let mut md = String::from("| integrator | budget | seconds | spp | RMSE | c = RMSE·√s |\n| --- | --- | --- | --- | --- | --- |\n");
+    for r in &rows {
+        writeln!(
+            csv,
+            "{:?},{},{:.3},{},{:.6e},{:.6e}",
+            r.integrator, r.budget_seconds, r.seconds, r.spp, r.rmse, r.c
+        )?;
+        writeln!(
+            md,
+            "| {:?} | {}s | {:.2} | {} | {:.4e} | {:.4e} |",
+            r.integrator, r.budget_seconds, r.seconds, r.spp, r.rmse, r.c
+        )?;
+    }
+    if let Some(line) = time_to_match(&rows) {
+        md.push('\n');
+        md.push_str(&line);
+        md.push('\n');
+    }
+    write_text(&o.out_dir.join("eval.csv"), &csv)?;
+    write_text(&o.out_dir.join("eval.md"), &md)?;
+    let series: Vec<Series> = integrators
+        .iter()
+        .map(|&i| Series {
+            name: format!("{i:?}"),
+            points: rows
+                .iter()
+                .filter(|r| r.integrator == i)
+                .map(|r| (r.seconds, r.rmse))
+                .collect(),
+        })
+        .collect();
+    plot_loglog(
+        &o.out_dir.join("eval.svg"),
+        "RMSE against render time",
+        "seconds",
+        "RMSE",
+        &series,
+    )?;
+    Ok(rows)
+}
+
+/// How long the cone integrator needs to reach the path tracer's error at its longest
+/// budget, interpolating the cone's error curve in log-log (or extrapolating along 1/√t).
+pub fn time_to_match(rows: &[EvalRow]) -> Option<String> {
+    let target = rows
+        .iter()
+        .filter(|r| r.integrator == Integrator::Path)
+        .max_by(|a, b| a.seconds.total_cmp(&b.seconds))?;
+    let cone: Vec<&EvalRow> = rows
+        .iter()
+        .filter(|r| r.integrator == Integrator::Cone)
+        .collect();
+    let mut cone = cone;
+    cone.sort_by(|a, b| a.seconds.total_cmp(&b.seconds));
+    let first = cone.first()?;
+    let t = if first.rmse <= target.rmse {
+        // Already below at the shortest budget: extrapolate back along 1/√t.
+        first.seconds * (first.rmse / target.rmse).powi(2)
+    } else {
+        let pair = cone.windows(2).find(|w| w[1].rmse <= target.rmse);
+        match pair {
+            Some(w) => {
+                let (l0, l1) = (w[0].seconds.ln(), w[1].seconds.ln());
+                let (e0, e1) = (w[0].rmse.ln(), w[1].rmse.ln());
+                (l0 + (target.rmse.ln() - e0) * (l1 - l0) / (e1 - e0)).exp()
+            }
+            None => {
+                let last = cone.last()?;
+                last.seconds * (last.rmse / target.rmse).powi(2)
+            }
+        }
+    };
+    Some(format!(
+        "The cone integrator reaches the path tracer's {:.1}-second RMSE ({:.4e}) in about {:.2} s: {:.2}× faster.",
+        target.seconds,
+        target.rmse,
+        t,
+        target.seconds / t
+    ))
+}
