@@ -7,61 +7,6 @@ use common::*;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-fn convert(input: &Path, out: &Path, scene: Option<&Path>) {
-    let mut args = vec!["--quiet", "convert", s(input), "-o", s(out)];
-    if let Some(sc) = scene {
-        args.extend(["--scene", s(sc)]);
-    }
-    ok(&args);
-}
-
-/// Renders and returns the image and the stats JSON.
-fn render(archive: &Path, out: &Path, extra: &[&str]) -> (Image, serde_json::Value) {
-    let stats = out.with_extension("json");
-    let mut args = vec![
-        "--quiet",
-        "render",
-        s(archive),
-        "-o",
-        s(out),
-        "--stats",
-        s(&stats),
-    ];
-    args.extend_from_slice(extra);
-    ok(&args);
-    let img = Image::read_exr(&out.with_extension("exr")).unwrap();
-    let json = serde_json::from_str(&std::fs::read_to_string(&stats).unwrap()).unwrap();
-    (img, json)
-}
-
-fn all_finite(img: &Image) -> bool {
-    img.pixels
-        .iter()
-        .flatten()
-        .all(|v| v.is_finite() && *v >= 0.0)
-}
-
-fn rmse(a: &Image, b: &Image) -> f64 {
-    canopy::metrics::error(a, b, canopy::metrics::Metric::Rmse).unwrap()
-}
-
-fn reference(name: &str) -> Image {
-    Image::read_exr(&scene(&format!("refs/{name}.exr"))).unwrap()
-}
-
-fn assert_mean_within(img: &Image, refimg: &Image, tol: f64, what: &str) {
-    let (a, b) = (img.mean(), refimg.mean());
-    for c in 0..3 {
-        let rel = a[c] / b[c] - 1.0;
-        assert!(
-            rel.abs() < tol,
-            "{what}: channel {c} mean {} vs reference {} ({rel:+.4})",
-            a[c],
-            b[c]
-        );
-    }
-}
-
 #[test]
 fn path_tracer_mean_matches_mitsuba() {
     let dir = tempfile::tempdir().unwrap();
@@ -288,35 +233,6 @@ fn same_image_whatever_the_thread_count() {
         &[&a[..], &["--threads", "2"]].concat(),
     );
     assert_eq!(one.pixels, two.pixels);
-}
-
-/// Rewrites a glb with every scene node translated by `offset` (cameras included).
-fn translated_glb(src: &Path, dst: &Path, offset: f64) {
-    let data = std::fs::read(src).unwrap();
-    let jlen = u32::from_le_bytes(data[12..16].try_into().unwrap()) as usize;
-    let mut doc: serde_json::Value = serde_json::from_slice(&data[20..20 + jlen]).unwrap();
-    for n in doc["nodes"].as_array_mut().unwrap() {
-        if let Some(m) = n.get_mut("matrix") {
-            for k in 12..15 {
-                m[k] = (m[k].as_f64().unwrap() + offset).into();
-            }
-        } else {
-            n["translation"] = serde_json::json!([offset, offset, offset]);
-        }
-    }
-    let mut json = serde_json::to_vec(&doc).unwrap();
-    while !json.len().is_multiple_of(4) {
-        json.push(b' ');
-    }
-    let rest = &data[20 + jlen..];
-    let mut out = Vec::new();
-    out.extend_from_slice(&data[0..8]);
-    out.extend_from_slice(&((12 + 8 + json.len() + rest.len()) as u32).to_le_bytes());
-    out.extend_from_slice(&(json.len() as u32).to_le_bytes());
-    out.extend_from_slice(b"JSON");
-    out.extend_from_slice(&json);
-    out.extend_from_slice(rest);
-    std::fs::write(dst, out).unwrap();
 }
 
 #[test]
