@@ -8,6 +8,7 @@
 //! materials, and the average incident light is what they share.
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering::Relaxed};
 use std::sync::Mutex;
 
 const SHARDS: usize = 64;
@@ -40,17 +41,43 @@ pub struct RadianceStore {
     shards: Vec<Mutex<HashMap<u64, Entry>>>,
     /// Samples after which a node counts as converged (004 §4.6.1 used 65536).
     pub limit: u32,
+    /// Most entries the memory budget allows; nodes met after that are not stored (their
+    /// samples still reach the image), and nothing stored is ever dropped.
+    max_entries: usize,
+    entries: AtomicUsize,
+    refused: AtomicU64,
 }
 
 /// Bytes an entry costs in the map (key, value, hash-table overhead).
 pub const ENTRY_BYTES: u64 = 64;
 
 impl RadianceStore {
-    pub fn new(limit: u32) -> RadianceStore {
+    /// `max_bytes`: the store's share of the memory budget (None: unbounded).
+    pub fn new(limit: u32, max_bytes: Option<u64>) -> RadianceStore {
         RadianceStore {
             shards: (0..SHARDS).map(|_| Mutex::new(HashMap::new())).collect(),
             limit: limit.max(1),
+            max_entries: max_bytes.map_or(usize::MAX, |b| (b / ENTRY_BYTES) as usize),
+            entries: AtomicUsize::new(0),
+            refused: AtomicU64::new(0),
         }
+    }
+
+    /// The entry for `node`, created if the budget has room.
+    fn entry<'m>(&self, m: &'m mut HashMap<u64, Entry>, node: u64) -> Option<&'m mut Entry> {
+        if !m.contains_key(&node) {
+            if self.entries.load(Relaxed) >= self.max_entries {
+                self.refused.fetch_add(1, Relaxed);
+                return None;
+            }
+            self.entries.fetch_add(1, Relaxed);
+        }
+        Some(m.entry(node).or_default())
+    }
+
+    /// Samples not stored because the budget was full.
+    pub fn refused(&self) -> u64 {
+        self.refused.load(Relaxed)
     }
 
     fn shard(&self, node: u64) -> &Mutex<HashMap<u64, Entry>> {
@@ -65,7 +92,9 @@ impl RadianceStore {
     /// (004 eq. 4.24–4.25) and whether it has converged.
     pub fn add(&self, node: u64, sample: [f32; 3]) -> ([f32; 3], bool) {
         let mut m = self.shard(node).lock().expect("store");
-        let e = m.entry(node).or_default();
+        let Some(e) = self.entry(&mut m, node) else {
+            return (sample, false);
+        };
         if e.n < self.limit && sample.iter().all(|v| v.is_finite()) {
             for (s, v) in e.sum.iter_mut().zip(sample) {
                 *s += v;
@@ -79,9 +108,10 @@ impl RadianceStore {
     /// Sets a node's pulled value.
     pub fn set_pulled(&self, node: u64, value: [f32; 3], n: u32) {
         let mut m = self.shard(node).lock().expect("store");
-        let e = m.entry(node).or_default();
-        e.pulled = value;
-        e.pulled_n = n;
+        if let Some(e) = self.entry(&mut m, node) {
+            e.pulled = value;
+            e.pulled_n = n;
+        }
     }
 
     pub fn len(&self) -> usize {
@@ -258,7 +288,7 @@ mod tests {
 
     #[test]
     fn counter_saturates_and_stops_accumulating() {
-        let s = RadianceStore::new(4);
+        let s = RadianceStore::new(4, None);
         for i in 0..10 {
             let (avg, conv) = s.add(7, [i as f32; 3]);
             assert_eq!(conv, i >= 3, "sample {i}");
@@ -272,5 +302,19 @@ mod tests {
         // A non-finite sample is dropped rather than poisoning the node.
         let (avg, _) = s.add(8, [f32::NAN, 1.0, 1.0]);
         assert!(avg.iter().all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn a_full_store_keeps_what_it_has_and_refuses_new_nodes() {
+        let s = RadianceStore::new(100, Some(2 * ENTRY_BYTES));
+        s.add(1, [1.0; 3]);
+        s.add(2, [2.0; 3]);
+        // A third node does not fit: its sample comes back unstored.
+        assert_eq!(s.add(3, [5.0; 3]), ([5.0; 3], false));
+        assert!(s.get(3).is_none());
+        assert_eq!(s.refused(), 1);
+        // Stored nodes keep accumulating.
+        assert_eq!(s.add(1, [3.0; 3]).0, [2.0; 3]);
+        assert_eq!(s.len(), 2);
     }
 }

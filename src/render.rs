@@ -103,6 +103,8 @@ pub struct RenderStats {
     pub stored_nodes: u64,
     pub stored_bytes: u64,
     pub converged_nodes: u64,
+    /// Samples of nodes the store had no room for (the budget's quarter was full).
+    pub store_refused_samples: u64,
     pub image_mean: [f64; 3],
 }
 
@@ -203,13 +205,21 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         .build()
         .context("starting worker threads")?;
     let touched = NodeSet::new(archive.header.nodes);
-    let budget =
-        match o.mem_budget {
-            Some(b) => Some(b.checked_sub(touched.bytes()).with_context(|| {
-                format!("--mem-budget {b} cannot even hold the node statistics")
-            })?),
-            None => None,
-        };
+    // The cone integrator's stored light gets a quarter of the budget; pages the rest.
+    let store_share = match (o.mem_budget, o.integrator) {
+        (Some(b), Integrator::Cone) => Some(b / 4),
+        (Some(_), Integrator::Path) => Some(0),
+        (None, _) => None,
+    };
+    let budget = match o.mem_budget {
+        Some(b) => Some(
+            b.checked_sub(touched.bytes() + store_share.unwrap_or(0))
+                .with_context(|| {
+                    format!("--mem-budget {b} cannot even hold the node statistics")
+                })?,
+        ),
+        None => None,
+    };
     let cache = PageCache::new(Arc::clone(&archive), budget, threads)?;
     let prefetcher = cache.start_prefetch();
     let materials: Vec<Material> = archive
@@ -249,7 +259,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         max_depth: o.max_depth,
         touched,
     };
-    let store = RadianceStore::new(o.cone_samples);
+    let store = RadianceStore::new(o.cone_samples, store_share);
     let setup = t0.elapsed().as_secs_f64();
 
     let t1 = Instant::now();
@@ -384,6 +394,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         stored_nodes: store.len() as u64,
         stored_bytes: store.bytes(),
         converged_nodes: store.converged() as u64,
+        store_refused_samples: store.refused(),
         image_mean: img.mean(),
     };
     if let Some(p) = &o.stats {
