@@ -299,8 +299,9 @@ impl PageCache {
         }
         self.misses.fetch_add(1, Relaxed);
         let page = self.load(id);
-        // Children of a page just needed are likely next; hint them while there is room.
-        if self.resident.load(Relaxed) < self.budget / 4 * 3 {
+        // Children of a page just needed are likely next; hint them while a finite budget
+        // has room (without a budget, speculation would only grow memory).
+        if self.budget != u64::MAX && self.resident.load(Relaxed) < self.budget / 4 * 3 {
             for n in page.bvh.iter().filter(|n| n.a & KIND_MASK == CHILD_PAGE) {
                 self.prefetch(n.a & !KIND_MASK);
             }
