@@ -63,6 +63,8 @@ pub struct RenderOptions {
 pub struct Seconds {
     pub setup: f64,
     pub render: f64,
+    /// Of `render`: pulling stored light up the tree between passes (cone integrator).
+    pub pull: f64,
     pub write: f64,
     pub total: f64,
 }
@@ -276,6 +278,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     let rays = AtomicU64::new(0);
     let paths = AtomicU64::new(0);
     let mut done = 0u32;
+    let mut pull_s = 0.0;
     let bar = match o.time {
         Some(t) => progress::bar(o.progress, t.as_secs().max(1), "rendering (s)"),
         None => progress::bar(o.progress, tiles.len() as u64 * o.spp as u64, "rendering"),
@@ -322,7 +325,9 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
             bail!("{err}");
         }
         if o.integrator == Integrator::Cone {
+            let t = Instant::now();
             cone::pull(&scene, &store);
+            pull_s += t.elapsed().as_secs_f64();
         }
         match o.time {
             None if done < o.spp => {}
@@ -365,6 +370,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         seconds: Seconds {
             setup,
             render: render_s,
+            pull: pull_s,
             write: write_s,
             total: t0.elapsed().as_secs_f64(),
         },
