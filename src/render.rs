@@ -260,6 +260,9 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         lights,
         max_depth: o.max_depth,
         touched,
+        dirty: (0..archive.pages.len())
+            .map(|_| Default::default())
+            .collect(),
     };
     let store = RadianceStore::new(o.cone_samples, store_share);
     let setup = t0.elapsed().as_secs_f64();
@@ -324,11 +327,14 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         if let Some(err) = cache.error() {
             bail!("{err}");
         }
-        if o.integrator == Integrator::Cone {
+        // Pull after passes 1, 2, 4, 8 and then every 8th: a pull walks every resident
+        // page, which on a big scene costs more than a small pass.
+        if o.integrator == Integrator::Cone && (done.is_power_of_two() || done.is_multiple_of(8)) {
             let t = Instant::now();
-            cone::pull(&scene, &store);
+            pool.install(|| cone::pull(&scene, &store));
             pull_s += t.elapsed().as_secs_f64();
         }
+
         match o.time {
             None if done < o.spp => {}
             None => break,

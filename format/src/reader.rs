@@ -191,6 +191,7 @@ impl Archive {
         let e = &self.pages[page as usize];
         let raw = zstd::bulk::decompress(bytes, e.raw_len as usize)
             .map_err(|err| self.page_err(page, format!("zstd: {err}")))?;
+        self.release(e.offset as usize, e.compressed_len as usize);
         if raw.len() != e.raw_len as usize {
             return Err(self.page_err(
                 page,
@@ -274,6 +275,31 @@ impl Archive {
             }
         }
         Ok(())
+    }
+
+    /// Drops the mapped file pages of a byte range from this process's resident set once
+    /// decoded, so RSS follows the decoded-page cache rather than every page ever read.
+    /// The kernel keeps them in its page cache; a later read faults them back in.
+    fn release(&self, offset: usize, len: usize) {
+        // Faults map up to 64 KiB around the touched page (Linux fault-around), so release
+        // whole aligned 64 KiB blocks, neighbours included.
+        const BLOCK: usize = 64 << 10;
+        let start = offset & !(BLOCK - 1);
+        let end = (offset + len)
+            .div_ceil(BLOCK)
+            .saturating_mul(BLOCK)
+            .min(self.map.len());
+        let (offset, len) = (start, end.saturating_sub(start));
+        #[cfg(unix)]
+        // SAFETY: the mapping is read-only and shared; after MADV_DONTNEED a read faults
+        // the same file bytes back in, so no reader can observe a change.
+        unsafe {
+            self.map
+                .unchecked_advise_range(memmap2::UncheckedAdvice::DontNeed, offset, len)
+                .ok();
+        }
+        #[cfg(not(unix))]
+        let _ = (offset, len);
     }
 
     /// The quantization grid of a page.

@@ -27,6 +27,8 @@ use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Cone, ConeHit, Ray, Tracer};
 use canopy_format::codec::{rgbe64_decode, snorm16_decode, unorm8_decode};
 use glam::Vec3A as V;
+use rayon::prelude::*;
+use std::sync::atomic::Ordering::Relaxed;
 
 /// Hits, counted from the eye, whose diffuse light the pixel takes from its own fresh
 /// sample; deeper hits answer with their node's stored mean.
@@ -56,6 +58,8 @@ fn pg_first_tri(scene: &Scene, page: u32, leaf: u32) -> u32 {
 struct Pending {
     /// Store key (global node number) when this bounce's diffuse light is stored.
     node: Option<u64>,
+    /// Page holding that node.
+    page: u32,
     /// Radiance gathered here independent of the continuation: emission and light samples.
     direct: V,
     emission: V,
@@ -97,6 +101,8 @@ pub fn radiance(
 ) -> V {
     let mut stack: Vec<Pending> = Vec::new();
     let mut ray = ray;
+    // Light samples test visibility with the primary cone's opening, from the surface.
+    let shadow_cone = Cone { r0: 0.0, ..cone };
     let mut cone = cone;
     let mut prev_delta = true;
     let mut prev_pdf = 0.0f32;
@@ -125,6 +131,10 @@ pub fn radiance(
         };
         let mut pend = Pending {
             node: None,
+            page: match &hit {
+                ConeHit::Tri(h) => h.page,
+                ConeHit::Node { page, .. } => *page,
+            },
             direct: V::ZERO,
             emission: V::ZERO,
             albedo: V::ZERO,
@@ -170,12 +180,21 @@ pub fn radiance(
                     let frame = Frame::new(n);
                     let wo_l = frame.to_local(wo);
                     if !bsdf.has_smooth_only() {
-                        pend.direct +=
-                            light_sample(scene, tr, p, err, ng, 0.0, [u_pick, ul0, ul1], |wi| {
+                        pend.direct += light_sample(
+                            scene,
+                            tr,
+                            p,
+                            err,
+                            ng,
+                            0.0,
+                            &shadow_cone,
+                            [u_pick, ul0, ul1],
+                            |wi| {
                                 let wl = frame.to_local(wi);
                                 let (f, pdf) = bsdf.eval(wo_l, wl);
                                 (f * wl.z.abs(), pdf)
-                            });
+                            },
+                        );
                     }
                     let Some(bs) = bsdf.sample(wo_l, u_lobe, [ud0, ud1]) else {
                         stack.push(pend);
@@ -279,6 +298,7 @@ pub fn radiance(
             err,
             shade_n,
             min_dist,
+            &shadow_cone,
             [u_pick, ul0, ul1],
             |wi| (V::splat(theta(wi) * std::f32::consts::FRAC_1_PI), 0.0),
         );
@@ -314,6 +334,11 @@ pub fn radiance(
     // Unwind: each bounce's value is its emission plus what it scatters of the next.
     while let Some(b) = stack.pop() {
         let incoming = b.direct + b.weight * tail;
+        if b.node.is_some() {
+            if let Some(d) = scene.dirty.get(b.page as usize) {
+                d.store(true, Relaxed);
+            }
+        }
         tail = if b.diffuse {
             let scattered = match b.node {
                 // Near the eye the fresh sample is the path's; it also feeds the store.
@@ -366,6 +391,8 @@ fn power(a: f32, b: f32) -> f32 {
 }
 
 /// One light sample with MIS against the BSDF: `f(wi)` returns (value · cos, BSDF pdf).
+/// Visibility is a cone of the pixel's opening from the shading point, so distant occluders
+/// are tested at a coarse level and far pages need not load.
 /// Light nearer than `min_dist` counts as if at `min_dist` (1/d² clamped).
 #[allow(clippy::too_many_arguments)]
 fn light_sample(
@@ -375,6 +402,7 @@ fn light_sample(
     err: V,
     n: V,
     min_dist: f32,
+    shadow_cone: &Cone,
     u: [f32; 3],
     f: impl Fn(V) -> (V, f32),
 ) -> V {
@@ -389,10 +417,11 @@ fn light_sample(
     let shadow = match ls.point {
         Some((q, qerr, qn)) => {
             let to = offset_origin(q, qerr, qn, from - q);
+            let len = (to - from).length();
             Ray {
                 o: from,
-                d: to - from,
-                t_max: 1.0 - 1e-4,
+                d: (to - from) / len,
+                t_max: len * (1.0 - 1e-4),
             }
         }
         None => Ray {
@@ -401,7 +430,7 @@ fn light_sample(
             t_max: f32::INFINITY,
         },
     };
-    if tr.occluded(&shadow) {
+    if tr.cone_occluded(&shadow, shadow_cone) {
         return V::ZERO;
     }
     let w = if ls.pdf > 0.0 {
@@ -417,17 +446,42 @@ fn light_sample(
     fv * ls.weight * w * clamp
 }
 
-/// Pull (004 §4.8): every inner node of the touched pages gets the area-weighted mean of
+/// Pull (004 §4.8): every inner node of the resident pages whose light changed (and of
+/// their ancestor pages) gets the area-weighted mean of
 /// its children's stored light, deepest pages first so page roots are ready for their
-/// parents.
+/// parents. Evicted pages are skipped, not reloaded: their nodes keep the values of the
+/// last pull (the store itself never loses samples).
 pub fn pull(scene: &Scene, store: &RadianceStore) {
     let archive = &scene.cache.archive;
+    let dirty = |i: u32| scene.dirty[i as usize].swap(false, Relaxed);
     let mut pages: Vec<u32> = (0..archive.pages.len() as u32)
-        .filter(|&i| scene.cache.was_touched(i))
+        .filter(|&i| dirty(i))
         .collect();
+    // A changed page changes its parent page's cut node: pull the ancestors too.
+    let mut seen: std::collections::HashSet<u32> = pages.iter().copied().collect();
+    let mut i = 0;
+    while i < pages.len() {
+        let parent = archive.pages[pages[i] as usize].parent_page;
+        if parent != canopy_format::NONE && seen.insert(parent) {
+            pages.push(parent);
+        }
+        i += 1;
+    }
     pages.sort_by_key(|&i| std::cmp::Reverse(archive.pages[i as usize].level));
-    for id in pages {
-        let page = scene.cache.get(id);
+    // Pages of one level are independent: pull them in parallel, level by level.
+    for level in
+        pages.chunk_by(|a, b| archive.pages[*a as usize].level == archive.pages[*b as usize].level)
+    {
+        level.par_iter().for_each(|&id| pull_page(scene, store, id));
+    }
+}
+
+fn pull_page(scene: &Scene, store: &RadianceStore, id: u32) {
+    let archive = &scene.cache.archive;
+    {
+        let Some(page) = scene.cache.get_resident(id) else {
+            return;
+        };
         for (i, n) in page.bvh.iter().enumerate().rev() {
             let a = n.a & !KIND_MASK;
             let here = page.first_node + i as u64;
@@ -464,7 +518,9 @@ pub fn pull(scene: &Scene, store: &RadianceStore) {
             let areas = match n.a & KIND_MASK {
                 INNER => [page.nodes[a as usize].area, page.nodes[n.b as usize].area],
                 _ => {
-                    let child = scene.cache.get(a);
+                    let Some(child) = scene.cache.get_resident(a) else {
+                        continue;
+                    };
                     match (child.nodes.first(), child.nodes.get(1)) {
                         (Some(l), Some(r)) => [l.area, r.area],
                         _ => continue,

@@ -19,6 +19,8 @@ pub struct Scene {
     pub max_depth: Option<u32>,
     /// One bit per node of the archive: leaves hit (ancestors are added at the end).
     pub touched: NodeSet,
+    /// Pages whose stored light changed since the last pull (cone integrator).
+    pub dirty: Vec<std::sync::atomic::AtomicBool>,
 }
 
 /// Per-thread counters, summed once per tile.

@@ -18,6 +18,10 @@ use crossbeam_channel::{Receiver, Sender, TrySendError};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, Mutex, RwLock};
 
+/// Evictions between returning freed heap memory to the system.
+#[cfg(target_os = "linux")]
+const TRIM_EVERY: u64 = 1024;
+
 /// Pages this many levels from the root are pinned.
 pub const PIN_LEVELS: u16 = 2;
 
@@ -360,8 +364,17 @@ impl PageCache {
             }
             if let Some(p) = slot.page.write().expect("slot").take() {
                 self.resident.fetch_sub(p.bytes, Relaxed);
-                self.evictions.fetch_add(1, Relaxed);
+                let n = self.evictions.fetch_add(1, Relaxed) + 1;
                 self.epoch.fetch_add(1, Relaxed);
+                // Hand freed page memory back to the system now and then, so RSS follows
+                // the cache rather than the high-water mark of a fragmented heap.
+                #[cfg(target_os = "linux")]
+                if n.is_multiple_of(TRIM_EVERY) {
+                    // SAFETY: malloc_trim only releases free heap memory.
+                    unsafe {
+                        libc::malloc_trim(0);
+                    }
+                }
             }
         }
     }
@@ -369,6 +382,11 @@ impl PageCache {
     /// The first page error met, if any.
     pub fn error(&self) -> Option<String> {
         self.error.lock().expect("error lock").clone()
+    }
+
+    /// The page if it is resident, without loading it.
+    pub fn get_resident(&self, id: u32) -> Option<Arc<Page>> {
+        self.slots[id as usize].page.read().expect("slot").clone()
     }
 
     /// Moves whenever a page is evicted: handles taken before must be dropped.

@@ -287,6 +287,8 @@ impl<'a> Tracer<'a> {
     ) -> bool {
         self.rays += 1;
         let prep = Prep::new(ray);
+        // A node holding the far end of a bounded ray (a light) is never an occluder.
+        let end = ray.t_max.is_finite().then(|| ray.o + ray.d * ray.t_max);
         let mut t_max = ray.t_max;
         let mut stack = std::mem::take(&mut self.stack);
         stack.clear();
@@ -314,9 +316,12 @@ impl<'a> Tracer<'a> {
             };
             if let Some((cone, on_node)) = lod.as_mut() {
                 // 004 eq. 4.12: stop at a node the cone cannot resolve, unless the ray
-                // starts inside it (end of §4.5.2).
+                // starts inside it (end of §4.5.2) or ends inside it.
                 let side = (V::from(node.hi) - V::from(node.lo)).max_element();
-                if cone.radius(tn) * cone.scale > side && !inside(ray.o, node) {
+                if cone.radius(tn) * cone.scale > side
+                    && !inside(ray.o, node)
+                    && !end.is_some_and(|e| inside(e, node))
+                {
                     on_node(page, ni, tn);
                     found = true;
                     t_max = tn;
@@ -398,6 +403,16 @@ impl<'a> Tracer<'a> {
     /// Whether anything blocks the ray before `ray.t_max`.
     pub fn occluded(&mut self, ray: &Ray) -> bool {
         self.traverse(ray, |_, _, _, _, _| {}, true, None)
+    }
+
+    /// Whether a shadow cone meets anything before `ray.t_max`: like `occluded`, but a node
+    /// the cone cannot resolve counts as an occluder (004 §4.6.2 casts light samples as
+    /// cones too). `ray.d` must be unit length.
+    pub fn cone_occluded(&mut self, ray: &Ray, cone: &Cone) -> bool {
+        if cone.scale <= 0.0 {
+            return self.occluded(ray);
+        }
+        self.cone_hit(ray, cone).is_some()
     }
 
     /// Nearest hit of a cone: a leaf triangle, or the first node whose box the cone's
