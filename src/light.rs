@@ -6,6 +6,7 @@
 
 use crate::material::Material;
 use crate::paging::{Page, CHILD_PAGE, INNER, KIND_MASK, LEAF};
+use crate::trace::{offset_origin, Ray};
 use anyhow::Result;
 use canopy_format::{Archive, LightRecord, NodeFlags};
 use glam::Vec3A as V;
@@ -50,6 +51,29 @@ pub struct LightSample {
     pub weight: V,
     /// Solid-angle pdf (area lights), 0 for delta lights.
     pub pdf: f32,
+}
+
+impl LightSample {
+    /// The shadow ray from `from` (already offset off its surface) to the sampled point,
+    /// whose own end is offset off the light's surface; unit direction.
+    pub fn shadow_ray(&self, from: V) -> Ray {
+        match self.point {
+            Some((q, qerr, qn)) => {
+                let to = offset_origin(q, qerr, qn, from - q);
+                let len = (to - from).length();
+                Ray {
+                    o: from,
+                    d: (to - from) / len,
+                    t_max: len * (1.0 - 1e-4),
+                }
+            }
+            None => Ray {
+                o: from,
+                d: self.wi,
+                t_max: f32::INFINITY,
+            },
+        }
+    }
 }
 
 pub struct Lights {

@@ -18,6 +18,7 @@
 //! the Θ heuristic of eq. 4.4 for light samples. The light distribution pass (§4.7) is not
 //! implemented: scenes with glossy or transmissive surfaces say so in the stats.
 
+use super::path::power_heuristic;
 use super::{Counters, Scene};
 use crate::build::MAX_LEAF_TRIS;
 use crate::material::{cosine_hemisphere, Frame};
@@ -164,7 +165,7 @@ pub fn radiance(
                         let dist2 = h.t * h.t;
                         let lp = scene.lights.pick_pdf(le, area, m.double_sided) * dist2
                             / (ng.dot(wo).abs() * area);
-                        pend.emission = le * power(prev_pdf, lp);
+                        pend.emission = le * power_heuristic(prev_pdf, lp);
                     }
                 }
                 if !front && !m.double_sided && m.transmission == 0.0 {
@@ -381,15 +382,6 @@ fn roulette(stack: &mut [Pending], depth: u32, u: f32) -> bool {
     true
 }
 
-fn power(a: f32, b: f32) -> f32 {
-    let (a2, b2) = (a * a, b * b);
-    if a2 + b2 > 0.0 {
-        a2 / (a2 + b2)
-    } else {
-        0.0
-    }
-}
-
 /// One light sample with MIS against the BSDF: `f(wi)` returns (value · cos, BSDF pdf).
 /// Visibility is a cone of the pixel's opening from the shading point, so distant occluders
 /// are tested at a coarse level and far pages need not load.
@@ -414,27 +406,11 @@ fn light_sample(
         return V::ZERO;
     }
     let from = offset_origin(p, err, n, ls.wi);
-    let shadow = match ls.point {
-        Some((q, qerr, qn)) => {
-            let to = offset_origin(q, qerr, qn, from - q);
-            let len = (to - from).length();
-            Ray {
-                o: from,
-                d: (to - from) / len,
-                t_max: len * (1.0 - 1e-4),
-            }
-        }
-        None => Ray {
-            o: from,
-            d: ls.wi,
-            t_max: f32::INFINITY,
-        },
-    };
-    if tr.cone_occluded(&shadow, shadow_cone) {
+    if tr.cone_occluded(&ls.shadow_ray(from), shadow_cone) {
         return V::ZERO;
     }
     let w = if ls.pdf > 0.0 {
-        power(ls.pdf, pdf_b)
+        power_heuristic(ls.pdf, pdf_b)
     } else {
         1.0
     };

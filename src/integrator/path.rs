@@ -13,7 +13,8 @@ use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Ray, Tracer};
 use glam::Vec3A as V;
 
-fn power_heuristic(a: f32, b: f32) -> f32 {
+/// Veach's power heuristic (β = 2) for two sampling strategies' pdfs.
+pub fn power_heuristic(a: f32, b: f32) -> f32 {
     let (a2, b2) = (a * a, b * b);
     if a2 + b2 > 0.0 {
         a2 / (a2 + b2)
@@ -84,22 +85,7 @@ pub fn radiance(
                 let (f, pdf_b) = bsdf.eval(wo_l, wi_l);
                 if wi_l.z != 0.0 && f.max_element() > 0.0 {
                     let from = offset_origin(p, err, ng, ls.wi);
-                    let shadow = match ls.point {
-                        Some((q, qerr, qn)) => {
-                            let to = offset_origin(q, qerr, qn, from - q);
-                            Ray {
-                                o: from,
-                                d: to - from,
-                                t_max: 1.0 - 1e-4,
-                            }
-                        }
-                        None => Ray {
-                            o: from,
-                            d: ls.wi,
-                            t_max: f32::INFINITY,
-                        },
-                    };
-                    if !tr.occluded(&shadow) {
+                    if !tr.occluded(&ls.shadow_ray(from)) {
                         let w = if ls.pdf > 0.0 {
                             power_heuristic(ls.pdf, pdf_b)
                         } else {

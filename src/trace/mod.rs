@@ -42,6 +42,17 @@ pub struct Hit {
 }
 
 impl Hit {
+    fn new(page: &Page, leaf: u32, index: u32, t: f32, b: [f32; 3]) -> Hit {
+        Hit {
+            t,
+            b,
+            tri: page.tris[index as usize],
+            page: page.id,
+            leaf,
+            index,
+        }
+    }
+
     /// Hit point from the barycentrics (more accurate than o + t·d) and its error bound.
     pub fn point(&self) -> (V, V) {
         let p = self.tri.p.map(V::from);
@@ -384,16 +395,7 @@ impl<'a> Tracer<'a> {
         let mut best: Option<Hit> = None;
         self.traverse(
             ray,
-            |page, leaf, ti, t, b| {
-                best = Some(Hit {
-                    t,
-                    b,
-                    tri: page.tris[ti as usize],
-                    page: page.id,
-                    leaf,
-                    index: ti,
-                })
-            },
+            |page, leaf, ti, t, b| best = Some(Hit::new(page, leaf, ti, t, b)),
             false,
             None,
         );
@@ -423,16 +425,7 @@ impl<'a> Tracer<'a> {
         let mut on_node = |page: &Page, ni: u32, t: f32| node_best = Some((page.id, ni, t));
         self.traverse(
             ray,
-            |page, leaf, ti, t, b| {
-                tri_best = Some(Hit {
-                    t,
-                    b,
-                    tri: page.tris[ti as usize],
-                    page: page.id,
-                    leaf,
-                    index: ti,
-                })
-            },
+            |page, leaf, ti, t, b| tri_best = Some(Hit::new(page, leaf, ti, t, b)),
             false,
             Some((cone, &mut on_node)),
         );
