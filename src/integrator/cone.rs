@@ -33,20 +33,40 @@ use std::sync::atomic::Ordering::Relaxed;
 
 /// Hits, counted from the eye, whose diffuse light the pixel takes from its own fresh
 /// sample; deeper hits answer with their node's stored mean.
-pub const FRESH: u32 = 2;
+pub const FRESH: u32 = 1;
 
 /// tan α after a diffuse bounce (004 eq. 4.20, d = 0.3).
 pub const DIFFUSE_TAN: f32 = 0.3;
 
 /// Store key of a node's own light.
 pub fn node_key(node: u64) -> u64 {
-    node * (MAX_LEAF_TRIS as u64 + 1)
+    node * (MAX_LEAF_TRIS as u64 + 1) * CELLS
 }
 
-/// Store key of the k-th triangle of a leaf: leaves keep light per triangle, since their
-/// triangles may face different ways; the leaf's own key gets their area-weighted mean.
-pub fn tri_key(leaf: u64, k: u32) -> u64 {
-    node_key(leaf) + 1 + k as u64
+/// Light cells per triangle at most (a 4×4 grid over the barycentrics): a triangle much
+/// larger than `CELL_FRACTION` of the scene keeps light per cell, so a wall lit unevenly
+/// is not one average.
+pub const CELLS: u64 = 16;
+/// Target cell size as a fraction of the scene's bounding diagonal.
+pub const CELL_FRACTION: f32 = 1.0 / 64.0;
+
+/// Cell of a hit inside its triangle: an n×n grid over (b1, b2), n from the longest edge.
+pub fn cell_of(tri: &crate::paging::TriW, b: [f32; 3], cell_size: f32) -> u64 {
+    let p = tri.p.map(V::from);
+    let edge = (p[1] - p[0])
+        .length()
+        .max((p[2] - p[1]).length())
+        .max((p[0] - p[2]).length());
+    let n = (edge / cell_size).ceil().clamp(1.0, 4.0);
+    let i = (b[1] * n).min(n - 1.0).max(0.0) as u64;
+    let j = (b[2] * n).min(n - 1.0).max(0.0) as u64;
+    i * 4 + j
+}
+
+/// Store key of a cell of the k-th triangle of a leaf: leaves keep light per triangle (they
+/// may face different ways) and per cell; the leaf's own key gets their area-weighted mean.
+pub fn tri_key(leaf: u64, k: u32, cell: u64) -> u64 {
+    node_key(leaf) + (1 + k as u64) * CELLS + cell
 }
 
 /// First triangle of a leaf (page-local).
@@ -101,6 +121,8 @@ pub fn radiance(
     c: &mut Counters,
 ) -> V {
     let mut stack: Vec<Pending> = Vec::new();
+    let h = &scene.cache.archive.header;
+    let cell_size = (V::from(h.bounds_max) - V::from(h.bounds_min)).length() * CELL_FRACTION;
     let mut ray = ray;
     // Light samples test visibility with the primary cone's opening, from the surface.
     let shadow_cone = Cone { r0: 0.0, ..cone };
@@ -236,10 +258,11 @@ pub fn radiance(
                     continue;
                 }
                 let k = h.index - pg_first_tri(scene, h.page, h.leaf);
+                let cell = cell_of(&h.tri, h.b, cell_size);
                 (
                     Frame::new(n),
                     bsdf.diffuse,
-                    tri_key(first + h.leaf as u64, k),
+                    tri_key(first + h.leaf as u64, k, cell),
                     None,
                 )
             }
@@ -468,7 +491,21 @@ fn pull_page(scene: &Scene, store: &RadianceStore, id: u32) {
                     let Some(t) = page.tris.get((a + k) as usize) else {
                         continue;
                     };
-                    if let Some((v, c)) = store.get(tri_key(here, k)).and_then(|e| e.value()) {
+                    // The triangle's light: its cells' means, weighted by their samples.
+                    let (mut tv, mut tn, mut tc) = ([0f32; 3], 0u64, u32::MAX);
+                    for cell in 0..CELLS {
+                        if let Some((v, c)) =
+                            store.get(tri_key(here, k, cell)).and_then(|e| e.value())
+                        {
+                            for j in 0..3 {
+                                tv[j] += v[j] * c as f32;
+                            }
+                            tn += c as u64;
+                            tc = tc.min(c);
+                        }
+                    }
+                    if tn > 0 {
+                        let (v, c) = (tv.map(|x| x / tn as f32), tc);
                         let p = t.p.map(V::from);
                         let ar = 0.5 * (p[1] - p[0]).cross(p[2] - p[0]).length();
                         for j in 0..3 {
