@@ -1,10 +1,12 @@
 //! `--integrator cone`: stochastic cone casts with diffuse radiance stored in the nodes
 //! (004 §4.5–4.6, §4.8).
 //!
-//! Each cast is a ray jittered uniformly inside its cone (eq. 4.14–4.16) that stops at the
-//! first node the cone's radius outgrows (eq. 4.12, scaled by `--cone-scale`; 0 traces
-//! exact rays). Primary cones open by one pixel (eq. 4.19); after a diffuse bounce
-//! tan α = 0.3 (eq. 4.20). Every diffuse hit — a leaf's triangle or a whole node — adds a
+//! Each cast is a ray that stops at the first node the cone's radius outgrows (eq. 4.12,
+//! scaled by `--cone-scale`; 0 traces exact rays). Primary cones open by one pixel
+//! (eq. 4.19) and are jittered in the pixel; after a diffuse bounce tan α = 0.3 (eq. 4.20)
+//! from the surface; a mirror keeps the cone and resamples the direction uniformly inside
+//! it (eq. 4.14–4.16). Light samples are cones of the pixel's opening. Every diffuse hit —
+//! a leaf triangle's cell or a whole node — adds a
 //! fresh sample of its incident radiance (one light sample, one cosine-sampled bounce,
 //! emission masked at the next hit as eq. 4.27 does) to the node's store and returns the
 //! node's mean (eq. 4.24–4.25); a node whose counter reached the limit returns its mean
