@@ -144,6 +144,18 @@ impl RadianceStore {
     }
 }
 
+/// Mean of values under weights (areas, sample counts); None when the weights sum to zero.
+pub fn weighted_mean(items: impl IntoIterator<Item = ([f32; 3], f32)>) -> Option<[f32; 3]> {
+    let (mut sum, mut total) = ([0f32; 3], 0f32);
+    for (v, w) in items {
+        for (s, x) in sum.iter_mut().zip(v) {
+            *s += x * w;
+        }
+        total += w;
+    }
+    (total > 0.0).then(|| sum.map(|s| s / total))
+}
+
 /// Received radiance on a binary tree for the push-pull of §4.8: `received[i]` is light a
 /// light pass deposited at node i (over its whole area), `area[i]` the node's area.
 pub struct FluxTree {
@@ -173,10 +185,8 @@ impl FluxTree {
     pub fn pull(&mut self) {
         for i in (0..self.children.len()).rev() {
             if let Some([l, r]) = self.children[i] {
-                let (al, ar) = (self.area[l], self.area[r]);
-                let a = (al + ar).max(f32::MIN_POSITIVE);
-                self.received[i] =
-                    [0, 1, 2].map(|k| (self.received[l][k] * al + self.received[r][k] * ar) / a);
+                let kids = [l, r].map(|c| (self.received[c], self.area[c]));
+                self.received[i] = weighted_mean(kids).unwrap_or_default();
             }
         }
     }

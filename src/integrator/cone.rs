@@ -24,8 +24,8 @@ use super::path::power_heuristic;
 use super::{Counters, Scene};
 use crate::build::MAX_LEAF_TRIS;
 use crate::material::{cosine_hemisphere, Frame};
-use crate::paging::{Page, CHILD_PAGE, INNER, KIND_MASK, LEAF};
-use crate::radiance::RadianceStore;
+use crate::paging::{CHILD_PAGE, INNER, KIND_MASK, LEAF};
+use crate::radiance::{weighted_mean, RadianceStore};
 use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Cone, ConeHit, Ray, Tracer};
 use canopy_format::codec::{rgbe64_decode, snorm16_decode, unorm8_decode};
@@ -69,12 +69,6 @@ pub fn cell_of(tri: &crate::paging::TriW, b: [f32; 3], cell_size: f32) -> u64 {
 /// may face different ways) and per cell; the leaf's own key gets their area-weighted mean.
 pub fn tri_key(leaf: u64, k: u32, cell: u64) -> u64 {
     node_key(leaf) + (1 + k as u64) * CELLS + cell
-}
-
-/// First triangle of a leaf (page-local).
-fn pg_first_tri(scene: &Scene, page: u32, leaf: u32) -> u32 {
-    let pg = scene.cache.get(page);
-    pg.bvh.get(leaf as usize).map_or(0, |n| n.a & !KIND_MASK)
 }
 
 /// What one bounce needs to finish once the rest of the path is known.
@@ -198,8 +192,7 @@ pub fn radiance(
                 }
                 let n = if front { ng } else { -ng };
                 let bsdf = m.bsdf(front);
-                let first = scene.cache.archive.pages[h.page as usize].first_node;
-                scene.touched.insert(first + h.leaf as u64);
+                scene.touched.insert(h.leaf);
                 if m.metallic > 0.0 || m.transmission > 0.0 || m.specular > 0.0 {
                     // Not purely diffuse: one exact path-tracing step, nothing stored.
                     let frame = Frame::new(n);
@@ -259,22 +252,19 @@ pub fn radiance(
                     }
                     continue;
                 }
-                let k = h.index - pg_first_tri(scene, h.page, h.leaf);
                 let cell = cell_of(&h.tri, h.b, cell_size);
                 (
                     Frame::new(n),
                     bsdf.diffuse,
-                    tri_key(first + h.leaf as u64, k, cell),
+                    tri_key(h.leaf, h.slot, cell),
                     None,
                 )
             }
-            ConeHit::Node { page, node, .. } => {
-                let pg: std::sync::Arc<Page> = scene.cache.get(*page);
-                let Some(raw) = pg.nodes.get(*node as usize) else {
-                    break;
-                };
-                scene.touched.insert(pg.first_node + *node as u64);
-                let key = node_key(pg.first_node + *node as u64);
+            ConeHit::Node {
+                node, record: raw, ..
+            } => {
+                scene.touched.insert(*node);
+                let key = node_key(*node);
                 let nn = V::from(raw.normal.map(snorm16_decode));
                 let len = nn.length();
                 let n = if len > 1e-6 { nn / len } else { wo };
@@ -478,80 +468,56 @@ pub fn pull(scene: &Scene, store: &RadianceStore) {
 }
 
 fn pull_page(scene: &Scene, store: &RadianceStore, id: u32) {
-    let archive = &scene.cache.archive;
-    {
-        let Some(page) = scene.cache.get_resident(id) else {
-            return;
-        };
-        for (i, n) in page.bvh.iter().enumerate().rev() {
-            let a = n.a & !KIND_MASK;
-            let here = page.first_node + i as u64;
-            if n.a & KIND_MASK == LEAF {
-                // A leaf's light: the area-weighted mean over its triangles that have some.
-                let (mut sum, mut area, mut count) = ([0f32; 3], 0f32, u32::MAX);
-                for k in 0..n.b {
-                    let Some(t) = page.tris.get((a + k) as usize) else {
-                        continue;
-                    };
-                    // The triangle's light: its cells' means, weighted by their samples.
-                    let (mut tv, mut tn, mut tc) = ([0f32; 3], 0u64, u32::MAX);
-                    for cell in 0..CELLS {
-                        if let Some((v, c)) =
-                            store.get(tri_key(here, k, cell)).and_then(|e| e.value())
-                        {
-                            for j in 0..3 {
-                                tv[j] += v[j] * c as f32;
-                            }
-                            tn += c as u64;
-                            tc = tc.min(c);
-                        }
-                    }
-                    if tn > 0 {
-                        let (v, c) = (tv.map(|x| x / tn as f32), tc);
-                        let p = t.p.map(V::from);
-                        let ar = 0.5 * (p[1] - p[0]).cross(p[2] - p[0]).length();
-                        for j in 0..3 {
-                            sum[j] += v[j] * ar;
-                        }
-                        area += ar;
-                        count = count.min(c);
-                    }
-                }
-                if area > 0.0 {
-                    store.set_pulled(node_key(here), sum.map(|v| v / area), count);
-                }
-                continue;
-            }
-            let kids = match n.a & KIND_MASK {
-                INNER => [page.first_node + a as u64, page.first_node + n.b as u64].map(node_key),
-                CHILD_PAGE => {
-                    let f = archive.pages[a as usize].first_node;
-                    [node_key(f), node_key(f + 1)]
-                }
-                _ => continue,
-            };
-            let areas = match n.a & KIND_MASK {
-                INNER => [page.nodes[a as usize].area, page.nodes[n.b as usize].area],
-                _ => {
+    let Some(page) = scene.cache.get_resident(id) else {
+        return;
+    };
+    let light = |key: u64| store.get(key).and_then(|e| e.value());
+    for (i, n) in page.bvh.iter().enumerate().rev() {
+        let a = n.a & !KIND_MASK;
+        let here = page.first_node + i as u64;
+        // (value, weight, samples) of the parts this node's light is the mean of.
+        let parts: Vec<([f32; 3], f32, u32)> = match n.a & KIND_MASK {
+            LEAF => (0..n.b)
+                .filter_map(|k| {
+                    let t = page.tris.get((a + k) as usize)?;
+                    // A triangle's light: its cells' means weighted by their samples.
+                    let cells: Vec<_> = (0..CELLS)
+                        .filter_map(|cell| light(tri_key(here, k, cell)))
+                        .collect();
+                    let v = weighted_mean(cells.iter().map(|&(v, c)| (v, c as f32)))?;
+                    let samples = cells.iter().map(|&(_, c)| c).min()?;
+                    let p = t.p.map(V::from);
+                    Some((v, 0.5 * (p[1] - p[0]).cross(p[2] - p[0]).length(), samples))
+                })
+                .collect(),
+            kind @ (INNER | CHILD_PAGE) => {
+                let (keys, areas) = if kind == INNER {
+                    (
+                        [a, n.b].map(|c| page.first_node + c as u64),
+                        [a, n.b].map(|c| page.nodes[c as usize].area),
+                    )
+                } else {
                     let Some(child) = scene.cache.get_resident(a) else {
                         continue;
                     };
-                    match (child.nodes.first(), child.nodes.get(1)) {
-                        (Some(l), Some(r)) => [l.area, r.area],
-                        _ => continue,
-                    }
-                }
-            };
-            let vals: Vec<_> = kids
-                .iter()
-                .map(|&k| store.get(k).and_then(|e| e.value()))
-                .collect();
-            if let (Some((vl, nl)), Some((vr, nr))) = (vals[0], vals[1]) {
-                let (al, ar) = (areas[0], areas[1]);
-                let a = (al + ar).max(f32::MIN_POSITIVE);
-                let v = [0, 1, 2].map(|k| (vl[k] * al + vr[k] * ar) / a);
-                store.set_pulled(node_key(here), v, nl.min(nr));
+                    let (Some(l), Some(r)) = (child.nodes.first(), child.nodes.get(1)) else {
+                        continue;
+                    };
+                    ([child.first_node, child.first_node + 1], [l.area, r.area])
+                };
+                let (Some(l), Some(r)) = (light(node_key(keys[0])), light(node_key(keys[1])))
+                else {
+                    continue;
+                };
+                vec![(l.0, areas[0], l.1), (r.0, areas[1], r.1)]
             }
+            _ => continue,
+        };
+        let Some(samples) = parts.iter().map(|p| p.2).min() else {
+            continue;
+        };
+        if let Some(v) = weighted_mean(parts.iter().map(|&(v, w, _)| (v, w))) {
+            store.set_pulled(node_key(here), v, samples);
         }
     }
 }

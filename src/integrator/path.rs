@@ -44,8 +44,7 @@ pub fn radiance(
         let Some(hit) = tr.closest_hit(&ray) else {
             break;
         };
-        let first = scene.cache.archive.pages[hit.page as usize].first_node;
-        scene.touched.insert(first + hit.leaf as u64);
+        scene.touched.insert(hit.leaf);
         let m = &scene.materials[hit.tri.material as usize];
         let ng_raw = hit.ng();
         let area = 0.5 * ng_raw.length();

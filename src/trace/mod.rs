@@ -8,6 +8,7 @@
 //! magnitude instead of being a fixed epsilon.
 
 use crate::paging::{Page, PageCache, TNode, TriW, CHILD_PAGE, INNER, KIND_MASK, LEAF};
+use canopy_format::Node;
 use glam::Vec3A as V;
 use std::sync::Arc;
 
@@ -35,21 +36,22 @@ pub struct Hit {
     pub b: [f32; 3],
     pub tri: TriW,
     pub page: u32,
-    /// Page-local node index of the leaf.
-    pub leaf: u32,
-    /// Page-local triangle index.
-    pub index: u32,
+    /// Global node number of the leaf.
+    pub leaf: u64,
+    /// Position of the triangle within its leaf (0..MAX_LEAF_TRIS).
+    pub slot: u32,
 }
 
 impl Hit {
     fn new(page: &Page, leaf: u32, index: u32, t: f32, b: [f32; 3]) -> Hit {
+        let first = page.bvh[leaf as usize].a & !KIND_MASK;
         Hit {
             t,
             b,
             tri: page.tris[index as usize],
             page: page.id,
-            leaf,
-            index,
+            leaf: page.first_node + leaf as u64,
+            slot: index - first,
         }
     }
 
@@ -212,18 +214,21 @@ impl Cone {
     }
 }
 
-/// Called with (page, node, entry distance) when a cone stops at a node.
+/// Called with (page, page-local node, entry distance) when a cone stops at a node.
 type NodeVisitor<'v> = dyn FnMut(&Page, u32, f32) + 'v;
 
 /// What a cone meets.
 #[derive(Clone, Copy, Debug)]
 pub enum ConeHit {
     Tri(Hit),
-    /// A node accepted as a whole, at its box entry distance.
+    /// A node accepted as a whole, at its box entry distance; carries the node's record so
+    /// shading needs no page lookup.
     Node {
         page: u32,
-        node: u32,
+        /// Global node number.
+        node: u64,
         t: f32,
+        record: Node,
     },
 }
 
@@ -421,8 +426,15 @@ impl<'a> Tracer<'a> {
     /// radius outgrows (004 §4.5.1); `ray.d` must be unit length.
     pub fn cone_hit(&mut self, ray: &Ray, cone: &Cone) -> Option<ConeHit> {
         let mut tri_best: Option<Hit> = None;
-        let mut node_best: Option<(u32, u32, f32)> = None;
-        let mut on_node = |page: &Page, ni: u32, t: f32| node_best = Some((page.id, ni, t));
+        let mut node_best: Option<ConeHit> = None;
+        let mut on_node = |page: &Page, ni: u32, t: f32| {
+            node_best = page.nodes.get(ni as usize).map(|record| ConeHit::Node {
+                page: page.id,
+                node: page.first_node + ni as u64,
+                t,
+                record: *record,
+            })
+        };
         self.traverse(
             ray,
             |page, leaf, ti, t, b| tri_best = Some(Hit::new(page, leaf, ti, t, b)),
@@ -431,8 +443,8 @@ impl<'a> Tracer<'a> {
         );
         // Both callbacks close t_max, so whichever came last is the nearest.
         match (tri_best, node_best) {
-            (Some(h), Some((_, _, t))) if h.t <= t => Some(ConeHit::Tri(h)),
-            (_, Some((page, node, t))) => Some(ConeHit::Node { page, node, t }),
+            (Some(h), Some(ConeHit::Node { t, .. })) if h.t <= t => Some(ConeHit::Tri(h)),
+            (_, Some(n)) => Some(n),
             (h, None) => h.map(ConeHit::Tri),
         }
     }
