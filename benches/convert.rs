@@ -1,7 +1,7 @@
 //! Converter triangles/s (bundled scenes, end to end: import, build, compress, write) and
 //! page decode MB/s (checksum + zstd + parse + index checks, per decoded byte).
 
-use canopy::build::{convert, BvhQuality, ConvertOptions};
+use canopy::build::{convert, ConvertOptions};
 use canopy_format::Archive;
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use std::path::{Path, PathBuf};
@@ -13,16 +13,7 @@ fn scene(name: &str) -> PathBuf {
 }
 
 fn options(input: &str, output: &Path) -> ConvertOptions {
-    ConvertOptions {
-        inputs: vec![scene(input)],
-        output: output.to_path_buf(),
-        mem_budget: 2 << 30,
-        scene: None,
-        page_nodes: 512,
-        zstd_level: 1,
-        bvh: BvhQuality::Auto,
-        progress: false,
-    }
+    ConvertOptions::new(vec![scene(input)], output.to_path_buf())
 }
 
 fn bench_convert(c: &mut Criterion) {

@@ -2,7 +2,7 @@
 //! through the scene camera, and incoherent rays (closest hit and any hit) from points on
 //! surfaces in random directions, as a path tracer's bounces are.
 
-use canopy::build::{convert, BvhQuality, ConvertOptions};
+use canopy::build::{convert, ConvertOptions};
 use canopy::camera::Camera;
 use canopy::paging::PageCache;
 use canopy::trace::{Ray, Tracer};
@@ -53,17 +53,7 @@ fn bench_trace(c: &mut Criterion) {
     for name in ["bunny_box", "sponza"] {
         let out = dir.path().join(format!("{name}.canopy"));
         let scene = Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("scenes/{name}.glb"));
-        convert(&ConvertOptions {
-            inputs: vec![scene],
-            output: out.clone(),
-            mem_budget: 2 << 30,
-            scene: None,
-            page_nodes: 512,
-            zstd_level: 1,
-            bvh: BvhQuality::Auto,
-            progress: false,
-        })
-        .unwrap();
+        convert(&ConvertOptions::new(vec![scene], out.clone())).unwrap();
         let cache = PageCache::new(Arc::new(Archive::open(&out).unwrap()), None, 1).unwrap();
         let (primary, bounce) = rays(&cache);
         let mut tr = Tracer::new(&cache);

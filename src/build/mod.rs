@@ -49,6 +49,23 @@ pub struct ConvertOptions {
     pub progress: bool,
 }
 
+impl ConvertOptions {
+    /// The defaults of `canopy convert` (2 GiB budget, 512-node pages, zstd level 1,
+    /// automatic BVH preset), without progress output.
+    pub fn new(inputs: Vec<PathBuf>, output: PathBuf) -> ConvertOptions {
+        ConvertOptions {
+            inputs,
+            output,
+            mem_budget: 2 << 30,
+            scene: None,
+            page_nodes: 512,
+            zstd_level: 1,
+            bvh: BvhQuality::Auto,
+            progress: false,
+        }
+    }
+}
+
 /// How hard the hierarchy builder works (obvhs presets).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum BvhQuality {
