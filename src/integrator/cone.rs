@@ -21,7 +21,7 @@
 //! implemented: scenes with glossy or transmissive surfaces say so in the stats.
 
 use super::path::power_heuristic;
-use super::{Counters, Scene};
+use super::{sample_light, Counters, Scene};
 use crate::build::MAX_LEAF_TRIS;
 use crate::material::{cosine_hemisphere, Frame};
 use crate::paging::{CHILD_PAGE, INNER, KIND_MASK, LEAF};
@@ -198,7 +198,7 @@ pub fn radiance(
                     let frame = Frame::new(n);
                     let wo_l = frame.to_local(wo);
                     if !bsdf.has_smooth_only() {
-                        pend.direct += light_sample(
+                        pend.direct += sample_light(
                             scene,
                             tr,
                             p,
@@ -307,7 +307,7 @@ pub fn radiance(
             None => frame.n.dot(wi).max(0.0),
         };
         let shade_n = if ng == V::ZERO { frame.n } else { ng };
-        pend.direct = light_sample(
+        pend.direct = sample_light(
             scene,
             tr,
             p,
@@ -395,46 +395,6 @@ fn roulette(stack: &mut [Pending], depth: u32, u: f32) -> bool {
         last.weight /= q;
     }
     true
-}
-
-/// One light sample with MIS against the BSDF: `f(wi)` returns (value · cos, BSDF pdf).
-/// Visibility is a cone of the pixel's opening from the shading point, so distant occluders
-/// are tested at a coarse level and far pages need not load.
-/// Light nearer than `min_dist` counts as if at `min_dist` (1/d² clamped).
-#[allow(clippy::too_many_arguments)]
-fn light_sample(
-    scene: &Scene,
-    tr: &mut Tracer,
-    p: V,
-    err: V,
-    n: V,
-    min_dist: f32,
-    shadow_cone: &Cone,
-    u: [f32; 3],
-    f: impl Fn(V) -> (V, f32),
-) -> V {
-    let Some(ls) = scene.lights.sample(p, u[0], [u[1], u[2]]) else {
-        return V::ZERO;
-    };
-    let (fv, pdf_b) = f(ls.wi);
-    if fv.max_element() <= 0.0 {
-        return V::ZERO;
-    }
-    let from = offset_origin(p, err, n, ls.wi);
-    if tr.cone_occluded(&ls.shadow_ray(from), shadow_cone) {
-        return V::ZERO;
-    }
-    let w = if ls.pdf > 0.0 {
-        power_heuristic(ls.pdf, pdf_b)
-    } else {
-        1.0
-    };
-    let clamp = if ls.dist < min_dist {
-        (ls.dist / min_dist).powi(2)
-    } else {
-        1.0
-    };
-    fv * ls.weight * w * clamp
 }
 
 /// Pull (004 §4.8): every inner node of the resident pages whose light changed (and of

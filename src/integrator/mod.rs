@@ -7,6 +7,9 @@ use crate::camera::Camera;
 use crate::light::Lights;
 use crate::material::Material;
 use crate::paging::PageCache;
+use crate::trace::{offset_origin, Cone, Tracer};
+use glam::Vec3A as V;
+use path::power_heuristic;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::Arc;
 
@@ -63,4 +66,45 @@ impl NodeSet {
             .map(|w| w.load(Relaxed).count_ones() as u64)
             .sum()
     }
+}
+
+/// One light sample with MIS against the BSDF: `f(wi)` returns (value · cos, BSDF pdf).
+/// Visibility is tested with `shadow_cone` (scale 0: an exact ray; the cone integrator uses
+/// the pixel's opening, so distant occluders are tested at a coarse level and far pages
+/// need not load).
+/// Light nearer than `min_dist` counts as if at `min_dist` (1/d² clamped).
+#[allow(clippy::too_many_arguments)]
+pub fn sample_light(
+    scene: &Scene,
+    tr: &mut Tracer,
+    p: V,
+    err: V,
+    n: V,
+    min_dist: f32,
+    shadow_cone: &Cone,
+    u: [f32; 3],
+    f: impl Fn(V) -> (V, f32),
+) -> V {
+    let Some(ls) = scene.lights.sample(p, u[0], [u[1], u[2]]) else {
+        return V::ZERO;
+    };
+    let (fv, pdf_b) = f(ls.wi);
+    if fv.max_element() <= 0.0 {
+        return V::ZERO;
+    }
+    let from = offset_origin(p, err, n, ls.wi);
+    if tr.cone_occluded(&ls.shadow_ray(from), shadow_cone) {
+        return V::ZERO;
+    }
+    let w = if ls.pdf > 0.0 {
+        power_heuristic(ls.pdf, pdf_b)
+    } else {
+        1.0
+    };
+    let clamp = if ls.dist < min_dist {
+        (ls.dist / min_dist).powi(2)
+    } else {
+        1.0
+    };
+    fv * ls.weight * w * clamp
 }

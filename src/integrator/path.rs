@@ -7,10 +7,10 @@
 //! seed. Emitters are one-sided unless their material is double-sided; a single-sided
 //! opaque surface hit from behind absorbs.
 
-use super::{Counters, Scene};
+use super::{sample_light, Counters, Scene};
 use crate::material::Frame;
 use crate::sampler::PixelSampler;
-use crate::trace::{offset_origin, Ray, Tracer};
+use crate::trace::{offset_origin, Cone, Ray, Tracer};
 use glam::Vec3A as V;
 
 /// Veach's power heuristic (β = 2) for two sampling strategies' pdfs.
@@ -79,21 +79,27 @@ pub fn radiance(
 
         // Next-event estimation.
         if !bsdf.has_smooth_only() {
-            if let Some(ls) = scene.lights.sample(p, u_pick, [ul0, ul1]) {
-                let wi_l = frame.to_local(ls.wi);
-                let (f, pdf_b) = bsdf.eval(wo_l, wi_l);
-                if wi_l.z != 0.0 && f.max_element() > 0.0 {
-                    let from = offset_origin(p, err, ng, ls.wi);
-                    if !tr.occluded(&ls.shadow_ray(from)) {
-                        let w = if ls.pdf > 0.0 {
-                            power_heuristic(ls.pdf, pdf_b)
-                        } else {
-                            1.0
-                        };
-                        l += beta * f * wi_l.z.abs() * ls.weight * w;
-                    }
-                }
-            }
+            let exact = Cone {
+                r0: 0.0,
+                tan_a: 0.0,
+                scale: 0.0,
+            };
+            l += beta
+                * sample_light(
+                    scene,
+                    tr,
+                    p,
+                    err,
+                    ng,
+                    0.0,
+                    &exact,
+                    [u_pick, ul0, ul1],
+                    |wi| {
+                        let wl = frame.to_local(wi);
+                        let (f, pdf) = bsdf.eval(wo_l, wl);
+                        (f * wl.z.abs(), pdf)
+                    },
+                );
         }
 
         // Continue the path by sampling the BSDF.
