@@ -4,7 +4,7 @@
 //! Emitters are gathered once by walking only the subtrees whose nodes carry the EMISSIVE
 //! flag, so a huge scene with a few lamps loads a few pages.
 
-use crate::material::Material;
+use crate::material::{cosine_hemisphere, Frame, Material};
 use crate::paging::{Page, CHILD_PAGE, INNER, KIND_MASK, LEAF};
 use crate::trace::{offset_origin, Ray};
 use anyhow::Result;
@@ -82,6 +82,15 @@ pub struct Lights {
     /// Cumulative power, emitters first, then punctual lights.
     cdf: Vec<f32>,
     total: f32,
+    /// Bounding sphere of the scene (directional lights emit through its disc).
+    center: V,
+    radius: f32,
+}
+
+/// A photon leaving a light: its ray and its power (divided by the sampling pdfs).
+pub struct Photon {
+    pub ray: Ray,
+    pub flux: V,
 }
 
 /// Power of an emitter as the light chooser weighs it.
@@ -162,11 +171,14 @@ impl Lights {
             } as f64;
             cdf.push(total as f32);
         }
+        let h = &archive.header;
         Ok(Lights {
             emitters,
             punctual,
             cdf,
             total: total as f32,
+            center: 0.5 * (V::from(h.bounds_min) + V::from(h.bounds_max)),
+            radius: scene_radius,
         })
     }
 
@@ -245,13 +257,7 @@ impl Lights {
                     return None;
                 }
                 let wi = d / dist;
-                let c = (-wi).dot(*dir);
-                let fall = if *cos_outer <= -1.0 {
-                    1.0
-                } else {
-                    let t = ((c - cos_outer) / (cos_inner - cos_outer).max(1e-6)).clamp(0.0, 1.0);
-                    t * t
-                };
+                let fall = spot_falloff((-wi).dot(*dir), *cos_outer, *cos_inner);
                 if fall <= 0.0 {
                     return None;
                 }
@@ -272,6 +278,85 @@ impl Lights {
             }),
         }
     }
+
+    /// Emits a photon (004 §4.7, eq. 4.28): a light chosen by power, a point on it and a
+    /// direction (cosine-weighted from a lamp's surface, uniform in a spot's cone, parallel
+    /// through the scene's bounding disc for a directional light), with six uniforms.
+    pub fn emit(&self, u_pick: f32, u: [f32; 5]) -> Option<Photon> {
+        if self.is_empty() {
+            return None;
+        }
+        let (i, p_pick) = self.pick(u_pick);
+        if p_pick <= 0.0 {
+            return None;
+        }
+        let (o, err, n, d, flux) = if let Some(e) = self.emitters.get(i) {
+            let su = u[0].sqrt();
+            let (b0, b1) = (1.0 - su, u[1] * su);
+            let q = e.p[0] * b0 + e.p[1] * b1 + e.p[2] * (1.0 - b0 - b1);
+            // Two-sided lamps pick a side with u[4]: half the pdf, twice the power.
+            let (n, sides) = if e.two_sided && u[4] < 0.5 {
+                (-e.n, 2.0)
+            } else if e.two_sided {
+                (e.n, 2.0)
+            } else {
+                (e.n, 1.0)
+            };
+            let d = Frame::new(n).to_world(cosine_hemisphere([u[2], u[3]]));
+            let err = (e.p[0].abs().max(e.p[1].abs()).max(e.p[2].abs())) * crate::trace::gamma(7);
+            // L·cos / (p_pick · 1/A · cos/π · 1/sides).
+            (q, err, n, d, e.le * (PI * e.area * sides / p_pick))
+        } else {
+            match &self.punctual[i - self.emitters.len()] {
+                Punctual::Spot {
+                    pos,
+                    dir,
+                    intensity,
+                    cos_outer,
+                    cos_inner,
+                } => {
+                    let lo = cos_outer.max(-1.0);
+                    let z = 1.0 - u[2] * (1.0 - lo);
+                    let s = (1.0 - z * z).max(0.0).sqrt();
+                    let phi = 2.0 * PI * u[3];
+                    let axis = if *cos_outer <= -1.0 { V::Z } else { *dir };
+                    let d = Frame::new(axis).to_world(V::new(s * phi.cos(), s * phi.sin(), z));
+                    let fall = spot_falloff(d.dot(*dir), *cos_outer, *cos_inner);
+                    let pdf = 1.0 / (2.0 * PI * (1.0 - lo));
+                    (*pos, V::ZERO, d, d, *intensity * (fall / (pdf * p_pick)))
+                }
+                Punctual::Directional { dir, irradiance } => {
+                    let r = self.radius * u[0].sqrt();
+                    let phi = 2.0 * PI * u[1];
+                    let f = Frame::new(*dir);
+                    let o = self.center - *dir * (2.0 * self.radius)
+                        + f.to_world(V::new(r * phi.cos(), r * phi.sin(), 0.0));
+                    let disc = PI * self.radius * self.radius;
+                    (o, V::ZERO, *dir, *dir, *irradiance * (disc / p_pick))
+                }
+            }
+        };
+        if !(flux.is_finite() && flux.max_element() > 0.0) {
+            return None;
+        }
+        Some(Photon {
+            ray: Ray {
+                o: offset_origin(o, err, n, d),
+                d: d.normalize(),
+                t_max: f32::INFINITY,
+            },
+            flux,
+        })
+    }
+}
+
+/// glTF spot falloff for a direction at cosine `c` from the axis (1 for point lights).
+fn spot_falloff(c: f32, cos_outer: f32, cos_inner: f32) -> f32 {
+    if cos_outer <= -1.0 {
+        return 1.0;
+    }
+    let t = ((c - cos_outer) / (cos_inner - cos_outer).max(1e-6)).clamp(0.0, 1.0);
+    t * t
 }
 
 fn punctual(l: &LightRecord) -> Option<Punctual> {

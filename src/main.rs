@@ -1,7 +1,7 @@
 use anyhow::Result;
 use canopy::build::{convert, BvhQuality, ConvertOptions};
 use canopy::metrics::{self, Metric};
-use canopy::render::{render, Integrator, RenderOptions};
+use canopy::render::{render, Integrator, LightPass, RenderOptions};
 use canopy::report::{self, SweepOptions};
 use canopy::{film, inspect, progress, units};
 use clap::{Args, Parser, Subcommand};
@@ -33,6 +33,15 @@ struct Settings {
     /// paths stop there (004 §4.6.1 used 65536).
     #[arg(long, default_value_t = 1024)]
     cone_samples: u32,
+    /// Cone integrator: the light pass that carries caustics (light through smooth mirrors
+    /// and glass onto diffuse surfaces, 004 §4.7). `auto` runs it when the scene has both
+    /// lights and smooth specular surfaces; `off` leaves caustics to the eye paths.
+    #[arg(long, value_enum, default_value_t = LightPass::Auto)]
+    light_pass: LightPass,
+    /// Cone integrator: photons per light pass (one pass before every eye pass; default:
+    /// as many as the image has pixels).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    photons: Option<u32>,
     /// Memory for decoded pages and per-node state, e.g. 256MiB (default: unlimited).
     #[arg(long, value_parser = units::parse_size)]
     mem_budget: Option<u64>,
@@ -72,6 +81,8 @@ impl Settings {
             progress,
             cone_scale: self.cone_scale,
             cone_samples: self.cone_samples,
+            light_pass: self.light_pass,
+            photons: self.photons,
         }
     }
 }

@@ -55,6 +55,17 @@ impl Material {
         self.emission.max_element() > 0.0
     }
 
+    /// Lambertian only: the cone integrator stores light on these and the light pass
+    /// leaves caustics on them.
+    pub fn is_pure_diffuse(&self) -> bool {
+        self.metallic == 0.0 && self.transmission == 0.0 && self.specular == 0.0
+    }
+
+    /// Has a perfectly smooth (delta) mirror or interface lobe: caustics are possible.
+    pub fn has_delta_lobe(&self) -> bool {
+        !self.is_pure_diffuse() && self.alpha < SMOOTH_ALPHA
+    }
+
     /// The BSDF seen from outside (`front`: the ray arrived on the front face).
     pub fn bsdf(&self, front: bool) -> Bsdf {
         let f0_ior = ((self.ior - 1.0) / (self.ior + 1.0)).powi(2);

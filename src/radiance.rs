@@ -21,6 +21,11 @@ pub struct Entry {
     /// Area-weighted average of the children (after a pull) and the samples behind it.
     pub pulled: [f32; 3],
     pub pulled_n: u32,
+    /// Caustic light from the light pass (004 §4.7), times the photons emitted so far:
+    /// Σ Φ/(π·A') for a triangle cell, the children's area-weighted mean for a node.
+    pub caustic: [f32; 3],
+    /// Visible fraction of a cell's area (§4.7.1); 0 until estimated.
+    pub visible: f32,
 }
 
 impl Entry {
@@ -46,10 +51,13 @@ pub struct RadianceStore {
     max_entries: usize,
     entries: AtomicUsize,
     refused: AtomicU64,
+    /// Photons the light pass has emitted in all (M of 004 eq. 4.29).
+    photons: AtomicU64,
 }
 
-/// Bytes an entry costs in the map (key, value, hash-table overhead).
-pub const ENTRY_BYTES: u64 = 64;
+/// Bytes an entry costs in the map: 8-byte key, 48-byte entry, hash-table overhead at
+/// its 7/8 load factor.
+pub const ENTRY_BYTES: u64 = 72;
 
 impl RadianceStore {
     /// `max_bytes`: the store's share of the memory budget (None: unbounded).
@@ -60,6 +68,7 @@ impl RadianceStore {
             max_entries: max_bytes.map_or(usize::MAX, |b| (b / ENTRY_BYTES) as usize),
             entries: AtomicUsize::new(0),
             refused: AtomicU64::new(0),
+            photons: AtomicU64::new(0),
         }
     }
 
@@ -105,13 +114,58 @@ impl RadianceStore {
         (avg, e.n >= self.limit)
     }
 
-    /// Sets a node's pulled value.
-    pub fn set_pulled(&self, node: u64, value: [f32; 3], n: u32) {
+    /// Runs `f` on the node's entry, created if the budget has room.
+    fn update(&self, node: u64, f: impl FnOnce(&mut Entry)) {
         let mut m = self.shard(node).lock().expect("store");
         if let Some(e) = self.entry(&mut m, node) {
+            f(e);
+        }
+    }
+
+    /// Sets a node's pulled value.
+    pub fn set_pulled(&self, node: u64, value: [f32; 3], n: u32) {
+        self.update(node, |e| {
             e.pulled = value;
             e.pulled_n = n;
+        });
+    }
+
+    /// Adds a photon's caustic contribution to a cell (non-finite ones are dropped).
+    pub fn add_caustic(&self, cell: u64, v: [f32; 3]) {
+        if v.iter().all(|x| x.is_finite()) {
+            self.update(cell, |e| {
+                for (c, x) in e.caustic.iter_mut().zip(v) {
+                    *c += x;
+                }
+            });
         }
+    }
+
+    /// Sets a node's caustic light (the pull's area-weighted mean of its children).
+    pub fn set_caustic(&self, node: u64, v: [f32; 3]) {
+        self.update(node, |e| e.caustic = v);
+    }
+
+    pub fn set_visible(&self, cell: u64, fraction: f32) {
+        self.update(cell, |e| e.visible = fraction);
+    }
+
+    /// Caustic light arriving at a cell or node as E/π, like the diffuse store's values.
+    pub fn caustic(&self, key: u64) -> Option<[f32; 3]> {
+        let m = self.photons.load(Relaxed);
+        if m == 0 {
+            return None;
+        }
+        let e = self.get(key)?;
+        Some(e.caustic.map(|c| c / m as f32))
+    }
+
+    pub fn add_photons(&self, n: u64) {
+        self.photons.fetch_add(n, Relaxed);
+    }
+
+    pub fn photons(&self) -> u64 {
+        self.photons.load(Relaxed)
     }
 
     pub fn len(&self) -> usize {

@@ -2,7 +2,7 @@
 
 use crate::camera::Camera;
 use crate::film::{check_writable, Image};
-use crate::integrator::{cone, path, Counters, NodeSet, Scene};
+use crate::integrator::{cone, light_pass, path, Counters, NodeSet, Scene};
 use crate::light::Lights;
 use crate::material::Material;
 use crate::paging::{Page, PageCache, CHILD_PAGE, INNER, KIND_MASK};
@@ -11,7 +11,7 @@ use crate::radiance::RadianceStore;
 use crate::sampler::PixelSampler;
 use crate::trace::{Cone, Tracer, MAX_DEPTH};
 use anyhow::{bail, Context, Result};
-use canopy_format::{Archive, Features};
+use canopy_format::Archive;
 use glam::Vec3A as V;
 use rayon::prelude::*;
 use std::path::PathBuf;
@@ -31,6 +31,14 @@ pub enum Integrator {
     /// Cone casts that stop at the level of detail the cone resolves, with diffuse light
     /// stored per node and reused (004 §4.5–4.8).
     Cone,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum LightPass {
+    /// When the scene has lights and smooth mirror or glass surfaces.
+    Auto,
+    On,
+    Off,
 }
 
 #[derive(Clone, Debug)]
@@ -57,6 +65,10 @@ pub struct RenderOptions {
     pub cone_scale: f32,
     /// Cone integrator: samples after which a node's stored light counts as converged.
     pub cone_samples: u32,
+    /// Cone integrator: the caustic light pass (004 §4.7).
+    pub light_pass: LightPass,
+    /// Photons per light pass (None: one per pixel).
+    pub photons: Option<u32>,
 }
 
 #[derive(Clone, Debug, Default, serde::Serialize)]
@@ -65,6 +77,8 @@ pub struct Seconds {
     pub render: f64,
     /// Of `render`: pulling stored light up the tree between passes (cone integrator).
     pub pull: f64,
+    /// Of `render`: light passes (cone integrator, scenes with caustics).
+    pub light: f64,
     pub write: f64,
     pub total: f64,
 }
@@ -107,6 +121,9 @@ pub struct RenderStats {
     pub converged_nodes: u64,
     /// Samples of nodes the store had no room for (the budget's quarter was full).
     pub store_refused_samples: u64,
+    /// Photons the light passes emitted, and how many left caustic light.
+    pub photons: u64,
+    pub caustic_deposits: u64,
     pub image_mean: [f64; 3],
 }
 
@@ -241,12 +258,13 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
                 format!("cone: eye pass, cone scale {}, diffuse light stored per node (converged at {} samples)", o.cone_scale, o.cone_samples),
                 "pull after every eye pass".to_string(),
             ];
-            let f = archive.header.features;
-            if f & (Features::GLOSSY | Features::TRANSMISSIVE) != 0 {
-                v.push("light pass: needed for caustics (glossy or transmissive surfaces) but not implemented; caustic paths come from the eye pass only".into());
-            } else {
-                v.push("light pass: skipped, no glossy or transmissive surfaces".into());
-            }
+            let smooth = materials.iter().any(Material::has_delta_lobe);
+            v.push(match (o.light_pass, smooth) {
+                (LightPass::Off, _) => "light pass: off (--light-pass off); caustics come from the eye pass".into(),
+                (LightPass::Auto, false) => "light pass: skipped, no smooth mirror or glass surfaces".into(),
+                (_, _) if lights.is_empty() => "light pass: skipped, no lights".into(),
+                _ => "light pass: photons through smooth mirrors and glass leave caustics on diffuse surfaces (L S S* D); the eye pass masks those paths; push-pull after each pass".into(),
+            });
             v
         }
     };
@@ -265,6 +283,18 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
             .collect(),
     };
     let store = RadianceStore::new(o.cone_samples, store_share);
+    let light_pass = o.integrator == Integrator::Cone
+        && !scene.lights.is_empty()
+        && match o.light_pass {
+            LightPass::Off => false,
+            LightPass::On => true,
+            LightPass::Auto => scene.materials.iter().any(Material::has_delta_lobe),
+        };
+    let photons = o
+        .photons
+        .unwrap_or(((crop[1] - crop[0]) * (crop[3] - crop[2])).max(1));
+    let mut deposits = 0u64;
+    let mut light_s = 0.0;
     let setup = t0.elapsed().as_secs_f64();
 
     let t1 = Instant::now();
@@ -296,6 +326,12 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
             (Some(_), _) => 1,
         };
         let pass_start = Instant::now();
+        if light_pass {
+            let lp = pool.install(|| light_pass::light_pass(&scene, &store, photons, done, o.seed));
+            rays.fetch_add(lp.rays, Relaxed);
+            deposits += lp.deposits;
+            light_s += pass_start.elapsed().as_secs_f64();
+        }
         let results: Vec<Vec<[f64; 3]>> = pool.install(|| {
             tiles
                 .par_iter()
@@ -377,6 +413,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
             setup,
             render: render_s,
             pull: pull_s,
+            light: light_s,
             write: write_s,
             total: t0.elapsed().as_secs_f64(),
         },
@@ -407,6 +444,8 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         stored_bytes: store.bytes(),
         converged_nodes: store.converged() as u64,
         store_refused_samples: store.refused(),
+        photons: store.photons(),
+        caustic_deposits: deposits,
         image_mean: img.mean(),
     };
     if let Some(p) = &o.stats {

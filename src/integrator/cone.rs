@@ -24,7 +24,7 @@ use super::path::power_heuristic;
 use super::{sample_light, Counters, Scene};
 use crate::build::MAX_LEAF_TRIS;
 use crate::material::{cosine_hemisphere, Frame};
-use crate::paging::{CHILD_PAGE, INNER, KIND_MASK, LEAF};
+use crate::paging::{TriW, CHILD_PAGE, INNER, KIND_MASK, LEAF};
 use crate::radiance::{weighted_mean, RadianceStore};
 use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Cone, ConeHit, Ray, Tracer};
@@ -52,17 +52,38 @@ pub const CELLS: u64 = 16;
 /// Target cell size as a fraction of the scene's bounding diagonal.
 pub const CELL_FRACTION: f32 = 1.0 / 64.0;
 
-/// Cell of a hit inside its triangle: an n×n grid over (b1, b2), n from the longest edge.
-pub fn cell_of(tri: &crate::paging::TriW, b: [f32; 3], cell_size: f32) -> u64 {
+/// Side n of a triangle's n×n cell grid, from its longest edge.
+pub fn grid(tri: &TriW, cell_size: f32) -> f32 {
     let p = tri.p.map(V::from);
     let edge = (p[1] - p[0])
         .length()
         .max((p[2] - p[1]).length())
         .max((p[0] - p[2]).length());
-    let n = (edge / cell_size).ceil().clamp(1.0, 4.0);
+    (edge / cell_size).ceil().clamp(1.0, 4.0)
+}
+
+/// Cell of a hit inside its triangle: an n×n grid over (b1, b2).
+pub fn cell_of(tri: &TriW, b: [f32; 3], cell_size: f32) -> u64 {
+    let n = grid(tri, cell_size);
     let i = (b[1] * n).min(n - 1.0).max(0.0) as u64;
     let j = (b[2] * n).min(n - 1.0).max(0.0) as u64;
     i * 4 + j
+}
+
+/// The cells of a triangle with their areas: a grid square inside the triangle (i + j ≤
+/// n − 2) covers 2/n² of its area, one on the diagonal (i + j = n − 1) half that.
+pub fn cells(tri: &TriW, cell_size: f32) -> impl Iterator<Item = (u64, f32)> {
+    let n = grid(tri, cell_size) as u64;
+    let area = tri_area(tri);
+    let full = 2.0 * area / (n * n) as f32;
+    (0..n).flat_map(move |i| {
+        (0..n - i).map(move |j| (i * 4 + j, if i + j + 1 == n { full / 2.0 } else { full }))
+    })
+}
+
+pub fn tri_area(tri: &TriW) -> f32 {
+    let p = tri.p.map(V::from);
+    0.5 * (p[1] - p[0]).cross(p[2] - p[0]).length()
 }
 
 /// Store key of a cell of the k-th triangle of a leaf: leaves keep light per triangle (they
@@ -81,6 +102,8 @@ struct Pending {
     direct: V,
     emission: V,
     albedo: V,
+    /// Caustic light arriving here (E/π) from the light pass.
+    caustic: V,
     /// Continuation weight (BSDF value · cos / pdf, roulette included).
     weight: V,
     diffuse: bool,
@@ -106,6 +129,30 @@ pub fn jitter(o: V, d: V, cone: &Cone, u: [f32; 2]) -> (V, V) {
     (apex + nd * t, nd)
 }
 
+/// Opening of a cone after a smooth bounce at distance `t` off a surface of mean
+/// curvature `kappa` (signed about the normal on the outgoing side, positive for convex);
+/// `cos_o`, `cos_i`: cosines of the outgoing and new directions with that normal; `eta`:
+/// relative index across the surface.
+///
+/// Deviation: eq. 4.21–4.22 scale tan α by (1 ∓ κ·b·cos θ), which mixes a curvature
+/// (1/length) into a dimensionless factor, so b would depend on the scene's units. This
+/// uses the ray-differential terms the thesis cites instead (Igehy 1999, as in pbrt-v3
+/// §10.1.3): the footprint r sees normals turn by κ·r, which adds 2κr·cos θ to a reflected
+/// opening and μκr to a refracted one (μ = cos θo/η − cos θi), whose own spread shrinks by
+/// η. The new cone starts at the surface with r0 = 0: a frustum starting as wide as the
+/// footprint would stop at the mirror's own neighbouring nodes. A focusing surface (negative
+/// result) gives an exact ray until the next bounce, which only makes the level finer.
+pub fn bent_tan(cone: &Cone, t: f32, kappa: f32, cos_o: f32, cos_i: f32, eta: f32) -> f32 {
+    let r = cone.radius(t);
+    let tan = if cos_i > 0.0 {
+        cone.tan_a + 2.0 * kappa * r * cos_o
+    } else {
+        let mu = cos_o / eta - cos_i.abs();
+        cone.tan_a / eta + mu * kappa * r
+    };
+    tan.clamp(0.0, DIFFUSE_TAN)
+}
+
 /// Radiance along a primary cone.
 pub fn radiance(
     scene: &Scene,
@@ -127,6 +174,10 @@ pub fn radiance(
     let mut prev_pdf = 0.0f32;
     let mut tail = V::ZERO;
     let mut depth = 0u32;
+    // With the light pass on, emission reached from a Lambertian surface through smooth
+    // bounces only (D S* S L) is the light pass's caustic and masked here (004 §4.7).
+    let mask_caustics = store.photons() > 0;
+    let mut smooth_chain = false;
     loop {
         let [u_pick, ul0, ul1, u_lobe] = s.get4(2 * depth + 1);
         let [ud0, ud1, u_rr, u_j] = s.get4(2 * depth + 2);
@@ -157,6 +208,7 @@ pub fn radiance(
             direct: V::ZERO,
             emission: V::ZERO,
             albedo: V::ZERO,
+            caustic: V::ZERO,
             weight: V::ZERO,
             diffuse: false,
         };
@@ -176,7 +228,9 @@ pub fn radiance(
                 if m.is_emissive() && (front || m.double_sided) {
                     let le = m.emission;
                     if prev_delta {
-                        pend.emission = le;
+                        if !(mask_caustics && smooth_chain) {
+                            pend.emission = le;
+                        }
                     } else if matches!(stack.last(), Some(p) if !p.diffuse) {
                         // After a glossy bounce: MIS against the light sample, as the path
                         // tracer does; after a diffuse bounce emission is masked (eq. 4.27).
@@ -193,7 +247,7 @@ pub fn radiance(
                 let n = if front { ng } else { -ng };
                 let bsdf = m.bsdf(front);
                 scene.touched.insert(h.leaf);
-                if m.metallic > 0.0 || m.transmission > 0.0 || m.specular > 0.0 {
+                if !m.is_pure_diffuse() {
                     // Not purely diffuse: one exact path-tracing step, nothing stored.
                     let frame = Frame::new(n);
                     let wo_l = frame.to_local(wo);
@@ -221,17 +275,21 @@ pub fn radiance(
                     let wi = frame.to_world(bs.wi).normalize();
                     pend.weight = bs.weight;
                     prev_delta = bs.delta;
+                    smooth_chain &= bs.delta;
                     prev_pdf = bs.pdf;
-                    // A mirror reflects the cone: same opening, its footprint as r0, and the
-                    // direction resampled inside it about the virtual apex (eq. 4.14–4.16,
+                    // A smooth surface bends the cone by its curvature (eq. 4.21–4.22) and
+                    // the direction is resampled inside the incoming opening (eq. 4.14–4.16,
                     // Fig. 7). A glossy bounce starts a fresh diffuse-width cone.
                     let o = offset_origin(p, err, ng, wi);
                     let (o, d) = if bs.delta && cone.scale > 0.0 {
+                        let (o, d) = jitter(o, wi, &cone, [u_j, u_rr]);
+                        let kappa = if front { h.curvature } else { -h.curvature };
                         cone = Cone {
-                            r0: cone.radius(h.t),
-                            ..cone
+                            r0: 0.0,
+                            tan_a: bent_tan(&cone, h.t, kappa, wo.dot(n), wi.dot(n), bsdf.eta),
+                            scale: cone.scale,
                         };
-                        jitter(o, wi, &cone, [u_j, u_rr])
+                        (o, d)
                     } else {
                         cone = Cone {
                             r0: 0.0,
@@ -269,7 +327,7 @@ pub fn radiance(
                 let len = nn.length();
                 let n = if len > 1e-6 { nn / len } else { wo };
                 let n = if n.dot(wo) < 0.0 { -n } else { n };
-                if prev_delta {
+                if prev_delta && !(mask_caustics && smooth_chain) {
                     let le = V::from(rgbe64_decode(raw.emission));
                     if nn.dot(wo) > 0.0 || len <= 1e-6 {
                         pend.emission = le;
@@ -288,6 +346,9 @@ pub fn radiance(
         pend.albedo = albedo;
         pend.diffuse = true;
         pend.node = Some(node_key);
+        if mask_caustics {
+            pend.caustic = store.caustic(node_key).map_or(V::ZERO, V::from);
+        }
         // A converged node answers from its store (§4.6.1), except on screen.
         if depth >= FRESH {
             if let Some(e) = store.get(node_key) {
@@ -339,6 +400,7 @@ pub fn radiance(
         };
         prev_delta = false;
         prev_pdf = 0.0;
+        smooth_chain = true;
         depth += 1;
         if scene.max_depth.is_some_and(|m| depth >= m) {
             break;
@@ -365,7 +427,7 @@ pub fn radiance(
                 Some(key) => V::from(store.add(key, incoming.to_array()).0),
                 None => b.direct,
             };
-            b.emission + b.albedo * scattered
+            b.emission + b.albedo * (scattered + b.caustic)
         } else {
             b.emission + incoming
         };
@@ -427,57 +489,94 @@ pub fn pull(scene: &Scene, store: &RadianceStore) {
     }
 }
 
+/// One part a node's light is the mean of: a triangle of a leaf or a child node.
+struct Part {
+    /// Stored diffuse light and the samples behind it (the fewest of its cells).
+    diffuse: Option<([f32; 3], u32)>,
+    caustic: [f32; 3],
+    area: f32,
+}
+
 fn pull_page(scene: &Scene, store: &RadianceStore, id: u32) {
     let Some(page) = scene.cache.get_resident(id) else {
         return;
     };
-    let light = |key: u64| store.get(key).and_then(|e| e.value());
+    let h = &scene.cache.archive.header;
+    let cell_size = (V::from(h.bounds_max) - V::from(h.bounds_min)).length() * CELL_FRACTION;
+    let caustics = store.photons() > 0;
+    let node_part = |key: u64, area: f32| {
+        let e = store.get(node_key(key));
+        Part {
+            diffuse: e.and_then(|e| e.value()),
+            caustic: e.map_or([0.0; 3], |e| e.caustic),
+            area,
+        }
+    };
     for (i, n) in page.bvh.iter().enumerate().rev() {
         let a = n.a & !KIND_MASK;
         let here = page.first_node + i as u64;
-        // (value, weight, samples) of the parts this node's light is the mean of.
-        let parts: Vec<([f32; 3], f32, u32)> = match n.a & KIND_MASK {
+        let parts: Vec<Part> = match n.a & KIND_MASK {
             LEAF => (0..n.b)
                 .filter_map(|k| {
                     let t = page.tris.get((a + k) as usize)?;
-                    // A triangle's light: its cells' means weighted by their samples.
-                    let cells: Vec<_> = (0..CELLS)
-                        .filter_map(|cell| light(tri_key(here, k, cell)))
+                    let cells: Vec<_> = cells(t, cell_size)
+                        .map(|(cell, area)| (store.get(tri_key(here, k, cell)), area))
                         .collect();
-                    let v = weighted_mean(cells.iter().map(|&(v, c)| (v, c as f32)))?;
-                    let samples = cells.iter().map(|&(_, c)| c).min()?;
-                    let p = t.p.map(V::from);
-                    Some((v, 0.5 * (p[1] - p[0]).cross(p[2] - p[0]).length(), samples))
+                    // Diffuse: the lit cells' means weighted by their samples. Caustic: all
+                    // cells by area, an unlit cell counting as dark.
+                    let lit: Vec<_> = cells
+                        .iter()
+                        .filter_map(|(e, _)| e.and_then(|e| e.value()))
+                        .collect();
+                    let diffuse = weighted_mean(lit.iter().map(|&(v, c)| (v, c as f32)))
+                        .zip(lit.iter().map(|&(_, c)| c).min());
+                    let caustic = weighted_mean(
+                        cells
+                            .iter()
+                            .map(|(e, area)| (e.map_or([0.0; 3], |e| e.caustic), *area)),
+                    )
+                    .unwrap_or_default();
+                    Some(Part {
+                        diffuse,
+                        caustic,
+                        area: tri_area(t),
+                    })
                 })
                 .collect(),
-            kind @ (INNER | CHILD_PAGE) => {
-                let (keys, areas) = if kind == INNER {
-                    (
-                        [a, n.b].map(|c| page.first_node + c as u64),
-                        [a, n.b].map(|c| page.nodes[c as usize].area),
-                    )
-                } else {
-                    let Some(child) = scene.cache.get_resident(a) else {
-                        continue;
-                    };
-                    let (Some(l), Some(r)) = (child.nodes.first(), child.nodes.get(1)) else {
-                        continue;
-                    };
-                    ([child.first_node, child.first_node + 1], [l.area, r.area])
-                };
-                let (Some(l), Some(r)) = (light(node_key(keys[0])), light(node_key(keys[1])))
-                else {
+            INNER => [a, n.b]
+                .map(|c| node_part(page.first_node + c as u64, page.nodes[c as usize].area))
+                .into(),
+            CHILD_PAGE => {
+                let Some(child) = scene.cache.get_resident(a) else {
                     continue;
                 };
-                vec![(l.0, areas[0], l.1), (r.0, areas[1], r.1)]
+                let (Some(l), Some(r)) = (child.nodes.first(), child.nodes.get(1)) else {
+                    continue;
+                };
+                vec![
+                    node_part(child.first_node, l.area),
+                    node_part(child.first_node + 1, r.area),
+                ]
             }
             _ => continue,
         };
-        let Some(samples) = parts.iter().map(|p| p.2).min() else {
-            continue;
-        };
-        if let Some(v) = weighted_mean(parts.iter().map(|&(v, w, _)| (v, w))) {
-            store.set_pulled(node_key(here), v, samples);
+        // A leaf takes the mean over its lit triangles; an inner node needs both children.
+        let lit = parts.iter().filter(|p| p.diffuse.is_some());
+        let complete = n.a & KIND_MASK == LEAF || parts.iter().all(|p| p.diffuse.is_some());
+        if let (true, Some(samples)) = (
+            complete,
+            lit.clone().filter_map(|p| p.diffuse.map(|d| d.1)).min(),
+        ) {
+            let mean = weighted_mean(lit.filter_map(|p| p.diffuse.map(|d| (d.0, p.area))));
+            if let Some(v) = mean {
+                store.set_pulled(node_key(here), v, samples);
+            }
+        }
+        if caustics {
+            let c = weighted_mean(parts.iter().map(|p| (p.caustic, p.area))).unwrap_or_default();
+            if c.iter().any(|&v| v > 0.0) {
+                store.set_caustic(node_key(here), c);
+            }
         }
     }
 }

@@ -40,6 +40,8 @@ pub struct Hit {
     pub leaf: u64,
     /// Position of the triangle within its leaf (0..MAX_LEAF_TRIS).
     pub slot: u32,
+    /// The leaf's mean curvature (004 eq. 4.23), signed about the triangles' winding normal.
+    pub curvature: f32,
 }
 
 impl Hit {
@@ -52,6 +54,10 @@ impl Hit {
             page: page.id,
             leaf: page.first_node + leaf as u64,
             slot: index - first,
+            curvature: page
+                .nodes
+                .get(leaf as usize)
+                .map_or(0.0, |n| canopy_format::codec::f16_decode(n.curvature)),
         }
     }
 
