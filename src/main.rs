@@ -39,7 +39,7 @@ struct Settings {
     #[arg(long, value_enum, default_value_t = LightPass::Auto)]
     light_pass: LightPass,
     /// Cone integrator: photons per light pass (one pass before every eye pass; default:
-    /// as many as the image has pixels).
+    /// as many as the full image has pixels, whatever --crop says).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     photons: Option<u32>,
     /// Memory for decoded pages and per-node state, e.g. 256MiB (default: unlimited).

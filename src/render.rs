@@ -290,9 +290,8 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
             LightPass::On => true,
             LightPass::Auto => scene.materials.iter().any(Material::has_delta_lobe),
         };
-    let photons = o
-        .photons
-        .unwrap_or(((crop[1] - crop[0]) * (crop[3] - crop[2])).max(1));
+    // Photons light the whole scene whatever the crop: one per pixel of the full image.
+    let photons = o.photons.unwrap_or((width * height).max(1));
     let mut deposits = 0u64;
     let mut light_s = 0.0;
     let setup = t0.elapsed().as_secs_f64();

@@ -230,3 +230,190 @@ fn eval_writes_rows_plot_and_table() {
         .unwrap()
         .starts_with("<svg"));
 }
+
+/// A UV sphere with outward vertex normals, as OBJ text.
+fn sphere_obj(c: [f32; 3], r: f32) -> String {
+    let (nu, nv) = (32, 16);
+    let mut s = String::new();
+    let mut normals = Vec::new();
+    for j in 0..=nv {
+        let th = std::f32::consts::PI * j as f32 / nv as f32;
+        for i in 0..nu {
+            let ph = 2.0 * std::f32::consts::PI * i as f32 / nu as f32;
+            let n = [th.sin() * ph.cos(), th.cos(), th.sin() * ph.sin()];
+            s += &format!(
+                "v {} {} {}\n",
+                c[0] + r * n[0],
+                c[1] + r * n[1],
+                c[2] + r * n[2]
+            );
+            normals.push(n);
+        }
+    }
+    for n in normals {
+        s += &format!("vn {} {} {}\n", n[0], n[1], n[2]);
+    }
+    let idx = |i: usize, j: usize| j * nu + i % nu + 1;
+    for j in 0..nv {
+        for i in 0..nu {
+            let (a, b, c, d) = (idx(i, j), idx(i + 1, j), idx(i + 1, j + 1), idx(i, j + 1));
+            if j > 0 {
+                s += &format!("f {a}//{a} {b}//{b} {c}//{c}\n");
+            }
+            if j < nv - 1 {
+                s += &format!("f {a}//{a} {c}//{c} {d}//{d}\n");
+            }
+        }
+    }
+    s
+}
+
+/// A glass and a mirror sphere on a diffuse floor under a square lamp: the glass focuses
+/// the lamp into a caustic in its own shadow, the mirror throws a wide one.
+fn caustic_scene(dir: &std::path::Path) -> std::path::PathBuf {
+    let n = 24;
+    let mut floor = String::new();
+    for j in 0..=n {
+        for i in 0..=n {
+            let (x, z) = (
+                -1.0 + 2.0 * i as f32 / n as f32,
+                -1.0 + 2.0 * j as f32 / n as f32,
+            );
+            floor += &format!("v {x} 0 {z}\n");
+        }
+    }
+    for j in 0..n {
+        for i in 0..n {
+            let a = j * (n + 1) + i + 1;
+            let (b, c, d) = (a + 1, a + n + 2, a + n + 1);
+            floor += &format!("f {a} {d} {c}\nf {a} {c} {b}\n");
+        }
+    }
+    let files = [
+        ("floor.obj", floor),
+        ("glass.obj", sphere_obj([-0.4, 0.3, 0.0], 0.3)),
+        ("mirror.obj", sphere_obj([0.4, 0.3, 0.0], 0.3)),
+        (
+            "lamp.obj",
+            "v -0.5 2.5 -0.5\nv 0.5 2.5 -0.5\nv 0.5 2.5 0.5\nv -0.5 2.5 0.5\nf 1 2 3\nf 1 3 4\n"
+                .into(),
+        ),
+        (
+            "scene.toml",
+            r#"
+[[camera]]
+position = [0.0, 2.2, 2.6]
+look_at = [0.0, 0.1, 0.0]
+width = 64
+height = 64
+[[material]]
+name = "floor"
+base_color = [0.8, 0.8, 0.8]
+[[material]]
+name = "glass"
+base_color = [1.0, 1.0, 1.0]
+transmission = 1.0
+roughness = 0.0
+[[material]]
+name = "mirror"
+base_color = [0.9, 0.9, 0.9]
+metallic = 1.0
+roughness = 0.0
+[[material]]
+name = "lamp"
+base_color = [0.0, 0.0, 0.0]
+emission = [8.0, 8.0, 8.0]
+double_sided = false
+[assign]
+"floor.obj" = "floor"
+"glass.obj" = "glass"
+"mirror.obj" = "mirror"
+"lamp.obj" = "lamp"
+"#
+            .into(),
+        ),
+    ];
+    for (name, text) in &files {
+        std::fs::write(dir.join(name), text).unwrap();
+    }
+    let arc = dir.join("caustic.canopy");
+    let p = |f: &str| dir.join(f).to_str().unwrap().to_string();
+    ok(&[
+        "--quiet",
+        "convert",
+        &p("floor.obj"),
+        &p("glass.obj"),
+        &p("mirror.obj"),
+        &p("lamp.obj"),
+        "--scene",
+        &p("scene.toml"),
+        "-o",
+        &p("caustic.canopy"),
+    ]);
+    arc
+}
+
+/// Caustics with the light pass on and off against the path tracer: the whole image and
+/// the glass sphere's shadow, where the focused caustic lies (about half that window's
+/// light). Without the eye pass's masking the caustic would count twice there; without
+/// the light pass's deposits it would be missing.
+#[test]
+fn caustics_with_the_light_pass_on_and_off_match_the_path_tracer() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = caustic_scene(dir.path());
+    let out = |n: &str| dir.path().join(n);
+    let window = ["--crop", "14,23,33,38"];
+    let (full_ref, _) = render(&arc, &out("ref.exr"), &["--spp", "1024", "--seed", "7"]);
+    let (win_ref, _) = render(
+        &arc,
+        &out("ref_win.exr"),
+        &[&window[..], &["--spp", "8192", "--seed", "7"]].concat(),
+    );
+    for lp in ["on", "off"] {
+        for scale in ["0", "1"] {
+            let what = format!("light pass {lp}, cone scale {scale}");
+            let args = ["--spp", "256", "--cone-scale", scale, "--light-pass", lp];
+            let (img, stats) = cone(&arc, &out(&format!("{lp}{scale}.exr")), &args);
+            assert!(all_finite(&img), "{what}");
+            let tol = if scale == "0" { 0.015 } else { 0.04 };
+            assert_mean_within(&img, &full_ref, tol, &what);
+            let photons = stats["photons"].as_u64().unwrap();
+            let deposits = stats["caustic_deposits"].as_u64().unwrap();
+            if lp == "on" {
+                assert_eq!(photons, 256 * 64 * 64, "{what}");
+                assert!(deposits > photons / 100, "{what}: {deposits} deposits");
+                assert!(stats["seconds"]["light"].as_f64().unwrap() > 0.0);
+            } else {
+                assert_eq!((photons, deposits), (0, 0), "{what}");
+                assert!(stats["passes"].to_string().contains("light pass: off"));
+            }
+            if scale == "0" {
+                let (win, _) = cone(
+                    &arc,
+                    &out(&format!("{lp}{scale}_win.exr")),
+                    &[&window[..], &args[..]].concat(),
+                );
+                assert_mean_within(&win, &win_ref, 0.25, &format!("{what}, caustic window"));
+            }
+        }
+    }
+}
+
+#[test]
+fn the_light_pass_runs_only_where_caustics_can_form() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("c.canopy");
+    convert(&scene("cbox.glb"), &arc, None);
+    let (_, stats) = cone(&arc, &dir.path().join("c.exr"), &["--spp", "1"]);
+    assert!(stats["passes"].to_string().contains("light pass: skipped"));
+    assert_eq!(stats["photons"], 0);
+    // Forced on, a diffuse scene gets photons but no caustic: nothing reaches a diffuse
+    // surface through a smooth bounce.
+    let (_, stats) = cone(
+        &arc,
+        &dir.path().join("f.exr"),
+        &["--spp", "2", "--light-pass", "on"],
+    );
+    assert!(stats["photons"].as_u64().unwrap() > 0);
+    assert_eq!(stats["caustic_deposits"], 0);
+}

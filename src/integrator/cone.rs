@@ -29,6 +29,7 @@ use crate::radiance::{weighted_mean, RadianceStore};
 use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Cone, ConeHit, Ray, Tracer};
 use canopy_format::codec::{rgbe64_decode, snorm16_decode, unorm8_decode};
+use canopy_format::NodeFlags;
 use glam::Vec3A as V;
 use rayon::prelude::*;
 use std::sync::atomic::Ordering::Relaxed;
@@ -151,6 +152,37 @@ pub fn bent_tan(cone: &Cone, t: f32, kappa: f32, cos_o: f32, cos_i: f32, eta: f3
         cone.tan_a / eta + mu * kappa * r
     };
     tan.clamp(0.0, DIFFUSE_TAN)
+}
+
+/// p_reflect at cos θ from the node's five-sample table (004 §4.3.1), linearly
+/// interpolated.
+fn reflect_lut(lut: [u8; 5], c: f32) -> f32 {
+    let x = c.clamp(0.0, 1.0) * 4.0;
+    let i = (x as usize).min(3);
+    let f = x - i as f32;
+    unorm8_decode(lut[i]) * (1.0 - f) + unorm8_decode(lut[i + 1]) * f
+}
+
+/// Samples the cluster's Phong lobe (004 eq. 4.7–4.11): shininess s' = s|n| + (1 − |n|)
+/// about r' = r|n| + ω(1 − |n|), with s from the GGX roughness (s = 2/α² − 2); a sample
+/// below the cluster's plane is mirrored back above it rather than rejected, keeping the
+/// lobe's energy. `n`: unit normal on the side of `wo`, `len`: the cluster normal's length.
+/// Returns the direction and s'.
+fn phong_lobe(n: V, len: f32, wo: V, roughness: u8, u: [f32; 2]) -> (V, f32) {
+    let r = 2.0 * n.dot(wo) * n - wo;
+    let axis = (r * len + wo * (1.0 - len)).normalize_or(n);
+    let a = unorm8_decode(roughness).powi(2).max(1e-3);
+    let s = (2.0 / (a * a) - 2.0).clamp(1.0, 1e4) * len + (1.0 - len);
+    let cos_t = u[0].powf(1.0 / (s + 1.0));
+    let sin_t = (1.0 - cos_t * cos_t).max(0.0).sqrt();
+    let phi = 2.0 * std::f32::consts::PI * u[1];
+    let mut wi = Frame::new(axis)
+        .to_world(V::new(sin_t * phi.cos(), sin_t * phi.sin(), cos_t))
+        .normalize();
+    if wi.dot(n) < 0.0 {
+        wi -= 2.0 * wi.dot(n) * n;
+    }
+    (wi, s)
 }
 
 /// Radiance along a primary cone.
@@ -333,8 +365,56 @@ pub fn radiance(
                         pend.emission = le;
                     }
                 }
-                let rho = V::from(raw.diffuse.map(unorm8_decode));
+                let mut rho = V::from(raw.diffuse.map(unorm8_decode));
                 min_dist = raw.radius;
+                if raw.flags & (NodeFlags::GLOSSY | NodeFlags::TRANSMISSIVE) != 0 {
+                    // Cluster BRDF (§4.3): reflect with p_reflect(Θ), refract with
+                    // refractiveness·(1 − p_reflect) (eq. 4.1), else diffuse (eq. 4.2).
+                    let nl = if nn.dot(wo) < 0.0 { -nn } else { nn };
+                    let theta = ((1.0 - len) / 4.0 + nl.dot(wo)).clamp(0.0, 1.0);
+                    let p_r = reflect_lut(raw.reflectiveness, theta);
+                    let p_t = unorm8_decode(raw.refractiveness) * (1.0 - p_r);
+                    if u_lobe < p_r + p_t {
+                        let (wi, weight, smooth) = if u_lobe < p_r {
+                            let (wi, s) = phong_lobe(n, len, wo, raw.roughness, [ud0, ud1]);
+                            let tint = V::from(raw.specular_tint.map(unorm8_decode));
+                            (wi, tint, s >= 1e3)
+                        } else {
+                            // Through a transmissive cluster: straight on, tinted (its
+                            // lensing is below the level of detail the cone asked for).
+                            let tint = V::from(raw.translucency.map(unorm8_decode));
+                            (-wo, tint, true)
+                        };
+                        // A near-mirror or glass cluster keeps the cone and stands for a
+                        // smooth bounce (its caustics are the light pass's); a glossy one
+                        // widens the cone.
+                        let tan_a = if smooth { cone.tan_a } else { DIFFUSE_TAN };
+                        pend.weight = weight;
+                        prev_delta = true;
+                        prev_pdf = 0.0;
+                        smooth_chain &= smooth;
+                        cone = Cone {
+                            r0: 0.0,
+                            tan_a,
+                            scale: cone.scale,
+                        };
+                        ray = Ray {
+                            o: offset_origin(p, err, if wi.dot(n) > 0.0 { n } else { wi }, wi),
+                            d: wi,
+                            t_max: f32::INFINITY,
+                        };
+                        stack.push(pend);
+                        depth += 1;
+                        if scene.max_depth.is_some_and(|m| depth >= m)
+                            || !roulette(&mut stack, depth, u_rr)
+                        {
+                            break;
+                        }
+                        continue;
+                    }
+                    let p_d = 1.0 - p_r - p_t;
+                    rho = if p_d > 1e-3 { rho / p_d } else { V::ZERO };
+                }
                 (
                     Frame::new(n),
                     rho,
