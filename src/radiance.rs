@@ -26,6 +26,10 @@ pub struct Entry {
     pub caustic: [f32; 3],
     /// Visible fraction of a cell's area (§4.7.1); 0 until estimated.
     pub visible: f32,
+    /// Of the samples taken on screen: the part that came through the bounce (indirect
+    /// light, without the light sample), and how many.
+    pub indirect: [f32; 3],
+    pub ni: u32,
 }
 
 impl Entry {
@@ -38,6 +42,11 @@ impl Entry {
         } else {
             None
         }
+    }
+
+    /// Mean indirect light of the on-screen samples, once there are `min` of them.
+    pub fn indirect_mean(&self, min: u32) -> Option<[f32; 3]> {
+        (self.ni >= min.max(1)).then(|| self.indirect.map(|v| v / self.ni as f32))
     }
 }
 
@@ -55,9 +64,9 @@ pub struct RadianceStore {
     photons: AtomicU64,
 }
 
-/// Bytes an entry costs in the map: 8-byte key, 48-byte entry, hash-table overhead at
+/// Bytes an entry costs in the map: 8-byte key, 64-byte entry, hash-table overhead at
 /// its 7/8 load factor.
-pub const ENTRY_BYTES: u64 = 72;
+pub const ENTRY_BYTES: u64 = 88;
 
 impl RadianceStore {
     /// `max_bytes`: the store's share of the memory budget (None: unbounded).
@@ -120,6 +129,27 @@ impl RadianceStore {
         if let Some(e) = self.entry(&mut m, node) {
             f(e);
         }
+    }
+
+    /// Adds an on-screen sample: its total as `add` does, and its indirect part apart.
+    /// Returns the entry after it (None if the budget had no room for the node).
+    pub fn add_on_screen(&self, node: u64, total: [f32; 3], indirect: [f32; 3]) -> Option<Entry> {
+        let finite = total.iter().chain(&indirect).all(|v| v.is_finite());
+        let mut m = self.shard(node).lock().expect("store");
+        let e = self.entry(&mut m, node)?;
+        if finite && e.n < self.limit {
+            for (s, v) in e.sum.iter_mut().zip(total) {
+                *s += v;
+            }
+            e.n += 1;
+        }
+        if finite && e.ni < self.limit {
+            for (s, v) in e.indirect.iter_mut().zip(indirect) {
+                *s += v;
+            }
+            e.ni += 1;
+        }
+        Some(*e)
     }
 
     /// Sets a node's pulled value.

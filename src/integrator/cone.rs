@@ -16,9 +16,13 @@
 //! start from their children's light.
 //!
 //! Surfaces with specular or transmissive lobes are traced as the path tracer does (no
-//! storage); nodes are shaded as Lambertian clusters with the area-weighted albedo and
-//! the Θ heuristic of eq. 4.4 for light samples. The light distribution pass (§4.7) is not
-//! implemented: scenes with glossy or transmissive surfaces say so in the stats.
+//! storage); a smooth bounce bends the cone by the surface's curvature (`bent_tan`). Nodes
+//! are shaded with the cluster BRDF: a reflect / refract / diffuse choice from the node's
+//! Fresnel table and refractiveness (§4.3), a Phong lobe about the heuristic direction
+//! (eq. 4.7–4.11), and a Lambertian part with the area-weighted albedo and the Θ heuristic
+//! of eq. 4.4 for light samples. When the light pass (`light_pass`, §4.7) runs, diffuse
+//! hits add the caustic light it stored, and emission reached from a diffuse hit through
+//! smooth bounces only is masked, so caustic paths count once.
 
 use super::path::power_heuristic;
 use super::{sample_light, Counters, Scene};
@@ -37,6 +41,10 @@ use std::sync::atomic::Ordering::Relaxed;
 /// Hits, counted from the eye, whose diffuse light the pixel takes from its own fresh
 /// sample; deeper hits answer with their node's stored mean.
 pub const FRESH: u32 = 1;
+
+/// On-screen samples a cell needs before the pixel takes its indirect light from the
+/// cell's mean instead of its own bounce.
+pub const ON_SCREEN_MIN: u32 = 16;
 
 /// tan α after a diffuse bounce (004 eq. 4.20, d = 0.3).
 pub const DIFFUSE_TAN: f32 = 0.3;
@@ -429,16 +437,16 @@ pub fn radiance(
         if mask_caustics {
             pend.caustic = store.caustic(node_key).map_or(V::ZERO, V::from);
         }
-        // A converged node answers from its store (§4.6.1), except on screen.
+        // A converged node answers from its store (§4.6.1); on screen only for its
+        // indirect part, the light sample below stays fresh.
+        let converged = store.get(node_key).filter(|e| e.n >= store.limit);
         if depth >= FRESH {
-            if let Some(e) = store.get(node_key) {
-                if e.n >= store.limit {
-                    let (v, _) = e.value().unwrap_or(([0.0; 3], 0));
-                    pend.node = None;
-                    pend.direct = V::from(v);
-                    stack.push(pend);
-                    break;
-                }
+            if let Some(e) = converged {
+                let (v, _) = e.value().unwrap_or(([0.0; 3], 0));
+                pend.node = None;
+                pend.direct = V::from(v);
+                stack.push(pend);
+                break;
             }
         }
         // Light sample: cos θ, or Θ = (1−|n|)/4 + ⟨n, ω⟩ for a cluster (eq. 4.4). Emission
@@ -459,6 +467,12 @@ pub fn radiance(
             [u_pick, ul0, ul1],
             |wi| (V::splat(theta(wi) * std::f32::consts::FRAC_1_PI), 0.0),
         );
+        if let Some(ind) = converged.and_then(|e| e.indirect_mean(store.limit)) {
+            pend.node = None;
+            pend.direct += V::from(ind);
+            stack.push(pend);
+            break;
+        }
         // Cosine-sampled bounce; weight 1 (the albedo is applied when unwinding).
         let wi = frame.to_world(cosine_hemisphere([ud0, ud1])).normalize();
         pend.weight = V::ONE;
@@ -499,10 +513,15 @@ pub fn radiance(
         }
         tail = if b.diffuse {
             let scattered = match b.node {
-                // Near the eye the fresh sample is the path's; it also feeds the store.
+                // On screen the light sample is the path's own and the indirect part the
+                // cell's mean once it has a few samples: a final gather from the store
+                // (§5.8 gathers only from converged nodes). The sample feeds both.
                 Some(key) if stack.len() < FRESH as usize => {
-                    store.add(key, incoming.to_array());
-                    incoming
+                    let indirect = b.weight * tail;
+                    store
+                        .add_on_screen(key, incoming.to_array(), indirect.to_array())
+                        .and_then(|e| e.indirect_mean(ON_SCREEN_MIN))
+                        .map_or(incoming, |m| b.direct + V::from(m))
                 }
                 Some(key) => V::from(store.add(key, incoming.to_array()).0),
                 None => b.direct,
