@@ -8,7 +8,7 @@
 //! materials, and the average incident light is what they share.
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering::Relaxed};
+use std::sync::atomic::{AtomicU32, AtomicU64, AtomicUsize, Ordering::Relaxed};
 use std::sync::Mutex;
 
 const SHARDS: usize = 64;
@@ -30,6 +30,8 @@ pub struct Entry {
     /// light, without the light sample), and how many.
     pub indirect: [f32; 3],
     pub ni: u32,
+    /// Times the pixel's cone hit this cell first.
+    pub visits: u32,
 }
 
 impl Entry {
@@ -62,11 +64,17 @@ pub struct RadianceStore {
     refused: AtomicU64,
     /// Photons the light pass has emitted in all (M of 004 eq. 4.29).
     photons: AtomicU64,
+    /// Eye passes begun.
+    passes: AtomicU32,
 }
 
-/// Bytes an entry costs in the map: 8-byte key, 64-byte entry, hash-table overhead at
+/// On-screen samples after which a cell's indirect mean is final: the pixel sees it
+/// directly, so it converges further than the nodes seen through a bounce.
+pub const SCREEN_LIMIT: u32 = 1024;
+
+/// Bytes an entry costs in the map: 8-byte key, 68-byte entry, hash-table overhead at
 /// its 7/8 load factor.
-pub const ENTRY_BYTES: u64 = 88;
+pub const ENTRY_BYTES: u64 = 92;
 
 impl RadianceStore {
     /// `max_bytes`: the store's share of the memory budget (None: unbounded).
@@ -78,6 +86,7 @@ impl RadianceStore {
             entries: AtomicUsize::new(0),
             refused: AtomicU64::new(0),
             photons: AtomicU64::new(0),
+            passes: AtomicU32::new(0),
         }
     }
 
@@ -143,12 +152,20 @@ impl RadianceStore {
             }
             e.n += 1;
         }
-        if finite && e.ni < self.limit {
+        if finite && e.ni < SCREEN_LIMIT {
             for (s, v) in e.indirect.iter_mut().zip(indirect) {
                 *s += v;
             }
             e.ni += 1;
         }
+        Some(*e)
+    }
+
+    /// Counts a visit by a pixel's cone and returns the entry after it.
+    pub fn visit(&self, node: u64) -> Option<Entry> {
+        let mut m = self.shard(node).lock().expect("store");
+        let e = self.entry(&mut m, node)?;
+        e.visits = e.visits.saturating_add(1);
         Some(*e)
     }
 
@@ -188,6 +205,15 @@ impl RadianceStore {
         }
         let e = self.get(key)?;
         Some(e.caustic.map(|c| c / m as f32))
+    }
+
+    /// Marks the start of an eye pass; `passes` counts them from 1.
+    pub fn begin_pass(&self, passes: u32) {
+        self.passes.store(passes, Relaxed);
+    }
+
+    pub fn passes(&self) -> u32 {
+        self.passes.load(Relaxed).max(1)
     }
 
     pub fn add_photons(&self, n: u64) {
@@ -396,6 +422,25 @@ mod tests {
         // A non-finite sample is dropped rather than poisoning the node.
         let (avg, _) = s.add(8, [f32::NAN, 1.0, 1.0]);
         assert!(avg.iter().all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn on_screen_samples_keep_their_indirect_part_apart() {
+        let s = RadianceStore::new(2, None);
+        assert_eq!(s.visit(5).unwrap().visits, 1);
+        for i in 0..4 {
+            let e = s
+                .add_on_screen(5, [3.0 + i as f32; 3], [1.0 + i as f32; 3])
+                .unwrap();
+            // The total stops at the store's limit; the indirect part keeps averaging.
+            assert_eq!(e.n, (i + 1).min(2));
+            assert_eq!(e.ni, i + 1);
+        }
+        let e = s.get(5).unwrap();
+        assert_eq!(e.value().unwrap(), ([3.5; 3], 2));
+        assert_eq!(e.indirect_mean(4), Some([2.5; 3]));
+        assert_eq!(e.indirect_mean(5), None);
+        assert_eq!(e.visits, 1);
     }
 
     #[test]

@@ -325,6 +325,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
             (Some(_), _) => 1,
         };
         let pass_start = Instant::now();
+        store.begin_pass(done + count);
         if light_pass {
             let lp = pool.install(|| light_pass::light_pass(&scene, &store, photons, done, o.seed));
             rays.fetch_add(lp.rays, Relaxed);

@@ -29,7 +29,7 @@ use super::{sample_light, Counters, Scene};
 use crate::build::MAX_LEAF_TRIS;
 use crate::material::{cosine_hemisphere, Frame};
 use crate::paging::{TriW, CHILD_PAGE, INNER, KIND_MASK, LEAF};
-use crate::radiance::{weighted_mean, RadianceStore};
+use crate::radiance::{weighted_mean, RadianceStore, SCREEN_LIMIT};
 use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Cone, ConeHit, Ray, Tracer};
 use canopy_format::codec::{rgbe64_decode, snorm16_decode, unorm8_decode};
@@ -46,6 +46,11 @@ pub const FRESH: u32 = 1;
 /// cell's mean instead of its own bounce.
 pub const ON_SCREEN_MIN: u32 = 16;
 
+/// See `radiance`: on-screen samples every cell takes, and the factor of √(visits·passes)
+/// it keeps taking; measured on sponza, cbox and bunny_box (README, the cone integrator).
+pub const SCREEN_FLOOR: f32 = 32.0;
+pub const SCREEN_QUOTA: f32 = 0.25;
+
 /// tan α after a diffuse bounce (004 eq. 4.20, d = 0.3).
 pub const DIFFUSE_TAN: f32 = 0.3;
 
@@ -54,12 +59,13 @@ pub fn node_key(node: u64) -> u64 {
     node * (MAX_LEAF_TRIS as u64 + 1) * CELLS
 }
 
-/// Light cells per triangle at most (a 4×4 grid over the barycentrics): a triangle much
-/// larger than `CELL_FRACTION` of the scene keeps light per cell, so a wall lit unevenly
-/// is not one average.
-pub const CELLS: u64 = 16;
+/// Side of a triangle's light-cell grid at most (8×8 over the barycentrics): a triangle
+/// much larger than `CELL_FRACTION` of the scene keeps light per cell, so a wall lit
+/// unevenly is not one average.
+pub const GRID: u64 = 8;
+pub const CELLS: u64 = GRID * GRID;
 /// Target cell size as a fraction of the scene's bounding diagonal.
-pub const CELL_FRACTION: f32 = 1.0 / 64.0;
+pub const CELL_FRACTION: f32 = 1.0 / 128.0;
 
 /// Side n of a triangle's n×n cell grid, from its longest edge.
 pub fn grid(tri: &TriW, cell_size: f32) -> f32 {
@@ -68,7 +74,7 @@ pub fn grid(tri: &TriW, cell_size: f32) -> f32 {
         .length()
         .max((p[2] - p[1]).length())
         .max((p[0] - p[2]).length());
-    (edge / cell_size).ceil().clamp(1.0, 4.0)
+    (edge / cell_size).ceil().clamp(1.0, GRID as f32)
 }
 
 /// Cell of a hit inside its triangle: an n×n grid over (b1, b2).
@@ -76,7 +82,7 @@ pub fn cell_of(tri: &TriW, b: [f32; 3], cell_size: f32) -> u64 {
     let n = grid(tri, cell_size);
     let i = (b[1] * n).min(n - 1.0).max(0.0) as u64;
     let j = (b[2] * n).min(n - 1.0).max(0.0) as u64;
-    i * 4 + j
+    i * GRID + j
 }
 
 /// The cells of a triangle with their areas: a grid square inside the triangle (i + j ≤
@@ -86,7 +92,7 @@ pub fn cells(tri: &TriW, cell_size: f32) -> impl Iterator<Item = (u64, f32)> {
     let area = tri_area(tri);
     let full = 2.0 * area / (n * n) as f32;
     (0..n).flat_map(move |i| {
-        (0..n - i).map(move |j| (i * 4 + j, if i + j + 1 == n { full / 2.0 } else { full }))
+        (0..n - i).map(move |j| (i * GRID + j, if i + j + 1 == n { full / 2.0 } else { full }))
     })
 }
 
@@ -439,9 +445,13 @@ pub fn radiance(
         }
         // A converged node answers from its store (§4.6.1); on screen only for its
         // indirect part, the light sample below stays fresh.
-        let converged = store.get(node_key).filter(|e| e.n >= store.limit);
+        let entry = if depth == 0 {
+            store.visit(node_key)
+        } else {
+            store.get(node_key)
+        };
         if depth >= FRESH {
-            if let Some(e) = converged {
+            if let Some(e) = entry.filter(|e| e.n >= store.limit) {
                 let (v, _) = e.value().unwrap_or(([0.0; 3], 0));
                 pend.node = None;
                 pend.direct = V::from(v);
@@ -467,11 +477,24 @@ pub fn radiance(
             [u_pick, ul0, ul1],
             |wi| (V::splat(theta(wi) * std::f32::consts::FRAC_1_PI), 0.0),
         );
-        if let Some(ind) = converged.and_then(|e| e.indirect_mean(store.limit)) {
-            pend.node = None;
-            pend.direct += V::from(ind);
-            stack.push(pend);
-            break;
+        // On screen a cell traces only some of its pixels' bounces: it keeps sampling while
+        // it holds fewer than max(SCREEN_FLOOR, SCREEN_QUOTA·√(visits·k)) samples after k
+        // passes, which with P pixels on it is a fraction ∝ 1/√P of their bounces. The
+        // other pixels cost their primary cone and light sample only (the thesis's 4× per
+        // iteration once stored light has converged, §5.8), and the cell's error still
+        // falls with time. 1/√P minimizes error × cost when the light sample's variance
+        // and the indirect light's are alike: err² ∝ 1 + 1/(f·P), cost ∝ 1 + f.
+        if let Some(e) = entry.filter(|e| depth == 0 && e.ni >= ON_SCREEN_MIN) {
+            let passes = store.passes() as f32;
+            let quota = SCREEN_FLOOR.max(SCREEN_QUOTA * (e.visits as f32 * passes).sqrt());
+            if e.ni >= SCREEN_LIMIT || e.ni as f32 >= quota {
+                if let Some(ind) = e.indirect_mean(ON_SCREEN_MIN) {
+                    pend.node = None;
+                    pend.direct += V::from(ind);
+                    stack.push(pend);
+                    break;
+                }
+            }
         }
         // Cosine-sampled bounce; weight 1 (the albedo is applied when unwinding).
         let wi = frame.to_world(cosine_hemisphere([ud0, ud1])).normalize();

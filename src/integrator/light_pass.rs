@@ -12,7 +12,7 @@
 //! has nothing to move down, and the pull after each pass carries the caustic light up to
 //! the nodes wide cones stop at (`cone::pull`).
 
-use super::cone::{cell_of, cells, grid, tri_key, CELL_FRACTION};
+use super::cone::{cell_of, cells, grid, tri_key, CELL_FRACTION, GRID};
 use super::Scene;
 use crate::material::{cosine_hemisphere, Frame};
 use crate::radiance::RadianceStore;
@@ -187,7 +187,7 @@ fn visible_fraction(
 ) -> f32 {
     let p = hit.tri.p.map(V::from);
     let side = grid(&hit.tri, cell_size);
-    let (ci, cj) = ((cell / 4) as f32, (cell % 4) as f32);
+    let (ci, cj) = ((cell / GRID) as f32, (cell % GRID) as f32);
     let frame = Frame::new(n);
     let k = (VISIBILITY_RAYS as f32).sqrt() as u32;
     let (mut seen, mut cast) = (0u32, 0u32);
