@@ -156,6 +156,13 @@ fn a_thin_wall_is_never_skipped_by_a_wide_cone() {
                     Some(ConeHit::Node { t, .. }) => t,
                     None => f32::INFINITY,
                 };
+                // The any-hit shadow cone agrees with the closest-hit cone.
+                let shadow = Ray { o, d, t_max: 4.0 };
+                assert_eq!(
+                    tr.cone_occluded(&shadow, &c),
+                    tr.cone_hit(&shadow, &c).is_some(),
+                    "shadow cone tan {tan_a} scale {scale}"
+                );
                 assert!(
                     t <= t_wall * (1.0 + 1e-5),
                     "cone tan {tan_a} scale {scale}: hit at {t}, wall at {t_wall}"

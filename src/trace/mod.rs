@@ -346,6 +346,9 @@ impl<'a> Tracer<'a> {
                 {
                     on_node(page, ni, tn);
                     found = true;
+                    if any {
+                        break 'walk;
+                    }
                     t_max = tn;
                     continue;
                 }
@@ -425,7 +428,12 @@ impl<'a> Tracer<'a> {
         if cone.scale <= 0.0 {
             return self.occluded(ray);
         }
-        self.cone_hit(ray, cone).is_some()
+        self.traverse(
+            ray,
+            |_, _, _, _, _| {},
+            true,
+            Some((cone, &mut |_, _, _| {})),
+        )
     }
 
     /// Nearest hit of a cone: a leaf triangle, or the first node whose box the cone's
