@@ -59,10 +59,10 @@ pub fn node_key(node: u64) -> u64 {
     node * (MAX_LEAF_TRIS as u64 + 1) * CELLS
 }
 
-/// Side of a triangle's light-cell grid at most (8×8 over the barycentrics): a triangle
+/// Side of a triangle's light-cell grid at most (16×16 over the barycentrics): a triangle
 /// much larger than `CELL_FRACTION` of the scene keeps light per cell, so a wall lit
 /// unevenly is not one average.
-pub const GRID: u64 = 8;
+pub const GRID: u64 = 16;
 pub const CELLS: u64 = GRID * GRID;
 /// Target cell size as a fraction of the scene's bounding diagonal.
 pub const CELL_FRACTION: f32 = 1.0 / 128.0;
