@@ -21,6 +21,18 @@ pub struct Emitter {
     pub two_sided: bool,
 }
 
+impl Emitter {
+    /// A uniform point on the triangle and its error bound.
+    fn point(&self, u: [f32; 2]) -> (V, V) {
+        let su = u[0].sqrt();
+        let (b0, b1) = (1.0 - su, u[1] * su);
+        let q = self.p[0] * b0 + self.p[1] * b1 + self.p[2] * (1.0 - b0 - b1);
+        let err =
+            self.p[0].abs().max(self.p[1].abs()).max(self.p[2].abs()) * crate::trace::gamma(7);
+        (q, err)
+    }
+}
+
 pub enum Punctual {
     /// Radiant intensity (glTF candela), spot cone cosines (−1 for a point light).
     Spot {
@@ -215,9 +227,7 @@ impl Lights {
         }
         if let Some(e) = self.emitters.get(i) {
             // Uniform point on the triangle.
-            let su = u[0].sqrt();
-            let (b0, b1) = (1.0 - su, u[1] * su);
-            let q = e.p[0] * b0 + e.p[1] * b1 + e.p[2] * (1.0 - b0 - b1);
+            let (q, err) = e.point([u[0], u[1]]);
             let d = q - p;
             let dist2 = d.length_squared();
             let dist = dist2.sqrt();
@@ -233,7 +243,6 @@ impl Lights {
             if !(pdf > 0.0 && pdf.is_finite()) {
                 return None;
             }
-            let err = (e.p[0].abs().max(e.p[1].abs()).max(e.p[2].abs())) * crate::trace::gamma(7);
             return Some(LightSample {
                 wi,
                 dist,
@@ -291,9 +300,7 @@ impl Lights {
             return None;
         }
         let (o, err, n, d, flux) = if let Some(e) = self.emitters.get(i) {
-            let su = u[0].sqrt();
-            let (b0, b1) = (1.0 - su, u[1] * su);
-            let q = e.p[0] * b0 + e.p[1] * b1 + e.p[2] * (1.0 - b0 - b1);
+            let (q, err) = e.point([u[0], u[1]]);
             // Two-sided lamps pick a side with u[4]: half the pdf, twice the power.
             let (n, sides) = if e.two_sided && u[4] < 0.5 {
                 (-e.n, 2.0)
@@ -303,7 +310,6 @@ impl Lights {
                 (e.n, 1.0)
             };
             let d = Frame::new(n).to_world(cosine_hemisphere([u[2], u[3]]));
-            let err = (e.p[0].abs().max(e.p[1].abs()).max(e.p[2].abs())) * crate::trace::gamma(7);
             // L·cos / (p_pick · 1/A · cos/π · 1/sides).
             (q, err, n, d, e.le * (PI * e.area * sides / p_pick))
         } else {
