@@ -25,7 +25,7 @@
 //! smooth bounces only is masked, so caustic paths count once.
 
 use super::path::power_heuristic;
-use super::{sample_light, Counters, Scene};
+use super::{bsdf_term, sample_light, Counters, Scene};
 use crate::build::MAX_LEAF_TRIS;
 use crate::material::{cosine_hemisphere, Frame};
 use crate::paging::{TriW, CHILD_PAGE, INNER, KIND_MASK, LEAF};
@@ -307,11 +307,7 @@ pub fn radiance(
                             0.0,
                             &shadow_cone,
                             [u_pick, ul0, ul1],
-                            |wi| {
-                                let wl = frame.to_local(wi);
-                                let (f, pdf) = bsdf.eval(wo_l, wl);
-                                (f * wl.z.abs(), pdf)
-                            },
+                            bsdf_term(frame, bsdf, wo_l),
                         );
                     }
                     let Some(bs) = bsdf.sample(wo_l, u_lobe, [ud0, ud1]) else {

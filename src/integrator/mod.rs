@@ -6,7 +6,7 @@ pub mod path;
 
 use crate::camera::Camera;
 use crate::light::Lights;
-use crate::material::Material;
+use crate::material::{Bsdf, Frame, Material};
 use crate::paging::PageCache;
 use crate::trace::{offset_origin, Cone, Tracer};
 use glam::Vec3A as V;
@@ -66,6 +66,16 @@ impl NodeSet {
             .iter()
             .map(|w| w.load(Relaxed).count_ones() as u64)
             .sum()
+    }
+}
+
+/// `f` for `sample_light` at a surface with this BSDF: (value · |cos θ|, pdf) for a
+/// direction, in the frame whose local outgoing direction is `wo_l`.
+pub fn bsdf_term(frame: Frame, bsdf: Bsdf, wo_l: V) -> impl Fn(V) -> (V, f32) {
+    move |wi| {
+        let wl = frame.to_local(wi);
+        let (f, pdf) = bsdf.eval(wo_l, wl);
+        (f * wl.z.abs(), pdf)
     }
 }
 

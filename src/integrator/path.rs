@@ -7,7 +7,7 @@
 //! seed. Emitters are one-sided unless their material is double-sided; a single-sided
 //! opaque surface hit from behind absorbs.
 
-use super::{sample_light, Counters, Scene};
+use super::{bsdf_term, sample_light, Counters, Scene};
 use crate::material::Frame;
 use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Cone, Ray, Tracer};
@@ -94,11 +94,7 @@ pub fn radiance(
                     0.0,
                     &exact,
                     [u_pick, ul0, ul1],
-                    |wi| {
-                        let wl = frame.to_local(wi);
-                        let (f, pdf) = bsdf.eval(wo_l, wl);
-                        (f * wl.z.abs(), pdf)
-                    },
+                    bsdf_term(frame, bsdf, wo_l),
                 );
         }
 
