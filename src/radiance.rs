@@ -197,14 +197,11 @@ impl RadianceStore {
         self.update(cell, |e| e.visible = fraction);
     }
 
-    /// Caustic light arriving at a cell or node as E/π, like the diffuse store's values.
-    pub fn caustic(&self, key: u64) -> Option<[f32; 3]> {
+    /// Caustic light arriving at an entry's cell or node as E/π, like the diffuse store's
+    /// values (None before any light pass).
+    pub fn caustic(&self, e: &Entry) -> Option<[f32; 3]> {
         let m = self.photons.load(Relaxed);
-        if m == 0 {
-            return None;
-        }
-        let e = self.get(key)?;
-        Some(e.caustic.map(|c| c / m as f32))
+        (m > 0).then(|| e.caustic.map(|c| c / m as f32))
     }
 
     /// Marks the start of an eye pass; `passes` counts them from 1.

@@ -436,16 +436,18 @@ pub fn radiance(
         pend.albedo = albedo;
         pend.diffuse = true;
         pend.node = Some(node_key);
-        if mask_caustics {
-            pend.caustic = store.caustic(node_key).map_or(V::ZERO, V::from);
-        }
-        // A converged node answers from its store (§4.6.1); on screen only for its
-        // indirect part, the light sample below stays fresh.
         let entry = if depth == 0 {
             store.visit(node_key)
         } else {
             store.get(node_key)
         };
+        if mask_caustics {
+            pend.caustic = entry
+                .and_then(|e| store.caustic(&e))
+                .map_or(V::ZERO, V::from);
+        }
+        // A converged node answers from its store (§4.6.1); on screen only for its
+        // indirect part, the light sample below stays fresh.
         if depth >= FRESH {
             if let Some(e) = entry.filter(|e| e.n >= store.limit) {
                 let (v, _) = e.value().unwrap_or(([0.0; 3], 0));
