@@ -251,22 +251,30 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         V::from(archive.header.bounds_max),
     );
     let lights = Lights::gather(&archive, &materials, 0.5 * (hi - lo).length())?;
+    // The caustic light pass (cone integrator): decided once, and the stats say why.
+    let smooth = materials.iter().any(Material::has_delta_lobe);
+    let light_pass = o.integrator == Integrator::Cone
+        && !lights.is_empty()
+        && match o.light_pass {
+            LightPass::Off => false,
+            LightPass::On => true,
+            LightPass::Auto => smooth,
+        };
     let mut passes = match o.integrator {
         Integrator::Path => vec!["path: eye paths with next-event estimation and MIS".to_string()],
-        Integrator::Cone => {
-            let mut v = vec![
-                format!("cone: eye pass, cone scale {}, diffuse light stored per node (converged at {} samples)", o.cone_scale, o.cone_samples),
-                "pull after every eye pass".to_string(),
-            ];
-            let smooth = materials.iter().any(Material::has_delta_lobe);
-            v.push(match (o.light_pass, smooth) {
-                (LightPass::Off, _) => "light pass: off (--light-pass off); caustics come from the eye pass".into(),
-                (LightPass::Auto, false) => "light pass: skipped, no smooth mirror or glass surfaces".into(),
-                (_, _) if lights.is_empty() => "light pass: skipped, no lights".into(),
-                _ => "light pass: photons through smooth mirrors and glass leave caustics on diffuse surfaces (L S S* D); the eye pass masks those paths; push-pull after each pass".into(),
-            });
-            v
-        }
+        Integrator::Cone => vec![
+            format!("cone: eye pass, cone scale {}, diffuse light stored per node (converged at {} samples)", o.cone_scale, o.cone_samples),
+            "pull after every eye pass".to_string(),
+            if light_pass {
+                "light pass: photons through smooth mirrors and glass leave caustics on diffuse surfaces (L S S* D); the eye pass masks those paths; pulled after each pass".into()
+            } else if o.light_pass == LightPass::Off {
+                "light pass: off (--light-pass off); caustics come from the eye pass".into()
+            } else if !smooth && o.light_pass == LightPass::Auto {
+                "light pass: skipped, no smooth mirror or glass surfaces".into()
+            } else {
+                "light pass: skipped, no lights".into()
+            },
+        ],
     };
     if lights.is_empty() {
         passes.push("no light sources: the image is black".into());
@@ -283,13 +291,6 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
             .collect(),
     };
     let store = RadianceStore::new(o.cone_samples, store_share);
-    let light_pass = o.integrator == Integrator::Cone
-        && !scene.lights.is_empty()
-        && match o.light_pass {
-            LightPass::Off => false,
-            LightPass::On => true,
-            LightPass::Auto => scene.materials.iter().any(Material::has_delta_lobe),
-        };
     // Photons light the whole scene whatever the crop: one per pixel of the full image.
     let photons = o.photons.unwrap_or((width * height).max(1));
     let mut deposits = 0u64;
