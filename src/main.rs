@@ -60,6 +60,20 @@ struct Settings {
 }
 
 impl Settings {
+    /// Options for `npp` and `eval`: renders of `archive` written under `output`.
+    fn sweep(
+        self,
+        archive: PathBuf,
+        output: &std::path::Path,
+        spp: u32,
+        progress: bool,
+    ) -> SweepOptions {
+        SweepOptions {
+            out_dir: output.to_path_buf(),
+            base: self.options(archive, output.join("x.exr"), spp, progress),
+        }
+    }
+
     fn options(self, archive: PathBuf, output: PathBuf, spp: u32, progress: bool) -> RenderOptions {
         RenderOptions {
             archive,
@@ -311,11 +325,7 @@ fn run(cli: Cli) -> Result<()> {
             output,
             settings,
         } => {
-            let o = SweepOptions {
-                archive: archive.clone(),
-                out_dir: output.clone(),
-                base: settings.options(archive, output.join("x.exr"), spp, show),
-            };
+            let o = settings.sweep(archive, &output, spp, show);
             println!("pixels      unique nodes  nodes/pixel  pages  resident MiB  seconds");
             for r in report::npp(&o, &resolutions)? {
                 println!(
@@ -338,11 +348,7 @@ fn run(cli: Cli) -> Result<()> {
             output,
             settings,
         } => {
-            let o = SweepOptions {
-                archive: archive.clone(),
-                out_dir: output.clone(),
-                base: settings.options(archive, output.join("x.exr"), 1, show),
-            };
+            let o = settings.sweep(archive, &output, 1, show);
             let rows = report::eval(&o, &reference, &integrators, &times)?;
             for r in &rows {
                 println!(

@@ -79,10 +79,10 @@ fn write_text(path: &Path, text: &str) -> Result<()> {
     write_atomically(path, |tmp| Ok(std::fs::write(tmp, text)?))
 }
 
-/// Settings shared by the sweeps: everything of a render but the output, size and time.
+/// Settings shared by the sweeps: everything of a render (archive included) but the
+/// output, size and time.
 #[derive(Clone)]
 pub struct SweepOptions {
-    pub archive: PathBuf,
     pub out_dir: PathBuf,
     pub base: RenderOptions,
 }
@@ -93,7 +93,6 @@ fn render_into(
     f: impl FnOnce(&mut RenderOptions),
 ) -> Result<(Image, RenderStats)> {
     let mut r = o.base.clone();
-    r.archive = o.archive.clone();
     r.output = o.out_dir.join(format!("{name}.exr"));
     r.stats = Some(o.out_dir.join(format!("{name}.json")));
     f(&mut r);
