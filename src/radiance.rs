@@ -122,11 +122,8 @@ impl RadianceStore {
         let Some(e) = self.entry(&mut m, node) else {
             return (sample, false);
         };
-        if e.n < self.limit && sample.iter().all(|v| v.is_finite()) {
-            for (s, v) in e.sum.iter_mut().zip(sample) {
-                *s += v;
-            }
-            e.n += 1;
+        if sample.iter().all(|v| v.is_finite()) {
+            count_in(&mut e.sum, &mut e.n, sample, self.limit);
         }
         let avg = e.sum.map(|v| v / e.n.max(1) as f32);
         (avg, e.n >= self.limit)
@@ -146,17 +143,9 @@ impl RadianceStore {
         let finite = total.iter().chain(&indirect).all(|v| v.is_finite());
         let mut m = self.shard(node).lock().expect("store");
         let e = self.entry(&mut m, node)?;
-        if finite && e.n < self.limit {
-            for (s, v) in e.sum.iter_mut().zip(total) {
-                *s += v;
-            }
-            e.n += 1;
-        }
-        if finite && e.ni < SCREEN_LIMIT {
-            for (s, v) in e.indirect.iter_mut().zip(indirect) {
-                *s += v;
-            }
-            e.ni += 1;
+        if finite {
+            count_in(&mut e.sum, &mut e.n, total, self.limit);
+            count_in(&mut e.indirect, &mut e.ni, indirect, SCREEN_LIMIT);
         }
         Some(*e)
     }
@@ -180,11 +169,7 @@ impl RadianceStore {
     /// Adds a photon's caustic contribution to a cell (non-finite ones are dropped).
     pub fn add_caustic(&self, cell: u64, v: [f32; 3]) {
         if v.iter().all(|x| x.is_finite()) {
-            self.update(cell, |e| {
-                for (c, x) in e.caustic.iter_mut().zip(v) {
-                    *c += x;
-                }
-            });
+            self.update(cell, |e| add_to(&mut e.caustic, v));
         }
     }
 
@@ -248,6 +233,20 @@ impl RadianceStore {
                     .count()
             })
             .sum()
+    }
+}
+
+fn add_to(sum: &mut [f32; 3], v: [f32; 3]) {
+    for (s, x) in sum.iter_mut().zip(v) {
+        *s += x;
+    }
+}
+
+/// Adds a sample to a sum and its counter, unless the counter reached `cap`.
+fn count_in(sum: &mut [f32; 3], n: &mut u32, v: [f32; 3], cap: u32) {
+    if *n < cap {
+        add_to(sum, v);
+        *n += 1;
     }
 }
 
