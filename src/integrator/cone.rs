@@ -25,7 +25,7 @@
 //! smooth bounces only is masked, so caustic paths count once.
 
 use super::path::power_heuristic;
-use super::{bsdf_term, sample_light, Counters, Scene};
+use super::{bsdf_term, sample_light, Counters, Receiver, Scene};
 use crate::build::MAX_LEAF_TRIS;
 use crate::material::{cosine_hemisphere, Frame};
 use crate::paging::{TriW, CHILD_PAGE, INNER, KIND_MASK, LEAF};
@@ -218,6 +218,8 @@ pub fn radiance(
     let mut cone = cone;
     let mut prev_delta = true;
     let mut prev_pdf = 0.0f32;
+    // The last glossy point and its normal, where its light sample was chosen.
+    let mut prev = (V::ZERO, V::ZERO);
     let mut tail = V::ZERO;
     let mut depth = 0u32;
     // With the light pass on, emission reached from a Lambertian surface through smooth
@@ -281,7 +283,7 @@ pub fn radiance(
                         // After a glossy bounce: MIS against the light sample, as the path
                         // tracer does; after a diffuse bounce emission is masked (eq. 4.27).
                         let dist2 = h.t * h.t;
-                        let lp = scene.lights.pick_pdf(le, area, m.double_sided) * dist2
+                        let lp = scene.lights.pick_pdf(prev.0, prev.1, &h.tri.p) * dist2
                             / (ng.dot(wo).abs() * area);
                         pend.emission = le * power_heuristic(prev_pdf, lp);
                     }
@@ -301,10 +303,7 @@ pub fn radiance(
                         pend.direct += sample_light(
                             scene,
                             tr,
-                            p,
-                            err,
-                            ng,
-                            0.0,
+                            &Receiver::surface(p, err, ng),
                             &shadow_cone,
                             [u_pick, ul0, ul1],
                             bsdf_term(frame, bsdf, wo_l),
@@ -319,6 +318,7 @@ pub fn radiance(
                     prev_delta = bs.delta;
                     smooth_chain &= bs.delta;
                     prev_pdf = bs.pdf;
+                    prev = (p, ng);
                     // A smooth surface bends the cone by its curvature (eq. 4.21–4.22) and
                     // the direction is resampled inside the incoming opening (eq. 4.14–4.16,
                     // Fig. 7). A glossy bounce starts a fresh diffuse-width cone.
@@ -464,17 +464,20 @@ pub fn radiance(
             None => frame.n.dot(wi).max(0.0),
         };
         let shade_n = if ng == V::ZERO { frame.n } else { ng };
-        pend.direct = sample_light(
-            scene,
-            tr,
+        let at = Receiver {
             p,
             err,
-            shade_n,
+            n: shade_n,
+            facing: if cluster_n.is_some() {
+                V::ZERO
+            } else {
+                shade_n
+            },
             min_dist,
-            &shadow_cone,
-            [u_pick, ul0, ul1],
-            |wi| (V::splat(theta(wi) * std::f32::consts::FRAC_1_PI), 0.0),
-        );
+        };
+        pend.direct = sample_light(scene, tr, &at, &shadow_cone, [u_pick, ul0, ul1], |wi| {
+            (V::splat(theta(wi) * std::f32::consts::FRAC_1_PI), 0.0)
+        });
         // On screen a cell traces only some of its pixels' bounces: it keeps sampling while
         // it holds fewer than max(SCREEN_FLOOR, SCREEN_QUOTA·√(visits·k)) samples after k
         // passes, which with P pixels on it is a fraction ∝ 1/√P of their bounces. The

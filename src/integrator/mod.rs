@@ -79,31 +79,53 @@ pub fn bsdf_term(frame: Frame, bsdf: Bsdf, wo_l: V) -> impl Fn(V) -> (V, f32) {
     }
 }
 
+/// Where a light sample is taken.
+pub struct Receiver {
+    pub p: V,
+    /// The error bound of `p`.
+    pub err: V,
+    /// Unit geometric normal, for the shadow ray's offset.
+    pub n: V,
+    /// The normal the light chooser may weigh by |cos θ| (zero when the surface takes light
+    /// from below its normal too, as a cluster's Θ does).
+    pub facing: V,
+    /// Light nearer than this counts as if at this distance (1/d² clamped).
+    pub min_dist: f32,
+}
+
+impl Receiver {
+    /// A triangle's point with its exact normal.
+    pub fn surface(p: V, err: V, n: V) -> Receiver {
+        Receiver {
+            p,
+            err,
+            n,
+            facing: n,
+            min_dist: 0.0,
+        }
+    }
+}
+
 /// One light sample with MIS against the BSDF: `f(wi)` returns (value · cos, BSDF pdf).
 /// Visibility is tested with `shadow_cone` (scale 0: an exact ray; the cone integrator uses
 /// the pixel's opening, so distant occluders are tested at a coarse level and far pages
 /// need not load).
-/// Light nearer than `min_dist` counts as if at `min_dist` (1/d² clamped).
-#[allow(clippy::too_many_arguments)]
 pub fn sample_light(
     scene: &Scene,
     tr: &mut Tracer,
-    p: V,
-    err: V,
-    n: V,
-    min_dist: f32,
+    at: &Receiver,
     shadow_cone: &Cone,
     u: [f32; 3],
     f: impl Fn(V) -> (V, f32),
 ) -> V {
-    let Some(ls) = scene.lights.sample(p, u[0], [u[1], u[2]]) else {
+    let Some(ls) = scene.lights.sample(at.p, at.facing, u[0], [u[1], u[2]]) else {
         return V::ZERO;
     };
     let (fv, pdf_b) = f(ls.wi);
     if fv.max_element() <= 0.0 {
         return V::ZERO;
     }
-    let from = offset_origin(p, err, n, ls.wi);
+    let from = offset_origin(at.p, at.err, at.n, ls.wi);
     if tr.cone_occluded(&ls.shadow_ray(from), shadow_cone) {
         return V::ZERO;
     }
@@ -112,8 +134,8 @@ pub fn sample_light(
     } else {
         1.0
     };
-    let clamp = if ls.dist < min_dist {
-        (ls.dist / min_dist).powi(2)
+    let clamp = if ls.dist < at.min_dist {
+        (ls.dist / at.min_dist).powi(2)
     } else {
         1.0
     };

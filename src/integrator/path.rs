@@ -7,7 +7,7 @@
 //! seed. Emitters are one-sided unless their material is double-sided; a single-sided
 //! opaque surface hit from behind absorbs.
 
-use super::{bsdf_term, sample_light, Counters, Scene};
+use super::{bsdf_term, sample_light, Counters, Receiver, Scene};
 use crate::material::Frame;
 use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Cone, Ray, Tracer};
@@ -35,6 +35,8 @@ pub fn radiance(
     let mut beta = V::ONE;
     let mut prev_pdf = 0.0f32;
     let mut prev_delta = true;
+    // The last scattering point and its normal, where its light sample was chosen.
+    let mut prev = (V::ZERO, V::ZERO);
     let mut depth = 0u32;
     loop {
         // Sample sets: 0 is the pixel position; bounce k uses sets 2k+1 (light choice, light
@@ -60,8 +62,8 @@ pub fn radiance(
             } else {
                 let cos_l = ng.dot(wo).abs();
                 let dist2 = (hit.t * ray.d.length()).powi(2);
-                let light_pdf = scene.lights.pick_pdf(m.emission, area, m.double_sided) * dist2
-                    / (cos_l * area);
+                let light_pdf =
+                    scene.lights.pick_pdf(prev.0, prev.1, &hit.tri.p) * dist2 / (cos_l * area);
                 l += beta * m.emission * power_heuristic(prev_pdf, light_pdf);
             }
         }
@@ -88,10 +90,7 @@ pub fn radiance(
                 * sample_light(
                     scene,
                     tr,
-                    p,
-                    err,
-                    ng,
-                    0.0,
+                    &Receiver::surface(p, err, ng),
                     &exact,
                     [u_pick, ul0, ul1],
                     bsdf_term(frame, bsdf, wo_l),
@@ -108,6 +107,7 @@ pub fn radiance(
         }
         prev_pdf = bs.pdf;
         prev_delta = bs.delta;
+        prev = (p, ng);
         let wi = frame.to_world(bs.wi).normalize();
         ray = Ray {
             o: offset_origin(p, err, ng, wi),
