@@ -29,6 +29,11 @@ struct Settings {
     /// exact rays (with stored-light reuse), larger values stop at coarser nodes.
     #[arg(long, default_value_t = 1.0)]
     cone_scale: f32,
+    /// Cone integrator: tan of the half-angle of the cones after a diffuse or glossy bounce
+    /// (004 eq. 4.20's d; the thesis used 0.3). Wider cones stop at coarser nodes: fewer
+    /// pages and nodes, more bias from clusters standing in for their triangles.
+    #[arg(long, default_value_t = canopy::integrator::cone::DIFFUSE_TAN)]
+    diffuse_tan: f32,
     /// Cone integrator: samples after which a node's stored light is converged and its
     /// paths stop there (004 §4.6.1 used 65536).
     #[arg(long, default_value_t = 1024)]
@@ -94,6 +99,7 @@ impl Settings {
             stats: None,
             progress,
             cone_scale: self.cone_scale,
+            diffuse_tan: self.diffuse_tan,
             cone_samples: self.cone_samples,
             light_pass: self.light_pass,
             photons: self.photons,

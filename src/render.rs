@@ -63,6 +63,8 @@ pub struct RenderOptions {
     pub progress: bool,
     /// Cone integrator: multiplier of the cone radius in the LOD rule (0: exact rays).
     pub cone_scale: f32,
+    /// Cone integrator: tan α′ of cones after diffuse bounces (004 eq. 4.20's d).
+    pub diffuse_tan: f32,
     /// Cone integrator: samples after which a node's stored light counts as converged.
     pub cone_samples: u32,
     /// Cone integrator: the caustic light pass (004 §4.7).
@@ -169,6 +171,14 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     if o.spp == 0 && o.time.is_none() {
         bail!("--spp must be at least 1");
     }
+    for (flag, v) in [
+        ("--cone-scale", o.cone_scale),
+        ("--diffuse-tan", o.diffuse_tan),
+    ] {
+        if !(v.is_finite() && v >= 0.0) {
+            bail!("{flag} must be a finite number of at least 0, not {v}");
+        }
+    }
     let archive = Arc::new(Archive::open(&o.archive)?);
     if archive.header.depth as usize > MAX_DEPTH {
         bail!(
@@ -263,7 +273,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     let mut passes = match o.integrator {
         Integrator::Path => vec!["path: eye paths with next-event estimation and MIS".to_string()],
         Integrator::Cone => vec![
-            format!("cone: eye pass, cone scale {}, diffuse light stored per node (converged at {} samples)", o.cone_scale, o.cone_samples),
+            format!("cone: eye pass, cone scale {}, diffuse cones tan {}, diffuse light stored per node (converged at {} samples)", o.cone_scale, o.diffuse_tan, o.cone_samples),
             "pull after every eye pass".to_string(),
             if light_pass {
                 "light pass: photons through smooth mirrors and glass leave caustics on diffuse surfaces (L S S* D); the eye pass masks those paths; pulled after each pass".into()
@@ -511,6 +521,7 @@ fn render_tile(
                             r0: 0.0,
                             tan_a: pixel_tan,
                             scale: o.cone_scale,
+                            spread: o.diffuse_tan,
                         };
                         cone::radiance(scene, store, tr, ray, cone, &smp, c)
                     }

@@ -142,6 +142,7 @@ fn a_thin_wall_is_never_skipped_by_a_wide_cone() {
                     r0: 0.0,
                     tan_a,
                     scale,
+                    spread: tan_a,
                 };
                 let hit = tr.cone_hit(
                     &Ray {
@@ -429,4 +430,31 @@ fn the_light_pass_runs_only_where_caustics_can_form() {
     );
     assert!(stats["photons"].as_u64().unwrap() > 0);
     assert_eq!(stats["caustic_deposits"], 0);
+}
+
+#[test]
+fn normalized_cluster_theta_integrates_to_one_over_the_sphere() {
+    use canopy::integrator::cone::theta_norm;
+    // Fibonacci sphere: near-uniform directions.
+    let n = 200_000;
+    let dirs: Vec<V> = (0..n)
+        .map(|i| {
+            let z = 1.0 - (2 * i + 1) as f32 / n as f32;
+            let r = (1.0 - z * z).max(0.0).sqrt();
+            let phi = i as f32 * std::f32::consts::PI * (3.0 - 5f32.sqrt());
+            V::new(r * phi.cos(), r * phi.sin(), z)
+        })
+        .collect();
+    for len in [0.0, 0.1, 0.3, 0.5, 0.8, 0.95, 1.0] {
+        let nn = V::new(0.3, -0.5, 0.8).normalize() * len;
+        let mean: f64 = dirs
+            .iter()
+            .map(|w| ((1.0 - len) / 4.0 + nn.dot(*w)).max(0.0) as f64)
+            .sum::<f64>()
+            / n as f64;
+        // ∫ Θ dω / π = 4π·mean / π.
+        let integral = 4.0 * mean / theta_norm(len) as f64;
+        assert!((integral - 1.0).abs() < 1e-3, "|n| = {len}: {integral}");
+    }
+    assert!((theta_norm(0.5) - 0.78).abs() < 0.01);
 }

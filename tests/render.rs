@@ -381,6 +381,18 @@ fn bad_render_input_fails_cleanly() {
         "out of range",
         &out,
     );
+    for (flag, v) in [
+        ("--cone-scale", "NaN"),
+        ("--diffuse-tan", "-0.5"),
+        ("--diffuse-tan", "inf"),
+    ] {
+        let arg = format!("{flag}={v}");
+        render_fails(
+            &["render", a, "-o", o, "--integrator", "cone", &arg],
+            flag,
+            &out,
+        );
+    }
     let bad = dir.path().join("missing/dir/o.exr");
     render_fails(&["render", a, "-o", s(&bad)], "cannot write", &bad);
     render_fails(

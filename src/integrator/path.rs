@@ -85,6 +85,7 @@ pub fn radiance(
                 r0: 0.0,
                 tan_a: 0.0,
                 scale: 0.0,
+                spread: 0.0,
             };
             l += beta
                 * sample_light(

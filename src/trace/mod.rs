@@ -211,6 +211,8 @@ pub struct Cone {
     pub r0: f32,
     pub tan_a: f32,
     pub scale: f32,
+    /// tan α′ of the cones after diffuse and glossy bounces (004 eq. 4.20's d).
+    pub spread: f32,
 }
 
 impl Cone {
