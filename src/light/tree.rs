@@ -90,48 +90,6 @@ impl LightBounds {
         0.5 * (self.lo + self.hi)
     }
 
-    /// Upper bound on what these lights send to `p` on a surface with normal `n` (zero:
-    /// any orientation), up to a common factor (pbrt-v4 `LightBounds::Importance`).
-    /// Deviation: pbrt clamps d² at half the box's diagonal, which mixes units; this clamps
-    /// it at the squared half-diagonal, the distance below which a bound is meaningless.
-    pub fn importance(&self, p: V, n: V) -> f32 {
-        let pc = self.centroid();
-        let r2 = 0.25 * (self.hi - self.lo).length_squared();
-        let dist2 = p.distance_squared(pc);
-        let d2 = dist2.max(r2).max(f32::MIN_POSITIVE);
-        let wi = (p - pc).normalize_or_zero();
-        let mut cos_w = self.w.dot(wi);
-        if self.two_sided {
-            cos_w = cos_w.abs();
-        }
-        let sin_w = safe_sqrt(1.0 - cos_w * cos_w);
-        // Directions the box's bounding sphere subtends from p (all of them from inside).
-        let cos_b = if dist2 <= r2 {
-            -1.0
-        } else {
-            safe_sqrt(1.0 - r2 / dist2)
-        };
-        let b = (cos_b, safe_sqrt(1.0 - cos_b * cos_b));
-        let o = (self.cos_o, safe_sqrt(1.0 - self.cos_o * self.cos_o));
-        // The smallest angle between an emitter normal and the direction to p.
-        let x = sub_clamped((cos_w, sin_w), o);
-        let (cos_p, _) = sub_clamped(x, b);
-        if cos_p <= self.cos_e {
-            return 0.0;
-        }
-        let mut importance = self.phi * cos_p / d2;
-        if n != V::ZERO {
-            let cos_i = wi.dot(n).abs();
-            let (cos_pi, _) = sub_clamped((cos_i, safe_sqrt(1.0 - cos_i * cos_i)), b);
-            importance *= cos_pi;
-        }
-        if importance.is_finite() {
-            importance.max(0.0)
-        } else {
-            0.0
-        }
-    }
-
     /// The surface-area-orientation heuristic's cost along `axis` (pbrt-v4
     /// `EvaluateCost`): power × the solid angle of the emission cone × box area, with a
     /// penalty for thin boxes cut across their long side.
@@ -161,8 +119,83 @@ const BUCKETS: usize = 12;
 const SAH_DEPTH: u32 = 64;
 const ONE_MINUS_EPS: f32 = 1.0 - f32::EPSILON / 2.0;
 
+/// What `importance` reads of a node's bounds, precomputed (the tree walk evaluates it
+/// twice per level for every light sample).
+#[derive(Clone, Copy)]
+struct Bound {
+    center: V,
+    /// Squared radius of the box's bounding sphere.
+    r2: f32,
+    w: V,
+    cos_o: f32,
+    sin_o: f32,
+    cos_e: f32,
+    phi: f32,
+    two_sided: bool,
+}
+
+impl Bound {
+    fn new(b: &LightBounds) -> Bound {
+        Bound {
+            center: b.centroid(),
+            r2: 0.25 * (b.hi - b.lo).length_squared(),
+            w: b.w,
+            cos_o: b.cos_o,
+            sin_o: safe_sqrt(1.0 - b.cos_o * b.cos_o),
+            cos_e: b.cos_e,
+            phi: b.phi,
+            two_sided: b.two_sided,
+        }
+    }
+
+    /// Upper bound on what these lights send to `p` on a surface with normal `n` (zero:
+    /// any orientation), up to a common factor (pbrt-v4 `LightBounds::Importance`).
+    /// Deviation: pbrt clamps d² at half the box's diagonal, which mixes units; this clamps
+    /// it at the squared half-diagonal, the distance below which a bound is meaningless.
+    #[inline]
+    fn importance(&self, p: V, n: V) -> f32 {
+        let d = p - self.center;
+        let dist2 = d.length_squared();
+        let d2 = dist2.max(self.r2).max(f32::MIN_POSITIVE);
+        let wi = if dist2 > 0.0 {
+            d / dist2.sqrt()
+        } else {
+            V::ZERO
+        };
+        let mut cos_w = self.w.dot(wi);
+        if self.two_sided {
+            cos_w = cos_w.abs();
+        }
+        let sin_w = safe_sqrt(1.0 - cos_w * cos_w);
+        // Directions the box's bounding sphere subtends from p (all of them from inside).
+        let b = if dist2 <= self.r2 {
+            (-1.0, 0.0)
+        } else {
+            let sin2 = self.r2 / dist2;
+            (safe_sqrt(1.0 - sin2), sin2.sqrt())
+        };
+        // The smallest angle between an emitter normal and the direction to p.
+        let x = sub_clamped((cos_w, sin_w), (self.cos_o, self.sin_o));
+        let (cos_p, _) = sub_clamped(x, b);
+        if cos_p <= self.cos_e {
+            return 0.0;
+        }
+        let mut importance = self.phi * cos_p / d2;
+        if n != V::ZERO {
+            let cos_i = wi.dot(n).abs();
+            let (cos_pi, _) = sub_clamped((cos_i, safe_sqrt(1.0 - cos_i * cos_i)), b);
+            importance *= cos_pi;
+        }
+        if importance.is_finite() {
+            importance.max(0.0)
+        } else {
+            0.0
+        }
+    }
+}
+
 struct TreeNode {
-    b: LightBounds,
+    b: Bound,
     parent: u32,
     /// A leaf's light, or an inner node's second child (the first is the next node).
     index: u32,
@@ -203,7 +236,7 @@ impl LightTree {
         if let [(light, _)] = items {
             self.leaf_of[*light as usize] = at;
             self.nodes.push(TreeNode {
-                b,
+                b: Bound::new(&b),
                 parent,
                 index: *light,
                 leaf: true,
@@ -211,7 +244,7 @@ impl LightTree {
             return at;
         }
         self.nodes.push(TreeNode {
-            b,
+            b: Bound::new(&b),
             parent,
             index: NONE,
             leaf: false,
