@@ -172,8 +172,6 @@ pub fn bent_tan(cone: &Cone, t: f32, kappa: f32, cos_o: f32, cos_i: f32, eta: f3
     tan.clamp(0.0, cone.spread)
 }
 
-/// p_reflect at cos θ from the node's five-sample table (004 §4.3.1), linearly
-/// interpolated.
 /// ∫ Θ dω / π over the sphere for eq. 4.4's Θ = (1 − |n|)/4 + ⟨n, ω⟩ (clamped at 0) with
 /// a normal of length `len`: 1 for a flat cluster and for a closed one (|n| = 0), less
 /// between (0.78 at |n| = 0.5). Light samples divide Θ by it so a cluster reflects its
@@ -191,6 +189,8 @@ pub fn theta_norm(len: f32) -> f32 {
     2.0 * (a * (1.0 - c0) + len * (1.0 - c0 * c0) / 2.0)
 }
 
+/// p_reflect at cos θ from the node's five-sample table (004 §4.3.1), linearly
+/// interpolated.
 fn reflect_lut(lut: [u8; 5], c: f32) -> f32 {
     let x = c.clamp(0.0, 1.0) * 4.0;
     let i = (x as usize).min(3);
