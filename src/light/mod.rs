@@ -192,41 +192,28 @@ impl Lights {
         center: V,
         scene_radius: f32,
     ) -> Lights {
+        // Each light's power feeds the photon CDF; its bounds (or none, for a directional
+        // light) the tree.
         let mut cdf = Vec::with_capacity(emitters.len() + punctual.len());
         let mut total = 0.0f64;
-        for e in &emitters {
-            total += emitter_power(e.le, e.area, e.two_sided) as f64;
+        let mut add = |power: f32| {
+            total += power as f64;
             cdf.push(total as f32);
-        }
-        for l in &punctual {
-            total += match l {
-                Punctual::Spot {
-                    intensity,
-                    cos_outer,
-                    ..
-                } => 2.0 * PI * (1.0 - cos_outer) * luminance(*intensity),
-                Punctual::Directional { irradiance, .. } => {
-                    PI * scene_radius * scene_radius * luminance(*irradiance)
-                }
-            } as f64;
-            cdf.push(total as f32);
-        }
+        };
         let mut bounded = Vec::new();
         let mut infinite = Vec::new();
         for (i, e) in emitters.iter().enumerate() {
-            let (lo, hi) = (
-                e.p[0].min(e.p[1]).min(e.p[2]),
-                e.p[0].max(e.p[1]).max(e.p[2]),
-            );
+            let phi = emitter_power(e.le, e.area, e.two_sided);
+            add(phi);
             bounded.push((
                 i as u32,
                 LightBounds {
-                    lo,
-                    hi,
+                    lo: e.p[0].min(e.p[1]).min(e.p[2]),
+                    hi: e.p[0].max(e.p[1]).max(e.p[2]),
                     w: e.n,
                     cos_o: 1.0,
                     cos_e: 0.0,
-                    phi: emitter_power(e.le, e.area, e.two_sided),
+                    phi,
                     two_sided: e.two_sided,
                 },
             ));
@@ -243,6 +230,7 @@ impl Lights {
                     cos_outer,
                     cos_inner,
                 } => {
+                    add(2.0 * PI * (1.0 - cos_outer) * luminance(*intensity));
                     let (cos_o, cos_e) = if *cos_outer <= -1.0 {
                         (-1.0, 0.0)
                     } else {
@@ -263,7 +251,10 @@ impl Lights {
                         },
                     ));
                 }
-                Punctual::Directional { .. } => infinite.push(i),
+                Punctual::Directional { irradiance, .. } => {
+                    add(PI * scene_radius * scene_radius * luminance(*irradiance));
+                    infinite.push(i);
+                }
             }
         }
         let by_vertices = emitters
