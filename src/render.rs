@@ -71,6 +71,9 @@ pub struct RenderOptions {
     pub light_pass: LightPass,
     /// Photons per light pass (None: one per pixel).
     pub photons: Option<u32>,
+    /// Cone integrator: rays per sample that average the emission seen directly on pixels
+    /// straddling an emitter's silhouette (0: the sample's own ray only).
+    pub edge_rays: u32,
 }
 
 #[derive(Clone, Debug, Default, serde::Serialize)]
@@ -126,6 +129,9 @@ pub struct RenderStats {
     /// Photons the light passes emitted, and how many left caustic light.
     pub photons: u64,
     pub caustic_deposits: u64,
+    /// Pixels whose samples both saw an emitter and missed it (cone integrator: these
+    /// take `--edge-rays`).
+    pub edge_pixels: u64,
     pub image_mean: [f64; 3],
 }
 
@@ -318,6 +324,8 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         })
         .collect();
     let mut sums = vec![[0f64; 3]; (cw * ch) as usize];
+    // Per pixel: primary samples that saw emission and that did not.
+    let mut seen = vec![[0u32; 2]; (cw * ch) as usize];
     let rays = AtomicU64::new(0);
     let paths = AtomicU64::new(0);
     let mut done = 0u32;
@@ -343,13 +351,22 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
             deposits += lp.deposits;
             light_s += pass_start.elapsed().as_secs_f64();
         }
-        let results: Vec<Vec<[f64; 3]>> = pool.install(|| {
+        let edge = edge_mask(&seen, cw);
+        let results: Vec<Vec<([f64; 3], [u32; 2])>> = pool.install(|| {
             tiles
                 .par_iter()
                 .map(|t| {
                     let mut c = Counters::default();
                     let mut tr = Tracer::new(&scene.cache);
-                    let out = render_tile(&scene, &store, &mut tr, *t, done, count, o, &mut c);
+                    let px = Pixels {
+                        t: *t,
+                        first: done,
+                        count,
+                        edge: &edge,
+                        origin: [crop[0], crop[2]],
+                        stride: cw,
+                    };
+                    let out = render_tile(&scene, &store, &mut tr, px, o, &mut c);
                     rays.fetch_add(tr.rays, Relaxed);
                     paths.fetch_add(c.paths, Relaxed);
                     scene.cache.add_lookups(tr.page_lookups);
@@ -362,11 +379,14 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         });
         for (t, px) in tiles.iter().zip(results) {
             let w = t[1] - t[0];
-            for (i, v) in px.into_iter().enumerate() {
+            for (i, (v, n)) in px.into_iter().enumerate() {
                 let (x, y) = (t[0] + i as u32 % w - crop[0], t[2] + i as u32 / w - crop[2]);
-                let s = &mut sums[(y * cw + x) as usize];
+                let at = (y * cw + x) as usize;
                 for k in 0..3 {
-                    s[k] += v[k];
+                    sums[at][k] += v[k];
+                }
+                for k in 0..2 {
+                    seen[at][k] = seen[at][k].saturating_add(n[k]);
                 }
             }
         }
@@ -396,6 +416,17 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     }
     bar.finish_and_clear();
     let render_s = t1.elapsed().as_secs_f64();
+    let edge_pixels = edge_mask(&seen, cw).iter().filter(|&&e| e).count() as u64;
+    if o.integrator == Integrator::Cone {
+        passes.push(if o.edge_rays == 0 {
+            "edge rays: off (--edge-rays 0)".into()
+        } else {
+            format!(
+                "edge rays: {} per sample average the emission seen on the {edge_pixels} pixels found at an emitter's silhouette",
+                o.edge_rays
+            )
+        });
+    }
     cache.stop_prefetch();
     prefetcher.join().ok();
 
@@ -457,6 +488,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         store_refused_samples: store.refused(),
         photons: store.photons(),
         caustic_deposits: deposits,
+        edge_pixels,
         image_mean: img.mean(),
     };
     if let Some(p) = &o.stats {
@@ -491,47 +523,110 @@ fn resolution(o: &RenderOptions, cam: &canopy_format::CameraRecord) -> Result<(u
     Ok((w, h))
 }
 
-/// Renders samples [first, first + count) of every pixel in a tile; returns the sums.
-#[allow(clippy::too_many_arguments)]
+/// A tile's pixels to render in one pass: samples [first, first + count) of each, and
+/// which pixels of the crop (`stride` wide, from `origin`) take edge rays.
+struct Pixels<'a> {
+    t: [u32; 4],
+    first: u32,
+    count: u32,
+    edge: &'a [bool],
+    origin: [u32; 2],
+    stride: u32,
+}
+
+/// Seed offset of the sequences that place a pixel's edge rays.
+const EDGE_SEED: u32 = 0x5bd1_e995;
+
+/// Pixels at an emitter's silhouette: among the pixel and its eight neighbours, earlier
+/// samples both saw emission and missed it. The neighbours catch a pixel the emitter
+/// barely covers before one of its own samples lands on it.
+fn edge_mask(seen: &[[u32; 2]], width: u32) -> Vec<bool> {
+    let (w, h) = (width as usize, seen.len() / width.max(1) as usize);
+    (0..seen.len())
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            let mut any = [false; 2];
+            for ny in y.saturating_sub(1)..(y + 2).min(h) {
+                for nx in x.saturating_sub(1)..(x + 2).min(w) {
+                    let n = seen[ny * w + nx];
+                    any = [any[0] || n[0] > 0, any[1] || n[1] > 0];
+                }
+            }
+            any[0] && any[1]
+        })
+        .collect()
+}
+
+/// Renders a tile's samples; returns per pixel the sums and the primary samples that saw
+/// emission and that did not.
 fn render_tile(
     scene: &Scene,
     store: &RadianceStore,
     tr: &mut Tracer,
-    t: [u32; 4],
-    first: u32,
-    count: u32,
+    px: Pixels,
     o: &RenderOptions,
     c: &mut Counters,
-) -> Vec<[f64; 3]> {
+) -> Vec<([f64; 3], [u32; 2])> {
+    let t = px.t;
     // Primary cones open by one pixel (004 eq. 4.19).
-    let pixel_tan = 2.0 * scene.camera.tan_half / scene.camera.height as f32;
+    let cone = Cone {
+        r0: 0.0,
+        tan_a: 2.0 * scene.camera.tan_half / scene.camera.height as f32,
+        scale: o.cone_scale,
+        spread: o.diffuse_tan,
+    };
     let mut out = Vec::with_capacity(((t[1] - t[0]) * (t[3] - t[2])) as usize);
-    for y in t[2]..t[3] {
-        for x in t[0]..t[1] {
-            let pixel = y * scene.camera.width + x;
-            let mut sum = [0f64; 3];
-            for s in first..first + count {
-                let smp = PixelSampler::new(o.seed, pixel, s);
-                let [jx, jy, ..] = smp.get4(0);
-                let ray = scene.camera.ray(x as f32 + jx, y as f32 + jy);
-                let l = match o.integrator {
-                    Integrator::Path => path::radiance(scene, tr, ray, &smp, c),
-                    Integrator::Cone => {
-                        let cone = Cone {
-                            r0: 0.0,
-                            tan_a: pixel_tan,
-                            scale: o.cone_scale,
-                            spread: o.diffuse_tan,
-                        };
-                        cone::radiance(scene, store, tr, ray, cone, &smp, c)
-                    }
-                };
-                for k in 0..3 {
-                    sum[k] += l[k] as f64;
+    for (y, x) in (t[2]..t[3]).flat_map(|y| (t[0]..t[1]).map(move |x| (y, x))) {
+        let pixel = y * scene.camera.width + x;
+        let at = (y - px.origin[1]) * px.stride + x - px.origin[0];
+        let mut seen = [0u32; 2];
+        let mut sum = [0f64; 3];
+        for s in px.first..px.first + px.count {
+            let smp = PixelSampler::new(o.seed, pixel, s);
+            let [jx, jy, ..] = smp.get4(0);
+            let ray = scene.camera.ray(x as f32 + jx, y as f32 + jy);
+            let l = match o.integrator {
+                Integrator::Path => path::radiance(scene, tr, ray, &smp, c),
+                Integrator::Cone => {
+                    let (rest, own) = cone::radiance(scene, store, tr, ray, cone, &smp, c);
+                    // At an emitter's silhouette (found by earlier passes) the emission
+                    // seen is averaged over `edge_rays` positions of a denser stratified
+                    // sequence: an unbiased estimate of the same pixel integral, each ray
+                    // a primary cone without shading.
+                    let k = if px.edge.get(at as usize) == Some(&true) {
+                        o.edge_rays
+                    } else {
+                        0
+                    };
+                    let mut tally = |v: V| {
+                        let n = &mut seen[usize::from(v.max_element() <= 0.0)];
+                        *n = n.saturating_add(1);
+                    };
+                    tally(own);
+                    let le = if k == 0 {
+                        own
+                    } else {
+                        (0..k).fold(V::ZERO, |acc, j| {
+                            let e = PixelSampler::new(
+                                o.seed ^ EDGE_SEED,
+                                pixel,
+                                s.wrapping_mul(k).wrapping_add(j),
+                            );
+                            let [ex, ey, ..] = e.get4(0);
+                            let r = scene.camera.ray(x as f32 + ex, y as f32 + ey);
+                            let v = cone::seen_emission(scene, tr, &r, &cone);
+                            tally(v);
+                            acc + v
+                        }) / k as f32
+                    };
+                    rest + le
                 }
+            };
+            for k in 0..3 {
+                sum[k] += l[k] as f64;
             }
-            out.push(sum);
         }
+        out.push((sum, seen));
     }
     out
 }

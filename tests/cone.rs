@@ -458,3 +458,69 @@ fn normalized_cluster_theta_integrates_to_one_over_the_sphere() {
     }
     assert!((theta_norm(0.5) - 0.78).abs() < 0.01);
 }
+
+/// A bright lamp sphere seen directly against a dark wall: the noise is mostly the lamp's
+/// coverage of its silhouette pixels. Edge rays must find those pixels, leave the image's
+/// mean where the path tracer puts it (they estimate the same pixel integral), and cut the
+/// error at equal samples.
+#[test]
+fn edge_rays_average_a_lamp_silhouette_without_bias() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = |f: &str| dir.path().join(f).to_str().unwrap().to_string();
+    std::fs::write(p("lamp.obj"), sphere_obj([0.0, 0.0, 0.0], 0.5)).unwrap();
+    std::fs::write(
+        p("wall.obj"),
+        "v -4 -4 -1\nv 4 -4 -1\nv 4 4 -1\nv -4 4 -1\nf 1 2 3\nf 1 3 4\n",
+    )
+    .unwrap();
+    std::fs::write(
+        p("scene.toml"),
+        r#"
+[[camera]]
+position = [0.0, 0.0, 3.0]
+look_at = [0.0, 0.0, 0.0]
+width = 32
+height = 32
+[[material]]
+name = "wall"
+base_color = [0.05, 0.05, 0.05]
+[[material]]
+name = "lamp"
+base_color = [0.0, 0.0, 0.0]
+emission = [20.0, 20.0, 20.0]
+[assign]
+"wall.obj" = "wall"
+"lamp.obj" = "lamp"
+"#,
+    )
+    .unwrap();
+    ok(&[
+        "--quiet",
+        "convert",
+        &p("lamp.obj"),
+        &p("wall.obj"),
+        "--scene",
+        &p("scene.toml"),
+        "-o",
+        &p("l.canopy"),
+    ]);
+    let arc = dir.path().join("l.canopy");
+    let (truth, _) = render(&arc, &dir.path().join("p.exr"), &["--spp", "2048"]);
+    let mut err = [0.0; 2];
+    for (i, k) in ["0", "8"].iter().enumerate() {
+        for seed in ["1", "2", "3"] {
+            let (img, stats) = cone(
+                &arc,
+                &dir.path().join(format!("c{k}_{seed}.exr")),
+                &["--spp", "32", "--edge-rays", k, "--seed", seed],
+            );
+            assert!(all_finite(&img));
+            assert_mean_within(&img, &truth, 0.01, &format!("edge rays {k}, seed {seed}"));
+            // The lamp's 14-pixel disc: a band about 3 pixels wide around its outline.
+            let edges = stats["edge_pixels"].as_u64().unwrap();
+            assert!((40..=300).contains(&edges), "{edges} edge pixels");
+            err[i] += rmse(&img, &truth).powi(2);
+        }
+    }
+    assert!(err[1] < 0.5 * err[0], "squared error {err:?}");
+}

@@ -220,7 +220,8 @@ fn phong_lobe(n: V, len: f32, wo: V, roughness: u8, u: [f32; 2]) -> (V, f32) {
     (wi, s)
 }
 
-/// Radiance along a primary cone.
+/// Radiance along a primary cone, as (everything but the emission seen at the primary
+/// hit, that emission).
 pub fn radiance(
     scene: &Scene,
     store: &RadianceStore,
@@ -229,7 +230,7 @@ pub fn radiance(
     cone: Cone,
     s: &PixelSampler,
     c: &mut Counters,
-) -> V {
+) -> (V, V) {
     let mut stack: Vec<Pending> = Vec::new();
     let h = &scene.cache.archive.header;
     let cell_size = (V::from(h.bounds_max) - V::from(h.bounds_min)).length() * CELL_FRACTION;
@@ -294,8 +295,8 @@ pub fn radiance(
                     break;
                 }
                 let front = ng.dot(wo) > 0.0;
-                if m.is_emissive() && (front || m.double_sided) {
-                    let le = m.emission;
+                let le = hit_emission(scene, &hit, wo);
+                if le != V::ZERO {
                     if prev_delta {
                         if !(mask_caustics && smooth_chain) {
                             pend.emission = le;
@@ -391,10 +392,7 @@ pub fn radiance(
                 let n = if len > 1e-6 { nn / len } else { wo };
                 let n = if n.dot(wo) < 0.0 { -n } else { n };
                 if prev_delta && !(mask_caustics && smooth_chain) {
-                    let le = V::from(rgbe64_decode(raw.emission));
-                    if nn.dot(wo) > 0.0 || len <= 1e-6 {
-                        pend.emission = le;
-                    }
+                    pend.emission = hit_emission(scene, &hit, wo);
                 }
                 let mut rho = V::from(raw.diffuse.map(unorm8_decode));
                 min_dist = raw.radius;
@@ -551,7 +549,12 @@ pub fn radiance(
             break;
         }
     }
-    // Unwind: each bounce's value is its emission plus what it scatters of the next.
+    // The emission seen at the primary hit goes back apart (the caller may average it
+    // over more of the pixel); the rest unwinds: each bounce's value is its emission plus
+    // what it scatters of the next.
+    let seen = stack
+        .first_mut()
+        .map_or(V::ZERO, |b| std::mem::take(&mut b.emission));
     while let Some(b) = stack.pop() {
         let incoming = b.direct + b.weight * tail;
         if b.node.is_some() {
@@ -580,8 +583,47 @@ pub fn radiance(
         };
     }
     c.paths += 1;
-    if tail.is_finite() {
-        tail
+    let finite = |v: V| if v.is_finite() { v } else { V::ZERO };
+    (finite(tail), finite(seen))
+}
+
+/// Emission a cone's hit sends back along the cone: a lamp triangle's from its emitting
+/// side(s), a cluster's when its normal faces the cone (or it has none).
+fn hit_emission(scene: &Scene, hit: &ConeHit, wo: V) -> V {
+    match hit {
+        ConeHit::Tri(h) => {
+            let m = &scene.materials[h.tri.material as usize];
+            if m.is_emissive() && (m.double_sided || h.ng().dot(wo) > 0.0) {
+                m.emission
+            } else {
+                V::ZERO
+            }
+        }
+        ConeHit::Node { record, .. } => {
+            let nn = V::from(record.normal.map(snorm16_decode));
+            if nn.dot(wo) > 0.0 || nn.length() <= 1e-6 {
+                V::from(rgbe64_decode(record.emission))
+            } else {
+                V::ZERO
+            }
+        }
+    }
+}
+
+/// Emission seen directly along a primary cone: the part of a pixel's value that only
+/// its primary hit decides, which `radiance` returns apart so a pixel on an emitter's
+/// silhouette can average it over more positions than it shades.
+pub fn seen_emission(scene: &Scene, tr: &mut Tracer, ray: &Ray, cone: &Cone) -> V {
+    let Some(hit) = tr.cone_hit(ray, cone) else {
+        return V::ZERO;
+    };
+    scene.touched.insert(match &hit {
+        ConeHit::Tri(h) => h.leaf,
+        ConeHit::Node { node, .. } => *node,
+    });
+    let le = hit_emission(scene, &hit, -ray.d);
+    if le.is_finite() {
+        le
     } else {
         V::ZERO
     }
