@@ -3,14 +3,14 @@
 //!
 //! Each cast is a ray that stops at the first node the cone's radius outgrows (eq. 4.12,
 //! scaled by `--cone-scale`; 0 traces exact rays). Primary cones open by one pixel
-//! (eq. 4.19) and are jittered in the pixel; after a diffuse bounce tan α = 0.3 (eq. 4.20)
-//! from the surface; a mirror keeps the cone and resamples the direction uniformly inside
-//! it (eq. 4.14–4.16). Light samples are cones of the pixel's opening. Every diffuse hit —
-//! a leaf triangle's cell or a whole node — adds a
-//! fresh sample of its incident radiance (one light sample, one cosine-sampled bounce,
-//! emission masked at the next hit as eq. 4.27 does) to the node's store and returns the
-//! node's mean (eq. 4.24–4.25); a node whose counter reached the limit returns its mean
-//! without recursing (§4.6.1). The pixel itself takes the fresh sample at the primary hit,
+//! (eq. 4.19) and are jittered in the pixel; after a diffuse bounce tan α = `--diffuse-tan`
+//! (eq. 4.20) from the surface; a mirror keeps the cone and resamples the direction
+//! uniformly inside it (eq. 4.14–4.16). Light samples are cones of the pixel's opening.
+//! Every diffuse hit — a leaf triangle's cell or a whole node — adds a fresh sample of
+//! its incident radiance (one light sample, one cosine-sampled bounce, emission masked at
+//! the next hit as eq. 4.27 does) to the node's store and returns the node's mean
+//! (eq. 4.24–4.25); a node whose counter reached the limit returns its mean without
+//! recursing (§4.6.1). The pixel itself takes the fresh sample at the primary hit,
 //! so visibility and direct light on screen are exact; stored means serve the bounces.
 //! After each pass the store is pulled up the tree (§4.8) so nodes first met by wide cones
 //! start from their children's light.
@@ -22,7 +22,9 @@
 //! (eq. 4.7–4.11), and a Lambertian part with the area-weighted albedo and the Θ heuristic
 //! of eq. 4.4 for light samples. When the light pass (`light_pass`, §4.7) runs, diffuse
 //! hits add the caustic light it stored, and emission reached from a diffuse hit through
-//! smooth bounces only is masked, so caustic paths count once.
+//! smooth bounces only is masked, so caustic paths count once. The emission seen at the
+//! primary hit comes back apart from the rest, so the renderer can average it over more of
+//! the pixel where the pixel straddles a lamp's silhouette (`seen_emission`).
 
 use super::path::power_heuristic;
 use super::{bsdf_term, sample_light, Counters, Receiver, Scene};
@@ -523,8 +525,8 @@ pub fn radiance(
         let wi = frame.to_world(cosine_hemisphere([ud0, ud1])).normalize();
         pend.weight = V::ONE;
         stack.push(pend);
-        // A diffuse bounce starts a fresh cone of tan α = 0.3 at the surface (eq. 4.20); its
-        // direction is already random (cosine-weighted), so it is not jittered again, and
+        // A diffuse bounce starts a fresh cone of tan α = `spread` at the surface (eq. 4.20);
+        // its direction is already random (cosine-weighted), so it is not jittered again, and
         // starting at r0 = 0 keeps the origin on the surface: a frustum whose first disc is
         // the incoming footprint would start rays beside walls and leak light.
         cone = Cone {
