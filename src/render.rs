@@ -351,7 +351,11 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
             deposits += lp.deposits;
             light_s += pass_start.elapsed().as_secs_f64();
         }
-        let edge = edge_mask(&seen, cw);
+        let edge = if o.integrator == Integrator::Cone && o.edge_rays > 0 {
+            edge_mask(&seen, cw)
+        } else {
+            Vec::new()
+        };
         let results: Vec<Vec<([f64; 3], [u32; 2])>> = pool.install(|| {
             tiles
                 .par_iter()
@@ -464,7 +468,8 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         archive_decoded_bytes: cache.archive_decoded_bytes(),
         resident_bytes_peak: cs.resident_bytes_peak + scene.touched.bytes() + store.bytes(),
         pinned_bytes: cs.pinned_bytes,
-        film_bytes: (sums.len() * 24 + img.pixels.len() * 12) as u64,
+        // Sums, emission tallies and the edge mask per pixel, then the image.
+        film_bytes: (sums.len() * (24 + 8 + 1) + img.pixels.len() * 12) as u64,
         pages_loaded: cs.pages_loaded,
         pages_evicted: cs.pages_evicted,
         pages_touched: cs.pages_touched,
