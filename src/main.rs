@@ -47,9 +47,10 @@ struct Settings {
     /// as many as the full image has pixels, whatever --crop says).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     photons: Option<u32>,
-    /// Cone integrator: on pixels whose earlier samples both saw an emitter and missed it
-    /// (a lamp's silhouette), the emission seen directly is averaged over this many primary
-    /// cones per sample instead of the sample's own; they cost no shading. 0 turns it off.
+    /// Cone integrator: on pixels where earlier samples, of the pixel or its 8 neighbours,
+    /// both saw an emitter and missed it (a lamp's silhouette), the emission seen directly
+    /// is averaged over this many primary cones per sample instead of the sample's own;
+    /// they cost no shading. 0 turns it off.
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(0..=256))]
     edge_rays: u32,
     /// Memory for decoded pages and per-node state, e.g. 256MiB (default: unlimited).

@@ -129,8 +129,8 @@ pub struct RenderStats {
     /// Photons the light passes emitted, and how many left caustic light.
     pub photons: u64,
     pub caustic_deposits: u64,
-    /// Pixels whose samples both saw an emitter and missed it (cone integrator: these
-    /// take `--edge-rays`).
+    /// Pixels at an emitter's silhouette: samples of the pixel or its neighbours both saw
+    /// an emitter and missed it (cone integrator: these take `--edge-rays`).
     pub edge_pixels: u64,
     pub image_mean: [f64; 3],
 }
