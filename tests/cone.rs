@@ -341,24 +341,26 @@ double_sided = false
             .into(),
         ),
     ];
-    for (name, text) in &files {
-        std::fs::write(dir.join(name), text).unwrap();
+    obj_scene(dir, &files, "caustic.canopy")
+}
+
+/// Writes `files` into `dir` and converts their OBJ files, in order, with the
+/// `scene.toml` among them into the archive `name`.
+fn obj_scene(dir: &std::path::Path, files: &[(&str, String)], name: &str) -> std::path::PathBuf {
+    for (f, text) in files {
+        std::fs::write(dir.join(f), text).unwrap();
     }
-    let arc = dir.join("caustic.canopy");
     let p = |f: &str| dir.join(f).to_str().unwrap().to_string();
-    ok(&[
-        "--quiet",
-        "convert",
-        &p("floor.obj"),
-        &p("glass.obj"),
-        &p("mirror.obj"),
-        &p("lamp.obj"),
-        "--scene",
-        &p("scene.toml"),
-        "-o",
-        &p("caustic.canopy"),
-    ]);
-    arc
+    let mut args = vec!["--quiet".to_string(), "convert".into()];
+    args.extend(
+        files
+            .iter()
+            .filter(|(f, _)| f.ends_with(".obj"))
+            .map(|(f, _)| p(f)),
+    );
+    args.extend(["--scene".into(), p("scene.toml"), "-o".into(), p(name)]);
+    ok(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    dir.join(name)
 }
 
 /// Caustics with the light pass on and off against the path tracer: the whole image and
@@ -466,16 +468,15 @@ fn normalized_cluster_theta_integrates_to_one_over_the_sphere() {
 #[test]
 fn edge_rays_average_a_lamp_silhouette_without_bias() {
     let dir = tempfile::tempdir().unwrap();
-    let p = |f: &str| dir.path().join(f).to_str().unwrap().to_string();
-    std::fs::write(p("lamp.obj"), sphere_obj([0.0, 0.0, 0.0], 0.5)).unwrap();
-    std::fs::write(
-        p("wall.obj"),
-        "v -4 -4 -1\nv 4 -4 -1\nv 4 4 -1\nv -4 4 -1\nf 1 2 3\nf 1 3 4\n",
-    )
-    .unwrap();
-    std::fs::write(
-        p("scene.toml"),
-        r#"
+    let files = [
+        ("lamp.obj", sphere_obj([0.0, 0.0, 0.0], 0.5)),
+        (
+            "wall.obj",
+            "v -4 -4 -1\nv 4 -4 -1\nv 4 4 -1\nv -4 4 -1\nf 1 2 3\nf 1 3 4\n".into(),
+        ),
+        (
+            "scene.toml",
+            r#"
 [[camera]]
 position = [0.0, 0.0, 3.0]
 look_at = [0.0, 0.0, 0.0]
@@ -491,20 +492,11 @@ emission = [20.0, 20.0, 20.0]
 [assign]
 "wall.obj" = "wall"
 "lamp.obj" = "lamp"
-"#,
-    )
-    .unwrap();
-    ok(&[
-        "--quiet",
-        "convert",
-        &p("lamp.obj"),
-        &p("wall.obj"),
-        "--scene",
-        &p("scene.toml"),
-        "-o",
-        &p("l.canopy"),
-    ]);
-    let arc = dir.path().join("l.canopy");
+"#
+            .into(),
+        ),
+    ];
+    let arc = obj_scene(dir.path(), &files, "l.canopy");
     let (truth, _) = render(&arc, &dir.path().join("p.exr"), &["--spp", "2048"]);
     let mut err = [0.0; 2];
     for (i, k) in ["0", "8"].iter().enumerate() {
