@@ -55,6 +55,16 @@ impl Material {
         self.emission.max_element() > 0.0
     }
 
+    /// Radiance emitted toward a viewer on the front side (`front`) or the back: one-sided
+    /// emitters are dark from behind.
+    pub fn emitted(&self, front: bool) -> V {
+        if self.is_emissive() && (front || self.double_sided) {
+            self.emission
+        } else {
+            V::ZERO
+        }
+    }
+
     /// Lambertian only: the cone integrator stores light on these and the light pass
     /// leaves caustics on them.
     pub fn is_pure_diffuse(&self) -> bool {

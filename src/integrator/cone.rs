@@ -297,7 +297,7 @@ pub fn radiance(
                     break;
                 }
                 let front = ng.dot(wo) > 0.0;
-                let le = hit_emission(scene, &hit, wo);
+                let le = m.emitted(front);
                 if le != V::ZERO {
                     if prev_delta {
                         if !(mask_caustics && smooth_chain) {
@@ -593,14 +593,7 @@ pub fn radiance(
 /// side(s), a cluster's when its normal faces the cone (or it has none).
 fn hit_emission(scene: &Scene, hit: &ConeHit, wo: V) -> V {
     match hit {
-        ConeHit::Tri(h) => {
-            let m = &scene.materials[h.tri.material as usize];
-            if m.is_emissive() && (m.double_sided || h.ng().dot(wo) > 0.0) {
-                m.emission
-            } else {
-                V::ZERO
-            }
-        }
+        ConeHit::Tri(h) => scene.materials[h.tri.material as usize].emitted(h.ng().dot(wo) > 0.0),
         ConeHit::Node { record, .. } => {
             let nn = V::from(record.normal.map(snorm16_decode));
             if nn.dot(wo) > 0.0 || nn.length() <= 1e-6 {

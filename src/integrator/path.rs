@@ -56,15 +56,16 @@ pub fn radiance(
         let ng = ng_raw / (2.0 * area);
         let wo = -ray.d.normalize();
         let front = ng.dot(wo) > 0.0;
-        if m.is_emissive() && (front || m.double_sided) {
+        let le = m.emitted(front);
+        if le != V::ZERO {
             if prev_delta {
-                l += beta * m.emission;
+                l += beta * le;
             } else {
                 let cos_l = ng.dot(wo).abs();
                 let dist2 = (hit.t * ray.d.length()).powi(2);
                 let light_pdf =
                     scene.lights.pick_pdf(prev.0, prev.1, &hit.tri.p) * dist2 / (cos_l * area);
-                l += beta * m.emission * power_heuristic(prev_pdf, light_pdf);
+                l += beta * le * power_heuristic(prev_pdf, light_pdf);
             }
         }
         if scene.max_depth.is_some_and(|d| depth + 1 >= d) {
