@@ -11,6 +11,7 @@ pub mod error;
 pub mod node;
 pub mod reader;
 pub mod records;
+pub mod validate;
 pub mod verify;
 pub mod writer;
 

@@ -5,8 +5,9 @@
 
 use crate::codec::Grid;
 use crate::error::{FormatError, Result};
-use crate::node::{Node, NodeFlags, Tri};
+use crate::node::{Node, Tri};
 use crate::records::*;
+use crate::validate::*;
 use crate::writer::{raw_page_len, PageContents};
 use std::path::{Path, PathBuf};
 
@@ -81,6 +82,7 @@ impl Archive {
                 header.header_size
             )));
         }
+        check_header(&header).map_err(|what| corrupt(format!("header: {what}")))?;
         if header.file_len != len {
             return Err(FormatError::Truncated {
                 path: p,
@@ -98,6 +100,7 @@ impl Archive {
         if xxhash_rust::xxh3::xxh3_64(&map[tables_start as usize..]) != header.tables_checksum {
             return Err(corrupt("table checksum mismatch".into()));
         }
+        check_table_ranges(&header).map_err(&corrupt)?;
         let materials =
             read_table::<MaterialRecord>(&map, &header.materials, "material table", &p)?;
         let cameras = read_table::<CameraRecord>(&map, &header.cameras, "camera table", &p)?;
@@ -110,7 +113,29 @@ impl Archive {
                 pages.len()
             )));
         }
-        let mut nodes = 0u64;
+        check_records(&materials, "material", check_material).map_err(&corrupt)?;
+        check_records(&cameras, "camera", check_camera).map_err(&corrupt)?;
+        check_records(&lights, "light", check_light).map_err(&corrupt)?;
+        if (header.features & Features::PUNCTUAL_LIGHTS != 0) != !lights.is_empty() {
+            return Err(corrupt(format!(
+                "the punctual-lights feature disagrees with the {} lights",
+                lights.len()
+            )));
+        }
+        let textured = materials
+            .iter()
+            .any(|m| m.flags & MaterialRecord::TEXTURED != 0);
+        if (header.features & Features::TEXTURED_INPUT != 0) != textured {
+            return Err(corrupt(
+                "the textured-input feature disagrees with the materials".into(),
+            ));
+        }
+        check_page_tree(&header, &pages).map_err(|(page, what)| FormatError::BadPage {
+            path: p.clone(),
+            page,
+            what,
+        })?;
+        let (mut nodes, mut vertices) = (0u64, 0u64);
         for (i, e) in pages.iter().enumerate() {
             let end = e.offset.checked_add(e.compressed_len as u64);
             if e.offset < 256 || end.is_none_or(|end| end > tables_start) {
@@ -141,11 +166,12 @@ impl Archive {
                 });
             }
             nodes += e.node_count as u64;
+            vertices += e.vert_count as u64;
         }
-        if nodes != header.nodes {
+        if (nodes, vertices) != (header.nodes, header.vertices) {
             return Err(corrupt(format!(
-                "page table holds {nodes} nodes, header says {}",
-                header.nodes
+                "page table holds {nodes} nodes and {vertices} vertices, header says {} and {}",
+                header.nodes, header.vertices
             )));
         }
         Ok(Self {
@@ -238,43 +264,8 @@ impl Archive {
     }
 
     fn check_indices(&self, page: u32, c: &PageContents) -> Result<()> {
-        let (n, t, v) = (c.nodes.len(), c.tris.len(), c.verts.len());
-        for (i, node) in c.nodes.iter().enumerate() {
-            let bad = |what: String| Err(self.page_err(page, format!("node {i}: {what}")));
-            if node.flags & !NodeFlags::ALL != 0 {
-                return bad(format!("unknown flags {:#x}", node.flags));
-            }
-            let [a, b] = node.link.map(|x| x as usize);
-            if node.is_leaf() {
-                if node.has_child_page() || a.checked_add(b).is_none_or(|end| end > t) || b == 0 {
-                    return bad(format!("triangles {a}+{b} outside the page's {t}"));
-                }
-            } else if node.has_child_page() {
-                let child = self.pages.get(a);
-                if child.is_none_or(|e| {
-                    e.parent_page != page || e.parent_node != i as u32 || e.root_count != 2
-                }) {
-                    return bad(format!(
-                        "child page {a} does not name this node as its parent"
-                    ));
-                }
-            } else if a <= i || b <= i || a >= n || b >= n || a == b {
-                return bad(format!(
-                    "children {a}, {b} not after it inside the page ({n} nodes)"
-                ));
-            }
-        }
-        for (i, tri) in c.tris.iter().enumerate() {
-            if tri.v.iter().any(|&x| x as usize >= v)
-                || tri.material as usize >= self.materials.len()
-            {
-                return Err(self.page_err(
-                    page,
-                    format!("triangle {i}: vertex or material index out of range"),
-                ));
-            }
-        }
-        Ok(())
+        check_page(&self.header, self.materials.len(), &self.pages, page, c)
+            .map_err(|what| self.page_err(page, what))
     }
 
     /// Drops the mapped file pages of a byte range from this process's resident set once
@@ -333,4 +324,16 @@ fn read_table<T: bytemuck::Pod>(map: &[u8], t: &TableRef, what: &str, p: &Path) 
     Ok(bytemuck::pod_collect_to_vec(
         &map[t.offset as usize..end as usize],
     ))
+}
+
+/// Checks each record of a table, naming the first bad one.
+fn check_records<T>(
+    records: &[T],
+    what: &str,
+    check: fn(&T) -> std::result::Result<(), String>,
+) -> std::result::Result<(), String> {
+    for (i, r) in records.iter().enumerate() {
+        check(r).map_err(|e| format!("{what} {i}: {e}"))?;
+    }
+    Ok(())
 }

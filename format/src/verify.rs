@@ -1,20 +1,30 @@
-//! Full structural check of an archive: every page decodes, every link is valid and used once,
-//! every child box lies inside its parent's box and every triangle inside its leaf's box.
+//! Full check of an archive, beyond what every read checks (`validate`): every triangle inside
+//! its leaf's box, every child page inside its node's box, each node's flags what its contents
+//! imply, and the header's depth, bounds, triangle total and features what the pages hold.
 
 use crate::error::{FormatError, Result};
-use crate::node::Node;
+use crate::node::NodeFlags;
 use crate::reader::Archive;
-use crate::records::NONE;
+use crate::records::Features;
+
+/// Flags an inner node takes from its children.
+const AGGREGATE: u8 = NodeFlags::EMISSIVE | NodeFlags::GLOSSY | NodeFlags::TRANSMISSIVE;
 
 /// What one page contributed.
 #[derive(Clone, Debug, Default)]
 pub struct PageReport {
-    pub child_pages: Vec<u32>,
+    /// Child pages, with the in-page depth and the flags of the node that links each.
+    pub child_pages: Vec<(u32, u32, u8)>,
     pub leaves: u64,
     pub triangles: u64,
     /// Sum over leaves of (pages on the root-to-leaf path).
     pub path_pages_sum: u64,
     pub max_node_depth: u32,
+    /// Union of the roots' aggregate flags.
+    pub root_flags: u8,
+    /// Exact bounds of the page's vertices (empty box for a page without triangles).
+    pub lo: [f32; 3],
+    pub hi: [f32; 3],
 }
 
 fn contains(outer: &([f32; 3], [f32; 3]), inner: &([f32; 3], [f32; 3])) -> bool {
@@ -22,7 +32,7 @@ fn contains(outer: &([f32; 3], [f32; 3]), inner: &([f32; 3], [f32; 3])) -> bool 
 }
 
 impl Archive {
-    /// Checks one page. `depth_base` is the node depth of the page's roots, when known.
+    /// Checks one page (its structure was checked when it was read).
     pub fn verify_page(&self, page: u32) -> Result<PageReport> {
         let c = self.read_page(page)?;
         let e = self.pages[page as usize];
@@ -31,41 +41,28 @@ impl Archive {
             page,
             what,
         };
-        let is_root = page == self.header.root_page;
-        if is_root != (e.parent_page == NONE) || e.root_count != if is_root { 1 } else { 2 } {
-            return Err(err("root/parent fields are inconsistent".into()));
-        }
-        if !is_root {
-            let parent = self
-                .pages
-                .get(e.parent_page as usize)
-                .ok_or_else(|| err("parent page out of range".into()))?;
-            if e.level != parent.level + 1 {
-                return Err(err(format!(
-                    "level {} under a page of level {}",
-                    e.level, parent.level
-                )));
-            }
-        }
-        if c.verts.iter().flatten().any(|x| !x.is_finite()) {
-            return Err(err("non-finite vertex".into()));
-        }
         let grid = e.grid();
-        let mut seen = vec![false; c.nodes.len()];
-        let mut report = PageReport::default();
-        let mut stack: Vec<(usize, u32)> =
-            (0..e.root_count as usize).rev().map(|r| (r, 0)).collect();
-        let mut root_box: Option<([f32; 3], [f32; 3])> = None;
-        while let Some((i, depth)) = stack.pop() {
-            let node: &Node = c
-                .nodes
-                .get(i)
-                .ok_or_else(|| err(format!("root {i} missing")))?;
-            if std::mem::replace(&mut seen[i], true) {
-                return Err(err(format!("node {i} reached twice")));
+        let mut report = PageReport {
+            lo: [f32::INFINITY; 3],
+            hi: [f32::NEG_INFINITY; 3],
+            ..Default::default()
+        };
+        for p in &c.verts {
+            for a in 0..3 {
+                report.lo[a] = report.lo[a].min(p[a]);
+                report.hi[a] = report.hi[a].max(p[a]);
             }
+        }
+        let roots = e.root_count as usize;
+        let mut depth = vec![0u32; c.nodes.len()];
+        let mut root_box: Option<([f32; 3], [f32; 3])> = None;
+        // Children follow their parents (checked at read), so one forward pass sees every
+        // node after its parent.
+        for (i, node) in c.nodes.iter().enumerate() {
             let b = grid.dequant_box(&node.bounds);
-            if i < e.root_count as usize {
+            let d = depth[i];
+            if i < roots {
+                report.root_flags |= node.flags & AGGREGATE;
                 root_box = Some(root_box.map_or(b, |r| {
                     (
                         [0, 1, 2].map(|a| r.0[a].min(b.0[a])),
@@ -73,12 +70,24 @@ impl Archive {
                     )
                 }));
             }
-            report.max_node_depth = report.max_node_depth.max(depth);
+            report.max_node_depth = report.max_node_depth.max(d);
             if node.is_leaf() {
                 report.leaves += 1;
                 report.triangles += node.link[1] as u64;
                 report.path_pages_sum += e.level as u64 + 1;
-                for t in &c.tris[node.link[0] as usize..(node.link[0] + node.link[1]) as usize] {
+                let tris = &c.tris[node.link[0] as usize..(node.link[0] + node.link[1]) as usize];
+                let emits = tris.iter().any(|t| {
+                    self.materials[t.material as usize]
+                        .emission
+                        .iter()
+                        .any(|&x| x > 0.0)
+                });
+                if emits != (node.flags & NodeFlags::EMISSIVE != 0) {
+                    return Err(err(format!(
+                        "leaf {i}: its emissive flag disagrees with its triangles' materials"
+                    )));
+                }
+                for t in tris {
                     for &v in &t.v {
                         let p = c.verts[v as usize];
                         if !contains(&b, &(p, p)) {
@@ -96,21 +105,19 @@ impl Archive {
                         node.link[0]
                     )));
                 }
-                report.child_pages.push(node.link[0]);
+                report
+                    .child_pages
+                    .push((node.link[0], d, node.flags & AGGREGATE));
             } else {
-                for ch in node.link {
-                    let cb = grid.dequant_box(&c.nodes[ch as usize].bounds);
-                    if !contains(&b, &cb) {
-                        return Err(err(format!("node {ch} extends outside its parent {i}")));
-                    }
-                    stack.push((ch as usize, depth + 1));
+                let [l, r] = node.link.map(|x| x as usize);
+                if (c.nodes[l].flags | c.nodes[r].flags) & AGGREGATE != node.flags & AGGREGATE {
+                    return Err(err(format!(
+                        "node {i}: its flags are not the union of its children's"
+                    )));
                 }
+                depth[l] = d + 1;
+                depth[r] = d + 1;
             }
-        }
-        if let Some(i) = seen.iter().position(|s| !s) {
-            return Err(err(format!(
-                "node {i} is not reachable from the page roots"
-            )));
         }
         if let Some(r) = root_box {
             if !contains(&r, &(e.bounds_min, e.bounds_max)) {
@@ -120,20 +127,27 @@ impl Archive {
         Ok(report)
     }
 
-    /// Combines per-page reports: every non-root page linked exactly once, totals match.
+    /// Combines per-page reports: every non-root page linked exactly once by a node with its
+    /// roots' flags, and the header's triangles, depth, bounds and features what pages hold.
     pub fn verify_totals(&self, reports: &[PageReport]) -> Result<()> {
         let corrupt = |what: String| FormatError::Corrupt {
             path: self.path().to_path_buf(),
             what,
         };
+        let h = &self.header;
         let mut linked = vec![0u32; self.pages.len()];
         for r in reports {
-            for &c in &r.child_pages {
+            for &(c, _, flags) in &r.child_pages {
                 linked[c as usize] += 1;
+                if reports[c as usize].root_flags != flags {
+                    return Err(corrupt(format!(
+                        "page {c}: its roots' flags disagree with the node that links it"
+                    )));
+                }
             }
         }
         for (i, &n) in linked.iter().enumerate() {
-            let want = (i as u32 != self.header.root_page) as u32;
+            let want = (i as u32 != h.root_page) as u32;
             if n != want {
                 return Err(corrupt(format!(
                     "page {i} is linked {n} times (expected {want})"
@@ -141,11 +155,57 @@ impl Archive {
             }
         }
         let tris: u64 = reports.iter().map(|r| r.triangles).sum();
-        if tris != self.header.triangles {
+        if tris != h.triangles {
             return Err(corrupt(format!(
                 "leaves hold {tris} triangles, header says {}",
-                self.header.triangles
+                h.triangles
             )));
+        }
+        // Depth of each page's roots: parents sit at lower levels, so visit by level.
+        let mut order: Vec<usize> = (0..self.pages.len()).collect();
+        order.sort_by_key(|&i| self.pages[i].level);
+        let mut root_depth = vec![0u32; self.pages.len()];
+        let mut depth = 0;
+        for &p in &order {
+            for &(c, d, _) in &reports[p].child_pages {
+                root_depth[c as usize] = root_depth[p] + d + 1;
+            }
+            depth = depth.max(root_depth[p] + reports[p].max_node_depth);
+        }
+        if depth != h.depth {
+            return Err(corrupt(format!(
+                "the tree is {depth} levels deep, header says {}",
+                h.depth
+            )));
+        }
+        let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+        for r in reports {
+            for a in 0..3 {
+                lo[a] = lo[a].min(r.lo[a]);
+                hi[a] = hi[a].max(r.hi[a]);
+            }
+        }
+        if (lo, hi) != (h.bounds_min, h.bounds_max) {
+            return Err(corrupt(format!(
+                "vertices span {lo:?}..{hi:?}, header says {:?}..{:?}",
+                h.bounds_min, h.bounds_max
+            )));
+        }
+        let scene = reports[h.root_page as usize].root_flags;
+        for (flag, feature, name) in [
+            (NodeFlags::EMISSIVE, Features::EMITTERS, "emitters"),
+            (NodeFlags::GLOSSY, Features::GLOSSY, "glossy"),
+            (
+                NodeFlags::TRANSMISSIVE,
+                Features::TRANSMISSIVE,
+                "transmissive",
+            ),
+        ] {
+            if (scene & flag != 0) != (h.features & feature != 0) {
+                return Err(corrupt(format!(
+                    "the {name} feature disagrees with the root node"
+                )));
+            }
         }
         Ok(())
     }

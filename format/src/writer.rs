@@ -42,15 +42,21 @@ pub struct PageMeta {
 }
 
 /// Serializes and compresses a page. Pure, so callers can encode pages in parallel.
-pub fn encode_page(p: &PageContents, zstd_level: i32) -> std::io::Result<EncodedPage> {
-    assert!(p.normals.is_empty() || p.normals.len() == p.verts.len());
+/// `normals` is the archive's SHADING_NORMALS feature: every page of such an archive says
+/// so in its header, a page without vertices too.
+pub fn encode_page(
+    p: &PageContents,
+    normals: bool,
+    zstd_level: i32,
+) -> std::io::Result<EncodedPage> {
+    assert_eq!(p.normals.len(), if normals { p.verts.len() } else { 0 });
     let header = PageHeader {
         magic: PAGE_MAGIC,
         node_count: p.nodes.len() as u32,
         tri_count: p.tris.len() as u32,
         vert_count: p.verts.len() as u32,
         coef_bytes: p.coefs.len() as u32,
-        has_normals: !p.normals.is_empty() as u32,
+        has_normals: normals as u32,
         reserved: [0; 8],
     };
     let mut raw = Vec::with_capacity(raw_page_len(&header));

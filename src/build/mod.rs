@@ -196,6 +196,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     for input in &opts.inputs {
         import::import(input, &mut scene, &file, &mut spill)?;
     }
+    scene.check()?;
     let Spill {
         out,
         count: total,
@@ -548,7 +549,7 @@ fn encode_pages(
                 bounds_min: grid.lo,
                 bounds_max: grid.hi,
             };
-            encode_page(&contents, opts.zstd_level).map(|e| (e, meta, externals))
+            encode_page(&contents, normals, opts.zstd_level).map(|e| (e, meta, externals))
         })
         .collect::<std::io::Result<_>>()
         .context("compressing pages")?;

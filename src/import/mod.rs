@@ -49,6 +49,28 @@ pub struct SceneDesc {
 }
 
 impl SceneDesc {
+    /// Refuses what the archive reader would refuse (NaN, infinities, values outside their
+    /// glTF ranges), naming the record, so a conversion never writes an unreadable archive.
+    pub fn check(&self) -> Result<()> {
+        use canopy_format::validate::{check_camera, check_light, check_material};
+        for m in &self.materials {
+            check_material(m).map_err(|e| {
+                anyhow::anyhow!("material '{}': {e}", canopy_format::name_str(&m.name))
+            })?;
+        }
+        for c in &self.cameras {
+            check_camera(c).map_err(|e| {
+                anyhow::anyhow!("camera '{}': {e}", canopy_format::name_str(&c.name))
+            })?;
+        }
+        for l in &self.lights {
+            check_light(l).map_err(|e| {
+                anyhow::anyhow!("light '{}': {e}", canopy_format::name_str(&l.name))
+            })?;
+        }
+        Ok(())
+    }
+
     pub fn add_material(&mut self, m: MaterialRecord) -> Result<u32> {
         if self.materials.len() >= u16::MAX as usize {
             bail!("more than {} materials", u16::MAX);
@@ -132,6 +154,7 @@ pub fn import(
     if !path.exists() {
         bail!("{}: no such file", path.display());
     }
+    check_regular(path, u64::MAX, "input")?;
     let ext = path
         .extension()
         .and_then(|e| e.to_str())
@@ -161,6 +184,50 @@ fn raw_mesh_material(path: &Path, scene: &mut SceneDesc, file: &SceneFile) -> Re
         return Ok(i as u32);
     }
     scene.add_material(m)
+}
+
+/// A side file's metadata, refusing what is not a regular file (a directory, `/dev/zero`,
+/// a FIFO) or is larger than `max` bytes, before anything is read.
+pub(crate) fn check_regular(path: &Path, max: u64, what: &str) -> Result<u64> {
+    let m = std::fs::metadata(path).map_err(context(path))?;
+    if !m.is_file() {
+        bail!("{}: the {what} is not a regular file", path.display());
+    }
+    if m.len() > max {
+        bail!(
+            "{}: the {what} is {} bytes, more than the {max} accepted",
+            path.display(),
+            m.len()
+        );
+    }
+    Ok(m.len())
+}
+
+/// Reads a whole side file after `check_regular`.
+pub(crate) fn read_regular(path: &Path, max: u64, what: &str) -> Result<Vec<u8>> {
+    check_regular(path, max, what)?;
+    std::fs::read(path).map_err(context(path))
+}
+
+/// Longest text line the importers read (OBJ, MTL, PLY headers and ASCII bodies).
+pub(crate) const MAX_LINE: usize = 1 << 20;
+
+/// `read_line` that refuses a line longer than `MAX_LINE` instead of growing without bound
+/// (a file without newlines would otherwise be read whole into one string).
+pub(crate) fn read_line(
+    r: &mut impl std::io::BufRead,
+    line: &mut String,
+) -> std::io::Result<usize> {
+    use std::io::{BufRead, Read};
+    line.clear();
+    let n = r.by_ref().take(MAX_LINE as u64 + 1).read_line(line)?;
+    if line.len() > MAX_LINE {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            format!("a line longer than {MAX_LINE} bytes"),
+        ));
+    }
+    Ok(n)
 }
 
 /// Maps an I/O error to one that names the file.

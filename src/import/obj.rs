@@ -5,7 +5,7 @@ use super::{context, make_tri, raw_mesh_material, SceneDesc, SceneFile, Triangle
 use anyhow::{bail, Result};
 use canopy_format::{name_bytes, MaterialRecord};
 use std::collections::HashMap;
-use std::io::{BufRead, BufReader};
+use std::io::BufReader;
 use std::path::Path;
 
 fn floats<const N: usize>(w: &[&str], path: &Path, line: usize) -> Result<[f32; N]> {
@@ -21,13 +21,35 @@ fn floats<const N: usize>(w: &[&str], path: &Path, line: usize) -> Result<[f32; 
     Ok(out)
 }
 
+/// Largest MTL file read.
+const MAX_MTL: u64 = 64 << 20;
+
+/// Numbered lines (from 1), each at most `MAX_LINE` bytes.
+fn lines<'a>(
+    f: std::fs::File,
+    path: &'a Path,
+) -> impl Iterator<Item = (usize, Result<String>)> + 'a {
+    let mut r = BufReader::with_capacity(1 << 20, f);
+    let mut ln = 0;
+    std::iter::from_fn(move || {
+        let mut line = String::new();
+        ln += 1;
+        match super::read_line(&mut r, &mut line) {
+            Ok(0) => None,
+            Ok(_) => Some((ln, Ok(line))),
+            Err(e) => Some((ln, Err(anyhow::anyhow!("{}:{ln}: {e}", path.display())))),
+        }
+    })
+}
+
 /// Parses an MTL library into named materials (Kd, Ks, Ns, Ke, Ni, d/Tr).
 fn read_mtl(path: &Path) -> Result<HashMap<String, MaterialRecord>> {
+    super::check_regular(path, MAX_MTL, "material library")?;
     let f = std::fs::File::open(path).map_err(context(path))?;
     let mut out = HashMap::new();
     let mut cur: Option<(String, MaterialRecord)> = None;
-    for (ln, line) in BufReader::new(f).lines().enumerate() {
-        let line = line.map_err(context(path))?;
+    for (ln, line) in lines(f, path) {
+        let line = line?;
         let w: Vec<&str> = line.split_whitespace().collect();
         let Some((&key, rest)) = w.split_first() else {
             continue;
@@ -90,9 +112,8 @@ pub fn import(
     let mut material = None;
     let mut count = 0u64;
     let mut face: Vec<(u32, Option<u32>)> = Vec::new();
-    for (ln, line) in BufReader::with_capacity(1 << 20, f).lines().enumerate() {
-        let line = line.map_err(context(path))?;
-        let ln = ln + 1;
+    for (ln, line) in lines(f, path) {
+        let line = line?;
         let w: Vec<&str> = line.split_whitespace().collect();
         let Some((&key, rest)) = w.split_first() else {
             continue;

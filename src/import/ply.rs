@@ -89,8 +89,7 @@ enum Encoding {
 fn read_header(r: &mut impl BufRead, path: &Path) -> Result<(Encoding, Vec<Element>)> {
     let mut line = String::new();
     let mut next = |line: &mut String| -> Result<bool> {
-        line.clear();
-        Ok(r.read_line(line).map_err(context(path))? > 0)
+        Ok(super::read_line(r, line).map_err(context(path))? > 0)
     };
     if !next(&mut line)? || line.trim_end() != "ply" {
         bail!("{}: not a PLY file (missing 'ply' magic)", path.display());
@@ -183,7 +182,7 @@ impl<R: BufRead> RecordReader<R> {
             Encoding::Ascii => {
                 while self.at >= self.tokens.len() {
                     let mut line = String::new();
-                    if self.r.read_line(&mut line)? == 0 {
+                    if super::read_line(&mut self.r, &mut line)? == 0 {
                         return Err(std::io::ErrorKind::UnexpectedEof.into());
                     }
                     self.tokens = line.split_whitespace().map(str::to_string).collect();

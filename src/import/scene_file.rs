@@ -142,8 +142,9 @@ fn outer() -> f32 {
 
 impl SceneFile {
     pub fn load(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path)
-            .with_context(|| format!("{}: cannot read scene file", path.display()))?;
+        let bytes = super::read_regular(path, 16 << 20, "scene file")?;
+        let text = String::from_utf8(bytes)
+            .with_context(|| format!("{}: the scene file is not UTF-8", path.display()))?;
         let file: SceneFile =
             toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
         for (input, m) in &file.assign {

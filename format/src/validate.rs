@@ -1,0 +1,388 @@
+//! Structural checks of what an archive claims, beyond its checksums: a file whose checksums
+//! were recomputed after it was altered must still be refused before any value reaches the
+//! renderer. `check_tables` and `check_page_tree` run at open (they cost O(pages + records));
+//! `check_page` runs on every decoded page and is linear in its size.
+
+use crate::node::{Node, NodeFlags};
+use crate::records::*;
+use crate::writer::PageContents;
+
+/// Most triangles a leaf may hold in a version-1 archive (the node's cluster slots and the
+/// renderer's per-leaf keys assume it).
+pub const MAX_LEAF_TRIANGLES: u32 = 8;
+/// Most nodes a page may hold (a page's local indices and the converter's limit).
+pub const MAX_PAGE_NODES: u32 = 1 << 16;
+/// Longest root-to-leaf path accepted, in edges.
+pub const MAX_TREE_DEPTH: u32 = 250;
+/// Largest coefficient stream of one page.
+pub const MAX_COEF_BYTES: u32 = 64 << 20;
+/// Largest camera resolution a record may ask for.
+pub const MAX_SIDE: u32 = 32768;
+
+fn finite(v: &[f32]) -> bool {
+    v.iter().all(|x| x.is_finite())
+}
+
+fn in_unit(v: &[f32]) -> bool {
+    v.iter().all(|x| (0.0..=1.0).contains(x))
+}
+
+fn non_negative(v: &[f32]) -> bool {
+    v.iter().all(|x| x.is_finite() && *x >= 0.0)
+}
+
+fn zeroed(b: &[u8]) -> bool {
+    b.iter().all(|&x| x == 0)
+}
+
+/// A box with finite corners and min ≤ max on every axis.
+pub fn box_ok(lo: &[f32; 3], hi: &[f32; 3]) -> bool {
+    finite(lo) && finite(hi) && (0..3).all(|a| lo[a] <= hi[a])
+}
+
+/// Header fields that do not depend on the tables.
+pub fn check_header(h: &Header) -> Result<(), String> {
+    if h.version_major == 0 {
+        return Err("format version 0 does not exist".into());
+    }
+    if h.features & !Features::ALL != 0 {
+        return Err(format!("unknown feature bits {:#x}", h.features));
+    }
+    if h.input_triangles != h.triangles {
+        return Err(format!(
+            "{} input triangles but {} stored",
+            h.input_triangles, h.triangles
+        ));
+    }
+    if !box_ok(&h.bounds_min, &h.bounds_max) {
+        return Err(format!(
+            "scene bounds {:?}..{:?} are not a finite box",
+            h.bounds_min, h.bounds_max
+        ));
+    }
+    if h.depth > MAX_TREE_DEPTH {
+        return Err(format!("tree depth {} (at most {MAX_TREE_DEPTH})", h.depth));
+    }
+    if !(1..=MAX_LEAF_TRIANGLES).contains(&h.max_leaf_triangles) {
+        return Err(format!(
+            "{} triangles per leaf (1 to {MAX_LEAF_TRIANGLES})",
+            h.max_leaf_triangles
+        ));
+    }
+    if !(1..=MAX_PAGE_NODES).contains(&h.page_nodes_max) {
+        return Err(format!(
+            "{} nodes per page (1 to {MAX_PAGE_NODES})",
+            h.page_nodes_max
+        ));
+    }
+    if h.version_minor <= VERSION_MINOR && !zeroed(&h.reserved) {
+        return Err("reserved header bytes are not zero".into());
+    }
+    Ok(())
+}
+
+/// Each table inside the table area, after the pages.
+pub fn check_table_ranges(h: &Header) -> Result<(), String> {
+    let start = h.materials.offset;
+    for (name, t) in [
+        ("material", &h.materials),
+        ("camera", &h.cameras),
+        ("light", &h.lights),
+        ("page", &h.pages),
+    ] {
+        let end = t.offset as u128 + t.count as u128 * t.record_size as u128;
+        if t.offset < start || end > h.file_len as u128 {
+            return Err(format!(
+                "{name} table at {}+{}×{} outside the table area {start}..{}",
+                t.offset, t.count, t.record_size, h.file_len
+            ));
+        }
+    }
+    if h.materials.count > u16::MAX as u32 + 1 {
+        return Err(format!(
+            "{} materials (a triangle addresses at most 65536)",
+            h.materials.count
+        ));
+    }
+    Ok(())
+}
+
+pub fn check_material(m: &MaterialRecord) -> Result<(), String> {
+    let ok = in_unit(&m.base_color)
+        && non_negative(&m.emission)
+        && in_unit(&[m.metallic, m.roughness, m.transmission, m.specular])
+        && non_negative(&m.specular_color)
+        && m.ior.is_finite()
+        && (m.ior >= 1.0 || m.ior == 0.0)
+        && m.ior <= 1e3;
+    if !ok {
+        return Err("a value is NaN, infinite or outside its range".into());
+    }
+    if m.flags & !(MaterialRecord::DOUBLE_SIDED | MaterialRecord::TEXTURED) != 0 {
+        return Err(format!("unknown flags {:#x}", m.flags));
+    }
+    if !zeroed(&m.reserved) {
+        return Err("reserved bytes are not zero".into());
+    }
+    Ok(())
+}
+
+pub fn check_camera(c: &CameraRecord) -> Result<(), String> {
+    let axes = &c.to_world[..9];
+    let ok = finite(&c.to_world)
+        && axes.iter().any(|&x| x != 0.0)
+        && c.yfov > 0.0
+        && c.yfov < std::f32::consts::PI
+        && non_negative(&[c.aspect, c.znear, c.zfar])
+        && c.width <= MAX_SIDE
+        && c.height <= MAX_SIDE;
+    if !ok {
+        return Err("a value is NaN, infinite or outside its range".into());
+    }
+    if !zeroed(&c.reserved) {
+        return Err("reserved bytes are not zero".into());
+    }
+    Ok(())
+}
+
+pub fn check_light(l: &LightRecord) -> Result<(), String> {
+    if l.kind > LightRecord::DIRECTIONAL {
+        return Err(format!("unknown kind {}", l.kind));
+    }
+    let d = l.direction;
+    let len2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
+    let ok = non_negative(&l.color)
+        && non_negative(&[l.intensity, l.range])
+        && finite(&l.position)
+        && (l.kind == LightRecord::POINT || (len2 - 1.0).abs() < 1e-3)
+        && 0.0 <= l.inner_cone
+        && l.inner_cone <= l.outer_cone
+        && l.outer_cone <= std::f32::consts::FRAC_PI_2 + 1e-6;
+    if !ok {
+        return Err("a value is NaN, infinite or outside its range".into());
+    }
+    if !zeroed(&l.reserved) {
+        return Err("reserved bytes are not zero".into());
+    }
+    Ok(())
+}
+
+/// The page tree as the page table describes it: one root page with no parent at level 0;
+/// every other page names an existing node of a page one level up, no two pages the same
+/// node (so the parent links form a tree), with finite ordered bounds. Returns the failing
+/// page and what is wrong.
+pub fn check_page_tree(h: &Header, pages: &[PageEntry]) -> Result<(), (u32, String)> {
+    let mut claimed = std::collections::HashSet::with_capacity(pages.len());
+    let has_coefs = h.features & Features::COEFFICIENTS != 0;
+    for (i, e) in pages.iter().enumerate() {
+        let fail = |what: String| Err((i as u32, what));
+        if !box_ok(&e.bounds_min, &e.bounds_max) {
+            return fail(format!(
+                "bounds {:?}..{:?} are not a finite box",
+                e.bounds_min, e.bounds_max
+            ));
+        }
+        if e.node_count > h.page_nodes_max {
+            return fail(format!(
+                "{} nodes, more than the header's {} per page",
+                e.node_count, h.page_nodes_max
+            ));
+        }
+        // Leaves hold every triangle once, at most max_leaf_triangles each: this bounds what
+        // a page can make the reader allocate.
+        if e.tri_count as u64 > e.node_count as u64 * h.max_leaf_triangles as u64
+            || e.vert_count > (u16::MAX as u32 + 1).min(e.tri_count.saturating_mul(3))
+        {
+            return fail(format!(
+                "{} triangles and {} vertices in {} nodes",
+                e.tri_count, e.vert_count, e.node_count
+            ));
+        }
+        if e.coef_bytes > MAX_COEF_BYTES {
+            return fail(format!("{} coefficient bytes", e.coef_bytes));
+        }
+        if e.coef_bytes != 0 && !has_coefs {
+            return fail("a coefficient stream without the coefficients feature".into());
+        }
+        if !zeroed(&e.reserved) {
+            return fail("reserved bytes are not zero".into());
+        }
+        if i as u32 == h.root_page {
+            if (e.parent_page, e.parent_node, e.level, e.root_count) != (NONE, NONE, 0, 1) {
+                return fail(format!(
+                    "the root page names parent {}/{} at level {} with {} roots (expected none, level 0, one root)",
+                    e.parent_page as i64, e.parent_node as i64, e.level, e.root_count
+                ));
+            }
+            if e.bounds_min != h.bounds_min || e.bounds_max != h.bounds_max {
+                return fail("the root page's bounds are not the scene bounds".into());
+            }
+            continue;
+        }
+        let Some(parent) = pages.get(e.parent_page as usize) else {
+            return fail(format!(
+                "parent page {} does not exist",
+                e.parent_page as i64
+            ));
+        };
+        if e.root_count != 2 {
+            return fail(format!("{} roots (a child page holds 2)", e.root_count));
+        }
+        if e.parent_node >= parent.node_count {
+            return fail(format!(
+                "parent node {} outside page {}'s {} nodes",
+                e.parent_node, e.parent_page, parent.node_count
+            ));
+        }
+        if Some(e.level) != parent.level.checked_add(1) {
+            return fail(format!(
+                "level {} under page {} of level {}",
+                e.level, e.parent_page, parent.level
+            ));
+        }
+        if !claimed.insert((e.parent_page, e.parent_node)) {
+            return fail(format!(
+                "page {} node {} is already the parent of another page",
+                e.parent_page, e.parent_node
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// One decoded page, in time linear in its size: every node's kind, links and values; the
+/// in-page nodes form a forest under the page's roots (each non-root node the child of
+/// exactly one node before it); every triangle in exactly one leaf; vertices finite.
+pub fn check_page(
+    h: &Header,
+    materials: usize,
+    pages: &[PageEntry],
+    page: u32,
+    c: &PageContents,
+) -> Result<(), String> {
+    let (n, t, v) = (c.nodes.len(), c.tris.len(), c.verts.len());
+    let e = &pages[page as usize];
+    let roots = e.root_count as usize;
+    // On a flat axis of the grid every code decodes to the same value, so codes are free.
+    let flat = [0, 1, 2].map(|a| e.bounds_min[a] == e.bounds_max[a]);
+    let mut parents = vec![0u8; n];
+    let mut covered = vec![false; t];
+    for (i, node) in c.nodes.iter().enumerate() {
+        check_node(h, pages, page, i, node, flat).map_err(|what| format!("node {i}: {what}"))?;
+        let [a, b] = node.link.map(|x| x as usize);
+        if node.is_leaf() {
+            if a.checked_add(b).is_none_or(|end| end > t) || b == 0 {
+                return Err(format!(
+                    "node {i}: triangles {a}+{b} outside the page's {t}"
+                ));
+            }
+            for slot in &mut covered[a..a + b] {
+                if std::mem::replace(slot, true) {
+                    return Err(format!("node {i}: a triangle belongs to two leaves"));
+                }
+            }
+        } else if !node.has_child_page() {
+            if a <= i || b <= i || a >= n || b >= n || a == b {
+                return Err(format!(
+                    "node {i}: children {a}, {b} not after it inside the page ({n} nodes)"
+                ));
+            }
+            for ch in [a, b] {
+                parents[ch] += 1;
+                if parents[ch] > 1 {
+                    return Err(format!("node {ch} is the child of two nodes"));
+                }
+                if !nests(&node.bounds, &c.nodes[ch].bounds, flat) {
+                    return Err(format!("node {ch} extends outside its parent {i}"));
+                }
+            }
+        }
+    }
+    if let Some(i) = (0..n).find(|&i| (parents[i] == 0) != (i < roots)) {
+        return Err(if i < roots {
+            format!("root node {i} is the child of another node")
+        } else {
+            format!("node {i} is not reachable from the page roots")
+        });
+    }
+    if let Some(i) = covered.iter().position(|c| !c) {
+        return Err(format!("triangle {i} is in no leaf"));
+    }
+    for (i, tri) in c.tris.iter().enumerate() {
+        if tri.v.iter().any(|&x| x as usize >= v) || tri.material as usize >= materials {
+            return Err(format!(
+                "triangle {i}: vertex or material index out of range"
+            ));
+        }
+    }
+    if let Some(i) = c.verts.iter().position(|p| !finite(p)) {
+        return Err(format!("vertex {i} is not finite: {:?}", c.verts[i]));
+    }
+    Ok(())
+}
+
+/// Child codes inside the parent's on every axis that is not flat.
+fn nests(parent: &[u16; 6], child: &[u16; 6], flat: [bool; 3]) -> bool {
+    (0..3).all(|a| flat[a] || (parent[a] <= child[a] && child[a + 3] <= parent[a + 3]))
+}
+
+fn check_node(
+    h: &Header,
+    pages: &[PageEntry],
+    page: u32,
+    i: usize,
+    node: &Node,
+    flat: [bool; 3],
+) -> Result<(), String> {
+    if node.flags & !NodeFlags::ALL != 0 {
+        return Err(format!("unknown flags {:#x}", node.flags));
+    }
+    if (0..3).any(|a| !flat[a] && node.bounds[a] > node.bounds[a + 3]) {
+        return Err(format!("inverted bounds {:?}", node.bounds));
+    }
+    let cluster = [
+        node.area,
+        node.radius,
+        crate::codec::f16_decode(node.curvature).abs(),
+        crate::codec::f16_decode(node.ior),
+    ];
+    if !non_negative(&cluster) {
+        return Err(format!(
+            "area {}, radius {}, curvature or ior not finite and non-negative",
+            node.area, node.radius
+        ));
+    }
+    if node.reserved0 != 0 || !zeroed(&node.reserved1) {
+        return Err("reserved bytes are not zero".into());
+    }
+    let coefs = pages[page as usize].coef_bytes;
+    if node.coef != NONE && node.coef >= coefs {
+        return Err(format!(
+            "coefficient offset {} outside the page's {coefs} bytes",
+            node.coef
+        ));
+    }
+    match (node.is_leaf(), node.has_child_page()) {
+        (true, true) => Err("both a leaf and a page link".into()),
+        (true, false) if node.link[1] > h.max_leaf_triangles => Err(format!(
+            "{} triangles in a leaf (the header allows {})",
+            node.link[1], h.max_leaf_triangles
+        )),
+        (false, true) => {
+            let a = node.link[0] as usize;
+            let child = pages.get(a);
+            if node.link[1] != 0
+                || child.is_none_or(|e| {
+                    e.parent_page != page || e.parent_node != i as u32 || a == h.root_page as usize
+                })
+            {
+                Err(format!(
+                    "child page {a} does not name this node as its parent"
+                ))
+            } else {
+                Ok(())
+            }
+        }
+        _ => Ok(()),
+    }
+}
