@@ -27,12 +27,12 @@ struct Settings {
     integrator: Integrator,
     /// Cone integrator: the cone radius in the LOD rule is multiplied by this; 0 traces
     /// exact rays (with stored-light reuse), larger values stop at coarser nodes.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, value_parser = units::parse_non_negative)]
     cone_scale: f32,
     /// Cone integrator: tan of the half-angle of the cones after a diffuse or glossy bounce
     /// (004 eq. 4.20's d; the thesis used 0.3). Wider cones stop at coarser nodes: fewer
     /// pages and nodes, more bias from clusters standing in for their triangles.
-    #[arg(long, default_value_t = canopy::integrator::cone::DIFFUSE_TAN)]
+    #[arg(long, default_value_t = canopy::integrator::cone::DIFFUSE_TAN, value_parser = units::parse_non_negative)]
     diffuse_tan: f32,
     /// Cone integrator: samples after which a node's stored light is converged and its
     /// paths stop there (004 §4.6.1 used 65536).
@@ -62,8 +62,8 @@ struct Settings {
     /// Seed of the sample sequences.
     #[arg(long, default_value_t = 0)]
     seed: u32,
-    /// Worker threads (default: all cores).
-    #[arg(long)]
+    /// Worker threads (default: all cores; at most 16 per core).
+    #[arg(long, value_parser = units::parse_threads)]
     threads: Option<usize>,
     /// Longest path in segments (1: only emitters seen directly); default unbounded.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
@@ -178,7 +178,7 @@ enum Cmd {
         #[arg(long)]
         preview: bool,
         /// Scale applied before tone mapping the PNG.
-        #[arg(long, default_value_t = 1.0)]
+        #[arg(long, default_value_t = 1.0, value_parser = units::parse_non_negative)]
         exposure: f32,
         /// Write render statistics as JSON here.
         #[arg(long)]

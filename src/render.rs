@@ -180,12 +180,31 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     for (flag, v) in [
         ("--cone-scale", o.cone_scale),
         ("--diffuse-tan", o.diffuse_tan),
+        ("--exposure", o.exposure),
     ] {
         if !(v.is_finite() && v >= 0.0) {
             bail!("{flag} must be a finite number of at least 0, not {v}");
         }
     }
+    if let Some(t) = o
+        .threads
+        .filter(|&t| t == 0 || t > crate::units::max_threads())
+    {
+        bail!(
+            "--threads {t}: give 1 to {} ({} per core)",
+            crate::units::max_threads(),
+            crate::units::THREADS_PER_CORE
+        );
+    }
     let archive = Arc::new(Archive::open(&o.archive)?);
+    if archive.header.max_leaf_triangles > crate::build::MAX_LEAF_TRIS {
+        bail!(
+            "{}: leaves of up to {} triangles; this renderer keys stored light by {} per leaf",
+            o.archive.display(),
+            archive.header.max_leaf_triangles,
+            crate::build::MAX_LEAF_TRIS
+        );
+    }
     if archive.header.depth as usize > MAX_DEPTH {
         bail!(
             "{}: tree depth {} exceeds the {} this renderer traverses",

@@ -78,3 +78,28 @@ mod tests {
         assert!(parse_duration("5 fortnights").is_err());
     }
 }
+
+/// A finite number of at least 0 (NaN, infinities and negatives are refused).
+pub fn parse_non_negative(s: &str) -> Result<f32> {
+    match s.trim().parse::<f32>() {
+        Ok(v) if v.is_finite() && v >= 0.0 => Ok(v),
+        _ => bail!("'{s}' is not a finite number of at least 0"),
+    }
+}
+
+/// Threads each core may be given: more only adds contention and memory.
+pub const THREADS_PER_CORE: usize = 16;
+
+/// Most worker threads accepted: `THREADS_PER_CORE` × the cores available.
+pub fn max_threads() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get()) * THREADS_PER_CORE
+}
+
+/// A worker-thread count from 1 to `max_threads()`.
+pub fn parse_threads(s: &str) -> Result<usize> {
+    let max = max_threads();
+    match s.trim().parse::<usize>() {
+        Ok(n) if (1..=max).contains(&n) => Ok(n),
+        _ => bail!("'{s}' is not a thread count from 1 to {max} ({THREADS_PER_CORE} per core)"),
+    }
+}

@@ -3,11 +3,14 @@ use std::path::PathBuf;
 /// Everything that can be wrong with an archive. Every variant names the file.
 #[derive(Debug, thiserror::Error)]
 pub enum FormatError {
-    #[error("{path}: {source}")]
+    /// The OS error is part of the message, not a source, so `{:#}` does not repeat it.
+    #[error("{path}: {error}")]
     Io {
         path: PathBuf,
-        source: std::io::Error,
+        error: std::io::Error,
     },
+    #[error("{path}: not a regular file (a Canopy archive is a file, not a directory or device)")]
+    NotAFile { path: PathBuf },
     #[error("{path}: not a Canopy archive (bad magic)")]
     BadMagic { path: PathBuf },
     #[error("{path}: archive format version {major}.{minor} is newer than this canopy reads ({}.x); upgrade canopy", crate::VERSION_MAJOR)]

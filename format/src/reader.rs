@@ -26,15 +26,16 @@ impl Archive {
         let p = path.to_path_buf();
         let file = std::fs::File::open(path).map_err(|source| FormatError::Io {
             path: p.clone(),
-            source,
+            error: source,
         })?;
-        let len = file
-            .metadata()
-            .map_err(|source| FormatError::Io {
-                path: p.clone(),
-                source,
-            })?
-            .len();
+        let meta = file.metadata().map_err(|source| FormatError::Io {
+            path: p.clone(),
+            error: source,
+        })?;
+        if !meta.is_file() {
+            return Err(FormatError::NotAFile { path: p });
+        }
+        let len = meta.len();
         if len < 8 {
             return Err(FormatError::Truncated {
                 path: p,
@@ -46,7 +47,7 @@ impl Archive {
         // SAFETY: the map is read-only and every access below is bounds-checked against `len`.
         let map = unsafe { memmap2::Mmap::map(&file) }.map_err(|source| FormatError::Io {
             path: p.clone(),
-            source,
+            error: source,
         })?;
         if map[..8] != MAGIC {
             return Err(FormatError::BadMagic { path: p });

@@ -175,18 +175,13 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
     };
-    let spill_dir = tempfile::Builder::new()
-        .prefix(".canopy-spill-")
-        .tempdir_in(&dir)
-        .with_context(|| format!("{}: cannot create a spill directory", dir.display()))?;
-    let spill_path = spill_dir.path().join("triangles.bin");
     let mut scene = SceneDesc {
         cameras: file.cameras(),
         lights: file.lights(),
         ..Default::default()
     };
     let mut spill = Spill {
-        out: SpillWriter::create(&spill_path, 1 << 20)?,
+        out: SpillWriter::create(&dir, 1 << 20)?,
         count: 0,
         lo: [f32::INFINITY; 3],
         hi: [f32::NEG_INFINITY; 3],
@@ -207,7 +202,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         ..
     } = spill;
     bar.finish_and_clear();
-    out.finish()?;
+    let spilled = out.finish()?;
     let mut report = ConvertReport {
         input_triangles: total,
         seconds_import: t0.elapsed().as_secs_f64(),
@@ -241,26 +236,22 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     let t1 = Instant::now();
     let threads = rayon::current_num_threads().max(1);
     let cap = (opts.mem_budget - FIXED_BYTES) / BUILD_BYTES_PER_TRI / threads as u64;
-    let chunk_files: Vec<PathBuf> = if total <= cap {
-        vec![spill_path.clone()]
+    let chunk_files: Vec<spill::Spill> = if total <= cap {
+        vec![spilled]
     } else {
         let mut hist = vec![0u64; 1 << (3 * MORTON_BITS)];
-        spill::for_each(&spill_path, |t| {
+        spill::for_each(&spilled, |t| {
             hist[morton(t.centroid(), clo, chi) as usize] += 1;
             Ok(())
         })?;
         let (chunk, n) = chunk_of_bins(&hist, cap);
         drop(hist);
-        let paths: Vec<PathBuf> = (0..n)
-            .map(|i| spill_dir.path().join(format!("chunk{i:05}.bin")))
-            .collect();
-        let mut outs = paths
-            .iter()
-            .map(|p| SpillWriter::create(p, 256 << 10))
+        let mut outs = (0..n)
+            .map(|_| SpillWriter::create(&dir, 256 << 10))
             .collect::<Result<Vec<_>>>()?;
         let bar = progress::bar(opts.progress, total, "partitioning");
         let mut done = 0u64;
-        spill::for_each(&spill_path, |t| {
+        spill::for_each(&spilled, |t| {
             outs[chunk[morton(t.centroid(), clo, chi) as usize] as usize].write(t)?;
             done += 1;
             if done.is_multiple_of(65536) {
@@ -269,20 +260,20 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
             Ok(())
         })?;
         bar.finish_and_clear();
-        for o in outs {
-            o.finish()?;
-        }
-        std::fs::remove_file(&spill_path).ok();
-        paths
+        drop(spilled);
+        outs.into_iter()
+            .map(SpillWriter::finish)
+            .collect::<Result<Vec<_>>>()?
     };
-    report.chunks = chunk_files.len() as u64;
+    let chunk_count = chunk_files.len();
+    report.chunks = chunk_count as u64;
     report.seconds_partition = t1.elapsed().as_secs_f64();
 
     // Build chunks.
     let t2 = Instant::now();
     let normals = features & Features::SHADING_NORMALS != 0;
     let bar = progress::bar(opts.progress, total, "building");
-    let single = chunk_files.len() == 1;
+    let single = chunk_count == 1;
     let mut top = Tree {
         nodes: Vec::new(),
         tris: Vec::new(),
@@ -291,7 +282,10 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     let mut root_page = 0;
     let mut scene_root: Option<BNode> = None;
     let job = ChunkJob {
-        files: &chunk_files,
+        files: chunk_files
+            .into_iter()
+            .map(|f| Mutex::new(Some(f)))
+            .collect(),
         mats: &mats,
         single,
         fast: match opts.bvh {
@@ -313,7 +307,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     // are appended in chunk order, so the archive does not depend on scheduling.
     std::thread::scope(|s| -> Result<()> {
         let (tx, rx) = std::sync::mpsc::channel();
-        for _ in 0..threads.min(chunk_files.len()) {
+        for _ in 0..threads.min(chunk_count) {
             let tx = tx.clone();
             let job = &job;
             s.spawn(move || job.work(tx));
@@ -357,7 +351,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     bar.finish_and_clear();
     if !single {
         let leaves: Vec<u32> = (0..top.nodes.len() as u32).collect();
-        top.root = balanced(&mut top, &leaves);
+        top.root = top.balanced(&leaves);
         root_page = write_pages(&mut writer, &top, vec![top.root], opts, normals)?;
         scene_root = Some(top.nodes[top.root as usize].clone());
     }
@@ -388,18 +382,6 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     Ok(report)
 }
 
-/// A balanced binary tree over `items` (kept in order), built with `Tree::join`.
-fn balanced(tree: &mut Tree, items: &[u32]) -> u32 {
-    match items {
-        [one] => *one,
-        _ => {
-            let (l, r) = items.split_at(items.len() / 2);
-            let (l, r) = (balanced(tree, l), balanced(tree, r));
-            tree.join(l, r)
-        }
-    }
-}
-
 /// A chunk's pages, compressed and numbered from `base`, ready to append in order.
 struct EncodedPages {
     base: u32,
@@ -426,7 +408,8 @@ struct Turn {
 }
 
 struct ChunkJob<'a> {
-    files: &'a [PathBuf],
+    /// Each chunk's spill, taken (and so freed) by the worker that builds it.
+    files: Vec<Mutex<Option<spill::Spill>>>,
     mats: &'a [MatSummary],
     single: bool,
     fast: bool,
@@ -460,9 +443,8 @@ impl ChunkJob<'_> {
     }
 
     fn chunk(&self, i: usize) -> Result<ChunkOut> {
-        let path = &self.files[i];
-        let tris = spill::read_all(path)?;
-        std::fs::remove_file(path).ok();
+        let spill = self.files[i].lock().expect("chunk lock").take();
+        let tris = spill::read_all(&spill.expect("each chunk is claimed once"))?;
         let triangles = tris.len() as u64;
         let tree = (!tris.is_empty()).then(|| Tree::build(tris, self.mats, self.fast));
         let roots = match &tree {

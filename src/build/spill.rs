@@ -1,5 +1,9 @@
 //! Spill files: triangles streamed to disk between conversion passes.
 //!
+//! Spill files have no name: they are created unlinked in the output's directory
+//! (`O_TMPFILE`, or created and unlinked at once), so the kernel reclaims them when the
+//! process ends, even by SIGKILL, and nothing of a conversion is left behind.
+//!
 //! A record is 40 bytes (positions and material). Triangles with shading normals or
 //! curvature add a 16-byte attribute record, flagged in the material's top bit, so meshes
 //! without normals cost 40 bytes a triangle on disk instead of 56: spill I/O is most of the
@@ -9,7 +13,7 @@ use crate::import::SpillTri;
 use anyhow::{bail, Context, Result};
 use bytemuck::{Pod, Zeroable};
 use std::fs::File;
-use std::io::{BufRead, BufReader, BufWriter, Read, Write};
+use std::io::{BufRead, BufReader, BufWriter, Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 const HAS_ATTR: u32 = 1 << 31;
@@ -30,16 +34,18 @@ struct Attr {
 
 pub struct SpillWriter {
     out: BufWriter<File>,
+    /// The directory, for messages (the file has no name).
     path: PathBuf,
 }
 
 impl SpillWriter {
-    pub fn create(path: &Path, buffer: usize) -> Result<SpillWriter> {
-        let file =
-            File::create(path).with_context(|| format!("{}: cannot create", path.display()))?;
+    /// An unnamed spill file in `dir`.
+    pub fn create(dir: &Path, buffer: usize) -> Result<SpillWriter> {
+        let file = tempfile::tempfile_in(dir)
+            .with_context(|| format!("{}: cannot create a spill file", dir.display()))?;
         Ok(SpillWriter {
             out: BufWriter::with_capacity(buffer, file),
-            path: path.to_path_buf(),
+            path: dir.join("(spill file)"),
         })
     }
 
@@ -63,16 +69,33 @@ impl SpillWriter {
         r.with_context(|| format!("{}: writing spill file", self.path.display()))
     }
 
-    pub fn finish(mut self) -> Result<()> {
-        self.out
-            .flush()
-            .with_context(|| format!("{}: writing spill file", self.path.display()))
+    /// Flushes and returns the spill, ready to read.
+    pub fn finish(self) -> Result<Spill> {
+        let err = || format!("{}: writing", self.path.display());
+        let file = self
+            .out
+            .into_inner()
+            .map_err(|e| e.into_error())
+            .with_context(err)?;
+        Ok(Spill {
+            file,
+            path: self.path,
+        })
     }
 }
 
+/// A finished spill file.
+pub struct Spill {
+    file: File,
+    path: PathBuf,
+}
+
 /// Calls `f` on every triangle of a spill file, in order.
-pub fn for_each(path: &Path, mut f: impl FnMut(&SpillTri) -> Result<()>) -> Result<()> {
-    let file = File::open(path).with_context(|| format!("{}: reopening spill", path.display()))?;
+pub fn for_each(spill: &Spill, mut f: impl FnMut(&SpillTri) -> Result<()>) -> Result<()> {
+    let path = &spill.path;
+    let mut file = &spill.file;
+    file.seek(SeekFrom::Start(0))
+        .with_context(|| format!("{}: rewinding", path.display()))?;
     let mut r = BufReader::with_capacity(1 << 20, file);
     let err = || format!("{}: reading spill", path.display());
     loop {
@@ -98,9 +121,9 @@ pub fn for_each(path: &Path, mut f: impl FnMut(&SpillTri) -> Result<()>) -> Resu
     }
 }
 
-pub fn read_all(path: &Path) -> Result<Vec<SpillTri>> {
+pub fn read_all(spill: &Spill) -> Result<Vec<SpillTri>> {
     let mut out = Vec::new();
-    for_each(path, |t| {
+    for_each(spill, |t| {
         out.push(*t);
         Ok(())
     })?;
@@ -114,7 +137,6 @@ mod tests {
     #[test]
     fn round_trips_with_and_without_attributes() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("s.bin");
         let tris: Vec<SpillTri> = (0..1000u32)
             .map(|i| SpillTri {
                 p: [
@@ -127,29 +149,32 @@ mod tests {
                 curvature: if i % 7 == 0 { i as f32 * 0.5 } else { 0.0 },
             })
             .collect();
-        let mut w = SpillWriter::create(&path, 4096).unwrap();
+        let mut w = SpillWriter::create(dir.path(), 4096).unwrap();
         for t in &tris {
             w.write(t).unwrap();
         }
-        w.finish().unwrap();
+        let spill = w.finish().unwrap();
+        assert_eq!(
+            std::fs::read_dir(dir.path()).unwrap().count(),
+            0,
+            "a spill file has no name"
+        );
         let plain = tris
             .iter()
             .filter(|t| t.n == [0; 3] && t.curvature == 0.0)
             .count() as u64;
-        let len = std::fs::metadata(&path).unwrap().len();
+        let len = spill.file.metadata().unwrap().len();
         assert_eq!(len, plain * 40 + (tris.len() as u64 - plain) * 56);
-        assert_eq!(read_all(&path).unwrap(), tris);
+        assert_eq!(read_all(&spill).unwrap(), tris);
     }
 
     #[test]
     fn a_truncated_record_is_an_error() {
         let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("s.bin");
-        let mut w = SpillWriter::create(&path, 4096).unwrap();
+        let mut w = SpillWriter::create(dir.path(), 4096).unwrap();
         w.write(&SpillTri::default()).unwrap();
-        w.finish().unwrap();
-        let f = std::fs::OpenOptions::new().write(true).open(&path).unwrap();
-        f.set_len(30).unwrap();
-        assert!(read_all(&path).is_err());
+        let spill = w.finish().unwrap();
+        spill.file.set_len(30).unwrap();
+        assert!(read_all(&spill).is_err());
     }
 }

@@ -9,6 +9,52 @@ use obvhs::{bvh2::builder::build_bvh2_from_tris, triangle::Triangle, BvhBuildPar
 /// Most triangles a leaf holds.
 pub const MAX_LEAF_TRIS: u32 = 8;
 
+/// Coincident triangles beyond this many are built by count, not by PLOC.
+const COINCIDENT_GROUP: usize = 64;
+
+/// Splits off groups of more than `COINCIDENT_GROUP` triangles whose centroids fall in one
+/// cell of a 2²¹-per-axis grid over the centroids' bounds; groups come in Morton order.
+fn split_coincident(tris: Vec<SpillTri>) -> (Vec<SpillTri>, Vec<Vec<SpillTri>>) {
+    let mut lo = [f32::INFINITY; 3];
+    let mut hi = [f32::NEG_INFINITY; 3];
+    for t in &tris {
+        let c = t.centroid();
+        for a in 0..3 {
+            lo[a] = lo[a].min(c[a]);
+            hi[a] = hi[a].max(c[a]);
+        }
+    }
+    let key = |t: &SpillTri| {
+        let c = t.centroid();
+        let q = [0, 1, 2].map(|a| {
+            let e = hi[a] - lo[a];
+            let f = if e > 0.0 { (c[a] - lo[a]) / e } else { 0.0 };
+            ((f as f64 * (1u64 << 21) as f64) as u64).min((1 << 21) - 1)
+        });
+        (0..21).rev().fold(0u64, |code, bit| {
+            q.iter()
+                .fold(code, |code, v| (code << 1) | ((v >> bit) & 1))
+        })
+    };
+    let mut keyed: Vec<(u64, u32)> = tris
+        .iter()
+        .enumerate()
+        .map(|(i, t)| (key(t), i as u32))
+        .collect();
+    keyed.sort_unstable();
+    let mut plain = Vec::with_capacity(tris.len());
+    let mut groups = Vec::new();
+    for run in keyed.chunk_by(|a, b| a.0 == b.0) {
+        let members = run.iter().map(|&(_, i)| tris[i as usize]);
+        if run.len() > COINCIDENT_GROUP {
+            groups.push(members.collect());
+        } else {
+            plain.extend(members);
+        }
+    }
+    (plain, groups)
+}
+
 #[derive(Clone, Copy, Debug)]
 pub enum Kind {
     Inner([u32; 2]),
@@ -92,9 +138,56 @@ impl Tree {
         self.nodes.len() as u32 - 1
     }
 
-    /// Builds the chunk's hierarchy with PLOC (obvhs) and aggregates clusters bottom-up.
+    /// A balanced binary tree over `items` (kept in order), built with `join`.
+    pub fn balanced(&mut self, items: &[u32]) -> u32 {
+        match items {
+            [one] => *one,
+            _ => {
+                let (l, r) = items.split_at(items.len() / 2);
+                let (l, r) = (self.balanced(l), self.balanced(r));
+                self.join(l, r)
+            }
+        }
+    }
+
+    /// Builds the chunk's hierarchy and aggregates clusters bottom-up. Groups of more than
+    /// `COINCIDENT_GROUP` triangles whose centroids share a cell of a 2²¹-per-axis grid
+    /// (coincident or nearly so) are split by count into leaves under a balanced subtree:
+    /// PLOC pairs equal boxes one pair per sweep, which made such inputs quadratic. The
+    /// rest is built with PLOC (obvhs); a balanced tree in Morton order joins the parts.
     /// `fast` picks obvhs's fast preset (no post-collapse reinsertion) over medium.
     pub fn build(tris: Vec<SpillTri>, mats: &[MatSummary], fast: bool) -> Tree {
+        let (plain, groups) = split_coincident(tris);
+        let mut tree = match plain.is_empty() {
+            true => Tree {
+                nodes: Vec::new(),
+                tris: Vec::new(),
+                root: 0,
+            },
+            false => Tree::build_ploc(plain, mats, fast),
+        };
+        let mut roots = if tree.nodes.is_empty() {
+            Vec::new()
+        } else {
+            vec![tree.root]
+        };
+        for group in groups {
+            let first = tree.tris.len() as u32;
+            let count = group.len() as u32;
+            tree.tris.extend(group);
+            let leaves: Vec<u32> = (0..count)
+                .step_by(MAX_LEAF_TRIS as usize)
+                .map(|k| tree.leaf(first + k, MAX_LEAF_TRIS.min(count - k), mats))
+                .collect();
+            let root = tree.balanced(&leaves);
+            roots.push(root);
+        }
+        tree.root = tree.balanced(&roots);
+        tree
+    }
+
+    /// The hierarchy of `tris` (not empty) by PLOC.
+    fn build_ploc(tris: Vec<SpillTri>, mats: &[MatSummary], fast: bool) -> Tree {
         let prims: Vec<Triangle> = tris
             .iter()
             .map(|t| Triangle {
