@@ -218,9 +218,10 @@ fn missing_archive_and_bad_sizes() {
     assert!(!out.exists());
 }
 
-/// A conversion killed with SIGKILL halfway leaves nothing at the output path.
+/// A conversion killed with SIGKILL at any moment leaves nothing of itself in the output
+/// directory: spill files and the archive being written have no name until it is complete.
 #[test]
-fn killed_conversion_leaves_no_output() {
+fn killed_conversion_leaves_nothing_behind() {
     let dir = tempfile::tempdir().unwrap();
     // A 2M-triangle grid, big enough to still be converting when killed.
     let n = 1000usize;
@@ -249,30 +250,166 @@ fn killed_conversion_leaves_no_output() {
     }
     std::fs::write(&input, bytes).unwrap();
     let out = dir.path().join("grid.canopy");
-    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_canopy"))
-        .args(["convert", s(&input), "-o", s(&out), "--quiet"])
-        .spawn()
-        .unwrap();
-    // Wait until the temporary archive exists, then kill.
-    let start = std::time::Instant::now();
-    loop {
-        let tmp = std::fs::read_dir(dir.path())
-            .unwrap()
-            .filter_map(|e| e.ok())
-            .any(|e| e.file_name().to_string_lossy().contains(".tmp-"));
-        if tmp || start.elapsed().as_secs() > 60 {
-            break;
+    let mut killed = 0;
+    // Moments through import, partition and build (a small budget makes several chunks).
+    for ms in [30u64, 150, 400, 900, 1600, 2500] {
+        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_canopy"))
+            .args(["convert", s(&input), "-o", s(&out), "--quiet", "--mem-budget", "300MiB"])
+            .spawn()
+            .unwrap();
+        std::thread::sleep(std::time::Duration::from_millis(ms));
+        child.kill().unwrap();
+        let status = child.wait().unwrap();
+        if !status.success() {
+            killed += 1;
+            assert!(!out.exists(), "killed at {ms} ms: a file at the output path");
         }
-        std::thread::sleep(std::time::Duration::from_millis(5));
+        std::fs::remove_file(&out).ok();
+        let left: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .filter(|n| n != "grid.ply")
+            .collect();
+        assert!(left.is_empty(), "killed at {ms} ms, left behind: {left:?}");
     }
-    child.kill().unwrap();
-    let status = child.wait().unwrap();
-    assert!(
-        !status.success(),
-        "conversion finished before it could be killed"
-    );
-    assert!(
-        !out.exists(),
-        "a killed conversion left a file at the output path"
-    );
+    assert!(killed >= 3, "only {killed} kills landed before the conversion ended");
+}
+
+/// A named temporary left by a writer that died where unnamed files were unavailable is
+/// removed by the next conversion into that directory; a live process's is kept.
+#[test]
+fn the_next_conversion_removes_a_dead_writers_temporary() {
+    let dir = tempfile::tempdir().unwrap();
+    let dead = dir.path().join(".x.canopy.tmp-2147480000");
+    let live = dir.path().join(format!(".x.canopy.tmp-{}", std::process::id()));
+    std::fs::write(&dead, b"half").unwrap();
+    std::fs::write(&live, b"busy").unwrap();
+    ok(&["convert", s(&scene("cbox.glb")), "-o", s(&dir.path().join("x.canopy"))]);
+    assert!(!dead.exists(), "a dead writer's temporary was kept");
+    assert!(live.exists(), "a live writer's temporary was removed");
+}
+
+fn tiny_glb(dir: &Path, name: &str, edit: impl Fn(&mut serde_json::Value, &mut Vec<u8>)) -> PathBuf {
+    let glb = std::fs::read(scene("cbox.glb")).unwrap();
+    let jlen = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
+    let mut json: serde_json::Value = serde_json::from_slice(&glb[20..20 + jlen]).unwrap();
+    let mut bin = glb[20 + jlen + 8..].to_vec();
+    edit(&mut json, &mut bin);
+    let mut j = serde_json::to_vec(&json).unwrap();
+    while j.len() % 4 != 0 {
+        j.push(b' ');
+    }
+    let mut out = b"glTF".to_vec();
+    out.extend(2u32.to_le_bytes());
+    out.extend(((12 + 8 + j.len() + 8 + bin.len()) as u32).to_le_bytes());
+    out.extend((j.len() as u32).to_le_bytes());
+    out.extend(b"JSON");
+    out.extend(&j);
+    out.extend((bin.len() as u32).to_le_bytes());
+    out.extend(b"BIN\0");
+    out.extend(&bin);
+    write(dir, name, &out)
+}
+
+/// Spec-invalid accessors that panicked inside the gltf crate, and a buffer whose declared
+/// length disagrees with the BIN chunk, are clear errors.
+#[test]
+fn invalid_gltf_accessors_and_buffers() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let pos = |j: &serde_json::Value| j["meshes"][0]["primitives"][0]["attributes"]["POSITION"].as_u64().unwrap() as usize;
+    let idx = |j: &serde_json::Value| j["meshes"][0]["primitives"][0]["indices"].as_u64().unwrap() as usize;
+    let stride = tiny_glb(d, "stride.glb", |j, _| {
+        let v = j["accessors"][pos(j)]["bufferView"].as_u64().unwrap() as usize;
+        j["bufferViews"][v]["byteStride"] = 4.into();
+    });
+    convert_fails(&stride, &["stride 4 for 12-byte elements"]);
+    let float_idx = tiny_glb(d, "fidx.glb", |j, _| {
+        let i = idx(j);
+        j["accessors"][i]["componentType"] = 5126.into();
+        j["accessors"][i]["type"] = "VEC3".into();
+    });
+    convert_fails(&float_idx, &["indices accessor", "the spec requires"]);
+    let short = tiny_glb(d, "short.glb", |j, bin| {
+        bin.truncate(bin.len() - 64);
+        let _ = j;
+    });
+    convert_fails(&short, &["BIN chunk holds"]);
+    let long = tiny_glb(d, "long.glb", |j, _| {
+        let n = j["buffers"][0]["byteLength"].as_u64().unwrap();
+        j["buffers"][0]["byteLength"] = (n - 400).into();
+    });
+    convert_fails(&long, &["BIN chunk holds"]);
+    let count = tiny_glb(d, "count.glb", |j, _| {
+        let p = pos(j);
+        j["accessors"][p]["count"] = 100000000.into();
+    });
+    convert_fails(&count, &["elements need"]);
+    let bad_accessor = tiny_glb(d, "acc.glb", |j, _| {
+        j["meshes"][0]["primitives"][0]["attributes"]["POSITION"] = 999.into();
+    });
+    convert_fails(&bad_accessor, &["names accessor 999"]);
+}
+
+/// Side files that are not regular files are refused before they are read: an OBJ whose
+/// material library is /dev/zero allocated until the process aborted.
+#[test]
+fn side_files_must_be_regular_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let obj = write(dir.path(), "zero.obj", b"mtllib /dev/zero\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n");
+    let err = fails(&["convert", s(&obj), "-o", s(&dir.path().join("z.canopy"))]);
+    assert!(err.contains("/dev/zero") && err.contains("not a regular file"), "{err}");
+    let cbox = scene("cbox.glb");
+    let err = fails(&["convert", s(&cbox), "-o", s(&dir.path().join("z.canopy")), "--scene", "/dev/zero"]);
+    assert!(err.contains("not a regular file"), "{err}");
+    let err = fails(&["inspect", s(dir.path())]);
+    assert!(err.contains("not a regular file"), "{err}");
+    // A line with no end is refused at its bound, not read whole.
+    let mut long = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n# ".to_vec();
+    long.resize(long.len() + (2 << 20), b'x');
+    convert_fails(&write(dir.path(), "long.obj", &long), &["longer than"]);
+    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2, "only the inputs remain");
+}
+
+/// Float flags refuse NaN and infinities, and --threads refuses a count no machine uses.
+#[test]
+fn absurd_flag_values_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let a = dir.path().join("c.canopy");
+    ok(&["--quiet", "convert", s(&scene("cbox.glb")), "-o", s(&a)]);
+    let o = dir.path().join("o.exr");
+    for (flag, v) in [
+        ("--exposure", "nan"),
+        ("--exposure", "inf"),
+        ("--cone-scale", "NaN"),
+        ("--diffuse-tan=-1", ""),
+        ("--threads", "100000"),
+        ("--threads", "0"),
+    ] {
+        let mut args = vec!["render", s(&a), "-o", s(&o), "--spp", "1", flag];
+        args.extend((!v.is_empty()).then_some(v));
+        let err = fails(&args);
+        let name = flag.split('=').next().unwrap();
+        assert!(err.contains(name), "{flag} {v}: {err}");
+    }
+    assert!(!o.exists());
+}
+
+/// 20,000 coincident triangles: the build splits them by count into full leaves under a
+/// balanced subtree (PLOC paired equal boxes one pair per sweep, quadratic in their number).
+#[test]
+fn coincident_triangles_build_a_balanced_tree() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut obj = String::from("v 0 0 0\nv 1 0 0\nv 0 1 0\n");
+    for _ in 0..20000 {
+        obj.push_str("f 1 2 3\n");
+    }
+    let input = write(dir.path(), "same.obj", obj.as_bytes());
+    let out = dir.path().join("same.canopy");
+    ok(&["--quiet", "convert", s(&input), "-o", s(&out)]);
+    let a = canopy_format::Archive::open(&out).unwrap();
+    // 2,500 full leaves: a balanced tree is 12 levels deep.
+    assert_eq!(a.header.triangles, 20000);
+    assert!(a.header.depth <= 13, "depth {}", a.header.depth);
+    assert!(a.header.nodes <= 2 * 2500 + 2, "{} nodes: leaves not full", a.header.nodes);
 }

@@ -78,12 +78,13 @@ const WORDS: [u32; 14] = [
 /// An archive taken apart: header, raw (decompressed) pages, tables.
 #[derive(Clone)]
 pub struct Parts {
-    header: Header,
-    pages: Vec<Vec<u8>>,
-    entries: Vec<PageEntry>,
-    materials: Vec<MaterialRecord>,
-    cameras: Vec<CameraRecord>,
-    lights: Vec<LightRecord>,
+    pub header: Header,
+    /// Decompressed page bytes (page header, nodes, triangles, vertices, ...).
+    pub pages: Vec<Vec<u8>>,
+    pub entries: Vec<PageEntry>,
+    pub materials: Vec<MaterialRecord>,
+    pub cameras: Vec<CameraRecord>,
+    pub lights: Vec<LightRecord>,
 }
 
 impl Parts {
