@@ -487,7 +487,15 @@ mod tests {
                 let n = 40_000;
                 let (mut sum, mut sq) = (0f64, 0f64);
                 for _ in 0..n {
-                    let w = match b.sample(wo, rng.next(), [rng.next(), rng.next()]) {
+                    let s = b.sample(wo, rng.next(), [rng.next(), rng.next()]);
+                    if let Some(s) = &s {
+                        assert!(
+                            s.weight.is_finite() && s.weight.min_element() >= 0.0,
+                            "{name}: sample weight {:?}",
+                            s.weight
+                        );
+                    }
+                    let w = match s {
                         // Energy, not radiance: undo the 1/η² of refraction.
                         Some(s) if s.wi.z < 0.0 => s.weight.max_element() * b.eta * b.eta,
                         Some(s) => s.weight.max_element(),

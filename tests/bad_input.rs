@@ -254,7 +254,15 @@ fn killed_conversion_leaves_nothing_behind() {
     // Moments through import, partition and build (a small budget makes several chunks).
     for ms in [30u64, 150, 400, 900, 1600, 2500] {
         let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_canopy"))
-            .args(["convert", s(&input), "-o", s(&out), "--quiet", "--mem-budget", "300MiB"])
+            .args([
+                "convert",
+                s(&input),
+                "-o",
+                s(&out),
+                "--quiet",
+                "--mem-budget",
+                "300MiB",
+            ])
             .spawn()
             .unwrap();
         std::thread::sleep(std::time::Duration::from_millis(ms));
@@ -262,7 +270,10 @@ fn killed_conversion_leaves_nothing_behind() {
         let status = child.wait().unwrap();
         if !status.success() {
             killed += 1;
-            assert!(!out.exists(), "killed at {ms} ms: a file at the output path");
+            assert!(
+                !out.exists(),
+                "killed at {ms} ms: a file at the output path"
+            );
         }
         std::fs::remove_file(&out).ok();
         let left: Vec<_> = std::fs::read_dir(dir.path())
@@ -272,7 +283,10 @@ fn killed_conversion_leaves_nothing_behind() {
             .collect();
         assert!(left.is_empty(), "killed at {ms} ms, left behind: {left:?}");
     }
-    assert!(killed >= 3, "only {killed} kills landed before the conversion ended");
+    assert!(
+        killed >= 3,
+        "only {killed} kills landed before the conversion ended"
+    );
 }
 
 /// A named temporary left by a writer that died where unnamed files were unavailable is
@@ -281,22 +295,33 @@ fn killed_conversion_leaves_nothing_behind() {
 fn the_next_conversion_removes_a_dead_writers_temporary() {
     let dir = tempfile::tempdir().unwrap();
     let dead = dir.path().join(".x.canopy.tmp-2147480000");
-    let live = dir.path().join(format!(".x.canopy.tmp-{}", std::process::id()));
+    let live = dir
+        .path()
+        .join(format!(".x.canopy.tmp-{}", std::process::id()));
     std::fs::write(&dead, b"half").unwrap();
     std::fs::write(&live, b"busy").unwrap();
-    ok(&["convert", s(&scene("cbox.glb")), "-o", s(&dir.path().join("x.canopy"))]);
+    ok(&[
+        "convert",
+        s(&scene("cbox.glb")),
+        "-o",
+        s(&dir.path().join("x.canopy")),
+    ]);
     assert!(!dead.exists(), "a dead writer's temporary was kept");
     assert!(live.exists(), "a live writer's temporary was removed");
 }
 
-fn tiny_glb(dir: &Path, name: &str, edit: impl Fn(&mut serde_json::Value, &mut Vec<u8>)) -> PathBuf {
+fn tiny_glb(
+    dir: &Path,
+    name: &str,
+    edit: impl Fn(&mut serde_json::Value, &mut Vec<u8>),
+) -> PathBuf {
     let glb = std::fs::read(scene("cbox.glb")).unwrap();
     let jlen = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
     let mut json: serde_json::Value = serde_json::from_slice(&glb[20..20 + jlen]).unwrap();
     let mut bin = glb[20 + jlen + 8..].to_vec();
     edit(&mut json, &mut bin);
     let mut j = serde_json::to_vec(&json).unwrap();
-    while j.len() % 4 != 0 {
+    while !j.len().is_multiple_of(4) {
         j.push(b' ');
     }
     let mut out = b"glTF".to_vec();
@@ -317,8 +342,14 @@ fn tiny_glb(dir: &Path, name: &str, edit: impl Fn(&mut serde_json::Value, &mut V
 fn invalid_gltf_accessors_and_buffers() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let pos = |j: &serde_json::Value| j["meshes"][0]["primitives"][0]["attributes"]["POSITION"].as_u64().unwrap() as usize;
-    let idx = |j: &serde_json::Value| j["meshes"][0]["primitives"][0]["indices"].as_u64().unwrap() as usize;
+    let pos = |j: &serde_json::Value| {
+        j["meshes"][0]["primitives"][0]["attributes"]["POSITION"]
+            .as_u64()
+            .unwrap() as usize
+    };
+    let idx = |j: &serde_json::Value| {
+        j["meshes"][0]["primitives"][0]["indices"].as_u64().unwrap() as usize
+    };
     let stride = tiny_glb(d, "stride.glb", |j, _| {
         let v = j["accessors"][pos(j)]["bufferView"].as_u64().unwrap() as usize;
         j["bufferViews"][v]["byteStride"] = 4.into();
@@ -356,11 +387,25 @@ fn invalid_gltf_accessors_and_buffers() {
 #[test]
 fn side_files_must_be_regular_files() {
     let dir = tempfile::tempdir().unwrap();
-    let obj = write(dir.path(), "zero.obj", b"mtllib /dev/zero\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n");
+    let obj = write(
+        dir.path(),
+        "zero.obj",
+        b"mtllib /dev/zero\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    );
     let err = fails(&["convert", s(&obj), "-o", s(&dir.path().join("z.canopy"))]);
-    assert!(err.contains("/dev/zero") && err.contains("not a regular file"), "{err}");
+    assert!(
+        err.contains("/dev/zero") && err.contains("not a regular file"),
+        "{err}"
+    );
     let cbox = scene("cbox.glb");
-    let err = fails(&["convert", s(&cbox), "-o", s(&dir.path().join("z.canopy")), "--scene", "/dev/zero"]);
+    let err = fails(&[
+        "convert",
+        s(&cbox),
+        "-o",
+        s(&dir.path().join("z.canopy")),
+        "--scene",
+        "/dev/zero",
+    ]);
     assert!(err.contains("not a regular file"), "{err}");
     let err = fails(&["inspect", s(dir.path())]);
     assert!(err.contains("not a regular file"), "{err}");
@@ -368,7 +413,11 @@ fn side_files_must_be_regular_files() {
     let mut long = b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n# ".to_vec();
     long.resize(long.len() + (2 << 20), b'x');
     convert_fails(&write(dir.path(), "long.obj", &long), &["longer than"]);
-    assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 2, "only the inputs remain");
+    assert_eq!(
+        std::fs::read_dir(dir.path()).unwrap().count(),
+        2,
+        "only the inputs remain"
+    );
 }
 
 /// Float flags refuse NaN and infinities, and --threads refuses a count no machine uses.
@@ -411,5 +460,9 @@ fn coincident_triangles_build_a_balanced_tree() {
     // 2,500 full leaves: a balanced tree is 12 levels deep.
     assert_eq!(a.header.triangles, 20000);
     assert!(a.header.depth <= 13, "depth {}", a.header.depth);
-    assert!(a.header.nodes <= 2 * 2500 + 2, "{} nodes: leaves not full", a.header.nodes);
+    assert!(
+        a.header.nodes <= 2 * 2500 + 2,
+        "{} nodes: leaves not full",
+        a.header.nodes
+    );
 }

@@ -117,7 +117,7 @@ impl Archive {
         check_records(&materials, "material", check_material).map_err(&corrupt)?;
         check_records(&cameras, "camera", check_camera).map_err(&corrupt)?;
         check_records(&lights, "light", check_light).map_err(&corrupt)?;
-        if (header.features & Features::PUNCTUAL_LIGHTS != 0) != !lights.is_empty() {
+        if (header.features & Features::PUNCTUAL_LIGHTS != 0) == lights.is_empty() {
             return Err(corrupt(format!(
                 "the punctual-lights feature disagrees with the {} lights",
                 lights.len()

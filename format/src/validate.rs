@@ -75,7 +75,8 @@ pub fn check_header(h: &Header) -> Result<(), String> {
             h.page_nodes_max
         ));
     }
-    if h.version_minor <= VERSION_MINOR && !zeroed(&h.reserved) {
+    // A newer minor version may give the reserved bytes a meaning.
+    if h.version_minor == VERSION_MINOR && !zeroed(&h.reserved) {
         return Err("reserved header bytes are not zero".into());
     }
     Ok(())

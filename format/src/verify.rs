@@ -48,10 +48,8 @@ impl Archive {
             ..Default::default()
         };
         for p in &c.verts {
-            for a in 0..3 {
-                report.lo[a] = report.lo[a].min(p[a]);
-                report.hi[a] = report.hi[a].max(p[a]);
-            }
+            report.lo = [0, 1, 2].map(|a| report.lo[a].min(p[a]));
+            report.hi = [0, 1, 2].map(|a| report.hi[a].max(p[a]));
         }
         let roots = e.root_count as usize;
         let mut depth = vec![0u32; c.nodes.len()];

@@ -289,6 +289,9 @@ pub fn radiance(
         // same box; light closer than the cluster's radius is taken at that radius, as a
         // disc of that size would receive it (bounded, like clamping virtual point lights).
         let mut min_dist = 0.0f32;
+        // `--max-depth` counts segments as the path tracer does: a hit on the last one
+        // keeps the emission it sees and scatters nothing (no light sample, no bounce).
+        let last = scene.max_depth.is_some_and(|m| depth + 1 >= m);
         let (frame, albedo, node_key, cluster_n) = match &hit {
             ConeHit::Tri(h) => {
                 let m = &scene.materials[h.tri.material as usize];
@@ -312,7 +315,7 @@ pub fn radiance(
                         pend.emission = le * power_heuristic(prev_pdf, lp);
                     }
                 }
-                if !front && !m.double_sided && m.transmission == 0.0 {
+                if last || (!front && !m.double_sided && m.transmission == 0.0) {
                     stack.push(pend);
                     break;
                 }
@@ -396,6 +399,10 @@ pub fn radiance(
                 if prev_delta && !(mask_caustics && smooth_chain) {
                     pend.emission = hit_emission(scene, &hit, wo);
                 }
+                if last {
+                    stack.push(pend);
+                    break;
+                }
                 let mut rho = V::from(raw.diffuse.map(unorm8_decode));
                 min_dist = raw.radius;
                 if raw.flags & (NodeFlags::GLOSSY | NodeFlags::TRANSMISSIVE) != 0 {
@@ -436,9 +443,7 @@ pub fn radiance(
                         };
                         stack.push(pend);
                         depth += 1;
-                        if scene.max_depth.is_some_and(|m| depth >= m)
-                            || !roulette(&mut stack, depth, u_rr)
-                        {
+                        if !roulette(&mut stack, depth, u_rr) {
                             break;
                         }
                         continue;
@@ -544,9 +549,6 @@ pub fn radiance(
         prev_pdf = 0.0;
         smooth_chain = true;
         depth += 1;
-        if scene.max_depth.is_some_and(|m| depth >= m) {
-            break;
-        }
         if !roulette(&mut stack, depth, u_rr) {
             break;
         }

@@ -387,7 +387,7 @@ fn glb_split(b: &[u8]) -> Option<(serde_json::Value, Vec<u8>)> {
 
 pub fn glb_join(json: &serde_json::Value, bin: &[u8]) -> Vec<u8> {
     let mut j = serde_json::to_vec(json).expect("json");
-    while j.len() % 4 != 0 {
+    while !j.len().is_multiple_of(4) {
         j.push(b' ');
     }
     let mut out = Vec::new();
@@ -628,7 +628,7 @@ pub fn run(
     while i < iterations && until.is_none_or(|u| Instant::now() < u) {
         std::fs::create_dir_all(&case_dir)?;
         let before = PANICS.load(Relaxed);
-        let (class, what, result) = if i % 2 == 0 {
+        let (class, what, result) = if i.is_multiple_of(2) {
             let (parts, raw) = rng.pick(&archives);
             let (class, bytes) = mutate_archive(parts, raw, &mut rng);
             let path = case_dir.join("m.canopy");

@@ -22,7 +22,8 @@ fn bunny(dir: &Path) -> Parts {
     let scene = dir.join("scene.toml");
     std::fs::write(&scene, "[[camera]]\nposition = [0.0, 0.1, 0.4]\nlook_at = [0.0, 0.1, 0.0]\n\n[[light]]\ntype = \"point\"\nposition = [0.0, 0.3, 0.3]\nintensity = 1.0\n").unwrap();
     let out = dir.join("bunny.canopy");
-    let mut o = canopy::build::ConvertOptions::new(vec![root.join("scenes/bunny.ply")], out.clone());
+    let mut o =
+        canopy::build::ConvertOptions::new(vec![root.join("scenes/bunny.ply")], out.clone());
     o.scene = Some(scene);
     canopy::build::convert(&o).unwrap();
     Parts::read(&out).unwrap()
@@ -84,47 +85,170 @@ fn checksum_valid_lies_are_refused() {
         })
     };
     let cases: Vec<(&str, Edit, &str)> = vec![
-        ("inverted page bounds", Box::new(|p| p.entries[0].bounds_min[0] = p.entries[0].bounds_max[0] + 1.0), "not a finite box"),
-        ("NaN page bounds", Box::new(|p| p.entries[0].bounds_max[1] = f32::NAN), "not a finite box"),
-        ("infinite scene bounds", Box::new(|p| p.header.bounds_min[2] = f32::NEG_INFINITY), "not a finite box"),
-        ("root page with a parent", Box::new(move |p| p.entries[root].parent_page = 0), "root page names parent"),
-        ("root page at level 1", Box::new(move |p| p.entries[root].level = 1), "root page"),
-        ("root page with a parent node", Box::new(move |p| p.entries[root].parent_node = 0), "root page"),
-        ("child page one level off", Box::new(move |p| {
-            let c = (0..p.entries.len()).find(|&i| i != root).unwrap();
-            p.entries[c].level += 1;
-        }), "level"),
-        ("version 0", Box::new(|p| p.header.version_major = 0), "version 0"),
-        ("header depth", Box::new(|p| p.header.depth += 1), "levels deep"),
-        ("header bounds not the vertices'", Box::new(move |p| {
-            p.header.bounds_max[0] += 1.0;
-            p.entries[root].bounds_max[0] += 1.0;
-        }), "vertices span"),
-        ("input triangles", Box::new(|p| p.header.input_triangles += 1), "input triangles"),
+        (
+            "inverted page bounds",
+            Box::new(|p| p.entries[0].bounds_min[0] = p.entries[0].bounds_max[0] + 1.0),
+            "not a finite box",
+        ),
+        (
+            "NaN page bounds",
+            Box::new(|p| p.entries[0].bounds_max[1] = f32::NAN),
+            "not a finite box",
+        ),
+        (
+            "infinite scene bounds",
+            Box::new(|p| p.header.bounds_min[2] = f32::NEG_INFINITY),
+            "not a finite box",
+        ),
+        (
+            "root page with a parent",
+            Box::new(move |p| p.entries[root].parent_page = 0),
+            "root page names parent",
+        ),
+        (
+            "root page at level 1",
+            Box::new(move |p| p.entries[root].level = 1),
+            "root page",
+        ),
+        (
+            "root page with a parent node",
+            Box::new(move |p| p.entries[root].parent_node = 0),
+            "root page",
+        ),
+        (
+            "child page one level off",
+            Box::new(move |p| {
+                let c = (0..p.entries.len()).find(|&i| i != root).unwrap();
+                p.entries[c].level += 1;
+            }),
+            "level",
+        ),
+        (
+            "version 0",
+            Box::new(|p| p.header.version_major = 0),
+            "version 0",
+        ),
+        (
+            "header depth",
+            Box::new(|p| p.header.depth += 1),
+            "levels deep",
+        ),
+        (
+            "header bounds not the vertices'",
+            Box::new(move |p| {
+                p.header.bounds_max[0] += 1.0;
+                p.entries[root].bounds_max[0] += 1.0;
+            }),
+            "vertices span",
+        ),
+        (
+            "input triangles",
+            Box::new(|p| p.header.input_triangles += 1),
+            "input triangles",
+        ),
         ("vertices", Box::new(|p| p.header.vertices += 1), "vertices"),
-        ("unknown feature bit", Box::new(|p| p.header.features |= 1 << 40), "unknown feature"),
-        ("emitters feature cleared", Box::new(|p| p.header.features &= !canopy_format::Features::EMITTERS), "emitters feature"),
-        ("max leaf 0", Box::new(|p| p.header.max_leaf_triangles = 0), "triangles per leaf"),
-        ("page nodes max 1", Box::new(|p| p.header.page_nodes_max = 1), "nodes"),
-        ("reserved header byte", Box::new(|p| p.header.reserved[5] = 1), "reserved"),
-        ("reserved page-table byte", Box::new(|p| p.entries[0].reserved[0] = 1), "reserved"),
-        ("material NaN", Box::new(|p| p.materials[0].roughness = f32::NAN), "material 0"),
-        ("material base colour 2", Box::new(|p| p.materials[0].base_color[1] = 2.0), "material 0"),
-        ("camera NaN", Box::new(|p| p.cameras[0].to_world[4] = f32::NAN), "camera 0"),
-        ("camera fov 0", Box::new(|p| p.cameras[0].yfov = 0.0), "camera 0"),
-        ("node area NaN", node_edit(leaf_page, leaf, |n| n.area = f32::NAN), "area"),
-        ("node radius negative", node_edit(leaf_page, leaf, |n| n.radius = -1.0), "radius"),
-        ("node curvature NaN", node_edit(leaf_page, leaf, |n| n.curvature = 0x7e00), "curvature"),
-        ("node ior infinite", node_edit(leaf_page, leaf, |n| n.ior = 0x7c00), "ior"),
-        ("unknown node flag", node_edit(leaf_page, leaf, |n| n.flags |= 0x80), "unknown flags"),
-        ("leaf and page link", node_edit(leaf_page, leaf, |n| n.flags |= NodeFlags::CHILD_PAGE), "both a leaf"),
-        ("leaf emissive flag flipped", node_edit(leaf_page, leaf, |n| n.flags ^= NodeFlags::EMISSIVE), "emissive"),
-        ("reserved node byte", node_edit(leaf_page, leaf, |n| n.reserved1[3] = 9), "reserved"),
-        ("triangle material out of range", Box::new(move |p| {
-            let n = node(p, leaf_page, leaf);
-            let at = 32 + p.entries[leaf_page].node_count as usize * 128 + n.link[0] as usize * 8 + 6;
-            p.pages[leaf_page][at..at + 2].copy_from_slice(&200u16.to_le_bytes());
-        }), "material index out of range"),
+        (
+            "unknown feature bit",
+            Box::new(|p| p.header.features |= 1 << 40),
+            "unknown feature",
+        ),
+        (
+            "emitters feature cleared",
+            Box::new(|p| p.header.features &= !canopy_format::Features::EMITTERS),
+            "emitters feature",
+        ),
+        (
+            "max leaf 0",
+            Box::new(|p| p.header.max_leaf_triangles = 0),
+            "triangles per leaf",
+        ),
+        (
+            "page nodes max 1",
+            Box::new(|p| p.header.page_nodes_max = 1),
+            "nodes",
+        ),
+        (
+            "reserved header byte",
+            Box::new(|p| p.header.reserved[5] = 1),
+            "reserved",
+        ),
+        (
+            "reserved page-table byte",
+            Box::new(|p| p.entries[0].reserved[0] = 1),
+            "reserved",
+        ),
+        (
+            "material NaN",
+            Box::new(|p| p.materials[0].roughness = f32::NAN),
+            "material 0",
+        ),
+        (
+            "material base colour 2",
+            Box::new(|p| p.materials[0].base_color[1] = 2.0),
+            "material 0",
+        ),
+        (
+            "camera NaN",
+            Box::new(|p| p.cameras[0].to_world[4] = f32::NAN),
+            "camera 0",
+        ),
+        (
+            "camera fov 0",
+            Box::new(|p| p.cameras[0].yfov = 0.0),
+            "camera 0",
+        ),
+        (
+            "node area NaN",
+            node_edit(leaf_page, leaf, |n| n.area = f32::NAN),
+            "area",
+        ),
+        (
+            "node radius negative",
+            node_edit(leaf_page, leaf, |n| n.radius = -1.0),
+            "radius",
+        ),
+        (
+            "node curvature NaN",
+            node_edit(leaf_page, leaf, |n| n.curvature = 0x7e00),
+            "curvature",
+        ),
+        (
+            "node ior infinite",
+            node_edit(leaf_page, leaf, |n| n.ior = 0x7c00),
+            "ior",
+        ),
+        (
+            "unknown node flag",
+            node_edit(leaf_page, leaf, |n| n.flags |= 0x80),
+            "unknown flags",
+        ),
+        (
+            "leaf and page link",
+            node_edit(leaf_page, leaf, |n| n.flags |= NodeFlags::CHILD_PAGE),
+            "both a leaf",
+        ),
+        (
+            "leaf emissive flag flipped",
+            node_edit(leaf_page, leaf, |n| n.flags ^= NodeFlags::EMISSIVE),
+            "emissive",
+        ),
+        (
+            "reserved node byte",
+            node_edit(leaf_page, leaf, |n| n.reserved1[3] = 9),
+            "reserved",
+        ),
+        (
+            "triangle material out of range",
+            Box::new(move |p| {
+                let n = node(p, leaf_page, leaf);
+                let at = 32
+                    + p.entries[leaf_page].node_count as usize * 128
+                    + n.link[0] as usize * 8
+                    + 6;
+                p.pages[leaf_page][at..at + 2].copy_from_slice(&200u16.to_le_bytes());
+            }),
+            "material index out of range",
+        ),
     ];
     let path = dir.path().join("lie.canopy");
     for (what, edit, expect) in cases {
@@ -132,8 +256,14 @@ fn checksum_valid_lies_are_refused() {
         edit(&mut p);
         std::fs::write(&path, p.assemble()).unwrap();
         let err = first_error(&path, dir.path()).unwrap_or_else(|| panic!("{what}: accepted"));
-        assert!(err.contains("lie.canopy"), "{what}: the error does not name the file: {err}");
-        assert!(err.contains(expect), "{what}: expected '{expect}' in: {err}");
+        assert!(
+            err.contains("lie.canopy"),
+            "{what}: the error does not name the file: {err}"
+        );
+        assert!(
+            err.contains(expect),
+            "{what}: expected '{expect}' in: {err}"
+        );
     }
     // The unchanged archive passes, so each refusal above is the edit's doing.
     std::fs::write(&path, base.assemble()).unwrap();
@@ -158,11 +288,18 @@ fn a_dag_inside_a_page_is_refused_when_read() {
     let path = dir.path().join("dag.canopy");
     std::fs::write(&path, p.assemble()).unwrap();
     let a = Archive::open(&path).unwrap();
-    let err = a.read_page(pg as u32).err().expect("the DAG page is refused");
+    let Err(err) = a.read_page(pg as u32) else {
+        panic!("the DAG page was accepted");
+    };
     assert!(format!("{err}").contains("child of two nodes"), "{err}");
     for i in [Integrator::Path, Integrator::Cone] {
-        let err = render(&fuzz::tiny_render(&path, dir.path(), i)).err().expect("refused");
-        assert!(format!("{err:#}").contains(&format!("page {pg}")), "{err:#}");
+        let Err(err) = render(&fuzz::tiny_render(&path, dir.path(), i)) else {
+            panic!("{i:?}: the DAG archive rendered");
+        };
+        assert!(
+            format!("{err:#}").contains(&format!("page {pg}")),
+            "{err:#}"
+        );
     }
 }
 
