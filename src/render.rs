@@ -132,6 +132,8 @@ pub struct RenderStats {
     /// Pixels at an emitter's silhouette: samples of the pixel or its neighbours both saw
     /// an emitter and missed it (cone integrator: these take `--edge-rays`).
     pub edge_pixels: u64,
+    /// Samples whose radiance was NaN or infinite (added as zero); 0 in a correct render.
+    pub nonfinite_samples: u64,
     pub image_mean: [f64; 3],
 }
 
@@ -347,6 +349,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     let mut seen = vec![[0u32; 2]; (cw * ch) as usize];
     let rays = AtomicU64::new(0);
     let paths = AtomicU64::new(0);
+    let nonfinite = AtomicU64::new(0);
     let mut done = 0u32;
     let mut pull_s = 0.0;
     let bar = match o.time {
@@ -392,6 +395,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
                     let out = render_tile(&scene, &store, &mut tr, px, o, &mut c);
                     rays.fetch_add(tr.rays, Relaxed);
                     paths.fetch_add(c.paths, Relaxed);
+                    nonfinite.fetch_add(c.nonfinite, Relaxed);
                     scene.cache.add_lookups(tr.page_lookups);
                     if o.time.is_none() {
                         bar.inc(count as u64);
@@ -513,6 +517,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         photons: store.photons(),
         caustic_deposits: deposits,
         edge_pixels,
+        nonfinite_samples: nonfinite.load(Relaxed),
         image_mean: img.mean(),
     };
     if let Some(p) = &o.stats {
@@ -638,7 +643,7 @@ fn render_tile(
                             );
                             let [ex, ey, ..] = e.get4(0);
                             let r = scene.camera.ray(x as f32 + ex, y as f32 + ey);
-                            let v = cone::seen_emission(scene, tr, &r, &cone);
+                            let v = cone::seen_emission(scene, tr, &r, &cone, c);
                             tally(v);
                             acc + v
                         }) / k as f32

@@ -224,31 +224,8 @@ fn missing_archive_and_bad_sizes() {
 fn killed_conversion_leaves_nothing_behind() {
     let dir = tempfile::tempdir().unwrap();
     // A 2M-triangle grid, big enough to still be converting when killed.
-    let n = 1000usize;
     let input = dir.path().join("grid.ply");
-    let mut bytes = format!("ply\nformat binary_little_endian 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nelement face {}\nproperty list uchar uint vertex_indices\nend_header\n", (n + 1) * (n + 1), 2 * n * n).into_bytes();
-    for j in 0..=n {
-        for i in 0..=n {
-            for c in [i as f32, ((i * j) % 7) as f32 * 0.1, j as f32] {
-                bytes.extend_from_slice(&c.to_le_bytes());
-            }
-        }
-    }
-    for j in 0..n {
-        for i in 0..n {
-            let a = (j * (n + 1) + i) as u32;
-            for t in [
-                [a, a + 1, a + n as u32 + 1],
-                [a + 1, a + n as u32 + 2, a + n as u32 + 1],
-            ] {
-                bytes.push(3);
-                for k in t {
-                    bytes.extend_from_slice(&k.to_le_bytes());
-                }
-            }
-        }
-    }
-    std::fs::write(&input, bytes).unwrap();
+    grid_ply(&input, 1000);
     let out = dir.path().join("grid.canopy");
     let mut killed = 0;
     // Moments through import, partition and build (a small budget makes several chunks).

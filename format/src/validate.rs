@@ -264,12 +264,21 @@ pub fn check_page(
     let (n, t, v) = (c.nodes.len(), c.tris.len(), c.verts.len());
     let e = &pages[page as usize];
     let roots = e.root_count as usize;
-    // On a flat axis of the grid every code decodes to the same value, so codes are free.
-    let flat = [0, 1, 2].map(|a| e.bounds_min[a] == e.bounds_max[a]);
+    // Boxes are compared decoded: where the grid is finer than f32 near its values (or
+    // flat), several codes decode alike and a min code may exceed its max code.
+    let grid = e.grid();
+    let boxes: Vec<_> = c
+        .nodes
+        .iter()
+        .map(|n| grid.dequant_box(&n.bounds))
+        .collect();
     let mut parents = vec![0u8; n];
     let mut covered = vec![false; t];
     for (i, node) in c.nodes.iter().enumerate() {
-        check_node(h, pages, page, i, node, flat).map_err(|what| format!("node {i}: {what}"))?;
+        if (0..3).any(|a| boxes[i].0[a] > boxes[i].1[a]) {
+            return Err(format!("node {i}: inverted bounds {:?}", boxes[i]));
+        }
+        check_node(h, pages, page, i, node).map_err(|what| format!("node {i}: {what}"))?;
         let [a, b] = node.link.map(|x| x as usize);
         if node.is_leaf() {
             if a.checked_add(b).is_none_or(|end| end > t) || b == 0 {
@@ -293,7 +302,7 @@ pub fn check_page(
                 if parents[ch] > 1 {
                     return Err(format!("node {ch} is the child of two nodes"));
                 }
-                if !nests(&node.bounds, &c.nodes[ch].bounds, flat) {
+                if !nests(&boxes[i], &boxes[ch]) {
                     return Err(format!("node {ch} extends outside its parent {i}"));
                 }
             }
@@ -322,9 +331,11 @@ pub fn check_page(
     Ok(())
 }
 
-/// Child codes inside the parent's on every axis that is not flat.
-fn nests(parent: &[u16; 6], child: &[u16; 6], flat: [bool; 3]) -> bool {
-    (0..3).all(|a| flat[a] || (parent[a] <= child[a] && child[a + 3] <= parent[a + 3]))
+type Box3 = ([f32; 3], [f32; 3]);
+
+/// The child's decoded box inside the parent's.
+fn nests(parent: &Box3, child: &Box3) -> bool {
+    (0..3).all(|a| parent.0[a] <= child.0[a] && child.1[a] <= parent.1[a])
 }
 
 fn check_node(
@@ -333,13 +344,9 @@ fn check_node(
     page: u32,
     i: usize,
     node: &Node,
-    flat: [bool; 3],
 ) -> Result<(), String> {
     if node.flags & !NodeFlags::ALL != 0 {
         return Err(format!("unknown flags {:#x}", node.flags));
-    }
-    if (0..3).any(|a| !flat[a] && node.bounds[a] > node.bounds[a + 3]) {
-        return Err(format!("inverted bounds {:?}", node.bounds));
     }
     let cluster = [
         node.area,

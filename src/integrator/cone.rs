@@ -587,8 +587,7 @@ pub fn radiance(
         };
     }
     c.paths += 1;
-    let finite = |v: V| if v.is_finite() { v } else { V::ZERO };
-    (finite(tail), finite(seen))
+    (c.finite(tail), c.finite(seen))
 }
 
 /// Emission a cone's hit sends back along the cone: a lamp triangle's from its emitting
@@ -610,7 +609,13 @@ fn hit_emission(scene: &Scene, hit: &ConeHit, wo: V) -> V {
 /// Emission seen directly along a primary cone: the part of a pixel's value that only
 /// its primary hit decides, which `radiance` returns apart so a pixel on an emitter's
 /// silhouette can average it over more positions than it shades.
-pub fn seen_emission(scene: &Scene, tr: &mut Tracer, ray: &Ray, cone: &Cone) -> V {
+pub fn seen_emission(
+    scene: &Scene,
+    tr: &mut Tracer,
+    ray: &Ray,
+    cone: &Cone,
+    c: &mut Counters,
+) -> V {
     let Some(hit) = tr.cone_hit(ray, cone) else {
         return V::ZERO;
     };
@@ -618,12 +623,7 @@ pub fn seen_emission(scene: &Scene, tr: &mut Tracer, ray: &Ray, cone: &Cone) -> 
         ConeHit::Tri(h) => h.leaf,
         ConeHit::Node { node, .. } => *node,
     });
-    let le = hit_emission(scene, &hit, -ray.d);
-    if le.is_finite() {
-        le
-    } else {
-        V::ZERO
-    }
+    c.finite(hit_emission(scene, &hit, -ray.d))
 }
 
 /// Russian roulette after the second bounce on the product of the bounces' weights and

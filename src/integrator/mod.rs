@@ -31,6 +31,21 @@ pub struct Scene {
 #[derive(Default, Clone, Copy)]
 pub struct Counters {
     pub paths: u64,
+    /// Samples whose radiance came out NaN or infinite: counted (the stats report them; a
+    /// correct render has none) and added as zero so one bad sample cannot spoil a pixel.
+    pub nonfinite: u64,
+}
+
+impl Counters {
+    /// `v`, or zero (counted) when it is not finite.
+    pub fn finite(&mut self, v: glam::Vec3A) -> glam::Vec3A {
+        if v.is_finite() {
+            v
+        } else {
+            self.nonfinite += 1;
+            glam::Vec3A::ZERO
+        }
+    }
 }
 
 /// A concurrent bit set over the archive's global node numbers.

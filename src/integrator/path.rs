@@ -126,9 +126,5 @@ pub fn radiance(
         }
     }
     c.paths += 1;
-    if l.is_finite() {
-        l
-    } else {
-        V::ZERO
-    }
+    c.finite(l)
 }

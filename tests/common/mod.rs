@@ -130,3 +130,31 @@ pub fn translated_glb(src: &Path, dst: &Path, offset: f64) {
     out.extend_from_slice(rest);
     std::fs::write(dst, out).unwrap();
 }
+
+/// A binary PLY heightfield of 2·n² triangles over [0, n]² in x and z, its heights in
+/// [0, 0.6]: a large input that is quick to write.
+pub fn grid_ply(path: &Path, n: usize) {
+    let mut bytes = format!("ply\nformat binary_little_endian 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nelement face {}\nproperty list uchar uint vertex_indices\nend_header\n", (n + 1) * (n + 1), 2 * n * n).into_bytes();
+    for j in 0..=n {
+        for i in 0..=n {
+            for c in [i as f32, ((i * j) % 7) as f32 * 0.1, j as f32] {
+                bytes.extend_from_slice(&c.to_le_bytes());
+            }
+        }
+    }
+    for j in 0..n {
+        for i in 0..n {
+            let a = (j * (n + 1) + i) as u32;
+            for t in [
+                [a, a + 1, a + n as u32 + 1],
+                [a + 1, a + n as u32 + 2, a + n as u32 + 1],
+            ] {
+                bytes.push(3);
+                for k in t {
+                    bytes.extend_from_slice(&k.to_le_bytes());
+                }
+            }
+        }
+    }
+    std::fs::write(path, bytes).unwrap();
+}
