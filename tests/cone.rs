@@ -555,3 +555,107 @@ fn max_depth_counts_segments_as_the_path_tracer_does() {
     // The second segment adds light: the two depths are not the same render.
     assert!(means[0] * 1.2 < means[1], "{means:?}");
 }
+
+/// Sum of area·value and of area over the triangles under node `i` of page `pg`, walked
+/// from the tree itself (not the order or dirty flags `pull` uses).
+fn subtree(
+    cache: &PageCache,
+    value: &dyn Fn(&canopy::paging::TriW) -> [f64; 3],
+    pg: u32,
+    i: usize,
+) -> ([f64; 3], f64) {
+    use canopy::paging::{CHILD_PAGE, INNER, KIND_MASK};
+    let page = cache.get(pg);
+    let n = page.bvh[i];
+    let a = n.a & !KIND_MASK;
+    let add =
+        |x: ([f64; 3], f64), y: ([f64; 3], f64)| ([0, 1, 2].map(|k| x.0[k] + y.0[k]), x.1 + y.1);
+    match n.a & KIND_MASK {
+        INNER => add(
+            subtree(cache, value, pg, a as usize),
+            subtree(cache, value, pg, n.b as usize),
+        ),
+        CHILD_PAGE => add(subtree(cache, value, a, 0), subtree(cache, value, a, 1)),
+        _ => (0..n.b).fold(([0.0; 3], 0.0), |acc, k| {
+            let t = &page.tris[(a + k) as usize];
+            let area = canopy::integrator::cone::tri_area(t) as f64;
+            let v = value(t);
+            add(acc, (v.map(|x| x * area), area))
+        }),
+    }
+}
+
+/// The renderer's pull (004 §4.8) on the bunny's pages: with every cell of a triangle
+/// holding one sample of that triangle's own value, each node's pulled light must be the
+/// area-weighted mean of the values of the triangles below it, computed here by walking
+/// the tree.
+#[test]
+fn pull_gives_every_node_the_area_weighted_mean_of_its_triangles() {
+    use canopy::integrator::{cone as c, NodeSet, Scene};
+    let dir = tempfile::tempdir().unwrap();
+    let toml = dir.path().join("s.toml");
+    std::fs::write(&toml, "[[camera]]\nposition = [0.0, 0.1, 0.4]\nlook_at = [0.0, 0.1, 0.0]\n\n[[light]]\ntype = \"point\"\nposition = [0.0, 0.3, 0.3]\nintensity = 1.0\n").unwrap();
+    let arc = dir.path().join("b.canopy");
+    convert(&scene("bunny.ply"), &arc, Some(&toml));
+    let archive = Arc::new(Archive::open(&arc).unwrap());
+    assert!(archive.pages.len() > 10, "{} pages", archive.pages.len());
+    let cache = PageCache::new(Arc::clone(&archive), None, 1).unwrap();
+    let materials: Vec<_> = archive
+        .materials
+        .iter()
+        .map(canopy::material::Material::from_record)
+        .collect();
+    let scene = Scene {
+        cache: Arc::clone(&cache),
+        lights: canopy::light::Lights::gather(&archive, &materials, 1.0).unwrap(),
+        materials,
+        camera: canopy::camera::Camera::new(&archive.cameras[0], 8, 8),
+        max_depth: None,
+        touched: NodeSet::new(archive.header.nodes),
+        dirty: (0..archive.pages.len()).map(|_| true.into()).collect(),
+    };
+    let value = |t: &canopy::paging::TriW| {
+        let x = ((t.p[0][0] + t.p[1][1] * 7.0 + t.p[2][2] * 13.0) * 97.0).rem_euclid(1.0) as f64;
+        [x, 1.0 - x, 0.25 + x * x]
+    };
+    let h = &archive.header;
+    let cell_size = (V::from(h.bounds_max) - V::from(h.bounds_min)).length() * c::CELL_FRACTION;
+    let store = canopy::radiance::RadianceStore::new(1024, None);
+    for pg in 0..archive.pages.len() as u32 {
+        let page = cache.get(pg);
+        for (i, n) in page.bvh.iter().enumerate() {
+            if n.a & canopy::paging::KIND_MASK != canopy::paging::LEAF {
+                continue;
+            }
+            let first = n.a & !canopy::paging::KIND_MASK;
+            for k in 0..n.b {
+                let t = &page.tris[(first + k) as usize];
+                let v = value(t).map(|x| x as f32);
+                for (cell, _) in c::cells(t, cell_size) {
+                    store.add(c::tri_key(page.first_node + i as u64, k, cell), v);
+                }
+            }
+        }
+    }
+    c::pull(&scene, &store);
+    let mut checked = 0;
+    for pg in 0..archive.pages.len() as u32 {
+        let page = cache.get(pg);
+        for i in 0..page.bvh.len() {
+            let (sum, area) = subtree(&cache, &value, pg, i);
+            let want = sum.map(|s| s / area);
+            let (got, _) = store
+                .get(c::node_key(page.first_node + i as u64))
+                .and_then(|e| e.value())
+                .unwrap_or_else(|| panic!("page {pg} node {i}: nothing pulled"));
+            for k in 0..3 {
+                assert!(
+                    (got[k] as f64 - want[k]).abs() < 1e-4 * want[k].abs().max(0.01),
+                    "page {pg} node {i}: pulled {got:?}, area-weighted mean {want:?}"
+                );
+            }
+            checked += 1;
+        }
+    }
+    assert_eq!(checked as u64, archive.header.nodes);
+}
