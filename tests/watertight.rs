@@ -173,3 +173,162 @@ fn archive_leaves_are_the_input_triangles() {
 fn chunked_archive_leaves_are_the_input_triangles() {
     check("100MiB");
 }
+
+/// An icosphere of radius 1 (20·4^levels triangles), closed, wound outwards, as OBJ.
+fn icosphere(levels: u32) -> (Vec<[f32; 3]>, Vec<[u32; 3]>) {
+    let t = (1.0 + 5f32.sqrt()) / 2.0;
+    let mut verts: Vec<[f32; 3]> = [
+        [-1., t, 0.],
+        [1., t, 0.],
+        [-1., -t, 0.],
+        [1., -t, 0.],
+        [0., -1., t],
+        [0., 1., t],
+        [0., -1., -t],
+        [0., 1., -t],
+        [t, 0., -1.],
+        [t, 0., 1.],
+        [-t, 0., -1.],
+        [-t, 0., 1.],
+    ]
+    .to_vec();
+    let mut faces: Vec<[u32; 3]> = vec![
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ];
+    let unit = |p: [f32; 3]| {
+        let l = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+        p.map(|x| x / l)
+    };
+    for v in &mut verts {
+        *v = unit(*v);
+    }
+    for _ in 0..levels {
+        let mut mid = std::collections::HashMap::new();
+        let mut next = Vec::new();
+        for f in &faces {
+            let m = [0, 1, 2].map(|k| {
+                let (a, b) = (f[k].min(f[(k + 1) % 3]), f[k].max(f[(k + 1) % 3]));
+                *mid.entry((a, b)).or_insert_with(|| {
+                    let (p, q) = (verts[a as usize], verts[b as usize]);
+                    verts.push(unit([0, 1, 2].map(|i| (p[i] + q[i]) / 2.0)));
+                    verts.len() as u32 - 1
+                })
+            });
+            next.extend([
+                [f[0], m[0], m[2]],
+                [f[1], m[1], m[0]],
+                [f[2], m[2], m[1]],
+                m,
+            ]);
+        }
+        faces = next;
+    }
+    (verts, faces)
+}
+
+/// The renderer's `Tracer` aimed exactly at the shared edges and vertices of a closed mesh,
+/// from inside and from outside: a watertight intersector never lets one through.
+#[test]
+fn tracer_rays_through_shared_edges_and_vertices_never_slip_through() {
+    use canopy::trace::{Ray, Tracer};
+    use glam::Vec3A;
+    let (verts, faces) = icosphere(3);
+    let mut obj = String::new();
+    for p in &verts {
+        obj += &format!("v {:e} {:e} {:e}\n", p[0], p[1], p[2]);
+    }
+    for f in &faces {
+        obj += &format!("f {} {} {}\n", f[0] + 1, f[1] + 1, f[2] + 1);
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("ico.obj");
+    std::fs::write(&input, obj).unwrap();
+    let arc = dir.path().join("ico.canopy");
+    // Small pages, so neighbouring triangles also sit in different pages.
+    ok(&[
+        "--quiet",
+        "convert",
+        s(&input),
+        "-o",
+        s(&arc),
+        "--page-nodes",
+        "15",
+    ]);
+    let a = std::sync::Arc::new(Archive::open(&arc).unwrap());
+    assert!(a.pages.len() > 20);
+    let cache = canopy::paging::PageCache::new(a, None, 1).unwrap();
+    let mut tr = Tracer::new(&cache);
+    let mut targets: Vec<Vec3A> = verts.iter().map(|&p| Vec3A::from(p)).collect();
+    for f in &faces {
+        for k in 0..3 {
+            let (p, q) = (
+                Vec3A::from(verts[f[k] as usize]),
+                Vec3A::from(verts[f[(k + 1) % 3] as usize]),
+            );
+            targets.push((p + q) * 0.5);
+            targets.push(p + (q - p) * 0.3);
+        }
+    }
+    let mut state = 99u64;
+    let mut rnd = || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (state >> 40) as f32 / (1u64 << 24) as f32
+    };
+    let (mut fired, mut slipped) = (0, Vec::new());
+    for t in &targets {
+        // From the centre, and from 10 units out along a random direction that enters the
+        // sphere at the target.
+        let out = loop {
+            let d = Vec3A::new(rnd() - 0.5, rnd() - 0.5, rnd() - 0.5).normalize();
+            if d.dot(*t) < -0.2 {
+                break d;
+            }
+        };
+        for ray in [
+            Ray {
+                o: Vec3A::ZERO,
+                d: *t,
+                t_max: f32::INFINITY,
+            },
+            Ray {
+                o: *t - out * 10.0,
+                d: out,
+                t_max: f32::INFINITY,
+            },
+        ] {
+            fired += 1;
+            match tr.closest_hit(&ray) {
+                Some(h) if (ray.o + ray.d * h.t - *t).length() < 1e-3 => {}
+                other => slipped.push((ray.o, ray.d, other.map(|h| h.t))),
+            }
+        }
+    }
+    assert!(fired > 10_000, "{fired} rays");
+    assert!(
+        slipped.is_empty(),
+        "{} of {fired} rays slipped: {:?}",
+        slipped.len(),
+        &slipped[..slipped.len().min(5)]
+    );
+}
