@@ -9,7 +9,9 @@ a box pixel filter and the independent sampler, as the bundled references in sce
 were made. Supported: triangle meshes under node transforms (matrix or TRS, instances),
 the first perspective camera (resolution from extras.render, else --width/--height),
 metallic-roughness materials (pure Lambert when metallic = 0, roughness = 1 and
-KHR_materials_specular.specularFactor = 0; Mitsuba's `principled` otherwise), emission
+KHR_materials_specular.specularFactor = 0; smooth white glass as `dielectric`; white
+metals as `conductor`/`roughconductor` with no absorption; Mitsuba's `principled`
+otherwise), emission
 (emissiveFactor × KHR_materials_emissive_strength, front face only unless double-sided).
 Prints the render time and paths per second (spp × pixels / seconds) and writes a JSON
 beside the EXR, so `canopy render` can be timed against it on the same machine.
@@ -73,8 +75,18 @@ def bsdf_of(mi, m):
     ext = m.get("extensions", {})
     spec = ext.get("KHR_materials_specular", {}).get("specularFactor", 1.0)
     trans = ext.get("KHR_materials_transmission", {}).get("transmissionFactor", 0.0)
+    ior = ext.get("KHR_materials_ior", {}).get("ior", 1.5)
+    white = all(c == 1 for c in base)
     if metallic == 0 and spec == 0 and trans == 0:
         b = {"type": "diffuse", "reflectance": {"type": "rgb", "value": base}}
+    elif metallic == 0 and trans == 1 and rough == 0 and white and spec == 1:
+        # Smooth glass: glTF's dielectric interface with the exact Fresnel term.
+        b = {"type": "dielectric", "int_ior": ior, "ext_ior": 1.0}
+    elif metallic == 1 and white:
+        # A white metal: Schlick with F0 = 1 reflects everything, as Mitsuba's
+        # `none` conductor does; GGX with alpha = roughness² (glTF), visible normals.
+        b = {"type": "conductor", "material": "none"} if rough == 0 else \
+            {"type": "roughconductor", "material": "none", "distribution": "ggx", "alpha": rough * rough}
     else:
         b = {
             "type": "principled",
@@ -83,7 +95,7 @@ def bsdf_of(mi, m):
             "roughness": rough,
             "specular": spec * 0.5,
             "spec_trans": trans,
-            "eta": ext.get("KHR_materials_ior", {}).get("ior", 1.5),
+            "eta": ior,
         }
     if m.get("doubleSided", False):
         b = {"type": "twosided", "material": b}

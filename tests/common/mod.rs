@@ -158,3 +158,29 @@ pub fn grid_ply(path: &Path, n: usize) {
     }
     std::fs::write(path, bytes).unwrap();
 }
+
+/// The image mean agrees with the reference's within 4 standard errors of their difference:
+/// per channel, the squared RMSE is the sum of both images' per-pixel variances (plus any
+/// bias), so RMSE/√pixels bounds the standard error of the difference of the means.
+pub fn assert_mean_within_noise(img: &Image, r: &Image, what: &str) {
+    let n = img.pixels.len() as f64;
+    let (a, b) = (img.mean(), r.mean());
+    for c in 0..3 {
+        let mse = img
+            .pixels
+            .iter()
+            .zip(&r.pixels)
+            .map(|(x, y)| (x[c] as f64 - y[c] as f64).powi(2))
+            .sum::<f64>()
+            / n;
+        let se = (mse / n).sqrt();
+        let d = a[c] - b[c];
+        assert!(
+            d.abs() < 4.0 * se,
+            "{what}: channel {c} mean {} vs reference {}: {d:+.3e} is {:.1} standard errors ({se:.2e})",
+            a[c],
+            b[c],
+            d.abs() / se
+        );
+    }
+}
