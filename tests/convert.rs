@@ -8,7 +8,13 @@ use common::*;
 #[test]
 fn bundled_scenes_convert_and_verify() {
     let dir = tempfile::tempdir().unwrap();
-    for name in ["cbox.glb", "bunny_box.glb", "sponza.glb", "bunny.ply"] {
+    for name in [
+        "cbox.glb",
+        "bunny_box.glb",
+        "sponza.glb",
+        "bunny.ply",
+        "caustics.glb",
+    ] {
         let out = dir.path().join(format!("{name}.canopy"));
         ok(&["convert", s(&scene(name)), "-o", s(&out)]);
         let text = ok(&["inspect", "--verify", s(&out)]);
@@ -131,4 +137,192 @@ fn obj_with_mtl_and_scene_file() {
     assert!((a.materials[1].base_color[2] - 0.6).abs() < 1e-6);
     assert_ne!(a.header.features & Features::EMITTERS, 0);
     assert_ne!(a.header.features & Features::PUNCTUAL_LIGHTS, 0);
+}
+
+/// Area-weighted sums over a subtree's triangles: area, area·normal, area·emission,
+/// area·p_reflect at the five cosines, and its vertices.
+#[derive(Default)]
+struct Sums {
+    area: f64,
+    normal: [f64; 3],
+    emission: [f64; 3],
+    reflect: [f64; 5],
+    verts: Vec<[f32; 3]>,
+}
+
+/// p_reflect(cos θ) of the scene's materials from the physics, not the converter's code:
+/// a white metal reflects everything; Lambertian materials (specular 0) nothing; smooth
+/// glass by Schlick with F0 = ((η−1)/(η+1))² = 0.04.
+fn p_reflect(m: &canopy_format::MaterialRecord, c: f64) -> f64 {
+    if m.metallic == 1.0 {
+        1.0
+    } else if m.specular == 0.0 {
+        0.0
+    } else {
+        0.04 + 0.96 * (1.0 - c).powi(5)
+    }
+}
+
+fn subtree(a: &Archive, pages: &[canopy_format::PageContents], pg: u32, i: usize, s: &mut Sums) {
+    let n = &pages[pg as usize].nodes[i];
+    if n.is_leaf() {
+        let c = &pages[pg as usize];
+        for t in &c.tris[n.link[0] as usize..(n.link[0] + n.link[1]) as usize] {
+            let p = t.v.map(|k| c.verts[k as usize].map(f64::from));
+            let e1 = [0, 1, 2].map(|k| p[1][k] - p[0][k]);
+            let e2 = [0, 1, 2].map(|k| p[2][k] - p[0][k]);
+            let x = [
+                e1[1] * e2[2] - e1[2] * e2[1],
+                e1[2] * e2[0] - e1[0] * e2[2],
+                e1[0] * e2[1] - e1[1] * e2[0],
+            ];
+            let len = (x[0] * x[0] + x[1] * x[1] + x[2] * x[2]).sqrt();
+            let area = 0.5 * len;
+            let m = &a.materials[t.material as usize];
+            s.area += area;
+            for k in 0..3 {
+                s.normal[k] += area * x[k] / len;
+                s.emission[k] += area * m.emission[k] as f64;
+            }
+            for (k, c) in [0.0, 0.25, 0.5, 0.75, 1.0].into_iter().enumerate() {
+                s.reflect[k] += area * p_reflect(m, c);
+            }
+            s.verts.extend(t.v.map(|k| c.verts[k as usize]));
+        }
+    } else if n.has_child_page() {
+        subtree(a, pages, n.link[0], 0, s);
+        subtree(a, pages, n.link[0], 1, s);
+    } else {
+        subtree(a, pages, pg, n.link[0] as usize, s);
+        subtree(a, pages, pg, n.link[1] as usize, s);
+    }
+}
+
+/// Every node's cluster attributes (004 §4.2–4.4) against sums over its subtree's
+/// triangles: area, the un-normalized area-weighted normal, emission, the five-sample
+/// Fresnel table, and a radius that holds every vertex.
+#[test]
+fn cluster_attributes_are_area_weighted_means_of_their_triangles() {
+    use canopy_format::codec::{rgbe64_decode, snorm16_decode, unorm8_decode};
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("c.canopy");
+    ok(&[
+        "--quiet",
+        "convert",
+        s(&scene("caustics.glb")),
+        "-o",
+        s(&out),
+        "--page-nodes",
+        "64",
+    ]);
+    let a = Archive::open(&out).unwrap();
+    let pages: Vec<_> = (0..a.pages.len() as u32)
+        .map(|p| a.read_page(p).unwrap())
+        .collect();
+    let mut checked = 0;
+    for (pg, c) in pages.iter().enumerate() {
+        let grid = a.grid(pg as u32);
+        let step = (0..3)
+            .map(|k| ((grid.hi[k] - grid.lo[k]) / 65535.0).powi(2))
+            .sum::<f32>()
+            .sqrt();
+        for (i, n) in c.nodes.iter().enumerate() {
+            let mut s = Sums::default();
+            subtree(&a, &pages, pg as u32, i, &mut s);
+            let what = format!("page {pg} node {i}");
+            assert!(
+                (n.area as f64 / s.area - 1.0).abs() < 1e-4,
+                "{what}: area {} against {}",
+                n.area,
+                s.area
+            );
+            let normal = n.normal.map(snorm16_decode);
+            let emission = rgbe64_decode(n.emission);
+            for k in 0..3 {
+                let want = s.normal[k] / s.area;
+                assert!(
+                    (normal[k] as f64 - want).abs() < 1e-3,
+                    "{what}: normal {normal:?}, want {:?}",
+                    s.normal.map(|x| x / s.area)
+                );
+                let want = s.emission[k] / s.area;
+                assert!(
+                    (emission[k] as f64 - want).abs() <= 1e-4 * want + 1e-6,
+                    "{what}: emission {emission:?}"
+                );
+            }
+            for k in 0..5 {
+                let want = s.reflect[k] / s.area;
+                let got = unorm8_decode(n.reflectiveness[k]) as f64;
+                assert!(
+                    (got - want).abs() < 0.6 / 255.0 + 1e-4,
+                    "{what}: p_reflect[{k}] {got} against {want}"
+                );
+            }
+            let cen = [0, 1, 2].map(|k| grid.dequant(k, n.centroid[k]));
+            let far = s
+                .verts
+                .iter()
+                .map(|v| (0..3).map(|k| (v[k] - cen[k]).powi(2)).sum::<f32>().sqrt())
+                .fold(0.0, f32::max);
+            assert!(
+                far <= n.radius * (1.0 + 1e-5) + step + 1e-6,
+                "{what}: a vertex {far} from the centroid, radius {}",
+                n.radius
+            );
+            checked += 1;
+        }
+    }
+    assert_eq!(checked as u64, a.header.nodes);
+}
+
+/// `Page::decode` turns each node record into the traversal view the tracer reads: the
+/// kind from the flags, the links, the decoded box; and each triangle into its vertices.
+#[test]
+fn decoded_pages_keep_every_node_kind_and_link() {
+    use canopy::paging::{Page, CHILD_PAGE, INNER, KIND_MASK, LEAF};
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("b.canopy");
+    ok(&[
+        "--quiet",
+        "convert",
+        s(&scene("bunny.ply")),
+        "-o",
+        s(&out),
+        "--page-nodes",
+        "31",
+    ]);
+    let a = Archive::open(&out).unwrap();
+    let mut kinds = [0u32; 3];
+    for pg in 0..a.pages.len() as u32 {
+        let c = a.read_page(pg).unwrap();
+        let p = Page::decode(&a, pg).unwrap();
+        assert_eq!(
+            (p.first_node, p.nodes.len()),
+            (a.pages[pg as usize].first_node, c.nodes.len())
+        );
+        for (n, t) in c.nodes.iter().zip(&p.bvh) {
+            let (kind, link) = (t.a & KIND_MASK, t.a & !KIND_MASK);
+            let want = if n.is_leaf() {
+                kinds[0] += 1;
+                (LEAF, n.link[0], n.link[1])
+            } else if n.has_child_page() {
+                kinds[1] += 1;
+                (CHILD_PAGE, n.link[0], t.b)
+            } else {
+                kinds[2] += 1;
+                (INNER, n.link[0], n.link[1])
+            };
+            assert_eq!((kind, link, t.b), want, "page {pg}");
+            assert_eq!((t.lo, t.hi), a.grid(pg).dequant_box(&n.bounds));
+        }
+        for (tri, w) in c.tris.iter().zip(&p.tris) {
+            assert_eq!(w.p, tri.v.map(|k| c.verts[k as usize]));
+            assert_eq!(w.material, tri.material as u32);
+        }
+    }
+    assert!(
+        kinds.iter().all(|&k| k > 10),
+        "leaves, page links, inner nodes: {kinds:?}"
+    );
 }

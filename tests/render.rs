@@ -611,3 +611,28 @@ fn time_budget_renders_many_passes() {
     // A pass at this size takes about a millisecond: a second holds many.
     assert!(stats["spp"].as_u64().unwrap() > 1, "{stats}");
 }
+
+/// Punctual lights in KHR_lights_punctual units: a point light of I candela at distance d
+/// gives a Lambertian floor of albedo ρ the radiance ρ/π · I·cos θ / d², and a spot light
+/// inside its inner cone the same. A camera with a 0.5° field of view looks straight down
+/// at one floor point, so the whole image is that value.
+#[test]
+fn punctual_light_intensities_give_the_analytic_radiance() {
+    let dir = tempfile::tempdir().unwrap();
+    let obj = write(dir.path(), "floor.obj", FLOOR);
+    let cam = "[[camera]]\nposition = [0.0, 3.0, 0.0]\nlook_at = [0.0, 0.0, 0.0]\nup = [0.0, 0.0, -1.0]\nwidth = 8\nheight = 8\nyfov_degrees = 0.5\n";
+    let (i, pos) = (10.0f64, [1.0f64, 2.0, 0.0]);
+    let d2 = pos[0] * pos[0] + pos[1] * pos[1];
+    let want = 0.8 / std::f64::consts::PI * i * (pos[1] / d2.sqrt()) / d2;
+    for light in [
+        format!("type = \"point\"\nposition = {pos:?}\nintensity = {i}\n"),
+        format!("type = \"spot\"\nposition = {pos:?}\ndirection = [-0.4472136, -0.8944272, 0.0]\nintensity = {i}\ninner_cone_degrees = 10.0\nouter_cone_degrees = 20.0\n"),
+    ] {
+        let sc = write(dir.path(), "s.toml", &format!("{cam}[[light]]\n{light}"));
+        let arc = dir.path().join("a.canopy");
+        convert(&obj, &arc, Some(&sc));
+        let (img, _) = render(&arc, &dir.path().join("a.exr"), &["--spp", "4"]);
+        let got = img.mean()[0];
+        assert!((got / want - 1.0).abs() < 2e-3, "{light}: {got} against ρ/π·I·cos/d² = {want}");
+    }
+}

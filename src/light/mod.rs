@@ -530,6 +530,48 @@ mod tests {
         Lights::new(emitters, punctual, V::ZERO, 20.0)
     }
 
+    /// MIS weighs a BSDF-sampled hit on a lamp with `pick_pdf` converted to solid angle;
+    /// that must be the pdf `sample` returned for the same point, or the two strategies
+    /// double-count or lose light.
+    #[test]
+    fn a_lamp_hit_has_the_pdf_its_light_sample_had() {
+        let mut rng = Rng(0x51ab_1e5e_ed00_0001);
+        let lights = scattered_lights(&mut rng);
+        let mut checked = 0;
+        for _ in 0..5000 {
+            let p = rng.v(15.0);
+            let n = rng.v(1.0).normalize();
+            let Some(ls) = lights.sample(p, n, rng.f(), [rng.f(), rng.f()]) else {
+                continue;
+            };
+            if ls.pdf == 0.0 {
+                continue;
+            }
+            let (q, _, normal) = ls.point.unwrap();
+            // The lamp holding q: its normal, and sub-triangle areas that add up to its own.
+            let a = |x: V, y: V, z: V| 0.5 * (y - x).cross(z - x).length();
+            let e = lights
+                .emitters
+                .iter()
+                .find(|e| {
+                    let sum = a(q, e.p[1], e.p[2]) + a(e.p[0], q, e.p[2]) + a(e.p[0], e.p[1], q);
+                    e.n == normal && (sum / e.area - 1.0).abs() < 1e-3
+                })
+                .expect("the sampled point lies on a lamp");
+            let verts = e.p.map(|v| v.to_array());
+            let d2 = (q - p).length_squared();
+            let cos_l = ls.wi.dot(e.n).abs();
+            let hit_pdf = lights.pick_pdf(p, n, &verts) * d2 / (cos_l * e.area);
+            assert!(
+                (hit_pdf / ls.pdf - 1.0).abs() < 1e-3,
+                "light sample pdf {} against the hit's {hit_pdf}",
+                ls.pdf
+            );
+            checked += 1;
+        }
+        assert!(checked > 1000, "{checked} lamp samples");
+    }
+
     #[test]
     fn tree_probabilities_sum_to_at_most_one_and_are_what_sampling_returns() {
         let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
