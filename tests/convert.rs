@@ -180,10 +180,8 @@ fn subtree(a: &Archive, pages: &[canopy_format::PageContents], pg: u32, i: usize
             let area = 0.5 * len;
             let m = &a.materials[t.material as usize];
             s.area += area;
-            for k in 0..3 {
-                s.normal[k] += area * x[k] / len;
-                s.emission[k] += area * m.emission[k] as f64;
-            }
+            s.normal = [0, 1, 2].map(|k| s.normal[k] + area * x[k] / len);
+            s.emission = [0, 1, 2].map(|k| s.emission[k] + area * m.emission[k] as f64);
             for (k, c) in [0.0, 0.25, 0.5, 0.75, 1.0].into_iter().enumerate() {
                 s.reflect[k] += area * p_reflect(m, c);
             }
