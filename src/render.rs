@@ -199,14 +199,6 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         );
     }
     let archive = Arc::new(Archive::open(&o.archive)?);
-    if archive.header.max_leaf_triangles > crate::build::MAX_LEAF_TRIS {
-        bail!(
-            "{}: leaves of up to {} triangles; this renderer keys stored light by {} per leaf",
-            o.archive.display(),
-            archive.header.max_leaf_triangles,
-            crate::build::MAX_LEAF_TRIS
-        );
-    }
     if archive.header.depth as usize > MAX_DEPTH {
         bail!(
             "{}: tree depth {} exceeds the {} this renderer traverses",

@@ -6,8 +6,9 @@ use crate::import::SpillTri;
 use glam::Vec3A;
 use obvhs::{bvh2::builder::build_bvh2_from_tris, triangle::Triangle, BvhBuildParams};
 
-/// Most triangles a leaf holds.
-pub const MAX_LEAF_TRIS: u32 = 8;
+/// Most triangles a leaf holds: the most a version-1 archive allows (readers refuse more,
+/// and the cone integrator keys stored light by a leaf's triangle slot).
+pub const MAX_LEAF_TRIS: u32 = canopy_format::validate::MAX_LEAF_TRIANGLES;
 
 /// Coincident triangles beyond this many are built by count, not by PLOC.
 const COINCIDENT_GROUP: usize = 64;

@@ -184,3 +184,26 @@ pub fn assert_mean_within_noise(img: &Image, r: &Image, what: &str) {
         );
     }
 }
+
+/// A 64-bit LCG (Knuth's MMIX constants): deterministic uniforms for the tests.
+pub struct Lcg(pub u64);
+
+impl Lcg {
+    fn step(&mut self) -> u64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        self.0
+    }
+
+    /// A uniform in [0, 1) with 53 bits.
+    pub fn f64(&mut self) -> f64 {
+        (self.step() >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// A uniform in [0, 1) with 24 bits.
+    pub fn f32(&mut self) -> f32 {
+        (self.step() >> 40) as f32 / (1u64 << 24) as f32
+    }
+}
