@@ -36,7 +36,7 @@ struct Settings {
     diffuse_tan: f32,
     /// Cone integrator: samples after which a node's stored light is converged and its
     /// paths stop there (004 §4.6.1 used 65536).
-    #[arg(long, default_value_t = 1024)]
+    #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..))]
     cone_samples: u32,
     /// Cone integrator: the light pass that carries caustics (light through smooth mirrors
     /// and glass onto diffuse surfaces, 004 §4.7). `auto` runs it when the scene has both
