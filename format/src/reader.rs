@@ -8,7 +8,7 @@ use crate::error::{FormatError, Result};
 use crate::node::{Node, Tri};
 use crate::records::*;
 use crate::validate::*;
-use crate::writer::{raw_page_len, PageContents};
+use crate::writer::PageContents;
 use std::path::{Path, PathBuf};
 
 pub struct Archive {
@@ -114,67 +114,20 @@ impl Archive {
                 pages.len()
             )));
         }
-        check_records(&materials, "material", check_material).map_err(&corrupt)?;
-        check_records(&cameras, "camera", check_camera).map_err(&corrupt)?;
-        check_records(&lights, "light", check_light).map_err(&corrupt)?;
-        if (header.features & Features::PUNCTUAL_LIGHTS != 0) == lights.is_empty() {
-            return Err(corrupt(format!(
-                "the punctual-lights feature disagrees with the {} lights",
-                lights.len()
-            )));
-        }
-        let textured = materials
-            .iter()
-            .any(|m| m.flags & MaterialRecord::TEXTURED != 0);
-        if (header.features & Features::TEXTURED_INPUT != 0) != textured {
-            return Err(corrupt(
-                "the textured-input feature disagrees with the materials".into(),
-            ));
-        }
+        check_tables(&header, &materials, &cameras, &lights).map_err(&corrupt)?;
         check_page_tree(&header, &pages).map_err(|(page, what)| FormatError::BadPage {
             path: p.clone(),
             page,
             what,
         })?;
-        let (mut nodes, mut vertices) = (0u64, 0u64);
-        for (i, e) in pages.iter().enumerate() {
-            let end = e.offset.checked_add(e.compressed_len as u64);
-            if e.offset < 256 || end.is_none_or(|end| end > tables_start) {
-                return Err(FormatError::BadPage {
-                    path: p,
-                    page: i as u32,
-                    what: format!(
-                        "bytes {}+{} outside the page area",
-                        e.offset, e.compressed_len
-                    ),
-                });
-            }
-            let h = PageHeader {
-                magic: PAGE_MAGIC,
-                node_count: e.node_count,
-                tri_count: e.tri_count,
-                vert_count: e.vert_count,
-                coef_bytes: e.coef_bytes,
-                has_normals: (header.features & Features::SHADING_NORMALS != 0) as u32,
-                reserved: [0; 8],
-            };
-            if raw_page_len(&h) != e.raw_len as usize || e.first_node != nodes || e.node_count == 0
-            {
-                return Err(FormatError::BadPage {
-                    path: p,
-                    page: i as u32,
-                    what: "page-table counts are inconsistent".into(),
-                });
-            }
-            nodes += e.node_count as u64;
-            vertices += e.vert_count as u64;
-        }
-        if (nodes, vertices) != (header.nodes, header.vertices) {
-            return Err(corrupt(format!(
-                "page table holds {nodes} nodes and {vertices} vertices, header says {} and {}",
-                header.nodes, header.vertices
-            )));
-        }
+        check_page_extents(&header, &pages, tables_start).map_err(|e| match e {
+            (Some(page), what) => FormatError::BadPage {
+                path: p.clone(),
+                page,
+                what,
+            },
+            (None, what) => corrupt(what),
+        })?;
         Ok(Self {
             path: p,
             map,
@@ -325,16 +278,4 @@ fn read_table<T: bytemuck::Pod>(map: &[u8], t: &TableRef, what: &str, p: &Path) 
     Ok(bytemuck::pod_collect_to_vec(
         &map[t.offset as usize..end as usize],
     ))
-}
-
-/// Checks each record of a table, naming the first bad one.
-fn check_records<T>(
-    records: &[T],
-    what: &str,
-    check: fn(&T) -> std::result::Result<(), String>,
-) -> std::result::Result<(), String> {
-    for (i, r) in records.iter().enumerate() {
-        check(r).map_err(|e| format!("{what} {i}: {e}"))?;
-    }
-    Ok(())
 }

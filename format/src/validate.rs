@@ -5,7 +5,7 @@
 
 use crate::node::{Node, NodeFlags};
 use crate::records::*;
-use crate::writer::PageContents;
+use crate::writer::{raw_page_len, PageContents};
 
 /// Most triangles a leaf may hold in a version-1 archive (the node's cluster slots and the
 /// renderer's per-leaf keys assume it).
@@ -164,6 +164,88 @@ pub fn check_light(l: &LightRecord) -> Result<(), String> {
     }
     if !zeroed(&l.reserved) {
         return Err("reserved bytes are not zero".into());
+    }
+    Ok(())
+}
+
+/// Checks each record of a table, naming the first bad one.
+fn check_records<T>(
+    records: &[T],
+    what: &str,
+    check: fn(&T) -> Result<(), String>,
+) -> Result<(), String> {
+    for (i, r) in records.iter().enumerate() {
+        check(r).map_err(|e| format!("{what} {i}: {e}"))?;
+    }
+    Ok(())
+}
+
+/// Every material, camera and light record, and the features that describe the tables.
+pub fn check_tables(
+    h: &Header,
+    materials: &[MaterialRecord],
+    cameras: &[CameraRecord],
+    lights: &[LightRecord],
+) -> Result<(), String> {
+    check_records(materials, "material", check_material)?;
+    check_records(cameras, "camera", check_camera)?;
+    check_records(lights, "light", check_light)?;
+    if (h.features & Features::PUNCTUAL_LIGHTS != 0) == lights.is_empty() {
+        return Err(format!(
+            "the punctual-lights feature disagrees with the {} lights",
+            lights.len()
+        ));
+    }
+    let textured = materials
+        .iter()
+        .any(|m| m.flags & MaterialRecord::TEXTURED != 0);
+    if (h.features & Features::TEXTURED_INPUT != 0) != textured {
+        return Err("the textured-input feature disagrees with the materials".into());
+    }
+    Ok(())
+}
+
+/// Each page's bytes inside the page area (before `tables_start`), its `raw_len` what its
+/// counts imply, nodes numbered consecutively, and the node and vertex totals the header's.
+/// The error names the page where one is at fault.
+pub fn check_page_extents(
+    h: &Header,
+    pages: &[PageEntry],
+    tables_start: u64,
+) -> Result<(), (Option<u32>, String)> {
+    let (mut nodes, mut vertices) = (0u64, 0u64);
+    for (i, e) in pages.iter().enumerate() {
+        let fail = |what: String| Err((Some(i as u32), what));
+        let end = e.offset.checked_add(e.compressed_len as u64);
+        if e.offset < 256 || end.is_none_or(|end| end > tables_start) {
+            return fail(format!(
+                "bytes {}+{} outside the page area",
+                e.offset, e.compressed_len
+            ));
+        }
+        let ph = PageHeader {
+            magic: PAGE_MAGIC,
+            node_count: e.node_count,
+            tri_count: e.tri_count,
+            vert_count: e.vert_count,
+            coef_bytes: e.coef_bytes,
+            has_normals: (h.features & Features::SHADING_NORMALS != 0) as u32,
+            reserved: [0; 8],
+        };
+        if raw_page_len(&ph) != e.raw_len as usize || e.first_node != nodes || e.node_count == 0 {
+            return fail("page-table counts are inconsistent".into());
+        }
+        nodes += e.node_count as u64;
+        vertices += e.vert_count as u64;
+    }
+    if (nodes, vertices) != (h.nodes, h.vertices) {
+        return Err((
+            None,
+            format!(
+                "page table holds {nodes} nodes and {vertices} vertices, header says {} and {}",
+                h.nodes, h.vertices
+            ),
+        ));
     }
     Ok(())
 }

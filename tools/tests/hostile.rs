@@ -65,26 +65,13 @@ fn inner_page(p: &Parts) -> usize {
         .expect("a page with an in-page inner node")
 }
 
-#[test]
-fn checksum_valid_lies_are_refused() {
-    let dir = tempfile::tempdir().unwrap();
-    let base = seed(dir.path());
+/// A lie's edit (each lie: what it is, the edit, what the error must say).
+type Edit = Box<dyn Fn(&mut Parts)>;
+
+/// Lies in the header, the page table and the material and camera tables.
+fn table_lies(base: &Parts) -> Vec<(&'static str, Edit, &'static str)> {
     let root = base.header.root_page as usize;
-    let leaf_page = (0..base.pages.len())
-        .find(|&i| (0..base.entries[i].node_count as usize).any(|k| node(&base, i, k).is_leaf()))
-        .unwrap();
-    let leaf = (0..base.entries[leaf_page].node_count as usize)
-        .find(|&k| node(&base, leaf_page, k).is_leaf())
-        .unwrap();
-    type Edit = Box<dyn Fn(&mut Parts)>;
-    let node_edit = |page: usize, i: usize, f: fn(&mut Node)| -> Edit {
-        Box::new(move |p: &mut Parts| {
-            let mut n = node(p, page, i);
-            f(&mut n);
-            set_node(p, page, i, &n);
-        })
-    };
-    let cases: Vec<(&str, Edit, &str)> = vec![
+    vec![
         (
             "inverted page bounds",
             Box::new(|p| p.entries[0].bounds_min[0] = p.entries[0].bounds_max[0] + 1.0),
@@ -197,6 +184,25 @@ fn checksum_valid_lies_are_refused() {
             Box::new(|p| p.cameras[0].yfov = 0.0),
             "camera 0",
         ),
+    ]
+}
+
+/// Lies in the nodes and triangles of a page that holds a leaf.
+fn node_lies(base: &Parts) -> Vec<(&'static str, Edit, &'static str)> {
+    let leaf_page = (0..base.pages.len())
+        .find(|&i| (0..base.entries[i].node_count as usize).any(|k| node(base, i, k).is_leaf()))
+        .unwrap();
+    let leaf = (0..base.entries[leaf_page].node_count as usize)
+        .find(|&k| node(base, leaf_page, k).is_leaf())
+        .unwrap();
+    let node_edit = |page: usize, i: usize, f: fn(&mut Node)| -> Edit {
+        Box::new(move |p: &mut Parts| {
+            let mut n = node(p, page, i);
+            f(&mut n);
+            set_node(p, page, i, &n);
+        })
+    };
+    vec![
         (
             "node area NaN",
             node_edit(leaf_page, leaf, |n| n.area = f32::NAN),
@@ -249,9 +255,15 @@ fn checksum_valid_lies_are_refused() {
             }),
             "material index out of range",
         ),
-    ];
+    ]
+}
+
+#[test]
+fn checksum_valid_lies_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let base = seed(dir.path());
     let path = dir.path().join("lie.canopy");
-    for (what, edit, expect) in cases {
+    for (what, edit, expect) in table_lies(&base).into_iter().chain(node_lies(&base)) {
         let mut p = base.clone();
         edit(&mut p);
         std::fs::write(&path, p.assemble()).unwrap();
