@@ -554,6 +554,14 @@ mod tests {
                     "{name}: albedo {mean} ± {sigma} at cos θo = {}",
                     wo.z
                 );
+                // A white mirror and clear smooth glass absorb nothing: all energy returns.
+                if name == "mirror" || name == "glass" {
+                    assert!(
+                        mean >= 1.0 - 4.0 * sigma - 1e-4,
+                        "{name}: albedo {mean} ± {sigma} at cos θo = {} loses energy",
+                        wo.z
+                    );
+                }
             }
         }
         // Lambert with cosine sampling: every sample weighs exactly the albedo.
