@@ -443,3 +443,69 @@ fn coincident_triangles_build_a_balanced_tree() {
         a.header.nodes
     );
 }
+
+/// A glTF document (JSON, buffer embedded) with one triangle mesh used by `nodes`.
+fn gltf_doc(nodes: serde_json::Value, scene_nodes: serde_json::Value, primitives: usize) -> String {
+    let pos: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.]
+        .iter()
+        .flat_map(|x| x.to_le_bytes())
+        .collect();
+    use base64::Engine;
+    let uri = format!(
+        "data:application/octet-stream;base64,{}",
+        base64::engine::general_purpose::STANDARD.encode(&pos)
+    );
+    let prim = serde_json::json!({"attributes": {"POSITION": 0}});
+    serde_json::json!({
+        "asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": scene_nodes}],
+        "nodes": nodes, "meshes": [{"primitives": vec![prim; primitives]}],
+        "buffers": [{"byteLength": 36, "uri": uri}],
+        "bufferViews": [{"buffer": 0, "byteLength": 36}],
+        "accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3",
+                       "min": [0.0, 0.0, 0.0], "max": [1.0, 1.0, 0.0]}]
+    })
+    .to_string()
+}
+
+/// glTF nodes form trees: a node that is its own ancestor, or the child of two nodes (40
+/// levels of two children each made 2⁴⁰ instances), is refused before any triangle is read.
+#[test]
+fn gltf_node_cycles_and_shared_children_are_refused() {
+    use serde_json::json;
+    let dir = tempfile::tempdir().unwrap();
+    let cycle = gltf_doc(
+        json!([{"mesh": 0, "children": [1]}, {"children": [0]}]),
+        json!([0]),
+        1,
+    );
+    convert_fails(
+        &write(dir.path(), "cycle.gltf", cycle.as_bytes()),
+        &["its own ancestor"],
+    );
+    let mut nodes: Vec<_> = (0..40)
+        .map(|k| json!({"children": [k + 1, k + 1]}))
+        .collect();
+    nodes.push(json!({"mesh": 0}));
+    let dag = gltf_doc(json!(nodes), json!([0]), 1);
+    convert_fails(
+        &write(dir.path(), "dag.gltf", dag.as_bytes()),
+        &["glTF nodes form trees"],
+    );
+}
+
+/// Primitives without a material share one default material (each used to add its own,
+/// so 65,536 of them failed with "more than 65535 materials").
+#[test]
+fn primitives_without_a_material_share_one_default() {
+    let dir = tempfile::tempdir().unwrap();
+    let doc = gltf_doc(
+        serde_json::json!([{"mesh": 0}, {"mesh": 0}]),
+        serde_json::json!([0, 1]),
+        3,
+    );
+    let input = write(dir.path(), "plain.gltf", doc.as_bytes());
+    let out = dir.path().join("plain.canopy");
+    ok(&["--quiet", "convert", s(&input), "-o", s(&out)]);
+    let a = canopy_format::Archive::open(&out).unwrap();
+    assert_eq!((a.header.triangles, a.materials.len()), (6, 1));
+}

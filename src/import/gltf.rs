@@ -28,13 +28,17 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
         .default_scene()
         .or_else(|| doc.scenes().next())
         .ok_or_else(|| anyhow!("{}: no scene", path.display()))?;
+    check_forest(&doc).map_err(|e| anyhow!("{}: {e}", path.display()))?;
     let mut count = 0u64;
     let mut stack: Vec<(gltf::Node, Mat4)> = gscene.nodes().map(|n| (n, Mat4::IDENTITY)).collect();
-    let mut depth_guard = 0usize;
+    let mut seen = vec![false; doc.nodes().len()];
     while let Some((node, parent)) = stack.pop() {
-        depth_guard += 1;
-        if depth_guard > 10_000_000 {
-            bail!("{}: node hierarchy too large or cyclic", path.display());
+        if std::mem::replace(&mut seen[node.index()], true) {
+            bail!(
+                "{}: node {} is reached twice from the scene (glTF nodes form trees)",
+                path.display(),
+                node.index()
+            );
         }
         let world = parent * Mat4::from_cols_array_2d(&node.transform().matrix());
         if !world.is_finite() {
@@ -66,10 +70,13 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
                     mesh.name().unwrap_or("?")
                 )
             };
-            let mat = match prim.material().index() {
-                Some(i) => base + i as u32,
-                None => *default_mat
-                    .get_or_insert(scene.add_material(super::default_material("default"))?),
+            let mat = match (prim.material().index(), default_mat) {
+                (Some(i), _) => base + i as u32,
+                (None, Some(m)) => m,
+                (None, None) => {
+                    let m = scene.add_material(super::default_material("default"))?;
+                    *default_mat.insert(m)
+                }
             };
             check_primitive(&prim).map_err(|e| anyhow!("{}: {e}", what(0)))?;
             let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d[..]));
@@ -110,6 +117,42 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
         }
     }
     Ok(count)
+}
+
+/// glTF nodes form a forest: no node is the child of two nodes or its own ancestor (the
+/// spec's rule; a DAG or a cycle would otherwise multiply or repeat instances without end).
+fn check_forest(doc: &gltf::Document) -> Result<()> {
+    let mut parent = vec![None; doc.nodes().len()];
+    for n in doc.nodes() {
+        for c in n.children() {
+            if let Some(p) = parent[c.index()].replace(n.index()) {
+                bail!(
+                    "node {} is a child of node {p} and again of node {} (glTF nodes form trees)",
+                    c.index(),
+                    n.index()
+                );
+            }
+        }
+    }
+    // Walk up from every node; a node on the current walk met again is a cycle. Nodes whose
+    // ancestry is known good end later walks, so the whole check is linear.
+    let mut state = vec![0u8; parent.len()]; // 0 unknown, 1 on the current walk, 2 good
+    let mut walk = Vec::new();
+    for start in 0..parent.len() {
+        let mut at = Some(start);
+        while let Some(i) = at.filter(|&i| state[i] != 2) {
+            if state[i] == 1 {
+                bail!("node {i} is its own ancestor");
+            }
+            state[i] = 1;
+            walk.push(i);
+            at = parent[i];
+        }
+        for i in walk.drain(..) {
+            state[i] = 2;
+        }
+    }
+    Ok(())
 }
 
 /// Parses the document (the gltf crate's validation runs after our own index checks, as
