@@ -509,3 +509,31 @@ fn primitives_without_a_material_share_one_default() {
     let a = canopy_format::Archive::open(&out).unwrap();
     assert_eq!((a.header.triangles, a.materials.len()), (6, 1));
 }
+
+/// `convert` never writes over one of its inputs (`-o` naming the input, by any path), and
+/// `inspect` refuses a FIFO at once instead of blocking on it for a writer.
+#[test]
+fn outputs_never_overwrite_inputs_and_fifos_do_not_block() {
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("cbox.glb");
+    std::fs::copy(scene("cbox.glb"), &input).unwrap();
+    let sub = dir.path().join("sub");
+    std::fs::create_dir(&sub).unwrap();
+    let roundabout = sub.join("..").join("cbox.glb");
+    for out in [&input, &roundabout] {
+        let err = fails(&["convert", s(&input), "-o", s(out)]);
+        assert!(err.contains("would overwrite the input"), "{err}");
+    }
+    assert_eq!(
+        std::fs::read(&input).unwrap(),
+        std::fs::read(scene("cbox.glb")).unwrap()
+    );
+    let fifo = dir.path().join("fifo.canopy");
+    let made = std::process::Command::new("mkfifo").arg(&fifo).status();
+    if made.is_ok_and(|s| s.success()) {
+        let err = fails(&["inspect", s(&fifo)]);
+        assert!(err.contains("not a regular file"), "{err}");
+        let err = fails(&["convert", s(&fifo), "-o", s(&dir.path().join("f.canopy"))]);
+        assert!(err.contains("not a regular file"), "{err}");
+    }
+}

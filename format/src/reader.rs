@@ -24,18 +24,21 @@ pub struct Archive {
 impl Archive {
     pub fn open(path: &Path) -> Result<Self> {
         let p = path.to_path_buf();
-        let file = std::fs::File::open(path).map_err(|source| FormatError::Io {
-            path: p.clone(),
-            error: source,
-        })?;
-        let meta = file.metadata().map_err(|source| FormatError::Io {
+        // Stat before opening: opening a FIFO for reading would block until a writer came.
+        let meta = std::fs::metadata(path).map_err(|source| FormatError::Io {
             path: p.clone(),
             error: source,
         })?;
         if !meta.is_file() {
             return Err(FormatError::NotAFile { path: p });
         }
-        let len = meta.len();
+        let io = |source| FormatError::Io {
+            path: p.clone(),
+            error: source,
+        };
+        let file = std::fs::File::open(path).map_err(io)?;
+        // The length of what was opened, not of what was stat'ed.
+        let len = file.metadata().map_err(io)?.len();
         if len < 8 {
             return Err(FormatError::Truncated {
                 path: p,

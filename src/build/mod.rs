@@ -166,6 +166,15 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
             (FIXED_BYTES + 1024 * BUILD_BYTES_PER_TRI) >> 20
         );
     }
+    for input in opts.inputs.iter().chain(&opts.scene) {
+        if same_file(input, &opts.output) {
+            bail!(
+                "{}: the output would overwrite the input {}",
+                opts.output.display(),
+                input.display()
+            );
+        }
+    }
     let file = match &opts.scene {
         Some(p) => SceneFile::load(p)?,
         None => SceneFile::default(),
@@ -380,6 +389,20 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         .unwrap_or(0);
     report.seconds_total = t0.elapsed().as_secs_f64();
     Ok(report)
+}
+
+/// Whether two paths name one existing file (the same device and inode on Unix).
+fn same_file(a: &std::path::Path, b: &std::path::Path) -> bool {
+    match (std::fs::metadata(a), std::fs::metadata(b)) {
+        #[cfg(unix)]
+        (Ok(x), Ok(y)) => {
+            use std::os::unix::fs::MetadataExt;
+            (x.dev(), x.ino()) == (y.dev(), y.ino())
+        }
+        #[cfg(not(unix))]
+        (Ok(_), Ok(_)) => a.canonicalize().ok() == b.canonicalize().ok(),
+        _ => false,
+    }
 }
 
 /// A chunk's pages, compressed and numbered from `base`, ready to append in order.
