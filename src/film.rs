@@ -117,6 +117,20 @@ pub fn write_atomically(path: &Path, write: impl FnOnce(&Path) -> Result<()>) ->
     r.with_context(|| format!("{}: cannot write", path.display()))
 }
 
+/// Whether two paths name one existing file (the same device and inode on Unix).
+pub fn same_file(a: &std::path::Path, b: &std::path::Path) -> bool {
+    match (std::fs::metadata(a), std::fs::metadata(b)) {
+        #[cfg(unix)]
+        (Ok(x), Ok(y)) => {
+            use std::os::unix::fs::MetadataExt;
+            (x.dev(), x.ino()) == (y.dev(), y.ino())
+        }
+        #[cfg(not(unix))]
+        (Ok(_), Ok(_)) => a.canonicalize().ok() == b.canonicalize().ok(),
+        _ => false,
+    }
+}
+
 /// Fails early if an image could not be written at `path` (missing directory, no
 /// permission, a directory in the way), so a long render does not end in a lost result.
 pub fn check_writable(path: &Path) -> Result<()> {

@@ -381,6 +381,12 @@ fn run(cli: Cli) -> Result<()> {
             diff,
             json,
         } => {
+            if let Some(d) = diff
+                .iter()
+                .find(|d| film::same_file(d, &test) || film::same_file(d, &reference))
+            {
+                anyhow::bail!("{}: --diff would overwrite an input image", d.display());
+            }
             let t = film::Image::read_exr(&test)?;
             let r = film::Image::read_exr(&reference)?;
             let e = metrics::error(&t, &r, metric)?;

@@ -1,7 +1,7 @@
 //! `canopy render`: an archive to an image under a memory budget.
 
 use crate::camera::Camera;
-use crate::film::{check_writable, Image};
+use crate::film::{check_writable, same_file, Image};
 use crate::integrator::{cone, light_pass, path, Counters, NodeSet, Scene};
 use crate::light::Lights;
 use crate::material::Material;
@@ -169,12 +169,14 @@ fn outputs(o: &RenderOptions) -> Result<(PathBuf, Option<PathBuf>)> {
 pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     let t0 = Instant::now();
     let (exr_path, png_path) = outputs(o)?;
-    check_writable(&exr_path)?;
-    if let Some(p) = &png_path {
-        check_writable(p)?;
-    }
-    if let Some(s) = &o.stats {
-        check_writable(s)?;
+    for out in std::iter::once(&exr_path).chain(&png_path).chain(&o.stats) {
+        if same_file(out, &o.archive) {
+            bail!(
+                "{}: writing there would overwrite the archive",
+                out.display()
+            );
+        }
+        check_writable(out)?;
     }
     if o.spp == 0 && o.time.is_none() {
         bail!("--spp must be at least 1");

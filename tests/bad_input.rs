@@ -537,3 +537,21 @@ fn outputs_never_overwrite_inputs_and_fifos_do_not_block() {
         assert!(err.contains("not a regular file"), "{err}");
     }
 }
+
+/// `render --stats`, `-o` and `compare --diff` refuse paths that would overwrite an input.
+#[test]
+fn render_and_compare_outputs_never_overwrite_inputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let a = dir.path().join("c.canopy");
+    ok(&["--quiet", "convert", s(&scene("cbox.glb")), "-o", s(&a)]);
+    let before = std::fs::read(&a).unwrap();
+    let o = dir.path().join("o.exr");
+    let err = fails(&["render", s(&a), "-o", s(&o), "--spp", "1", "--stats", s(&a)]);
+    assert!(err.contains("overwrite the archive"), "{err}");
+    assert_eq!(std::fs::read(&a).unwrap(), before);
+    ok(&["--quiet", "render", s(&a), "-o", s(&o), "--spp", "1"]);
+    let img = std::fs::read(&o).unwrap();
+    let err = fails(&["compare", s(&o), s(&o), "--diff", s(&o)]);
+    assert!(err.contains("overwrite an input"), "{err}");
+    assert_eq!(std::fs::read(&o).unwrap(), img);
+}

@@ -167,7 +167,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         );
     }
     for input in opts.inputs.iter().chain(&opts.scene) {
-        if same_file(input, &opts.output) {
+        if crate::film::same_file(input, &opts.output) {
             bail!(
                 "{}: the output would overwrite the input {}",
                 opts.output.display(),
@@ -389,20 +389,6 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         .unwrap_or(0);
     report.seconds_total = t0.elapsed().as_secs_f64();
     Ok(report)
-}
-
-/// Whether two paths name one existing file (the same device and inode on Unix).
-fn same_file(a: &std::path::Path, b: &std::path::Path) -> bool {
-    match (std::fs::metadata(a), std::fs::metadata(b)) {
-        #[cfg(unix)]
-        (Ok(x), Ok(y)) => {
-            use std::os::unix::fs::MetadataExt;
-            (x.dev(), x.ino()) == (y.dev(), y.ino())
-        }
-        #[cfg(not(unix))]
-        (Ok(_), Ok(_)) => a.canonicalize().ok() == b.canonicalize().ok(),
-        _ => false,
-    }
 }
 
 /// A chunk's pages, compressed and numbered from `base`, ready to append in order.
