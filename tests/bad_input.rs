@@ -555,3 +555,30 @@ fn render_and_compare_outputs_never_overwrite_inputs() {
     assert!(err.contains("overwrite an input"), "{err}");
     assert_eq!(std::fs::read(&o).unwrap(), img);
 }
+
+/// Material values a sloppy MTL writes (Kd 1.2, Ni 0.5, Ke −1) are clamped into glTF's
+/// ranges as the renderer reads them; NaN is refused, naming the material and the field.
+#[test]
+fn mtl_values_are_clamped_and_nan_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let obj = write(
+        dir.path(),
+        "m.obj",
+        b"mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl x\nf 1 2 3\n",
+    );
+    write(
+        dir.path(),
+        "m.mtl",
+        b"newmtl x\nKd 1.2 0.5 -0.1\nNi 0.5\nKe -1 0 2\n",
+    );
+    let out = dir.path().join("m.canopy");
+    ok(&["--quiet", "convert", s(&obj), "-o", s(&out)]);
+    let m = canopy_format::Archive::open(&out).unwrap().materials[0];
+    assert_eq!(
+        (m.base_color, m.ior, m.emission),
+        ([1.0, 0.5, 0.0, 1.0], 1.5, [0.0, 0.0, 2.0])
+    );
+    std::fs::remove_file(&out).unwrap();
+    write(dir.path(), "m.mtl", b"newmtl x\nNi nan\n");
+    convert_fails(&obj, &["material 'x'", "ior is NaN"]);
+}

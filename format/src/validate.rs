@@ -108,17 +108,28 @@ pub fn check_table_ranges(h: &Header) -> Result<(), String> {
     Ok(())
 }
 
-pub fn check_material(m: &MaterialRecord) -> Result<(), String> {
-    let ok = in_unit(&m.base_color)
-        && non_negative(&m.emission)
-        && in_unit(&[m.metallic, m.roughness, m.transmission, m.specular])
-        && non_negative(&m.specular_color)
-        && m.ior.is_finite()
-        && (m.ior >= 1.0 || m.ior == 0.0)
-        && m.ior <= 1e3;
-    if !ok {
-        return Err("a value is NaN, infinite or outside its range".into());
+/// The first field named in `fields` whose check failed, as an error.
+fn first_bad(fields: &[(&str, bool)]) -> Result<(), String> {
+    match fields.iter().find(|(_, ok)| !ok) {
+        Some((name, _)) => Err(format!("{name} is NaN, infinite or outside its range")),
+        None => Ok(()),
     }
+}
+
+pub fn check_material(m: &MaterialRecord) -> Result<(), String> {
+    first_bad(&[
+        ("base colour", in_unit(&m.base_color)),
+        ("emission", non_negative(&m.emission)),
+        ("metallic", in_unit(&[m.metallic])),
+        ("roughness", in_unit(&[m.roughness])),
+        ("transmission", in_unit(&[m.transmission])),
+        ("specular", in_unit(&[m.specular])),
+        ("specular colour", non_negative(&m.specular_color)),
+        (
+            "ior",
+            m.ior.is_finite() && (m.ior >= 1.0 || m.ior == 0.0) && m.ior <= 1e3,
+        ),
+    ])?;
     if m.flags & !(MaterialRecord::DOUBLE_SIDED | MaterialRecord::TEXTURED) != 0 {
         return Err(format!("unknown flags {:#x}", m.flags));
     }
@@ -129,17 +140,20 @@ pub fn check_material(m: &MaterialRecord) -> Result<(), String> {
 }
 
 pub fn check_camera(c: &CameraRecord) -> Result<(), String> {
-    let axes = &c.to_world[..9];
-    let ok = finite(&c.to_world)
-        && axes.iter().any(|&x| x != 0.0)
-        && c.yfov > 0.0
-        && c.yfov < std::f32::consts::PI
-        && non_negative(&[c.aspect, c.znear, c.zfar])
-        && c.width <= MAX_SIDE
-        && c.height <= MAX_SIDE;
-    if !ok {
-        return Err("a value is NaN, infinite or outside its range".into());
-    }
+    first_bad(&[
+        (
+            "the transform",
+            finite(&c.to_world) && c.to_world[..9].iter().any(|&x| x != 0.0),
+        ),
+        ("yfov", c.yfov > 0.0 && c.yfov < std::f32::consts::PI),
+        ("aspect", non_negative(&[c.aspect])),
+        ("znear", non_negative(&[c.znear])),
+        ("zfar", non_negative(&[c.zfar])),
+        (
+            "the resolution",
+            c.width <= MAX_SIDE && c.height <= MAX_SIDE,
+        ),
+    ])?;
     if !zeroed(&c.reserved) {
         return Err("reserved bytes are not zero".into());
     }
@@ -152,16 +166,22 @@ pub fn check_light(l: &LightRecord) -> Result<(), String> {
     }
     let d = l.direction;
     let len2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2];
-    let ok = non_negative(&l.color)
-        && non_negative(&[l.intensity, l.range])
-        && finite(&l.position)
-        && (l.kind == LightRecord::POINT || (len2 - 1.0).abs() < 1e-3)
-        && 0.0 <= l.inner_cone
-        && l.inner_cone <= l.outer_cone
-        && l.outer_cone <= std::f32::consts::FRAC_PI_2 + 1e-6;
-    if !ok {
-        return Err("a value is NaN, infinite or outside its range".into());
-    }
+    first_bad(&[
+        ("colour", non_negative(&l.color)),
+        ("intensity", non_negative(&[l.intensity])),
+        ("range", non_negative(&[l.range])),
+        ("position", finite(&l.position)),
+        (
+            "direction (a unit vector)",
+            l.kind == LightRecord::POINT || (len2 - 1.0).abs() < 1e-3,
+        ),
+        (
+            "the cone angles (0 ≤ inner ≤ outer ≤ π/2)",
+            0.0 <= l.inner_cone
+                && l.inner_cone <= l.outer_cone
+                && l.outer_cone <= std::f32::consts::FRAC_PI_2 + 1e-6,
+        ),
+    ])?;
     if !zeroed(&l.reserved) {
         return Err("reserved bytes are not zero".into());
     }

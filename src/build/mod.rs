@@ -197,10 +197,18 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         materials_used: Vec::new(),
         bar: progress::counter(opts.progress, "importing", "triangles"),
     };
-    for input in &opts.inputs {
-        import::import(input, &mut scene, &file, &mut spill)?;
+    if let Some(p) = &opts.scene {
+        scene
+            .check_since([0; 3])
+            .with_context(|| p.display().to_string())?;
     }
-    scene.check()?;
+    for input in &opts.inputs {
+        let before = scene.counts();
+        import::import(input, &mut scene, &file, &mut spill)?;
+        scene
+            .check_since(before)
+            .with_context(|| input.display().to_string())?;
+    }
     let Spill {
         out,
         count: total,

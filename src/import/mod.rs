@@ -49,21 +49,27 @@ pub struct SceneDesc {
 }
 
 impl SceneDesc {
-    /// Refuses what the archive reader would refuse (NaN, infinities, values outside their
-    /// glTF ranges), naming the record, so a conversion never writes an unreadable archive.
-    pub fn check(&self) -> Result<()> {
+    /// How many materials, cameras and lights the scene holds, for `check_since`.
+    pub fn counts(&self) -> [usize; 3] {
+        [self.materials.len(), self.cameras.len(), self.lights.len()]
+    }
+
+    /// Refuses, among the records added since `counts` returned `from`, what the archive
+    /// reader would refuse (NaN, infinities, values outside their glTF ranges), naming the
+    /// record, so a conversion never writes an unreadable archive.
+    pub fn check_since(&self, from: [usize; 3]) -> Result<()> {
         use canopy_format::validate::{check_camera, check_light, check_material};
-        for m in &self.materials {
+        for m in &self.materials[from[0]..] {
             check_material(m).map_err(|e| {
                 anyhow::anyhow!("material '{}': {e}", canopy_format::name_str(&m.name))
             })?;
         }
-        for c in &self.cameras {
+        for c in &self.cameras[from[1]..] {
             check_camera(c).map_err(|e| {
                 anyhow::anyhow!("camera '{}': {e}", canopy_format::name_str(&c.name))
             })?;
         }
-        for l in &self.lights {
+        for l in &self.lights[from[2]..] {
             check_light(l).map_err(|e| {
                 anyhow::anyhow!("light '{}': {e}", canopy_format::name_str(&l.name))
             })?;

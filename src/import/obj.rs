@@ -67,11 +67,15 @@ fn read_mtl(path: &Path) -> Result<HashMap<String, MaterialRecord>> {
         let Some((_, m)) = cur.as_mut() else { continue };
         let ln = ln + 1;
         match key {
+            // MTL files in the wild stray outside glTF's ranges (Kd 1.2, Ni 0): clamp what is
+            // finite, as the renderer would; NaN and infinities stay and are refused later.
             "Kd" => {
-                let [r, g, b] = floats::<3>(rest, path, ln)?;
+                let [r, g, b] = floats::<3>(rest, path, ln)?.map(|c| c.clamp(0.0, 1.0));
                 m.base_color = [r, g, b, 1.0];
             }
-            "Ke" => m.emission = floats::<3>(rest, path, ln)?,
+            "Ke" => {
+                m.emission = floats::<3>(rest, path, ln)?.map(|c| if c < 0.0 { 0.0 } else { c })
+            }
             "Ns" => {
                 // Phong exponent to GGX roughness: α² = 2/(Ns+2), roughness = √α.
                 let [ns] = floats::<1>(rest, path, ln)?;
@@ -85,7 +89,16 @@ fn read_mtl(path: &Path) -> Result<HashMap<String, MaterialRecord>> {
                     m.specular_color = [r / s, g / s, b / s];
                 }
             }
-            "Ni" => m.ior = floats::<1>(rest, path, ln)?[0],
+            "Ni" => {
+                let [ni] = floats::<1>(rest, path, ln)?;
+                m.ior = if ni < 1.0 {
+                    1.5
+                } else if ni > 1e3 {
+                    1e3
+                } else {
+                    ni
+                };
+            }
             "d" => m.transmission = 1.0 - floats::<1>(rest, path, ln)?[0].clamp(0.0, 1.0),
             "Tr" => m.transmission = floats::<1>(rest, path, ln)?[0].clamp(0.0, 1.0),
             _ => {}
