@@ -121,6 +121,43 @@ impl TriangleSink for Spill {
     }
 }
 
+/// Refuses an output path that names one of the inputs or the scene file.
+fn refuse_overwriting_an_input(opts: &ConvertOptions) -> Result<()> {
+    for input in opts.inputs.iter().chain(&opts.scene) {
+        if crate::film::same_file(input, &opts.output) {
+            bail!(
+                "{}: the output would overwrite the input {}",
+                opts.output.display(),
+                input.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Imports every input into `spill`, checking the records each adds (and the scene file's)
+/// as the archive reader will, so errors name the file they came from.
+fn import_all(
+    opts: &ConvertOptions,
+    file: &SceneFile,
+    scene: &mut SceneDesc,
+    spill: &mut Spill,
+) -> Result<()> {
+    if let Some(p) = &opts.scene {
+        scene
+            .check_since([0; 3])
+            .with_context(|| p.display().to_string())?;
+    }
+    for input in &opts.inputs {
+        let before = scene.counts();
+        import::import(input, scene, file, spill)?;
+        scene
+            .check_since(before)
+            .with_context(|| input.display().to_string())?;
+    }
+    Ok(())
+}
+
 /// 21-bit Morton code of a point in the box (7 bits an axis): the histogram bin.
 fn morton(p: [f32; 3], lo: [f32; 3], hi: [f32; 3]) -> u32 {
     let cells = (1u32 << MORTON_BITS) as f32;
@@ -166,15 +203,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
             (FIXED_BYTES + 1024 * BUILD_BYTES_PER_TRI) >> 20
         );
     }
-    for input in opts.inputs.iter().chain(&opts.scene) {
-        if crate::film::same_file(input, &opts.output) {
-            bail!(
-                "{}: the output would overwrite the input {}",
-                opts.output.display(),
-                input.display()
-            );
-        }
-    }
+    refuse_overwriting_an_input(opts)?;
     let file = match &opts.scene {
         Some(p) => SceneFile::load(p)?,
         None => SceneFile::default(),
@@ -197,18 +226,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         materials_used: Vec::new(),
         bar: progress::counter(opts.progress, "importing", "triangles"),
     };
-    if let Some(p) = &opts.scene {
-        scene
-            .check_since([0; 3])
-            .with_context(|| p.display().to_string())?;
-    }
-    for input in &opts.inputs {
-        let before = scene.counts();
-        import::import(input, &mut scene, &file, &mut spill)?;
-        scene
-            .check_since(before)
-            .with_context(|| input.display().to_string())?;
-    }
+    import_all(opts, &file, &mut scene, &mut spill)?;
     let Spill {
         out,
         count: total,
