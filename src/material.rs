@@ -136,7 +136,8 @@ pub fn fresnel_dielectric(cos_i: f32, eta: f32) -> f32 {
     0.5 * (rs * rs + rp * rp)
 }
 
-fn luminance(c: V) -> f32 {
+/// Rec. 709 luminance of a linear RGB colour.
+pub fn luminance(c: V) -> f32 {
     0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
 }
 

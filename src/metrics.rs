@@ -66,7 +66,7 @@ pub fn write_diff(test: &Image, reference: &Image, path: &Path) -> Result<f64> {
         .iter()
         .zip(&reference.pixels)
         .map(|(t, r)| {
-            let l = |p: &[f32; 3]| 0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2];
+            let l = |p: &[f32; 3]| crate::material::luminance(glam::Vec3A::from(*p));
             let d = (l(t) - l(r)).abs();
             if d.is_finite() {
                 d

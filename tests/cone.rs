@@ -571,7 +571,7 @@ fn pull_gives_every_node_the_area_weighted_mean_of_its_triangles() {
         [x, 1.0 - x, 0.25 + x * x]
     };
     let h = &archive.header;
-    let cell_size = (V::from(h.bounds_max) - V::from(h.bounds_min)).length() * c::CELL_FRACTION;
+    let cell_size = c::cell_size(h);
     let store = canopy::radiance::RadianceStore::new(1024, None);
     for pg in 0..archive.pages.len() as u32 {
         let page = cache.get(pg);

@@ -83,6 +83,12 @@ pub fn grid(tri: &TriW, cell_size: f32) -> f32 {
     (edge / cell_size).ceil().clamp(1.0, GRID as f32)
 }
 
+/// Side of the light cells on this archive's large triangles: `CELL_FRACTION` of the
+/// scene's diagonal.
+pub fn cell_size(h: &canopy_format::Header) -> f32 {
+    (V::from(h.bounds_max) - V::from(h.bounds_min)).length() * CELL_FRACTION
+}
+
 /// Cell of a hit inside its triangle: an n×n grid over (b1, b2).
 pub fn cell_of(tri: &TriW, b: [f32; 3], cell_size: f32) -> u64 {
     let n = grid(tri, cell_size);
@@ -235,7 +241,7 @@ pub fn radiance(
 ) -> (V, V) {
     let mut stack: Vec<Pending> = Vec::new();
     let h = &scene.cache.archive.header;
-    let cell_size = (V::from(h.bounds_max) - V::from(h.bounds_min)).length() * CELL_FRACTION;
+    let cell_size = cell_size(h);
     let mut ray = ray;
     // Light samples test visibility with the primary cone's opening, from the surface.
     let shadow_cone = Cone { r0: 0.0, ..cone };
@@ -688,7 +694,7 @@ fn pull_page(scene: &Scene, store: &RadianceStore, id: u32) {
         return;
     };
     let h = &scene.cache.archive.header;
-    let cell_size = (V::from(h.bounds_max) - V::from(h.bounds_min)).length() * CELL_FRACTION;
+    let cell_size = cell_size(h);
     let caustics = store.photons() > 0;
     let node_part = |key: u64, area: f32| {
         let e = store.get(node_key(key));

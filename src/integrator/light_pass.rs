@@ -12,7 +12,7 @@
 //! has nothing to move down, and the pull after each pass carries the caustic light up to
 //! the nodes wide cones stop at (`cone::pull`).
 
-use super::cone::{cell_of, cells, grid, tri_key, CELL_FRACTION, GRID};
+use super::cone::{cell_of, cell_size, cells, grid, tri_key, GRID};
 use super::Scene;
 use crate::material::{cosine_hemisphere, Frame};
 use crate::radiance::RadianceStore;
@@ -48,7 +48,7 @@ pub fn light_pass(
     seed: u32,
 ) -> LightPassStats {
     let h = &scene.cache.archive.header;
-    let cell_size = (V::from(h.bounds_max) - V::from(h.bounds_min)).length() * CELL_FRACTION;
+    let cell_size = cell_size(h);
     let chunks: Vec<u32> = (0..photons.div_ceil(CHUNK)).collect();
     let (rays, deposits) = chunks
         .par_iter()

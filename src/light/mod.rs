@@ -6,7 +6,7 @@
 //! Emitters are gathered once by walking only the subtrees whose nodes carry the EMISSIVE
 //! flag, so a huge scene with a few lamps loads a few pages.
 
-use crate::material::{cosine_hemisphere, Frame, Material};
+use crate::material::{cosine_hemisphere, luminance, Frame, Material};
 use crate::paging::{Page, CHILD_PAGE, INNER, KIND_MASK, LEAF};
 use crate::trace::{offset_origin, Ray};
 use anyhow::Result;
@@ -63,10 +63,6 @@ pub enum Punctual {
     },
     /// Irradiance (glTF lux) arriving along `dir`.
     Directional { dir: V, irradiance: V },
-}
-
-pub fn luminance(c: V) -> f32 {
-    0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
 }
 
 /// One light sample seen from a shading point.
