@@ -194,7 +194,7 @@ fn raw_mesh_material(path: &Path, scene: &mut SceneDesc, file: &SceneFile) -> Re
 
 /// A side file's metadata, refusing what is not a regular file (a directory, `/dev/zero`,
 /// a FIFO) or is larger than `max` bytes, before anything is read.
-pub(crate) fn check_regular(path: &Path, max: u64, what: &str) -> Result<u64> {
+pub(crate) fn check_regular(path: &Path, max: u64, what: &str) -> Result<()> {
     let m = std::fs::metadata(path).map_err(context(path))?;
     if !m.is_file() {
         bail!("{}: the {what} is not a regular file", path.display());
@@ -206,7 +206,7 @@ pub(crate) fn check_regular(path: &Path, max: u64, what: &str) -> Result<u64> {
             m.len()
         );
     }
-    Ok(m.len())
+    Ok(())
 }
 
 /// Reads a whole side file after `check_regular`.
