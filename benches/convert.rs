@@ -1,7 +1,7 @@
 //! Converter triangles/s (bundled scenes, end to end: import, build, compress, write) and
 //! page decode MB/s (checksum + zstd + parse + index checks, per decoded byte).
 
-use canopy::build::{convert, ConvertOptions};
+use canopy::convert::{convert, ConvertOptions};
 use canopy_format::Archive;
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use std::path::{Path, PathBuf};

@@ -2,7 +2,7 @@
 //! through the scene camera, and incoherent rays (closest hit and any hit) from points on
 //! surfaces in random directions, as a path tracer's bounces are.
 
-use canopy::build::{convert, ConvertOptions};
+use canopy::convert::{convert, ConvertOptions};
 use canopy::camera::Camera;
 use canopy::paging::PageCache;
 use canopy::trace::{Ray, Tracer};

@@ -2,9 +2,9 @@
 //! builder, the paged renderer and the command-line front end; `canopy-format` holds the
 //! on-disk format.
 
-pub mod build;
 pub mod camera;
-pub mod film;
+pub mod convert;
+pub mod image;
 pub mod import;
 pub mod inspect;
 pub mod integrator;
@@ -15,7 +15,7 @@ pub mod paging;
 pub mod progress;
 pub mod radiance;
 pub mod render;
-pub mod report;
 pub mod sampler;
+pub mod sweep;
 pub mod trace;
 pub mod units;

@@ -1,9 +1,9 @@
 use anyhow::Result;
-use canopy::build::{convert, BvhQuality, ConvertOptions};
+use canopy::convert::{convert, BvhQuality, ConvertOptions};
 use canopy::metrics::{self, Metric};
 use canopy::render::{render, Integrator, LightPass, RenderOptions};
-use canopy::report::{self, SweepOptions};
-use canopy::{film, inspect, progress, units};
+use canopy::sweep::{self, SweepOptions};
+use canopy::{image, inspect, progress, units};
 use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
 
@@ -340,7 +340,7 @@ fn run(cli: Cli) -> Result<()> {
         } => {
             let o = settings.sweep(archive, &output, spp, show);
             println!("pixels      unique nodes  nodes/pixel  pages  resident MiB  seconds");
-            for r in report::npp(&o, &resolutions)? {
+            for r in sweep::npp(&o, &resolutions)? {
                 println!(
                     "{:>10}  {:>12}  {:>11.2}  {:>5}  {:>12.1}  {:>7.2}",
                     r.pixels,
@@ -362,14 +362,14 @@ fn run(cli: Cli) -> Result<()> {
             settings,
         } => {
             let o = settings.sweep(archive, &output, 1, show);
-            let rows = report::eval(&o, &reference, &integrators, &times)?;
+            let rows = sweep::eval(&o, &reference, &integrators, &times)?;
             for r in &rows {
                 println!(
                     "{:?} {:>6.1}s: {} spp, RMSE {:.4e}, c {:.4e}",
                     r.integrator, r.seconds, r.spp, r.rmse, r.c
                 );
             }
-            if let Some(line) = report::time_to_match(&rows) {
+            if let Some(line) = sweep::time_to_match(&rows) {
                 println!("{line}");
             }
             println!("wrote {}/eval.csv, eval.svg and eval.md", output.display());
@@ -383,12 +383,12 @@ fn run(cli: Cli) -> Result<()> {
         } => {
             if let Some(d) = diff
                 .iter()
-                .find(|d| film::same_file(d, &test) || film::same_file(d, &reference))
+                .find(|d| image::same_file(d, &test) || image::same_file(d, &reference))
             {
                 anyhow::bail!("{}: --diff would overwrite an input image", d.display());
             }
-            let t = film::Image::read_exr(&test)?;
-            let r = film::Image::read_exr(&reference)?;
+            let t = image::Image::read_exr(&test)?;
+            let r = image::Image::read_exr(&reference)?;
             let e = metrics::error(&t, &r, metric)?;
             let ratio = metrics::mean_ratio(&t, &r);
             let scale = match &diff {

@@ -1,7 +1,7 @@
 //! `canopy compare`: error metrics between a test image and a reference, and a
 //! false-colour difference image.
 
-use crate::film::{write_png_rgb, Image};
+use crate::image::{write_png_rgb, Image};
 use anyhow::{bail, Result};
 use std::path::Path;
 

@@ -12,7 +12,7 @@ fn cone(
     arc: &std::path::Path,
     out: &std::path::Path,
     extra: &[&str],
-) -> (canopy::film::Image, serde_json::Value) {
+) -> (canopy::image::Image, serde_json::Value) {
     render(arc, out, &[&["--integrator", "cone"], extra].concat())
 }
 
@@ -300,7 +300,7 @@ fn obj_scene(dir: &std::path::Path, files: &[(&str, String)], name: &str) -> std
 const CAUSTIC: [usize; 4] = [14, 26, 54, 66];
 
 /// Mean of a window of an image's first channel.
-fn window_mean(img: &canopy::film::Image, w: [usize; 4]) -> (f64, Vec<f64>) {
+fn window_mean(img: &canopy::image::Image, w: [usize; 4]) -> (f64, Vec<f64>) {
     let v: Vec<f64> = (w[2]..w[3])
         .flat_map(|y| (w[0]..w[1]).map(move |x| (x, y)))
         .map(|(x, y)| img.pixels[y * img.width as usize + x][0] as f64)

@@ -2,7 +2,7 @@
 //! the memory budget, hard numerical cases and bad input.
 
 mod common;
-use canopy::film::Image;
+use canopy::image::Image;
 use common::*;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};

@@ -1,7 +1,6 @@
 //! Integrators and the scene state they share.
 
 pub mod cone;
-pub mod light_pass;
 pub mod path;
 
 use crate::camera::Camera;

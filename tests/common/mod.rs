@@ -1,7 +1,7 @@
 #![allow(dead_code)]
 //! Helpers shared by the integration tests.
 
-use canopy::film::Image;
+use canopy::image::Image;
 use std::path::{Path, PathBuf};
 use std::process::Output;
 

@@ -7,7 +7,7 @@
 //! Allocation failure aborts the process, which the caller sees as a crash.
 
 use anyhow::{Context, Result};
-use canopy::build::{convert, ConvertOptions};
+use canopy::convert::{convert, ConvertOptions};
 use canopy::render::{render, Integrator, LightPass, RenderOptions};
 use canopy_format::records::*;
 use std::path::{Path, PathBuf};

@@ -23,9 +23,9 @@ fn bunny(dir: &Path) -> Parts {
     std::fs::write(&scene, "[[camera]]\nposition = [0.0, 0.1, 0.4]\nlook_at = [0.0, 0.1, 0.0]\n\n[[light]]\ntype = \"point\"\nposition = [0.0, 0.3, 0.3]\nintensity = 1.0\n").unwrap();
     let out = dir.join("bunny.canopy");
     let mut o =
-        canopy::build::ConvertOptions::new(vec![root.join("scenes/bunny.ply")], out.clone());
+        canopy::convert::ConvertOptions::new(vec![root.join("scenes/bunny.ply")], out.clone());
     o.scene = Some(scene);
-    canopy::build::convert(&o).unwrap();
+    canopy::convert::convert(&o).unwrap();
     Parts::read(&out).unwrap()
 }
 

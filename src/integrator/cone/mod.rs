@@ -26,9 +26,11 @@
 //! primary hit comes back apart from the rest, so the renderer can average it over more of
 //! the pixel where the pixel straddles a lamp's silhouette (`seen_emission`).
 
-use super::path::power_heuristic;
-use super::{bsdf_term, sample_light, Counters, Receiver, Scene};
-use crate::build::MAX_LEAF_TRIS;
+pub mod light_pass;
+
+use crate::integrator::path::power_heuristic;
+use crate::integrator::{bsdf_term, sample_light, Counters, Receiver, Scene};
+use crate::convert::MAX_LEAF_TRIS;
 use crate::material::{cosine_hemisphere, Frame};
 use crate::paging::{TriW, CHILD_PAGE, INNER, KIND_MASK, LEAF};
 use crate::radiance::{weighted_mean, RadianceStore, SCREEN_LIMIT};

@@ -124,7 +124,7 @@ impl TriangleSink for Spill {
 /// Refuses an output path that names one of the inputs or the scene file.
 fn refuse_overwriting_an_input(opts: &ConvertOptions) -> Result<()> {
     for input in opts.inputs.iter().chain(&opts.scene) {
-        if crate::film::same_file(input, &opts.output) {
+        if crate::image::same_file(input, &opts.output) {
             bail!(
                 "{}: the output would overwrite the input {}",
                 opts.output.display(),

@@ -12,8 +12,8 @@
 //! has nothing to move down, and the pull after each pass carries the caustic light up to
 //! the nodes wide cones stop at (`cone::pull`).
 
-use super::cone::{cell_of, cell_size, cells, grid, tri_key, GRID};
-use super::Scene;
+use super::{cell_of, cell_size, cells, grid, tri_key, GRID};
+use crate::integrator::Scene;
 use crate::material::{cosine_hemisphere, Frame};
 use crate::radiance::RadianceStore;
 use crate::sampler::PixelSampler;

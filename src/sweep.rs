@@ -2,7 +2,7 @@
 //! `canopy eval` (error against time for each integrator). Both write CSV, an SVG plot
 //! (plotters) and, for `eval`, a Markdown table with c = RMSE·√seconds per row.
 
-use crate::film::{write_atomically, Image};
+use crate::image::{write_atomically, Image};
 use crate::metrics::{error, Metric};
 use crate::render::{render, Integrator, RenderOptions, RenderStats};
 use anyhow::{bail, Context, Result};

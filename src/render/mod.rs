@@ -1,8 +1,9 @@
 //! `canopy render`: an archive to an image under a memory budget.
 
 use crate::camera::Camera;
-use crate::film::{check_writable, same_file, Image};
-use crate::integrator::{cone, light_pass, path, Counters, NodeSet, Scene};
+use crate::image::{check_writable, same_file, Image};
+use crate::integrator::cone::{self, light_pass};
+use crate::integrator::{path, Counters, NodeSet, Scene};
 use crate::light::Lights;
 use crate::material::Material;
 use crate::paging::{Page, PageCache, CHILD_PAGE, INNER, KIND_MASK};
@@ -516,7 +517,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     };
     if let Some(p) = &o.stats {
         let json = serde_json::to_string_pretty(&stats)?;
-        crate::film::write_atomically(p, |tmp| Ok(std::fs::write(tmp, json)?))?;
+        crate::image::write_atomically(p, |tmp| Ok(std::fs::write(tmp, json)?))?;
     }
     Ok((img, stats))
 }
