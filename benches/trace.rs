@@ -2,8 +2,8 @@
 //! through the scene camera, and incoherent rays (closest hit and any hit) from points on
 //! surfaces in random directions, as a path tracer's bounces are.
 
-use canopy::convert::{convert, ConvertOptions};
 use canopy::camera::Camera;
+use canopy::convert::{convert, ConvertOptions};
 use canopy::paging::PageCache;
 use canopy::trace::{Ray, Tracer};
 use canopy_format::Archive;

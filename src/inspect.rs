@@ -107,63 +107,75 @@ pub fn verify(a: &Archive, s: &mut Summary, show_progress: bool) -> Result<()> {
     Ok(())
 }
 
-pub fn print(s: &Summary) {
-    let mib = |b: u64| b as f64 / (1 << 20) as f64;
-    println!("{}", s.path);
-    println!("  format version      {}", s.version);
-    println!("  node size           {} bytes", s.node_bytes);
-    println!("  input triangles     {}", s.input_triangles);
-    println!(
-        "  stored triangles    {} ({} vertices)",
-        s.triangles, s.vertices
-    );
-    println!("  nodes               {} (depth {})", s.nodes, s.depth);
-    println!(
-        "  pages               {} ({:.0} nodes per page)",
-        s.pages, s.mean_nodes_per_page
-    );
-    println!(
+impl std::fmt::Display for Summary {
+    fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        let s = self;
+        let mib = |b: u64| b as f64 / (1 << 20) as f64;
+        writeln!(f, "{}", s.path)?;
+        writeln!(f, "  format version      {}", s.version)?;
+        writeln!(f, "  node size           {} bytes", s.node_bytes)?;
+        writeln!(f, "  input triangles     {}", s.input_triangles)?;
+        writeln!(
+            f,
+            "  stored triangles    {} ({} vertices)",
+            s.triangles, s.vertices
+        )?;
+        writeln!(f, "  nodes               {} (depth {})", s.nodes, s.depth)?;
+        writeln!(
+            f,
+            "  pages               {} ({:.0} nodes per page)",
+            s.pages, s.mean_nodes_per_page
+        )?;
+        writeln!(f,
         "  size on disk        {:.2} MiB ({:.1} bytes per node, {:.1} bytes per input triangle)",
         mib(s.file_bytes),
         s.bytes_per_node_on_disk,
         s.bytes_per_input_triangle
-    );
-    println!(
-        "  decoded size        {:.2} MiB (compression ratio {:.2})",
-        mib(s.decoded_bytes),
-        s.compression_ratio
-    );
-    println!(
-        "  pages per path      mean {:.2}, max {} ({})",
-        s.mean_pages_per_path, s.max_pages_per_path, s.pages_per_path_method
-    );
-    println!(
-        "  features            {}",
-        if s.features.is_empty() {
-            "none".to_string()
-        } else {
-            s.features.join(", ")
+    )?;
+        writeln!(
+            f,
+            "  decoded size        {:.2} MiB (compression ratio {:.2})",
+            mib(s.decoded_bytes),
+            s.compression_ratio
+        )?;
+        writeln!(
+            f,
+            "  pages per path      mean {:.2}, max {} ({})",
+            s.mean_pages_per_path, s.max_pages_per_path, s.pages_per_path_method
+        )?;
+        writeln!(
+            f,
+            "  features            {}",
+            if s.features.is_empty() {
+                "none".to_string()
+            } else {
+                s.features.join(", ")
+            }
+        )?;
+        writeln!(
+            f,
+            "  materials           {}: {}",
+            s.materials.len(),
+            s.materials.join(", ")
+        )?;
+        writeln!(
+            f,
+            "  cameras             {}",
+            if s.cameras.is_empty() {
+                "none".to_string()
+            } else {
+                s.cameras.join(", ")
+            }
+        )?;
+        writeln!(f, "  punctual lights     {}", s.lights)?;
+        writeln!(
+            f,
+            "  bounds              {:?} .. {:?}",
+            s.bounds_min, s.bounds_max
+        )?;
+        if s.verified {
+            writeln!(f, "  verify              ok: every page decodes, checksums match, links and bounds are consistent")?;
         }
-    );
-    println!(
-        "  materials           {}: {}",
-        s.materials.len(),
-        s.materials.join(", ")
-    );
-    println!(
-        "  cameras             {}",
-        if s.cameras.is_empty() {
-            "none".to_string()
-        } else {
-            s.cameras.join(", ")
-        }
-    );
-    println!("  punctual lights     {}", s.lights);
-    println!(
-        "  bounds              {:?} .. {:?}",
-        s.bounds_min, s.bounds_max
-    );
-    if s.verified {
-        println!("  verify              ok: every page decodes, checksums match, links and bounds are consistent");
+        Ok(())
     }
 }

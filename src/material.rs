@@ -65,6 +65,11 @@ impl Material {
         }
     }
 
+    /// A single-sided opaque surface hit from behind absorbs: nothing reflects there.
+    pub fn absorbs(&self, front: bool) -> bool {
+        !front && !self.double_sided && self.transmission == 0.0
+    }
+
     /// Lambertian only: the cone integrator stores light on these and the light pass
     /// leaves caustics on them.
     pub fn is_pure_diffuse(&self) -> bool {

@@ -138,3 +138,46 @@ mod tests {
         assert!(error(&img(&[[0.0; 3], [0.0; 3]]), &r, Metric::Mse).is_err());
     }
 }
+
+/// `canopy compare`'s result.
+#[derive(Debug, serde::Serialize)]
+pub struct Comparison {
+    pub metric: Metric,
+    pub error: f64,
+    pub mean_test: [f64; 3],
+    pub mean_reference: [f64; 3],
+    pub mean_relative_difference: [f64; 3],
+    /// The luminance difference shown as full red in `--diff`, when one was written.
+    pub diff_scale: Option<f64>,
+}
+
+impl Comparison {
+    /// `test` against `reference`, writing the false-colour difference to `diff` if given.
+    pub fn new(
+        test: &Image,
+        reference: &Image,
+        metric: Metric,
+        diff: Option<&Path>,
+    ) -> Result<Comparison> {
+        Ok(Comparison {
+            metric,
+            error: error(test, reference, metric)?,
+            mean_test: test.mean(),
+            mean_reference: reference.mean(),
+            mean_relative_difference: mean_ratio(test, reference),
+            diff_scale: diff.map(|p| write_diff(test, reference, p)).transpose()?,
+        })
+    }
+}
+
+impl std::fmt::Display for Comparison {
+    fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        let r = self.mean_relative_difference;
+        writeln!(f, "{:?}: {:.6e}", self.metric, self.error)?;
+        write!(
+            f,
+            "mean: test {:?}, reference {:?}, relative difference {:+.4} {:+.4} {:+.4}",
+            self.mean_test, self.mean_reference, r[0], r[1], r[2]
+        )
+    }
+}

@@ -3,8 +3,9 @@
 //! (plotters) and, for `eval`, a Markdown table with c = RMSE·√seconds per row.
 
 use crate::image::{write_atomically, Image};
+use crate::integrator::{cone::ConeSettings, Kind, Settings};
 use crate::metrics::{error, Metric};
-use crate::render::{render, Integrator, RenderOptions, RenderStats};
+use crate::render::{render, RenderOptions, RenderStats};
 use anyhow::{bail, Context, Result};
 use plotters::prelude::*;
 use std::fmt::Write as _;
@@ -80,11 +81,21 @@ fn write_text(path: &Path, text: &str) -> Result<()> {
 }
 
 /// Settings shared by the sweeps: everything of a render (archive included) but the
-/// output, size and time.
+/// output, size and time, and the cone integrator's settings for sweeps that run it.
 #[derive(Clone)]
 pub struct SweepOptions {
     pub out_dir: PathBuf,
     pub base: RenderOptions,
+    pub cone: ConeSettings,
+}
+
+impl SweepOptions {
+    fn settings(&self, kind: Kind) -> Settings {
+        match kind {
+            Kind::Path => Settings::Path,
+            Kind::Cone => Settings::Cone(self.cone.clone()),
+        }
+    }
 }
 
 fn render_into(
@@ -128,8 +139,8 @@ pub fn npp(o: &SweepOptions, resolutions: &[u32]) -> Result<Vec<NppRow>> {
             pixels: s.width as u64 * s.height as u64,
             unique_nodes: s.unique_nodes_touched,
             nodes_per_pixel: s.nodes_per_pixel,
-            pages_touched: s.pages_touched,
-            resident_bytes_peak: s.resident_bytes_peak,
+            pages_touched: s.cache.pages_touched,
+            resident_bytes_peak: s.cache.resident_bytes_peak,
             seconds: s.seconds.render,
         };
         writeln!(
@@ -172,9 +183,38 @@ pub fn npp(o: &SweepOptions, resolutions: &[u32]) -> Result<Vec<NppRow>> {
     Ok(rows)
 }
 
+impl NppRow {
+    pub const HEADER: &str = "pixels      unique nodes  nodes/pixel  pages  resident MiB  seconds";
+}
+
+impl std::fmt::Display for NppRow {
+    fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        write!(
+            f,
+            "{:>10}  {:>12}  {:>11.2}  {:>5}  {:>12.1}  {:>7.2}",
+            self.pixels,
+            self.unique_nodes,
+            self.nodes_per_pixel,
+            self.pages_touched,
+            self.resident_bytes_peak as f64 / 1048576.0,
+            self.seconds
+        )
+    }
+}
+
+impl std::fmt::Display for EvalRow {
+    fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        write!(
+            f,
+            "{:?} {:>6.1}s: {} spp, RMSE {:.4e}, c {:.4e}",
+            self.integrator, self.seconds, self.spp, self.rmse, self.c
+        )
+    }
+}
+
 #[derive(Debug, serde::Serialize)]
 pub struct EvalRow {
-    pub integrator: Integrator,
+    pub integrator: Kind,
     pub budget_seconds: f64,
     pub seconds: f64,
     pub spp: u32,
@@ -187,7 +227,7 @@ pub struct EvalRow {
 pub fn eval(
     o: &SweepOptions,
     reference: &Path,
-    integrators: &[Integrator],
+    integrators: &[Kind],
     times: &[Duration],
 ) -> Result<Vec<EvalRow>> {
     std::fs::create_dir_all(&o.out_dir)
@@ -198,7 +238,7 @@ pub fn eval(
         for &t in times {
             let name = format!("eval_{i:?}_{}s", t.as_secs_f64()).to_lowercase();
             let (img, s) = render_into(o, &name, |ro| {
-                ro.integrator = i;
+                ro.integrator = o.settings(i);
                 ro.time = Some(t);
                 ro.width = Some(r.width);
                 ro.height = Some(r.height);
@@ -261,12 +301,9 @@ pub fn eval(
 pub fn time_to_match(rows: &[EvalRow]) -> Option<String> {
     let target = rows
         .iter()
-        .filter(|r| r.integrator == Integrator::Path)
+        .filter(|r| r.integrator == Kind::Path)
         .max_by(|a, b| a.seconds.total_cmp(&b.seconds))?;
-    let cone: Vec<&EvalRow> = rows
-        .iter()
-        .filter(|r| r.integrator == Integrator::Cone)
-        .collect();
+    let cone: Vec<&EvalRow> = rows.iter().filter(|r| r.integrator == Kind::Cone).collect();
     let mut cone = cone;
     cone.sort_by(|a, b| a.seconds.total_cmp(&b.seconds));
     let first = cone.first()?;

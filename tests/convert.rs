@@ -278,7 +278,7 @@ fn cluster_attributes_are_area_weighted_means_of_their_triangles() {
 /// kind from the flags, the links, the decoded box; and each triangle into its vertices.
 #[test]
 fn decoded_pages_keep_every_node_kind_and_link() {
-    use canopy::paging::{Page, CHILD_PAGE, INNER, KIND_MASK, LEAF};
+    use canopy::paging::{NodeRef, Page};
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("b.canopy");
     ok(&[
@@ -300,18 +300,20 @@ fn decoded_pages_keep_every_node_kind_and_link() {
             (a.pages[pg as usize].first_node, c.nodes.len())
         );
         for (n, t) in c.nodes.iter().zip(&p.bvh) {
-            let (kind, link) = (t.a & KIND_MASK, t.a & !KIND_MASK);
             let want = if n.is_leaf() {
                 kinds[0] += 1;
-                (LEAF, n.link[0], n.link[1])
+                NodeRef::Leaf {
+                    first: n.link[0],
+                    count: n.link[1],
+                }
             } else if n.has_child_page() {
                 kinds[1] += 1;
-                (CHILD_PAGE, n.link[0], t.b)
+                NodeRef::ChildPage(n.link[0])
             } else {
                 kinds[2] += 1;
-                (INNER, n.link[0], n.link[1])
+                NodeRef::Inner(n.link[0], n.link[1])
             };
-            assert_eq!((kind, link, t.b), want, "page {pg}");
+            assert_eq!(t.link(), want, "page {pg}");
             assert_eq!((t.lo, t.hi), a.grid(pg).dequant_box(&n.bounds));
         }
         for (tri, w) in c.tris.iter().zip(&p.tris) {

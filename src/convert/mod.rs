@@ -92,6 +92,33 @@ pub struct ConvertReport {
     pub seconds_total: f64,
 }
 
+impl std::fmt::Display for ConvertReport {
+    /// Two lines: what was made, then where the time went.
+    fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        let per_s = self.input_triangles as f64 / self.seconds_total.max(1e-9);
+        writeln!(
+            f,
+            "{} triangles -> {} nodes in {} pages ({} chunk{}), {:.2} MiB, {:.1} bytes/triangle",
+            self.input_triangles,
+            self.nodes,
+            self.pages,
+            self.chunks,
+            if self.chunks == 1 { "" } else { "s" },
+            self.archive_bytes as f64 / (1 << 20) as f64,
+            self.archive_bytes as f64 / self.input_triangles.max(1) as f64
+        )?;
+        write!(
+            f,
+            "  {:.2} s (import {:.2}, partition {:.2}, build {:.2}), {:.2} M triangles/s",
+            self.seconds_total,
+            self.seconds_import,
+            self.seconds_partition,
+            self.seconds_build,
+            per_s / 1e6
+        )
+    }
+}
+
 struct Spill {
     out: SpillWriter,
     count: u64,

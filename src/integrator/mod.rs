@@ -1,4 +1,8 @@
 //! Integrators and the scene state they share.
+//!
+//! The driver (`render`) knows integrators only through `Integrator`: per pass it calls
+//! `begin_pass`, then `sample` for every sample of every pixel (in parallel, by tiles), then
+//! `end_pass` — pbrt-v4's `ImageTileIntegrator::Render` → `EvaluatePixelSample` → `Li`.
 
 pub mod cone;
 pub mod path;
@@ -7,11 +11,114 @@ use crate::camera::Camera;
 use crate::light::Lights;
 use crate::material::{Bsdf, Frame, Material};
 use crate::paging::PageCache;
-use crate::trace::{offset_origin, Cone, Tracer};
+use crate::sampler::PixelSampler;
+use crate::trace::{offset_origin, Cone, Ray, Tracer};
 use glam::Vec3A as V;
 use path::power_heuristic;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::Arc;
+
+/// `--integrator`: which estimator renders.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Kind {
+    /// Exact path tracing of the leaf triangles: the ground truth.
+    Path,
+    /// Cone casts that stop at the level of detail the cone resolves, with diffuse light
+    /// stored per node and reused (004 §4.5–4.8).
+    Cone,
+}
+
+/// An integrator with its own parameters.
+#[derive(Clone, Debug)]
+pub enum Settings {
+    Path,
+    Cone(cone::ConeSettings),
+}
+
+impl Settings {
+    pub fn kind(&self) -> Kind {
+        match self {
+            Settings::Path => Kind::Path,
+            Settings::Cone(_) => Kind::Cone,
+        }
+    }
+
+    /// The part of a memory budget the integrator keeps for its own state (the pages get
+    /// the rest): a quarter for the cone integrator's stored light.
+    pub fn state_share(&self, budget: u64) -> u64 {
+        match self {
+            Settings::Path => 0,
+            Settings::Cone(_) => budget / 4,
+        }
+    }
+
+    pub fn build(&self, scene: &Scene, target: &Target) -> Box<dyn Integrator> {
+        match self {
+            Settings::Path => Box::new(path::PathIntegrator),
+            Settings::Cone(c) => Box::new(cone::ConeIntegrator::new(c, scene, target)),
+        }
+    }
+}
+
+/// What a render produces, as the integrators need to know it.
+pub struct Target {
+    pub seed: u32,
+    /// Pixels of the full image.
+    pub pixels: u64,
+    /// Width and height of the window rendered (`--crop`, else the image).
+    pub window: [u32; 2],
+    /// Bytes the integrator's state may take (None: unbounded).
+    pub state_bytes: Option<u64>,
+}
+
+/// One sample of one pixel, as the driver hands it out.
+pub struct PixelSample {
+    pub x: u32,
+    pub y: u32,
+    /// The pixel's index in the window rendered.
+    pub at: usize,
+    /// Sample number within the pixel.
+    pub index: u32,
+    pub sampler: PixelSampler,
+    /// The camera ray through the sample's position in the pixel.
+    pub ray: Ray,
+}
+
+/// Statistics an integrator adds to the render's (flattened into its JSON).
+#[derive(Clone, Debug, serde::Serialize)]
+#[serde(untagged)]
+pub enum Stats {
+    Path {},
+    Cone(cone::ConeStats),
+}
+
+pub trait Integrator: Send + Sync {
+    /// Samples per pixel one pass takes when `spp` are asked for (the driver takes one per
+    /// pass under a time limit).
+    fn pass_samples(&self, spp: u32) -> u32 {
+        spp
+    }
+    /// Before the pass of samples `first..first + count`; returns the rays it traced.
+    fn begin_pass(&mut self, _scene: &Scene, _first: u32, _count: u32) -> u64 {
+        0
+    }
+    /// Radiance of one pixel sample.
+    fn sample(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample, c: &mut Counters) -> V;
+    /// After a pass, `done` samples per pixel in all.
+    fn end_pass(&mut self, _scene: &Scene, _done: u32) {}
+    /// What ran and why, for the stats' `passes`.
+    fn passes(&self) -> Vec<String>;
+    fn stats(&self) -> Stats;
+    /// Bytes of state it holds besides the page cache, and of it per pixel.
+    fn state_bytes(&self) -> [u64; 2] {
+        [0, 0]
+    }
+    /// Parts of the render time it accounts for, by name.
+    fn seconds(&self) -> Vec<(&'static str, f64)> {
+        Vec::new()
+    }
+}
 
 pub struct Scene {
     pub cache: Arc<PageCache>,
@@ -22,8 +129,14 @@ pub struct Scene {
     pub max_depth: Option<u32>,
     /// One bit per node of the archive: leaves hit (ancestors are added at the end).
     pub touched: NodeSet,
-    /// Pages whose stored light changed since the last pull (cone integrator).
-    pub dirty: Vec<std::sync::atomic::AtomicBool>,
+}
+
+impl Scene {
+    /// Whether a hit at `depth` (segments before it, from 0) is on the last segment
+    /// `--max-depth` allows: it keeps the emission it sees and scatters nothing.
+    pub fn last_segment(&self, depth: u32) -> bool {
+        self.max_depth.is_some_and(|m| depth + 1 >= m)
+    }
 }
 
 /// Per-thread counters, summed once per tile.

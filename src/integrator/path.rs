@@ -7,7 +7,7 @@
 //! seed. Emitters are one-sided unless their material is double-sided; a single-sided
 //! opaque surface hit from behind absorbs.
 
-use super::{bsdf_term, sample_light, Counters, Receiver, Scene};
+use super::{bsdf_term, sample_light, Counters, Integrator, PixelSample, Receiver, Scene, Stats};
 use crate::material::Frame;
 use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Cone, Ray, Tracer};
@@ -20,6 +20,22 @@ pub fn power_heuristic(a: f32, b: f32) -> f32 {
         a2 / (a2 + b2)
     } else {
         0.0
+    }
+}
+
+pub struct PathIntegrator;
+
+impl Integrator for PathIntegrator {
+    fn sample(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample, c: &mut Counters) -> V {
+        radiance(scene, tr, px.ray, &px.sampler, c)
+    }
+
+    fn passes(&self) -> Vec<String> {
+        vec!["path: eye paths with next-event estimation and MIS".into()]
+    }
+
+    fn stats(&self) -> Stats {
+        Stats::Path {}
     }
 }
 
@@ -61,17 +77,15 @@ pub fn radiance(
             if prev_delta {
                 l += beta * le;
             } else {
-                let cos_l = ng.dot(wo).abs();
                 let dist2 = (hit.t * ray.d.length()).powi(2);
                 let light_pdf =
-                    scene.lights.pick_pdf(prev.0, prev.1, &hit.tri.p) * dist2 / (cos_l * area);
+                    scene
+                        .lights
+                        .pdf_li(prev, &hit.tri.p, dist2, ng.dot(wo).abs(), area);
                 l += beta * le * power_heuristic(prev_pdf, light_pdf);
             }
         }
-        if scene.max_depth.is_some_and(|d| depth + 1 >= d) {
-            break;
-        }
-        if !front && !m.double_sided && m.transmission == 0.0 {
+        if scene.last_segment(depth) || m.absorbs(front) {
             break;
         }
         let (p, err) = hit.point();

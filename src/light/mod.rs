@@ -7,7 +7,7 @@
 //! flag, so a huge scene with a few lamps loads a few pages.
 
 use crate::material::{cosine_hemisphere, luminance, Frame, Material};
-use crate::paging::{Page, CHILD_PAGE, INNER, KIND_MASK, LEAF};
+use crate::paging::{NodeRef, Page};
 use crate::trace::{offset_origin, Ray};
 use anyhow::Result;
 use canopy_format::{Archive, LightRecord, NodeFlags};
@@ -146,11 +146,9 @@ impl Lights {
             if node.flags & NodeFlags::EMISSIVE == 0 {
                 continue;
             }
-            let t = page.bvh[ni as usize];
-            let a = t.a & !KIND_MASK;
-            match t.a & KIND_MASK {
-                LEAF => {
-                    for tri in &page.tris[a as usize..(a + t.b) as usize] {
+            match page.bvh[ni as usize].link() {
+                NodeRef::Leaf { first, count } => {
+                    for tri in &page.tris[first as usize..(first + count) as usize] {
                         let m = &materials[tri.material as usize];
                         if !m.is_emissive() {
                             continue;
@@ -162,13 +160,12 @@ impl Lights {
                         ));
                     }
                 }
-                INNER => stack.extend([(pi, a), (pi, t.b)]),
-                CHILD_PAGE => {
-                    pages.push(Page::decode(archive, a)?);
+                NodeRef::Inner(l, r) => stack.extend([(pi, l), (pi, r)]),
+                NodeRef::ChildPage(child) => {
+                    pages.push(Page::decode(archive, child)?);
                     let at = pages.len() as u32 - 1;
                     stack.extend([(at, 0), (at, 1)]);
                 }
-                _ => {}
             }
         }
         let punctual = archive
@@ -286,11 +283,25 @@ impl Lights {
 
     /// Probability that `sample` from `p` with normal `n` chooses the lamp triangle with
     /// these vertices (for MIS when a BSDF sample hits it).
-    pub fn pick_pdf(&self, p: V, n: V, vertices: &[[f32; 3]; 3]) -> f32 {
+    fn pick_pdf(&self, p: V, n: V, vertices: &[[f32; 3]; 3]) -> f32 {
         let key = vertex_key(&vertices.map(V::from));
         self.by_vertices
             .get(&key)
             .map_or(0.0, |&i| self.tree.pmf(p, n, i as usize))
+    }
+
+    /// Solid-angle pdf with which `sample` from `p` (normal `n`) picks the point a BSDF
+    /// sample hit on the lamp triangle `vertices`, `dist2` away, seen at |cos| `cos_l` on a
+    /// triangle of `area`: MIS weighs the hit's emission with it.
+    pub fn pdf_li(
+        &self,
+        (p, n): (V, V),
+        vertices: &[[f32; 3]; 3],
+        dist2: f32,
+        cos_l: f32,
+        area: f32,
+    ) -> f32 {
+        self.pick_pdf(p, n, vertices) * dist2 / (cos_l * area)
     }
 
     /// Samples a light for shading point `p` on a surface with normal `n` (zero: a point
@@ -557,7 +568,7 @@ mod tests {
             let verts = e.p.map(|v| v.to_array());
             let d2 = (q - p).length_squared();
             let cos_l = ls.wi.dot(e.n).abs();
-            let hit_pdf = lights.pick_pdf(p, n, &verts) * d2 / (cos_l * e.area);
+            let hit_pdf = lights.pdf_li((p, n), &verts, d2, cos_l, e.area);
             assert!(
                 (hit_pdf / ls.pdf - 1.0).abs() < 1e-3,
                 "light sample pdf {} against the hit's {hit_pdf}",

@@ -25,24 +25,68 @@ const TRIM_EVERY: u64 = 1024;
 /// Pages this many levels from the root are pinned.
 pub const PIN_LEVELS: u16 = 2;
 
-/// Traversal view of a node: decoded bounds and links.
+/// Traversal view of a node: decoded bounds and links. The link is packed (kind in the top
+/// two bits of `a`) so the node is 32 bytes; read it through `link`.
 #[derive(Clone, Copy, Debug, Default)]
 #[repr(C, align(32))]
 pub struct TNode {
     pub lo: [f32; 3],
-    /// Kind in the top two bits (`INNER`, `LEAF`, `CHILD_PAGE`), then a child index, first
-    /// triangle, or page number.
-    pub a: u32,
+    a: u32,
     pub hi: [f32; 3],
-    /// Second child, or triangle count.
-    pub b: u32,
+    b: u32,
 }
 const _: () = assert!(std::mem::size_of::<TNode>() == 32);
 
-pub const KIND_MASK: u32 = 3 << 30;
-pub const INNER: u32 = 0;
-pub const LEAF: u32 = 1 << 30;
-pub const CHILD_PAGE: u32 = 2 << 30;
+const KIND_MASK: u32 = 3 << 30;
+const LEAF: u32 = 1 << 30;
+const CHILD_PAGE: u32 = 2 << 30;
+
+/// Where a node leads: the one reading of the page encoding's links.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum NodeRef {
+    /// Two children in the same page, by index.
+    Inner(u32, u32),
+    /// Triangles `first..first + count` of the page.
+    Leaf { first: u32, count: u32 },
+    /// The subtree continues in this page, whose roots 0 and 1 are the node's children.
+    ChildPage(u32),
+}
+
+impl TNode {
+    /// `link`'s indices must be below 2^30 (the decoder checks).
+    fn new(lo: [f32; 3], hi: [f32; 3], link: NodeRef) -> TNode {
+        let (a, b) = match link {
+            NodeRef::Inner(l, r) => (l, r),
+            NodeRef::Leaf { first, count } => (LEAF | first, count),
+            NodeRef::ChildPage(p) => (CHILD_PAGE | p, 0),
+        };
+        TNode { lo, a, hi, b }
+    }
+
+    #[inline]
+    pub fn link(&self) -> NodeRef {
+        let x = self.a & !KIND_MASK;
+        match self.a & KIND_MASK {
+            LEAF => NodeRef::Leaf {
+                first: x,
+                count: self.b,
+            },
+            CHILD_PAGE => NodeRef::ChildPage(x),
+            _ => NodeRef::Inner(x, self.b),
+        }
+    }
+}
+
+/// `pages` ordered deepest level first and grouped by level: a page's children come before
+/// it, and the pages of one group are independent of each other.
+pub fn deepest_first(archive: &Archive, mut pages: Vec<u32>) -> Vec<Vec<u32>> {
+    let level = |i: &u32| archive.pages[*i as usize].level;
+    pages.sort_by_key(|i| std::cmp::Reverse(level(i)));
+    pages
+        .chunk_by(|a, b| level(a) == level(b))
+        .map(<[u32]>::to_vec)
+        .collect()
+}
 
 /// A triangle with its vertices expanded, as intersection wants it.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -80,14 +124,17 @@ impl Page {
             .iter()
             .map(|n| {
                 let (lo, hi) = grid.dequant_box(&n.bounds);
-                let (a, b) = if n.flags & NodeFlags::LEAF != 0 {
-                    (LEAF | n.link[0], n.link[1])
+                let link = if n.flags & NodeFlags::LEAF != 0 {
+                    NodeRef::Leaf {
+                        first: n.link[0],
+                        count: n.link[1],
+                    }
                 } else if n.flags & NodeFlags::CHILD_PAGE != 0 {
-                    (CHILD_PAGE | n.link[0], 0)
+                    NodeRef::ChildPage(n.link[0])
                 } else {
-                    (INNER | n.link[0], n.link[1])
+                    NodeRef::Inner(n.link[0], n.link[1])
                 };
-                TNode { lo, a, hi, b }
+                TNode::new(lo, hi, link)
             })
             .collect::<Vec<_>>();
         let tris: Vec<TriW> = c
@@ -150,7 +197,9 @@ struct Slot {
 pub struct CacheStats {
     pub pages_loaded: u64,
     pub pages_evicted: u64,
+    #[serde(rename = "cache_hits")]
     pub hits: u64,
+    #[serde(rename = "cache_misses")]
     pub misses: u64,
     pub bytes_decoded: u64,
     pub resident_bytes_peak: u64,
@@ -306,8 +355,10 @@ impl PageCache {
         // Children of a page just needed are likely next; hint them while a finite budget
         // has room (without a budget, speculation would only grow memory).
         if self.budget != u64::MAX && self.resident.load(Relaxed) < self.budget / 4 * 3 {
-            for n in page.bvh.iter().filter(|n| n.a & KIND_MASK == CHILD_PAGE) {
-                self.prefetch(n.a & !KIND_MASK);
+            for n in &page.bvh {
+                if let NodeRef::ChildPage(c) = n.link() {
+                    self.prefetch(c);
+                }
             }
         }
         page

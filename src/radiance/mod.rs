@@ -7,8 +7,14 @@
 //! so the hit triangle's own albedo multiplies it: a leaf mixes up to 8 triangles and their
 //! materials, and the average incident light is what they share.
 
+mod keys;
+mod pull;
+
+pub use keys::{tri_area, Keys, CELLS, CELL_FRACTION, GRID};
+pub use pull::pull;
+
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicU32, AtomicU64, AtomicUsize, Ordering::Relaxed};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering::Relaxed};
 use std::sync::Mutex;
 
 const SHARDS: usize = 64;
@@ -66,6 +72,8 @@ pub struct RadianceStore {
     photons: AtomicU64,
     /// Eye passes begun.
     passes: AtomicU32,
+    /// Per page: whether stored light under it changed since the last pull.
+    dirty: Vec<AtomicBool>,
 }
 
 /// On-screen samples after which a cell's indirect mean is final: the pixel sees it
@@ -77,8 +85,9 @@ pub const SCREEN_LIMIT: u32 = 1024;
 pub const ENTRY_BYTES: u64 = 92;
 
 impl RadianceStore {
-    /// `max_bytes`: the store's share of the memory budget (None: unbounded).
-    pub fn new(limit: u32, max_bytes: Option<u64>) -> RadianceStore {
+    /// `max_bytes`: the store's share of the memory budget (None: unbounded); `pages`: the
+    /// archive's page count.
+    pub fn new(limit: u32, max_bytes: Option<u64>, pages: usize) -> RadianceStore {
         RadianceStore {
             shards: (0..SHARDS).map(|_| Mutex::new(HashMap::new())).collect(),
             limit: limit.max(1),
@@ -87,7 +96,22 @@ impl RadianceStore {
             refused: AtomicU64::new(0),
             photons: AtomicU64::new(0),
             passes: AtomicU32::new(0),
+            dirty: (0..pages).map(|_| AtomicBool::new(false)).collect(),
         }
+    }
+
+    /// Notes that stored light under `page` changed.
+    pub fn mark_dirty(&self, page: u32) {
+        if let Some(d) = self.dirty.get(page as usize) {
+            d.store(true, Relaxed);
+        }
+    }
+
+    /// The pages marked since the last call, in page order.
+    pub fn take_dirty(&self) -> Vec<u32> {
+        (0..self.dirty.len() as u32)
+            .filter(|&i| self.dirty[i as usize].swap(false, Relaxed))
+            .collect()
     }
 
     /// The entry for `node`, created if the budget has room.
@@ -268,7 +292,7 @@ mod tests {
 
     #[test]
     fn counter_saturates_and_stops_accumulating() {
-        let s = RadianceStore::new(4, None);
+        let s = RadianceStore::new(4, None, 0);
         for i in 0..10 {
             let (avg, conv) = s.add(7, [i as f32; 3]);
             assert_eq!(conv, i >= 3, "sample {i}");
@@ -286,7 +310,7 @@ mod tests {
 
     #[test]
     fn on_screen_samples_keep_their_indirect_part_apart() {
-        let s = RadianceStore::new(2, None);
+        let s = RadianceStore::new(2, None, 0);
         assert_eq!(s.visit(5).unwrap().visits, 1);
         for i in 0..4 {
             let e = s
@@ -305,7 +329,7 @@ mod tests {
 
     #[test]
     fn a_full_store_keeps_what_it_has_and_refuses_new_nodes() {
-        let s = RadianceStore::new(100, Some(2 * ENTRY_BYTES));
+        let s = RadianceStore::new(100, Some(2 * ENTRY_BYTES), 0);
         s.add(1, [1.0; 3]);
         s.add(2, [2.0; 3]);
         // A third node does not fit: its sample comes back unstored.

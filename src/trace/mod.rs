@@ -7,7 +7,7 @@
 //! floating-point error bound of the hit point (pbrt-v4 §6.8), which grows with the point's
 //! magnitude instead of being a fixed epsilon.
 
-use crate::paging::{Page, PageCache, TNode, TriW, CHILD_PAGE, INNER, KIND_MASK, LEAF};
+use crate::paging::{NodeRef, Page, PageCache, TNode, TriW};
 use canopy_format::Node;
 use glam::Vec3A as V;
 use std::sync::Arc;
@@ -46,7 +46,10 @@ pub struct Hit {
 
 impl Hit {
     fn new(page: &Page, leaf: u32, index: u32, t: f32, b: [f32; 3]) -> Hit {
-        let first = page.bvh[leaf as usize].a & !KIND_MASK;
+        let first = match page.bvh[leaf as usize].link() {
+            NodeRef::Leaf { first, .. } => first,
+            _ => index,
+        };
         Hit {
             t,
             b,
@@ -355,12 +358,10 @@ impl<'a> Tracer<'a> {
                     continue;
                 }
             }
-            let kind = node.a & KIND_MASK;
-            let a = node.a & !KIND_MASK;
-            let (l, r) = match kind {
-                LEAF => {
-                    let end = (a + node.b).min(page.tris.len() as u32);
-                    for ti in a..end {
+            let (l, r) = match node.link() {
+                NodeRef::Leaf { first, count } => {
+                    let end = (first + count).min(page.tris.len() as u32);
+                    for ti in first..end {
                         if let Some((t, b)) = prep.tri_hit(&page.tris[ti as usize], t_max) {
                             on_tri(page, ni, ti, t, b);
                             found = true;
@@ -372,15 +373,14 @@ impl<'a> Tracer<'a> {
                     }
                     continue;
                 }
-                INNER => (a, node.b),
-                CHILD_PAGE => {
-                    cur = self.page(a);
+                NodeRef::Inner(l, r) => (l, r),
+                NodeRef::ChildPage(child) => {
+                    cur = self.page(child);
                     if self.held(cur).roots < 2 {
                         continue;
                     }
                     (0, 1)
                 }
-                _ => continue,
             };
             let page = self.held(cur);
             let (Some(ln), Some(rn)) = (page.bvh.get(l as usize), page.bvh.get(r as usize)) else {

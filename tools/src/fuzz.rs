@@ -8,7 +8,9 @@
 
 use anyhow::{Context, Result};
 use canopy::convert::{convert, ConvertOptions};
-use canopy::render::{render, Integrator, LightPass, RenderOptions};
+use canopy::integrator::cone::ConeSettings;
+use canopy::integrator::Settings;
+use canopy::render::{render, RenderOptions};
 use canopy_format::records::*;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -288,7 +290,7 @@ fn rewire(p: &mut Parts, rng: &mut Rng) {
 }
 
 /// Options for a tiny render of `archive` into `dir`.
-pub fn tiny_render(archive: &Path, dir: &Path, integrator: Integrator) -> RenderOptions {
+pub fn tiny_render(archive: &Path, dir: &Path, integrator: Settings) -> RenderOptions {
     RenderOptions {
         archive: archive.to_path_buf(),
         output: dir.join("r.exr"),
@@ -307,13 +309,18 @@ pub fn tiny_render(archive: &Path, dir: &Path, integrator: Integrator) -> Render
         exposure: 1.0,
         stats: None,
         progress: false,
-        cone_scale: 1.0,
-        diffuse_tan: 0.03,
-        cone_samples: 64,
-        light_pass: LightPass::Auto,
+    }
+}
+
+/// Both integrators, the cone one with small settings for tiny renders.
+pub fn integrators() -> [Settings; 2] {
+    let cone = ConeSettings {
+        samples: 64,
         photons: Some(64),
         edge_rays: 2,
-    }
+        ..ConeSettings::default()
+    };
+    [Settings::Path, Settings::Cone(cone)]
 }
 
 /// Open, verify every page, and render with both integrators. Errors are fine; the caller
@@ -323,7 +330,7 @@ pub fn exercise_archive(path: &Path, dir: &Path) -> Result<()> {
     let mut s = canopy::inspect::summarize(&a);
     let verified = canopy::inspect::verify(&a, &mut s, false);
     drop(a);
-    for integrator in [Integrator::Path, Integrator::Cone] {
+    for integrator in integrators() {
         render(&tiny_render(path, dir, integrator))?;
     }
     verified

@@ -3,7 +3,7 @@
 //! hang). Each case here passed every check, or panicked or hung, before the reader
 //! validated structure.
 
-use canopy::render::{render, Integrator};
+use canopy::render::render;
 use canopy_format::{Archive, Node, NodeFlags};
 use canopy_tools::fuzz::{self, Parts};
 use std::path::Path;
@@ -47,7 +47,7 @@ fn first_error(path: &Path, dir: &Path) -> Option<String> {
     if let Err(e) = canopy::inspect::verify(&a, &mut s, false) {
         return Some(format!("{e:#}"));
     }
-    for i in [Integrator::Path, Integrator::Cone] {
+    for i in fuzz::integrators() {
         if let Err(e) = render(&fuzz::tiny_render(path, dir, i)) {
             return Some(format!("{e:#}"));
         }
@@ -304,9 +304,9 @@ fn a_dag_inside_a_page_is_refused_when_read() {
         panic!("the DAG page was accepted");
     };
     assert!(format!("{err}").contains("child of two nodes"), "{err}");
-    for i in [Integrator::Path, Integrator::Cone] {
-        let Err(err) = render(&fuzz::tiny_render(&path, dir.path(), i)) else {
-            panic!("{i:?}: the DAG archive rendered");
+    for i in fuzz::integrators() {
+        let Err(err) = render(&fuzz::tiny_render(&path, dir.path(), i.clone())) else {
+            panic!("{:?}: the DAG archive rendered", i.kind());
         };
         assert!(
             format!("{err:#}").contains(&format!("page {pg}")),

@@ -10,18 +10,16 @@
 //!
 //! Photons are exact rays, so every deposit lands on a leaf triangle: the push of §4.8.2
 //! has nothing to move down, and the pull after each pass carries the caustic light up to
-//! the nodes wide cones stop at (`cone::pull`).
+//! the nodes wide cones stop at (`radiance::pull`).
 
-use super::{cell_of, cell_size, cells, grid, tri_key, GRID};
 use crate::integrator::Scene;
 use crate::material::{cosine_hemisphere, Frame};
-use crate::radiance::RadianceStore;
+use crate::radiance::{Keys, RadianceStore, GRID};
 use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Hit, Ray, Tracer};
 use glam::Vec3A as V;
 use rayon::prelude::*;
 use std::f32::consts::PI;
-use std::sync::atomic::Ordering::Relaxed;
 
 /// Specular bounces a photon follows at most.
 const MAX_BOUNCES: u32 = 16;
@@ -43,12 +41,11 @@ pub struct LightPassStats {
 pub fn light_pass(
     scene: &Scene,
     store: &RadianceStore,
+    keys: Keys,
     photons: u32,
     pass: u32,
     seed: u32,
 ) -> LightPassStats {
-    let h = &scene.cache.archive.header;
-    let cell_size = cell_size(h);
     let chunks: Vec<u32> = (0..photons.div_ceil(CHUNK)).collect();
     let (rays, deposits) = chunks
         .par_iter()
@@ -58,7 +55,7 @@ pub fn light_pass(
             for i in c * CHUNK..((c + 1) * CHUNK).min(photons) {
                 // Photon i of every pass is sample `pass` of sequence i.
                 let s = PixelSampler::new(seed ^ 0x9e37_79b9, i, pass);
-                deposits += trace_photon(scene, store, &mut tr, &s, cell_size) as u64;
+                deposits += trace_photon(scene, store, keys, &mut tr, &s) as u64;
             }
             scene.cache.add_lookups(tr.page_lookups);
             (tr.rays, deposits)
@@ -72,9 +69,9 @@ pub fn light_pass(
 fn trace_photon(
     scene: &Scene,
     store: &RadianceStore,
+    keys: Keys,
     tr: &mut Tracer,
     s: &PixelSampler,
-    cell_size: f32,
 ) -> bool {
     let [u_pick, u0, u1, u2] = s.get4(0);
     let [u3, u4, ..] = s.get4(1);
@@ -90,14 +87,14 @@ fn trace_photon(
         let ng = hit.ng().normalize_or_zero();
         let wo = -ray.d;
         let front = ng.dot(wo) > 0.0;
-        if ng == V::ZERO || (!front && !m.double_sided && m.transmission == 0.0) {
+        if ng == V::ZERO || m.absorbs(front) {
             return false;
         }
         let n = if front { ng } else { -ng };
         if m.is_pure_diffuse() {
             // Direct light (no specular bounce yet) is the eye pass's next-event estimate.
             if bounce > 0 {
-                deposit(scene, store, tr, &hit, n, flux, cell_size);
+                deposit(scene, store, keys, tr, &hit, n, flux);
             }
             return bounce > 0;
         }
@@ -143,31 +140,30 @@ fn trace_photon(
 fn deposit(
     scene: &Scene,
     store: &RadianceStore,
+    keys: Keys,
     tr: &mut Tracer,
     hit: &Hit,
     n: V,
     flux: V,
-    cell_size: f32,
 ) {
-    let cell = cell_of(&hit.tri, hit.b, cell_size);
-    let key = tri_key(hit.leaf, hit.slot, cell);
+    let cell = keys.cell_of(&hit.tri, hit.b);
+    let key = keys.tri(hit.leaf, hit.slot, cell);
     let visible = match store.get(key).map(|e| e.visible) {
         Some(v) if v > 0.0 => v,
         _ => {
-            let v = visible_fraction(scene, tr, hit, n, cell, cell_size);
+            let v = visible_fraction(scene, tr, hit, n, cell, keys.grid(&hit.tri));
             store.set_visible(key, v);
             v
         }
     };
-    let area = cells(&hit.tri, cell_size)
+    let area = keys
+        .cells(&hit.tri)
         .find(|&(c, _)| c == cell)
         .map_or(0.0, |(_, a)| a)
         * visible;
     if area > 0.0 {
         store.add_caustic(key, (flux / (PI * area)).to_array());
-        if let Some(d) = scene.dirty.get(hit.page as usize) {
-            d.store(true, Relaxed);
-        }
+        store.mark_dirty(hit.page);
         scene.touched.insert(hit.leaf);
     }
 }
@@ -177,16 +173,8 @@ fn deposit(
 /// point lies inside a closed object (a floor under a box standing on it). The thesis
 /// needed this for overlapping surfels; with exact triangles only such buried parts
 /// remain. Never below one sample's worth, since a photon did reach the cell.
-fn visible_fraction(
-    scene: &Scene,
-    tr: &mut Tracer,
-    hit: &Hit,
-    n: V,
-    cell: u64,
-    cell_size: f32,
-) -> f32 {
+fn visible_fraction(scene: &Scene, tr: &mut Tracer, hit: &Hit, n: V, cell: u64, side: f32) -> f32 {
     let p = hit.tri.p.map(V::from);
-    let side = grid(&hit.tri, cell_size);
     let (ci, cj) = ((cell / GRID) as f32, (cell % GRID) as f32);
     let frame = Frame::new(n);
     let k = (VISIBILITY_RAYS as f32).sqrt() as u32;

@@ -1,0 +1,39 @@
+use anyhow::{bail, Result};
+use canopy::image::{same_file, Image};
+use canopy::metrics::{Comparison, Metric};
+use clap::Args;
+use std::path::PathBuf;
+
+/// Compare two images: an error metric, the mean ratio, and a false-colour difference.
+#[derive(Args)]
+pub struct CompareArgs {
+    test: PathBuf,
+    reference: PathBuf,
+    #[arg(long, value_enum, default_value_t = Metric::Rmse)]
+    metric: Metric,
+    /// Write a false-colour |luminance difference| PNG (black none, red the 99th percentile).
+    #[arg(long)]
+    diff: Option<PathBuf>,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+pub fn run(a: CompareArgs) -> Result<()> {
+    if let Some(d) = a
+        .diff
+        .iter()
+        .find(|d| same_file(d, &a.test) || same_file(d, &a.reference))
+    {
+        bail!("{}: --diff would overwrite an input image", d.display());
+    }
+    let t = Image::read_exr(&a.test)?;
+    let r = Image::read_exr(&a.reference)?;
+    let c = Comparison::new(&t, &r, a.metric, a.diff.as_deref())?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&c)?);
+    } else {
+        println!("{c}");
+    }
+    Ok(())
+}

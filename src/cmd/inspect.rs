@@ -1,0 +1,30 @@
+use anyhow::Result;
+use canopy::inspect;
+use clap::Args;
+use std::path::PathBuf;
+
+/// Summarize an archive: counts, sizes, compression, features, pages per path.
+#[derive(Args)]
+pub struct InspectArgs {
+    archive: PathBuf,
+    /// Decompress every page and check checksums, links, bounds and counts.
+    #[arg(long)]
+    verify: bool,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    json: bool,
+}
+
+pub fn run(a: InspectArgs, progress: bool) -> Result<()> {
+    let archive = canopy_format::Archive::open(&a.archive)?;
+    let mut s = inspect::summarize(&archive);
+    if a.verify {
+        inspect::verify(&archive, &mut s, progress)?;
+    }
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&s)?);
+    } else {
+        print!("{s}");
+    }
+    Ok(())
+}

@@ -1,0 +1,132 @@
+//! The command line: one module per subcommand, each a function over its parsed arguments;
+//! what they print is the `Display` of the library's result types.
+
+mod compare;
+mod convert;
+mod inspect;
+mod render;
+mod sweep;
+
+use anyhow::Result;
+use canopy::integrator::cone::ConeSettings;
+use canopy::integrator::{Kind, Settings};
+use canopy::units;
+use clap::parser::ValueSource;
+use clap::{ArgMatches, Args, CommandFactory, FromArgMatches, Parser, Subcommand};
+
+/// Canopy: an out-of-core streaming renderer for scenes bigger than the machine.
+#[derive(Parser)]
+#[command(version, about, long_about = None)]
+pub struct Cli {
+    /// No progress bars (they are also off when stderr is not a terminal).
+    #[arg(long, global = true)]
+    quiet: bool,
+    #[command(subcommand)]
+    cmd: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    Convert(convert::ConvertArgs),
+    Render(render::RenderArgs),
+    Npp(sweep::NppArgs),
+    Eval(sweep::EvalArgs),
+    Compare(compare::CompareArgs),
+    Inspect(inspect::InspectArgs),
+}
+
+/// Render settings shared by `render`, `npp` and `eval`.
+#[derive(Args, Clone)]
+struct RenderSettings {
+    /// `path`: exact path tracing of the leaf triangles (the ground truth); `cone`: cone
+    /// casts with level of detail and diffuse light stored per node.
+    #[arg(long, value_enum, default_value_t = Kind::Path)]
+    integrator: Kind,
+    /// Memory for decoded pages and per-node state, e.g. 256MiB (default: unlimited).
+    #[arg(long, value_parser = units::parse_size)]
+    mem_budget: Option<u64>,
+    /// Camera name (default: the first camera).
+    #[arg(long)]
+    camera: Option<String>,
+    /// Seed of the sample sequences.
+    #[arg(long, default_value_t = 0)]
+    seed: u32,
+    /// Worker threads (default: all cores; at most 16 per core).
+    #[arg(long, value_parser = units::parse_threads)]
+    threads: Option<usize>,
+    /// Longest path in segments (1: only emitters seen directly); default unbounded.
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
+    max_depth: Option<u32>,
+    #[command(flatten)]
+    cone: ConeSettings,
+}
+
+impl RenderSettings {
+    fn settings(&self, kind: Kind) -> Settings {
+        match kind {
+            Kind::Path => Settings::Path,
+            Kind::Cone => Settings::Cone(self.cone.clone()),
+        }
+    }
+}
+
+/// pbrt-v4's `ReportUnused`: a flag of an integrator that will not run is an error (exit
+/// status 2) naming it, not silently ignored.
+fn reject_unused(sub: &ArgMatches, kinds: &[Kind]) {
+    let flags: [(Kind, clap::Command); 1] = [(
+        Kind::Cone,
+        ConeSettings::augment_args(clap::Command::new("cone")),
+    )];
+    for (kind, cmd) in flags {
+        if kinds.contains(&kind) {
+            continue;
+        }
+        for arg in cmd.get_arguments() {
+            if sub.value_source(arg.get_id().as_str()) == Some(ValueSource::CommandLine) {
+                let flag = arg.get_long().unwrap_or_else(|| arg.get_id().as_str());
+                let chosen: Vec<String> = kinds
+                    .iter()
+                    .map(|k| format!("{k:?}").to_lowercase())
+                    .collect();
+                Cli::command()
+                    .error(
+                        clap::error::ErrorKind::ArgumentConflict,
+                        format!(
+                            "--{flag} applies to --integrator {}, not {}",
+                            format!("{kind:?}").to_lowercase(),
+                            chosen.join(", ")
+                        ),
+                    )
+                    .exit();
+            }
+        }
+    }
+}
+
+/// Parses the command line (exiting with status 2 on bad arguments) and runs it.
+pub fn run() -> Result<()> {
+    let matches = Cli::command().get_matches();
+    let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
+    let show = canopy::progress::wanted(cli.quiet);
+    let sub = matches
+        .subcommand()
+        .map(|(_, m)| m)
+        .expect("a subcommand is required");
+    match cli.cmd {
+        Cmd::Convert(a) => convert::run(a, show),
+        Cmd::Render(a) => {
+            reject_unused(sub, &[a.settings.integrator]);
+            render::run(a, show)
+        }
+        Cmd::Npp(a) => {
+            reject_unused(sub, &[a.settings.integrator]);
+            sweep::npp(a, show)
+        }
+        Cmd::Eval(a) => {
+            reject_unused(sub, &a.integrators);
+            sweep::eval(a, show)
+        }
+        Cmd::Compare(a) => compare::run(a),
+        Cmd::Inspect(a) => inspect::run(a, show),
+    }
+}

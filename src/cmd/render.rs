@@ -1,0 +1,103 @@
+use super::RenderSettings;
+use anyhow::Result;
+use canopy::render::{render, RenderOptions};
+use canopy::units;
+use clap::Args;
+use std::path::PathBuf;
+
+/// Render an archive to a linear OpenEXR image (and a PNG preview) under a memory budget.
+///
+/// Pages are decoded on demand into a cache bounded by --mem-budget; the top pages stay
+/// pinned. The same archive, settings and seed give the same image whatever the thread
+/// count. `-o x.png` writes x.png and x.exr beside it.
+#[derive(Args)]
+pub struct RenderArgs {
+    archive: PathBuf,
+    /// Output image: .exr, or .png (which also writes the .exr).
+    #[arg(short, long)]
+    output: PathBuf,
+    #[command(flatten)]
+    pub settings: RenderSettings,
+    /// Samples per pixel.
+    #[arg(long, default_value_t = 64)]
+    spp: u32,
+    /// Render until this much time is spent (e.g. 90s, 5m) instead of a fixed --spp.
+    #[arg(long, value_parser = units::parse_duration)]
+    time: Option<std::time::Duration>,
+    /// Image width (default: the scene's, else 512 high at the camera's aspect).
+    #[arg(long)]
+    width: Option<u32>,
+    /// Image height.
+    #[arg(long)]
+    height: Option<u32>,
+    /// Render only the window X0,X1,Y0,Y1 (pixels, half-open); the image is the window.
+    #[arg(long, value_parser = parse_crop)]
+    crop: Option<[u32; 4]>,
+    /// Also write a tone-mapped sRGB PNG beside the EXR.
+    #[arg(long)]
+    preview: bool,
+    /// Scale applied before tone mapping the PNG.
+    #[arg(long, default_value_t = 1.0, value_parser = units::parse_non_negative)]
+    exposure: f32,
+    /// Write render statistics as JSON here.
+    #[arg(long)]
+    stats: Option<PathBuf>,
+}
+
+impl RenderSettings {
+    /// Options for a render of `archive` to `output`; the rest at their defaults.
+    pub(super) fn options(
+        &self,
+        archive: PathBuf,
+        output: PathBuf,
+        spp: u32,
+        progress: bool,
+    ) -> RenderOptions {
+        RenderOptions {
+            archive,
+            output,
+            integrator: self.settings(self.integrator),
+            spp,
+            time: None,
+            mem_budget: self.mem_budget,
+            width: None,
+            height: None,
+            camera: self.camera.clone(),
+            seed: self.seed,
+            threads: self.threads,
+            max_depth: self.max_depth,
+            crop: None,
+            preview: false,
+            exposure: 1.0,
+            stats: None,
+            progress,
+        }
+    }
+}
+
+pub fn run(a: RenderArgs, progress: bool) -> Result<()> {
+    let opts = RenderOptions {
+        time: a.time,
+        width: a.width,
+        height: a.height,
+        crop: a.crop,
+        preview: a.preview,
+        exposure: a.exposure,
+        stats: a.stats,
+        ..a.settings
+            .options(a.archive, a.output.clone(), a.spp, progress)
+    };
+    let (_, s) = render(&opts)?;
+    println!("{}: {s}", a.output.display());
+    Ok(())
+}
+
+fn parse_crop(s: &str) -> Result<[u32; 4]> {
+    let bad = || anyhow::anyhow!("'{s}' is not X0,X1,Y0,Y1 (four whole numbers)");
+    let v: Vec<u32> = s
+        .split(',')
+        .map(|x| x.trim().parse::<u32>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| bad())?;
+    v.try_into().map_err(|_| bad())
+}

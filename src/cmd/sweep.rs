@@ -1,0 +1,86 @@
+use super::RenderSettings;
+use anyhow::Result;
+use canopy::integrator::Kind;
+use canopy::sweep::{self, NppRow, SweepOptions};
+use canopy::units;
+use clap::Args;
+use std::path::{Path, PathBuf};
+
+/// Nodes per pixel: render at several resolutions and count the unique nodes touched
+/// (leaves hit and their ancestors, 004 §5.2). Writes npp.csv and npp.svg.
+#[derive(Args)]
+pub struct NppArgs {
+    archive: PathBuf,
+    /// Image heights to render (widths follow the camera's aspect).
+    #[arg(long, value_delimiter = ',', default_value = "32,64,128,256,512")]
+    resolutions: Vec<u32>,
+    /// Samples per pixel at each resolution.
+    #[arg(long, default_value_t = 1)]
+    spp: u32,
+    /// Directory for the CSV, the plot and the images.
+    #[arg(short, long, default_value = "npp")]
+    output: PathBuf,
+    #[command(flatten)]
+    pub settings: RenderSettings,
+}
+
+/// Speed against error: render each integrator for each time budget, compare with a
+/// reference; writes eval.csv, eval.svg (log-log) and eval.md with c = RMSE·√s.
+#[derive(Args)]
+pub struct EvalArgs {
+    archive: PathBuf,
+    /// Reference image (a long path-traced render or a Mitsuba 3 render).
+    #[arg(long)]
+    reference: PathBuf,
+    #[arg(long, value_delimiter = ',', default_value = "path,cone")]
+    pub integrators: Vec<Kind>,
+    /// Time budgets.
+    #[arg(long, value_delimiter = ',', value_parser = units::parse_duration, default_value = "5s,15s,60s")]
+    times: Vec<std::time::Duration>,
+    /// Directory for the CSV, the plot, the table and the images.
+    #[arg(short, long, default_value = "eval")]
+    output: PathBuf,
+    #[command(flatten)]
+    settings: RenderSettings,
+}
+
+/// Renders of `archive` written under `dir`.
+fn sweep_options(
+    s: &RenderSettings,
+    archive: PathBuf,
+    dir: &Path,
+    spp: u32,
+    progress: bool,
+) -> SweepOptions {
+    SweepOptions {
+        out_dir: dir.to_path_buf(),
+        base: s.options(archive, dir.join("x.exr"), spp, progress),
+        cone: s.cone.clone(),
+    }
+}
+
+pub fn npp(a: NppArgs, progress: bool) -> Result<()> {
+    let o = sweep_options(&a.settings, a.archive, &a.output, a.spp, progress);
+    println!("{}", NppRow::HEADER);
+    for r in sweep::npp(&o, &a.resolutions)? {
+        println!("{r}");
+    }
+    println!("wrote {}/npp.csv and npp.svg", a.output.display());
+    Ok(())
+}
+
+pub fn eval(a: EvalArgs, progress: bool) -> Result<()> {
+    let o = sweep_options(&a.settings, a.archive, &a.output, 1, progress);
+    let rows = sweep::eval(&o, &a.reference, &a.integrators, &a.times)?;
+    for r in &rows {
+        println!("{r}");
+    }
+    if let Some(line) = sweep::time_to_match(&rows) {
+        println!("{line}");
+    }
+    println!(
+        "wrote {}/eval.csv, eval.svg and eval.md",
+        a.output.display()
+    );
+    Ok(())
+}

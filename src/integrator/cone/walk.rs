@@ -1,0 +1,594 @@
+//! One cone path: a loop over one path state. Each hit is an event — stop, a bounce, or a
+//! diffuse hit whose light is stored — and every bounce goes through `Path::bounce`, which
+//! applies `--max-depth`'s count, Russian roulette and the throughput the same way for
+//! triangles, clusters and diffuse surfaces.
+
+use super::cluster::{hit_emission, phong_lobe, reflect_lut, theta_norm};
+use super::optics::{bent_tan, jitter};
+use super::{ConeIntegrator, FRESH, ON_SCREEN_MIN, SCREEN_FLOOR, SCREEN_QUOTA};
+use crate::integrator::path::power_heuristic;
+use crate::integrator::{bsdf_term, sample_light, Counters, Receiver, Scene};
+use crate::material::{cosine_hemisphere, Frame};
+use crate::radiance::{RadianceStore, SCREEN_LIMIT};
+use crate::sampler::PixelSampler;
+use crate::trace::{gamma, offset_origin, Cone, ConeHit, Hit, Ray, Tracer};
+use canopy_format::codec::{snorm16_decode, unorm8_decode};
+use canopy_format::{Node as NodeRecord, NodeFlags};
+use glam::Vec3A as V;
+
+/// What one bounce needs to finish once the rest of the path is known.
+struct Pending {
+    /// Store key when this bounce's diffuse light is stored.
+    node: Option<u64>,
+    /// Page holding that node.
+    page: u32,
+    /// Radiance gathered here independent of the continuation: emission and light samples.
+    direct: V,
+    emission: V,
+    albedo: V,
+    /// Caustic light arriving here (E/π) from the light pass.
+    caustic: V,
+    /// Continuation weight (BSDF value · cos / pdf, roulette included).
+    weight: V,
+    diffuse: bool,
+}
+
+/// A hit as shading sees it, with the bounce's sample numbers: sets 2k+1 (light choice,
+/// light point, lobe) and 2k+2 (direction, roulette, jitter).
+struct Here {
+    p: V,
+    /// The error bound of `p`.
+    err: V,
+    /// Unit geometric normal; zero on a node.
+    ng: V,
+    /// Toward the viewer.
+    wo: V,
+    front: bool,
+    pick: f32,
+    light: [f32; 2],
+    lobe: f32,
+    dir: [f32; 2],
+    rr: f32,
+    jitter: f32,
+}
+
+impl Here {
+    /// None for a degenerate triangle.
+    fn new(hit: &ConeHit, ray: &Ray, s: &PixelSampler, depth: u32) -> Option<Here> {
+        let (p, err, ng) = match hit {
+            ConeHit::Tri(h) => {
+                let area = 0.5 * h.ng().length();
+                if area.is_nan() || area <= 0.0 {
+                    return None;
+                }
+                let (p, err) = h.point();
+                (p, err, h.ng().normalize_or_zero())
+            }
+            ConeHit::Node { t, .. } => {
+                let p = ray.o + ray.d * *t;
+                (p, p.abs() * gamma(7) + V::splat(1e-6), V::ZERO)
+            }
+        };
+        let [pick, l0, l1, lobe] = s.get4(2 * depth + 1);
+        let [d0, d1, rr, jitter] = s.get4(2 * depth + 2);
+        Some(Here {
+            p,
+            err,
+            ng,
+            wo: -ray.d,
+            front: ng.dot(-ray.d) > 0.0,
+            pick,
+            light: [l0, l1],
+            lobe,
+            dir: [d0, d1],
+            rr,
+            jitter,
+        })
+    }
+}
+
+/// How the path leaves a bounce.
+struct Bounce {
+    ray: Ray,
+    cone: Cone,
+    /// A smooth (delta) bounce: emission hit next takes full weight.
+    delta: bool,
+    pdf: f32,
+    /// A diffuse bounce starts a new chain for caustic masking; `smooth` continues one.
+    diffuse: bool,
+    smooth: bool,
+    /// The point and normal the bounce's light sample was chosen from, for MIS.
+    from: Option<(V, V)>,
+}
+
+/// A Lambertian triangle or a cluster's diffuse part: its light is stored.
+struct Diffuse {
+    frame: Frame,
+    albedo: V,
+    key: u64,
+    /// The cluster's normal (its length is the cluster's flatness), None on a triangle.
+    cluster_n: Option<V>,
+    /// Light nearer than this counts as if at this distance.
+    min_dist: f32,
+}
+
+enum Event {
+    Stop,
+    Bounce(Bounce),
+    Diffuse(Diffuse),
+}
+
+/// The state carried from bounce to bounce.
+struct Path {
+    stack: Vec<Pending>,
+    ray: Ray,
+    cone: Cone,
+    /// Light samples test visibility with the primary cone's opening, from the surface.
+    shadow_cone: Cone,
+    depth: u32,
+    prev_delta: bool,
+    prev_pdf: f32,
+    /// The last glossy point and its normal, where its light sample was chosen.
+    prev: (V, V),
+    /// With the light pass on, emission reached from a Lambertian surface through smooth
+    /// bounces only (D S* S L) is the light pass's caustic and masked here (004 §4.7).
+    mask_caustics: bool,
+    smooth_chain: bool,
+}
+
+impl Path {
+    /// Emission the hit sends to the viewer, weighted as the estimator needs it.
+    fn emission(&self, scene: &Scene, hit: &ConeHit, at: &Here) -> V {
+        let le = match hit {
+            ConeHit::Tri(h) => scene.materials[h.tri.material as usize].emitted(at.front),
+            ConeHit::Node { .. } => hit_emission(scene, hit, at.wo),
+        };
+        if le == V::ZERO {
+            return le;
+        }
+        if self.prev_delta {
+            return if self.mask_caustics && self.smooth_chain {
+                V::ZERO
+            } else {
+                le
+            };
+        }
+        match hit {
+            // After a glossy bounce: MIS against the light sample, as the path tracer does;
+            // after a diffuse bounce emission is masked (eq. 4.27).
+            ConeHit::Tri(h) if matches!(self.stack.last(), Some(p) if !p.diffuse) => {
+                let area = 0.5 * h.ng().length();
+                let cos_l = at.ng.dot(at.wo).abs();
+                let lp = scene
+                    .lights
+                    .pdf_li(self.prev, &h.tri.p, h.t * h.t, cos_l, area);
+                le * power_heuristic(self.prev_pdf, lp)
+            }
+            _ => V::ZERO,
+        }
+    }
+
+    /// Takes a bounce: one more segment, the new ray and cone, then Russian roulette on
+    /// the throughput after the second bounce (a survivor's weight divided by its survival
+    /// probability). False when the path ends.
+    fn bounce(&mut self, b: Bounce, u_rr: f32) -> bool {
+        self.prev_delta = b.delta;
+        self.prev_pdf = b.pdf;
+        if let Some(from) = b.from {
+            self.prev = from;
+        }
+        self.smooth_chain = b.diffuse || (self.smooth_chain && b.smooth);
+        self.ray = b.ray;
+        self.cone = b.cone;
+        self.depth += 1;
+        if self.depth <= 1 {
+            return true;
+        }
+        let beta = self.stack.iter().fold(V::ONE, |b, p| {
+            b * p.weight * if p.diffuse { p.albedo } else { V::ONE }
+        });
+        let q = beta.max_element().min(1.0);
+        if q <= 0.0 || u_rr >= q {
+            return false;
+        }
+        if let Some(last) = self.stack.last_mut() {
+            last.weight /= q;
+        }
+        true
+    }
+
+    /// The emission seen at the primary hit goes back apart (the caller may average it
+    /// over more of the pixel); the rest unwinds: each bounce's value is its emission plus
+    /// what it scatters of the next.
+    fn unwind(mut self, store: &RadianceStore) -> (V, V) {
+        let seen = self
+            .stack
+            .first_mut()
+            .map_or(V::ZERO, |b| std::mem::take(&mut b.emission));
+        let mut tail = V::ZERO;
+        while let Some(b) = self.stack.pop() {
+            let incoming = b.direct + b.weight * tail;
+            if b.node.is_some() {
+                store.mark_dirty(b.page);
+            }
+            tail = if b.diffuse {
+                let scattered = match b.node {
+                    // On screen the light sample is the path's own and the indirect part
+                    // the cell's mean once it has a few samples: a final gather from the
+                    // store (§5.8 gathers only from converged nodes). The sample feeds both.
+                    Some(key) if self.stack.len() < FRESH as usize => {
+                        let indirect = b.weight * tail;
+                        store
+                            .add_on_screen(key, incoming.to_array(), indirect.to_array())
+                            .and_then(|e| e.indirect_mean(ON_SCREEN_MIN))
+                            .map_or(incoming, |m| b.direct + V::from(m))
+                    }
+                    Some(key) => V::from(store.add(key, incoming.to_array()).0),
+                    None => b.direct,
+                };
+                b.emission + b.albedo * (scattered + b.caustic)
+            } else {
+                b.emission + incoming
+            };
+        }
+        (tail, seen)
+    }
+}
+
+/// A fresh cone of tan α = `spread` from the surface (r0 = 0: a frustum whose first disc is
+/// the incoming footprint would start rays beside walls and leak light).
+fn widened(cone: &Cone) -> Cone {
+    Cone {
+        r0: 0.0,
+        tan_a: cone.spread,
+        ..*cone
+    }
+}
+
+impl ConeIntegrator {
+    /// Radiance along a primary cone, as (everything but the emission seen at the primary
+    /// hit, that emission).
+    pub(super) fn radiance(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        ray: Ray,
+        s: &PixelSampler,
+        c: &mut Counters,
+    ) -> (V, V) {
+        let mut path = Path {
+            stack: Vec::new(),
+            ray,
+            cone: self.primary,
+            shadow_cone: Cone {
+                r0: 0.0,
+                ..self.primary
+            },
+            depth: 0,
+            prev_delta: true,
+            prev_pdf: 0.0,
+            prev: (V::ZERO, V::ZERO),
+            mask_caustics: self.store.photons() > 0,
+            smooth_chain: false,
+        };
+        loop {
+            let Some(hit) = tr.cone_hit(&path.ray, &path.cone) else {
+                break;
+            };
+            let Some(at) = Here::new(&hit, &path.ray, s, path.depth) else {
+                break;
+            };
+            let (node, page) = match &hit {
+                ConeHit::Tri(h) => (h.leaf, h.page),
+                ConeHit::Node { node, page, .. } => (*node, *page),
+            };
+            scene.touched.insert(node);
+            let mut pend = Pending {
+                node: None,
+                page,
+                direct: V::ZERO,
+                emission: path.emission(scene, &hit, &at),
+                albedo: V::ZERO,
+                caustic: V::ZERO,
+                weight: V::ZERO,
+                diffuse: false,
+            };
+            // `--max-depth` counts segments as the path tracer does: a hit on the last one
+            // keeps the emission it sees and scatters nothing.
+            let event = if scene.last_segment(path.depth) {
+                Event::Stop
+            } else {
+                match &hit {
+                    ConeHit::Tri(h) => self.triangle(scene, tr, &path, h, &at, &mut pend),
+                    ConeHit::Node { node, record, .. } => {
+                        self.cluster(&path, *node, record, &at, &mut pend)
+                    }
+                }
+            };
+            let event = match event {
+                Event::Diffuse(d) => self.diffuse(scene, tr, &path, d, &at, &mut pend),
+                e => e,
+            };
+            path.stack.push(pend);
+            let Event::Bounce(b) = event else {
+                break;
+            };
+            if !path.bounce(b, at.rr) {
+                break;
+            }
+        }
+        c.paths += 1;
+        let (rest, seen) = path.unwind(&self.store);
+        (c.finite(rest), c.finite(seen))
+    }
+
+    /// A leaf triangle: Lambertian ones store light; others take one exact path-tracing
+    /// step, nothing stored.
+    fn triangle(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        path: &Path,
+        h: &Hit,
+        at: &Here,
+        pend: &mut Pending,
+    ) -> Event {
+        let m = &scene.materials[h.tri.material as usize];
+        if m.absorbs(at.front) {
+            return Event::Stop;
+        }
+        let (ng, wo) = (at.ng, at.wo);
+        let n = if at.front { ng } else { -ng };
+        let bsdf = m.bsdf(at.front);
+        if m.is_pure_diffuse() {
+            let cell = self.keys.cell_of(&h.tri, h.b);
+            return Event::Diffuse(Diffuse {
+                frame: Frame::new(n),
+                albedo: bsdf.diffuse,
+                key: self.keys.tri(h.leaf, h.slot, cell),
+                cluster_n: None,
+                min_dist: 0.0,
+            });
+        }
+        let frame = Frame::new(n);
+        let wo_l = frame.to_local(wo);
+        if !bsdf.has_smooth_only() {
+            pend.direct += sample_light(
+                scene,
+                tr,
+                &Receiver::surface(at.p, at.err, ng),
+                &path.shadow_cone,
+                [at.pick, at.light[0], at.light[1]],
+                bsdf_term(frame, bsdf, wo_l),
+            );
+        }
+        let Some(bs) = bsdf.sample(wo_l, at.lobe, at.dir) else {
+            return Event::Stop;
+        };
+        let wi = frame.to_world(bs.wi).normalize();
+        pend.weight = bs.weight;
+        // A smooth surface bends the cone by its curvature (eq. 4.21–4.22) and the
+        // direction is resampled inside the incoming opening (eq. 4.14–4.16, Fig. 7). A
+        // glossy bounce starts a fresh diffuse-width cone.
+        let o = offset_origin(at.p, at.err, ng, wi);
+        let cone = &path.cone;
+        let (o, d, cone) = if bs.delta && cone.scale > 0.0 {
+            let (o, d) = jitter(o, wi, cone, [at.jitter, at.rr]);
+            let kappa = if at.front { h.curvature } else { -h.curvature };
+            let tan_a = bent_tan(cone, h.t, kappa, wo.dot(n), wi.dot(n), bsdf.eta);
+            let bent = Cone {
+                r0: 0.0,
+                tan_a,
+                ..*cone
+            };
+            (o, d, bent)
+        } else {
+            (o, wi, widened(cone))
+        };
+        Event::Bounce(Bounce {
+            ray: Ray {
+                o,
+                d,
+                t_max: f32::INFINITY,
+            },
+            cone,
+            delta: bs.delta,
+            pdf: bs.pdf,
+            diffuse: false,
+            smooth: bs.delta,
+            from: Some((at.p, ng)),
+        })
+    }
+
+    /// A node hit as a whole, shaded with the cluster BRDF (§4.3): reflect with
+    /// p_reflect(Θ), refract with refractiveness·(1 − p_reflect) (eq. 4.1), else diffuse
+    /// (eq. 4.2) with the area-weighted albedo.
+    fn cluster(
+        &self,
+        path: &Path,
+        node: u64,
+        raw: &NodeRecord,
+        at: &Here,
+        pend: &mut Pending,
+    ) -> Event {
+        let wo = at.wo;
+        let nn = V::from(raw.normal.map(snorm16_decode));
+        let len = nn.length();
+        let n = if len > 1e-6 { nn / len } else { wo };
+        let n = if n.dot(wo) < 0.0 { -n } else { n };
+        let mut rho = V::from(raw.diffuse.map(unorm8_decode));
+        if raw.flags & (NodeFlags::GLOSSY | NodeFlags::TRANSMISSIVE) != 0 {
+            let nl = if nn.dot(wo) < 0.0 { -nn } else { nn };
+            let theta = ((1.0 - len) / 4.0 + nl.dot(wo)).clamp(0.0, 1.0);
+            let p_r = reflect_lut(raw.reflectiveness, theta);
+            let p_t = unorm8_decode(raw.refractiveness) * (1.0 - p_r);
+            if at.lobe < p_r + p_t {
+                let (wi, weight, smooth) = if at.lobe < p_r {
+                    let (wi, s) = phong_lobe(n, len, wo, raw.roughness, at.dir);
+                    let tint = V::from(raw.specular_tint.map(unorm8_decode));
+                    (wi, tint, s >= 1e3)
+                } else {
+                    // Through a transmissive cluster: straight on, tinted (its lensing is
+                    // below the level of detail the cone asked for).
+                    let tint = V::from(raw.translucency.map(unorm8_decode));
+                    (-wo, tint, true)
+                };
+                // A near-mirror or glass cluster keeps the cone and stands for a smooth
+                // bounce (its caustics are the light pass's); a glossy one widens the cone.
+                let tan_a = if smooth {
+                    path.cone.tan_a
+                } else {
+                    path.cone.spread
+                };
+                pend.weight = weight;
+                let side = if wi.dot(n) > 0.0 { n } else { wi };
+                return Event::Bounce(Bounce {
+                    ray: Ray {
+                        o: offset_origin(at.p, at.err, side, wi),
+                        d: wi,
+                        t_max: f32::INFINITY,
+                    },
+                    cone: Cone {
+                        r0: 0.0,
+                        tan_a,
+                        ..path.cone
+                    },
+                    delta: true,
+                    pdf: 0.0,
+                    diffuse: false,
+                    smooth,
+                    from: None,
+                });
+            }
+            let p_d = 1.0 - p_r - p_t;
+            rho = if p_d > 1e-3 { rho / p_d } else { V::ZERO };
+        }
+        // A cluster is shaded at its box entry point, which can lie next to a lamp inside
+        // the same box; light closer than the cluster's radius is taken at that radius, as
+        // a disc of that size would receive it (bounded, like clamping virtual point lights).
+        Event::Diffuse(Diffuse {
+            frame: Frame::new(n),
+            albedo: rho,
+            key: self.keys.node(node),
+            cluster_n: Some(if nn.dot(n) < 0.0 { -nn } else { nn }),
+            min_dist: raw.radius,
+        })
+    }
+
+    /// A diffuse hit: adds a fresh sample of its incident light to its store entry (one
+    /// light sample, one cosine-sampled bounce) or, converged, answers from the store.
+    fn diffuse(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        path: &Path,
+        d: Diffuse,
+        at: &Here,
+        pend: &mut Pending,
+    ) -> Event {
+        let store = &self.store;
+        pend.albedo = d.albedo;
+        pend.diffuse = true;
+        pend.node = Some(d.key);
+        let entry = if path.depth == 0 {
+            store.visit(d.key)
+        } else {
+            store.get(d.key)
+        };
+        if path.mask_caustics {
+            pend.caustic = entry
+                .and_then(|e| store.caustic(&e))
+                .map_or(V::ZERO, V::from);
+        }
+        // A converged node answers from its store (§4.6.1); on screen only for its
+        // indirect part, the light sample below stays fresh.
+        if path.depth >= FRESH {
+            if let Some(e) = entry.filter(|e| e.n >= store.limit) {
+                let (v, _) = e.value().unwrap_or(([0.0; 3], 0));
+                pend.node = None;
+                pend.direct = V::from(v);
+                return Event::Stop;
+            }
+        }
+        // Light sample: cos θ, or Θ = (1−|n|)/4 + ⟨n, ω⟩ for a cluster (eq. 4.4). Emission
+        // is masked at the next hit (eq. 4.27), so the light sample takes full weight.
+        let theta = |wi: V| match d.cluster_n {
+            Some(nn) => {
+                let len = nn.length();
+                ((1.0 - len) / 4.0 + nn.dot(wi)).max(0.0) / theta_norm(len)
+            }
+            None => d.frame.n.dot(wi).max(0.0),
+        };
+        let shade_n = if at.ng == V::ZERO { d.frame.n } else { at.ng };
+        let receiver = Receiver {
+            p: at.p,
+            err: at.err,
+            n: shade_n,
+            facing: if d.cluster_n.is_some() {
+                V::ZERO
+            } else {
+                shade_n
+            },
+            min_dist: d.min_dist,
+        };
+        let u = [at.pick, at.light[0], at.light[1]];
+        pend.direct = sample_light(scene, tr, &receiver, &path.shadow_cone, u, |wi| {
+            (V::splat(theta(wi) * std::f32::consts::FRAC_1_PI), 0.0)
+        });
+        // On screen a cell traces only some of its pixels' bounces: it keeps sampling while
+        // it holds fewer than max(SCREEN_FLOOR, SCREEN_QUOTA·√(visits·k)) samples after k
+        // passes, which with P pixels on it is a fraction ∝ 1/√P of their bounces. The
+        // other pixels cost their primary cone and light sample only (the thesis's 4× per
+        // iteration once stored light has converged, §5.8), and the cell's error still
+        // falls with time. 1/√P minimizes error × cost when the light sample's variance
+        // and the indirect light's are alike: err² ∝ 1 + 1/(f·P), cost ∝ 1 + f.
+        if let Some(e) = entry.filter(|e| path.depth == 0 && e.ni >= ON_SCREEN_MIN) {
+            let passes = store.passes() as f32;
+            let quota = SCREEN_FLOOR.max(SCREEN_QUOTA * (e.visits as f32 * passes).sqrt());
+            if e.ni >= SCREEN_LIMIT || e.ni as f32 >= quota {
+                if let Some(ind) = e.indirect_mean(ON_SCREEN_MIN) {
+                    pend.node = None;
+                    pend.direct += V::from(ind);
+                    return Event::Stop;
+                }
+            }
+        }
+        // Cosine-sampled bounce; weight 1 (the albedo is applied when unwinding). Its
+        // direction is already random, so it is not jittered again (eq. 4.20).
+        let wi = d.frame.to_world(cosine_hemisphere(at.dir)).normalize();
+        pend.weight = V::ONE;
+        Event::Bounce(Bounce {
+            ray: Ray {
+                o: offset_origin(at.p, at.err, shade_n, wi),
+                d: wi,
+                t_max: f32::INFINITY,
+            },
+            cone: widened(&path.cone),
+            delta: false,
+            pdf: 0.0,
+            diffuse: true,
+            smooth: true,
+            from: None,
+        })
+    }
+}
+
+/// Emission seen directly along a primary cone: the part of a pixel's value that only
+/// its primary hit decides, which `radiance` returns apart so a pixel on an emitter's
+/// silhouette can average it over more positions than it shades.
+pub fn seen_emission(
+    scene: &Scene,
+    tr: &mut Tracer,
+    ray: &Ray,
+    cone: &Cone,
+    c: &mut Counters,
+) -> V {
+    let Some(hit) = tr.cone_hit(ray, cone) else {
+        return V::ZERO;
+    };
+    scene.touched.insert(match &hit {
+        ConeHit::Tri(h) => h.leaf,
+        ConeHit::Node { node, .. } => *node,
+    });
+    c.finite(hit_emission(scene, &hit, -ray.d))
+}

@@ -1,0 +1,110 @@
+//! Store keys: which node, triangle and light cell a stored value belongs to.
+//!
+//! A leaf keeps light per triangle (its triangles may face different ways) and, on large
+//! triangles, per cell of an n×n grid over the barycentrics, so a wall lit unevenly is not
+//! one average; the leaf's own key gets their area-weighted mean.
+
+use crate::paging::TriW;
+use canopy_format::Header;
+use glam::Vec3A as V;
+
+/// Side of a triangle's light-cell grid at most (16×16 over the barycentrics).
+pub const GRID: u64 = 16;
+pub const CELLS: u64 = GRID * GRID;
+/// Target cell size as a fraction of the scene's bounding diagonal.
+pub const CELL_FRACTION: f32 = 1.0 / 128.0;
+
+/// The key layout of one archive: per node, its own key, then `CELLS` keys for each of a
+/// leaf's at most `max_leaf_triangles` triangles.
+#[derive(Clone, Copy, Debug)]
+pub struct Keys {
+    stride: u64,
+    /// Side of the light cells on large triangles: `CELL_FRACTION` of the scene's diagonal.
+    pub cell_size: f32,
+}
+
+impl Keys {
+    pub fn new(h: &Header) -> Keys {
+        Keys {
+            stride: (h.max_leaf_triangles as u64 + 1) * CELLS,
+            cell_size: (V::from(h.bounds_max) - V::from(h.bounds_min)).length() * CELL_FRACTION,
+        }
+    }
+
+    /// Key of a node's own light.
+    pub fn node(&self, node: u64) -> u64 {
+        node * self.stride
+    }
+
+    /// Key of a cell of the k-th triangle of a leaf.
+    pub fn tri(&self, leaf: u64, k: u32, cell: u64) -> u64 {
+        self.node(leaf) + (1 + k as u64) * CELLS + cell
+    }
+
+    /// Side n of a triangle's n×n cell grid, from its longest edge.
+    pub fn grid(&self, tri: &TriW) -> f32 {
+        let p = tri.p.map(V::from);
+        let edge = (p[1] - p[0])
+            .length()
+            .max((p[2] - p[1]).length())
+            .max((p[0] - p[2]).length());
+        (edge / self.cell_size).ceil().clamp(1.0, GRID as f32)
+    }
+
+    /// Cell of a hit inside its triangle: an n×n grid over (b1, b2).
+    pub fn cell_of(&self, tri: &TriW, b: [f32; 3]) -> u64 {
+        let n = self.grid(tri);
+        let i = (b[1] * n).min(n - 1.0).max(0.0) as u64;
+        let j = (b[2] * n).min(n - 1.0).max(0.0) as u64;
+        i * GRID + j
+    }
+
+    /// The cells of a triangle with their areas: a grid square inside the triangle (i + j ≤
+    /// n − 2) covers 2/n² of its area, one on the diagonal (i + j = n − 1) half that.
+    pub fn cells(&self, tri: &TriW) -> impl Iterator<Item = (u64, f32)> {
+        let n = self.grid(tri) as u64;
+        let full = 2.0 * tri_area(tri) / (n * n) as f32;
+        (0..n).flat_map(move |i| {
+            (0..n - i).map(move |j| (i * GRID + j, if i + j + 1 == n { full / 2.0 } else { full }))
+        })
+    }
+}
+
+pub fn tri_area(tri: &TriW) -> f32 {
+    let p = tri.p.map(V::from);
+    0.5 * (p[1] - p[0]).cross(p[2] - p[0]).length()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cells_partition_the_triangle_and_keys_do_not_collide() {
+        let mut h: Header = bytemuck::Zeroable::zeroed();
+        h.bounds_max = [128.0, 0.0, 0.0];
+        h.max_leaf_triangles = 8;
+        let k = Keys::new(&h);
+        let tri = TriW {
+            p: [[0.0; 3], [5.5, 0.0, 0.0], [0.0, 3.0, 0.0]],
+            material: 0,
+        };
+        assert_eq!(k.grid(&tri), 6.0);
+        let total: f32 = k.cells(&tri).map(|(_, a)| a).sum();
+        assert!((total - tri_area(&tri)).abs() < 1e-4 * total, "{total}");
+        // Every hit lands in a listed cell.
+        for (b1, b2) in [
+            (0.0, 0.0),
+            (0.99, 0.0),
+            (0.0, 0.99),
+            (0.5, 0.49),
+            (0.3, 0.3),
+        ] {
+            let c = k.cell_of(&tri, [1.0 - b1 - b2, b1, b2]);
+            assert!(k.cells(&tri).any(|(x, _)| x == c), "({b1}, {b2}) -> {c}");
+        }
+        // The last cell of the last triangle of node n stays below node n + 1's key.
+        assert!(k.tri(3, 7, CELLS - 1) < k.node(4));
+        assert!(k.tri(3, 0, 0) > k.node(3));
+    }
+}

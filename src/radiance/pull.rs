@@ -1,0 +1,234 @@
+//! Pull (004 §4.8): every inner node of the resident pages whose light changed (and of
+//! their ancestor pages) gets the area-weighted mean of its children's stored light,
+//! deepest pages first so page roots are ready for their parents. Evicted pages are
+//! skipped, not reloaded: their nodes keep the values of the last pull (the store itself
+//! never loses samples).
+
+use super::{weighted_mean, Keys, RadianceStore};
+use crate::paging::{deepest_first, NodeRef, Page, PageCache};
+use rayon::prelude::*;
+
+pub fn pull(cache: &PageCache, store: &RadianceStore, keys: Keys) {
+    let archive = &cache.archive;
+    let mut pages = store.take_dirty();
+    // A changed page changes its parent page's cut node: pull the ancestors too.
+    let mut seen: std::collections::HashSet<u32> = pages.iter().copied().collect();
+    let mut i = 0;
+    while i < pages.len() {
+        let parent = archive.pages[pages[i] as usize].parent_page;
+        if parent != canopy_format::NONE && seen.insert(parent) {
+            pages.push(parent);
+        }
+        i += 1;
+    }
+    for level in deepest_first(archive, pages) {
+        level.par_iter().for_each(|&id| {
+            if let Some(page) = cache.get_resident(id) {
+                pull_page(cache, store, keys, &page);
+            }
+        });
+    }
+}
+
+/// One part a node's light is the mean of: a triangle of a leaf or a child node.
+struct Part {
+    /// Stored diffuse light and the samples behind it (the fewest of its cells).
+    diffuse: Option<([f32; 3], u32)>,
+    caustic: [f32; 3],
+    area: f32,
+}
+
+/// A leaf's triangle: diffuse, the lit cells' means weighted by their samples; caustic,
+/// all cells by area, an unlit cell counting as dark.
+fn triangle_part(
+    store: &RadianceStore,
+    keys: Keys,
+    leaf: u64,
+    k: u32,
+    t: &crate::paging::TriW,
+) -> Part {
+    let cells: Vec<_> = keys
+        .cells(t)
+        .map(|(cell, area)| (store.get(keys.tri(leaf, k, cell)), area))
+        .collect();
+    let lit: Vec<_> = cells
+        .iter()
+        .filter_map(|(e, _)| e.and_then(|e| e.value()))
+        .collect();
+    let diffuse = weighted_mean(lit.iter().map(|&(v, c)| (v, c as f32)))
+        .zip(lit.iter().map(|&(_, c)| c).min());
+    let caustic = weighted_mean(
+        cells
+            .iter()
+            .map(|(e, area)| (e.map_or([0.0; 3], |e| e.caustic), *area)),
+    )
+    .unwrap_or_default();
+    Part {
+        diffuse,
+        caustic,
+        area: super::tri_area(t),
+    }
+}
+
+fn pull_page(cache: &PageCache, store: &RadianceStore, keys: Keys, page: &Page) {
+    let caustics = store.photons() > 0;
+    let node_part = |node: u64, area: f32| {
+        let e = store.get(keys.node(node));
+        Part {
+            diffuse: e.and_then(|e| e.value()),
+            caustic: e.map_or([0.0; 3], |e| e.caustic),
+            area,
+        }
+    };
+    for (i, n) in page.bvh.iter().enumerate().rev() {
+        let here = page.first_node + i as u64;
+        let link = n.link();
+        let parts: Vec<Part> = match link {
+            NodeRef::Leaf { first, count } => (0..count)
+                .filter_map(|k| {
+                    let t = page.tris.get((first + k) as usize)?;
+                    Some(triangle_part(store, keys, here, k, t))
+                })
+                .collect(),
+            NodeRef::Inner(l, r) => [l, r]
+                .map(|c| node_part(page.first_node + c as u64, page.nodes[c as usize].area))
+                .into(),
+            NodeRef::ChildPage(c) => {
+                let Some(child) = cache.get_resident(c) else {
+                    continue;
+                };
+                let (Some(l), Some(r)) = (child.nodes.first(), child.nodes.get(1)) else {
+                    continue;
+                };
+                vec![
+                    node_part(child.first_node, l.area),
+                    node_part(child.first_node + 1, r.area),
+                ]
+            }
+        };
+        // A leaf takes the mean over its lit triangles; an inner node needs both children.
+        let lit = parts.iter().filter(|p| p.diffuse.is_some());
+        let leaf = matches!(link, NodeRef::Leaf { .. });
+        let complete = leaf || parts.iter().all(|p| p.diffuse.is_some());
+        if let (true, Some(samples)) = (
+            complete,
+            lit.clone().filter_map(|p| p.diffuse.map(|d| d.1)).min(),
+        ) {
+            let mean = weighted_mean(lit.filter_map(|p| p.diffuse.map(|d| (d.0, p.area))));
+            if let Some(v) = mean {
+                store.set_pulled(keys.node(here), v, samples);
+            }
+        }
+        if caustics {
+            let c = weighted_mean(parts.iter().map(|p| (p.caustic, p.area))).unwrap_or_default();
+            if c.iter().any(|&v| v > 0.0) {
+                store.set_caustic(keys.node(here), c);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::paging::TriW;
+    use canopy_format::Archive;
+    use std::sync::Arc;
+
+    /// Sum of area·value and of area over the triangles under node `i` of page `pg`, walked
+    /// from the tree itself (not the order or dirty flags `pull` uses).
+    fn subtree(
+        cache: &PageCache,
+        value: &dyn Fn(&TriW) -> [f64; 3],
+        pg: u32,
+        i: u32,
+    ) -> ([f64; 3], f64) {
+        let page = cache.get(pg);
+        let add = |x: ([f64; 3], f64), y: ([f64; 3], f64)| {
+            ([0, 1, 2].map(|k| x.0[k] + y.0[k]), x.1 + y.1)
+        };
+        match page.bvh[i as usize].link() {
+            NodeRef::Inner(l, r) => add(subtree(cache, value, pg, l), subtree(cache, value, pg, r)),
+            NodeRef::ChildPage(c) => add(subtree(cache, value, c, 0), subtree(cache, value, c, 1)),
+            NodeRef::Leaf { first, count } => {
+                (first..first + count).fold(([0.0; 3], 0.0), |acc, k| {
+                    let t = &page.tris[k as usize];
+                    let area = super::super::tri_area(t) as f64;
+                    add(acc, (value(t).map(|x| x * area), area))
+                })
+            }
+        }
+    }
+
+    /// The renderer's pull on the bunny's pages: with every cell of a triangle holding one
+    /// diffuse sample and one caustic deposit of that triangle's own value, each node's
+    /// pulled light, diffuse and caustic, must be the area-weighted mean of the values of
+    /// the triangles below it — the root's times the total area is the scene's energy.
+    #[test]
+    fn pull_gives_every_node_the_area_weighted_mean_of_its_triangles() {
+        let dir = tempfile::tempdir().unwrap();
+        let toml = dir.path().join("s.toml");
+        std::fs::write(
+            &toml,
+            "[[camera]]\nposition = [0.0, 0.1, 0.4]\nlook_at = [0.0, 0.1, 0.0]\n",
+        )
+        .unwrap();
+        let arc = dir.path().join("b.canopy");
+        let bunny = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny.ply");
+        let mut o = crate::convert::ConvertOptions::new(vec![bunny], arc.clone());
+        o.scene = Some(toml);
+        crate::convert::convert(&o).unwrap();
+        let archive = Arc::new(Archive::open(&arc).unwrap());
+        assert!(archive.pages.len() > 10, "{} pages", archive.pages.len());
+        let cache = PageCache::new(Arc::clone(&archive), None, 1).unwrap();
+        let value = |t: &TriW| {
+            let x =
+                ((t.p[0][0] + t.p[1][1] * 7.0 + t.p[2][2] * 13.0) * 97.0).rem_euclid(1.0) as f64;
+            [x, 1.0 - x, 0.25 + x * x]
+        };
+        let keys = Keys::new(&archive.header);
+        let store = RadianceStore::new(1024, None, archive.pages.len());
+        store.add_photons(1);
+        for pg in 0..archive.pages.len() as u32 {
+            let page = cache.get(pg);
+            store.mark_dirty(pg);
+            for (i, n) in page.bvh.iter().enumerate() {
+                let NodeRef::Leaf { first, count } = n.link() else {
+                    continue;
+                };
+                for k in 0..count {
+                    let t = &page.tris[(first + k) as usize];
+                    let v = value(t).map(|x| x as f32);
+                    for (cell, _) in keys.cells(t) {
+                        let key = keys.tri(page.first_node + i as u64, k, cell);
+                        store.add(key, v);
+                        store.add_caustic(key, v);
+                    }
+                }
+            }
+        }
+        pull(&cache, &store, keys);
+        let mut checked = 0;
+        for pg in 0..archive.pages.len() as u32 {
+            let page = cache.get(pg);
+            for i in 0..page.bvh.len() as u32 {
+                let (sum, area) = subtree(&cache, &value, pg, i);
+                let want = sum.map(|s| s / area);
+                let e = store
+                    .get(keys.node(page.first_node + i as u64))
+                    .unwrap_or_else(|| panic!("page {pg} node {i}: nothing pulled"));
+                let (diffuse, _) = e.value().unwrap();
+                for (what, got) in [("diffuse", diffuse), ("caustic", e.caustic)] {
+                    for k in 0..3 {
+                        assert!(
+                            (got[k] as f64 - want[k]).abs() < 1e-4 * want[k].abs().max(0.01),
+                            "page {pg} node {i}: {what} pulled {got:?}, area-weighted mean {want:?}"
+                        );
+                    }
+                }
+                checked += 1;
+            }
+        }
+        assert_eq!(checked as u64, archive.header.nodes);
+    }
+}

@@ -1,0 +1,195 @@
+//! From options to a scene ready to render: outputs checked, archive opened, camera and
+//! window chosen, the memory budget split between pages and the integrator's state.
+
+use super::RenderOptions;
+use crate::camera::Camera;
+use crate::image::{check_writable, same_file};
+use crate::integrator::{NodeSet, Scene};
+use crate::light::Lights;
+use crate::material::Material;
+use crate::paging::PageCache;
+use crate::trace::MAX_DEPTH;
+use anyhow::{bail, Context, Result};
+use canopy_format::{Archive, CameraRecord};
+use glam::Vec3A as V;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+/// Largest image side accepted.
+pub const MAX_SIDE: u32 = 32768;
+
+pub struct Setup {
+    pub exr: PathBuf,
+    pub png: Option<PathBuf>,
+    pub width: u32,
+    pub height: u32,
+    /// x0, x1, y0, y1 of the window rendered.
+    pub window: [u32; 4],
+    pub threads: usize,
+    pub pool: rayon::ThreadPool,
+    pub scene: Scene,
+    /// The integrator's share of the memory budget.
+    pub state_bytes: Option<u64>,
+}
+
+/// Where the EXR and (if asked) the PNG go: `-o x.png` writes x.png and x.exr beside it.
+fn outputs(o: &RenderOptions) -> Result<(PathBuf, Option<PathBuf>)> {
+    let ext = o
+        .output
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase);
+    let (exr, png) = match ext.as_deref() {
+        Some("exr") => (
+            o.output.clone(),
+            o.preview.then(|| o.output.with_extension("png")),
+        ),
+        Some("png") => (o.output.with_extension("exr"), Some(o.output.clone())),
+        _ => bail!("{}: output must end in .exr or .png", o.output.display()),
+    };
+    for out in std::iter::once(&exr).chain(&png).chain(&o.stats) {
+        if same_file(out, &o.archive) {
+            bail!(
+                "{}: writing there would overwrite the archive",
+                out.display()
+            );
+        }
+        check_writable(out)?;
+    }
+    Ok((exr, png))
+}
+
+/// The camera `--camera` names, or the first.
+fn camera<'a>(o: &RenderOptions, archive: &'a Archive) -> Result<&'a CameraRecord> {
+    let name_of = |c: &CameraRecord| canopy_format::name_str(&c.name).to_string();
+    match &o.camera {
+        Some(name) => archive
+            .cameras
+            .iter()
+            .find(|c| name_of(c) == *name)
+            .with_context(|| {
+                let names: Vec<_> = archive.cameras.iter().map(name_of).collect();
+                format!(
+                    "{}: no camera named {name:?} (cameras: {})",
+                    o.archive.display(),
+                    if names.is_empty() {
+                        "none".into()
+                    } else {
+                        names.join(", ")
+                    }
+                )
+            }),
+        None => archive.cameras.first().with_context(|| {
+            format!(
+                "{}: the archive has no camera; convert with a glTF camera or --scene",
+                o.archive.display()
+            )
+        }),
+    }
+}
+
+fn resolution(o: &RenderOptions, cam: &CameraRecord) -> Result<(u32, u32)> {
+    let (w, h) = match (o.width, o.height) {
+        (Some(w), Some(h)) => (w, h),
+        (Some(w), None) if cam.width > 0 => {
+            (w, (w as u64 * cam.height as u64 / cam.width as u64) as u32)
+        }
+        (None, Some(h)) if cam.height > 0 => {
+            ((h as u64 * cam.width as u64 / cam.height as u64) as u32, h)
+        }
+        (None, None) if cam.width > 0 && cam.height > 0 => (cam.width, cam.height),
+        (w, h) => {
+            let aspect = if cam.aspect > 0.0 { cam.aspect } else { 1.0 };
+            match (w, h) {
+                (Some(w), _) => (w, (w as f32 / aspect).round() as u32),
+                (_, Some(h)) => ((h as f32 * aspect).round() as u32, h),
+                _ => ((512.0 * aspect).round() as u32, 512),
+            }
+        }
+    };
+    if w == 0 || h == 0 || w > MAX_SIDE || h > MAX_SIDE {
+        bail!("resolution {w}x{h} is out of range (each side 1..={MAX_SIDE})");
+    }
+    Ok((w, h))
+}
+
+fn window(o: &RenderOptions, width: u32, height: u32) -> Result<[u32; 4]> {
+    match o.crop {
+        Some([x0, x1, y0, y1]) => {
+            if x0 >= x1 || y0 >= y1 || x1 > width || y1 > height {
+                bail!(
+                    "--crop {x0},{x1},{y0},{y1} is not a non-empty window inside {width}x{height}"
+                );
+            }
+            Ok([x0, x1, y0, y1])
+        }
+        None => Ok([0, width, 0, height]),
+    }
+}
+
+impl Setup {
+    pub fn new(o: &RenderOptions) -> Result<Setup> {
+        let (exr, png) = outputs(o)?;
+        if o.spp == 0 && o.time.is_none() {
+            bail!("--spp must be at least 1");
+        }
+        let archive = Arc::new(Archive::open(&o.archive)?);
+        if archive.header.depth as usize > MAX_DEPTH {
+            bail!(
+                "{}: tree depth {} exceeds the {} this renderer traverses",
+                o.archive.display(),
+                archive.header.depth,
+                MAX_DEPTH
+            );
+        }
+        let cam = camera(o, &archive)?;
+        let (width, height) = resolution(o, cam)?;
+        let window = window(o, width, height)?;
+        let threads = o.threads.unwrap_or_else(rayon::current_num_threads).max(1);
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .context("starting worker threads")?;
+        let touched = NodeSet::new(archive.header.nodes);
+        let state_bytes = o.mem_budget.map(|b| o.integrator.state_share(b));
+        let budget = match o.mem_budget {
+            Some(b) => Some(
+                b.checked_sub(touched.bytes() + state_bytes.unwrap_or(0))
+                    .with_context(|| {
+                        format!("--mem-budget {b} cannot even hold the node statistics")
+                    })?,
+            ),
+            None => None,
+        };
+        let cache = PageCache::new(Arc::clone(&archive), budget, threads)?;
+        let materials: Vec<Material> = archive
+            .materials
+            .iter()
+            .map(Material::from_record)
+            .collect();
+        let (lo, hi) = (
+            V::from(archive.header.bounds_min),
+            V::from(archive.header.bounds_max),
+        );
+        let lights = Lights::gather(&archive, &materials, 0.5 * (hi - lo).length())?;
+        let scene = Scene {
+            cache,
+            materials,
+            camera: Camera::new(cam, width, height),
+            lights,
+            max_depth: o.max_depth,
+            touched,
+        };
+        Ok(Setup {
+            exr,
+            png,
+            width,
+            height,
+            window,
+            threads,
+            pool,
+            scene,
+            state_bytes,
+        })
+    }
+}

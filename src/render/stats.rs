@@ -1,0 +1,111 @@
+//! What a render reports: `--stats` JSON and the summary line.
+
+use crate::integrator::{Kind, Scene, Stats};
+use crate::paging::{deepest_first, CacheStats, NodeRef, Page};
+use anyhow::Result;
+use std::collections::BTreeMap;
+
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct Seconds {
+    pub setup: f64,
+    pub render: f64,
+    /// Parts of `render` an integrator accounts for (the cone integrator's `pull` and
+    /// `light`).
+    #[serde(flatten)]
+    pub parts: BTreeMap<&'static str, f64>,
+    pub write: f64,
+    pub total: f64,
+}
+
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct RenderStats {
+    pub integrator: Kind,
+    pub spp: u32,
+    pub width: u32,
+    pub height: u32,
+    pub crop: Option<[u32; 4]>,
+    pub threads: usize,
+    pub seconds: Seconds,
+    pub peak_rss_bytes: u64,
+    pub mem_budget: Option<u64>,
+    pub archive_decoded_bytes: u64,
+    /// The page cache's counters; `resident_bytes_peak` adds the node statistics and the
+    /// integrator's state.
+    #[serde(flatten)]
+    pub cache: CacheStats,
+    pub film_bytes: u64,
+    pub unique_nodes_touched: u64,
+    pub nodes_per_pixel: f64,
+    pub rays: u64,
+    pub paths: u64,
+    pub rays_per_second: f64,
+    pub paths_per_second: f64,
+    pub emitters: u64,
+    pub punctual_lights: u64,
+    /// Which passes ran and why (the scene's features decide).
+    pub passes: Vec<String>,
+    /// Samples whose radiance was NaN or infinite (added as zero); 0 in a correct render.
+    pub nonfinite_samples: u64,
+    #[serde(flatten)]
+    pub details: Stats,
+    pub image_mean: [f64; 3],
+}
+
+impl std::fmt::Display for RenderStats {
+    fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+        write!(
+            f,
+            "{}x{}, {} spp, {:.2} s ({:.2} M rays/s, {:.3} M paths/s), peak RSS {:.1} MiB, {} pages loaded, {} evicted, hit rate {:.4}",
+            self.width,
+            self.height,
+            self.spp,
+            self.seconds.render,
+            self.rays_per_second / 1e6,
+            self.paths_per_second / 1e6,
+            self.peak_rss_bytes as f64 / 1048576.0,
+            self.cache.pages_loaded,
+            self.cache.pages_evicted,
+            self.cache.cache_hit_rate
+        )
+    }
+}
+
+/// Peak resident set of this process (VmHWM), 0 where /proc is unavailable.
+pub fn peak_rss_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1)?.parse::<u64>().ok())
+        })
+        .map_or(0, |kb| kb * 1024)
+}
+
+/// Nodes touched = leaves hit plus all their ancestors (004 §5.2). Walks the pages that
+/// were loaded, deepest first, marking a node when a child is marked.
+pub fn ancestors_closure(scene: &Scene) -> Result<u64> {
+    let archive = &scene.cache.archive;
+    let pages = (0..archive.pages.len() as u32)
+        .filter(|&i| scene.cache.was_touched(i))
+        .collect();
+    for id in deepest_first(archive, pages).into_iter().flatten() {
+        let page = Page::decode(archive, id)?;
+        let first = page.first_node;
+        let marked = |n: u64| scene.touched.contains(n);
+        for (i, n) in page.bvh.iter().enumerate().rev() {
+            let hit = match n.link() {
+                NodeRef::Inner(l, r) => marked(first + l as u64) || marked(first + r as u64),
+                NodeRef::ChildPage(c) => {
+                    let f = archive.pages[c as usize].first_node;
+                    marked(f) || marked(f + 1)
+                }
+                NodeRef::Leaf { .. } => false,
+            };
+            if hit {
+                scene.touched.insert(first + i as u64);
+            }
+        }
+    }
+    Ok(scene.touched.count())
+}
