@@ -89,7 +89,8 @@ mod tests {
             p: [[0.0; 3], [5.5, 0.0, 0.0], [0.0, 3.0, 0.0]],
             material: 0,
         };
-        assert_eq!(k.grid(&tri), 6.0);
+        // Longest edge √(5.5² + 3²) = 6.26 cells of side 1.
+        assert_eq!(k.grid(&tri), 7.0);
         let total: f32 = k.cells(&tri).map(|(_, a)| a).sum();
         assert!((total - tri_area(&tri)).abs() < 1e-4 * total, "{total}");
         // Every hit lands in a listed cell.
