@@ -582,3 +582,53 @@ fn mtl_values_are_clamped_and_nan_is_refused() {
     write(dir.path(), "m.mtl", b"newmtl x\nNi nan\n");
     convert_fails(&obj, &["material 'x'", "ior is NaN"]);
 }
+
+/// A flag of an integrator that will not run is refused with exit status 2, naming the
+/// flag, for every command that renders; the same flag is accepted where it applies.
+#[test]
+fn a_cone_flag_under_the_path_tracer_is_an_error_naming_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("c.canopy");
+    convert(&scene("cbox.glb"), &arc, None);
+    let out = dir.path().join("o.exr");
+    let (a, o) = (s(&arc), s(&out));
+    let small = ["--spp", "1", "--width", "8", "--height", "8"];
+    for (cmd, flag) in [
+        (vec!["render", a, "-o", o], ["--cone-scale", "2"]),
+        (
+            vec!["render", a, "-o", o, "--integrator", "path"],
+            ["--light-pass", "on"],
+        ),
+        (
+            vec!["npp", a, "-o", s(dir.path()), "--resolutions", "8"],
+            ["--edge-rays", "0"],
+        ),
+        (
+            vec!["eval", a, "--reference", o, "--integrators", "path"],
+            ["--photons", "9"],
+        ),
+    ] {
+        let args: Vec<&str> = cmd.iter().chain(&flag).copied().collect();
+        let run = canopy(&args);
+        let err = String::from_utf8_lossy(&run.stderr);
+        assert_eq!(run.status.code(), Some(2), "{args:?}: {err}");
+        assert!(
+            err.contains(flag[0]) && err.contains("--integrator cone"),
+            "{args:?}: {err}"
+        );
+    }
+    let args: Vec<&str> = [
+        "render",
+        a,
+        "-o",
+        o,
+        "--integrator",
+        "cone",
+        "--cone-scale",
+        "2",
+    ]
+    .into_iter()
+    .chain(small)
+    .collect();
+    ok(&args);
+}

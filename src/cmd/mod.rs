@@ -72,7 +72,7 @@ impl RenderSettings {
 
 /// pbrt-v4's `ReportUnused`: a flag of an integrator that will not run is an error (exit
 /// status 2) naming it, not silently ignored.
-fn reject_unused(sub: &ArgMatches, kinds: &[Kind]) {
+fn reject_unused(name: &str, sub: &ArgMatches, kinds: &[Kind]) {
     let flags: [(Kind, clap::Command); 1] = [(
         Kind::Cone,
         ConeSettings::augment_args(clap::Command::new("cone")),
@@ -88,16 +88,18 @@ fn reject_unused(sub: &ArgMatches, kinds: &[Kind]) {
                     .iter()
                     .map(|k| format!("{k:?}").to_lowercase())
                     .collect();
-                Cli::command()
-                    .error(
-                        clap::error::ErrorKind::ArgumentConflict,
-                        format!(
-                            "--{flag} applies to --integrator {}, not {}",
-                            format!("{kind:?}").to_lowercase(),
-                            chosen.join(", ")
-                        ),
-                    )
-                    .exit();
+                let mut cli = Cli::command();
+                let cmd = cli.find_subcommand_mut(name).expect("a known subcommand");
+                cmd.set_bin_name(format!("canopy {name}"));
+                cmd.error(
+                    clap::error::ErrorKind::ArgumentConflict,
+                    format!(
+                        "--{flag} applies to --integrator {}, not {}",
+                        format!("{kind:?}").to_lowercase(),
+                        chosen.join(", ")
+                    ),
+                )
+                .exit();
             }
         }
     }
@@ -108,22 +110,19 @@ pub fn run() -> Result<()> {
     let matches = Cli::command().get_matches();
     let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
     let show = canopy::progress::wanted(cli.quiet);
-    let sub = matches
-        .subcommand()
-        .map(|(_, m)| m)
-        .expect("a subcommand is required");
+    let (name, sub) = matches.subcommand().expect("a subcommand is required");
     match cli.cmd {
         Cmd::Convert(a) => convert::run(a, show),
         Cmd::Render(a) => {
-            reject_unused(sub, &[a.settings.integrator]);
+            reject_unused(name, sub, &[a.settings.integrator]);
             render::run(a, show)
         }
         Cmd::Npp(a) => {
-            reject_unused(sub, &[a.settings.integrator]);
+            reject_unused(name, sub, &[a.settings.integrator]);
             sweep::npp(a, show)
         }
         Cmd::Eval(a) => {
-            reject_unused(sub, &a.integrators);
+            reject_unused(name, sub, &a.integrators);
             sweep::eval(a, show)
         }
         Cmd::Compare(a) => compare::run(a),

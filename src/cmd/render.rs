@@ -16,8 +16,6 @@ pub struct RenderArgs {
     /// Output image: .exr, or .png (which also writes the .exr).
     #[arg(short, long)]
     output: PathBuf,
-    #[command(flatten)]
-    pub settings: RenderSettings,
     /// Samples per pixel.
     #[arg(long, default_value_t = 64)]
     spp: u32,
@@ -42,6 +40,9 @@ pub struct RenderArgs {
     /// Write render statistics as JSON here.
     #[arg(long)]
     stats: Option<PathBuf>,
+    /// Last: the cone integrator's flags end the help under their own heading.
+    #[command(flatten)]
+    pub settings: RenderSettings,
 }
 
 impl RenderSettings {
