@@ -1,0 +1,81 @@
+//! Stage 2, partition: when the triangles exceed one chunk's budget, a Morton histogram of
+//! their centroids splits space into chunks that fit, and a second pass over the spill file
+//! distributes the triangles to one file per chunk.
+
+use super::spill::{self, Spill, SpillWriter};
+use crate::progress;
+use anyhow::Result;
+use std::path::Path;
+
+const MORTON_BITS: u32 = 7;
+
+/// 21-bit Morton code of a point in the box (7 bits an axis): the histogram bin.
+fn morton(p: [f32; 3], lo: [f32; 3], hi: [f32; 3]) -> u32 {
+    let cells = (1u32 << MORTON_BITS) as f32;
+    let q = [0, 1, 2].map(|a| {
+        let e = hi[a] - lo[a];
+        let t = if e > 0.0 { (p[a] - lo[a]) / e } else { 0.0 };
+        ((t * cells) as u32).min((1 << MORTON_BITS) - 1)
+    });
+    let mut code = 0;
+    for bit in (0..MORTON_BITS).rev() {
+        for v in q {
+            code = (code << 1) | ((v >> bit) & 1);
+        }
+    }
+    code
+}
+
+/// Consecutive Morton-bin ranges, each holding at most `cap` triangles (unless one bin alone
+/// holds more). Returns the chunk index of each bin.
+fn chunk_of_bins(hist: &[u64], cap: u64) -> (Vec<u32>, u32) {
+    let mut chunk = vec![0u32; hist.len()];
+    let (mut cur, mut fill) = (0u32, 0u64);
+    for (b, &h) in hist.iter().enumerate() {
+        if fill > 0 && fill + h > cap {
+            cur += 1;
+            fill = 0;
+        }
+        fill += h;
+        chunk[b] = cur;
+    }
+    (chunk, cur + 1)
+}
+
+/// The chunk files of `total` triangles in `spilled` (centroids inside `lo..hi`), each at
+/// most `cap` triangles unless one Morton bin alone holds more.
+pub fn partition(
+    spilled: Spill,
+    total: u64,
+    [lo, hi]: [[f32; 3]; 2],
+    cap: u64,
+    dir: &Path,
+    show: bool,
+) -> Result<Vec<Spill>> {
+    if total <= cap {
+        return Ok(vec![spilled]);
+    }
+    let mut hist = vec![0u64; 1 << (3 * MORTON_BITS)];
+    spill::for_each(&spilled, |t| {
+        hist[morton(t.centroid(), lo, hi) as usize] += 1;
+        Ok(())
+    })?;
+    let (chunk, n) = chunk_of_bins(&hist, cap);
+    drop(hist);
+    let mut outs = (0..n)
+        .map(|_| SpillWriter::create(dir, 256 << 10))
+        .collect::<Result<Vec<_>>>()?;
+    let bar = progress::bar(show, total, "partitioning");
+    let mut done = 0u64;
+    spill::for_each(&spilled, |t| {
+        outs[chunk[morton(t.centroid(), lo, hi) as usize] as usize].write(t)?;
+        done += 1;
+        if done.is_multiple_of(65536) {
+            bar.set_position(done);
+        }
+        Ok(())
+    })?;
+    bar.finish_and_clear();
+    drop(spilled);
+    outs.into_iter().map(SpillWriter::finish).collect()
+}
