@@ -440,16 +440,7 @@ mod tests {
     use super::*;
     use bytemuck::Zeroable;
 
-    struct Rng(u64);
-    impl Rng {
-        fn next(&mut self) -> f32 {
-            self.0 = self
-                .0
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((self.0 >> 40) as f32) / (1u64 << 24) as f32
-        }
-    }
+    use crate::sampler::TestRng as Rng;
 
     fn mat(base: f32, metallic: f32, roughness: f32, specular: f32, transmission: f32) -> Material {
         let mut r = MaterialRecord::zeroed();
@@ -488,14 +479,14 @@ mod tests {
     /// paths use; a mismatch biases one against the other).
     #[test]
     fn sample_weights_agree_with_eval() {
-        let mut rng = Rng(5);
+        let mut rng = Rng::new(5);
         for (name, m) in materials() {
             let b = m.bsdf(true);
             let mut checked = 0;
             for k in 0..8 {
                 let wo = dir(0.05 + 0.95 * k as f32 / 7.0, 1.3);
                 for _ in 0..2000 {
-                    let Some(s) = b.sample(wo, rng.next(), [rng.next(), rng.next()]) else {
+                    let Some(s) = b.sample(wo, rng.f(), [rng.f(), rng.f()]) else {
                         continue;
                     };
                     if s.delta || s.pdf < 1e-3 {
@@ -528,7 +519,7 @@ mod tests {
 
     #[test]
     fn albedo_never_exceeds_one() {
-        let mut rng = Rng(1);
+        let mut rng = Rng::new(1);
         for (name, m) in materials() {
             let b = m.bsdf(true);
             for k in 0..12 {
@@ -536,7 +527,7 @@ mod tests {
                 let n = 40_000;
                 let (mut sum, mut sq) = (0f64, 0f64);
                 for _ in 0..n {
-                    let s = b.sample(wo, rng.next(), [rng.next(), rng.next()]);
+                    let s = b.sample(wo, rng.f(), [rng.f(), rng.f()]);
                     if let Some(s) = &s {
                         assert!(
                             s.weight.is_finite() && s.weight.min_element() >= 0.0,
@@ -588,7 +579,7 @@ mod tests {
         const NP: usize = 40;
         // Sub-samples per bin side when integrating the pdf (glossy lobes are narrow).
         const S: usize = 24;
-        let mut rng = Rng(7);
+        let mut rng = Rng::new(7);
         for (name, m) in materials() {
             let b = m.bsdf(true);
             for cos_o in [0.15f32, 0.6, 0.95] {
@@ -596,7 +587,7 @@ mod tests {
                 let n = 300_000;
                 let mut obs = vec![0f64; NT * NP];
                 for _ in 0..n {
-                    if let Some(s) = b.sample(wo, rng.next(), [rng.next(), rng.next()]) {
+                    if let Some(s) = b.sample(wo, rng.f(), [rng.f(), rng.f()]) {
                         if s.delta {
                             continue;
                         }
@@ -665,11 +656,11 @@ mod tests {
         let rs = (ci - eta * ct) / (ci + eta * ct);
         let rp = (eta * ci - ct) / (eta * ci + ct);
         let fr = (0.5 * (rs * rs + rp * rp)) as f32;
-        let mut rng = Rng(3);
+        let mut rng = Rng::new(3);
         let n = 200_000;
         let mut refl = 0;
         for _ in 0..n {
-            let s = b.sample(wo, rng.next(), [rng.next(), rng.next()]).unwrap();
+            let s = b.sample(wo, rng.f(), [rng.f(), rng.f()]).unwrap();
             assert!(s.delta);
             if s.wi.z > 0.0 {
                 refl += 1;

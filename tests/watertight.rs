@@ -116,8 +116,8 @@ fn check(budget: &str) {
     }
     let centre = [0, 1, 2].map(|k| (lo[k] + hi[k]) / 2.0);
     let radius = (0..3).map(|k| (hi[k] - lo[k]).powi(2)).sum::<f64>().sqrt();
-    let mut lcg = Lcg(12345);
-    let mut rnd = || lcg.f64();
+    let mut rng = TestRng::new(12345);
+    let mut rnd = || rng.f64();
     let (mut hits, mut mismatches) = (0, 0);
     for _ in 0..600 {
         // From a random point on a sphere around the mesh towards a random point inside it.
@@ -283,8 +283,8 @@ fn tracer_rays_through_shared_edges_and_vertices_never_slip_through() {
             targets.push(p + (q - p) * 0.3);
         }
     }
-    let mut lcg = Lcg(99);
-    let mut rnd = || lcg.f32();
+    let mut rng = TestRng::new(99);
+    let mut rnd = || rng.f32();
     let (mut fired, mut slipped) = (0, Vec::new());
     for t in &targets {
         // From the centre, and from 10 units out along a random direction that enters the

@@ -492,19 +492,7 @@ fn punctual(l: &LightRecord) -> Option<Punctual> {
 mod tests {
     use super::*;
 
-    /// xorshift64*: deterministic uniforms for the tests.
-    struct Rng(u64);
-    impl Rng {
-        fn f(&mut self) -> f32 {
-            self.0 ^= self.0 >> 12;
-            self.0 ^= self.0 << 25;
-            self.0 ^= self.0 >> 27;
-            (self.0.wrapping_mul(0x2545_f491_4f6c_dd1d) >> 40) as f32 / (1u64 << 24) as f32
-        }
-        fn v(&mut self, scale: f32) -> V {
-            V::new(self.f() - 0.5, self.f() - 0.5, self.f() - 0.5) * (2.0 * scale)
-        }
-    }
+    use crate::sampler::TestRng as Rng;
 
     fn scattered_lights(rng: &mut Rng) -> Lights {
         let emitters = (0..200)
@@ -542,7 +530,7 @@ mod tests {
     /// double-count or lose light.
     #[test]
     fn a_lamp_hit_has_the_pdf_its_light_sample_had() {
-        let mut rng = Rng(0x51ab_1e5e_ed00_0001);
+        let mut rng = Rng::new(0x51ab_1e5e_ed00_0001);
         let lights = scattered_lights(&mut rng);
         let mut checked = 0;
         for _ in 0..5000 {
@@ -581,7 +569,7 @@ mod tests {
 
     #[test]
     fn tree_probabilities_sum_to_at_most_one_and_are_what_sampling_returns() {
-        let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
+        let mut rng = Rng::new(0x9e37_79b9_7f4a_7c15);
         let lights = scattered_lights(&mut rng);
         let count = lights.emitters.len() + lights.punctual.len();
         for _ in 0..50 {
@@ -725,7 +713,7 @@ mod tests {
 
     #[test]
     fn light_tree_samples_are_unbiased_and_beat_sampling_by_power() {
-        let mut rng = Rng(7);
+        let mut rng = Rng::new(7);
         let emitters = lamp_spheres();
         let area: f32 = emitters.iter().map(|e| e.area).sum();
         let le_area: Vec<f32> = emitters.iter().map(|e| e.le.x * e.area).collect();

@@ -53,8 +53,8 @@ impl Film {
         let w = tile[1] - tile[0];
         for (i, v) in sums.iter().enumerate() {
             let at = self.index(tile[0] + i as u32 % w, tile[2] + i as u32 / w);
-            for k in 0..3 {
-                self.sums[at][k] += v[k];
+            for (s, x) in self.sums[at].iter_mut().zip(v) {
+                *s += x;
             }
         }
     }

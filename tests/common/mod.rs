@@ -2,6 +2,7 @@
 //! Helpers shared by the integration tests.
 
 use canopy::image::Image;
+use proptest::prelude::RngExt;
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
@@ -185,25 +186,27 @@ pub fn assert_mean_within_noise(img: &Image, r: &Image, what: &str) {
     }
 }
 
-/// A 64-bit LCG (Knuth's MMIX constants): deterministic uniforms for the tests.
-pub struct Lcg(pub u64);
+/// Deterministic uniforms for the tests: proptest's ChaCha generator from a seed (the unit
+/// tests' `sampler::TestRng` is the same).
+pub struct TestRng(proptest::test_runner::TestRng);
 
-impl Lcg {
-    fn step(&mut self) -> u64 {
-        self.0 = self
-            .0
-            .wrapping_mul(6364136223846793005)
-            .wrapping_add(1442695040888963407);
-        self.0
+impl TestRng {
+    pub fn new(seed: u64) -> TestRng {
+        let mut bytes = [0u8; 32];
+        bytes[..8].copy_from_slice(&seed.to_le_bytes());
+        TestRng(proptest::test_runner::TestRng::from_seed(
+            proptest::test_runner::RngAlgorithm::ChaCha,
+            &bytes,
+        ))
     }
 
-    /// A uniform in [0, 1) with 53 bits.
+    /// A uniform in [0, 1).
     pub fn f64(&mut self) -> f64 {
-        (self.step() >> 11) as f64 / (1u64 << 53) as f64
+        self.0.random()
     }
 
-    /// A uniform in [0, 1) with 24 bits.
+    /// A uniform in [0, 1).
     pub fn f32(&mut self) -> f32 {
-        (self.step() >> 40) as f32 / (1u64 << 24) as f32
+        self.0.random()
     }
 }

@@ -271,10 +271,7 @@ impl ConeIntegrator {
             mask_caustics: self.store.photons() > 0,
             smooth_chain: false,
         };
-        loop {
-            let Some(hit) = tr.cone_hit(&path.ray, &path.cone) else {
-                break;
-            };
+        while let Some(hit) = tr.cone_hit(&path.ray, &path.cone) {
             let Some(at) = Here::new(&hit, &path.ray, s, path.depth) else {
                 break;
             };
