@@ -78,10 +78,13 @@ pub fn radiance(
                 l += beta * le;
             } else {
                 let dist2 = (hit.t * ray.d.length()).powi(2);
-                let light_pdf =
-                    scene
-                        .lights
-                        .pdf_li(prev, &hit.tri.p, dist2, ng.dot(wo).abs(), area);
+                let light_pdf = scene.lights.pdf_li(
+                    prev,
+                    scene.lights.emitter_at(hit.leaf, hit.slot),
+                    dist2,
+                    ng.dot(wo).abs(),
+                    area,
+                );
                 l += beta * le * power_heuristic(prev_pdf, light_pdf);
             }
         }

@@ -110,8 +110,9 @@ pub struct Lights {
     cdf: Vec<f32>,
     /// Chooses lights for shading points; lights numbered as in `cdf`.
     tree: LightTree,
-    /// Emitter of each lamp triangle, by its vertices' bits.
-    by_vertices: HashMap<[u32; 9], u32>,
+    /// Emitter of each lamp triangle, by its leaf's global node number and its slot there
+    /// (what a hit carries).
+    by_leaf: HashMap<(u64, u32), u32>,
     total: f32,
     /// Bounding sphere of the scene (directional lights emit through its disc).
     center: V,
@@ -132,6 +133,7 @@ fn emitter_power(le: V, area: f32, two_sided: bool) -> f32 {
 impl Lights {
     pub fn gather(archive: &Archive, materials: &[Material], scene_radius: f32) -> Result<Lights> {
         let mut emitters = Vec::new();
+        let mut by_leaf = HashMap::new();
         let mut stack: Vec<(u32, u32)> = Vec::new();
         let root = Page::decode(archive, archive.header.root_page)?;
         let mut pages = vec![root];
@@ -148,16 +150,18 @@ impl Lights {
             }
             match page.bvh[ni as usize].link() {
                 NodeRef::Leaf { first, count } => {
-                    for tri in &page.tris[first as usize..(first + count) as usize] {
+                    let leaf = page.first_node + ni as u64;
+                    let tris = &page.tris[first as usize..(first + count) as usize];
+                    for (slot, tri) in tris.iter().enumerate() {
                         let m = &materials[tri.material as usize];
                         if !m.is_emissive() {
                             continue;
                         }
-                        emitters.extend(Emitter::triangle(
-                            tri.p.map(V::from),
-                            m.emission,
-                            m.double_sided,
-                        ));
+                        let e = Emitter::triangle(tri.p.map(V::from), m.emission, m.double_sided);
+                        if let Some(e) = e {
+                            by_leaf.insert((leaf, slot as u32), emitters.len() as u32);
+                            emitters.push(e);
+                        }
                     }
                 }
                 NodeRef::Inner(l, r) => stack.extend([(pi, l), (pi, r)]),
@@ -175,7 +179,10 @@ impl Lights {
             .collect::<Vec<_>>();
         let h = &archive.header;
         let center = 0.5 * (V::from(h.bounds_min) + V::from(h.bounds_max));
-        Ok(Lights::new(emitters, punctual, center, scene_radius))
+        Ok(Lights {
+            by_leaf,
+            ..Lights::new(emitters, punctual, center, scene_radius)
+        })
     }
 
     /// Lights of a scene whose bounding sphere has this center and radius.
@@ -250,14 +257,9 @@ impl Lights {
                 }
             }
         }
-        let by_vertices = emitters
-            .iter()
-            .enumerate()
-            .map(|(i, e)| (vertex_key(&e.p), i as u32))
-            .collect();
         Lights {
             tree: LightTree::new(cdf.len(), bounded, infinite),
-            by_vertices,
+            by_leaf: HashMap::new(),
             emitters,
             punctual,
             cdf,
@@ -281,27 +283,24 @@ impl Lights {
         (i, (self.cdf[i] - lo) / self.total)
     }
 
-    /// Probability that `sample` from `p` with normal `n` chooses the lamp triangle with
-    /// these vertices (for MIS when a BSDF sample hits it).
-    fn pick_pdf(&self, p: V, n: V, vertices: &[[f32; 3]; 3]) -> f32 {
-        let key = vertex_key(&vertices.map(V::from));
-        self.by_vertices
-            .get(&key)
-            .map_or(0.0, |&i| self.tree.pmf(p, n, i as usize))
+    /// The emitter of the lamp triangle in slot `slot` of leaf `leaf` (global node number),
+    /// as a hit names it.
+    pub fn emitter_at(&self, leaf: u64, slot: u32) -> Option<u32> {
+        self.by_leaf.get(&(leaf, slot)).copied()
     }
 
     /// Solid-angle pdf with which `sample` from `p` (normal `n`) picks the point a BSDF
-    /// sample hit on the lamp triangle `vertices`, `dist2` away, seen at |cos| `cos_l` on a
-    /// triangle of `area`: MIS weighs the hit's emission with it.
+    /// sample hit on `emitter` (None: a triangle no light sample picks), `dist2` away, seen
+    /// at |cos| `cos_l` on a triangle of `area`: MIS weighs the hit's emission with it.
     pub fn pdf_li(
         &self,
         (p, n): (V, V),
-        vertices: &[[f32; 3]; 3],
+        emitter: Option<u32>,
         dist2: f32,
         cos_l: f32,
         area: f32,
     ) -> f32 {
-        self.pick_pdf(p, n, vertices) * dist2 / (cos_l * area)
+        emitter.map_or(0.0, |i| self.tree.pmf(p, n, i as usize)) * dist2 / (cos_l * area)
     }
 
     /// Samples a light for shading point `p` on a surface with normal `n` (zero: a point
@@ -442,14 +441,6 @@ impl Lights {
     }
 }
 
-fn vertex_key(p: &[V; 3]) -> [u32; 9] {
-    let mut key = [0; 9];
-    for (k, v) in p.iter().flat_map(|v| v.to_array()).enumerate() {
-        key[k] = v.to_bits();
-    }
-    key
-}
-
 /// glTF spot falloff for a direction at cosine `c` from the axis (1 for point lights).
 fn spot_falloff(c: f32, cos_outer: f32, cos_inner: f32) -> f32 {
     if cos_outer <= -1.0 {
@@ -545,18 +536,18 @@ mod tests {
             let (q, _, normal) = ls.point.unwrap();
             // The lamp holding q: its normal, and sub-triangle areas that add up to its own.
             let a = |x: V, y: V, z: V| 0.5 * (y - x).cross(z - x).length();
-            let e = lights
+            let (i, e) = lights
                 .emitters
                 .iter()
-                .find(|e| {
+                .enumerate()
+                .find(|(_, e)| {
                     let sum = a(q, e.p[1], e.p[2]) + a(e.p[0], q, e.p[2]) + a(e.p[0], e.p[1], q);
                     e.n == normal && (sum / e.area - 1.0).abs() < 1e-3
                 })
                 .expect("the sampled point lies on a lamp");
-            let verts = e.p.map(|v| v.to_array());
             let d2 = (q - p).length_squared();
             let cos_l = ls.wi.dot(e.n).abs();
-            let hit_pdf = lights.pdf_li((p, n), &verts, d2, cos_l, e.area);
+            let hit_pdf = lights.pdf_li((p, n), Some(i as u32), d2, cos_l, e.area);
             assert!(
                 (hit_pdf / ls.pdf - 1.0).abs() < 1e-3,
                 "light sample pdf {} against the hit's {hit_pdf}",

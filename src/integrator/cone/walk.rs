@@ -159,9 +159,9 @@ impl Path {
             ConeHit::Tri(h) if matches!(self.stack.last(), Some(p) if !p.diffuse) => {
                 let area = 0.5 * h.ng().length();
                 let cos_l = at.ng.dot(at.wo).abs();
-                let lp = scene
-                    .lights
-                    .pdf_li(self.prev, &h.tri.p, h.t * h.t, cos_l, area);
+                let lights = &scene.lights;
+                let emitter = lights.emitter_at(h.leaf, h.slot);
+                let lp = lights.pdf_li(self.prev, emitter, h.t * h.t, cos_l, area);
                 le * power_heuristic(self.prev_pdf, lp)
             }
             _ => V::ZERO,
