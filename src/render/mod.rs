@@ -6,9 +6,12 @@ mod film;
 mod setup;
 mod stats;
 
-pub use film::{Film, TILE};
-pub use setup::{Setup, MAX_SIDE};
-pub use stats::{ancestors_closure, peak_rss_bytes, RenderStats, Seconds};
+pub use setup::MAX_SIDE;
+pub use stats::{RenderStats, Seconds};
+
+use film::Film;
+use setup::Setup;
+use stats::{ancestors_closure, peak_rss_bytes};
 
 use crate::image::Image;
 use crate::integrator::{self, Counters, Integrator, PixelSample, Scene, Target};
@@ -50,6 +53,13 @@ struct Tally {
     rays: AtomicU64,
     paths: AtomicU64,
     nonfinite: AtomicU64,
+}
+
+/// How a render went: samples per pixel, time, work.
+struct Run {
+    done: u32,
+    seconds: Seconds,
+    tally: Tally,
 }
 
 pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
@@ -139,7 +149,12 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     }
     seconds.write = t2.elapsed().as_secs_f64();
     seconds.total = t0.elapsed().as_secs_f64();
-    let stats = summarize(o, &s, integ.as_ref(), &film, &img, done, seconds, &tally)?;
+    let run = Run {
+        done,
+        seconds,
+        tally,
+    };
+    let stats = summarize(o, &s, integ.as_ref(), &film, &img, run)?;
     if let Some(p) = &o.stats {
         let json = serde_json::to_string_pretty(&stats)?;
         crate::image::write_atomically(p, |tmp| Ok(std::fs::write(tmp, json)?))?;
@@ -188,17 +203,19 @@ fn render_tile(
     out
 }
 
-#[allow(clippy::too_many_arguments)]
 fn summarize(
     o: &RenderOptions,
     s: &Setup,
     integ: &dyn Integrator,
     film: &Film,
     img: &Image,
-    done: u32,
-    seconds: Seconds,
-    tally: &Tally,
+    run: Run,
 ) -> Result<RenderStats> {
+    let Run {
+        done,
+        seconds,
+        tally,
+    } = run;
     let scene = &s.scene;
     let unique = ancestors_closure(scene)?;
     let [state, per_pixel] = integ.state_bytes();

@@ -36,8 +36,6 @@ mod optics;
 mod walk;
 
 pub use cluster::theta_norm;
-pub use optics::{bent_tan, jitter};
-pub use walk::seen_emission;
 
 use super::{Counters, Integrator, PixelSample, Scene, Stats, Target};
 use crate::material::Material;
@@ -47,6 +45,7 @@ use crate::trace::{Cone, Tracer};
 use glam::Vec3A as V;
 use std::sync::atomic::{AtomicU32, Ordering::Relaxed};
 use std::time::Instant;
+use walk::seen_emission;
 
 /// Hits, counted from the eye, whose diffuse light the pixel takes from its own fresh
 /// sample; deeper hits answer with their node's stored mean.
