@@ -17,5 +17,7 @@ pub mod radiance;
 pub mod render;
 pub mod sampler;
 pub mod sweep;
+#[cfg(test)]
+mod test_rng;
 pub mod trace;
 pub mod units;

@@ -440,7 +440,7 @@ mod tests {
     use super::*;
     use bytemuck::Zeroable;
 
-    use crate::sampler::TestRng as Rng;
+    use crate::test_rng::TestRng as Rng;
 
     fn mat(base: f32, metallic: f32, roughness: f32, specular: f32, transmission: f32) -> Material {
         let mut r = MaterialRecord::zeroed();
@@ -486,7 +486,7 @@ mod tests {
             for k in 0..8 {
                 let wo = dir(0.05 + 0.95 * k as f32 / 7.0, 1.3);
                 for _ in 0..2000 {
-                    let Some(s) = b.sample(wo, rng.f(), [rng.f(), rng.f()]) else {
+                    let Some(s) = b.sample(wo, rng.f32(), [rng.f32(), rng.f32()]) else {
                         continue;
                     };
                     if s.delta || s.pdf < 1e-3 {
@@ -527,7 +527,7 @@ mod tests {
                 let n = 40_000;
                 let (mut sum, mut sq) = (0f64, 0f64);
                 for _ in 0..n {
-                    let s = b.sample(wo, rng.f(), [rng.f(), rng.f()]);
+                    let s = b.sample(wo, rng.f32(), [rng.f32(), rng.f32()]);
                     if let Some(s) = &s {
                         assert!(
                             s.weight.is_finite() && s.weight.min_element() >= 0.0,
@@ -587,7 +587,7 @@ mod tests {
                 let n = 300_000;
                 let mut obs = vec![0f64; NT * NP];
                 for _ in 0..n {
-                    if let Some(s) = b.sample(wo, rng.f(), [rng.f(), rng.f()]) {
+                    if let Some(s) = b.sample(wo, rng.f32(), [rng.f32(), rng.f32()]) {
                         if s.delta {
                             continue;
                         }
@@ -660,7 +660,7 @@ mod tests {
         let n = 200_000;
         let mut refl = 0;
         for _ in 0..n {
-            let s = b.sample(wo, rng.f(), [rng.f(), rng.f()]).unwrap();
+            let s = b.sample(wo, rng.f32(), [rng.f32(), rng.f32()]).unwrap();
             assert!(s.delta);
             if s.wi.z > 0.0 {
                 refl += 1;

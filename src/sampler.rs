@@ -39,34 +39,6 @@ impl PixelSampler {
     }
 }
 
-/// Deterministic uniforms for the unit tests: proptest's ChaCha generator from a seed (the
-/// integration tests' `common::TestRng` is the same).
-#[cfg(test)]
-pub(crate) struct TestRng(proptest::test_runner::TestRng);
-
-#[cfg(test)]
-impl TestRng {
-    pub fn new(seed: u64) -> TestRng {
-        let mut bytes = [0u8; 32];
-        bytes[..8].copy_from_slice(&seed.to_le_bytes());
-        TestRng(proptest::test_runner::TestRng::from_seed(
-            proptest::test_runner::RngAlgorithm::ChaCha,
-            &bytes,
-        ))
-    }
-
-    /// A uniform in [0, 1).
-    pub fn f(&mut self) -> f32 {
-        use proptest::prelude::RngExt;
-        self.0.random()
-    }
-
-    /// A point uniform in the cube of half-side `scale` about the origin.
-    pub fn v(&mut self, scale: f32) -> glam::Vec3A {
-        glam::Vec3A::new(self.f() - 0.5, self.f() - 0.5, self.f() - 0.5) * (2.0 * scale)
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

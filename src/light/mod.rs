@@ -483,14 +483,14 @@ fn punctual(l: &LightRecord) -> Option<Punctual> {
 mod tests {
     use super::*;
 
-    use crate::sampler::TestRng as Rng;
+    use crate::test_rng::TestRng as Rng;
 
     fn scattered_lights(rng: &mut Rng) -> Lights {
         let emitters = (0..200)
             .filter_map(|k| {
                 let c = rng.v(10.0);
                 let p = [c + rng.v(0.5), c + rng.v(0.5), c + rng.v(0.5)];
-                Emitter::triangle(p, V::new(1.0, 2.0, 0.5) * rng.f(), k % 5 == 0)
+                Emitter::triangle(p, V::new(1.0, 2.0, 0.5) * rng.f32(), k % 5 == 0)
             })
             .collect();
         let punctual = vec![
@@ -527,7 +527,7 @@ mod tests {
         for _ in 0..5000 {
             let p = rng.v(15.0);
             let n = rng.v(1.0).normalize();
-            let Some(ls) = lights.sample(p, n, rng.f(), [rng.f(), rng.f()]) else {
+            let Some(ls) = lights.sample(p, n, rng.f32(), [rng.f32(), rng.f32()]) else {
                 continue;
             };
             if ls.pdf == 0.0 {
@@ -577,7 +577,7 @@ mod tests {
             let draws = 4000;
             let mut hits = vec![0u32; count];
             for k in 0..draws {
-                let u = (k as f32 + rng.f()) / draws as f32;
+                let u = (k as f32 + rng.f32()) / draws as f32;
                 let Some((i, q)) = lights.tree.sample(p, n, u) else {
                     continue;
                 };
@@ -721,12 +721,12 @@ mod tests {
             let (mut s1, mut s2, mut q1, mut q2) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
             for _ in 0..draws {
                 let v = reference
-                    .sample(p, n, rng.f(), [rng.f(), rng.f()])
+                    .sample(p, n, rng.f32(), [rng.f32(), rng.f32()])
                     .map_or(0.0, |ls| (ls.weight.x * n.dot(ls.wi).max(0.0)) as f64);
                 s1 += v;
                 s2 += v * v;
                 // Sampling by power alone: a triangle in proportion to Le·A, a point on it.
-                let x = rng.f() * total;
+                let x = rng.f32() * total;
                 let i = le_area
                     .iter()
                     .scan(0.0, |acc, w| {
@@ -736,7 +736,7 @@ mod tests {
                     .position(|c| c > x)
                     .unwrap_or(emitters.len() - 1);
                 let e = &emitters[i];
-                let (q, _) = e.point([rng.f(), rng.f()]);
+                let (q, _) = e.point([rng.f32(), rng.f32()]);
                 let d = q - p;
                 let w = d.normalize();
                 let (cs, cl) = (n.dot(w).max(0.0), (-e.n.dot(w)).max(0.0));

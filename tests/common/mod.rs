@@ -2,7 +2,6 @@
 //! Helpers shared by the integration tests.
 
 use canopy::image::Image;
-use proptest::prelude::RngExt;
 use std::path::{Path, PathBuf};
 use std::process::Output;
 
@@ -186,27 +185,8 @@ pub fn assert_mean_within_noise(img: &Image, r: &Image, what: &str) {
     }
 }
 
-/// Deterministic uniforms for the tests: proptest's ChaCha generator from a seed (the unit
-/// tests' `sampler::TestRng` is the same).
-pub struct TestRng(proptest::test_runner::TestRng);
-
-impl TestRng {
-    pub fn new(seed: u64) -> TestRng {
-        let mut bytes = [0u8; 32];
-        bytes[..8].copy_from_slice(&seed.to_le_bytes());
-        TestRng(proptest::test_runner::TestRng::from_seed(
-            proptest::test_runner::RngAlgorithm::ChaCha,
-            &bytes,
-        ))
-    }
-
-    /// A uniform in [0, 1).
-    pub fn f64(&mut self) -> f64 {
-        self.0.random()
-    }
-
-    /// A uniform in [0, 1).
-    pub fn f32(&mut self) -> f32 {
-        self.0.random()
-    }
-}
+#[path = "../../src/test_rng.rs"]
+mod test_rng;
+// Not every test binary draws random numbers.
+#[allow(unused_imports)]
+pub use test_rng::TestRng;
