@@ -1,6 +1,6 @@
 #!/bin/sh
-# The default speed-against-error report on the bundled scenes: converts cbox and
-# bunny_box, runs `canopy eval` (path and cone integrators at 5, 15 and 60 seconds) against
+# The default speed-against-error report on the bundled scenes: converts cbox, bunny_box,
+# room and caustics, runs `canopy eval` (path and cone integrators at 5, 15 and 60 seconds) against
 # the Mitsuba 3 references in scenes/refs, and `canopy npp` on bunny_box. Results go to
 # docs/report/<scene>/ (eval.csv, eval.md, eval.svg; npp.csv, npp.svg). Takes about
 # 4 minutes a scene. Usage: sh tools/report.sh [TIMES]   e.g. TIMES=2s,5s,15s for a quick run
@@ -11,7 +11,7 @@ cargo build --release
 BIN=target/release/canopy
 OUT=docs/report
 mkdir -p "$OUT"
-for scene in cbox bunny_box; do
+for scene in cbox bunny_box room caustics; do
     $BIN --quiet convert "scenes/$scene.glb" -o "$OUT/$scene.canopy" > /dev/null
     $BIN --quiet eval "$OUT/$scene.canopy" --reference "scenes/refs/$scene.exr" \
         --integrators path,cone --times "$TIMES" -o "$OUT/$scene"
