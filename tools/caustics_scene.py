@@ -5,7 +5,9 @@ so Canopy and Mitsuba shade the same faceted spheres).
 
     python3 tools/caustics_scene.py -o scenes/caustics.glb
 """
-import argparse, json, math, struct
+import argparse, math
+
+from glb import write_glb
 
 
 def sphere(c, r, nu=48, nv=24):
@@ -58,43 +60,14 @@ def main():
         {"name": "mirror", "pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 1], "metallicFactor": 1.0, "roughnessFactor": 0.0}},
         {"name": "metal", "pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 1], "metallicFactor": 1.0, "roughnessFactor": 0.4}},
     ]
-    binary, views, accessors, gmeshes, nodes = b"", [], [], [], []
-    for name, (verts, faces), mat in meshes:
-        pos = b"".join(struct.pack("<3f", *v) for v in verts)
-        idx = b"".join(struct.pack("<3I", *f) for f in faces)
-        for data, target in [(pos, 34962), (idx, 34963)]:
-            views.append({"buffer": 0, "byteOffset": len(binary), "byteLength": len(data), "target": target})
-            binary += data
-        lo = [min(v[k] for v in verts) for k in range(3)]
-        hi = [max(v[k] for v in verts) for k in range(3)]
-        accessors.append({"bufferView": len(views) - 2, "componentType": 5126, "count": len(verts), "type": "VEC3", "min": lo, "max": hi})
-        accessors.append({"bufferView": len(views) - 1, "componentType": 5125, "count": 3 * len(faces), "type": "SCALAR"})
-        gmeshes.append({"name": name, "primitives": [{"attributes": {"POSITION": len(accessors) - 2}, "indices": len(accessors) - 1, "material": mat}]})
-        nodes.append({"mesh": len(gmeshes) - 1})
     # Camera at (0, 1.3, 2.6) looking at (0, 0.25, 0).
     eye, at = [0.0, 1.3, 2.6], [0.0, 0.25, 0.0]
     f = [at[k] - eye[k] for k in range(3)]
     l = math.sqrt(sum(x * x for x in f))
     pitch = math.asin(f[1] / l)  # rotation about x
     q = [math.sin(pitch / 2), 0.0, 0.0, math.cos(pitch / 2)]
-    nodes.append({"camera": 0, "translation": eye, "rotation": q})
-    doc = {
-        "asset": {"version": "2.0", "generator": "canopy tools/caustics_scene.py"},
-        "extras": {"render": {"width": 96, "height": 96}},
-        "extensionsUsed": ["KHR_materials_emissive_strength", "KHR_materials_specular", "KHR_materials_transmission"],
-        "scene": 0, "scenes": [{"nodes": list(range(len(nodes)))}], "nodes": nodes,
-        "cameras": [{"type": "perspective", "perspective": {"yfov": 0.75, "znear": 0.01}}],
-        "materials": materials, "meshes": gmeshes, "accessors": accessors, "bufferViews": views,
-        "buffers": [{"byteLength": len(binary)}],
-    }
-    j = json.dumps(doc).encode()
-    j += b" " * (-len(j) % 4)
-    binary += b"\0" * (-len(binary) % 4)
-    total = 12 + 8 + len(j) + 8 + len(binary)
-    with open(a.output, "wb") as out:
-        out.write(struct.pack("<4sII", b"glTF", 2, total))
-        out.write(struct.pack("<I4s", len(j), b"JSON") + j)
-        out.write(struct.pack("<I4s", len(binary), b"BIN\0") + binary)
+    write_glb(a.output, meshes, materials, {"yfov": 0.75, "znear": 0.01}, {"translation": eye, "rotation": q},
+              "canopy tools/caustics_scene.py", (96, 96), ["KHR_materials_emissive_strength", "KHR_materials_specular", "KHR_materials_transmission"])
 
 
 if __name__ == "__main__":

@@ -9,7 +9,9 @@ different size. With --glossy the bunnies are rough gold and copper metals (GGX 
     python3 tools/room_scene.py -o scenes/room.glb
     python3 tools/room_scene.py --glossy -o scenes/room_glossy.glb
 """
-import argparse, json, math, os, struct
+import argparse, math, os, struct
+
+from glb import write_glb
 
 
 def quad(p0, p1, p2, p3):
@@ -94,19 +96,6 @@ def main():
         metal("gold", [1.0, 0.78, 0.34], 0.3) if a.glossy else lambert("bunny", [0.8, 0.8, 0.8]),
         metal("copper", [0.95, 0.64, 0.54], 0.5) if a.glossy else lambert("bunny2", [0.75, 0.7, 0.6]),
     ]
-    binary, views, accessors, gmeshes, nodes = b"", [], [], [], []
-    for name, (verts, faces), mat in room:
-        pos = b"".join(struct.pack("<3f", *v) for v in verts)
-        idx = b"".join(struct.pack("<3I", *f) for f in faces)
-        for data, target in [(pos, 34962), (idx, 34963)]:
-            views.append({"buffer": 0, "byteOffset": len(binary), "byteLength": len(data), "target": target})
-            binary += data
-        lo = [min(v[k] for v in verts) for k in range(3)]
-        hi = [max(v[k] for v in verts) for k in range(3)]
-        accessors.append({"bufferView": len(views) - 2, "componentType": 5126, "count": len(verts), "type": "VEC3", "min": lo, "max": hi})
-        accessors.append({"bufferView": len(views) - 1, "componentType": 5125, "count": 3 * len(faces), "type": "SCALAR"})
-        gmeshes.append({"name": name, "primitives": [{"attributes": {"POSITION": len(accessors) - 2}, "indices": len(accessors) - 1, "material": mat}]})
-        nodes.append({"mesh": len(gmeshes) - 1})
     # Camera near the front wall, looking at the plinths and up at the ceiling.
     eye, at = [0.3, 1.0, 1.9], [0.0, 0.75, -0.6]
     f = [at[k] - eye[k] for k in range(3)]
@@ -119,24 +108,8 @@ def main():
          qy[3] * qx[1] - qy[0] * qx[2] + qy[1] * qx[3] + qy[2] * qx[0],
          qy[3] * qx[2] + qy[0] * qx[1] - qy[1] * qx[0] + qy[2] * qx[3],
          qy[3] * qx[3] - qy[0] * qx[0] - qy[1] * qx[1] - qy[2] * qx[2]]
-    nodes.append({"camera": 0, "translation": eye, "rotation": q})
-    doc = {
-        "asset": {"version": "2.0", "generator": "canopy tools/room_scene.py"},
-        "extras": {"render": {"width": 128, "height": 96}},
-        "extensionsUsed": ["KHR_materials_emissive_strength", "KHR_materials_specular"],
-        "scene": 0, "scenes": [{"nodes": list(range(len(nodes)))}], "nodes": nodes,
-        "cameras": [{"type": "perspective", "perspective": {"yfov": 1.0, "aspectRatio": 4 / 3, "znear": 0.01}}],
-        "materials": materials, "meshes": gmeshes, "accessors": accessors, "bufferViews": views,
-        "buffers": [{"byteLength": len(binary)}],
-    }
-    j = json.dumps(doc).encode()
-    j += b" " * (-len(j) % 4)
-    binary += b"\0" * (-len(binary) % 4)
-    total = 12 + 8 + len(j) + 8 + len(binary)
-    with open(a.output, "wb") as out:
-        out.write(struct.pack("<4sII", b"glTF", 2, total))
-        out.write(struct.pack("<I4s", len(j), b"JSON") + j)
-        out.write(struct.pack("<I4s", len(binary), b"BIN\0") + binary)
+    write_glb(a.output, room, materials, {"yfov": 1.0, "aspectRatio": 4 / 3, "znear": 0.01}, {"translation": eye, "rotation": q},
+              "canopy tools/room_scene.py", (128, 96), ["KHR_materials_emissive_strength", "KHR_materials_specular"])
 
 
 if __name__ == "__main__":

@@ -1,0 +1,37 @@
+"""Writes the bundled test scenes' binary glTF: one mesh node per (name, (verts, faces),
+material index), one camera node, positions and uint32 indices in one buffer."""
+import json, struct
+
+
+def write_glb(path, meshes, materials, camera, camera_node, generator, size, extensions):
+    binary, views, accessors, gmeshes, nodes = b"", [], [], [], []
+    for name, (verts, faces), mat in meshes:
+        pos = b"".join(struct.pack("<3f", *v) for v in verts)
+        idx = b"".join(struct.pack("<3I", *f) for f in faces)
+        for data, target in [(pos, 34962), (idx, 34963)]:
+            views.append({"buffer": 0, "byteOffset": len(binary), "byteLength": len(data), "target": target})
+            binary += data
+        lo = [min(v[k] for v in verts) for k in range(3)]
+        hi = [max(v[k] for v in verts) for k in range(3)]
+        accessors.append({"bufferView": len(views) - 2, "componentType": 5126, "count": len(verts), "type": "VEC3", "min": lo, "max": hi})
+        accessors.append({"bufferView": len(views) - 1, "componentType": 5125, "count": 3 * len(faces), "type": "SCALAR"})
+        gmeshes.append({"name": name, "primitives": [{"attributes": {"POSITION": len(accessors) - 2}, "indices": len(accessors) - 1, "material": mat}]})
+        nodes.append({"mesh": len(gmeshes) - 1})
+    nodes.append(dict(camera=0, **camera_node))
+    doc = {
+        "asset": {"version": "2.0", "generator": generator},
+        "extras": {"render": {"width": size[0], "height": size[1]}},
+        "extensionsUsed": extensions,
+        "scene": 0, "scenes": [{"nodes": list(range(len(nodes)))}], "nodes": nodes,
+        "cameras": [{"type": "perspective", "perspective": camera}],
+        "materials": materials, "meshes": gmeshes, "accessors": accessors, "bufferViews": views,
+        "buffers": [{"byteLength": len(binary)}],
+    }
+    j = json.dumps(doc).encode()
+    j += b" " * (-len(j) % 4)
+    binary += b"\0" * (-len(binary) % 4)
+    total = 12 + 8 + len(j) + 8 + len(binary)
+    with open(path, "wb") as out:
+        out.write(struct.pack("<4sII", b"glTF", 2, total))
+        out.write(struct.pack("<I4s", len(j), b"JSON") + j)
+        out.write(struct.pack("<I4s", len(binary), b"BIN\0") + binary)
