@@ -107,6 +107,19 @@ pub fn verify(a: &Archive, s: &mut Summary, show_progress: bool) -> Result<()> {
     Ok(())
 }
 
+/// Names joined by commas, or "none".
+fn list_or_none(names: &[impl AsRef<str>]) -> String {
+    if names.is_empty() {
+        "none".into()
+    } else {
+        names
+            .iter()
+            .map(AsRef::as_ref)
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+}
+
 impl std::fmt::Display for Summary {
     fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
         let s = self;
@@ -143,30 +156,14 @@ impl std::fmt::Display for Summary {
             "  pages per path      mean {:.2}, max {} ({})",
             s.mean_pages_per_path, s.max_pages_per_path, s.pages_per_path_method
         )?;
-        writeln!(
-            f,
-            "  features            {}",
-            if s.features.is_empty() {
-                "none".to_string()
-            } else {
-                s.features.join(", ")
-            }
-        )?;
+        writeln!(f, "  features            {}", list_or_none(&s.features))?;
         writeln!(
             f,
             "  materials           {}: {}",
             s.materials.len(),
             s.materials.join(", ")
         )?;
-        writeln!(
-            f,
-            "  cameras             {}",
-            if s.cameras.is_empty() {
-                "none".to_string()
-            } else {
-                s.cameras.join(", ")
-            }
-        )?;
+        writeln!(f, "  cameras             {}", list_or_none(&s.cameras))?;
         writeln!(f, "  punctual lights     {}", s.lights)?;
         writeln!(
             f,
