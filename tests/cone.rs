@@ -62,11 +62,15 @@ fn cone_error_falls_with_samples() {
 }
 
 #[test]
-fn default_cones_stay_close_to_the_reference() {
+fn the_thesis_level_of_detail_stays_close_to_the_reference() {
     let dir = tempfile::tempdir().unwrap();
     let arc = dir.path().join("b.canopy");
     convert(&scene("bunny_box.glb"), &arc, None);
-    let (img, stats) = cone(&arc, &dir.path().join("b.exr"), &["--spp", "64"]);
+    let (img, stats) = cone(
+        &arc,
+        &dir.path().join("b.exr"),
+        &["--spp", "64", "--cone-scale", "1"],
+    );
     assert!(all_finite(&img));
     assert_mean_within(&img, &reference("bunny_box"), 0.02, "cone scale 1");
     assert_eq!(stats["cone_scale"], 1.0);
@@ -108,9 +112,17 @@ fn cones_from_a_camera_a_million_units_out() {
     translated_glb(&scene("cbox.glb"), &far, 1e6);
     let arc = dir.path().join("far.canopy");
     convert(&far, &arc, None);
-    let (img, _) = cone(&arc, &dir.path().join("far.exr"), &["--spp", "32"]);
-    assert!(all_finite(&img));
-    assert_mean_within(&img, &reference("cbox"), 0.02, "cones at 1e6");
+    for scale in ["0", "1"] {
+        let args = ["--spp", "32", "--cone-scale", scale];
+        let (img, _) = cone(&arc, &dir.path().join("far.exr"), &args);
+        assert!(all_finite(&img));
+        assert_mean_within(
+            &img,
+            &reference("cbox"),
+            0.02,
+            &format!("scale {scale} at 1e6"),
+        );
+    }
 }
 
 /// A wall one leaf thick (a 2×2 quad at z = 0) in front of a large backdrop at z = −5: a
@@ -506,4 +518,162 @@ fn max_depth_counts_segments_as_the_path_tracer_does() {
     }
     // The second segment adds light: the two depths are not the same render.
     assert!(means[0] * 1.2 < means[1], "{means:?}");
+}
+
+/// A 4 m floor under a ceiling that is all lamp, in a box of white walls (light nearly
+/// uniform, a quarter of it bounced): over each of the floor's light cells the cone
+/// integrator's mean error against a path-traced image is within noise of zero. Cell-
+/// shaped error (a cell's mean standing in for a pixel's light) would give whole cells one
+/// offset, far more than the noise of their pixels' mean.
+#[test]
+fn a_flat_floor_under_uniform_light_shows_no_cell_pattern() {
+    let dir = tempfile::tempdir().unwrap();
+    let quad = |v: [[f32; 3]; 4]| {
+        let vs: String = v
+            .iter()
+            .map(|p| format!("v {} {} {}\n", p[0], p[1], p[2]))
+            .collect();
+        vs + "f 1 2 3\nf 1 3 4\n"
+    };
+    let walls = [
+        [[-2., 0., -2.], [2., 0., -2.], [2., 2., -2.], [-2., 2., -2.]],
+        [[-2., 0., 2.], [2., 0., 2.], [2., 2., 2.], [-2., 2., 2.]],
+        [[-2., 0., -2.], [-2., 0., 2.], [-2., 2., 2.], [-2., 2., -2.]],
+        [[2., 0., -2.], [2., 0., 2.], [2., 2., 2.], [2., 2., -2.]],
+    ];
+    let files = [
+        (
+            "floor.obj",
+            quad([[-2., 0., -2.], [-2., 0., 2.], [2., 0., 2.], [2., 0., -2.]]),
+        ),
+        (
+            "walls.obj",
+            walls
+                .map(quad)
+                .iter()
+                .enumerate()
+                .map(|(i, q)| {
+                    // Each quad's faces index its own four vertices.
+                    q.replace(
+                        "f 1 2 3\nf 1 3 4\n",
+                        &format!(
+                            "f {} {} {}\nf {} {} {}\n",
+                            4 * i + 1,
+                            4 * i + 2,
+                            4 * i + 3,
+                            4 * i + 1,
+                            4 * i + 3,
+                            4 * i + 4
+                        ),
+                    )
+                })
+                .collect(),
+        ),
+        // Facing down: (v1 − v0) × (v2 − v0) = −y.
+        (
+            "lamp.obj",
+            quad([[-2., 2., -2.], [2., 2., -2.], [2., 2., 2.], [-2., 2., 2.]]),
+        ),
+        (
+            "scene.toml",
+            r#"
+[[camera]]
+position = [0.0, 1.95, 0.0]
+look_at = [0.0, 0.0, 0.0]
+up = [0.0, 0.0, -1.0]
+yfov_degrees = 90.0
+width = 128
+height = 128
+[[material]]
+name = "floor"
+base_color = [0.5, 0.5, 0.5]
+[[material]]
+name = "wall"
+base_color = [0.8, 0.8, 0.8]
+[[material]]
+name = "lamp"
+base_color = [0.0, 0.0, 0.0]
+emission = [1.0, 1.0, 1.0]
+double_sided = false
+[assign]
+"floor.obj" = "floor"
+"walls.obj" = "wall"
+"lamp.obj" = "lamp"
+"#
+            .into(),
+        ),
+    ];
+    let arc = obj_scene(dir.path(), &files, "f.canopy");
+    let (truth, _) = render(
+        &arc,
+        &dir.path().join("p.exr"),
+        &["--spp", "256", "--seed", "3"],
+    );
+    let (img, _) = cone(
+        &arc,
+        &dir.path().join("c.exr"),
+        &["--spp", "64", "--seed", "4"],
+    );
+    // Each pixel's light cell: the store key its centre and corners hit (pixels on a
+    // cell border are left out).
+    let archive = Arc::new(Archive::open(&arc).unwrap());
+    let keys = canopy::radiance::Keys::new(&archive.header);
+    let camera = canopy::camera::Camera::new(&archive.cameras[0], 128, 128);
+    let cache = PageCache::new(Arc::clone(&archive), None, 1).unwrap();
+    let mut tr = Tracer::new(&cache);
+    let exact = Cone {
+        r0: 0.0,
+        tan_a: 0.0,
+        scale: 0.0,
+        spread: 0.0,
+    };
+    let mut cells: std::collections::HashMap<u64, Vec<f64>> = Default::default();
+    for y in 0..128 {
+        for x in 0..128 {
+            let mut key = |dx: f32, dy: f32| match tr
+                .cone_hit(&camera.ray(x as f32 + dx, y as f32 + dy), &exact)
+            {
+                Some(ConeHit::Tri(h)) if h.point().0.y.abs() < 1e-3 => {
+                    Some(keys.tri(h.leaf, h.slot, keys.cell_of(&h.tri, h.b)))
+                }
+                _ => None,
+            };
+            let Some(k) = key(0.5, 0.5) else { continue };
+            if [(0.0, 0.0), (1.0, 0.0), (0.0, 1.0), (1.0, 1.0)]
+                .iter()
+                .all(|&(a, b)| key(a, b) == Some(k))
+            {
+                let i = y * 128 + x;
+                let d = (0..3)
+                    .map(|c| (img.pixels[i][c] - truth.pixels[i][c]) as f64)
+                    .sum::<f64>()
+                    / 3.0;
+                cells.entry(k).or_default().push(d);
+            }
+        }
+    }
+    let z: Vec<f64> = cells
+        .values()
+        .filter(|d| d.len() >= 16)
+        .map(|d| {
+            let n = d.len() as f64;
+            let mean = d.iter().sum::<f64>() / n;
+            let var = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0);
+            mean / (var / n).sqrt()
+        })
+        .collect();
+    let floor = (0..128 * 128)
+        .map(|i| truth.pixels[i][0] as f64)
+        .sum::<f64>()
+        / (128.0 * 128.0);
+    assert!(z.len() >= 100, "{} whole cells on screen", z.len());
+    let chi = z.iter().map(|v| v * v).sum::<f64>() / z.len() as f64;
+    let worst = z.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    // Under no cell pattern each z is about a unit normal: over ~200 cells the largest
+    // |z| stays under 4.5 and their mean square near 1.
+    assert!(
+        worst < 4.5 && chi < 1.6,
+        "{} cells, image mean {floor:.3}: largest |mean error / its standard error| {worst:.2}, mean square {chi:.2}",
+        z.len()
+    );
 }

@@ -43,12 +43,14 @@ impl Keys {
 
     /// Side n of a triangle's n×n cell grid, from its longest edge.
     pub fn grid(&self, tri: &TriW) -> f32 {
-        let p = tri.p.map(V::from);
-        let edge = (p[1] - p[0])
-            .length()
-            .max((p[2] - p[1]).length())
-            .max((p[0] - p[2]).length());
-        (edge / self.cell_size).ceil().clamp(1.0, GRID as f32)
+        (longest_edge(tri) / self.cell_size)
+            .ceil()
+            .clamp(1.0, GRID as f32)
+    }
+
+    /// Side of a triangle's cells: its longest edge over the grid's side.
+    pub fn side(&self, tri: &TriW) -> f32 {
+        longest_edge(tri) / self.grid(tri)
     }
 
     /// Cell of a hit inside its triangle: an n×n grid over (b1, b2).
@@ -68,6 +70,14 @@ impl Keys {
             (0..n - i).map(move |j| (i * GRID + j, if i + j + 1 == n { full / 2.0 } else { full }))
         })
     }
+}
+
+fn longest_edge(tri: &TriW) -> f32 {
+    let p = tri.p.map(V::from);
+    (p[1] - p[0])
+        .length()
+        .max((p[2] - p[1]).length())
+        .max((p[0] - p[2]).length())
 }
 
 pub fn tri_area(tri: &TriW) -> f32 {

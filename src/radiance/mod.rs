@@ -32,12 +32,6 @@ pub struct Entry {
     pub caustic: [f32; 3],
     /// Visible fraction of a cell's area (§4.7.1); 0 until estimated.
     pub visible: f32,
-    /// Of the samples taken on screen: the part that came through the bounce (indirect
-    /// light, without the light sample), and how many.
-    pub indirect: [f32; 3],
-    pub ni: u32,
-    /// Times the pixel's cone hit this cell first.
-    pub visits: u32,
 }
 
 impl Entry {
@@ -50,11 +44,6 @@ impl Entry {
         } else {
             None
         }
-    }
-
-    /// Mean indirect light of the on-screen samples, once there are `min` of them.
-    pub fn indirect_mean(&self, min: u32) -> Option<[f32; 3]> {
-        (self.ni >= min.max(1)).then(|| self.indirect.map(|v| v / self.ni as f32))
     }
 }
 
@@ -76,13 +65,9 @@ pub struct RadianceStore {
     dirty: Vec<AtomicBool>,
 }
 
-/// On-screen samples after which a cell's indirect mean is final: the pixel sees it
-/// directly, so it converges further than the nodes seen through a bounce.
-pub const SCREEN_LIMIT: u32 = 1024;
-
-/// Bytes an entry costs in the map: 8-byte key, 68-byte entry, hash-table overhead at
-/// its 7/8 load factor.
-pub const ENTRY_BYTES: u64 = 92;
+/// Bytes an entry costs in the map: 8-byte key and 48-byte entry, hash-table overhead at
+/// its 7/8 load factor and one control byte.
+pub const ENTRY_BYTES: u64 = 65;
 
 impl RadianceStore {
     /// `max_bytes`: the store's share of the memory budget (None: unbounded); `pages`: the
@@ -159,27 +144,6 @@ impl RadianceStore {
         if let Some(e) = self.entry(&mut m, node) {
             f(e);
         }
-    }
-
-    /// Adds an on-screen sample: its total as `add` does, and its indirect part apart.
-    /// Returns the entry after it (None if the budget had no room for the node).
-    pub fn add_on_screen(&self, node: u64, total: [f32; 3], indirect: [f32; 3]) -> Option<Entry> {
-        let finite = total.iter().chain(&indirect).all(|v| v.is_finite());
-        let mut m = self.shard(node).lock().expect("store");
-        let e = self.entry(&mut m, node)?;
-        if finite {
-            count_in(&mut e.sum, &mut e.n, total, self.limit);
-            count_in(&mut e.indirect, &mut e.ni, indirect, SCREEN_LIMIT);
-        }
-        Some(*e)
-    }
-
-    /// Counts a visit by a pixel's cone and returns the entry after it.
-    pub fn visit(&self, node: u64) -> Option<Entry> {
-        let mut m = self.shard(node).lock().expect("store");
-        let e = self.entry(&mut m, node)?;
-        e.visits = e.visits.saturating_add(1);
-        Some(*e)
     }
 
     /// Sets a node's pulled value.
@@ -306,25 +270,6 @@ mod tests {
         // A non-finite sample is dropped rather than poisoning the node.
         let (avg, _) = s.add(8, [f32::NAN, 1.0, 1.0]);
         assert!(avg.iter().all(|v| v.is_finite()));
-    }
-
-    #[test]
-    fn on_screen_samples_keep_their_indirect_part_apart() {
-        let s = RadianceStore::new(2, None, 0);
-        assert_eq!(s.visit(5).unwrap().visits, 1);
-        for i in 0..4 {
-            let e = s
-                .add_on_screen(5, [3.0 + i as f32; 3], [1.0 + i as f32; 3])
-                .unwrap();
-            // The total stops at the store's limit; the indirect part keeps averaging.
-            assert_eq!(e.n, (i + 1).min(2));
-            assert_eq!(e.ni, i + 1);
-        }
-        let e = s.get(5).unwrap();
-        assert_eq!(e.value().unwrap(), ([3.5; 3], 2));
-        assert_eq!(e.indirect_mean(4), Some([2.5; 3]));
-        assert_eq!(e.indirect_mean(5), None);
-        assert_eq!(e.visits, 1);
     }
 
     #[test]

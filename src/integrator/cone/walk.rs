@@ -5,21 +5,31 @@
 
 use super::cluster::{hit_emission, phong_lobe, reflect_lut, theta_norm};
 use super::optics::{bent_tan, jitter};
-use super::{ConeIntegrator, FRESH, ON_SCREEN_MIN, SCREEN_FLOOR, SCREEN_QUOTA};
+use super::{ConeIntegrator, FRESH, STORE_TAN};
 use crate::integrator::path::power_heuristic;
 use crate::integrator::{bsdf_term, sample_light, Counters, Receiver, Scene};
 use crate::material::{cosine_hemisphere, Frame};
-use crate::radiance::{RadianceStore, SCREEN_LIMIT};
+use crate::radiance::RadianceStore;
 use crate::sampler::PixelSampler;
 use crate::trace::{gamma, offset_origin, Cone, ConeHit, Hit, Ray, Tracer};
 use canopy_format::codec::{snorm16_decode, unorm8_decode};
 use canopy_format::{Node as NodeRecord, NodeFlags};
 use glam::Vec3A as V;
 
+/// What a diffuse hit does with the store once its sample is known.
+#[derive(Clone, Copy)]
+enum Keep {
+    /// Its own sample, not stored (also a converged node, whose mean is the sample).
+    Fresh,
+    /// Its own sample, also added to the store.
+    Store(u64),
+    /// Adds its sample and answers with the store's mean.
+    Answer(u64),
+}
+
 /// What one bounce needs to finish once the rest of the path is known.
 struct Pending {
-    /// Store key when this bounce's diffuse light is stored.
-    node: Option<u64>,
+    keep: Keep,
     /// Page holding that node.
     page: u32,
     /// Radiance gathered here independent of the continuation: emission and light samples.
@@ -41,6 +51,8 @@ struct Here {
     err: V,
     /// Unit geometric normal; zero on a node.
     ng: V,
+    /// Distance from the ray's origin.
+    t: f32,
     /// Toward the viewer.
     wo: V,
     front: bool,
@@ -55,18 +67,18 @@ struct Here {
 impl Here {
     /// None for a degenerate triangle.
     fn new(hit: &ConeHit, ray: &Ray, s: &PixelSampler, depth: u32) -> Option<Here> {
-        let (p, err, ng) = match hit {
+        let (p, err, ng, t) = match hit {
             ConeHit::Tri(h) => {
                 let area = 0.5 * h.ng().length();
                 if area.is_nan() || area <= 0.0 {
                     return None;
                 }
                 let (p, err) = h.point();
-                (p, err, h.ng().normalize_or_zero())
+                (p, err, h.ng().normalize_or_zero(), h.t)
             }
             ConeHit::Node { t, .. } => {
                 let p = ray.o + ray.d * *t;
-                (p, p.abs() * gamma(7) + V::splat(1e-6), V::ZERO)
+                (p, p.abs() * gamma(7) + V::splat(1e-6), V::ZERO, *t)
             }
         };
         let [pick, l0, l1, lobe] = s.get4(2 * depth + 1);
@@ -75,6 +87,7 @@ impl Here {
             p,
             err,
             ng,
+            t,
             wo: -ray.d,
             front: ng.dot(-ray.d) > 0.0,
             pick,
@@ -110,6 +123,8 @@ struct Diffuse {
     cluster_n: Option<V>,
     /// Light nearer than this counts as if at this distance.
     min_dist: f32,
+    /// Side of the light cell (0 for a node, which the cone resolved by stopping there).
+    side: f32,
 }
 
 enum Event {
@@ -154,9 +169,13 @@ impl Path {
             };
         }
         match hit {
-            // After a glossy bounce: MIS against the light sample, as the path tracer does;
-            // after a diffuse bounce emission is masked (eq. 4.27).
-            ConeHit::Tri(h) if matches!(self.stack.last(), Some(p) if !p.diffuse) => {
+            // After a diffuse or glossy bounce: MIS against the light sample, as the path
+            // tracer does. Deviation: eq. 4.27 masks emission after a diffuse bounce and
+            // gives the light sample full weight, whose 1/d² near a large emitter (a wall
+            // meeting a lamp) left fireflies in the stored light and a stored mean that
+            // is typically low (−0.8% on a lamp-ceilinged box). A node stands in for its
+            // emitters only at the LOD `--cone-scale` asks for, and stays masked.
+            ConeHit::Tri(h) => {
                 let area = 0.5 * h.ng().length();
                 let cos_l = at.ng.dot(at.wo).abs();
                 let lights = &scene.lights;
@@ -208,23 +227,18 @@ impl Path {
         let mut tail = V::ZERO;
         while let Some(b) = self.stack.pop() {
             let incoming = b.direct + b.weight * tail;
-            if b.node.is_some() {
-                store.mark_dirty(b.page);
-            }
             tail = if b.diffuse {
-                let scattered = match b.node {
-                    // On screen the light sample is the path's own and the indirect part
-                    // the cell's mean once it has a few samples: a final gather from the
-                    // store (§5.8 gathers only from converged nodes). The sample feeds both.
-                    Some(key) if self.stack.len() < FRESH as usize => {
-                        let indirect = b.weight * tail;
-                        store
-                            .add_on_screen(key, incoming.to_array(), indirect.to_array())
-                            .and_then(|e| e.indirect_mean(ON_SCREEN_MIN))
-                            .map_or(incoming, |m| b.direct + V::from(m))
+                let scattered = match b.keep {
+                    Keep::Fresh => incoming,
+                    Keep::Store(key) => {
+                        store.add(key, incoming.to_array());
+                        store.mark_dirty(b.page);
+                        incoming
                     }
-                    Some(key) => V::from(store.add(key, incoming.to_array()).0),
-                    None => b.direct,
+                    Keep::Answer(key) => {
+                        store.mark_dirty(b.page);
+                        V::from(store.add(key, incoming.to_array()).0)
+                    }
                 };
                 b.emission + b.albedo * (scattered + b.caustic)
             } else {
@@ -281,7 +295,7 @@ impl ConeIntegrator {
             };
             scene.touched.insert(node);
             let mut pend = Pending {
-                node: None,
+                keep: Keep::Fresh,
                 page,
                 direct: V::ZERO,
                 emission: path.emission(scene, &hit, &at),
@@ -345,6 +359,7 @@ impl ConeIntegrator {
                 key: self.keys.tri(h.leaf, h.slot, cell),
                 cluster_n: None,
                 min_dist: 0.0,
+                side: self.keys.side(&h.tri),
             });
         }
         let frame = Frame::new(n);
@@ -469,6 +484,7 @@ impl ConeIntegrator {
             key: self.keys.node(node),
             cluster_n: Some(if nn.dot(n) < 0.0 { -nn } else { nn }),
             min_dist: raw.radius,
+            side: 0.0,
         })
     }
 
@@ -486,26 +502,29 @@ impl ConeIntegrator {
         let store = &self.store;
         pend.albedo = d.albedo;
         pend.diffuse = true;
-        pend.node = Some(d.key);
-        let entry = if path.depth == 0 {
-            store.visit(d.key)
-        } else {
-            store.get(d.key)
-        };
+        let entry = store.get(d.key);
         if path.mask_caustics {
             pend.caustic = entry
                 .and_then(|e| store.caustic(&e))
                 .map_or(V::ZERO, V::from);
         }
-        // A converged node answers from its store (§4.6.1); on screen only for its
-        // indirect part, the light sample below stays fresh.
-        if path.depth >= FRESH {
-            if let Some(e) = entry.filter(|e| e.n >= store.limit) {
-                let (v, _) = e.value().unwrap_or(([0.0; 3], 0));
-                pend.node = None;
-                pend.direct = V::from(v);
-                return Event::Stop;
-            }
+        // The first FRESH hits take their own sample; the primary hit's, spread over the
+        // screen, also feeds the store. A deeper hit answers from the store only where a
+        // diffuse bounce's footprint at its distance covers the cell (a node is covered:
+        // the cone stopped there), so a cell never stands in for light that varies inside
+        // it at the scale the bounce sees (a room's corners); only those hits add to it.
+        let resolved = d.side <= 2.0 * STORE_TAN * at.t;
+        pend.keep = match path.depth {
+            0 => Keep::Store(d.key),
+            depth if depth >= FRESH && resolved => Keep::Answer(d.key),
+            _ => Keep::Fresh,
+        };
+        // A converged node answers from its store (§4.6.1) without recursing.
+        if let (Keep::Answer(_), Some(e)) = (pend.keep, entry.filter(|e| e.n >= store.limit)) {
+            let (v, _) = e.value().unwrap_or(([0.0; 3], 0));
+            pend.keep = Keep::Fresh;
+            pend.direct = V::from(v);
+            return Event::Stop;
         }
         // Light sample: cos θ, or Θ = (1−|n|)/4 + ⟨n, ω⟩ for a cluster (eq. 4.4). Emission
         // is masked at the next hit (eq. 4.27), so the light sample takes full weight.
@@ -529,31 +548,18 @@ impl ConeIntegrator {
             min_dist: d.min_dist,
         };
         let u = [at.pick, at.light[0], at.light[1]];
+        let cos_pdf = |wi: V| d.frame.n.dot(wi).max(0.0) * std::f32::consts::FRAC_1_PI;
         pend.direct = sample_light(scene, tr, &receiver, &path.shadow_cone, u, |wi| {
-            (V::splat(theta(wi) * std::f32::consts::FRAC_1_PI), 0.0)
+            (
+                V::splat(theta(wi) * std::f32::consts::FRAC_1_PI),
+                cos_pdf(wi),
+            )
         });
-        // On screen a cell traces only some of its pixels' bounces: it keeps sampling while
-        // it holds fewer than max(SCREEN_FLOOR, SCREEN_QUOTA·√(visits·k)) samples after k
-        // passes, which with P pixels on it is a fraction ∝ 1/√P of their bounces. The
-        // other pixels cost their primary cone and light sample only (the thesis's 4× per
-        // iteration once stored light has converged, §5.8), and the cell's error still
-        // falls with time. 1/√P minimizes error × cost when the light sample's variance
-        // and the indirect light's are alike: err² ∝ 1 + 1/(f·P), cost ∝ 1 + f.
-        if let Some(e) = entry.filter(|e| path.depth == 0 && e.ni >= ON_SCREEN_MIN) {
-            let passes = store.passes() as f32;
-            let quota = SCREEN_FLOOR.max(SCREEN_QUOTA * (e.visits as f32 * passes).sqrt());
-            if e.ni >= SCREEN_LIMIT || e.ni as f32 >= quota {
-                if let Some(ind) = e.indirect_mean(ON_SCREEN_MIN) {
-                    pend.node = None;
-                    pend.direct += V::from(ind);
-                    return Event::Stop;
-                }
-            }
-        }
         // Cosine-sampled bounce; weight 1 (the albedo is applied when unwinding). Its
         // direction is already random, so it is not jittered again (eq. 4.20).
         let wi = d.frame.to_world(cosine_hemisphere(at.dir)).normalize();
         pend.weight = V::ONE;
+        let from = (receiver.p, receiver.facing);
         Event::Bounce(Bounce {
             ray: Ray {
                 o: offset_origin(at.p, at.err, shade_n, wi),
@@ -562,10 +568,10 @@ impl ConeIntegrator {
             },
             cone: widened(&path.cone),
             delta: false,
-            pdf: 0.0,
+            pdf: cos_pdf(wi),
             diffuse: true,
             smooth: true,
-            from: None,
+            from: Some(from),
         })
     }
 }
