@@ -526,8 +526,10 @@ impl ConeIntegrator {
             pend.direct = V::from(v);
             return Event::Stop;
         }
-        // Light sample: cos θ, or Θ = (1−|n|)/4 + ⟨n, ω⟩ for a cluster (eq. 4.4). Emission
-        // is masked at the next hit (eq. 4.27), so the light sample takes full weight.
+        // Light sample: cos θ, or Θ = (1−|n|)/4 + ⟨n, ω⟩ for a cluster (eq. 4.4), weighted
+        // by MIS against the bounce's cosine pdf; `Path::emission` weights the other side.
+        // A bounce that stops at an emitting node (only at `--cone-scale` > 0) adds no
+        // emission, so that node's share of the MIS is lost with the level of detail.
         let theta = |wi: V| match d.cluster_n {
             Some(nn) => {
                 let len = nn.length();
