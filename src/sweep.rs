@@ -112,92 +112,142 @@ fn render_into(
 
 #[derive(Debug, serde::Serialize)]
 pub struct NppRow {
+    pub integrator: Kind,
     pub width: u32,
     pub height: u32,
     pub pixels: u64,
+    pub spp: u32,
+    /// `Film::noise` at this spp.
+    pub noise: f64,
     pub unique_nodes: u64,
     pub nodes_per_pixel: f64,
+    /// True on the row where the resolution's render stopped (the noise target or --spp).
+    pub last: bool,
     pub pages_touched: u64,
     pub resident_bytes_peak: u64,
     pub seconds: f64,
 }
 
-/// `canopy npp`: one render per height in `resolutions` (width from the camera's aspect).
-pub fn npp(o: &SweepOptions, resolutions: &[u32]) -> Result<Vec<NppRow>> {
+/// `canopy npp`: for each integrator and each height in `resolutions` (width from the
+/// camera's aspect), one render that doubles its spp until the image's relative noise is
+/// at most `noise` (at most `max_spp`), so that every resolution is counted at equal noise
+/// as 004 §5.2 asks; a row per power of two shows how the count grows with spp.
+pub fn npp(
+    o: &SweepOptions,
+    integrators: &[Kind],
+    resolutions: &[u32],
+    noise: f64,
+    max_spp: u32,
+) -> Result<Vec<NppRow>> {
     std::fs::create_dir_all(&o.out_dir)
         .with_context(|| format!("{}: cannot create", o.out_dir.display()))?;
     let mut rows = Vec::new();
-    let mut csv = String::from("width,height,pixels,unique_nodes,nodes_per_pixel,pages_touched,resident_bytes_peak,seconds\n");
-    for &h in resolutions {
-        let (_, s) = render_into(o, &format!("npp_{h}"), |r| {
-            r.height = Some(h);
-            r.width = None;
-        })?;
-        let row = NppRow {
-            width: s.width,
-            height: s.height,
-            pixels: s.width as u64 * s.height as u64,
-            unique_nodes: s.unique_nodes_touched,
-            nodes_per_pixel: s.nodes_per_pixel,
-            pages_touched: s.cache.pages_touched,
-            resident_bytes_peak: s.cache.resident_bytes_peak,
-            seconds: s.seconds.render,
-        };
-        writeln!(
-            csv,
-            "{},{},{},{},{:.3},{},{},{:.3}",
-            row.width,
-            row.height,
-            row.pixels,
-            row.unique_nodes,
-            row.nodes_per_pixel,
-            row.pages_touched,
-            row.resident_bytes_peak,
-            row.seconds
-        )?;
-        rows.push(row);
+    for &i in integrators {
+        for &h in resolutions {
+            let name = format!("npp_{i:?}_{h}").to_lowercase();
+            let (_, s) = render_into(o, &name, |r| {
+                r.integrator = o.settings(i);
+                r.height = Some(h);
+                r.width = None;
+                r.spp = max_spp;
+                r.noise = Some(noise);
+            })?;
+            let pixels = s.width as u64 * s.height as u64;
+            for (k, c) in s.growth.iter().enumerate() {
+                rows.push(NppRow {
+                    integrator: i,
+                    width: s.width,
+                    height: s.height,
+                    pixels,
+                    spp: c.spp,
+                    noise: c.noise,
+                    unique_nodes: c.unique_nodes,
+                    nodes_per_pixel: c.unique_nodes as f64 / pixels as f64,
+                    last: k + 1 == s.growth.len(),
+                    pages_touched: s.cache.pages_touched,
+                    resident_bytes_peak: s.cache.resident_bytes_peak,
+                    seconds: c.seconds,
+                });
+            }
+        }
     }
-    write_text(&o.out_dir.join("npp.csv"), &csv)?;
-    plot_loglog(
-        &o.out_dir.join("npp.svg"),
-        "Unique nodes touched against pixels",
-        "pixels",
-        "nodes",
-        &[
-            Series {
-                name: "unique nodes (hit + ancestors)".into(),
-                points: rows
-                    .iter()
-                    .map(|r| (r.pixels as f64, r.unique_nodes as f64))
-                    .collect(),
-            },
-            Series {
-                name: "pixels (slope 1)".into(),
-                points: rows
-                    .iter()
-                    .map(|r| (r.pixels as f64, r.pixels as f64))
-                    .collect(),
-            },
-        ],
-    )?;
+    write_npp(o, integrators, &rows)?;
     Ok(rows)
 }
 
+/// npp.csv (every row) and npp.svg (used nodes against pixels at the stopping rows, as
+/// 004 Fig. 14 plots them, beside one and 100 nodes per pixel).
+fn write_npp(o: &SweepOptions, integrators: &[Kind], rows: &[NppRow]) -> Result<()> {
+    let mut csv = String::from("integrator,width,height,pixels,spp,noise,unique_nodes,nodes_per_pixel,last,pages_touched,resident_bytes_peak,seconds\n");
+    for r in rows {
+        writeln!(
+            csv,
+            "{:?},{},{},{},{},{:.5},{},{:.3},{},{},{},{:.3}",
+            r.integrator,
+            r.width,
+            r.height,
+            r.pixels,
+            r.spp,
+            r.noise,
+            r.unique_nodes,
+            r.nodes_per_pixel,
+            r.last,
+            r.pages_touched,
+            r.resident_bytes_peak,
+            r.seconds
+        )?;
+    }
+    write_text(&o.out_dir.join("npp.csv"), &csv)?;
+    let last: Vec<&NppRow> = rows.iter().filter(|r| r.last).collect();
+    let mut series: Vec<Series> = integrators
+        .iter()
+        .map(|&i| Series {
+            name: format!("{i:?}: used nodes at equal noise"),
+            points: last
+                .iter()
+                .filter(|r| r.integrator == i)
+                .map(|r| (r.pixels as f64, r.unique_nodes as f64))
+                .collect(),
+        })
+        .collect();
+    for per_pixel in [1.0, 100.0] {
+        series.push(Series {
+            name: format!("{per_pixel} per pixel"),
+            points: last
+                .iter()
+                .map(|r| (r.pixels as f64, per_pixel * r.pixels as f64))
+                .collect(),
+        });
+    }
+    plot_loglog(
+        &o.out_dir.join("npp.svg"),
+        "Used nodes against pixels (004 Fig. 14)",
+        "pixels",
+        "nodes",
+        &series,
+    )
+}
+
 impl NppRow {
-    pub const HEADER: &str = "pixels      unique nodes  nodes/pixel  pages  resident MiB  seconds";
+    pub const HEADER: &str =
+        "integrator     pixels   spp   noise  unique nodes  nodes/pixel  pages  resident MiB  seconds";
 }
 
 impl std::fmt::Display for NppRow {
     fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
         write!(
             f,
-            "{:>10}  {:>12}  {:>11.2}  {:>5}  {:>12.1}  {:>7.2}",
+            "{:<10} {:>10}  {:>4}  {:>6.4}  {:>12}  {:>11.2}  {:>5}  {:>12.1}  {:>7.2}{}",
+            format!("{:?}", self.integrator),
             self.pixels,
+            self.spp,
+            self.noise,
             self.unique_nodes,
             self.nodes_per_pixel,
             self.pages_touched,
             self.resident_bytes_peak as f64 / 1048576.0,
-            self.seconds
+            self.seconds,
+            if self.last { "  <- stopped" } else { "" }
         )
     }
 }

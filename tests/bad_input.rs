@@ -600,7 +600,7 @@ fn a_cone_flag_under_the_path_tracer_is_an_error_naming_it() {
             ["--light-pass", "on"],
         ),
         (
-            vec!["npp", a, "-o", s(dir.path()), "--resolutions", "8"],
+            vec!["npp", a, "-o", s(dir.path()), "--integrators", "path"],
             ["--edge-rays", "0"],
         ),
         (
@@ -631,4 +631,33 @@ fn a_cone_flag_under_the_path_tracer_is_an_error_naming_it() {
     .chain(small)
     .collect();
     ok(&args);
+}
+
+/// `npp` and `eval` take `--integrators`; a single `--integrator` or a noise target that is
+/// not a positive number is a usage error (status 2) that says so.
+#[test]
+fn npp_and_eval_refuse_a_single_integrator_and_a_bad_noise_target() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("c.canopy");
+    convert(&scene("cbox.glb"), &arc, None);
+    let (a, d) = (s(&arc), s(dir.path()));
+    for (args, says) in [
+        (
+            vec!["npp", a, "-o", d, "--integrator", "cone"],
+            "--integrators",
+        ),
+        (
+            vec!["eval", a, "--reference", a, "--integrator", "cone"],
+            "--integrators",
+        ),
+        (vec!["npp", a, "-o", d, "--noise", "0"], "positive"),
+        (vec!["npp", a, "-o", d, "--noise", "NaN"], "positive"),
+        (vec!["npp", a, "-o", d, "--spp", "0"], "--spp"),
+    ] {
+        let run = canopy(&args);
+        let err = String::from_utf8_lossy(&run.stderr);
+        assert_eq!(run.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains(says), "{args:?}: {err}");
+    }
+    assert!(!dir.path().join("npp.csv").exists());
 }

@@ -19,7 +19,7 @@ fn cone(
 #[test]
 fn cone_scale_zero_agrees_with_the_reference() {
     let dir = tempfile::tempdir().unwrap();
-    for (name, spp) in [("cbox", "128"), ("bunny_box", "64")] {
+    for (name, spp) in [("cbox", "128"), ("bunny_box", "64"), ("room_glossy", "64")] {
         let arc = dir.path().join(format!("{name}.canopy"));
         convert(&scene(&format!("{name}.glb")), &arc, None);
         let (img, stats) = cone(
@@ -188,37 +188,65 @@ fn a_thin_wall_is_never_skipped_by_a_wide_cone() {
 }
 
 #[test]
-fn npp_counts_grow_with_resolution_and_stay_within_the_scene() {
+fn npp_renders_to_equal_noise_and_counts_grow_with_spp_and_resolution() {
     let dir = tempfile::tempdir().unwrap();
     let arc = dir.path().join("b.canopy");
     convert(&scene("bunny_box.glb"), &arc, None);
     let out = dir.path().join("npp");
+    let (target, max_spp) = (0.3, 64);
     ok(&[
         "--quiet",
         "npp",
         s(&arc),
-        "--integrator",
+        "--integrators",
         "cone",
         "--resolutions",
         "8,16,32,64",
+        "--noise",
+        "0.3",
+        "--spp",
+        "64",
         "-o",
         s(&out),
     ]);
     let csv = std::fs::read_to_string(out.join("npp.csv")).unwrap();
-    let nodes: Vec<u64> = csv
+    // (height, spp, noise, unique nodes, last)
+    let rows: Vec<(u32, u32, f64, u64, bool)> = csv
         .lines()
         .skip(1)
-        .map(|l| l.split(',').nth(3).unwrap().parse().unwrap())
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            let n = |i: usize| f[i].parse::<f64>().unwrap();
+            (n(2) as u32, n(4) as u32, n(5), n(6) as u64, f[8] == "true")
+        })
         .collect();
-    assert_eq!(nodes.len(), 4, "{csv}");
-    assert!(
-        nodes.windows(2).all(|w| w[0] < w[1]),
-        "not growing: {nodes:?}"
-    );
     let total = Archive::open(&arc).unwrap().header.nodes;
-    assert!(nodes.iter().all(|&n| n > 0 && n <= total));
+    for h in [8, 16, 32, 64] {
+        let run: Vec<_> = rows.iter().filter(|r| r.0 == h).collect();
+        assert!(run.len() >= 2, "{h}: {csv}");
+        for (k, w) in run.windows(2).enumerate() {
+            assert_eq!(w[1].1, 2 * w[0].1, "spp doubles: {csv}");
+            assert!(w[0].3 <= w[1].3, "used nodes shrank with spp: {csv}");
+            assert!(!w[0].4 && (k + 2 < run.len() || w[1].4), "{csv}");
+        }
+        let end = run.last().unwrap();
+        // Stopped at the first power of two that met the target, or at the cap.
+        assert!(end.2 <= target || end.1 == max_spp, "{csv}");
+        assert!(run[..run.len() - 1].iter().all(|r| r.2 > target), "{csv}");
+        assert!(end.3 > 0 && end.3 <= total);
+    }
+    // At equal spp more pixels use more nodes (at equal noise a small image may take more
+    // spp and so more nodes: not asserted).
+    for spp in [1, 2] {
+        let nodes: Vec<u64> = rows.iter().filter(|r| r.1 == spp).map(|r| r.3).collect();
+        assert_eq!(nodes.len(), 4, "{csv}");
+        assert!(
+            nodes.windows(2).all(|w| w[0] < w[1]),
+            "{spp} spp: {nodes:?}"
+        );
+    }
     let svg = std::fs::read_to_string(out.join("npp.svg")).unwrap();
-    assert!(svg.starts_with("<svg") && svg.contains("unique nodes"));
+    assert!(svg.starts_with("<svg") && svg.contains("equal noise"));
 }
 
 #[test]

@@ -93,10 +93,13 @@ def bsdf_of(mi, m):
             "base_color": {"type": "rgb", "value": base},
             "metallic": metallic,
             "roughness": rough,
-            "specular": spec * 0.5,
             "spec_trans": trans,
-            "eta": ior,
         }
+        # Mitsuba takes `specular` or `eta`, not both (one determines the other).
+        if spec == 1:
+            b["eta"] = ior
+        else:
+            b["specular"] = spec * 0.5
     if m.get("doubleSided", False):
         b = {"type": "twosided", "material": b}
     return b

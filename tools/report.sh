@@ -1,9 +1,10 @@
 #!/bin/sh
 # The default speed-against-error report on the bundled scenes: converts cbox, bunny_box,
-# room and caustics, runs `canopy eval` (path and cone integrators at 5, 15 and 60 seconds) against
-# the Mitsuba 3 references in scenes/refs, and `canopy npp` on bunny_box. Results go to
-# docs/report/<scene>/ (eval.csv, eval.md, eval.svg; npp.csv, npp.svg). Takes about
-# 4 minutes a scene. Usage: sh tools/report.sh [TIMES]   e.g. TIMES=2s,5s,15s for a quick run
+# room, room_glossy and caustics, runs `canopy eval` (path and cone integrators at 5, 15 and
+# 60 seconds) against the Mitsuba 3 references in scenes/refs, and `canopy npp` (both
+# integrators, to 10% noise) on bunny_box. Results go to docs/report/<scene>/ (eval.csv,
+# eval.md, eval.svg; npp.csv, npp.svg). Takes about 4 minutes a scene.
+# Usage: sh tools/report.sh [TIMES]   e.g. TIMES=2s,5s,15s for a quick run
 set -eu
 cd "$(dirname "$0")/.."
 TIMES="${1:-5s,15s,60s}"
@@ -11,13 +12,13 @@ cargo build --release
 BIN=target/release/canopy
 OUT=docs/report
 mkdir -p "$OUT"
-for scene in cbox bunny_box room caustics; do
+for scene in cbox bunny_box room room_glossy caustics; do
     $BIN --quiet convert "scenes/$scene.glb" -o "$OUT/$scene.canopy" > /dev/null
     $BIN --quiet eval "$OUT/$scene.canopy" --reference "scenes/refs/$scene.exr" \
         --integrators path,cone --times "$TIMES" -o "$OUT/$scene"
     rm -f "$OUT/$scene"/*.exr "$OUT/$scene"/eval_*.json
 done
-$BIN --quiet npp "$OUT/bunny_box.canopy" --integrator cone --resolutions 32,64,128,256,512 \
+$BIN --quiet npp "$OUT/bunny_box.canopy" --resolutions 32,64,128,256 --noise 0.1 --spp 256 \
     -o "$OUT/bunny_box_npp"
 rm -f "$OUT"/*.canopy "$OUT/bunny_box_npp"/*.exr "$OUT/bunny_box_npp"/npp_*.json
 echo "report in $OUT"

@@ -88,21 +88,36 @@ fn reject_unused(name: &str, sub: &ArgMatches, kinds: &[Kind]) {
                     .iter()
                     .map(|k| format!("{k:?}").to_lowercase())
                     .collect();
-                let mut cli = Cli::command();
-                let cmd = cli.find_subcommand_mut(name).expect("a known subcommand");
-                cmd.set_bin_name(format!("canopy {name}"));
-                cmd.error(
-                    clap::error::ErrorKind::ArgumentConflict,
+                conflict(
+                    name,
                     format!(
                         "--{flag} applies to --integrator {}, not {}",
                         format!("{kind:?}").to_lowercase(),
                         chosen.join(", ")
                     ),
-                )
-                .exit();
+                );
             }
         }
     }
+}
+
+/// `npp` and `eval` run every integrator of `--integrators`; `--integrator` would be ignored.
+fn reject_single_integrator(name: &str, sub: &ArgMatches) {
+    if sub.value_source("integrator") == Some(ValueSource::CommandLine) {
+        conflict(
+            name,
+            "--integrator does not apply here; use --integrators (a list, e.g. path,cone)".into(),
+        );
+    }
+}
+
+/// Exits with status 2 and clap's usage error for subcommand `name`.
+fn conflict(name: &str, message: String) -> ! {
+    let mut cli = Cli::command();
+    let cmd = cli.find_subcommand_mut(name).expect("a known subcommand");
+    cmd.set_bin_name(format!("canopy {name}"));
+    cmd.error(clap::error::ErrorKind::ArgumentConflict, message)
+        .exit()
 }
 
 /// Parses the command line (exiting with status 2 on bad arguments) and runs it.
@@ -118,11 +133,13 @@ pub fn run() -> Result<()> {
             render::run(a, show)
         }
         Cmd::Npp(a) => {
-            reject_unused(name, sub, &[a.settings.integrator]);
+            reject_unused(name, sub, &a.integrators);
+            reject_single_integrator(name, sub);
             sweep::npp(a, show)
         }
         Cmd::Eval(a) => {
             reject_unused(name, sub, &a.integrators);
+            reject_single_integrator(name, sub);
             sweep::eval(a, show)
         }
         Cmd::Compare(a) => compare::run(a),

@@ -60,6 +60,7 @@ impl RenderSettings {
             integrator: self.settings(self.integrator),
             spp,
             time: None,
+            noise: None,
             mem_budget: self.mem_budget,
             width: None,
             height: None,

@@ -6,16 +6,23 @@ use canopy::units;
 use clap::Args;
 use std::path::{Path, PathBuf};
 
-/// Nodes per pixel: render at several resolutions and count the unique nodes touched
-/// (leaves hit and their ancestors, 004 §5.2). Writes npp.csv and npp.svg.
+/// Nodes per pixel: render at several resolutions to equal noise and count the nodes used
+/// (leaves hit and their ancestors, 004 §5.2), at every power-of-two spp on the way.
+/// Writes npp.csv and npp.svg.
 #[derive(Args)]
 pub struct NppArgs {
     archive: PathBuf,
+    #[arg(long, value_delimiter = ',', default_value = "path,cone")]
+    pub integrators: Vec<Kind>,
     /// Image heights to render (widths follow the camera's aspect).
     #[arg(long, value_delimiter = ',', default_value = "32,64,128,256,512")]
     resolutions: Vec<u32>,
-    /// Samples per pixel at each resolution.
-    #[arg(long, default_value_t = 1)]
+    /// Noise to render to: the RMS standard error of the pixels' luminance over the image's
+    /// mean luminance. Each render doubles its spp until it is reached.
+    #[arg(long, default_value_t = 0.05, value_parser = parse_noise)]
+    noise: f64,
+    /// The most samples per pixel a render takes if the noise target is not reached first.
+    #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..))]
     spp: u32,
     /// Directory for the CSV, the plot and the images.
     #[arg(short, long, default_value = "npp")]
@@ -59,10 +66,17 @@ fn sweep_options(
     }
 }
 
+fn parse_noise(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v > 0.0 && v.is_finite() => Ok(v),
+        _ => Err(format!("'{s}' is not a positive number (e.g. 0.05 for 5%)")),
+    }
+}
+
 pub fn npp(a: NppArgs, progress: bool) -> Result<()> {
     let o = sweep_options(&a.settings, a.archive, &a.output, a.spp, progress);
     println!("{}", NppRow::HEADER);
-    for r in sweep::npp(&o, &a.resolutions)? {
+    for r in sweep::npp(&o, &a.integrators, &a.resolutions, a.noise, a.spp)? {
         println!("{r}");
     }
     println!("wrote {}/npp.csv and npp.svg", a.output.display());

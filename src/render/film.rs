@@ -2,13 +2,16 @@
 
 use crate::image::Image;
 
+/// Per-pixel sums of a tile's samples: R, G, B and the luminance squared.
+pub type Sums = [f64; 4];
+
 /// Side of a tile, the unit of parallel work.
 pub const TILE: u32 = 16;
 
 pub struct Film {
     /// x0, x1, y0, y1 of the window in image pixels (half-open).
     window: [u32; 4],
-    sums: Vec<[f64; 3]>,
+    sums: Vec<Sums>,
     pub tiles: Vec<[u32; 4]>,
 }
 
@@ -30,7 +33,7 @@ impl Film {
             .collect();
         Film {
             window,
-            sums: vec![[0.0; 3]; w as usize * h as usize],
+            sums: vec![[0.0; 4]; w as usize * h as usize],
             tiles,
         }
     }
@@ -49,7 +52,7 @@ impl Film {
     }
 
     /// Adds a tile's per-pixel sums (row-major within the tile).
-    pub fn add(&mut self, tile: [u32; 4], sums: &[[f64; 3]]) {
+    pub fn add(&mut self, tile: [u32; 4], sums: &[Sums]) {
         let w = tile[1] - tile[0];
         for (i, v) in sums.iter().enumerate() {
             let at = self.index(tile[0] + i as u32 % w, tile[2] + i as u32 / w);
@@ -63,13 +66,66 @@ impl Film {
     pub fn image(&self, samples: u32) -> Image {
         let mut img = Image::new(self.width(), self.height());
         for (p, s) in img.pixels.iter_mut().zip(&self.sums) {
-            *p = s.map(|v| (v / samples as f64) as f32);
+            *p = [0, 1, 2].map(|k| (s[k] / samples as f64) as f32);
         }
         img
     }
 
+    /// The image's relative noise after `samples` samples per pixel: the RMS over pixels of
+    /// the standard error of each pixel's mean luminance (from its sample variance), over
+    /// the image's mean luminance. Infinite below two samples, 0 for a black image.
+    pub fn noise(&self, samples: u32) -> f64 {
+        if samples < 2 {
+            return f64::INFINITY;
+        }
+        let n = samples as f64;
+        let (mut var, mut mean) = (0.0, 0.0);
+        for s in &self.sums {
+            let y = luminance([s[0], s[1], s[2]]) / n;
+            var += ((s[3] / n - y * y) * n / (n - 1.0)).max(0.0) / n;
+            mean += y;
+        }
+        if mean <= 0.0 {
+            return 0.0;
+        }
+        let count = self.sums.len() as f64;
+        (var / count).sqrt() / (mean / count)
+    }
+
     /// Bytes of the sums and of the image made from them.
     pub fn bytes(&self) -> u64 {
-        self.sums.len() as u64 * (24 + 12)
+        self.sums.len() as u64 * (32 + 12)
+    }
+}
+
+/// Rec. 709 luminance, in f64 for the film's sums.
+pub fn luminance(c: [f64; 3]) -> f64 {
+    0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Two samples per pixel, 0 and 2 in every channel: mean 1, sample variance 2, so the
+    /// standard error of each mean is 1 and the relative noise 1/1.
+    #[test]
+    fn noise_is_the_standard_error_over_the_mean() {
+        let mut film = Film::new([0, 4, 0, 2]);
+        let y2 = luminance([2.0; 3]).powi(2);
+        for tile in film.tiles.clone() {
+            film.add(tile, &vec![[2.0, 2.0, 2.0, y2]; 8]);
+        }
+        assert!((film.noise(2) - 1.0).abs() < 1e-9, "{}", film.noise(2));
+        assert_eq!(film.noise(1), f64::INFINITY);
+        // Equal samples: no noise.
+        let mut flat = Film::new([0, 4, 0, 2]);
+        for tile in flat.tiles.clone() {
+            flat.add(
+                tile,
+                &vec![[2.0, 2.0, 2.0, 2.0 * luminance([1.0; 3]).powi(2)]; 8],
+            );
+        }
+        assert!(flat.noise(2).abs() < 1e-9);
     }
 }

@@ -7,9 +7,9 @@ mod setup;
 mod stats;
 
 pub use setup::MAX_SIDE;
-pub use stats::{RenderStats, Seconds};
+pub use stats::{Checkpoint, RenderStats, Seconds};
 
-use film::Film;
+use film::{Film, Sums};
 use setup::Setup;
 use stats::{ancestors_closure, peak_rss_bytes};
 
@@ -32,6 +32,10 @@ pub struct RenderOptions {
     pub spp: u32,
     /// Render passes until this much time is spent instead of `spp`.
     pub time: Option<Duration>,
+    /// Without `time`: stop at the first power-of-two spp whose relative noise
+    /// (`Film::noise`) is at most this, `spp` the most; each power of two is recorded in
+    /// the stats' `growth`.
+    pub noise: Option<f64>,
     pub mem_budget: Option<u64>,
     pub width: Option<u32>,
     pub height: Option<u32>,
@@ -60,6 +64,7 @@ struct Run {
     done: u32,
     seconds: Seconds,
     tally: Tally,
+    growth: Vec<Checkpoint>,
 }
 
 pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
@@ -91,17 +96,23 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         ),
     };
     let mut done = 0u32;
+    let mut growth = Vec::new();
     loop {
-        // Passes of one sample when the time decides.
-        let count = match o.time {
-            Some(_) => 1,
-            None => integ.pass_samples(o.spp),
+        let count = match (o.time, o.noise) {
+            // Passes of one sample when the time decides.
+            (Some(_), _) => 1,
+            // Passes that end on powers of two, where the noise is measured.
+            (None, Some(_)) => integ
+                .pass_samples(o.spp - done)
+                .min(done.max(1))
+                .min(o.spp - done),
+            (None, None) => integ.pass_samples(o.spp),
         };
         let pass_start = Instant::now();
         let rays = pool.install(|| integ.begin_pass(scene, done, count));
         tally.rays.fetch_add(rays, Relaxed);
         let integ_ref: &dyn Integrator = integ.as_ref();
-        let sums: Vec<Vec<[f64; 3]>> = pool.install(|| {
+        let sums: Vec<Vec<Sums>> = pool.install(|| {
             film.tiles
                 .par_iter()
                 .map(|t| {
@@ -123,13 +134,23 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         }
         pool.install(|| integ.end_pass(scene, done));
         let spent = t1.elapsed();
-        let finished = match o.time {
-            None => done >= o.spp,
+        let finished = match (o.time, o.noise) {
             // Stop when the next pass would overrun the budget.
-            Some(limit) => {
+            (Some(limit), _) => {
                 bar.set_position(spent.as_secs());
                 spent + pass_start.elapsed() > limit || done >= u32::MAX - 1
             }
+            (None, Some(target)) if done.is_power_of_two() || done >= o.spp => {
+                let c = Checkpoint {
+                    spp: done,
+                    noise: film.noise(done),
+                    unique_nodes: ancestors_closure(scene)?,
+                    seconds: spent.as_secs_f64(),
+                };
+                growth.push(c);
+                c.noise <= target || done >= o.spp
+            }
+            (None, _) => done >= o.spp,
         };
         if finished {
             break;
@@ -153,6 +174,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         done,
         seconds,
         tally,
+        growth,
     };
     let stats = summarize(o, &s, integ.as_ref(), &film, &img, run)?;
     if let Some(p) = &o.stats {
@@ -171,13 +193,13 @@ fn render_tile(
     [first, count]: [u32; 2],
     seed: u32,
     tally: &Tally,
-) -> Vec<[f64; 3]> {
+) -> Vec<Sums> {
     let mut c = Counters::default();
     let mut tr = Tracer::new(&scene.cache);
     let cam = &scene.camera;
     let mut out = Vec::with_capacity(((t[1] - t[0]) * (t[3] - t[2])) as usize);
     for (y, x) in (t[2]..t[3]).flat_map(|y| (t[0]..t[1]).map(move |x| (y, x))) {
-        let mut sum = [0f64; 3];
+        let mut sum: Sums = [0.0; 4];
         for index in first..first + count {
             let sampler = PixelSampler::new(seed, y * cam.width + x, index);
             let [jx, jy, ..] = sampler.get4(0);
@@ -190,9 +212,11 @@ fn render_tile(
                 sampler,
             };
             let l = integ.sample(scene, &mut tr, &px, &mut c);
+            let l = [l.x as f64, l.y as f64, l.z as f64];
             for k in 0..3 {
-                sum[k] += l[k] as f64;
+                sum[k] += l[k];
             }
+            sum[3] += film::luminance(l).powi(2);
         }
         out.push(sum);
     }
@@ -215,6 +239,7 @@ fn summarize(
         done,
         seconds,
         tally,
+        growth,
     } = run;
     let scene = &s.scene;
     let unique = ancestors_closure(scene)?;
@@ -252,5 +277,6 @@ fn summarize(
         nonfinite_samples: tally.nonfinite.load(Relaxed),
         details: integ.stats(),
         image_mean: img.mean(),
+        growth,
     })
 }

@@ -49,6 +49,21 @@ pub struct RenderStats {
     #[serde(flatten)]
     pub details: Stats,
     pub image_mean: [f64; 3],
+    /// With a noise target: noise and used nodes at each power-of-two spp.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub growth: Vec<Checkpoint>,
+}
+
+/// A render's state after `spp` samples per pixel.
+#[derive(Clone, Copy, Debug, serde::Serialize)]
+pub struct Checkpoint {
+    pub spp: u32,
+    /// `Film::noise`: relative standard error of the image.
+    pub noise: f64,
+    /// Nodes hit and their ancestors so far (004 §5.2).
+    pub unique_nodes: u64,
+    /// Render time so far, the node counts included.
+    pub seconds: f64,
 }
 
 impl std::fmt::Display for RenderStats {

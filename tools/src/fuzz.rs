@@ -297,6 +297,7 @@ pub fn tiny_render(archive: &Path, dir: &Path, integrator: Settings) -> RenderOp
         integrator,
         spp: 1,
         time: None,
+        noise: None,
         mem_budget: None,
         width: Some(12),
         height: Some(8),
