@@ -21,3 +21,4 @@ pub mod sweep;
 mod test_rng;
 pub mod trace;
 pub mod units;
+pub mod wavelet;

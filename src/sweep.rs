@@ -3,7 +3,7 @@
 //! (plotters) and, for `eval`, a Markdown table with c = RMSE·√seconds per row.
 
 use crate::image::{write_atomically, Image};
-use crate::integrator::{cone::ConeSettings, Kind, Settings};
+use crate::integrator::{cone::ConeSettings, pbgi::PbgiSettings, Kind, Settings};
 use crate::metrics::{error, Metric};
 use crate::render::{render, RenderOptions, RenderStats};
 use anyhow::{bail, Context, Result};
@@ -87,6 +87,7 @@ pub struct SweepOptions {
     pub out_dir: PathBuf,
     pub base: RenderOptions,
     pub cone: ConeSettings,
+    pub pbgi: PbgiSettings,
 }
 
 impl SweepOptions {
@@ -94,6 +95,7 @@ impl SweepOptions {
         match kind {
             Kind::Path => Settings::Path,
             Kind::Cone => Settings::Cone(self.cone.clone()),
+            Kind::Pbgi => Settings::Pbgi(self.pbgi.clone()),
         }
     }
 }
@@ -318,7 +320,7 @@ pub fn eval(
             r.integrator, r.budget_seconds, r.seconds, r.spp, r.rmse, r.c
         )?;
     }
-    if let Some(line) = time_to_match(&rows) {
+    for line in time_to_match(&rows) {
         md.push('\n');
         md.push_str(&line);
         md.push('\n');
@@ -346,39 +348,57 @@ pub fn eval(
     Ok(rows)
 }
 
-/// How long the cone integrator needs to reach the path tracer's error at its longest
-/// budget, interpolating the cone's error curve in log-log (or extrapolating along 1/√t).
-pub fn time_to_match(rows: &[EvalRow]) -> Option<String> {
-    let target = rows
+/// For each approximate integrator of the rows, how long it needs to reach the path
+/// tracer's error at its longest budget, interpolating its error curve in log-log (or
+/// extrapolating along 1/√t).
+pub fn time_to_match(rows: &[EvalRow]) -> Vec<String> {
+    let Some(target) = rows
         .iter()
         .filter(|r| r.integrator == Kind::Path)
-        .max_by(|a, b| a.seconds.total_cmp(&b.seconds))?;
-    let cone: Vec<&EvalRow> = rows.iter().filter(|r| r.integrator == Kind::Cone).collect();
-    let mut cone = cone;
-    cone.sort_by(|a, b| a.seconds.total_cmp(&b.seconds));
-    let first = cone.first()?;
-    let t = if first.rmse <= target.rmse {
-        // Already below at the shortest budget: extrapolate back along 1/√t.
-        first.seconds * (first.rmse / target.rmse).powi(2)
-    } else {
-        let pair = cone.windows(2).find(|w| w[1].rmse <= target.rmse);
-        match pair {
-            Some(w) => {
-                let (l0, l1) = (w[0].seconds.ln(), w[1].seconds.ln());
-                let (e0, e1) = (w[0].rmse.ln(), w[1].rmse.ln());
-                (l0 + (target.rmse.ln() - e0) * (l1 - l0) / (e1 - e0)).exp()
-            }
-            None => {
-                let last = cone.last()?;
-                last.seconds * (last.rmse / target.rmse).powi(2)
-            }
-        }
+        .max_by(|a, b| a.seconds.total_cmp(&b.seconds))
+    else {
+        return Vec::new();
     };
-    Some(format!(
-        "The cone integrator reaches the path tracer's {:.1}-second RMSE ({:.4e}) in about {:.2} s: {:.2}× faster.",
-        target.seconds,
-        target.rmse,
-        t,
-        target.seconds / t
-    ))
+    let mut kinds: Vec<Kind> = rows
+        .iter()
+        .map(|r| r.integrator)
+        .filter(|&k| k != Kind::Path)
+        .collect();
+    kinds.dedup();
+    kinds
+        .into_iter()
+        .filter_map(|kind| {
+            let mut own: Vec<&EvalRow> = rows.iter().filter(|r| r.integrator == kind).collect();
+            own.sort_by(|a, b| a.seconds.total_cmp(&b.seconds));
+            let t = seconds_to_reach(&own, target.rmse)?;
+            Some(format!(
+                "The {} integrator reaches the path tracer's {:.1}-second RMSE ({:.4e}) in about {:.2} s: {:.2}× faster.",
+                format!("{kind:?}").to_lowercase(),
+                target.seconds,
+                target.rmse,
+                t,
+                target.seconds / t
+            ))
+        })
+        .collect()
+}
+
+/// When a series sorted by time reaches `rmse`.
+fn seconds_to_reach(series: &[&EvalRow], rmse: f64) -> Option<f64> {
+    let first = series.first()?;
+    if first.rmse <= rmse {
+        // Already below at the shortest budget: extrapolate back along 1/√t.
+        return Some(first.seconds * (first.rmse / rmse).powi(2));
+    }
+    Some(match series.windows(2).find(|w| w[1].rmse <= rmse) {
+        Some(w) => {
+            let (l0, l1) = (w[0].seconds.ln(), w[1].seconds.ln());
+            let (e0, e1) = (w[0].rmse.ln(), w[1].rmse.ln());
+            (l0 + (rmse.ln() - e0) * (l1 - l0) / (e1 - e0)).exp()
+        }
+        None => {
+            let last = series.last()?;
+            last.seconds * (last.rmse / rmse).powi(2)
+        }
+    })
 }

@@ -9,6 +9,7 @@ mod sweep;
 
 use anyhow::Result;
 use canopy::integrator::cone::ConeSettings;
+use canopy::integrator::pbgi::PbgiSettings;
 use canopy::integrator::{Kind, Settings};
 use canopy::units;
 use clap::parser::ValueSource;
@@ -39,7 +40,8 @@ enum Cmd {
 #[derive(Args, Clone)]
 struct RenderSettings {
     /// `path`: exact path tracing of the leaf triangles (the ground truth); `cone`: cone
-    /// casts with level of detail and diffuse light stored per node.
+    /// casts with level of detail and diffuse light stored per node; `pbgi`: point-based
+    /// GI through a cut of the hierarchy into a micro-buffer.
     #[arg(long, value_enum, default_value_t = Kind::Path)]
     integrator: Kind,
     /// Memory for decoded pages and per-node state, e.g. 256MiB (default: unlimited).
@@ -59,6 +61,8 @@ struct RenderSettings {
     max_depth: Option<u32>,
     #[command(flatten)]
     cone: ConeSettings,
+    #[command(flatten)]
+    pbgi: PbgiSettings,
 }
 
 impl RenderSettings {
@@ -66,6 +70,7 @@ impl RenderSettings {
         match kind {
             Kind::Path => Settings::Path,
             Kind::Cone => Settings::Cone(self.cone.clone()),
+            Kind::Pbgi => Settings::Pbgi(self.pbgi.clone()),
         }
     }
 }
@@ -73,10 +78,16 @@ impl RenderSettings {
 /// pbrt-v4's `ReportUnused`: a flag of an integrator that will not run is an error (exit
 /// status 2) naming it, not silently ignored.
 fn reject_unused(name: &str, sub: &ArgMatches, kinds: &[Kind]) {
-    let flags: [(Kind, clap::Command); 1] = [(
-        Kind::Cone,
-        ConeSettings::augment_args(clap::Command::new("cone")),
-    )];
+    let flags: [(Kind, clap::Command); 2] = [
+        (
+            Kind::Cone,
+            ConeSettings::augment_args(clap::Command::new("cone")),
+        ),
+        (
+            Kind::Pbgi,
+            PbgiSettings::augment_args(clap::Command::new("pbgi")),
+        ),
+    ];
     for (kind, cmd) in flags {
         if kinds.contains(&kind) {
             continue;

@@ -63,6 +63,7 @@ fn sweep_options(
         out_dir: dir.to_path_buf(),
         base: s.options(archive, dir.join("x.exr"), spp, progress),
         cone: s.cone.clone(),
+        pbgi: s.pbgi.clone(),
     }
 }
 
@@ -89,7 +90,7 @@ pub fn eval(a: EvalArgs, progress: bool) -> Result<()> {
     for r in &rows {
         println!("{r}");
     }
-    if let Some(line) = sweep::time_to_match(&rows) {
+    for line in sweep::time_to_match(&rows) {
         println!("{line}");
     }
     println!(

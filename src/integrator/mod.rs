@@ -6,6 +6,7 @@
 
 pub mod cone;
 pub mod path;
+pub mod pbgi;
 
 use crate::camera::Camera;
 use crate::light::Lights;
@@ -27,6 +28,9 @@ pub enum Kind {
     /// Cone casts that stop at the level of detail the cone resolves, with diffuse light
     /// stored per node and reused (004 §4.5–4.8).
     Cone,
+    /// Point-based GI: direct light baked into the nodes, gathered per receiver through a
+    /// cut of the hierarchy into a micro-buffer (003 ch. 2).
+    Pbgi,
 }
 
 /// An integrator with its own parameters.
@@ -34,6 +38,7 @@ pub enum Kind {
 pub enum Settings {
     Path,
     Cone(cone::ConeSettings),
+    Pbgi(pbgi::PbgiSettings),
 }
 
 impl Settings {
@@ -41,14 +46,16 @@ impl Settings {
         match self {
             Settings::Path => Kind::Path,
             Settings::Cone(_) => Kind::Cone,
+            Settings::Pbgi(_) => Kind::Pbgi,
         }
     }
 
     /// The part of a memory budget the integrator keeps for its own state (the pages get
-    /// the rest): a quarter for the cone integrator's stored light.
+    /// the rest): a quarter for the cone integrator's stored light. PBGI's bake (12 bytes
+    /// a node) is not yet budgeted: its stats report its size.
     pub fn state_share(&self, budget: u64) -> u64 {
         match self {
-            Settings::Path => 0,
+            Settings::Path | Settings::Pbgi(_) => 0,
             Settings::Cone(_) => budget / 4,
         }
     }
@@ -57,8 +64,15 @@ impl Settings {
         match self {
             Settings::Path => Box::new(path::PathIntegrator),
             Settings::Cone(c) => Box::new(cone::ConeIntegrator::new(c, scene, target)),
+            Settings::Pbgi(p) => Box::new(pbgi::PbgiIntegrator::new(p, target.seed)),
         }
     }
+}
+
+/// An integrator's settings as its command-line flags' defaults give them.
+pub fn flag_defaults<T: clap::Args + clap::FromArgMatches>() -> T {
+    let cmd = T::augment_args(clap::Command::new("defaults"));
+    T::from_arg_matches(&cmd.get_matches_from(["defaults"])).expect("the defaults parse")
 }
 
 /// What a render produces, as the integrators need to know it.
@@ -91,6 +105,7 @@ pub struct PixelSample {
 pub enum Stats {
     Path {},
     Cone(cone::ConeStats),
+    Pbgi(pbgi::PbgiStats),
 }
 
 pub trait Integrator: Send + Sync {

@@ -406,6 +406,13 @@ impl<'a> Tracer<'a> {
         found
     }
 
+    /// A handle on page `id` for walks of the tree other than rays' (PBGI's cut).
+    pub fn page_handle(&mut self, id: u32) -> Arc<Page> {
+        self.check_epoch();
+        let slot = self.page(id);
+        Arc::clone(&self.held[slot].as_ref().expect("held page").1)
+    }
+
     /// Nearest intersection along the ray, if any, before `ray.t_max`.
     pub fn closest_hit(&mut self, ray: &Ray) -> Option<Hit> {
         let mut best: Option<Hit> = None;

@@ -119,9 +119,7 @@ pub struct ConeSettings {
 impl Default for ConeSettings {
     /// The command line's defaults.
     fn default() -> ConeSettings {
-        use clap::{Args, FromArgMatches};
-        let cmd = ConeSettings::augment_args(clap::Command::new("cone"));
-        ConeSettings::from_arg_matches(&cmd.get_matches_from(["cone"])).expect("the defaults parse")
+        super::flag_defaults()
     }
 }
 

@@ -1,0 +1,251 @@
+//! The micro-buffer: a receiver's view of the point cloud, rasterized at low resolution
+//! (003 ch. 2; Christensen 2008 as cited there).
+//!
+//! It is a hemicube in the receiver's local frame (z along the normal): the +z face and
+//! the upper halves of the four side faces of a cube map with n×n texels per face
+//! ([`crate::wavelet::cube`]), so the horizon runs along texel borders and each texel's
+//! solid angle and cosine integral are exact: they sum to 2π and π.
+//!
+//! A node lands in the texel its centre projects to, covering the fraction
+//! min(1, Ω_node/Ω_texel) of it (the cut keeps Ω_node near one texel). Each texel
+//! takes its fragments front to back by depth, node number breaking ties (so the result
+//! does not depend on the order nodes were splatted in), each filling its coverage of
+//! what is still open, until the texel is full; the open rest sees the background.
+//! Coverage adds rather than multiplies (α-blending would give 1 − 0.75⁴ = 68% for four
+//! quarter-texel nodes tiling one surface): the nodes of a cut tile surfaces without
+//! overlapping, and with multiplied coverage the light of hidden surfaces leaked through,
+//! +0.6% in the image mean on bunny_box. Shading is 003 eq. 2.1 with exact texel weights:
+//! L_o = Σ_k L_k · ρ(ω_k, ω_o) · ∫_texel cos θ dω.
+
+use crate::wavelet::cube;
+use glam::Vec3;
+
+/// Per-texel geometry of a hemicube of resolution n, computed once per resolution.
+pub struct Texels {
+    pub n: usize,
+    /// Texel index (as in [`cube::texel_of`]) of every texel above the horizon.
+    pub upper: Vec<u32>,
+    /// Per cube texel: unit direction, solid angle, ∫cos θ dω (0 below the horizon).
+    pub dir: Vec<Vec3>,
+    pub solid_angle: Vec<f32>,
+    pub cosine: Vec<f32>,
+}
+
+impl Texels {
+    /// `n` must be even so the horizon follows texel borders.
+    pub fn new(n: usize) -> Texels {
+        assert!(
+            n >= 2 && n.is_multiple_of(2),
+            "micro-buffer resolution must be even"
+        );
+        let count = 6 * n * n;
+        let dir: Vec<Vec3> = (0..count).map(|i| cube::texel_dir(i, n)).collect();
+        let upper: Vec<u32> = (0..count as u32)
+            .filter(|&i| dir[i as usize].z > 0.0)
+            .collect();
+        let mut solid_angle = vec![0.0; count];
+        let mut cosine = vec![0.0; count];
+        for &i in &upper {
+            solid_angle[i as usize] = cube::texel_solid_angle(i as usize, n);
+            cosine[i as usize] = cube::texel_vector_integral(i as usize, n).z;
+        }
+        Texels {
+            n,
+            upper,
+            dir,
+            solid_angle,
+            cosine,
+        }
+    }
+
+    /// Solid angle of the smallest texel (at the cube's corners): the cut's yardstick.
+    pub fn min_solid_angle(&self) -> f32 {
+        self.upper
+            .iter()
+            .map(|&i| self.solid_angle[i as usize])
+            .fold(f32::INFINITY, f32::min)
+    }
+}
+
+/// One node seen from the receiver.
+#[derive(Clone, Copy, Debug)]
+struct Fragment {
+    texel: u32,
+    depth: f32,
+    id: u64,
+    coverage: f32,
+    radiance: Vec3,
+}
+
+/// The fragments splatted so far; reused across receivers to keep its allocation.
+#[derive(Default)]
+pub struct MicroBuffer {
+    frags: Vec<Fragment>,
+}
+
+impl MicroBuffer {
+    pub fn clear(&mut self) {
+        self.frags.clear();
+    }
+
+    /// Splats a node seen in local direction `dir` (unit) at `depth`, subtending
+    /// `solid_angle`, sending `radiance` toward the receiver. Nodes below the horizon
+    /// send nothing and are skipped.
+    pub fn splat(
+        &mut self,
+        texels: &Texels,
+        dir: Vec3,
+        depth: f32,
+        solid_angle: f32,
+        id: u64,
+        radiance: Vec3,
+    ) {
+        if dir.z <= 0.0 || solid_angle.is_nan() || solid_angle <= 0.0 {
+            return;
+        }
+        let texel = cube::texel_of(dir, texels.n);
+        let coverage = (solid_angle / texels.solid_angle[texel]).min(1.0);
+        self.frags.push(Fragment {
+            texel: texel as u32,
+            depth,
+            id,
+            coverage,
+            radiance,
+        });
+    }
+
+    /// Incident radiance per cube texel: fragments composited front to back, the rest
+    /// of each texel seeing `background(texel)`.
+    pub fn resolve(&mut self, texels: &Texels, background: impl Fn(usize) -> Vec3) -> Vec<Vec3> {
+        self.frags.sort_unstable_by(|a, b| {
+            (a.texel, a.depth, a.id)
+                .partial_cmp(&(b.texel, b.depth, b.id))
+                .expect("finite depths")
+        });
+        let mut out = vec![Vec3::ZERO; 6 * texels.n * texels.n];
+        let mut k = 0;
+        for &t in &texels.upper {
+            let (mut sum, mut open) = (Vec3::ZERO, 1.0f32);
+            while k < self.frags.len() && self.frags[k].texel < t {
+                k += 1;
+            }
+            while k < self.frags.len() && self.frags[k].texel == t {
+                let f = self.frags[k];
+                let take = f.coverage.min(open);
+                sum += f.radiance * take;
+                open -= take;
+                k += 1;
+            }
+            out[t as usize] = sum + background(t as usize) * open;
+        }
+        out
+    }
+
+    /// Reflected radiance: Σ L_k · brdf(ω_k) · ∫cos (003 eq. 2.1), brdf in the local frame.
+    pub fn convolve(texels: &Texels, incident: &[Vec3], brdf: impl Fn(Vec3) -> Vec3) -> Vec3 {
+        texels
+            .upper
+            .iter()
+            .map(|&t| {
+                let t = t as usize;
+                incident[t] * brdf(texels.dir[t]) * texels.cosine[t]
+            })
+            .sum()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::f32::consts::PI;
+
+    #[test]
+    fn texel_solid_angles_sum_to_2pi_and_cosines_to_pi() {
+        for n in [2, 8, 16] {
+            let t = Texels::new(n);
+            let omega: f32 = t.solid_angle.iter().sum();
+            let cos: f32 = t.cosine.iter().sum();
+            assert!((omega - 2.0 * PI).abs() < 1e-4, "n {n}: {omega}");
+            assert!((cos - PI).abs() < 1e-4, "n {n}: {cos}");
+            assert_eq!(t.upper.len(), n * n + 4 * n * n / 2);
+        }
+    }
+
+    #[test]
+    fn a_uniform_environment_gives_irradiance_pi_l() {
+        let t = Texels::new(8);
+        let l = Vec3::new(0.5, 1.0, 2.0);
+        let mut mb = MicroBuffer::default();
+        let incident = mb.resolve(&t, |_| l);
+        let e = MicroBuffer::convolve(&t, &incident, |_| Vec3::ONE);
+        assert!(
+            (e - l * PI).abs().max_element() < 1e-4 * PI * 2.0,
+            "{e} vs {}",
+            l * PI
+        );
+        // The same environment made of nodes, each filling its texel.
+        for &k in &t.upper {
+            let k = k as usize;
+            mb.splat(&t, t.dir[k], 1.0, t.solid_angle[k], k as u64, l);
+        }
+        let incident = mb.resolve(&t, |_| Vec3::ZERO);
+        let e = MicroBuffer::convolve(&t, &incident, |_| Vec3::ONE);
+        assert!(
+            (e - l * PI).abs().max_element() < 1e-4 * PI * 2.0,
+            "{e} vs {}",
+            l * PI
+        );
+    }
+
+    #[test]
+    fn splat_order_does_not_change_the_result() {
+        let t = Texels::new(8);
+        let mut rng = crate::test_rng::TestRng::new(7);
+        let nodes: Vec<(Vec3, f32, f32, Vec3)> = (0..400)
+            .map(|_| {
+                let d =
+                    Vec3::new(rng.f32() * 2.0 - 1.0, rng.f32() * 2.0 - 1.0, rng.f32()).normalize();
+                // Few distinct depths, so ties are common.
+                let depth = (rng.f32() * 4.0).floor() + 1.0;
+                (d, depth, rng.f32() * 0.02, Vec3::splat(rng.f32()))
+            })
+            .collect();
+        let render = |order: &[usize]| {
+            let mut mb = MicroBuffer::default();
+            for &i in order {
+                let (d, depth, sa, l) = nodes[i];
+                mb.splat(&t, d, depth, sa, i as u64, l);
+            }
+            let inc = mb.resolve(&t, |_| Vec3::splat(0.1));
+            MicroBuffer::convolve(&t, &inc, |_| Vec3::ONE)
+        };
+        let forward: Vec<usize> = (0..nodes.len()).collect();
+        let backward: Vec<usize> = forward.iter().rev().copied().collect();
+        let mut shuffled = forward.clone();
+        for i in (1..shuffled.len()).rev() {
+            shuffled.swap(i, (rng.f32() * (i + 1) as f32) as usize % (i + 1));
+        }
+        let a = render(&forward);
+        assert_eq!(a, render(&backward));
+        assert_eq!(a, render(&shuffled));
+    }
+
+    #[test]
+    fn the_nearest_full_node_hides_what_is_behind_it() {
+        let t = Texels::new(4);
+        let k = t.upper[3] as usize;
+        let mut mb = MicroBuffer::default();
+        mb.splat(&t, t.dir[k], 5.0, t.solid_angle[k], 0, Vec3::splat(9.0));
+        mb.splat(&t, t.dir[k], 1.0, t.solid_angle[k], 1, Vec3::splat(2.0));
+        mb.splat(
+            &t,
+            t.dir[k],
+            3.0,
+            0.5 * t.solid_angle[k],
+            2,
+            Vec3::splat(4.0),
+        );
+        let inc = mb.resolve(&t, |_| Vec3::splat(100.0));
+        assert_eq!(inc[k], Vec3::splat(2.0));
+    }
+}

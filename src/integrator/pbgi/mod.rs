@@ -1,0 +1,437 @@
+//! `--integrator pbgi`: point-based global illumination over the archive's hierarchy
+//! (003 ch. 2; Christensen 2008 as cited there).
+//!
+//! The bake (`bake`) stores in every node the direct light it reflects diffusely. At the
+//! first non-specular hit x the renderer adds the emission seen, direct light with the path
+//! tracer's light sample, and one bounce of indirect light gathered from the hierarchy:
+//! - the cut: from the root, a node is splatted whole when x lies outside its bounding
+//!   sphere and the sphere's solid angle π r²/d² is at most `--pbgi-angle` times the
+//!   smallest micro-buffer texel's; otherwise its children are visited. Nodes wholly below
+//!   x's tangent plane are skipped;
+//! - a splatted node covers Ω = A·Θ/d² (its area times eq. 4.4's Θ toward x, 004) and sends
+//!   its baked radiance if x is on its front side; seen from behind it is a dark occluder;
+//! - leaves too close for their solid angle are resolved by exact rays: one ray, jittered
+//!   inside the texel, through every texel the leaf's bounding sphere may cover; the hit
+//!   sends the direct light it reflects toward x (its BSDF, one light sample), opaque;
+//! - `microbuffer` composites and convolves with x's BSDF (003 eq. 2.1).
+//!
+//! Smooth mirrors and glass are followed exactly (one sampled bounce each, up to
+//! `SMOOTH_DEPTH`), so a perfectly specular surface degrades to the exact estimator
+//! (000 §A.8). Only one indirect bounce is gathered: compare with `--max-depth 3` of the
+//! path tracer (camera → x → node → light). A smooth lobe layered over a diffuse one is not
+//! sampled (its delta part is lost).
+
+pub mod bake;
+pub mod microbuffer;
+
+use super::{bsdf_term, sample_light, Counters, Integrator, PixelSample, Receiver, Scene, Stats};
+use crate::material::{Bsdf, Frame};
+use crate::paging::NodeRef;
+use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer};
+use crate::wavelet::cube;
+use bake::{Baked, Hash};
+use canopy_format::codec::snorm16_decode;
+use glam::{Vec3, Vec3A as V};
+use microbuffer::{MicroBuffer, Texels};
+use std::cell::RefCell;
+use std::f32::consts::PI;
+use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::time::Instant;
+
+const EXACT: Cone = Cone {
+    r0: 0.0,
+    tan_a: 0.0,
+    scale: 0.0,
+    spread: 0.0,
+};
+
+/// Smooth bounces followed before giving up on a path.
+const SMOOTH_DEPTH: u32 = 8;
+
+/// A node is near (its children are visited) while x is within this many bounding radii.
+const NEAR: f32 = 1.5;
+
+/// PBGI's parameters (its command-line flags, refused under another integrator).
+#[derive(Clone, Debug, clap::Args)]
+#[command(next_help_heading = "Point-based GI (--integrator pbgi)")]
+pub struct PbgiSettings {
+    /// The cut's threshold: a node is splatted whole when its bounding sphere subtends at
+    /// most this many of the micro-buffer's smallest texels. Smaller is more exact and
+    /// slower; at 0 the cut reaches every leaf, and leaves wider than a texel (or near
+    /// the receiver) are resolved by exact rays.
+    #[arg(long = "pbgi-angle", default_value_t = 1.0, value_parser = crate::units::parse_non_negative)]
+    pub angle: f32,
+    /// Micro-buffer texels per cube-face side (even): the hemicube has 3·n² texels.
+    #[arg(long = "pbgi-resolution", default_value_t = 8, value_parser = parse_resolution)]
+    pub resolution: usize,
+    /// Light samples per triangle in the bake.
+    #[arg(long = "bake-samples", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    pub bake_samples: u32,
+}
+
+fn parse_resolution(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(n) if (2..=64).contains(&n) && n.is_multiple_of(2) => Ok(n),
+        _ => Err(format!("{s:?}: an even number from 2 to 64")),
+    }
+}
+
+impl Default for PbgiSettings {
+    /// The command line's defaults.
+    fn default() -> PbgiSettings {
+        super::flag_defaults()
+    }
+}
+
+/// What PBGI adds to the render's statistics.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct PbgiStats {
+    pub pbgi_angle: f32,
+    pub pbgi_resolution: usize,
+    pub bake_seconds: f64,
+    pub bake_samples: u64,
+    pub baked_bytes: u64,
+    /// Nodes splatted whole, and texels resolved by exact rays, over the render.
+    pub splatted_nodes: u64,
+    pub near_rays: u64,
+}
+
+pub struct PbgiIntegrator {
+    settings: PbgiSettings,
+    /// Made before the first pass, so time budgets count it.
+    baked: Baked,
+    texels: Texels,
+    seed: u32,
+    bake_s: f64,
+    splatted: AtomicU64,
+    near_rays: AtomicU64,
+}
+
+/// Per-thread scratch reused across receivers.
+#[derive(Default)]
+struct Scratch {
+    mb: MicroBuffer,
+    near: Vec<bool>,
+    stack: Vec<(u32, u32)>,
+}
+
+thread_local! {
+    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+}
+
+impl PbgiIntegrator {
+    pub fn new(settings: &PbgiSettings, seed: u32) -> PbgiIntegrator {
+        PbgiIntegrator {
+            settings: settings.clone(),
+            texels: Texels::new(settings.resolution),
+            baked: Baked {
+                radiance: Vec::new(),
+                samples: 0,
+            },
+            seed,
+            bake_s: 0.0,
+            splatted: AtomicU64::new(0),
+            near_rays: AtomicU64::new(0),
+        }
+    }
+
+    /// Radiance along the camera ray.
+    fn radiance(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample) -> V {
+        let (mut ray, mut beta, mut l) = (px.ray, V::ONE, V::ZERO);
+        for depth in 0..SMOOTH_DEPTH {
+            let Some(hit) = tr.closest_hit(&ray) else {
+                break;
+            };
+            scene.touched.insert(hit.leaf);
+            let Some(s) = Surface::at(scene, &hit, ray.d) else {
+                break;
+            };
+            l += beta * s.emitted;
+            if scene.last_segment(depth) || s.absorbs {
+                break;
+            }
+            let [u_pick, ul0, ul1, u_lobe] = px.sampler.get4(2 * depth + 1);
+            if s.bsdf.has_smooth_only() {
+                let [ud0, ud1, ..] = px.sampler.get4(2 * depth + 2);
+                let Some(bs) = s.bsdf.sample(s.wo_l, u_lobe, [ud0, ud1]) else {
+                    break;
+                };
+                beta *= bs.weight;
+                let wi = s.frame.to_world(bs.wi).normalize();
+                ray = Ray {
+                    o: offset_origin(s.p, s.err, s.ng, wi),
+                    d: wi,
+                    t_max: f32::INFINITY,
+                };
+                continue;
+            }
+            l += beta * s.direct(scene, tr, [u_pick, ul0, ul1]);
+            if !scene.last_segment(depth + 1) {
+                let key = ((px.at as u64) << 20 ^ px.index as u64) ^ (self.seed as u64) << 52;
+                l += beta * self.gather(scene, tr, &s, key);
+            }
+            break;
+        }
+        l
+    }
+
+    /// One bounce of indirect light at `s` from the cut, the near rays and the micro-buffer.
+    fn gather(&self, scene: &Scene, tr: &mut Tracer, s: &Surface, key: u64) -> V {
+        SCRATCH.with_borrow_mut(|sc| {
+            let texels = &self.texels;
+            sc.mb.clear();
+            sc.near.clear();
+            sc.near.resize(texels.dir.len(), false);
+            self.cut(scene, tr, s, sc);
+            let mut rng = Hash::new(key);
+            let mut rays = 0;
+            for &k in &texels.upper {
+                if sc.near[k as usize] {
+                    rays += 1;
+                    self.near_ray(scene, tr, s, k as usize, &mut rng, &mut sc.mb);
+                }
+            }
+            self.near_rays.fetch_add(rays, Relaxed);
+            let incident = sc.mb.resolve(texels, |_| Vec3::ZERO);
+            let f = MicroBuffer::convolve(texels, &incident, |w| {
+                Vec3::from(s.bsdf.eval(s.wo_l, V::from(w)).0)
+            });
+            V::from(f)
+        })
+    }
+
+    /// Walks the hierarchy from the root: far nodes are splatted, near leaves mark the
+    /// texels their bounding sphere may cover.
+    fn cut(&self, scene: &Scene, tr: &mut Tracer, s: &Surface, sc: &mut Scratch) {
+        let texels = &self.texels;
+        let omega_max = self.settings.angle * texels.min_solid_angle();
+        let mut page = tr.page_handle(scene.cache.root_page());
+        sc.stack.clear();
+        sc.stack
+            .extend((0..page.roots.min(page.bvh.len() as u32)).map(|r| (page.id, r)));
+        let mut splatted = 0;
+        while let Some((pid, i)) = sc.stack.pop() {
+            if page.id != pid {
+                page = tr.page_handle(pid);
+            }
+            let (Some(node), Some(rec)) = (page.bvh.get(i as usize), page.nodes.get(i as usize))
+            else {
+                continue;
+            };
+            let (lo, hi) = (V::from(node.lo), V::from(node.hi));
+            let (c, r) = ((lo + hi) * 0.5, (hi - lo).length() * 0.5);
+            let v = c - s.p;
+            let d = v.length();
+            if v.dot(s.n) < -r {
+                continue;
+            }
+            let global = page.first_node + i as u64;
+            // A leaf within one texel is splatted even when the cut asks for more.
+            let limit = if matches!(node.link(), NodeRef::Leaf { .. }) {
+                omega_max.max(texels.min_solid_angle())
+            } else {
+                omega_max
+            };
+            if d > NEAR * r && PI * r * r <= limit * d * d {
+                splatted += 1;
+                scene.touched.insert(global);
+                let to_x = -v / d;
+                let nn = V::from(rec.normal.map(snorm16_decode));
+                let theta = (1.0 - nn.length()) / 4.0 + nn.dot(to_x).max(0.0);
+                let occluding = rec.area * theta.max(nn.dot(to_x).abs()) / (d * d);
+                let sends = if theta > 0.0 {
+                    self.baked
+                        .radiance
+                        .get(global as usize)
+                        .copied()
+                        .unwrap_or_default()
+                } else {
+                    [0.0; 3]
+                };
+                let dir = Vec3::from(s.frame.to_local(v / d));
+                sc.mb
+                    .splat(texels, dir, d, occluding, global, Vec3::from(sends));
+                continue;
+            }
+            match node.link() {
+                NodeRef::Leaf { .. } => self.mark_near(s, v, d, r, &mut sc.near),
+                NodeRef::Inner(l, rr) => sc.stack.extend([(pid, l), (pid, rr)]),
+                NodeRef::ChildPage(cp) => sc.stack.extend([(cp, 0), (cp, 1)]),
+            }
+        }
+        self.splatted.fetch_add(splatted, Relaxed);
+    }
+
+    /// Texels whose directions may meet a sphere of radius r at offset v (length d).
+    fn mark_near(&self, s: &Surface, v: V, d: f32, r: f32, near: &mut [bool]) {
+        let texels = &self.texels;
+        if d <= r {
+            texels.upper.iter().for_each(|&k| near[k as usize] = true);
+            return;
+        }
+        let axis = Vec3::from(s.frame.to_local(v / d));
+        let half = (r / d).asin();
+        for &k in &texels.upper {
+            let k = k as usize;
+            // A texel's directions lie within about √(2Ω) of its centre direction.
+            let spread = (2.0 * texels.solid_angle[k]).sqrt();
+            if texels.dir[k].dot(axis).clamp(-1.0, 1.0).acos() <= half + spread {
+                near[k] = true;
+            }
+        }
+    }
+
+    /// An exact ray through texel k, jittered inside it: its hit is splatted opaque with
+    /// the direct light it reflects toward x.
+    fn near_ray(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        s: &Surface,
+        k: usize,
+        rng: &mut Hash,
+        mb: &mut MicroBuffer,
+    ) {
+        let n = self.texels.n;
+        let corners = cube::texel_corners(k, n);
+        let (a, b) = (rng.f32(), rng.f32());
+        let local = corners[0] + (corners[1] - corners[0]) * a + (corners[3] - corners[0]) * b;
+        let wi = s.frame.to_world(V::from(local.normalize())).normalize();
+        if wi.dot(s.n) <= 0.0 {
+            return;
+        }
+        let ray = Ray {
+            o: offset_origin(s.p, s.err, s.ng, wi),
+            d: wi,
+            t_max: f32::INFINITY,
+        };
+        let Some(hit) = tr.closest_hit(&ray) else {
+            return;
+        };
+        scene.touched.insert(hit.leaf);
+        let sends = match Surface::at(scene, &hit, wi) {
+            Some(h) if !h.absorbs && !h.bsdf.has_smooth_only() => {
+                h.direct(scene, tr, [rng.f32(), rng.f32(), rng.f32()])
+            }
+            _ => V::ZERO,
+        };
+        mb.splat(
+            &self.texels,
+            self.texels.dir[k],
+            hit.t,
+            self.texels.solid_angle[k],
+            u64::MAX - k as u64,
+            Vec3::from(sends),
+        );
+    }
+}
+
+/// A hit prepared for shading.
+struct Surface {
+    p: V,
+    err: V,
+    /// Unit geometric normal (winding side) and the normal on the side of `wo`.
+    ng: V,
+    n: V,
+    frame: Frame,
+    bsdf: Bsdf,
+    wo_l: V,
+    emitted: V,
+    absorbs: bool,
+}
+
+impl Surface {
+    fn at(scene: &Scene, hit: &Hit, d: V) -> Option<Surface> {
+        let m = &scene.materials[hit.tri.material as usize];
+        let ng_raw = hit.ng();
+        let len = ng_raw.length();
+        if len.is_nan() || len <= 0.0 {
+            return None;
+        }
+        let ng = ng_raw / len;
+        let wo = -d.normalize();
+        let front = ng.dot(wo) > 0.0;
+        let (p, err) = hit.point();
+        let n = if front { ng } else { -ng };
+        let frame = Frame::new(n);
+        Some(Surface {
+            p,
+            err,
+            ng,
+            n,
+            frame,
+            bsdf: m.bsdf(front),
+            wo_l: frame.to_local(wo),
+            emitted: m.emitted(front),
+            absorbs: m.absorbs(front),
+        })
+    }
+
+    /// Reflected direct light toward `wo`: one light sample at full weight (the cloud
+    /// holds no emission, so nothing else samples the emitters).
+    fn direct(&self, scene: &Scene, tr: &mut Tracer, u: [f32; 3]) -> V {
+        let f = bsdf_term(self.frame, self.bsdf, self.wo_l);
+        sample_light(
+            scene,
+            tr,
+            &Receiver::surface(self.p, self.err, self.ng),
+            &EXACT,
+            u,
+            |wi| (f(wi).0, 0.0),
+        )
+    }
+}
+
+impl Integrator for PbgiIntegrator {
+    fn begin_pass(&mut self, scene: &Scene, first: u32, _count: u32) -> u64 {
+        if first > 0 {
+            return 0;
+        }
+        let t = Instant::now();
+        self.baked = bake::bake(scene, self.settings.bake_samples, self.seed);
+        self.bake_s = t.elapsed().as_secs_f64();
+        self.baked.samples
+    }
+
+    fn sample(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample, c: &mut Counters) -> V {
+        let l = self.radiance(scene, tr, px);
+        c.paths += 1;
+        c.finite(l)
+    }
+
+    fn passes(&self) -> Vec<String> {
+        let s = &self.settings;
+        vec![
+            format!(
+                "bake: direct light reflected by {} nodes, {} light samples per triangle ({:.2} s)",
+                self.baked.radiance.len(),
+                s.bake_samples,
+                self.bake_s
+            ),
+            format!(
+                "pbgi: one indirect bounce from a cut at {} texels' solid angle into a {}² hemicube micro-buffer; near leaves by exact rays",
+                s.angle, s.resolution
+            ),
+        ]
+    }
+
+    fn stats(&self) -> Stats {
+        Stats::Pbgi(PbgiStats {
+            pbgi_angle: self.settings.angle,
+            pbgi_resolution: self.settings.resolution,
+            bake_seconds: self.bake_s,
+            bake_samples: self.baked.samples,
+            baked_bytes: self.baked.bytes(),
+            splatted_nodes: self.splatted.load(Relaxed),
+            near_rays: self.near_rays.load(Relaxed),
+        })
+    }
+
+    fn state_bytes(&self) -> [u64; 2] {
+        [self.baked.bytes(), 0]
+    }
+
+    fn seconds(&self) -> Vec<(&'static str, f64)> {
+        vec![("bake", self.bake_s)]
+    }
+}

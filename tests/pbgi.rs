@@ -1,0 +1,83 @@
+//! Point-based GI (`--integrator pbgi`) against the path tracer on the same light paths.
+
+mod common;
+use common::*;
+
+/// PBGI's one bounce against the path tracer on the same light paths (camera → x → y →
+/// light, `--max-depth 3`), 32×24 pixels below the lamp (its silhouette's noise would
+/// swamp the means). Returns the worst channel's relative error of the image mean.
+fn one_bounce_mean_error(name: &str) -> f64 {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("a.canopy");
+    convert(&scene(&format!("{name}.glb")), &arc, None);
+    let window = [
+        "--width",
+        "32",
+        "--height",
+        "32",
+        "--crop",
+        "0,32,8,32",
+        "--max-depth",
+        "3",
+    ];
+    let (reference, _) = render(
+        &arc,
+        &dir.path().join("ref.exr"),
+        &[&window[..], &["--spp", "8192", "--seed", "3"]].concat(),
+    );
+    let (img, stats) = render(
+        &arc,
+        &dir.path().join("pbgi.exr"),
+        &[&window[..], &["--integrator", "pbgi", "--spp", "16"]].concat(),
+    );
+    assert!(all_finite(&img), "{name}: a pixel is NaN or negative");
+    assert!(stats["bake_samples"].as_u64().unwrap() > 0);
+    let (a, b) = (img.mean(), reference.mean());
+    (0..3)
+        .map(|c| (a[c] / b[c] - 1.0).abs())
+        .fold(0.0, f64::max)
+}
+
+/// cbox's walls are single triangles, far too wide to splat: every texel is resolved by
+/// exact rays, so PBGI must agree with the path tracer (measured: within 0.2%).
+#[test]
+fn with_every_texel_resolved_by_exact_rays_pbgi_matches_the_path_tracer() {
+    let e = one_bounce_mean_error("cbox");
+    assert!(e < 0.006, "cbox: image mean off by {:.2}%", 100.0 * e);
+}
+
+/// On bunny_box the bunny is gathered as splatted nodes. Their isotropic radiance and
+/// projected-area heuristic overestimate its indirect light (measured +0.7% to +1.1% of the
+/// image mean, about a third of the bunny's share); this bounds the regression until nodes
+/// carry directional radiance.
+#[test]
+fn splatted_nodes_keep_bunny_box_within_one_and_a_half_percent() {
+    let e = one_bounce_mean_error("bunny_box");
+    assert!(e < 0.015, "bunny_box: image mean off by {:.2}%", 100.0 * e);
+}
+
+#[test]
+fn pbgi_flags_are_refused_elsewhere_and_checked() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("c.canopy");
+    convert(&scene("cbox.glb"), &arc, None);
+    let out = dir.path().join("x.exr");
+    for (flags, says) in [
+        (
+            &["--pbgi-angle", "0.5"][..],
+            "--pbgi-angle applies to --integrator pbgi",
+        ),
+        (
+            &["--integrator", "pbgi", "--pbgi-resolution", "7"],
+            "even number",
+        ),
+        (
+            &["--integrator", "pbgi", "--cone-scale", "1"],
+            "--cone-scale applies to --integrator cone",
+        ),
+    ] {
+        let err = fails(&[&["render", s(&arc), "-o", s(&out)][..], flags].concat());
+        assert!(err.contains(says), "{flags:?}: {err}");
+    }
+    assert!(!out.exists());
+}
