@@ -46,14 +46,14 @@ fn with_every_texel_resolved_by_exact_rays_pbgi_matches_the_path_tracer() {
     assert!(e < 0.006, "cbox: image mean off by {:.2}%", 100.0 * e);
 }
 
-/// On bunny_box the bunny is gathered as splatted nodes. Their isotropic radiance and
-/// projected-area heuristic overestimate its indirect light (measured +0.7% to +1.1% of the
-/// image mean, about a third of the bunny's share); this bounds the regression until nodes
-/// carry directional radiance.
+/// On bunny_box the bunny is gathered as splatted nodes, each showing per cube axis its
+/// projected area and reflected power. Measured +0.21%, +0.23%, +0.44% here (+0.2% to
+/// +0.6% over seeds and cut settings); a node sending its mean light every way was at
+/// +0.7% to +1.0%, which this bound would reject.
 #[test]
-fn splatted_nodes_keep_bunny_box_within_one_and_a_half_percent() {
+fn splatted_nodes_keep_bunny_box_within_one_percent() {
     let e = one_bounce_mean_error("bunny_box");
-    assert!(e < 0.015, "bunny_box: image mean off by {:.2}%", 100.0 * e);
+    assert!(e < 0.01, "bunny_box: image mean off by {:.2}%", 100.0 * e);
 }
 
 #[test]

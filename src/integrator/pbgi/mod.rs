@@ -8,8 +8,8 @@
 //!   sphere and the sphere's solid angle π r²/d² is at most `--pbgi-angle` times the
 //!   smallest micro-buffer texel's; otherwise its children are visited. Nodes wholly below
 //!   x's tangent plane are skipped;
-//! - a splatted node covers Ω = A·Θ/d² (its area times eq. 4.4's Θ toward x, 004) and sends
-//!   its baked radiance if x is on its front side; seen from behind it is a dark occluder;
+//! - a splatted node covers its projected area toward x over d² and sends the light it
+//!   reflects that way (`bake::Directional`); seen from behind it is a dark occluder;
 //! - leaves too close for their solid angle are resolved by exact rays: one ray, jittered
 //!   inside the texel, through every texel the leaf's bounding sphere may cover; the hit
 //!   sends the direct light it reflects toward x (its BSDF, one light sample), opaque;
@@ -30,7 +30,6 @@ use crate::paging::NodeRef;
 use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer};
 use crate::wavelet::cube;
 use bake::{Baked, Hash};
-use canopy_format::codec::snorm16_decode;
 use glam::{Vec3, Vec3A as V};
 use microbuffer::{MicroBuffer, Texels};
 use std::cell::RefCell;
@@ -214,8 +213,7 @@ impl PbgiIntegrator {
             if page.id != pid {
                 page = tr.page_handle(pid);
             }
-            let (Some(node), Some(rec)) = (page.bvh.get(i as usize), page.nodes.get(i as usize))
-            else {
+            let Some(node) = page.bvh.get(i as usize) else {
                 continue;
             };
             let (lo, hi) = (V::from(node.lo), V::from(node.hi));
@@ -236,21 +234,20 @@ impl PbgiIntegrator {
                 splatted += 1;
                 scene.touched.insert(global);
                 let to_x = -v / d;
-                let nn = V::from(rec.normal.map(snorm16_decode));
-                let theta = (1.0 - nn.length()) / 4.0 + nn.dot(to_x).max(0.0);
-                let occluding = rec.area * theta.max(nn.dot(to_x).abs()) / (d * d);
-                let sends = if theta > 0.0 {
-                    self.baked
-                        .radiance
-                        .get(global as usize)
-                        .copied()
-                        .unwrap_or_default()
-                } else {
-                    [0.0; 3]
-                };
+                let shown = self
+                    .baked
+                    .radiance
+                    .get(global as usize)
+                    .copied()
+                    .unwrap_or_default();
+                // Seen from behind, a node still hides what lies beyond it.
+                let (front, power) = shown.toward(to_x);
+                let back = shown.toward(-to_x).0;
+                let area = front.max(back);
+                let sends = if area > 0.0 { power / area } else { V::ZERO };
                 let dir = Vec3::from(s.frame.to_local(v / d));
                 sc.mb
-                    .splat(texels, dir, d, occluding, global, Vec3::from(sends));
+                    .splat(texels, dir, d, area / (d * d), global, Vec3::from(sends));
                 continue;
             }
             match node.link() {
