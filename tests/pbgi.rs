@@ -81,3 +81,31 @@ fn pbgi_flags_are_refused_elsewhere_and_checked() {
     }
     assert!(!out.exists());
 }
+
+/// room's 4 cm lamp has radiance 6000: exact rays that hit it next to a receiver, and
+/// splats of nodes it lights, must give no NaN, infinite or negative pixel.
+#[test]
+fn a_very_bright_small_lamp_gives_no_bad_pixel() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("r.canopy");
+    convert(&scene("room.glb"), &arc, None);
+    let (img, stats) = render(
+        &arc,
+        &dir.path().join("r.exr"),
+        &[
+            "--integrator",
+            "pbgi",
+            "--width",
+            "32",
+            "--height",
+            "24",
+            "--spp",
+            "4",
+        ],
+    );
+    assert!(all_finite(&img), "a pixel is NaN, infinite or negative");
+    assert_eq!(stats["nonfinite_samples"], 0);
+    assert!(
+        stats["near_rays"].as_u64().unwrap() > 0 && stats["splatted_nodes"].as_u64().unwrap() > 0
+    );
+}
