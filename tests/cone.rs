@@ -19,7 +19,12 @@ fn cone(
 #[test]
 fn cone_scale_zero_agrees_with_the_reference() {
     let dir = tempfile::tempdir().unwrap();
-    for (name, spp) in [("cbox", "128"), ("bunny_box", "64"), ("room_glossy", "64")] {
+    for (name, spp) in [
+        ("cbox", "128"),
+        ("bunny_box", "64"),
+        ("room_glossy", "64"),
+        ("room_glass", "64"),
+    ] {
         let arc = dir.path().join(format!("{name}.canopy"));
         convert(&scene(&format!("{name}.glb")), &arc, None);
         let (img, stats) = cone(

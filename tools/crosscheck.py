@@ -82,6 +82,9 @@ def bsdf_of(mi, m):
     elif metallic == 0 and trans == 1 and rough == 0 and white and spec == 1:
         # Smooth glass: glTF's dielectric interface with the exact Fresnel term.
         b = {"type": "dielectric", "int_ior": ior, "ext_ior": 1.0}
+    elif metallic == 0 and trans == 1 and white and spec == 1:
+        # Rough glass: GGX with alpha = roughness², as Canopy's rough interface.
+        b = {"type": "roughdielectric", "distribution": "ggx", "alpha": rough * rough, "int_ior": ior, "ext_ior": 1.0}
     elif metallic == 1 and white:
         # A white metal: Schlick with F0 = 1 reflects everything, as Mitsuba's
         # `none` conductor does; GGX with alpha = roughness² (glTF), visible normals.

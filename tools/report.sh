@@ -1,6 +1,6 @@
 #!/bin/sh
 # The default speed-against-error report on the bundled scenes: converts cbox, bunny_box,
-# room, room_glossy and caustics, runs `canopy eval` (path and cone integrators at 5, 15 and
+# room, room_glossy, room_glass and caustics, runs `canopy eval` (path and cone integrators at 5, 15 and
 # 60 seconds) against the Mitsuba 3 references in scenes/refs, and `canopy npp` (both
 # integrators, to 10% noise) on bunny_box. Results go to docs/report/<scene>/ (eval.csv,
 # eval.md, eval.svg; npp.csv, npp.svg). Takes about 4 minutes a scene.
@@ -12,7 +12,7 @@ cargo build --release
 BIN=target/release/canopy
 OUT=docs/report
 mkdir -p "$OUT"
-for scene in cbox bunny_box room room_glossy caustics; do
+for scene in cbox bunny_box room room_glossy room_glass caustics; do
     $BIN --quiet convert "scenes/$scene.glb" -o "$OUT/$scene.canopy" > /dev/null
     $BIN --quiet eval "$OUT/$scene.canopy" --reference "scenes/refs/$scene.exr" \
         --integrators path,cone --times "$TIMES" -o "$OUT/$scene"
