@@ -359,12 +359,12 @@ pub fn time_to_match(rows: &[EvalRow]) -> Vec<String> {
     else {
         return Vec::new();
     };
-    let mut kinds: Vec<Kind> = rows
-        .iter()
-        .map(|r| r.integrator)
-        .filter(|&k| k != Kind::Path)
-        .collect();
-    kinds.dedup();
+    let mut kinds: Vec<Kind> = Vec::new();
+    for r in rows {
+        if r.integrator != Kind::Path && !kinds.contains(&r.integrator) {
+            kinds.push(r.integrator);
+        }
+    }
     kinds
         .into_iter()
         .filter_map(|kind| {

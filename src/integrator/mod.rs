@@ -51,8 +51,9 @@ impl Settings {
     }
 
     /// The part of a memory budget the integrator keeps for its own state (the pages get
-    /// the rest): a quarter for the cone integrator's stored light. PBGI's bake (12 bytes
-    /// a node) is not yet budgeted: its stats report its size.
+    /// the rest): a quarter for the cone integrator's stored light. PBGI's bake
+    /// (`pbgi::bake::Directional`, 96 bytes a node) is not yet budgeted: its stats report
+    /// its size.
     pub fn state_share(&self, budget: u64) -> u64 {
         match self {
             Settings::Path | Settings::Pbgi(_) => 0,

@@ -99,18 +99,12 @@ pub fn radiance(
 
         // Next-event estimation.
         if !bsdf.has_smooth_only() {
-            let exact = Cone {
-                r0: 0.0,
-                tan_a: 0.0,
-                scale: 0.0,
-                spread: 0.0,
-            };
             l += beta
                 * sample_light(
                     scene,
                     tr,
                     &Receiver::surface(p, err, ng),
-                    &exact,
+                    &Cone::EXACT,
                     [u_pick, ul0, ul1],
                     bsdf_term(frame, bsdf, wo_l),
                 );

@@ -219,6 +219,14 @@ pub struct Cone {
 }
 
 impl Cone {
+    /// No opening and no level of detail: an exact ray.
+    pub const EXACT: Cone = Cone {
+        r0: 0.0,
+        tan_a: 0.0,
+        scale: 0.0,
+        spread: 0.0,
+    };
+
     #[inline]
     pub fn radius(&self, t: f32) -> f32 {
         (self.r0 + self.tan_a * t).abs()

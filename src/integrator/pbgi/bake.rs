@@ -19,13 +19,6 @@ use glam::Vec3A as V;
 use rayon::prelude::*;
 use std::f32::consts::FRAC_1_PI;
 
-const EXACT: Cone = Cone {
-    r0: 0.0,
-    tan_a: 0.0,
-    scale: 0.0,
-    spread: 0.0,
-};
-
 /// What a node shows along each cube axis (+x, −x, +y, −y, +z, −z).
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Directional {
@@ -203,7 +196,7 @@ fn triangle(
             scene,
             tr,
             &Receiver::surface(q, err, ng),
-            &EXACT,
+            &Cone::EXACT,
             [rng.f32(), rng.f32(), rng.f32()],
             |wi| (rho * (FRAC_1_PI * ng.dot(wi).max(0.0)), 0.0),
         );

@@ -29,6 +29,8 @@ pub struct Texels {
     pub dir: Vec<Vec3>,
     pub solid_angle: Vec<f32>,
     pub cosine: Vec<f32>,
+    /// Solid angle of the smallest texel (at the cube's corners): the cut's yardstick.
+    pub min_solid_angle: f32,
 }
 
 impl Texels {
@@ -49,21 +51,18 @@ impl Texels {
             solid_angle[i as usize] = cube::texel_solid_angle(i as usize, n);
             cosine[i as usize] = cube::texel_vector_integral(i as usize, n).z;
         }
+        let min_solid_angle = upper
+            .iter()
+            .map(|&i| solid_angle[i as usize])
+            .fold(f32::INFINITY, f32::min);
         Texels {
             n,
             upper,
             dir,
             solid_angle,
             cosine,
+            min_solid_angle,
         }
-    }
-
-    /// Solid angle of the smallest texel (at the cube's corners): the cut's yardstick.
-    pub fn min_solid_angle(&self) -> f32 {
-        self.upper
-            .iter()
-            .map(|&i| self.solid_angle[i as usize])
-            .fold(f32::INFINITY, f32::min)
     }
 }
 

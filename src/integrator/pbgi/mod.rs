@@ -37,13 +37,6 @@ use std::f32::consts::PI;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Instant;
 
-const EXACT: Cone = Cone {
-    r0: 0.0,
-    tan_a: 0.0,
-    scale: 0.0,
-    spread: 0.0,
-};
-
 /// Smooth bounces followed before giving up on a path.
 const SMOOTH_DEPTH: u32 = 8;
 
@@ -203,7 +196,7 @@ impl PbgiIntegrator {
     /// texels their bounding sphere may cover.
     fn cut(&self, scene: &Scene, tr: &mut Tracer, s: &Surface, sc: &mut Scratch) {
         let texels = &self.texels;
-        let omega_max = self.settings.angle * texels.min_solid_angle();
+        let omega_max = self.settings.angle * texels.min_solid_angle;
         let mut page = tr.page_handle(scene.cache.root_page());
         sc.stack.clear();
         sc.stack
@@ -226,7 +219,7 @@ impl PbgiIntegrator {
             let global = page.first_node + i as u64;
             // A leaf within one texel is splatted even when the cut asks for more.
             let limit = if matches!(node.link(), NodeRef::Leaf { .. }) {
-                omega_max.max(texels.min_solid_angle())
+                omega_max.max(texels.min_solid_angle)
             } else {
                 omega_max
             };
@@ -372,7 +365,7 @@ impl Surface {
             scene,
             tr,
             &Receiver::surface(self.p, self.err, self.ng),
-            &EXACT,
+            &Cone::EXACT,
             u,
             |wi| (f(wi).0, 0.0),
         )
