@@ -3,6 +3,7 @@
 
 use crate::progress;
 use anyhow::Result;
+use canopy_format::radiance::RadianceFile;
 use canopy_format::{name_str, Archive, Features, Node, PageReport};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -35,6 +36,47 @@ pub struct Summary {
     pub bounds_min: [f32; 3],
     pub bounds_max: [f32; 3],
     pub verified: bool,
+    /// The radiance file given with `--radiance`, checked against this archive.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub radiance: Option<RadianceSummary>,
+}
+
+#[derive(Debug, Serialize)]
+pub struct RadianceSummary {
+    pub path: String,
+    pub bounces: u32,
+    pub samples_per_triangle: u32,
+    pub seed: u32,
+    pub file_bytes: u64,
+    pub decoded_bytes: u64,
+    pub record_bytes_per_node: u32,
+    pub bytes_per_node_on_disk: f64,
+    /// Wavelet coefficients (glossy nodes): none yet, every node stores one record.
+    pub coefficient_bytes: u64,
+    pub coefficient_bytes_per_node: f64,
+}
+
+/// What a radiance file holds; with `verify`, every block is decoded and its values checked.
+pub fn radiance(r: &RadianceFile, verify: bool) -> Result<RadianceSummary> {
+    if verify {
+        (0..r.blocks.len() as u32)
+            .into_par_iter()
+            .try_for_each(|p| r.read_block(p).map(drop))?;
+    }
+    let h = &r.header;
+    let nodes = h.nodes.max(1) as f64;
+    Ok(RadianceSummary {
+        path: r.path().display().to_string(),
+        bounces: h.bounces,
+        samples_per_triangle: h.samples_per_triangle,
+        seed: h.seed,
+        file_bytes: h.file_len,
+        decoded_bytes: r.blocks.iter().map(|b| b.raw_len as u64).sum(),
+        record_bytes_per_node: h.record_size,
+        bytes_per_node_on_disk: h.file_len as f64 / nodes,
+        coefficient_bytes: h.coef_bytes,
+        coefficient_bytes_per_node: h.coef_bytes as f64 / nodes,
+    })
 }
 
 pub fn summarize(a: &Archive) -> Summary {
@@ -83,6 +125,7 @@ pub fn summarize(a: &Archive) -> Summary {
         bounds_min: h.bounds_min,
         bounds_max: h.bounds_max,
         verified: false,
+        radiance: None,
     }
 }
 
@@ -172,6 +215,27 @@ impl std::fmt::Display for Summary {
         )?;
         if s.verified {
             writeln!(f, "  verify              ok: every page decodes, checksums match, links and bounds are consistent")?;
+        }
+        if let Some(r) = &s.radiance {
+            writeln!(f, "{}", r.path)?;
+            writeln!(
+                f,
+                "  baked               {} bounce(s), {} light samples per triangle, seed {}",
+                r.bounces, r.samples_per_triangle, r.seed
+            )?;
+            writeln!(
+                f,
+                "  size on disk        {:.2} MiB ({:.1} bytes per node); decoded {:.2} MiB ({} bytes per node)",
+                mib(r.file_bytes),
+                r.bytes_per_node_on_disk,
+                mib(r.decoded_bytes),
+                r.record_bytes_per_node
+            )?;
+            writeln!(
+                f,
+                "  coefficients        {} bytes ({:.1} per node)",
+                r.coefficient_bytes, r.coefficient_bytes_per_node
+            )?;
         }
         Ok(())
     }

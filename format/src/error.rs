@@ -34,6 +34,16 @@ pub enum FormatError {
         page: u32,
         what: String,
     },
+    #[error("{path}: not a Canopy radiance file (bad magic)")]
+    NotRadiance { path: PathBuf },
+    #[error("{path}: corrupt radiance file: {what}")]
+    BadRadiance { path: PathBuf, what: String },
+    #[error("{path}: baked for a different archive than {archive} ({what}); bake it again with `canopy bake`")]
+    WrongArchive {
+        path: PathBuf,
+        archive: PathBuf,
+        what: String,
+    },
 }
 
 pub type Result<T> = std::result::Result<T, FormatError>;

@@ -6,9 +6,11 @@ compile_error!(
     "the archive format is little-endian and read by casting; big-endian hosts are not supported"
 );
 
+pub mod atomic;
 pub mod codec;
 pub mod error;
 pub mod node;
+pub mod radiance;
 pub mod reader;
 pub mod records;
 pub mod validate;

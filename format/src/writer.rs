@@ -2,12 +2,11 @@
 //! in last, and the file only appears at its final path once complete (write to a temporary
 //! name in the same directory, fsync, rename).
 
-use crate::error::{FormatError, Result};
+use crate::atomic::AtomicFile;
+use crate::error::Result;
 use crate::node::{Node, Tri};
 use crate::records::*;
-use std::fs::File;
-use std::io::{BufWriter, Seek, SeekFrom, Write};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// The decoded contents of one page.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -110,61 +109,22 @@ pub struct SceneInfo {
 }
 
 pub struct ArchiveWriter {
-    path: PathBuf,
-    /// The hidden temporary name (`.NAME.tmp-PID`), for messages; the file has that name
-    /// only where the filesystem cannot make unnamed files.
-    tmp: PathBuf,
-    named: bool,
-    out: Option<BufWriter<File>>,
-    offset: u64,
+    out: AtomicFile,
     pages: Vec<PageEntry>,
     nodes: u64,
     tris: u64,
     verts: u64,
-    done: bool,
-}
-
-fn io(path: &Path) -> impl FnOnce(std::io::Error) -> FormatError + '_ {
-    move |source| FormatError::Io {
-        path: path.to_path_buf(),
-        error: source,
-    }
 }
 
 impl ArchiveWriter {
-    /// Starts an archive that will appear at `path` when `finish` succeeds. Until then the
-    /// bytes live in an unnamed file in its directory (`O_TMPFILE`: the kernel reclaims it
-    /// if the process dies, even by SIGKILL) or, where the filesystem cannot do that, in a
-    /// hidden `.NAME.tmp-PID` beside it, removed if the writer is dropped and by the next
-    /// writer into that directory once its process is gone.
+    /// Starts an archive that will appear at `path` when `finish` succeeds (`AtomicFile`).
     pub fn create(path: &Path) -> Result<Self> {
-        let dir = match path.parent() {
-            Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-            _ => PathBuf::from("."),
-        };
-        let name = path
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_default();
-        let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
-        tmpfile::remove_orphans(&dir, &name);
-        let (file, named) = match tmpfile::unnamed(&dir) {
-            Some(f) => (f, false),
-            None => (File::create(&tmp).map_err(io(path))?, true),
-        };
-        let mut out = BufWriter::with_capacity(1 << 20, file);
-        out.write_all(&[0u8; 256]).map_err(io(&tmp))?;
         Ok(Self {
-            path: path.to_path_buf(),
-            tmp,
-            named,
-            out: Some(out),
-            offset: 256,
+            out: AtomicFile::create(path, 256)?,
             pages: Vec::new(),
             nodes: 0,
             tris: 0,
             verts: 0,
-            done: false,
         })
     }
 
@@ -178,10 +138,10 @@ impl ArchiveWriter {
 
     /// Appends a page; returns its index. Pages get global node numbers in append order.
     pub fn push(&mut self, page: &EncodedPage, meta: PageMeta) -> Result<u32> {
-        let out = self.out.as_mut().expect("writer used after finish");
-        out.write_all(&page.bytes).map_err(io(&self.tmp))?;
+        let offset = self.out.len();
+        self.out.write_all(&page.bytes)?;
         self.pages.push(PageEntry {
-            offset: self.offset,
+            offset,
             compressed_len: page.bytes.len() as u32,
             raw_len: page.raw_len,
             checksum: page.checksum,
@@ -198,7 +158,6 @@ impl ArchiveWriter {
             bounds_max: meta.bounds_max,
             reserved: [0; 12],
         });
-        self.offset += page.bytes.len() as u64;
         self.nodes += page.node_count as u64;
         self.tris += page.tri_count as u64;
         self.verts += page.vert_count as u64;
@@ -247,7 +206,7 @@ impl ArchiveWriter {
     /// Writes the tables and header, syncs, and renames into place.
     pub fn finish(mut self, info: &SceneInfo) -> Result<()> {
         self.fill_levels();
-        let base = self.offset;
+        let base = self.out.len();
         let mut tables = Vec::new();
         let materials = append_table(&mut tables, base, &info.materials);
         let cameras = append_table(&mut tables, base, &info.cameras);
@@ -279,28 +238,8 @@ impl ArchiveWriter {
             reserved: [0; 72],
         };
         header.header_checksum = xxhash_rust::xxh3::xxh3_64(bytemuck::bytes_of(&header));
-        let mut out = self.out.take().expect("finish called twice");
-        let tmp = self.tmp.clone();
-        out.write_all(&tables).map_err(io(&tmp))?;
-        let mut file = out.into_inner().map_err(|e| FormatError::Io {
-            path: tmp.clone(),
-            error: e.into_error(),
-        })?;
-        file.seek(SeekFrom::Start(0)).map_err(io(&tmp))?;
-        file.write_all(bytemuck::bytes_of(&header))
-            .map_err(io(&tmp))?;
-        file.sync_all().map_err(io(&tmp))?;
-        if self.named {
-            drop(file);
-            std::fs::rename(&tmp, &self.path).map_err(io(&self.path))?;
-        } else {
-            tmpfile::link(&file, &self.path, &tmp).map_err(io(&self.path))?;
-        }
-        self.done = true;
-        if let Some(dir) = self.path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            // Persist the rename; not every filesystem supports syncing a directory.
-            let _ = File::open(dir).and_then(|d| d.sync_all());
-        }
+        self.out.write_all(&tables)?;
+        self.out.commit(bytemuck::bytes_of(&header))?;
         Ok(())
     }
 }
@@ -314,109 +253,4 @@ fn append_table<T: bytemuck::Pod>(tables: &mut Vec<u8>, base: u64, records: &[T]
     };
     tables.extend_from_slice(bytemuck::cast_slice(records));
     t
-}
-
-impl Drop for ArchiveWriter {
-    fn drop(&mut self) {
-        if !self.done && self.named {
-            self.out.take();
-            let _ = std::fs::remove_file(&self.tmp);
-        }
-    }
-}
-
-/// Unnamed output files and the named fallback's clean-up.
-mod tmpfile {
-    use std::fs::File;
-    use std::path::Path;
-
-    /// An unnamed read-write file in `dir`, where the OS and filesystem support it.
-    #[cfg(target_os = "linux")]
-    pub fn unnamed(dir: &Path) -> Option<File> {
-        use std::os::unix::ffi::OsStrExt;
-        use std::os::unix::io::FromRawFd;
-        let c = std::ffi::CString::new(dir.as_os_str().as_bytes()).ok()?;
-        // SAFETY: a valid C string; the descriptor is owned by the File on success.
-        let fd = unsafe {
-            libc::open(
-                c.as_ptr(),
-                libc::O_TMPFILE | libc::O_RDWR | libc::O_CLOEXEC,
-                0o644,
-            )
-        };
-        // SAFETY: `fd` was just opened and nothing else owns it.
-        (fd >= 0).then(|| unsafe { File::from_raw_fd(fd) })
-    }
-
-    #[cfg(not(target_os = "linux"))]
-    pub fn unnamed(_dir: &Path) -> Option<File> {
-        None
-    }
-
-    /// Gives an unnamed file the name `dest`, replacing what is there: linked under `tmp`
-    /// first and renamed over `dest` (link cannot replace), so `dest` is never partial.
-    #[cfg(target_os = "linux")]
-    pub fn link(file: &File, dest: &Path, tmp: &Path) -> std::io::Result<()> {
-        use std::os::unix::ffi::OsStrExt;
-        use std::os::unix::io::AsRawFd;
-        let from = std::ffi::CString::new(format!("/proc/self/fd/{}", file.as_raw_fd()))?;
-        let to = std::ffi::CString::new(tmp.as_os_str().as_bytes())?;
-        let _ = std::fs::remove_file(tmp);
-        // SAFETY: valid C strings; linkat reads them only.
-        let r = unsafe {
-            libc::linkat(
-                libc::AT_FDCWD,
-                from.as_ptr(),
-                libc::AT_FDCWD,
-                to.as_ptr(),
-                libc::AT_SYMLINK_FOLLOW,
-            )
-        };
-        if r != 0 {
-            return Err(std::io::Error::last_os_error());
-        }
-        std::fs::rename(tmp, dest).inspect_err(|_| {
-            let _ = std::fs::remove_file(tmp);
-        })
-    }
-
-    #[cfg(not(target_os = "linux"))]
-    pub fn link(_file: &File, _dest: &Path, _tmp: &Path) -> std::io::Result<()> {
-        unreachable!("unnamed files exist only on Linux")
-    }
-
-    /// Removes `.NAME.tmp-PID` files in `dir` whose process no longer exists (left by a
-    /// writer killed where unnamed files were not available).
-    pub fn remove_orphans(dir: &Path, name: &str) {
-        let prefix = format!(".{name}.tmp-");
-        let Ok(entries) = std::fs::read_dir(dir) else {
-            return;
-        };
-        for e in entries.flatten() {
-            let file = e.file_name();
-            let Some(pid) = file
-                .to_str()
-                .and_then(|f| f.strip_prefix(&prefix))
-                .and_then(|p| p.parse::<i32>().ok())
-            else {
-                continue;
-            };
-            if !alive(pid) {
-                let _ = std::fs::remove_file(e.path());
-            }
-        }
-    }
-
-    #[cfg(unix)]
-    fn alive(pid: i32) -> bool {
-        // SAFETY: signal 0 only checks that the process exists.
-        pid > 0
-            && (unsafe { libc::kill(pid, 0) } == 0
-                || std::io::Error::last_os_error().raw_os_error() != Some(libc::ESRCH))
-    }
-
-    #[cfg(not(unix))]
-    fn alive(_pid: i32) -> bool {
-        true
-    }
 }

@@ -3,13 +3,18 @@ use canopy::inspect;
 use clap::Args;
 use std::path::PathBuf;
 
-/// Summarize an archive: counts, sizes, compression, features, pages per path.
+/// Summarize an archive: counts, sizes, compression, features, pages per path (and a
+/// radiance file baked from it).
 #[derive(Args)]
 pub struct InspectArgs {
     archive: PathBuf,
     /// Decompress every page and check checksums, links, bounds and counts.
     #[arg(long)]
     verify: bool,
+    /// Also check and summarize this radiance file (`canopy bake`) against the archive;
+    /// with --verify every block is decoded.
+    #[arg(long, value_name = "FILE")]
+    radiance: Option<std::path::PathBuf>,
     /// Print JSON instead of text.
     #[arg(long)]
     json: bool,
@@ -20,6 +25,10 @@ pub fn run(a: InspectArgs, progress: bool) -> Result<()> {
     let mut s = inspect::summarize(&archive);
     if a.verify {
         inspect::verify(&archive, &mut s, progress)?;
+    }
+    if let Some(path) = &a.radiance {
+        let r = canopy_format::radiance::RadianceFile::open(path, &archive)?;
+        s.radiance = Some(inspect::radiance(&r, a.verify)?);
     }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&s)?);

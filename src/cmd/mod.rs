@@ -1,6 +1,7 @@
 //! The command line: one module per subcommand, each a function over its parsed arguments;
 //! what they print is the `Display` of the library's result types.
 
+mod bake;
 mod compare;
 mod convert;
 mod inspect;
@@ -29,6 +30,7 @@ pub struct Cli {
 #[derive(Subcommand)]
 enum Cmd {
     Convert(convert::ConvertArgs),
+    Bake(bake::BakeArgs),
     Render(render::RenderArgs),
     Npp(sweep::NppArgs),
     Eval(sweep::EvalArgs),
@@ -139,6 +141,7 @@ pub fn run() -> Result<()> {
     let (name, sub) = matches.subcommand().expect("a subcommand is required");
     match cli.cmd {
         Cmd::Convert(a) => convert::run(a, show),
+        Cmd::Bake(a) => bake::run(a, show),
         Cmd::Render(a) => {
             reject_unused(name, sub, &[a.settings.integrator]);
             render::run(a, show)

@@ -51,9 +51,8 @@ impl Settings {
     }
 
     /// The part of a memory budget the integrator keeps for its own state (the pages get
-    /// the rest): a quarter for the cone integrator's stored light. PBGI's bake
-    /// (`pbgi::bake::Directional`, 96 bytes a node) is not yet budgeted: its stats report
-    /// its size.
+    /// the rest): a quarter for the cone integrator's stored light. PBGI's baked light
+    /// (96 bytes a node) rides in the pages, so the page cache's budget holds it.
     pub fn state_share(&self, budget: u64) -> u64 {
         match self {
             Settings::Path | Settings::Pbgi(_) => 0,
@@ -116,8 +115,8 @@ pub trait Integrator: Send + Sync {
         spp
     }
     /// Before the pass of samples `first..first + count`; returns the rays it traced.
-    fn begin_pass(&mut self, _scene: &Scene, _first: u32, _count: u32) -> u64 {
-        0
+    fn begin_pass(&mut self, _scene: &Scene, _first: u32, _count: u32) -> anyhow::Result<u64> {
+        Ok(0)
     }
     /// Radiance of one pixel sample.
     fn sample(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample, c: &mut Counters) -> V;

@@ -11,8 +11,12 @@
 //! A page that fails to decode (corrupt archive) is recorded as the cache's error and served
 //! as an empty page, so traversal never panics; the renderer checks `error()` and fails.
 //! Background prefetch: `prefetch` queues a page for a loader thread (crossbeam channel).
+//!
+//! A radiance file (`canopy bake`) can be attached: each page then also carries its block
+//! of baked node light, loaded, counted against the budget and evicted with it.
 
 use anyhow::{bail, Result};
+use canopy_format::radiance::{BakedNode, RadianceFile};
 use canopy_format::{Archive, Node, NodeFlags, Tri};
 use crossbeam_channel::{Receiver, Sender, TrySendError};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
@@ -106,6 +110,8 @@ pub struct Page {
     pub tris: Vec<TriW>,
     /// Per triangle, octahedral shading normals of its vertices (empty without normals).
     pub shading: Vec<[u32; 3]>,
+    /// Per node, its baked light (empty unless a radiance file is attached).
+    pub baked: Vec<BakedNode>,
     pub bytes: u64,
 }
 
@@ -167,8 +173,16 @@ impl Page {
             bvh,
             tris,
             shading,
+            baked: Vec::new(),
             bytes,
         })
+    }
+
+    /// Adds the page's block of baked light from `r`.
+    pub fn with_baked(mut self, r: &RadianceFile) -> Result<Page> {
+        self.baked = r.read_block(self.id)?;
+        self.bytes += (self.baked.len() * std::mem::size_of::<BakedNode>()) as u64;
+        Ok(self)
     }
 
     fn empty(id: u32) -> Page {
@@ -180,6 +194,7 @@ impl Page {
             bvh: Vec::new(),
             tris: Vec::new(),
             shading: Vec::new(),
+            baked: Vec::new(),
             bytes: 0,
         }
     }
@@ -225,6 +240,10 @@ pub struct PageCache {
     touched: Vec<AtomicBool>,
     error: Mutex<Option<String>>,
     prefetch_tx: Mutex<Option<Sender<u32>>>,
+    sidecar: RwLock<Option<Arc<RadianceFile>>>,
+    /// Moves when a radiance file is attached: a load that began before does not store
+    /// its page.
+    sidecar_gen: AtomicU64,
 }
 
 /// Decoded size of a page without decoding it (from its page-table counts).
@@ -287,6 +306,8 @@ impl PageCache {
             touched: (0..n).map(|_| AtomicBool::new(false)).collect(),
             error: Mutex::new(None),
             prefetch_tx: Mutex::new(None),
+            sidecar: RwLock::new(None),
+            sidecar_gen: AtomicU64::new(0),
             archive,
         });
         for i in 0..n as u32 {
@@ -364,8 +385,39 @@ impl PageCache {
         page
     }
 
+    /// Attaches baked light: every resident page is dropped (pinned pages are loaded again)
+    /// so each page holds its block from now on. Call it while no traversal runs.
+    pub fn attach_radiance(&self, r: RadianceFile) -> Result<()> {
+        *self.sidecar.write().expect("sidecar") = Some(Arc::new(r));
+        self.sidecar_gen.fetch_add(1, Relaxed);
+        for slot in &self.slots {
+            if let Some(p) = slot.page.write().expect("slot").take() {
+                self.resident.fetch_sub(p.bytes, Relaxed);
+            }
+        }
+        self.epoch.fetch_add(1, Relaxed);
+        for i in 0..self.slots.len() as u32 {
+            if self.slots[i as usize].pinned {
+                self.load(i);
+            }
+        }
+        match self.error() {
+            Some(e) => bail!(e),
+            None => Ok(()),
+        }
+    }
+
+    fn decode(&self, id: u32) -> Result<Page> {
+        let page = Page::decode(&self.archive, id)?;
+        match self.sidecar.read().expect("sidecar").as_deref() {
+            Some(r) => page.with_baked(r),
+            None => Ok(page),
+        }
+    }
+
     fn load(&self, id: u32) -> Arc<Page> {
-        let page = match Page::decode(&self.archive, id) {
+        let generation = self.sidecar_gen.load(Relaxed);
+        let page = match self.decode(id) {
             Ok(p) => p,
             Err(e) => {
                 self.error
@@ -381,6 +433,9 @@ impl PageCache {
             let mut w = slot.page.write().expect("slot");
             if let Some(p) = w.as_ref() {
                 return Arc::clone(p);
+            }
+            if self.sidecar_gen.load(Relaxed) != generation {
+                return page;
             }
             *w = Some(Arc::clone(&page));
         }

@@ -2,6 +2,7 @@
 //! samples over tiles, each sample asked of the integrator (`integrator::Integrator`), which
 //! it knows only through that trait.
 
+pub mod bake;
 mod film;
 mod setup;
 mod stats;
@@ -109,7 +110,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
             (None, None) => integ.pass_samples(o.spp),
         };
         let pass_start = Instant::now();
-        let rays = pool.install(|| integ.begin_pass(scene, done, count));
+        let rays = pool.install(|| integ.begin_pass(scene, done, count))?;
         tally.rays.fetch_add(rays, Relaxed);
         let integ_ref: &dyn Integrator = integ.as_ref();
         let sums: Vec<Vec<Sums>> = pool.install(|| {

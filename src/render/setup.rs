@@ -134,14 +134,6 @@ impl Setup {
             bail!("--spp must be at least 1");
         }
         let archive = Arc::new(Archive::open(&o.archive)?);
-        if archive.header.depth as usize > MAX_DEPTH {
-            bail!(
-                "{}: tree depth {} exceeds the {} this renderer traverses",
-                o.archive.display(),
-                archive.header.depth,
-                MAX_DEPTH
-            );
-        }
         let cam = camera(o, &archive)?;
         let (width, height) = resolution(o, cam)?;
         let window = window(o, width, height)?;
@@ -150,36 +142,15 @@ impl Setup {
             .num_threads(threads)
             .build()
             .context("starting worker threads")?;
-        let touched = NodeSet::new(archive.header.nodes);
         let state_bytes = o.mem_budget.map(|b| o.integrator.state_share(b));
-        let budget = match o.mem_budget {
-            Some(b) => Some(
-                b.checked_sub(touched.bytes() + state_bytes.unwrap_or(0))
-                    .with_context(|| {
-                        format!("--mem-budget {b} cannot even hold the node statistics")
-                    })?,
-            ),
-            None => None,
-        };
-        let cache = PageCache::new(Arc::clone(&archive), budget, threads)?;
-        let materials: Vec<Material> = archive
-            .materials
-            .iter()
-            .map(Material::from_record)
-            .collect();
-        let (lo, hi) = (
-            V::from(archive.header.bounds_min),
-            V::from(archive.header.bounds_max),
-        );
-        let lights = Lights::gather(&archive, &materials, 0.5 * (hi - lo).length())?;
-        let scene = Scene {
-            cache,
-            materials,
-            camera: Camera::new(cam, width, height),
-            lights,
-            max_depth: o.max_depth,
-            touched,
-        };
+        let camera = Camera::new(cam, width, height);
+        let scene = open_scene(
+            archive,
+            camera,
+            o.mem_budget.map(|b| (b, state_bytes.unwrap_or(0))),
+            threads,
+            o.max_depth,
+        )?;
         Ok(Setup {
             exr,
             png,
@@ -192,4 +163,51 @@ impl Setup {
             state_bytes,
         })
     }
+}
+
+/// The scene an archive describes, its pages under `budget` = (total, bytes kept aside for
+/// the integrator's state).
+pub fn open_scene(
+    archive: Arc<Archive>,
+    camera: Camera,
+    budget: Option<(u64, u64)>,
+    threads: usize,
+    max_depth: Option<u32>,
+) -> Result<Scene> {
+    if archive.header.depth as usize > MAX_DEPTH {
+        bail!(
+            "{}: tree depth {} exceeds the {} this renderer traverses",
+            archive.path().display(),
+            archive.header.depth,
+            MAX_DEPTH
+        );
+    }
+    let touched = NodeSet::new(archive.header.nodes);
+    let budget = match budget {
+        Some((b, state)) => {
+            Some(b.checked_sub(touched.bytes() + state).with_context(|| {
+                format!("--mem-budget {b} cannot even hold the node statistics")
+            })?)
+        }
+        None => None,
+    };
+    let cache = PageCache::new(Arc::clone(&archive), budget, threads)?;
+    let materials: Vec<Material> = archive
+        .materials
+        .iter()
+        .map(Material::from_record)
+        .collect();
+    let (lo, hi) = (
+        V::from(archive.header.bounds_min),
+        V::from(archive.header.bounds_max),
+    );
+    let lights = Lights::gather(&archive, &materials, 0.5 * (hi - lo).length())?;
+    Ok(Scene {
+        cache,
+        materials,
+        camera,
+        lights,
+        max_depth,
+        touched,
+    })
 }

@@ -241,7 +241,7 @@ impl Integrator for ConeIntegrator {
         1
     }
 
-    fn begin_pass(&mut self, scene: &Scene, first: u32, count: u32) -> u64 {
+    fn begin_pass(&mut self, scene: &Scene, first: u32, count: u32) -> anyhow::Result<u64> {
         let start = Instant::now();
         self.store.begin_pass(first + count);
         let mut rays = 0;
@@ -261,7 +261,7 @@ impl Integrator for ConeIntegrator {
         if self.settings.edge_rays > 0 {
             self.edge = self.edge_mask();
         }
-        rays
+        Ok(rays)
     }
 
     fn sample(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample, c: &mut Counters) -> V {

@@ -15,30 +15,32 @@
 use crate::integrator::{sample_light, Receiver, Scene};
 use crate::paging::{deepest_first, NodeRef, Page};
 use crate::trace::{gamma, Cone, Tracer};
+use anyhow::Result;
+use canopy_format::radiance::{BakeInfo, BakedNode, RadianceFile, RadianceWriter};
 use glam::Vec3A as V;
 use rayon::prelude::*;
 use std::f32::consts::FRAC_1_PI;
+use std::path::Path;
 
-/// What a node shows along each cube axis (+x, −x, +y, −y, +z, −z).
-#[derive(Clone, Copy, Debug, Default)]
-pub struct Directional {
-    /// Projected area P_k.
-    pub area: [f32; 6],
-    /// Reflected power Q_k (radiance times projected area).
-    pub power: [[f32; 3]; 6],
+/// What a node shows along each cube axis (+x, −x, +y, −y, +z, −z): the file's record.
+pub trait Directional: Sized {
+    fn add(&mut self, o: &Self);
+    /// A surface of area `a`, unit normal `n`, reflecting radiance `b`.
+    fn patch(a: f32, n: V, b: V) -> Self;
+    /// Projected area and reflected power seen from direction `w` (unit, node → viewer).
+    fn toward(&self, w: V) -> (f32, V);
 }
 
-impl Directional {
-    fn add(&mut self, o: &Directional) {
+impl Directional for BakedNode {
+    fn add(&mut self, o: &BakedNode) {
         for k in 0..6 {
             self.area[k] += o.area[k];
             self.power[k] = (V::from(self.power[k]) + V::from(o.power[k])).into();
         }
     }
 
-    /// A surface of area `a`, unit normal `n`, reflecting radiance `b`.
-    fn patch(a: f32, n: V, b: V) -> Directional {
-        let mut d = Directional::default();
+    fn patch(a: f32, n: V, b: V) -> BakedNode {
+        let mut d = BakedNode::default();
         for (k, w) in axis_cosines(n).into_iter().enumerate() {
             d.area[k] = a * w;
             d.power[k] = (b * (a * w)).into();
@@ -46,8 +48,7 @@ impl Directional {
         d
     }
 
-    /// Projected area and reflected power seen from direction `w` (unit, node → viewer).
-    pub fn toward(&self, w: V) -> (f32, V) {
+    fn toward(&self, w: V) -> (f32, V) {
         let mut area = 0.0;
         let mut power = V::ZERO;
         for (k, c) in axis_cosines(w).into_iter().enumerate() {
@@ -71,64 +72,102 @@ fn axis_cosines(v: V) -> [f32; 6] {
     ]
 }
 
-/// Per global node number, what it shows each way.
-pub struct Baked {
-    pub radiance: Vec<Directional>,
-    /// Light samples taken.
-    pub samples: u64,
+/// Bakes into a radiance file at `path` (it appears only when complete); returns the
+/// light samples taken.
+pub fn bake_file(
+    scene: &Scene,
+    per_tri: u32,
+    seed: u32,
+    path: &Path,
+    progress: &dyn Fn(u64),
+) -> Result<u64> {
+    let archive = &scene.cache.archive;
+    let mut out = RadianceWriter::create(path, archive, info(per_tri, seed))?;
+    let samples = bake(scene, per_tri, seed, &mut out, progress)?;
+    out.finish()?;
+    Ok(samples)
 }
 
-impl Baked {
-    pub fn bytes(&self) -> u64 {
-        (self.radiance.len() * std::mem::size_of::<Directional>()) as u64
+/// Bakes into an unnamed scratch file (a render without `--radiance`) and opens it.
+pub fn bake_scratch(scene: &Scene, per_tri: u32, seed: u32) -> Result<(RadianceFile, u64)> {
+    let archive = &scene.cache.archive;
+    let mut out = RadianceWriter::temporary(archive, info(per_tri, seed))?;
+    let samples = bake(scene, per_tri, seed, &mut out, &|_| {})?;
+    let file = out.finish()?;
+    let r = RadianceFile::from_file(file, Path::new("(temporary bake)"), archive)?;
+    Ok((r, samples))
+}
+
+fn info(per_tri: u32, seed: u32) -> BakeInfo {
+    BakeInfo {
+        bounces: 1,
+        samples_per_triangle: per_tri,
+        seed,
     }
 }
 
-/// Bakes every page of the archive with `per_tri` light samples per triangle.
-pub fn bake(scene: &Scene, per_tri: u32, seed: u32) -> Baked {
+/// Pages baked at once: enough to keep every thread busy, few enough that memory holds
+/// only their records and two per page finished (their roots, which parents read).
+const BATCH: usize = 64;
+
+/// Bakes every page of the archive with `per_tri` light samples per triangle, writing each
+/// page's records to `out` as it is done; returns the light samples taken.
+fn bake(
+    scene: &Scene,
+    per_tri: u32,
+    seed: u32,
+    out: &mut RadianceWriter,
+    progress: &dyn Fn(u64),
+) -> Result<u64> {
     let cache = &scene.cache;
     let archive = &cache.archive;
-    let mut radiance = vec![Directional::default(); archive.header.nodes as usize];
+    let mut roots = vec![[BakedNode::default(); 2]; archive.pages.len()];
     let mut samples = 0;
     let pages: Vec<u32> = (0..archive.pages.len() as u32).collect();
     for level in deepest_first(archive, pages) {
-        let done = &radiance;
-        let baked: Vec<(u64, Vec<Directional>, u64)> = level
-            .par_iter()
-            .map_init(
-                || Tracer::new(cache),
-                |tr, &id| {
-                    let page = tr.page_handle(id);
-                    let (vals, n) = bake_page(scene, tr, &page, done, per_tri, seed);
-                    (page.first_node, vals, n)
-                },
-            )
-            .collect();
-        for (first, vals, n) in baked {
-            let first = first as usize;
-            if let Some(dst) = radiance.get_mut(first..first + vals.len()) {
-                dst.copy_from_slice(&vals);
+        for batch in level.chunks(BATCH) {
+            let done = &roots;
+            let baked: Vec<(u32, Vec<BakedNode>, u64)> = batch
+                .par_iter()
+                .map_init(
+                    || Tracer::new(cache),
+                    |tr, &id| {
+                        let page = tr.page_handle(id);
+                        let (vals, n) = bake_page(scene, tr, &page, done, per_tri, seed);
+                        (id, vals, n)
+                    },
+                )
+                .collect();
+            for (id, vals, n) in baked {
+                for (r, v) in roots[id as usize].iter_mut().zip(&vals) {
+                    *r = *v;
+                }
+                out.push(id, &vals)?;
+                samples += n;
+                progress(1);
             }
-            samples += n;
         }
     }
-    Baked { radiance, samples }
+    if let Some(e) = cache.error() {
+        anyhow::bail!(e);
+    }
+    Ok(samples)
 }
 
-/// One page's nodes, children before parents (a page stores parents first); child pages
-/// are already in `done`.
+/// One page's nodes, children before parents (a page stores parents first); child pages'
+/// roots are already in `roots`.
 fn bake_page(
     scene: &Scene,
     tr: &mut Tracer,
     page: &Page,
-    done: &[Directional],
+    roots: &[[BakedNode; 2]],
     per_tri: u32,
     seed: u32,
-) -> (Vec<Directional>, u64) {
-    let mut vals = vec![Directional::default(); page.bvh.len()];
+) -> (Vec<BakedNode>, u64) {
+    let mut vals = vec![BakedNode::default(); page.bvh.len()];
     let mut samples = 0;
     for i in (0..page.bvh.len()).rev() {
-        let mut d = Directional::default();
+        let mut d = BakedNode::default();
         match page.bvh[i].link() {
             NodeRef::Leaf { first, count } => {
                 for k in first..(first + count).min(page.tris.len() as u32) {
@@ -149,9 +188,8 @@ fn bake_page(
                 d.add(&vals[r as usize]);
             }
             NodeRef::ChildPage(c) => {
-                let first = tr.page_handle(c).first_node as usize;
-                for k in first..first + 2 {
-                    d.add(&done.get(k).copied().unwrap_or_default());
+                for r in roots.get(c as usize).into_iter().flatten() {
+                    d.add(r);
                 }
             }
         }
@@ -168,18 +206,18 @@ fn triangle(
     n: u32,
     seed: u32,
     key: u64,
-) -> Directional {
+) -> BakedNode {
     let p = t.p.map(V::from);
     let cross = (p[1] - p[0]).cross(p[2] - p[0]);
     let area = 0.5 * cross.length();
     let m = &scene.materials[t.material as usize];
     let rho = m.bsdf(true).diffuse;
     if area.is_nan() || area <= 0.0 {
-        return Directional::default();
+        return BakedNode::default();
     }
     let ng = cross / (2.0 * area);
     if rho.max_element() <= 0.0 || n == 0 {
-        return Directional::patch(area, ng, V::ZERO);
+        return BakedNode::patch(area, ng, V::ZERO);
     }
     let mut rng = Hash::new(seed as u64 ^ key.wrapping_mul(0x9E37_79B9_7F4A_7C15));
     let mut sum = V::ZERO;
@@ -201,7 +239,7 @@ fn triangle(
             |wi| (rho * (FRAC_1_PI * ng.dot(wi).max(0.0)), 0.0),
         );
     }
-    Directional::patch(area, ng, sum / n as f32)
+    BakedNode::patch(area, ng, sum / n as f32)
 }
 
 /// SplitMix64: independent uniforms per triangle without a shared generator.
@@ -230,7 +268,7 @@ mod tests {
     fn a_patch_shows_its_area_along_each_axis_and_nothing_behind() {
         let b = V::new(1.0, 2.0, 3.0);
         for n in [V::X, V::NEG_Y, V::Z] {
-            let d = Directional::patch(2.0, n, b);
+            let d = BakedNode::patch(2.0, n, b);
             let (area, power) = d.toward(n);
             assert!((area - 2.0).abs() < 1e-6 && (power - b * 2.0).abs().max_element() < 1e-6);
             assert_eq!(d.toward(-n).0, 0.0);
@@ -238,7 +276,7 @@ mod tests {
         // An oblique patch seen along its normal shows A·Σ|n_k|³ (the blend's loss at
         // oblique views), and its own light from every front direction.
         let n = V::new(1.0, 2.0, -2.0).normalize();
-        let d = Directional::patch(3.0, n, b);
+        let d = BakedNode::patch(3.0, n, b);
         let (area, _) = d.toward(n);
         assert!((area - 3.0 * 17.0 / 27.0).abs() < 1e-5, "{area}");
         for w in [
@@ -253,8 +291,8 @@ mod tests {
 
     #[test]
     fn nodes_add_their_childrens_area_and_power() {
-        let mut sum = Directional::patch(1.0, V::X, V::ONE);
-        sum.add(&Directional::patch(1.0, V::NEG_X, V::ZERO));
+        let mut sum = BakedNode::patch(1.0, V::X, V::ONE);
+        sum.add(&BakedNode::patch(1.0, V::NEG_X, V::ZERO));
         let w = V::new(1.0, 1.0, 0.0).normalize();
         let (area, power) = sum.toward(w);
         // Half of the +x patch's area along x's cosine, 1/√2, squared: 0.5.

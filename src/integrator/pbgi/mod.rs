@@ -9,7 +9,7 @@
 //!   smallest micro-buffer texel's; otherwise its children are visited. Nodes wholly below
 //!   x's tangent plane are skipped;
 //! - a splatted node covers its projected area toward x over d² and sends the light it
-//!   reflects that way (`bake::Directional`); seen from behind it is a dark occluder;
+//!   reflects that way (`bake::Directional`, read from the page's baked block); seen from behind it is a dark occluder;
 //! - leaves too close for their solid angle are resolved by exact rays: one ray, jittered
 //!   inside the texel, through every texel the leaf's bounding sphere may cover; the hit
 //!   sends the direct light it reflects toward x (its BSDF, one light sample), opaque;
@@ -29,11 +29,13 @@ use crate::material::{Bsdf, Frame};
 use crate::paging::NodeRef;
 use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer};
 use crate::wavelet::cube;
-use bake::{Baked, Hash};
+use anyhow::Result;
+use bake::{Directional, Hash};
 use glam::{Vec3, Vec3A as V};
 use microbuffer::{MicroBuffer, Texels};
 use std::cell::RefCell;
 use std::f32::consts::PI;
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::time::Instant;
 
@@ -59,6 +61,10 @@ pub struct PbgiSettings {
     /// Light samples per triangle in the bake.
     #[arg(long = "bake-samples", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=65536))]
     pub bake_samples: u32,
+    /// Baked light from `canopy bake` (default: bake before the first pass, counted in the
+    /// render time, into an unnamed scratch file).
+    #[arg(long, value_name = "FILE", conflicts_with = "bake_samples")]
+    pub radiance: Option<PathBuf>,
 }
 
 fn parse_resolution(s: &str) -> Result<usize, String> {
@@ -82,7 +88,6 @@ pub struct PbgiStats {
     pub pbgi_resolution: usize,
     pub bake_seconds: f64,
     pub bake_samples: u64,
-    pub baked_bytes: u64,
     /// Nodes splatted whole, and texels resolved by exact rays, over the render.
     pub splatted_nodes: u64,
     pub near_rays: u64,
@@ -90,8 +95,8 @@ pub struct PbgiStats {
 
 pub struct PbgiIntegrator {
     settings: PbgiSettings,
-    /// Made before the first pass, so time budgets count it.
-    baked: Baked,
+    /// Light samples the bake took (0 when read from a file).
+    bake_samples: u64,
     texels: Texels,
     seed: u32,
     bake_s: f64,
@@ -116,10 +121,7 @@ impl PbgiIntegrator {
         PbgiIntegrator {
             settings: settings.clone(),
             texels: Texels::new(settings.resolution),
-            baked: Baked {
-                radiance: Vec::new(),
-                samples: 0,
-            },
+            bake_samples: 0,
             seed,
             bake_s: 0.0,
             splatted: AtomicU64::new(0),
@@ -227,12 +229,7 @@ impl PbgiIntegrator {
                 splatted += 1;
                 scene.touched.insert(global);
                 let to_x = -v / d;
-                let shown = self
-                    .baked
-                    .radiance
-                    .get(global as usize)
-                    .copied()
-                    .unwrap_or_default();
+                let shown = page.baked.get(i as usize).copied().unwrap_or_default();
                 // Seen from behind, a node still hides what lies beyond it.
                 let (front, power) = shown.toward(to_x);
                 let back = shown.toward(-to_x).0;
@@ -373,14 +370,26 @@ impl Surface {
 }
 
 impl Integrator for PbgiIntegrator {
-    fn begin_pass(&mut self, scene: &Scene, first: u32, _count: u32) -> u64 {
+    /// The first pass bakes (or reads `--radiance`) and attaches the light to the pages,
+    /// so time budgets count the bake.
+    fn begin_pass(&mut self, scene: &Scene, first: u32, _count: u32) -> Result<u64> {
         if first > 0 {
-            return 0;
+            return Ok(0);
         }
         let t = Instant::now();
-        self.baked = bake::bake(scene, self.settings.bake_samples, self.seed);
+        let archive = &scene.cache.archive;
+        let file = match &self.settings.radiance {
+            Some(path) => canopy_format::radiance::RadianceFile::open(path, archive)?,
+            None => {
+                let (file, samples) =
+                    bake::bake_scratch(scene, self.settings.bake_samples, self.seed)?;
+                self.bake_samples = samples;
+                file
+            }
+        };
+        scene.cache.attach_radiance(file)?;
         self.bake_s = t.elapsed().as_secs_f64();
-        self.baked.samples
+        Ok(self.bake_samples)
     }
 
     fn sample(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample, c: &mut Counters) -> V {
@@ -392,12 +401,13 @@ impl Integrator for PbgiIntegrator {
     fn passes(&self) -> Vec<String> {
         let s = &self.settings;
         vec![
-            format!(
-                "bake: direct light reflected by {} nodes, {} light samples per triangle ({:.2} s)",
-                self.baked.radiance.len(),
-                s.bake_samples,
-                self.bake_s
-            ),
+            match &s.radiance {
+                Some(path) => format!("bake: read from {} ({:.2} s)", path.display(), self.bake_s),
+                None => format!(
+                    "bake: direct light reflected by every node, {} light samples per triangle ({:.2} s)",
+                    s.bake_samples, self.bake_s
+                ),
+            },
             format!(
                 "pbgi: one indirect bounce from a cut at {} texels' solid angle into a {}² hemicube micro-buffer; near leaves by exact rays",
                 s.angle, s.resolution
@@ -410,15 +420,10 @@ impl Integrator for PbgiIntegrator {
             pbgi_angle: self.settings.angle,
             pbgi_resolution: self.settings.resolution,
             bake_seconds: self.bake_s,
-            bake_samples: self.baked.samples,
-            baked_bytes: self.baked.bytes(),
+            bake_samples: self.bake_samples,
             splatted_nodes: self.splatted.load(Relaxed),
             near_rays: self.near_rays.load(Relaxed),
         })
-    }
-
-    fn state_bytes(&self) -> [u64; 2] {
-        [self.baked.bytes(), 0]
     }
 
     fn seconds(&self) -> Vec<(&'static str, f64)> {

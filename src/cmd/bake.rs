@@ -1,0 +1,53 @@
+use anyhow::Result;
+use canopy::render::bake::{bake, BakeOptions};
+use canopy::units;
+use clap::Args;
+use std::path::PathBuf;
+
+/// Bake the direct light every node reflects into a radiance file for `render --integrator
+/// pbgi --radiance`.
+///
+/// Leaves take light samples (light tree and shadow rays) on each triangle; inner nodes add
+/// their children's projected area and power per cube axis. Pages are baked deepest first
+/// and written as they finish, so memory stays under --mem-budget. The file names the
+/// archive it was baked from and is refused with any other; it appears only once complete.
+#[derive(Args)]
+pub struct BakeArgs {
+    archive: PathBuf,
+    /// Output radiance file (conventionally SCENE.radiance).
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Light samples per triangle.
+    #[arg(long = "bake-samples", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    samples: u32,
+    /// Seed of the light samples.
+    #[arg(long, default_value_t = 0)]
+    seed: u32,
+    /// Memory for decoded pages, e.g. 256MiB (default: unlimited).
+    #[arg(long, value_parser = units::parse_size)]
+    mem_budget: Option<u64>,
+    /// Worker threads (default: all cores).
+    #[arg(long, value_parser = units::parse_threads)]
+    threads: Option<usize>,
+    /// Also print the summary as JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+pub fn run(a: BakeArgs, progress: bool) -> Result<()> {
+    let r = bake(&BakeOptions {
+        archive: a.archive,
+        output: a.output.clone(),
+        samples_per_triangle: a.samples,
+        seed: a.seed,
+        mem_budget: a.mem_budget,
+        threads: a.threads,
+        progress,
+    })?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&r)?);
+    } else {
+        println!("{}: {r}", a.output.display());
+    }
+    Ok(())
+}

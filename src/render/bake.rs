@@ -1,0 +1,108 @@
+//! `canopy bake`: the direct light every node reflects, into a radiance file beside the
+//! archive (`format/FORMAT.md`, "The radiance file") that `render --integrator pbgi
+//! --radiance` pages in with the nodes.
+
+use super::setup::open_scene;
+use super::stats::peak_rss_bytes;
+use crate::camera::Camera;
+use crate::image::{check_writable, same_file};
+use crate::integrator::pbgi::bake::bake_file;
+use anyhow::{bail, Context, Result};
+use canopy_format::radiance::BakedNode;
+use canopy_format::Archive;
+use std::fmt;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+pub struct BakeOptions {
+    pub archive: PathBuf,
+    pub output: PathBuf,
+    pub samples_per_triangle: u32,
+    pub seed: u32,
+    pub mem_budget: Option<u64>,
+    pub threads: Option<usize>,
+    pub progress: bool,
+}
+
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct BakeReport {
+    pub nodes: u64,
+    pub pages: u64,
+    pub triangles: u64,
+    pub light_samples: u64,
+    pub seconds: f64,
+    pub file_bytes: u64,
+    /// Baked records decoded (96 bytes a node), what the render pages in.
+    pub decoded_bytes: u64,
+    pub pages_loaded: u64,
+    pub pages_evicted: u64,
+    pub peak_rss_bytes: u64,
+}
+
+impl fmt::Display for BakeReport {
+    fn fmt(&self, f: &mut fmt::Formatter) -> fmt::Result {
+        write!(
+            f,
+            "{} nodes in {} pages baked ({} triangles, {} light samples) in {:.2} s; {:.1} MiB on disk, {:.1} MiB decoded; {} pages loaded, {} evicted; peak RSS {:.1} MiB",
+            self.nodes,
+            self.pages,
+            self.triangles,
+            self.light_samples,
+            self.seconds,
+            self.file_bytes as f64 / 1048576.0,
+            self.decoded_bytes as f64 / 1048576.0,
+            self.pages_loaded,
+            self.pages_evicted,
+            self.peak_rss_bytes as f64 / 1048576.0
+        )
+    }
+}
+
+pub fn bake(o: &BakeOptions) -> Result<BakeReport> {
+    let t0 = Instant::now();
+    if same_file(&o.output, &o.archive) {
+        bail!(
+            "{}: writing there would overwrite the archive",
+            o.output.display()
+        );
+    }
+    check_writable(&o.output)?;
+    let archive = Arc::new(Archive::open(&o.archive)?);
+    let threads = o.threads.unwrap_or_else(rayon::current_num_threads).max(1);
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .context("starting worker threads")?;
+    // The bake shoots no camera rays; the scene still wants a camera.
+    let camera = Camera::new(&bytemuck::Zeroable::zeroed(), 1, 1);
+    let scene = open_scene(
+        Arc::clone(&archive),
+        camera,
+        o.mem_budget.map(|b| (b, 0)),
+        threads,
+        None,
+    )?;
+    let bar = crate::progress::bar(o.progress, archive.pages.len() as u64, "baking pages");
+    let samples = pool.install(|| {
+        bake_file(&scene, o.samples_per_triangle, o.seed, &o.output, &|n| {
+            bar.inc(n)
+        })
+    })?;
+    bar.finish_and_clear();
+    let file_bytes = std::fs::metadata(&o.output)
+        .with_context(|| format!("{}: cannot read back", o.output.display()))?
+        .len();
+    Ok(BakeReport {
+        nodes: archive.header.nodes,
+        pages: archive.pages.len() as u64,
+        triangles: archive.header.triangles,
+        light_samples: samples,
+        seconds: t0.elapsed().as_secs_f64(),
+        file_bytes,
+        decoded_bytes: archive.header.nodes * std::mem::size_of::<BakedNode>() as u64,
+        pages_loaded: scene.cache.stats().pages_loaded,
+        pages_evicted: scene.cache.stats().pages_evicted,
+        peak_rss_bytes: peak_rss_bytes(),
+    })
+}

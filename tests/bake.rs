@@ -1,0 +1,165 @@
+//! `canopy bake` and the radiance file: the same light as a bake inside the render, under
+//! any memory budget; refused with another archive, truncated or corrupt; bad input gets
+//! a clear error and leaves no file.
+
+mod common;
+use common::*;
+use std::path::{Path, PathBuf};
+
+fn bunny_box(dir: &Path) -> PathBuf {
+    let arc = dir.join("b.canopy");
+    convert(&scene("bunny_box.glb"), &arc, None);
+    arc
+}
+
+fn bake(arc: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
+    let stdout = ok(&[
+        &["--quiet", "bake", s(arc), "-o", s(out), "--json"][..],
+        extra,
+    ]
+    .concat());
+    serde_json::from_str(&stdout).unwrap()
+}
+
+const SMALL: [&str; 6] = ["--width", "24", "--height", "24", "--spp", "2"];
+
+/// A render that reads the bake from a file makes the image a render that bakes for
+/// itself makes (same seed), and a bake under a budget far below the archive's decoded
+/// size writes the same bytes as one without.
+#[test]
+fn a_baked_file_gives_the_in_process_image_and_a_budget_changes_no_byte() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = bunny_box(dir.path());
+    let (free, tight) = (dir.path().join("a.radiance"), dir.path().join("b.radiance"));
+    let r = bake(&arc, &free, &[]);
+    assert!(r["pages"].as_u64().unwrap() > 10 && r["light_samples"].as_u64().unwrap() > 0);
+    let r = bake(&arc, &tight, &["--mem-budget", "4MiB", "--threads", "2"]);
+    assert!(r["pages_evicted"].as_u64().unwrap() > 0, "{r}");
+    assert_eq!(
+        std::fs::read(&free).unwrap(),
+        std::fs::read(&tight).unwrap()
+    );
+
+    let pbgi = [&SMALL[..], &["--integrator", "pbgi"]].concat();
+    let (own, _) = render(&arc, &dir.path().join("own.exr"), &pbgi);
+    let (read, stats) = render(
+        &arc,
+        &dir.path().join("read.exr"),
+        &[&pbgi[..], &["--radiance", s(&free)]].concat(),
+    );
+    assert_eq!(stats["bake_samples"], 0, "the render baked again");
+    assert_eq!(rmse(&own, &read), 0.0);
+    assert_eq!(own.mean(), read.mean());
+}
+
+/// The light rides in the pages: under a budget that evicts, the image is the same.
+#[test]
+fn baked_light_pages_with_the_nodes_under_a_budget() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = bunny_box(dir.path());
+    let rad = dir.path().join("a.radiance");
+    bake(&arc, &rad, &[]);
+    let pbgi = [&SMALL[..], &["--integrator", "pbgi", "--radiance", s(&rad)]].concat();
+    let (free, _) = render(&arc, &dir.path().join("free.exr"), &pbgi);
+    let (tight, stats) = render(
+        &arc,
+        &dir.path().join("tight.exr"),
+        &[&pbgi[..], &["--mem-budget", "3MiB", "--threads", "1"]].concat(),
+    );
+    assert!(stats["pages_evicted"].as_u64().unwrap() > 0, "{stats}");
+    assert_eq!(rmse(&free, &tight), 0.0);
+}
+
+#[test]
+fn a_bake_is_refused_with_another_archive() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = bunny_box(dir.path());
+    let other = dir.path().join("c.canopy");
+    convert(&scene("cbox.glb"), &other, None);
+    let rad = dir.path().join("c.radiance");
+    bake(&other, &rad, &[]);
+    let err = fails(
+        &[
+            &["render", s(&arc), "-o", s(&dir.path().join("x.exr"))][..],
+            &SMALL,
+            &["--integrator", "pbgi", "--radiance", s(&rad)],
+        ]
+        .concat(),
+    );
+    assert!(
+        err.contains("baked for a different archive") && err.contains(s(&rad)),
+        "{err}"
+    );
+}
+
+/// Every truncation and a flipped byte anywhere (header, blocks, block table) is refused
+/// with an error naming the file, when opened or when its page is read.
+#[test]
+fn a_truncated_or_corrupt_bake_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = bunny_box(dir.path());
+    let rad = dir.path().join("a.radiance");
+    bake(&arc, &rad, &[]);
+    let good = std::fs::read(&rad).unwrap();
+    let bad = dir.path().join("bad.radiance");
+    let out = dir.path().join("x.exr");
+    let try_render = |bytes: &[u8], what: &str| {
+        std::fs::write(&bad, bytes).unwrap();
+        let err = fails(
+            &[
+                &["render", s(&arc), "-o", s(&out)][..],
+                &["--width", "8", "--height", "8", "--spp", "1"],
+                &["--integrator", "pbgi", "--radiance", s(&bad)],
+            ]
+            .concat(),
+        );
+        assert!(err.contains(s(&bad)), "{what}: {err}");
+    };
+    let n = good.len();
+    for len in [0, 7, 8, 100, 128, 129, n / 2, n - 32, n - 1] {
+        try_render(&good[..len], &format!("truncated to {len}"));
+    }
+    let mut longer = good.clone();
+    longer.push(0);
+    try_render(&longer, "one byte appended");
+    for at in [0, 9, 20, 60, 127, 128, 200, n / 2, n - 40, n - 1] {
+        let mut b = good.clone();
+        b[at] ^= 0x10;
+        try_render(&b, &format!("byte {at} flipped"));
+    }
+    assert!(!out.exists());
+}
+
+#[test]
+fn bake_refuses_bad_input_and_leaves_no_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("o.radiance");
+    let missing = dir.path().join("missing.canopy");
+    let err = fails(&["bake", s(&missing), "-o", s(&out)]);
+    assert!(err.contains(s(&missing)), "{err}");
+    let junk = dir.path().join("junk.canopy");
+    std::fs::write(&junk, vec![7u8; 4096]).unwrap();
+    let err = fails(&["bake", s(&junk), "-o", s(&out)]);
+    assert!(err.contains("not a Canopy archive"), "{err}");
+    let arc = bunny_box(dir.path());
+    let mut bytes = std::fs::read(&arc).unwrap();
+    bytes.truncate(bytes.len() / 2);
+    let half = dir.path().join("half.canopy");
+    std::fs::write(&half, &bytes).unwrap();
+    let err = fails(&["bake", s(&half), "-o", s(&out)]);
+    assert!(err.contains(s(&half)), "{err}");
+    assert!(!out.exists());
+    let err = fails(&["bake", s(&arc), "-o", s(&arc)]);
+    assert!(err.contains("overwrite the archive"), "{err}");
+    let nowhere = dir.path().join("no/such/dir/o.radiance");
+    fails(&["bake", s(&arc), "-o", s(&nowhere)]);
+    assert!(!nowhere.exists());
+    let err = fails(&["bake", s(&arc), "-o", s(&out), "--mem-budget", "1KiB"]);
+    assert!(err.contains("--mem-budget"), "{err}");
+    assert!(!out.exists());
+    assert_eq!(
+        std::fs::read_dir(dir.path()).unwrap().count(),
+        3,
+        "a temporary was left behind"
+    );
+}
