@@ -109,3 +109,44 @@ fn a_very_bright_small_lamp_gives_no_bad_pixel() {
         stats["near_rays"].as_u64().unwrap() > 0 && stats["splatted_nodes"].as_u64().unwrap() > 0
     );
 }
+
+/// FPBGI: a cluster of one receiver walks exactly PBGI's cut, so the image is identical;
+/// real clusters share far splats (fewer splats in all) and stay close to PBGI.
+#[test]
+fn receiver_clusters_of_one_equal_pbgi_and_larger_ones_share_far_splats() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("b.canopy");
+    convert(&scene("bunny_box.glb"), &arc, None);
+    let base = [
+        "--integrator",
+        "pbgi",
+        "--width",
+        "48",
+        "--height",
+        "48",
+        "--spp",
+        "2",
+    ];
+    let render_with = |name: &str, extra: &[&str]| {
+        render(&arc, &dir.path().join(name), &[&base[..], extra].concat())
+    };
+    let (pbgi, plain) = render_with("p.exr", &[]);
+    let (one, _) = render_with("one.exr", &["--receiver-clusters", "100000"]);
+    assert_eq!(rmse(&pbgi, &one), 0.0);
+    let (shared, stats) = render_with(
+        "shared.exr",
+        &["--receiver-clusters", "8", "--cluster-far", "1"],
+    );
+    assert!(stats["clustered_receivers"].as_u64().unwrap() > 1000);
+    assert!(
+        stats["splatted_nodes"].as_u64().unwrap() < plain["splatted_nodes"].as_u64().unwrap() / 2,
+        "{} vs {}",
+        stats["splatted_nodes"],
+        plain["splatted_nodes"]
+    );
+    let e = rmse(&shared, &pbgi);
+    assert!(
+        e > 0.0 && e < 0.02 * pbgi.mean()[1],
+        "rmse {e} against PBGI"
+    );
+}

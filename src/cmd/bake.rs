@@ -34,6 +34,12 @@ pub struct BakeArgs {
     json: bool,
 }
 
+impl BakeArgs {
+    pub fn mem_budget(&self) -> Option<u64> {
+        self.mem_budget
+    }
+}
+
 pub fn run(a: BakeArgs, progress: bool) -> Result<()> {
     let r = bake(&BakeOptions {
         archive: a.archive,

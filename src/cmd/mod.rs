@@ -139,6 +139,16 @@ pub fn run() -> Result<()> {
     let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
     let show = canopy::progress::wanted(cli.quiet);
     let (name, sub) = matches.subcommand().expect("a subcommand is required");
+    let budget = match &cli.cmd {
+        Cmd::Render(a) => a.settings.mem_budget,
+        Cmd::Npp(a) => a.settings.mem_budget,
+        Cmd::Eval(a) => a.settings.mem_budget,
+        Cmd::Bake(a) => a.mem_budget(),
+        Cmd::Convert(_) | Cmd::Compare(_) | Cmd::Inspect(_) => None,
+    };
+    if budget.is_some() {
+        canopy::paging::one_arena();
+    }
     match cli.cmd {
         Cmd::Convert(a) => convert::run(a, show),
         Cmd::Bake(a) => bake::run(a, show),

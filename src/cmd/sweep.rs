@@ -48,7 +48,7 @@ pub struct EvalArgs {
     #[arg(short, long, default_value = "eval")]
     output: PathBuf,
     #[command(flatten)]
-    settings: RenderSettings,
+    pub settings: RenderSettings,
 }
 
 /// Renders of `archive` written under `dir`.

@@ -120,6 +120,17 @@ pub trait Integrator: Send + Sync {
     }
     /// Radiance of one pixel sample.
     fn sample(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample, c: &mut Counters) -> V;
+    /// Radiance of one sample in each pixel of a tile, in order (FPBGI shares work
+    /// between them).
+    fn sample_tile(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        pxs: &[PixelSample],
+        c: &mut Counters,
+    ) -> Vec<V> {
+        pxs.iter().map(|px| self.sample(scene, tr, px, c)).collect()
+    }
     /// After a pass, `done` samples per pixel in all.
     fn end_pass(&mut self, _scene: &Scene, _done: u32) {}
     /// What ran and why, for the stats' `passes`.

@@ -246,6 +246,18 @@ pub struct PageCache {
     sidecar_gen: AtomicU64,
 }
 
+/// glibc gives each thread its own heap arena, and a page freed in one arena is not reused
+/// by another thread's loads: under a budget with constant eviction, peak RSS was 6–16%
+/// past the budget (b20, PBGI, 2 threads) and 6% under it with one arena. Takes effect only
+/// before any thread but main has allocated, so `main` calls it first when a budget is set.
+pub fn one_arena() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only sets an allocator tunable.
+    unsafe {
+        libc::mallopt(libc::M_ARENA_MAX, 1);
+    }
+}
+
 /// Decoded size of a page without decoding it (from its page-table counts).
 pub fn decoded_size(archive: &Archive, id: u32) -> u64 {
     let e = &archive.pages[id as usize];

@@ -198,28 +198,35 @@ fn render_tile(
     let mut c = Counters::default();
     let mut tr = Tracer::new(&scene.cache);
     let cam = &scene.camera;
-    let mut out = Vec::with_capacity(((t[1] - t[0]) * (t[3] - t[2])) as usize);
-    for (y, x) in (t[2]..t[3]).flat_map(|y| (t[0]..t[1]).map(move |x| (y, x))) {
-        let mut sum: Sums = [0.0; 4];
-        for index in first..first + count {
+    let pixels: Vec<(u32, u32)> = (t[2]..t[3])
+        .flat_map(|y| (t[0]..t[1]).map(move |x| (y, x)))
+        .collect();
+    let mut out: Vec<Sums> = vec![[0.0; 4]; pixels.len()];
+    let mut batch = Vec::with_capacity(pixels.len());
+    for index in first..first + count {
+        batch.clear();
+        batch.extend(pixels.iter().map(|&(y, x)| {
             let sampler = PixelSampler::new(seed, y * cam.width + x, index);
             let [jx, jy, ..] = sampler.get4(0);
-            let px = PixelSample {
+            PixelSample {
                 x,
                 y,
                 at: film.index(x, y),
                 index,
                 ray: cam.ray(x as f32 + jx, y as f32 + jy),
                 sampler,
-            };
-            let l = integ.sample(scene, &mut tr, &px, &mut c);
+            }
+        }));
+        for (sum, l) in out
+            .iter_mut()
+            .zip(integ.sample_tile(scene, &mut tr, &batch, &mut c))
+        {
             let l = [l.x as f64, l.y as f64, l.z as f64];
             for k in 0..3 {
                 sum[k] += l[k];
             }
             sum[3] += film::luminance(l).powi(2);
         }
-        out.push(sum);
     }
     tally.rays.fetch_add(tr.rays, Relaxed);
     tally.paths.fetch_add(c.paths, Relaxed);

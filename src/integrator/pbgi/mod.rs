@@ -22,11 +22,12 @@
 //! sampled (its delta part is lost).
 
 pub mod bake;
+pub mod cluster;
 pub mod microbuffer;
 
 use super::{bsdf_term, sample_light, Counters, Integrator, PixelSample, Receiver, Scene, Stats};
 use crate::material::{Bsdf, Frame};
-use crate::paging::NodeRef;
+use crate::paging::{NodeRef, Page, TNode};
 use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer};
 use crate::wavelet::cube;
 use anyhow::Result;
@@ -61,6 +62,17 @@ pub struct PbgiSettings {
     /// Light samples per triangle in the bake.
     #[arg(long = "bake-samples", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=65536))]
     pub bake_samples: u32,
+    /// FPBGI (003 ch. 3): receivers of each 16×16 tile grouped into at most this many
+    /// clusters (k-means on position and normal), each sharing one cut and its far splats;
+    /// 0 gathers every receiver alone (plain PBGI). The thesis's 100 per 32×32 tile is 25
+    /// here.
+    #[arg(long = "receiver-clusters", default_value_t = 0)]
+    pub clusters: usize,
+    /// FPBGI's near/far test: a node is far for a whole cluster when the cluster's radius
+    /// is at most this fraction of the distance to the node (r/d ≤ ε; the thesis prints
+    /// the inverse, NOTES-002-003 B.2). Smaller shares less and errs less.
+    #[arg(long = "cluster-far", default_value_t = 0.01, requires = "clusters", value_parser = crate::units::parse_non_negative)]
+    pub far: f32,
     /// Baked light from `canopy bake` (default: bake before the first pass, counted in the
     /// render time, into an unnamed scratch file).
     #[arg(long, value_name = "FILE", conflicts_with = "bake_samples")]
@@ -91,6 +103,8 @@ pub struct PbgiStats {
     /// Nodes splatted whole, and texels resolved by exact rays, over the render.
     pub splatted_nodes: u64,
     pub near_rays: u64,
+    pub receiver_clusters: usize,
+    pub clustered_receivers: u64,
 }
 
 pub struct PbgiIntegrator {
@@ -102,6 +116,8 @@ pub struct PbgiIntegrator {
     bake_s: f64,
     splatted: AtomicU64,
     near_rays: AtomicU64,
+    /// Receivers gathered through a cluster's field.
+    clusters: AtomicU64,
 }
 
 /// Per-thread scratch reused across receivers.
@@ -126,11 +142,14 @@ impl PbgiIntegrator {
             bake_s: 0.0,
             splatted: AtomicU64::new(0),
             near_rays: AtomicU64::new(0),
+            clusters: AtomicU64::new(0),
         }
     }
 
-    /// Radiance along the camera ray.
-    fn radiance(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample) -> V {
+    /// Radiance along the camera ray up to the receiver x, the first non-specular hit:
+    /// emission seen and direct light; and x with the path weight to it, when one bounce
+    /// of indirect light is still to be gathered there.
+    fn first_hit(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample) -> (V, Option<Pending>) {
         let (mut ray, mut beta, mut l) = (px.ray, V::ONE, V::ZERO);
         for depth in 0..SMOOTH_DEPTH {
             let Some(hit) = tr.closest_hit(&ray) else {
@@ -160,22 +179,45 @@ impl PbgiIntegrator {
                 continue;
             }
             l += beta * s.direct(scene, tr, [u_pick, ul0, ul1]);
-            if !scene.last_segment(depth + 1) {
-                let key = ((px.at as u64) << 20 ^ px.index as u64) ^ (self.seed as u64) << 52;
-                l += beta * self.gather(scene, tr, &s, key);
+            if scene.last_segment(depth + 1) {
+                break;
             }
-            break;
+            let key = ((px.at as u64) << 20 ^ px.index as u64) ^ (self.seed as u64) << 52;
+            return (l, Some(Pending { s, beta, key }));
         }
-        l
+        (l, None)
     }
 
     /// One bounce of indirect light at `s` from the cut, the near rays and the micro-buffer.
-    fn gather(&self, scene: &Scene, tr: &mut Tracer, s: &Surface, key: u64) -> V {
+    /// With a cluster's `field`, its far splats are taken as they are and the cut starts
+    /// from its near nodes instead of the root.
+    fn gather(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        s: &Surface,
+        key: u64,
+        field: Option<&Field>,
+    ) -> V {
         SCRATCH.with_borrow_mut(|sc| {
             let texels = &self.texels;
             sc.mb.clear();
             sc.near.clear();
             sc.near.resize(texels.dir.len(), false);
+            sc.stack.clear();
+            match field {
+                Some(f) => {
+                    for far in &f.far {
+                        self.splat(s, far, &mut sc.mb);
+                    }
+                    sc.stack.extend_from_slice(&f.near);
+                }
+                None => {
+                    let root = tr.page_handle(scene.cache.root_page());
+                    sc.stack
+                        .extend((0..root.roots.min(root.bvh.len() as u32)).map(|r| (root.id, r)));
+                }
+            }
             self.cut(scene, tr, s, sc);
             let mut rng = Hash::new(key);
             let mut rays = 0;
@@ -194,15 +236,13 @@ impl PbgiIntegrator {
         })
     }
 
-    /// Walks the hierarchy from the root: far nodes are splatted, near leaves mark the
-    /// texels their bounding sphere may cover.
+    /// Walks the hierarchy from the nodes on `sc.stack`: far nodes are splatted, near
+    /// leaves mark the texels their bounding sphere may cover.
     fn cut(&self, scene: &Scene, tr: &mut Tracer, s: &Surface, sc: &mut Scratch) {
-        let texels = &self.texels;
-        let omega_max = self.settings.angle * texels.min_solid_angle;
-        let mut page = tr.page_handle(scene.cache.root_page());
-        sc.stack.clear();
-        sc.stack
-            .extend((0..page.roots.min(page.bvh.len() as u32)).map(|r| (page.id, r)));
+        let Some(&(first, _)) = sc.stack.last() else {
+            return;
+        };
+        let mut page = tr.page_handle(first);
         let mut splatted = 0;
         while let Some((pid, i)) = sc.stack.pop() {
             if page.id != pid {
@@ -211,42 +251,142 @@ impl PbgiIntegrator {
             let Some(node) = page.bvh.get(i as usize) else {
                 continue;
             };
-            let (lo, hi) = (V::from(node.lo), V::from(node.hi));
-            let (c, r) = ((lo + hi) * 0.5, (hi - lo).length() * 0.5);
+            let (c, r) = node_sphere(node);
             let v = c - s.p;
-            let d = v.length();
             if v.dot(s.n) < -r {
                 continue;
             }
-            let global = page.first_node + i as u64;
-            // A leaf within one texel is splatted even when the cut asks for more.
-            let limit = if matches!(node.link(), NodeRef::Leaf { .. }) {
-                omega_max.max(texels.min_solid_angle)
-            } else {
-                omega_max
-            };
-            if d > NEAR * r && PI * r * r <= limit * d * d {
+            if let Some(far) = self.far(&page, i, c, r, s.p) {
                 splatted += 1;
-                scene.touched.insert(global);
-                let to_x = -v / d;
-                let shown = page.baked.get(i as usize).copied().unwrap_or_default();
-                // Seen from behind, a node still hides what lies beyond it.
-                let (front, power) = shown.toward(to_x);
-                let back = shown.toward(-to_x).0;
-                let area = front.max(back);
-                let sends = if area > 0.0 { power / area } else { V::ZERO };
-                let dir = Vec3::from(s.frame.to_local(v / d));
-                sc.mb
-                    .splat(texels, dir, d, area / (d * d), global, Vec3::from(sends));
+                scene.touched.insert(far.id);
+                self.splat(s, &far, &mut sc.mb);
                 continue;
             }
             match node.link() {
-                NodeRef::Leaf { .. } => self.mark_near(s, v, d, r, &mut sc.near),
+                NodeRef::Leaf { .. } => self.mark_near(s, v, v.length(), r, &mut sc.near),
                 NodeRef::Inner(l, rr) => sc.stack.extend([(pid, l), (pid, rr)]),
                 NodeRef::ChildPage(cp) => sc.stack.extend([(cp, 0), (cp, 1)]),
             }
         }
         self.splatted.fetch_add(splatted, Relaxed);
+    }
+
+    /// Node i of `page` (bounding sphere c, r) as one splat seen from p, when its sphere
+    /// subtends at most `--pbgi-angle` smallest texels and p lies outside NEAR radii.
+    fn far(&self, page: &Page, i: u32, c: V, r: f32, p: V) -> Option<Far> {
+        let texels = &self.texels;
+        let omega_max = self.settings.angle * texels.min_solid_angle;
+        let node = page.bvh.get(i as usize)?;
+        // A leaf within one texel is splatted even when the cut asks for more.
+        let limit = if matches!(node.link(), NodeRef::Leaf { .. }) {
+            omega_max.max(texels.min_solid_angle)
+        } else {
+            omega_max
+        };
+        let v = c - p;
+        let d = v.length();
+        if !(d > NEAR * r && PI * r * r <= limit * d * d) {
+            return None;
+        }
+        let shown = page.baked.get(i as usize).copied().unwrap_or_default();
+        // Seen from behind, a node still hides what lies beyond it.
+        let (front, power) = shown.toward(-v / d);
+        let back = shown.toward(v / d).0;
+        let area = front.max(back);
+        let sends = if area > 0.0 { power / area } else { V::ZERO };
+        Some(Far {
+            w: v / d,
+            d,
+            omega: area / (d * d),
+            id: page.first_node + i as u64,
+            sends: Vec3::from(sends),
+        })
+    }
+
+    fn splat(&self, s: &Surface, f: &Far, mb: &mut MicroBuffer) {
+        let dir = Vec3::from(s.frame.to_local(f.w));
+        mb.splat(&self.texels, dir, f.d, f.omega, f.id, f.sends);
+    }
+
+    /// A cluster's shared part of the cut (003 §3), walked for its active receiver x_C:
+    /// a node is far for the whole cluster when its radius R ≤ ε·d (d from x_C to the
+    /// node's centre: sharing the splat errs by about R/d in direction); far nodes are
+    /// splatted from x_C when small enough, else visited further; near nodes are left for
+    /// each receiver to refine.
+    /// A node is dropped only when it lies below every member's tangent plane, so a
+    /// cluster of one makes exactly PBGI's cut.
+    fn field(&self, scene: &Scene, tr: &mut Tracer, members: &[&Surface], xc: &Surface) -> Field {
+        let radius = members
+            .iter()
+            .map(|m| (m.p - xc.p).length())
+            .fold(0.0, f32::max);
+        let mut field = Field::default();
+        let mut stack: Vec<(u32, u32)> = Vec::new();
+        let mut page = tr.page_handle(scene.cache.root_page());
+        stack.extend((0..page.roots.min(page.bvh.len() as u32)).map(|r| (page.id, r)));
+        while let Some((pid, i)) = stack.pop() {
+            if page.id != pid {
+                page = tr.page_handle(pid);
+            }
+            let Some(node) = page.bvh.get(i as usize) else {
+                continue;
+            };
+            let (c, r) = node_sphere(node);
+            if members.iter().all(|m| (c - m.p).dot(m.n) < -r) {
+                continue;
+            }
+            if radius > self.settings.far * (c - xc.p).length() {
+                field.near.push((pid, i));
+                continue;
+            }
+            if let Some(far) = self.far(&page, i, c, r, xc.p) {
+                scene.touched.insert(far.id);
+                field.far.push(far);
+                continue;
+            }
+            match node.link() {
+                NodeRef::Leaf { .. } => field.near.push((pid, i)),
+                NodeRef::Inner(l, rr) => stack.extend([(pid, l), (pid, rr)]),
+                NodeRef::ChildPage(cp) => stack.extend([(cp, 0), (cp, 1)]),
+            }
+        }
+        self.splatted.fetch_add(field.far.len() as u64, Relaxed);
+        field
+    }
+
+    /// FPBGI over one batch: receivers clustered, one field per cluster, each receiver's
+    /// gather starting from its cluster's field.
+    fn sample_clustered(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        pxs: &[PixelSample],
+        c: &mut Counters,
+    ) -> Vec<V> {
+        let firsts: Vec<(V, Option<Pending>)> =
+            pxs.iter().map(|px| self.first_hit(scene, tr, px)).collect();
+        let at: Vec<usize> = (0..firsts.len())
+            .filter(|&i| firsts[i].1.is_some())
+            .collect();
+        let pending: Vec<&Pending> = at.iter().filter_map(|&i| firsts[i].1.as_ref()).collect();
+        let p: Vec<V> = pending.iter().map(|q| q.s.p).collect();
+        let n: Vec<V> = pending.iter().map(|q| q.s.n).collect();
+        let mut out: Vec<V> = firsts.iter().map(|f| f.0).collect();
+        for cl in cluster::kmeans(&p, &n, self.settings.clusters) {
+            let members: Vec<&Surface> = cl.members.iter().map(|&m| &pending[m].s).collect();
+            let field = self.field(scene, tr, &members, &pending[cl.active].s);
+            for &m in &cl.members {
+                let q = pending[m];
+                out[at[m]] += q.beta * self.gather(scene, tr, &q.s, q.key, Some(&field));
+            }
+        }
+        self.clusters.fetch_add(p.len() as u64, Relaxed);
+        out.into_iter()
+            .map(|l| {
+                c.paths += 1;
+                c.finite(l)
+            })
+            .collect()
     }
 
     /// Texels whose directions may meet a sphere of radius r at offset v (length d).
@@ -311,6 +451,39 @@ impl PbgiIntegrator {
             Vec3::from(sends),
         );
     }
+}
+
+/// The bounding sphere of a node's decoded box.
+fn node_sphere(node: &TNode) -> (V, f32) {
+    let (lo, hi) = (V::from(node.lo), V::from(node.hi));
+    ((lo + hi) * 0.5, (hi - lo).length() * 0.5)
+}
+
+/// A receiver whose indirect bounce is still to be gathered.
+struct Pending {
+    s: Surface,
+    /// Path weight from the camera to x.
+    beta: V,
+    /// Seed of its exact rays.
+    key: u64,
+}
+
+/// A node splatted whole, as seen from the point its cut was walked for.
+#[derive(Clone, Copy, Debug)]
+struct Far {
+    /// Unit world direction to the node's centre, and the distance.
+    w: V,
+    d: f32,
+    omega: f32,
+    id: u64,
+    sends: Vec3,
+}
+
+/// What a cluster's receivers share: far splats and the near nodes to refine.
+#[derive(Default)]
+struct Field {
+    far: Vec<Far>,
+    near: Vec<(u32, u32)>,
 }
 
 /// A hit prepared for shading.
@@ -393,9 +566,25 @@ impl Integrator for PbgiIntegrator {
     }
 
     fn sample(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample, c: &mut Counters) -> V {
-        let l = self.radiance(scene, tr, px);
+        let (mut l, pending) = self.first_hit(scene, tr, px);
+        if let Some(q) = pending {
+            l += q.beta * self.gather(scene, tr, &q.s, q.key, None);
+        }
         c.paths += 1;
         c.finite(l)
+    }
+
+    fn sample_tile(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        pxs: &[PixelSample],
+        c: &mut Counters,
+    ) -> Vec<V> {
+        if self.settings.clusters == 0 {
+            return pxs.iter().map(|px| self.sample(scene, tr, px, c)).collect();
+        }
+        self.sample_clustered(scene, tr, pxs, c)
     }
 
     fn passes(&self) -> Vec<String> {
@@ -423,6 +612,8 @@ impl Integrator for PbgiIntegrator {
             bake_samples: self.bake_samples,
             splatted_nodes: self.splatted.load(Relaxed),
             near_rays: self.near_rays.load(Relaxed),
+            receiver_clusters: self.settings.clusters,
+            clustered_receivers: self.clusters.load(Relaxed),
         })
     }
 
