@@ -7,6 +7,7 @@
 use crate::atomic::{io, AtomicFile};
 use crate::error::{FormatError, Result};
 use crate::reader::Archive;
+use crate::records::PageEntry;
 use bytemuck::{Pod, Zeroable};
 use std::fs::File;
 use std::path::{Path, PathBuf};
@@ -26,6 +27,41 @@ pub struct BakedNode {
 
 const _: () = assert!(std::mem::size_of::<BakedNode>() == 96);
 
+/// Deepest subdivision of a triangle into patches (4^6 = 4096 at the finest level).
+pub const MAX_PATCH_DEPTH: u32 = 6;
+
+/// Values in a pyramid of depth k: levels 0..=k, 4^j at level j (level 0: the triangle).
+pub fn pyramid_len(k: u32) -> u32 {
+    ((1u32 << (2 * k + 2)) - 1) / 3
+}
+
+/// One page's baked light.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct BakedBlock {
+    /// Per node, in page order.
+    pub nodes: Vec<BakedNode>,
+    /// Per triangle of the page: its subdivision depth k (0..=`MAX_PATCH_DEPTH`) in the
+    /// top 4 bits and the offset of its pyramid in `patches` in the low 28.
+    pub patch_of: Vec<u32>,
+    /// Reflected radiance (RGB) per patch: each triangle's levels 0..=k in order, level j
+    /// holding its 4^j midpoint-split patches by index (children of patch i are
+    /// 4i..4i+3 of the next level).
+    pub patches: Vec<[f32; 3]>,
+}
+
+impl BakedBlock {
+    /// Depth and pyramid offset of triangle `t`'s patches.
+    pub fn patches_of(&self, t: usize) -> Option<(u32, usize)> {
+        self.patch_of
+            .get(t)
+            .map(|&v| (v >> 28, (v & 0x0FFF_FFFF) as usize))
+    }
+
+    pub fn bytes(&self) -> u64 {
+        (self.nodes.len() * 96 + self.patch_of.len() * 4 + self.patches.len() * 12) as u64
+    }
+}
+
 /// The 128-byte header at offset 0.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
@@ -43,7 +79,7 @@ pub struct RadianceHeader {
     pub bounces: u32,
     pub samples_per_triangle: u32,
     pub seed: u32,
-    pub flags: u32,
+    pub patch_size: f32,
     pub file_len: u64,
     pub blocks_offset: u64,
     /// xxh3-64 of the block table.
@@ -67,7 +103,7 @@ pub struct BlockEntry {
     /// xxh3-64 of the compressed bytes.
     pub checksum: u64,
     pub node_count: u32,
-    pub reserved: u32,
+    pub patch_count: u32,
 }
 
 const _: () = assert!(std::mem::size_of::<BlockEntry>() == 32);
@@ -78,6 +114,8 @@ pub struct BakeInfo {
     pub bounces: u32,
     pub samples_per_triangle: u32,
     pub seed: u32,
+    /// Finest patch side as a fraction of the scene's diagonal.
+    pub patch_size: f32,
 }
 
 /// Writes a radiance file block by block, in any page order; like the archive writer it
@@ -87,6 +125,7 @@ pub struct RadianceWriter {
     path: PathBuf,
     header: RadianceHeader,
     blocks: Vec<BlockEntry>,
+    tri_counts: Vec<u32>,
     written: Vec<bool>,
 }
 
@@ -121,7 +160,7 @@ impl RadianceWriter {
             bounces: info.bounces,
             samples_per_triangle: info.samples_per_triangle,
             seed: info.seed,
-            flags: 0,
+            patch_size: info.patch_size,
             file_len: 0,
             blocks_offset: 0,
             blocks_checksum: 0,
@@ -142,6 +181,7 @@ impl RadianceWriter {
             path: path.to_path_buf(),
             header,
             blocks,
+            tri_counts: archive.pages.iter().map(|p| p.tri_count).collect(),
             written: vec![false; archive.pages.len()],
         })
     }
@@ -153,27 +193,34 @@ impl RadianceWriter {
         }
     }
 
-    /// Appends page `page`'s nodes (one record per node, in page order).
-    pub fn push(&mut self, page: u32, nodes: &[BakedNode]) -> Result<()> {
+    /// Appends page `page`'s block.
+    pub fn push(&mut self, page: u32, block: &BakedBlock) -> Result<()> {
         let i = page as usize;
-        match self.blocks.get(i) {
-            Some(b) if b.node_count as usize == nodes.len() && !self.written[i] => {}
+        match (self.blocks.get(i), self.tri_counts.get(i)) {
+            (Some(b), Some(&t))
+                if b.node_count as usize == block.nodes.len()
+                    && t as usize == block.patch_of.len()
+                    && !self.written[i] => {}
             _ => {
                 return Err(self.misuse(format!(
-                "block for page {page} ({} nodes) does not fit the archive or was written twice",
-                nodes.len()
-            )))
+                    "block for page {page} ({} nodes, {} triangles) does not fit the archive or was written twice",
+                    block.nodes.len(),
+                    block.patch_of.len()
+                )))
             }
         }
-        let raw: &[u8] = bytemuck::cast_slice(nodes);
-        let packed = zstd::bulk::compress(raw, 3).map_err(io(&self.path))?;
+        let mut raw = Vec::with_capacity(block.bytes() as usize);
+        raw.extend_from_slice(bytemuck::cast_slice(&block.nodes));
+        raw.extend_from_slice(bytemuck::cast_slice(&block.patch_of));
+        raw.extend_from_slice(bytemuck::cast_slice(&block.patches));
+        let packed = zstd::bulk::compress(&raw, 3).map_err(io(&self.path))?;
         self.blocks[i] = BlockEntry {
             offset: self.out.len(),
             compressed_len: packed.len() as u32,
             raw_len: raw.len() as u32,
             checksum: xxhash_rust::xxh3::xxh3_64(&packed),
-            node_count: nodes.len() as u32,
-            reserved: 0,
+            node_count: block.nodes.len() as u32,
+            patch_count: block.patches.len() as u32,
         };
         self.written[i] = true;
         self.out.write_all(&packed)
@@ -202,6 +249,7 @@ pub struct RadianceFile {
     file: File,
     pub header: RadianceHeader,
     pub blocks: Vec<BlockEntry>,
+    tri_counts: Vec<u32>,
 }
 
 impl RadianceFile {
@@ -280,8 +328,7 @@ impl RadianceFile {
         let blocks = read_blocks(&file, &h).map_err(bad)?;
         let mut packed = Vec::new();
         for (i, (b, p)) in blocks.iter().zip(&archive.pages).enumerate() {
-            check_block(b, h.blocks_offset, p.node_count)
-                .map_err(|what| bad(format!("block {i}: {what}")))?;
+            check_block(b, h.blocks_offset, p).map_err(|what| bad(format!("block {i}: {what}")))?;
             packed.resize(b.compressed_len as usize, 0);
             if read_at(&file, &mut packed, b.offset, len) < packed.len()
                 || xxhash_rust::xxh3::xxh3_64(&packed) != b.checksum
@@ -294,6 +341,7 @@ impl RadianceFile {
             file,
             header: h,
             blocks,
+            tri_counts: archive.pages.iter().map(|p| p.tri_count).collect(),
         })
     }
 
@@ -301,16 +349,20 @@ impl RadianceFile {
         &self.path
     }
 
-    /// Page `page`'s records: checksum, exact decompressed size, finite non-negative values.
-    pub fn read_block(&self, page: u32) -> Result<Vec<BakedNode>> {
+    /// Page `page`'s block: checksum, exact decompressed size, finite non-negative values,
+    /// patch pyramids inside the patch list.
+    pub fn read_block(&self, page: u32) -> Result<BakedBlock> {
         let bad = |what: String| FormatError::BadRadiance {
             path: self.path.clone(),
             what: format!("block {page}: {what}"),
         };
-        let b = self
-            .blocks
-            .get(page as usize)
-            .ok_or_else(|| bad("no such page".into()))?;
+        let (b, tris) = match (
+            self.blocks.get(page as usize),
+            self.tri_counts.get(page as usize),
+        ) {
+            (Some(b), Some(&t)) => (b, t as usize),
+            _ => return Err(bad("no such page".into())),
+        };
         let mut packed = vec![0u8; b.compressed_len as usize];
         if read_at(&self.file, &mut packed, b.offset, self.header.file_len) < packed.len() {
             return Err(bad("the file is shorter than its table says".into()));
@@ -318,9 +370,8 @@ impl RadianceFile {
         if xxhash_rust::xxh3::xxh3_64(&packed) != b.checksum {
             return Err(bad("checksum mismatch".into()));
         }
-        let mut nodes = vec![BakedNode::default(); b.node_count as usize];
-        let raw: &mut [u8] = bytemuck::cast_slice_mut(&mut nodes);
-        match zstd::bulk::decompress_to_buffer(&packed, raw) {
+        let mut raw = vec![0u8; b.raw_len as usize];
+        match zstd::bulk::decompress_to_buffer(&packed, &mut raw) {
             Ok(n) if n == raw.len() => {}
             Ok(n) => {
                 return Err(bad(format!(
@@ -330,14 +381,40 @@ impl RadianceFile {
             }
             Err(e) => return Err(bad(format!("does not decompress: {e}"))),
         }
-        for (k, n) in nodes.iter().enumerate() {
-            let ok = |v: f32| v.is_finite() && v >= 0.0;
-            if !n.area.iter().copied().all(ok) || !n.power.iter().flatten().copied().all(ok) {
-                return Err(bad(format!("node {k}: a negative or non-finite value")));
+        let (nodes, rest) = raw.split_at(b.node_count as usize * 96);
+        let (patch_of, patches) = rest.split_at(tris * 4);
+        let block = BakedBlock {
+            nodes: bytemuck::pod_collect_to_vec(nodes),
+            patch_of: bytemuck::pod_collect_to_vec(patch_of),
+            patches: bytemuck::pod_collect_to_vec(patches),
+        };
+        check_values(&block).map_err(bad)?;
+        Ok(block)
+    }
+}
+
+/// Every value finite and ≥ 0; every pyramid of a known depth and inside the patch list.
+fn check_values(b: &BakedBlock) -> std::result::Result<(), String> {
+    let ok = |v: &f32| v.is_finite() && *v >= 0.0;
+    for (k, n) in b.nodes.iter().enumerate() {
+        if !n.area.iter().all(ok) || !n.power.iter().flatten().all(ok) {
+            return Err(format!("node {k}: a negative or non-finite value"));
+        }
+    }
+    if let Some(k) = b.patches.iter().position(|p| !p.iter().all(ok)) {
+        return Err(format!("patch {k}: a negative or non-finite value"));
+    }
+    for t in 0..b.patch_of.len() {
+        if let Some((k, off)) = b.patches_of(t) {
+            if k > MAX_PATCH_DEPTH || off + pyramid_len(k) as usize > b.patches.len() {
+                return Err(format!(
+                    "triangle {t}: patches of depth {k} at {off} outside the {} stored",
+                    b.patches.len()
+                ));
             }
         }
-        Ok(nodes)
     }
+    Ok(())
 }
 
 /// Reads up to `buf.len()` bytes at `offset` of a file `len` long; returns how many.
@@ -358,8 +435,11 @@ fn check_header(h: &RadianceHeader) -> std::result::Result<(), String> {
     if h.record_size as usize != std::mem::size_of::<BakedNode>() {
         return Err(format!("record size {}, not 96", h.record_size));
     }
-    if h.flags != 0 || h.coef_bytes != 0 || h.reserved != [0; 24] {
-        return Err("flags, coefficient bytes or reserved bytes set (version 1.0 has none)".into());
+    if !(h.patch_size.is_finite() && h.patch_size > 0.0) {
+        return Err(format!("patch size {}", h.patch_size));
+    }
+    if h.coef_bytes != 0 || h.reserved != [0; 24] {
+        return Err("coefficient bytes or reserved bytes set (version 1.0 has none)".into());
     }
     if h.blocks_offset < 128 || h.blocks_offset.checked_add(table) != Some(h.file_len) {
         return Err(format!(
@@ -382,17 +462,22 @@ fn read_blocks(file: &File, h: &RadianceHeader) -> std::result::Result<Vec<Block
     Ok(blocks)
 }
 
-fn check_block(b: &BlockEntry, end: u64, nodes: u32) -> std::result::Result<(), String> {
+fn check_block(b: &BlockEntry, end: u64, page: &PageEntry) -> std::result::Result<(), String> {
+    let nodes = page.node_count;
     if b.node_count != nodes {
         return Err(format!(
             "{} nodes, the archive's page has {nodes}",
             b.node_count
         ));
     }
-    if b.raw_len as u64 != nodes as u64 * std::mem::size_of::<BakedNode>() as u64 {
-        return Err(format!("raw length {} for {nodes} nodes", b.raw_len));
+    let raw = nodes as u64 * 96 + page.tri_count as u64 * 4 + b.patch_count as u64 * 12;
+    if b.raw_len as u64 != raw {
+        return Err(format!(
+            "raw length {} for {nodes} nodes, {} triangles and {} patches",
+            b.raw_len, page.tri_count, b.patch_count
+        ));
     }
-    if b.offset < 128 || b.offset + b.compressed_len as u64 > end || b.reserved != 0 {
+    if b.offset < 128 || b.offset + b.compressed_len as u64 > end {
         return Err(format!(
             "bytes {}..{} outside the block area 128..{end}",
             b.offset,

@@ -1,4 +1,5 @@
 use anyhow::Result;
+use canopy::integrator::pbgi::bake::BakeSettings;
 use canopy::render::bake::{bake, BakeOptions};
 use canopy::units;
 use clap::Args;
@@ -17,9 +18,8 @@ pub struct BakeArgs {
     /// Output radiance file (conventionally SCENE.radiance).
     #[arg(short, long)]
     output: PathBuf,
-    /// Light samples per triangle.
-    #[arg(long = "bake-samples", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=65536))]
-    samples: u32,
+    #[command(flatten)]
+    bake: BakeSettings,
     /// Seed of the light samples.
     #[arg(long, default_value_t = 0)]
     seed: u32,
@@ -44,7 +44,7 @@ pub fn run(a: BakeArgs, progress: bool) -> Result<()> {
     let r = bake(&BakeOptions {
         archive: a.archive,
         output: a.output.clone(),
-        samples_per_triangle: a.samples,
+        bake: a.bake,
         seed: a.seed,
         mem_budget: a.mem_budget,
         threads: a.threads,

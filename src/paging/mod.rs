@@ -16,7 +16,7 @@
 //! of baked node light, loaded, counted against the budget and evicted with it.
 
 use anyhow::{bail, Result};
-use canopy_format::radiance::{BakedNode, RadianceFile};
+use canopy_format::radiance::{BakedBlock, RadianceFile};
 use canopy_format::{Archive, Node, NodeFlags, Tri};
 use crossbeam_channel::{Receiver, Sender, TrySendError};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
@@ -110,8 +110,8 @@ pub struct Page {
     pub tris: Vec<TriW>,
     /// Per triangle, octahedral shading normals of its vertices (empty without normals).
     pub shading: Vec<[u32; 3]>,
-    /// Per node, its baked light (empty unless a radiance file is attached).
-    pub baked: Vec<BakedNode>,
+    /// The page's baked light (empty unless a radiance file is attached).
+    pub baked: BakedBlock,
     pub bytes: u64,
 }
 
@@ -173,7 +173,7 @@ impl Page {
             bvh,
             tris,
             shading,
-            baked: Vec::new(),
+            baked: BakedBlock::default(),
             bytes,
         })
     }
@@ -181,7 +181,7 @@ impl Page {
     /// Adds the page's block of baked light from `r`.
     pub fn with_baked(mut self, r: &RadianceFile) -> Result<Page> {
         self.baked = r.read_block(self.id)?;
-        self.bytes += (self.baked.len() * std::mem::size_of::<BakedNode>()) as u64;
+        self.bytes += self.baked.bytes();
         Ok(self)
     }
 
@@ -194,7 +194,7 @@ impl Page {
             bvh: Vec::new(),
             tris: Vec::new(),
             shading: Vec::new(),
-            baked: Vec::new(),
+            baked: BakedBlock::default(),
             bytes: 0,
         }
     }

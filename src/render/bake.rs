@@ -6,7 +6,7 @@ use super::setup::open_scene;
 use super::stats::peak_rss_bytes;
 use crate::camera::Camera;
 use crate::image::{check_writable, same_file};
-use crate::integrator::pbgi::bake::bake_file;
+use crate::integrator::pbgi::bake::{bake_file, BakeSettings};
 use anyhow::{bail, Context, Result};
 use canopy_format::radiance::BakedNode;
 use canopy_format::Archive;
@@ -18,7 +18,7 @@ use std::time::Instant;
 pub struct BakeOptions {
     pub archive: PathBuf,
     pub output: PathBuf,
-    pub samples_per_triangle: u32,
+    pub bake: BakeSettings,
     pub seed: u32,
     pub mem_budget: Option<u64>,
     pub threads: Option<usize>,
@@ -84,11 +84,8 @@ pub fn bake(o: &BakeOptions) -> Result<BakeReport> {
         None,
     )?;
     let bar = crate::progress::bar(o.progress, archive.pages.len() as u64, "baking pages");
-    let samples = pool.install(|| {
-        bake_file(&scene, o.samples_per_triangle, o.seed, &o.output, &|n| {
-            bar.inc(n)
-        })
-    })?;
+    let samples =
+        pool.install(|| bake_file(&scene, &o.bake.params(o.seed), &o.output, &|n| bar.inc(n)))?;
     bar.finish_and_clear();
     let file_bytes = std::fs::metadata(&o.output)
         .with_context(|| format!("{}: cannot read back", o.output.display()))?

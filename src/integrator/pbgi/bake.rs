@@ -12,11 +12,12 @@
 //! mean light every way, covering A·Θ/d² (004 eq. 4.4), overstated the bunny's indirect
 //! light on bunny_box by half (README).
 
+use super::patch;
 use crate::integrator::{sample_light, Receiver, Scene};
 use crate::paging::{deepest_first, NodeRef, Page};
 use crate::trace::{gamma, Cone, Tracer};
 use anyhow::Result;
-use canopy_format::radiance::{BakeInfo, BakedNode, RadianceFile, RadianceWriter};
+use canopy_format::radiance::{BakeInfo, BakedBlock, BakedNode, RadianceFile, RadianceWriter};
 use glam::Vec3A as V;
 use rayon::prelude::*;
 use std::f32::consts::FRAC_1_PI;
@@ -72,77 +73,121 @@ fn axis_cosines(v: V) -> [f32; 6] {
     ]
 }
 
+/// The bake's flags, shared by `canopy bake` and `render --integrator pbgi`.
+#[derive(Clone, Debug, clap::Args)]
+pub struct BakeSettings {
+    /// Light samples per triangle in the bake (per finest patch of a subdivided triangle).
+    #[arg(long = "bake-samples", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    pub bake_samples: u32,
+    /// Finest patch side as a fraction of the scene's diagonal: a larger triangle is baked
+    /// as up to 4^6 patches, each with its own light, so PBGI can splat a near wall
+    /// rather than trace rays at it. Smaller is more exact, with a slower bake.
+    #[arg(long = "patch-size", default_value_t = 0.01, value_parser = parse_patch_size)]
+    pub patch_size: f32,
+}
+
+fn parse_patch_size(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(v) if v > 0.0 && v <= 1.0 => Ok(v),
+        _ => Err(format!("{s:?}: a fraction in (0, 1]")),
+    }
+}
+
+impl BakeSettings {
+    pub fn params(&self, seed: u32) -> BakeParams {
+        BakeParams {
+            samples: self.bake_samples,
+            seed,
+            patch_size: self.patch_size,
+        }
+    }
+}
+
+/// How to bake.
+#[derive(Clone, Copy, Debug)]
+pub struct BakeParams {
+    /// Light samples per triangle, and per finest patch of a subdivided one.
+    pub samples: u32,
+    pub seed: u32,
+    /// Finest patch side as a fraction of the scene's diagonal.
+    pub patch_size: f32,
+}
+
+impl BakeParams {
+    fn info(&self) -> BakeInfo {
+        BakeInfo {
+            bounces: 1,
+            samples_per_triangle: self.samples,
+            seed: self.seed,
+            patch_size: self.patch_size,
+        }
+    }
+}
+
 /// Bakes into a radiance file at `path` (it appears only when complete); returns the
 /// light samples taken.
 pub fn bake_file(
     scene: &Scene,
-    per_tri: u32,
-    seed: u32,
+    p: &BakeParams,
     path: &Path,
     progress: &dyn Fn(u64),
 ) -> Result<u64> {
     let archive = &scene.cache.archive;
-    let mut out = RadianceWriter::create(path, archive, info(per_tri, seed))?;
-    let samples = bake(scene, per_tri, seed, &mut out, progress)?;
+    let mut out = RadianceWriter::create(path, archive, p.info())?;
+    let samples = bake(scene, p, &mut out, progress)?;
     out.finish()?;
     Ok(samples)
 }
 
 /// Bakes into an unnamed scratch file (a render without `--radiance`) and opens it.
-pub fn bake_scratch(scene: &Scene, per_tri: u32, seed: u32) -> Result<(RadianceFile, u64)> {
+pub fn bake_scratch(scene: &Scene, p: &BakeParams) -> Result<(RadianceFile, u64)> {
     let archive = &scene.cache.archive;
-    let mut out = RadianceWriter::temporary(archive, info(per_tri, seed))?;
-    let samples = bake(scene, per_tri, seed, &mut out, &|_| {})?;
+    let mut out = RadianceWriter::temporary(archive, p.info())?;
+    let samples = bake(scene, p, &mut out, &|_| {})?;
     let file = out.finish()?;
     let r = RadianceFile::from_file(file, Path::new("(temporary bake)"), archive)?;
     Ok((r, samples))
 }
 
-fn info(per_tri: u32, seed: u32) -> BakeInfo {
-    BakeInfo {
-        bounces: 1,
-        samples_per_triangle: per_tri,
-        seed,
-    }
-}
-
 /// Pages baked at once: enough to keep every thread busy, few enough that memory holds
-/// only their records and two per page finished (their roots, which parents read).
+/// only their blocks and two records per page finished (its roots, which parents read).
 const BATCH: usize = 64;
 
-/// Bakes every page of the archive with `per_tri` light samples per triangle, writing each
-/// page's records to `out` as it is done; returns the light samples taken.
+/// Bakes every page of the archive, writing each page's block to `out` as it is done;
+/// returns the light samples taken.
 fn bake(
     scene: &Scene,
-    per_tri: u32,
-    seed: u32,
+    p: &BakeParams,
     out: &mut RadianceWriter,
     progress: &dyn Fn(u64),
 ) -> Result<u64> {
     let cache = &scene.cache;
     let archive = &cache.archive;
+    let diag = (V::from(archive.header.bounds_max) - V::from(archive.header.bounds_min)).length();
+    // A right isosceles triangle of side patch_size·diagonal.
+    let a_max = 0.5 * (p.patch_size * diag).powi(2);
     let mut roots = vec![[BakedNode::default(); 2]; archive.pages.len()];
     let mut samples = 0;
     let pages: Vec<u32> = (0..archive.pages.len() as u32).collect();
     for level in deepest_first(archive, pages) {
         for batch in level.chunks(BATCH) {
             let done = &roots;
-            let baked: Vec<(u32, Vec<BakedNode>, u64)> = batch
+            let baked: Vec<(u32, BakedBlock, u64)> = batch
                 .par_iter()
                 .map_init(
                     || Tracer::new(cache),
                     |tr, &id| {
                         let page = tr.page_handle(id);
-                        let (vals, n) = bake_page(scene, tr, &page, done, per_tri, seed);
-                        (id, vals, n)
+                        let (block, n) = bake_page(scene, tr, &page, done, p, a_max);
+                        (id, block, n)
                     },
                 )
                 .collect();
-            for (id, vals, n) in baked {
-                for (r, v) in roots[id as usize].iter_mut().zip(&vals) {
+            for (id, block, n) in baked {
+                for (r, v) in roots[id as usize].iter_mut().zip(&block.nodes) {
                     *r = *v;
                 }
-                out.push(id, &vals)?;
+                out.push(id, &block)?;
                 samples += n;
                 progress(1);
             }
@@ -154,17 +199,21 @@ fn bake(
     Ok(samples)
 }
 
-/// One page's nodes, children before parents (a page stores parents first); child pages'
-/// roots are already in `roots`.
+/// One page's block: nodes children before parents (a page stores parents first; child
+/// pages' roots are already in `roots`), triangles larger than `a_max` as patches.
 fn bake_page(
     scene: &Scene,
     tr: &mut Tracer,
     page: &Page,
     roots: &[[BakedNode; 2]],
-    per_tri: u32,
-    seed: u32,
-) -> (Vec<BakedNode>, u64) {
-    let mut vals = vec![BakedNode::default(); page.bvh.len()];
+    p: &BakeParams,
+    a_max: f32,
+) -> (BakedBlock, u64) {
+    let mut block = BakedBlock {
+        nodes: vec![BakedNode::default(); page.bvh.len()],
+        patch_of: vec![0; page.tris.len()],
+        patches: Vec::new(),
+    };
     let mut samples = 0;
     for i in (0..page.bvh.len()).rev() {
         let mut d = BakedNode::default();
@@ -172,20 +221,17 @@ fn bake_page(
             NodeRef::Leaf { first, count } => {
                 for k in first..(first + count).min(page.tris.len() as u32) {
                     let key = ((page.first_node + i as u64) << 4) | (k - first) as u64;
-                    samples += per_tri as u64;
-                    d.add(&triangle(
-                        scene,
-                        tr,
-                        &page.tris[k as usize],
-                        per_tri,
-                        seed,
-                        key,
-                    ));
+                    let t = triangle(scene, tr, &page.tris[k as usize], p, a_max, key);
+                    samples += t.samples;
+                    d.add(&t.node);
+                    block.patch_of[k as usize] = t.depth << 28 | block.patches.len() as u32;
+                    block.patches.extend(t.pyramid);
                 }
             }
             NodeRef::Inner(l, r) => {
-                d.add(&vals[l as usize]);
-                d.add(&vals[r as usize]);
+                let (l, r) = (block.nodes[l as usize], block.nodes[r as usize]);
+                d.add(&l);
+                d.add(&r);
             }
             NodeRef::ChildPage(c) => {
                 for r in roots.get(c as usize).into_iter().flatten() {
@@ -193,53 +239,85 @@ fn bake_page(
                 }
             }
         }
-        vals[i] = d;
+        block.nodes[i] = d;
     }
-    (vals, samples)
+    (block, samples)
 }
 
-/// A triangle's reflected radiance ρ·E/π, as a patch.
+/// A triangle baked: its record, and its patch pyramid of depth `depth`.
+struct BakedTriangle {
+    node: BakedNode,
+    depth: u32,
+    pyramid: Vec<[f32; 3]>,
+    samples: u64,
+}
+
+/// A triangle's reflected radiance ρ·E/π, as a patch; split into 4^k patches baked one by
+/// one when it is larger than `a_max`.
 fn triangle(
     scene: &Scene,
     tr: &mut Tracer,
     t: &crate::paging::TriW,
-    n: u32,
-    seed: u32,
+    p: &BakeParams,
+    a_max: f32,
     key: u64,
-) -> BakedNode {
-    let p = t.p.map(V::from);
-    let cross = (p[1] - p[0]).cross(p[2] - p[0]);
+) -> BakedTriangle {
+    let v = t.p.map(V::from);
+    let cross = (v[1] - v[0]).cross(v[2] - v[0]);
     let area = 0.5 * cross.length();
     let m = &scene.materials[t.material as usize];
     let rho = m.bsdf(true).diffuse;
+    let dark = |node| BakedTriangle {
+        node,
+        depth: 0,
+        pyramid: vec![[0.0; 3]],
+        samples: 0,
+    };
     if area.is_nan() || area <= 0.0 {
-        return BakedNode::default();
+        return dark(BakedNode::default());
     }
     let ng = cross / (2.0 * area);
-    if rho.max_element() <= 0.0 || n == 0 {
-        return BakedNode::patch(area, ng, V::ZERO);
+    if rho.max_element() <= 0.0 {
+        return dark(BakedNode::patch(area, ng, V::ZERO));
     }
-    let mut rng = Hash::new(seed as u64 ^ key.wrapping_mul(0x9E37_79B9_7F4A_7C15));
-    let mut sum = V::ZERO;
-    for _ in 0..n {
-        let (mut a, mut b) = (rng.f32(), rng.f32());
-        if a + b > 1.0 {
-            (a, b) = (1.0 - a, 1.0 - b);
+    let err = (v[0].abs() + v[1].abs() + v[2].abs()) * gamma(7);
+    let mut reflected = |tri: [V; 3], key: u64| {
+        let mut rng = Hash::new(p.seed as u64 ^ key.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        let mut sum = V::ZERO;
+        for _ in 0..p.samples {
+            let (mut a, mut b) = (rng.f32(), rng.f32());
+            if a + b > 1.0 {
+                (a, b) = (1.0 - a, 1.0 - b);
+            }
+            let q = tri[0] + (tri[1] - tri[0]) * a + (tri[2] - tri[0]) * b;
+            // Light sampling alone (BSDF pdf 0 gives it full weight): nothing else samples
+            // the emitters here.
+            sum += sample_light(
+                scene,
+                tr,
+                &Receiver::surface(q, err, ng),
+                &Cone::EXACT,
+                [rng.f32(), rng.f32(), rng.f32()],
+                |wi| (rho * (FRAC_1_PI * ng.dot(wi).max(0.0)), 0.0),
+            );
         }
-        let q = p[0] + (p[1] - p[0]) * a + (p[2] - p[0]) * b;
-        let err = (p[0].abs() + p[1].abs() + p[2].abs()) * gamma(7);
-        // Light sampling alone (BSDF pdf 0 gives it full weight): nothing else samples
-        // the emitters here.
-        sum += sample_light(
-            scene,
-            tr,
-            &Receiver::surface(q, err, ng),
-            &Cone::EXACT,
-            [rng.f32(), rng.f32(), rng.f32()],
-            |wi| (rho * (FRAC_1_PI * ng.dot(wi).max(0.0)), 0.0),
-        );
+        sum / p.samples as f32
+    };
+    let k = patch::depth(area, a_max);
+    let finest: Vec<V> = if k == 0 {
+        vec![reflected(v, key)]
+    } else {
+        (0..1usize << (2 * k))
+            .map(|i| reflected(patch::patch(v, k, i), key ^ ((i as u64 + 1) << 40)))
+            .collect()
+    };
+    let mean = finest.iter().sum::<V>() / finest.len() as f32;
+    BakedTriangle {
+        node: BakedNode::patch(area, ng, mean),
+        depth: k,
+        samples: p.samples as u64 * finest.len() as u64,
+        pyramid: patch::pyramid(&finest, k),
     }
-    BakedNode::patch(area, ng, sum / n as f32)
 }
 
 /// SplitMix64: independent uniforms per triangle without a shared generator.

@@ -9,10 +9,14 @@
 //!   smallest micro-buffer texel's; otherwise its children are visited. Nodes wholly below
 //!   x's tangent plane are skipped;
 //! - a splatted node covers its projected area toward x over d² and sends the light it
-//!   reflects that way (`bake::Directional`, read from the page's baked block); seen from behind it is a dark occluder;
-//! - leaves too close for their solid angle are resolved by exact rays: one ray, jittered
-//!   inside the texel, through every texel the leaf's bounding sphere may cover; the hit
-//!   sends the direct light it reflects toward x (its BSDF, one light sample), opaque;
+//!   reflects that way (`bake::Directional`, read from the page's baked block); seen from
+//!   behind it is a dark occluder;
+//! - leaves too close for their solid angle are rasterized: x casts one ray per texel,
+//!   jittered inside it, and each ray meeting a leaf triangle leaves an opaque fragment at
+//!   its depth. A front hit on a diffuse surface sends the baked light of the finest patch
+//!   under it (`patch`: large triangles are baked as up to 4⁶ patches); other hits take
+//!   one light sample, as the path tracer would. A ray aimed at a leaf's sphere that meets
+//!   none of its triangles is traced exactly (what it finds could otherwise be missing);
 //! - `microbuffer` composites and convolves with x's BSDF (003 eq. 2.1).
 //!
 //! Smooth mirrors and glass are followed exactly (one sampled bounce each, up to
@@ -24,6 +28,7 @@
 pub mod bake;
 pub mod cluster;
 pub mod microbuffer;
+pub mod patch;
 
 use super::{bsdf_term, sample_light, Counters, Integrator, PixelSample, Receiver, Scene, Stats};
 use crate::material::{Bsdf, Frame};
@@ -59,9 +64,8 @@ pub struct PbgiSettings {
     /// Micro-buffer texels per cube-face side (even): the hemicube has 3·n² texels.
     #[arg(long = "pbgi-resolution", default_value_t = 8, value_parser = parse_resolution)]
     pub resolution: usize,
-    /// Light samples per triangle in the bake.
-    #[arg(long = "bake-samples", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=65536))]
-    pub bake_samples: u32,
+    #[command(flatten)]
+    pub bake: bake::BakeSettings,
     /// FPBGI (003 ch. 3): receivers of each 16×16 tile grouped into at most this many
     /// clusters (k-means on position and normal), each sharing one cut and its far splats;
     /// 0 gathers every receiver alone (plain PBGI). The thesis's 100 per 32×32 tile is 25
@@ -75,7 +79,7 @@ pub struct PbgiSettings {
     pub far: f32,
     /// Baked light from `canopy bake` (default: bake before the first pass, counted in the
     /// render time, into an unnamed scratch file).
-    #[arg(long, value_name = "FILE", conflicts_with = "bake_samples")]
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["bake_samples", "patch_size"])]
     pub radiance: Option<PathBuf>,
 }
 
@@ -102,7 +106,12 @@ pub struct PbgiStats {
     pub bake_samples: u64,
     /// Nodes splatted whole, and texels resolved by exact rays, over the render.
     pub splatted_nodes: u64,
-    pub near_rays: u64,
+    /// Texels filled by rasterized near leaves, and of them those shaded by a light
+    /// sample rather than baked light.
+    pub near_fragments: u64,
+    pub exact_hits: u64,
+    /// Exact rays where a rasterized leaf's cone found none of its triangles.
+    pub gap_rays: u64,
     pub receiver_clusters: usize,
     pub clustered_receivers: u64,
 }
@@ -115,7 +124,9 @@ pub struct PbgiIntegrator {
     seed: u32,
     bake_s: f64,
     splatted: AtomicU64,
-    near_rays: AtomicU64,
+    near_fragments: AtomicU64,
+    exact_hits: AtomicU64,
+    gap_rays: AtomicU64,
     /// Receivers gathered through a cluster's field.
     clusters: AtomicU64,
 }
@@ -124,7 +135,12 @@ pub struct PbgiIntegrator {
 #[derive(Default)]
 struct Scratch {
     mb: MicroBuffer,
-    near: Vec<bool>,
+    /// This receiver's ray per texel above its horizon: texel and world direction,
+    /// jittered inside the texel.
+    rays: Vec<(u32, V)>,
+    /// Per ray: inside some rasterized leaf's cone, and met by one of its triangles.
+    aimed: Vec<bool>,
+    met: Vec<bool>,
     stack: Vec<(u32, u32)>,
 }
 
@@ -141,7 +157,9 @@ impl PbgiIntegrator {
             seed,
             bake_s: 0.0,
             splatted: AtomicU64::new(0),
-            near_rays: AtomicU64::new(0),
+            near_fragments: AtomicU64::new(0),
+            exact_hits: AtomicU64::new(0),
+            gap_rays: AtomicU64::new(0),
             clusters: AtomicU64::new(0),
         }
     }
@@ -202,8 +220,20 @@ impl PbgiIntegrator {
         SCRATCH.with_borrow_mut(|sc| {
             let texels = &self.texels;
             sc.mb.clear();
-            sc.near.clear();
-            sc.near.resize(texels.dir.len(), false);
+            let mut rng = Hash::new(key);
+            sc.rays.clear();
+            sc.rays.extend(texels.upper.iter().filter_map(|&k| {
+                let corners = cube::texel_corners(k as usize, texels.n);
+                let (a, b) = (rng.f32(), rng.f32());
+                let local =
+                    corners[0] + (corners[1] - corners[0]) * a + (corners[3] - corners[0]) * b;
+                let w = s.frame.to_world(V::from(local.normalize())).normalize();
+                (w.dot(s.n) > 0.0).then_some((k, w))
+            }));
+            sc.aimed.clear();
+            sc.aimed.resize(sc.rays.len(), false);
+            sc.met.clear();
+            sc.met.resize(sc.rays.len(), false);
             sc.stack.clear();
             match field {
                 Some(f) => {
@@ -218,16 +248,16 @@ impl PbgiIntegrator {
                         .extend((0..root.roots.min(root.bvh.len() as u32)).map(|r| (root.id, r)));
                 }
             }
-            self.cut(scene, tr, s, sc);
-            let mut rng = Hash::new(key);
-            let mut rays = 0;
-            for &k in &texels.upper {
-                if sc.near[k as usize] {
-                    rays += 1;
-                    self.near_ray(scene, tr, s, k as usize, &mut rng, &mut sc.mb);
+            self.cut(scene, tr, s, sc, &mut rng);
+            let mut gaps = 0;
+            for j in 0..sc.rays.len() {
+                if sc.aimed[j] && !sc.met[j] {
+                    gaps += 1;
+                    let (k, w) = sc.rays[j];
+                    self.gap_ray(scene, tr, s, k as usize, w, &mut rng, &mut sc.mb);
                 }
             }
-            self.near_rays.fetch_add(rays, Relaxed);
+            self.gap_rays.fetch_add(gaps, Relaxed);
             let incident = sc.mb.resolve(texels, |_| Vec3::ZERO);
             let f = MicroBuffer::convolve(texels, &incident, |w| {
                 Vec3::from(s.bsdf.eval(s.wo_l, V::from(w)).0)
@@ -237,8 +267,8 @@ impl PbgiIntegrator {
     }
 
     /// Walks the hierarchy from the nodes on `sc.stack`: far nodes are splatted, near
-    /// leaves mark the texels their bounding sphere may cover.
-    fn cut(&self, scene: &Scene, tr: &mut Tracer, s: &Surface, sc: &mut Scratch) {
+    /// leaves rasterized.
+    fn cut(&self, scene: &Scene, tr: &mut Tracer, s: &Surface, sc: &mut Scratch, rng: &mut Hash) {
         let Some(&(first, _)) = sc.stack.last() else {
             return;
         };
@@ -263,7 +293,10 @@ impl PbgiIntegrator {
                 continue;
             }
             match node.link() {
-                NodeRef::Leaf { .. } => self.mark_near(s, v, v.length(), r, &mut sc.near),
+                NodeRef::Leaf { first, count } => {
+                    let leaf = page.first_node + i as u64;
+                    self.raster_leaf(scene, tr, s, &page, leaf, first..first + count, sc, rng);
+                }
                 NodeRef::Inner(l, rr) => sc.stack.extend([(pid, l), (pid, rr)]),
                 NodeRef::ChildPage(cp) => sc.stack.extend([(cp, 0), (cp, 1)]),
             }
@@ -288,7 +321,12 @@ impl PbgiIntegrator {
         if !(d > NEAR * r && PI * r * r <= limit * d * d) {
             return None;
         }
-        let shown = page.baked.get(i as usize).copied().unwrap_or_default();
+        let shown = page
+            .baked
+            .nodes
+            .get(i as usize)
+            .copied()
+            .unwrap_or_default();
         // Seen from behind, a node still hides what lies beyond it.
         let (front, power) = shown.toward(-v / d);
         let back = shown.toward(v / d).0;
@@ -389,68 +427,194 @@ impl PbgiIntegrator {
             .collect()
     }
 
-    /// Texels whose directions may meet a sphere of radius r at offset v (length d).
-    fn mark_near(&self, s: &Surface, v: V, d: f32, r: f32, near: &mut [bool]) {
-        let texels = &self.texels;
-        if d <= r {
-            texels.upper.iter().for_each(|&k| near[k as usize] = true);
-            return;
-        }
-        let axis = Vec3::from(s.frame.to_local(v / d));
-        let half = (r / d).asin();
-        for &k in &texels.upper {
-            let k = k as usize;
-            // A texel's directions lie within about √(2Ω) of its centre direction.
-            let spread = (2.0 * texels.solid_angle[k]).sqrt();
-            if texels.dir[k].dot(axis).clamp(-1.0, 1.0).acos() <= half + spread {
-                near[k] = true;
-            }
-        }
-    }
-
-    /// An exact ray through texel k, jittered inside it: its hit is splatted opaque with
-    /// the direct light it reflects toward x.
-    fn near_ray(
+    /// The exact ray of texel k where a rasterized leaf's cone promised geometry its
+    /// triangles did not hold: without it that texel would show splats' partial coverage
+    /// and the black background through the gaps. Its hit is shaded as a raster hit.
+    #[allow(clippy::too_many_arguments)]
+    fn gap_ray(
         &self,
         scene: &Scene,
         tr: &mut Tracer,
         s: &Surface,
         k: usize,
+        w: V,
         rng: &mut Hash,
         mb: &mut MicroBuffer,
     ) {
-        let n = self.texels.n;
-        let corners = cube::texel_corners(k, n);
-        let (a, b) = (rng.f32(), rng.f32());
-        let local = corners[0] + (corners[1] - corners[0]) * a + (corners[3] - corners[0]) * b;
-        let wi = s.frame.to_world(V::from(local.normalize())).normalize();
-        if wi.dot(s.n) <= 0.0 {
-            return;
-        }
         let ray = Ray {
-            o: offset_origin(s.p, s.err, s.ng, wi),
-            d: wi,
+            o: offset_origin(s.p, s.err, s.ng, w),
+            d: w,
             t_max: f32::INFINITY,
         };
         let Some(hit) = tr.closest_hit(&ray) else {
             return;
         };
         scene.touched.insert(hit.leaf);
-        let sends = match Surface::at(scene, &hit, wi) {
+        let page = tr.page_handle(hit.page);
+        let t = page
+            .bvh
+            .get((hit.leaf - page.first_node) as usize)
+            .and_then(|n| match n.link() {
+                NodeRef::Leaf { first, .. } => Some((first + hit.slot) as usize),
+                _ => None,
+            });
+        let front = hit.ng().dot(w) < 0.0;
+        let baked = t.and_then(|t| baked_light(scene, &page, t, hit.tri.material, front, hit.b));
+        let sends = baked.unwrap_or_else(|| match Surface::at(scene, &hit, w) {
             Some(h) if !h.absorbs && !h.bsdf.has_smooth_only() => {
                 h.direct(scene, tr, [rng.f32(), rng.f32(), rng.f32()])
             }
             _ => V::ZERO,
-        };
+        });
+        let texels = &self.texels;
         mb.splat(
-            &self.texels,
-            self.texels.dir[k],
+            texels,
+            texels.dir[k],
             hit.t,
-            self.texels.solid_angle[k],
+            texels.solid_angle[k],
             u64::MAX - k as u64,
             Vec3::from(sends),
         );
     }
+
+    /// A leaf too near or too wide to splat, rasterized: each of x's texel rays that
+    /// meets one of its triangles leaves an opaque fragment at the hit's depth. A front
+    /// hit on a diffuse surface sends the baked light of the finest patch under it; other
+    /// hits take one light sample there, as the path tracer would.
+    #[allow(clippy::too_many_arguments)]
+    fn raster_leaf(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        s: &Surface,
+        page: &Page,
+        leaf: u64,
+        tris: std::ops::Range<u32>,
+        sc: &mut Scratch,
+        rng: &mut Hash,
+    ) {
+        let Some(node) = page.bvh.get((leaf - page.first_node) as usize) else {
+            return;
+        };
+        let (c, r) = node_sphere(node);
+        let v = c - s.p;
+        let d = v.length();
+        // Rays outside the cone around the leaf's sphere miss it.
+        let cos_cone = if d > r {
+            (1.0 - (r / d).powi(2)).sqrt()
+        } else {
+            -1.0
+        };
+        let axis = v / d.max(f32::MIN_POSITIVE);
+        let (mut fragments, mut exact) = (0, 0);
+        // Rays leave from just above x, as exact rays do, so x's neighbours on its own
+        // surface (coplanar up to rounding) do not block its horizon.
+        let o = offset_origin(s.p, s.err, s.ng, s.n);
+        for t in tris.clone() {
+            let Some(tri) = page.tris.get(t as usize) else {
+                continue;
+            };
+            let p = tri.p.map(V::from);
+            let ng = (p[1] - p[0]).cross(p[2] - p[0]);
+            // A triangle in x's own plane is seen edge-on: it neither sends nor hides.
+            if ng.dot(s.p - p[0]).abs() <= 1e-6 * ng.length() * (r + d) {
+                continue;
+            }
+            let slot = t - tris.start;
+            for (j, &(k, w)) in sc.rays.iter().enumerate() {
+                if w.dot(axis) < cos_cone {
+                    continue;
+                }
+                sc.aimed[j] = true;
+                let Some((depth, b)) = intersect(o, w, p) else {
+                    continue;
+                };
+                sc.met[j] = true;
+                let sends =
+                    match baked_light(scene, page, t as usize, tri.material, ng.dot(w) < 0.0, b) {
+                        Some(l) => l,
+                        None => {
+                            exact += 1;
+                            let hit = Hit {
+                                t: depth,
+                                b,
+                                tri: *tri,
+                                page: page.id,
+                                leaf,
+                                slot,
+                                curvature: 0.0,
+                            };
+                            match Surface::at(scene, &hit, w) {
+                                Some(h) if !h.absorbs && !h.bsdf.has_smooth_only() => {
+                                    h.direct(scene, tr, [rng.f32(), rng.f32(), rng.f32()])
+                                }
+                                _ => V::ZERO,
+                            }
+                        }
+                    };
+                fragments += 1;
+                let k = k as usize;
+                let id = (1 << 62) | (leaf << 3) | slot as u64;
+                sc.mb.splat(
+                    &self.texels,
+                    self.texels.dir[k],
+                    depth,
+                    self.texels.solid_angle[k],
+                    id,
+                    Vec3::from(sends),
+                );
+            }
+        }
+        if fragments > 0 {
+            scene.touched.insert(leaf);
+        }
+        self.near_fragments.fetch_add(fragments, Relaxed);
+        self.exact_hits.fetch_add(exact, Relaxed);
+    }
+}
+
+/// Möller–Trumbore: distance along unit `w` from `o` to triangle `p` and the hit's
+/// barycentrics, if it is ahead.
+fn intersect(o: V, w: V, p: [V; 3]) -> Option<(f32, [f32; 3])> {
+    let (e1, e2) = (p[1] - p[0], p[2] - p[0]);
+    let q = w.cross(e2);
+    let det = e1.dot(q);
+    if det == 0.0 || !det.is_finite() {
+        return None;
+    }
+    let inv = 1.0 / det;
+    let sv = o - p[0];
+    let u = sv.dot(q) * inv;
+    let rv = sv.cross(e1);
+    let v = w.dot(rv) * inv;
+    if u < 0.0 || v < 0.0 || u + v > 1.0 {
+        return None;
+    }
+    let t = e2.dot(rv) * inv;
+    (t > 0.0).then_some((t, [1.0 - u - v, u, v]))
+}
+
+/// The baked light of the finest patch at barycentrics `b` of triangle `t`, when the bake
+/// holds what x sees there: the front of a purely diffuse surface.
+fn baked_light(
+    scene: &Scene,
+    page: &Page,
+    t: usize,
+    material: u32,
+    front: bool,
+    b: [f32; 3],
+) -> Option<V> {
+    if !front || !scene.materials.get(material as usize)?.is_pure_diffuse() {
+        return None;
+    }
+    let (k, base) = page.baked.patches_of(t)?;
+    let (mut b, mut index) = (b, 0);
+    for _ in 0..k {
+        let (child, next) = patch::locate(b);
+        (b, index) = (next, 4 * index + child);
+    }
+    let at = base + patch::level_start(k) + index;
+    page.baked.patches.get(at).map(|&l| V::from(l))
 }
 
 /// The bounding sphere of a node's decoded box.
@@ -555,7 +719,7 @@ impl Integrator for PbgiIntegrator {
             Some(path) => canopy_format::radiance::RadianceFile::open(path, archive)?,
             None => {
                 let (file, samples) =
-                    bake::bake_scratch(scene, self.settings.bake_samples, self.seed)?;
+                    bake::bake_scratch(scene, &self.settings.bake.params(self.seed))?;
                 self.bake_samples = samples;
                 file
             }
@@ -594,11 +758,11 @@ impl Integrator for PbgiIntegrator {
                 Some(path) => format!("bake: read from {} ({:.2} s)", path.display(), self.bake_s),
                 None => format!(
                     "bake: direct light reflected by every node, {} light samples per triangle ({:.2} s)",
-                    s.bake_samples, self.bake_s
+                    s.bake.bake_samples, self.bake_s
                 ),
             },
             format!(
-                "pbgi: one indirect bounce from a cut at {} texels' solid angle into a {}² hemicube micro-buffer; near leaves by exact rays",
+                "pbgi: one indirect bounce from a cut at {} texels' solid angle into a {}² hemicube micro-buffer; near leaves rasterized with baked patch light",
                 s.angle, s.resolution
             ),
         ]
@@ -611,7 +775,9 @@ impl Integrator for PbgiIntegrator {
             bake_seconds: self.bake_s,
             bake_samples: self.bake_samples,
             splatted_nodes: self.splatted.load(Relaxed),
-            near_rays: self.near_rays.load(Relaxed),
+            near_fragments: self.near_fragments.load(Relaxed),
+            exact_hits: self.exact_hits.load(Relaxed),
+            gap_rays: self.gap_rays.load(Relaxed),
             receiver_clusters: self.settings.clusters,
             clustered_receivers: self.clusters.load(Relaxed),
         })
