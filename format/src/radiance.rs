@@ -226,6 +226,11 @@ impl RadianceWriter {
         self.out.write_all(&packed)
     }
 
+    /// Bytes of the blocks written, decompressed.
+    pub fn decoded_bytes(&self) -> u64 {
+        self.blocks.iter().map(|b| b.raw_len as u64).sum()
+    }
+
     /// Writes the block table and the header and names the file; returns it open.
     pub fn finish(mut self) -> Result<File> {
         if let Some(i) = self.written.iter().position(|w| !w) {

@@ -8,7 +8,6 @@ use crate::camera::Camera;
 use crate::image::{check_writable, same_file};
 use crate::integrator::pbgi::bake::{bake_file, BakeSettings};
 use anyhow::{bail, Context, Result};
-use canopy_format::radiance::BakedNode;
 use canopy_format::Archive;
 use std::fmt;
 use std::path::PathBuf;
@@ -33,7 +32,7 @@ pub struct BakeReport {
     pub light_samples: u64,
     pub seconds: f64,
     pub file_bytes: u64,
-    /// Baked records decoded (96 bytes a node), what the render pages in.
+    /// Baked blocks decoded (node records and patch pyramids), what the render pages in.
     pub decoded_bytes: u64,
     pub pages_loaded: u64,
     pub pages_evicted: u64,
@@ -84,7 +83,7 @@ pub fn bake(o: &BakeOptions) -> Result<BakeReport> {
         None,
     )?;
     let bar = crate::progress::bar(o.progress, archive.pages.len() as u64, "baking pages");
-    let samples =
+    let (samples, decoded_bytes) =
         pool.install(|| bake_file(&scene, &o.bake.params(o.seed), &o.output, &|n| bar.inc(n)))?;
     bar.finish_and_clear();
     let file_bytes = std::fs::metadata(&o.output)
@@ -97,7 +96,7 @@ pub fn bake(o: &BakeOptions) -> Result<BakeReport> {
         light_samples: samples,
         seconds: t0.elapsed().as_secs_f64(),
         file_bytes,
-        decoded_bytes: archive.header.nodes * std::mem::size_of::<BakedNode>() as u64,
+        decoded_bytes,
         pages_loaded: scene.cache.stats().pages_loaded,
         pages_evicted: scene.cache.stats().pages_evicted,
         peak_rss_bytes: peak_rss_bytes(),

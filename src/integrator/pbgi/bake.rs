@@ -125,18 +125,19 @@ impl BakeParams {
 }
 
 /// Bakes into a radiance file at `path` (it appears only when complete); returns the
-/// light samples taken.
+/// light samples taken and the bytes of the blocks decoded.
 pub fn bake_file(
     scene: &Scene,
     p: &BakeParams,
     path: &Path,
     progress: &dyn Fn(u64),
-) -> Result<u64> {
+) -> Result<(u64, u64)> {
     let archive = &scene.cache.archive;
     let mut out = RadianceWriter::create(path, archive, p.info())?;
     let samples = bake(scene, p, &mut out, progress)?;
+    let decoded = out.decoded_bytes();
     out.finish()?;
-    Ok(samples)
+    Ok((samples, decoded))
 }
 
 /// Bakes into an unnamed scratch file (a render without `--radiance`) and opens it.
