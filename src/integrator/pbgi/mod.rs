@@ -451,21 +451,7 @@ impl PbgiIntegrator {
         };
         scene.touched.insert(hit.leaf);
         let page = tr.page_handle(hit.page);
-        let t = page
-            .bvh
-            .get((hit.leaf - page.first_node) as usize)
-            .and_then(|n| match n.link() {
-                NodeRef::Leaf { first, .. } => Some((first + hit.slot) as usize),
-                _ => None,
-            });
-        let front = hit.ng().dot(w) < 0.0;
-        let baked = t.and_then(|t| baked_light(scene, &page, t, hit.tri.material, front, hit.b));
-        let sends = baked.unwrap_or_else(|| match Surface::at(scene, &hit, w) {
-            Some(h) if !h.absorbs && !h.bsdf.has_smooth_only() => {
-                h.direct(scene, tr, [rng.f32(), rng.f32(), rng.f32()])
-            }
-            _ => V::ZERO,
-        });
+        let (sends, _) = hit_light(scene, tr, &page, &hit, w, rng);
         let texels = &self.texels;
         mb.splat(
             texels,
@@ -530,28 +516,17 @@ impl PbgiIntegrator {
                     continue;
                 };
                 sc.met[j] = true;
-                let sends =
-                    match baked_light(scene, page, t as usize, tri.material, ng.dot(w) < 0.0, b) {
-                        Some(l) => l,
-                        None => {
-                            exact += 1;
-                            let hit = Hit {
-                                t: depth,
-                                b,
-                                tri: *tri,
-                                page: page.id,
-                                leaf,
-                                slot,
-                                curvature: 0.0,
-                            };
-                            match Surface::at(scene, &hit, w) {
-                                Some(h) if !h.absorbs && !h.bsdf.has_smooth_only() => {
-                                    h.direct(scene, tr, [rng.f32(), rng.f32(), rng.f32()])
-                                }
-                                _ => V::ZERO,
-                            }
-                        }
-                    };
+                let hit = Hit {
+                    t: depth,
+                    b,
+                    tri: *tri,
+                    page: page.id,
+                    leaf,
+                    slot,
+                    curvature: 0.0,
+                };
+                let (sends, sampled) = hit_light(scene, tr, page, &hit, w, rng);
+                exact += sampled as u64;
                 fragments += 1;
                 let k = k as usize;
                 let id = (1 << 62) | (leaf << 3) | slot as u64;
@@ -592,6 +567,37 @@ fn intersect(o: V, w: V, p: [V; 3]) -> Option<(f32, [f32; 3])> {
     }
     let t = e2.dot(rv) * inv;
     (t > 0.0).then_some((t, [1.0 - u - v, u, v]))
+}
+
+/// What a hit sends back along `w`: the baked light of the finest patch under it, or,
+/// where the bake holds nothing (back faces, non-diffuse surfaces), one light sample as
+/// the path tracer would take; the flag says it was sampled.
+fn hit_light(
+    scene: &Scene,
+    tr: &mut Tracer,
+    page: &Page,
+    hit: &Hit,
+    w: V,
+    rng: &mut Hash,
+) -> (V, bool) {
+    let t = page
+        .bvh
+        .get(hit.leaf.wrapping_sub(page.first_node) as usize)
+        .and_then(|n| match n.link() {
+            NodeRef::Leaf { first, .. } => Some((first + hit.slot) as usize),
+            _ => None,
+        });
+    let front = hit.ng().dot(w) < 0.0;
+    if let Some(l) = t.and_then(|t| baked_light(scene, page, t, hit.tri.material, front, hit.b)) {
+        return (l, false);
+    }
+    let l = match Surface::at(scene, hit, w) {
+        Some(h) if !h.absorbs && !h.bsdf.has_smooth_only() => {
+            h.direct(scene, tr, [rng.f32(), rng.f32(), rng.f32()])
+        }
+        _ => V::ZERO,
+    };
+    (l, true)
 }
 
 /// The baked light of the finest patch at barycentrics `b` of triangle `t`, when the bake
