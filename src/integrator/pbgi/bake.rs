@@ -80,8 +80,8 @@ pub struct BakeSettings {
     #[arg(long = "bake-samples", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=65536))]
     pub bake_samples: u32,
     /// Finest patch side as a fraction of the scene's diagonal: a larger triangle is baked
-    /// as up to 4^6 patches, each with its own light, so PBGI can splat a near wall
-    /// rather than trace rays at it. Smaller is more exact, with a slower bake.
+    /// as up to 4^6 patches, each with its own light, so a near wall rasterized by PBGI
+    /// shows light that varies across it. Smaller is more exact, with a slower bake.
     #[arg(long = "patch-size", default_value_t = 0.01, value_parser = parse_patch_size)]
     pub patch_size: f32,
 }

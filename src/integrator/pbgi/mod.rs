@@ -58,7 +58,7 @@ pub struct PbgiSettings {
     /// The cut's threshold: a node is splatted whole when its bounding sphere subtends at
     /// most this many of the micro-buffer's smallest texels. Smaller is more exact and
     /// slower; at 0 the cut reaches every leaf, and leaves wider than a texel (or near
-    /// the receiver) are resolved by exact rays.
+    /// the receiver) are rasterized.
     #[arg(long = "pbgi-angle", default_value_t = 1.0, value_parser = crate::units::parse_non_negative)]
     pub angle: f32,
     /// Micro-buffer texels per cube-face side (even): the hemicube has 3·n² texels.
