@@ -25,10 +25,7 @@ pub fn kmeans(p: &[V], n: &[V], k: usize) -> Vec<Cluster> {
     if count == 0 {
         return Vec::new();
     }
-    let (lo, hi) = p
-        .iter()
-        .fold((p[0], p[0]), |(lo, hi), &q| (lo.min(q), hi.max(q)));
-    let alpha = (hi - lo).length_squared();
+    let alpha = alpha(p);
     let mut centres: Vec<(V, V)> = (0..k)
         .map(|j| {
             let i = j * count / k;
@@ -52,40 +49,34 @@ pub fn kmeans(p: &[V], n: &[V], k: usize) -> Vec<Cluster> {
             }
         }
     }
-    let mut clusters: Vec<Cluster> = (0..k)
-        .map(|_| Cluster {
-            active: usize::MAX,
-            members: Vec::new(),
-        })
-        .collect();
+    let mut members = vec![Vec::new(); k];
     for (i, &l) in label.iter().enumerate() {
-        clusters[l].members.push(i);
+        members[l].push(i);
     }
-    clusters.retain(|c| !c.members.is_empty());
-    for (c, centre) in clusters.iter_mut().zip(label_centres(&label, &centres)) {
-        c.active = *c
-            .members
-            .iter()
-            .min_by(|&&a, &&b| {
-                let da = distance(centre, p[a], n[a], alpha);
-                let db = distance(centre, p[b], n[b], alpha);
-                da.total_cmp(&db).then(a.cmp(&b))
-            })
-            .expect("a non-empty cluster");
-    }
-    clusters
+    members
+        .into_iter()
+        .zip(centres)
+        .filter(|(m, _)| !m.is_empty())
+        .map(|(members, centre)| {
+            // The first of equals: members are in receiver order.
+            let active = *members
+                .iter()
+                .min_by(|&&a, &&b| {
+                    distance(centre, p[a], n[a], alpha)
+                        .total_cmp(&distance(centre, p[b], n[b], alpha))
+                })
+                .expect("a non-empty cluster");
+            Cluster { active, members }
+        })
+        .collect()
 }
 
-/// The centres of the non-empty clusters, in label order.
-fn label_centres(label: &[usize], centres: &[(V, V)]) -> Vec<(V, V)> {
-    let mut used = vec![false; centres.len()];
-    label.iter().for_each(|&l| used[l] = true);
-    centres
+/// k-means's α: the squared diagonal of the receivers' box (`p` non-empty).
+fn alpha(p: &[V]) -> f32 {
+    let (lo, hi) = p
         .iter()
-        .zip(used)
-        .filter(|(_, u)| *u)
-        .map(|(c, _)| *c)
-        .collect()
+        .fold((p[0], p[0]), |(lo, hi), &q| (lo.min(q), hi.max(q)));
+    (hi - lo).length_squared()
 }
 
 fn distance((pc, nc): (V, V), p: V, n: V, alpha: f32) -> f32 {
@@ -106,12 +97,7 @@ fn nearest(centres: &[(V, V)], p: V, n: V, alpha: f32) -> usize {
 /// Σ D(x, centre of x's cluster), the objective k-means lowers (for tests).
 #[cfg(test)]
 fn objective(p: &[V], n: &[V], clusters: &[Cluster]) -> f32 {
-    let alpha = {
-        let (lo, hi) = p
-            .iter()
-            .fold((p[0], p[0]), |(lo, hi), &q| (lo.min(q), hi.max(q)));
-        (hi - lo).length_squared()
-    };
+    let alpha = alpha(p);
     clusters
         .iter()
         .map(|c| {
