@@ -452,15 +452,7 @@ impl PbgiIntegrator {
         scene.touched.insert(hit.leaf);
         let page = tr.page_handle(hit.page);
         let (sends, _) = hit_light(scene, tr, &page, &hit, w, rng);
-        let texels = &self.texels;
-        mb.splat(
-            texels,
-            texels.dir[k],
-            hit.t,
-            texels.solid_angle[k],
-            u64::MAX - k as u64,
-            Vec3::from(sends),
-        );
+        mb.fill(k, hit.t, u64::MAX - k as u64, Vec3::from(sends));
     }
 
     /// A leaf too near or too wide to splat, rasterized: each of x's texel rays that
@@ -528,16 +520,8 @@ impl PbgiIntegrator {
                 let (sends, sampled) = hit_light(scene, tr, page, &hit, w, rng);
                 exact += sampled as u64;
                 fragments += 1;
-                let k = k as usize;
                 let id = (1 << 62) | (leaf << 3) | slot as u64;
-                sc.mb.splat(
-                    &self.texels,
-                    self.texels.dir[k],
-                    depth,
-                    self.texels.solid_angle[k],
-                    id,
-                    Vec3::from(sends),
-                );
+                sc.mb.fill(k as usize, depth, id, Vec3::from(sends));
             }
         }
         if fragments > 0 {
