@@ -82,7 +82,11 @@ pub fn bake(o: &BakeOptions) -> Result<BakeReport> {
         threads,
         None,
     )?;
-    let bar = crate::progress::bar(o.progress, archive.pages.len() as u64, "baking pages");
+    let bar = crate::progress::bar(
+        o.progress,
+        archive.pages.len() as u64 * o.bake.bounces as u64,
+        "baking pages",
+    );
     let (samples, decoded_bytes) =
         pool.install(|| bake_file(&scene, &o.bake.params(o.seed), &o.output, &|n| bar.inc(n)))?;
     bar.finish_and_clear();

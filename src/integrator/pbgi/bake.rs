@@ -89,6 +89,12 @@ pub struct BakeSettings {
     /// shows light that varies across it. Smaller is more exact, with a slower bake.
     #[arg(long = "patch-size", default_value_t = 0.01, value_parser = parse_patch_size)]
     pub patch_size: f32,
+    /// Bounces of light the cloud carries (000 Alg. 1): 1 is direct light reflected once;
+    /// each further bounce gathers the previous bake's cloud at every patch, as PBGI's
+    /// receivers do (a 8² micro-buffer, the cut at one texel), and bakes again. PBGI then
+    /// stands for the path tracer at `--max-depth` 2 + N.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=16))]
+    pub bounces: u32,
 }
 
 fn parse_patch_size(s: &str) -> Result<f32, String> {
@@ -104,6 +110,7 @@ impl BakeSettings {
             samples: self.bake_samples,
             seed,
             patch_size: self.patch_size,
+            bounces: self.bounces,
         }
     }
 }
@@ -116,12 +123,13 @@ pub struct BakeParams {
     pub seed: u32,
     /// Finest patch side as a fraction of the scene's diagonal.
     pub patch_size: f32,
+    pub bounces: u32,
 }
 
 impl BakeParams {
-    fn info(&self) -> BakeInfo {
+    fn info(&self, bounces: u32) -> BakeInfo {
         BakeInfo {
-            bounces: 1,
+            bounces,
             samples_per_triangle: self.samples,
             seed: self.seed,
             patch_size: self.patch_size,
@@ -138,8 +146,8 @@ pub fn bake_file(
     progress: &dyn Fn(u64),
 ) -> Result<(u64, u64)> {
     let archive = &scene.cache.archive;
-    let mut out = RadianceWriter::create(path, archive, p.info())?;
-    let samples = bake(scene, p, &mut out, progress)?;
+    let mut out = RadianceWriter::create(path, archive, p.info(p.bounces))?;
+    let samples = bake_bounces(scene, p, &mut out, progress)?;
     let decoded = out.decoded_bytes();
     out.finish()?;
     Ok((samples, decoded))
@@ -148,24 +156,59 @@ pub fn bake_file(
 /// Bakes into an unnamed scratch file (a render without `--radiance`) and opens it.
 pub fn bake_scratch(scene: &Scene, p: &BakeParams) -> Result<(RadianceFile, u64)> {
     let archive = &scene.cache.archive;
-    let mut out = RadianceWriter::temporary(archive, p.info())?;
-    let samples = bake(scene, p, &mut out, &|_| {})?;
+    let mut out = RadianceWriter::temporary(archive, p.info(p.bounces))?;
+    let samples = bake_bounces(scene, p, &mut out, &|_| {})?;
     let file = out.finish()?;
     let r = RadianceFile::from_file(file, Path::new("(temporary bake)"), archive)?;
     Ok((r, samples))
 }
+
+/// Bakes `p.bounces` bounces into `last` (000 Alg. 1): the first bake holds direct light;
+/// each further one adds, per patch, what the previous one's cloud sends there, that bake
+/// attached to the pages while the next is made. Returns the light samples taken.
+fn bake_bounces(
+    scene: &Scene,
+    p: &BakeParams,
+    last: &mut RadianceWriter,
+    progress: &dyn Fn(u64),
+) -> Result<u64> {
+    let archive = &scene.cache.archive;
+    let gatherer = super::PbgiIntegrator::new(&super::PbgiSettings::default(), p.seed);
+    let mut samples = 0;
+    for b in 1..=p.bounces {
+        let gather = (b > 1).then_some(&gatherer);
+        if b == p.bounces {
+            samples += bake(scene, p, last, progress, gather)?;
+            break;
+        }
+        let mut out = RadianceWriter::temporary(archive, p.info(b))?;
+        samples += bake(scene, p, &mut out, progress, gather)?;
+        let file = out.finish()?;
+        let name = format!("(bounce {b} of the bake)");
+        scene
+            .cache
+            .attach_radiance(RadianceFile::from_file(file, Path::new(&name), archive)?)?;
+    }
+    Ok(samples)
+}
+
+/// Deepest patch level that gathers its own indirect light in bounces after the first
+/// (4³ = 64 gathers for a large triangle).
+const INDIRECT_DEPTH: u32 = 3;
 
 /// Pages baked at once: enough to keep every thread busy, few enough that memory holds
 /// only their blocks and two records per page finished (its roots, which parents read).
 const BATCH: usize = 64;
 
 /// Bakes every page of the archive, writing each page's block to `out` as it is done;
-/// returns the light samples taken.
+/// returns the light samples taken. With `gather`, each patch also reflects what the
+/// cloud attached to the pages sends it.
 fn bake(
     scene: &Scene,
     p: &BakeParams,
     out: &mut RadianceWriter,
     progress: &dyn Fn(u64),
+    gather: Option<&super::PbgiIntegrator>,
 ) -> Result<u64> {
     let cache = &scene.cache;
     let archive = &cache.archive;
@@ -184,7 +227,7 @@ fn bake(
                     || Tracer::new(cache),
                     |tr, &id| {
                         let page = tr.page_handle(id);
-                        let (block, n) = bake_page(scene, tr, &page, done, p, a_max);
+                        let (block, n) = bake_page(scene, tr, &page, done, p, a_max, gather);
                         (id, block, n)
                     },
                 )
@@ -214,6 +257,7 @@ fn bake_page(
     roots: &[[BakedNode; 2]],
     p: &BakeParams,
     a_max: f32,
+    gather: Option<&super::PbgiIntegrator>,
 ) -> (BakedBlock, u64) {
     let mut block = BakedBlock {
         nodes: vec![BakedNode::default(); page.bvh.len()],
@@ -227,7 +271,8 @@ fn bake_page(
             NodeRef::Leaf { first, count } => {
                 for k in first..(first + count).min(page.tris.len() as u32) {
                     let key = ((page.first_node + i as u64) << 4) | (k - first) as u64;
-                    let t = triangle(scene, tr, &page.tris[k as usize], p, a_max, key);
+                    let tri = &page.tris[k as usize];
+                    let t = triangle(scene, tr, tri, p, a_max, key, gather);
                     samples += t.samples;
                     d.add(&t.node);
                     block.patch_of[k as usize] = t.depth << 28 | block.patches.len() as u32;
@@ -267,6 +312,7 @@ fn triangle(
     p: &BakeParams,
     a_max: f32,
     key: u64,
+    gather: Option<&super::PbgiIntegrator>,
 ) -> BakedTriangle {
     let v = t.p.map(V::from);
     let cross = (v[1] - v[0]).cross(v[2] - v[0]);
@@ -287,15 +333,19 @@ fn triangle(
         return dark(BakedNode::patch(area, ng, V::ZERO));
     }
     let err = (v[0].abs() + v[1].abs() + v[2].abs()) * gamma(7);
-    let mut reflected = |tri: [V; 3], key: u64| {
-        let mut rng = Hash::new(p.seed as u64 ^ key.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    let point = |tri: [V; 3], rng: &mut Hash| {
+        let (mut a, mut b) = (rng.f32(), rng.f32());
+        if a + b > 1.0 {
+            (a, b) = (1.0 - a, 1.0 - b);
+        }
+        tri[0] + (tri[1] - tri[0]) * a + (tri[2] - tri[0]) * b
+    };
+    let seeded = |key: u64| Hash::new(p.seed as u64 ^ key.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    let mut direct = |tri: [V; 3], key: u64| {
+        let mut rng = seeded(key);
         let mut sum = V::ZERO;
         for _ in 0..p.samples {
-            let (mut a, mut b) = (rng.f32(), rng.f32());
-            if a + b > 1.0 {
-                (a, b) = (1.0 - a, 1.0 - b);
-            }
-            let q = tri[0] + (tri[1] - tri[0]) * a + (tri[2] - tri[0]) * b;
+            let q = point(tri, &mut rng);
             // Light sampling alone (BSDF pdf 0 gives it full weight): nothing else samples
             // the emitters here.
             sum += sample_light(
@@ -310,13 +360,28 @@ fn triangle(
         sum / p.samples as f32
     };
     let k = patch::depth(area, a_max);
-    let finest: Vec<V> = if k == 0 {
-        vec![reflected(v, key)]
+    let patch_key = |i: usize| key ^ ((i as u64 + 1) << 40);
+    let mut finest: Vec<V> = if k == 0 {
+        vec![direct(v, key)]
     } else {
         (0..1usize << (2 * k))
-            .map(|i| reflected(patch::patch(v, k, i), key ^ ((i as u64 + 1) << 40)))
+            .map(|i| direct(patch::patch(v, k, i), patch_key(i)))
             .collect()
     };
+    if let Some(g) = gather {
+        // One gather per patch of level m ≤ INDIRECT_DEPTH, shared by the finest patches
+        // under it: indirect light varies slowly, and a gather costs hundreds of rays.
+        let m = k.min(INDIRECT_DEPTH);
+        for i in 0..1usize << (2 * m) {
+            let mut rng = seeded(patch_key(i) ^ 0x5bd1_e995);
+            let q = point(patch::patch(v, m, i), &mut rng);
+            let e = rho * FRAC_1_PI * g.irradiance(scene, tr, q, err, ng, rng.u64());
+            let under = 1usize << (2 * (k - m));
+            for f in &mut finest[i * under..(i + 1) * under] {
+                *f += e;
+            }
+        }
+    }
     let mean = finest.iter().sum::<V>() / finest.len() as f32;
     BakedTriangle {
         node: BakedNode::patch(area, ng, mean),
@@ -335,12 +400,15 @@ impl Hash {
     }
 
     pub fn f32(&mut self) -> f32 {
+        (self.u64() >> 40) as f32 / (1u64 << 24) as f32
+    }
+
+    pub fn u64(&mut self) -> u64 {
         self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
         let mut z = self.0;
         z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
         z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^= z >> 31;
-        (z >> 40) as f32 / (1u64 << 24) as f32
+        z ^ (z >> 31)
     }
 }
 

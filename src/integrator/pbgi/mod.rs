@@ -21,9 +21,9 @@
 //!
 //! Smooth mirrors and glass are followed exactly (one sampled bounce each, up to
 //! `SMOOTH_DEPTH`), so a perfectly specular surface degrades to the exact estimator
-//! (000 §A.8). Only one indirect bounce is gathered: compare with `--max-depth 3` of the
-//! path tracer (camera → x → node → light). A smooth lobe layered over a diffuse one is not
-//! sampled (its delta part is lost).
+//! (000 §A.8). The cloud holds `--bounces N` bounces (1: direct light reflected once):
+//! compare with `--max-depth` 2 + N of the path tracer (camera → x → node → … → light).
+//! A smooth lobe layered over a diffuse one is not sampled (its delta part is lost).
 
 pub mod bake;
 pub mod cluster;
@@ -79,7 +79,7 @@ pub struct PbgiSettings {
     pub far: f32,
     /// Baked light from `canopy bake` (default: bake before the first pass, counted in the
     /// render time, into an unnamed scratch file).
-    #[arg(long, value_name = "FILE", conflicts_with_all = ["bake_samples", "patch_size"])]
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["bake_samples", "patch_size", "bounces"])]
     pub radiance: Option<PathBuf>,
 }
 
@@ -264,6 +264,33 @@ impl PbgiIntegrator {
             });
             V::from(f)
         })
+    }
+
+    /// Irradiance from the cloud at a bake point q of a front face with normal `ng`
+    /// (the next bounce of `bake`): π times what a white Lambertian surface there reflects.
+    pub fn irradiance(&self, scene: &Scene, tr: &mut Tracer, q: V, err: V, ng: V, key: u64) -> V {
+        let frame = Frame::new(ng);
+        let white = Bsdf {
+            diffuse: V::ONE,
+            f0: V::ZERO,
+            f90: V::ZERO,
+            alpha: 1.0,
+            trans: 0.0,
+            tint: V::ONE,
+            eta: 1.0,
+        };
+        let s = Surface {
+            p: q,
+            err,
+            ng,
+            n: ng,
+            frame,
+            bsdf: white,
+            wo_l: V::Z,
+            emitted: V::ZERO,
+            absorbs: false,
+        };
+        PI * self.gather(scene, tr, &s, key, None)
     }
 
     /// Walks the hierarchy from the nodes on `sc.stack`: far nodes are splatted, near
@@ -747,12 +774,12 @@ impl Integrator for PbgiIntegrator {
             match &s.radiance {
                 Some(path) => format!("bake: read from {} ({:.2} s)", path.display(), self.bake_s),
                 None => format!(
-                    "bake: direct light reflected by every node, {} light samples per triangle ({:.2} s)",
-                    s.bake.bake_samples, self.bake_s
+                    "bake: {} bounce(s) of light reflected by every node, {} light samples per triangle ({:.2} s)",
+                    s.bake.bounces, s.bake.bake_samples, self.bake_s
                 ),
             },
             format!(
-                "pbgi: one indirect bounce from a cut at {} texels' solid angle into a {}² hemicube micro-buffer; near leaves rasterized with baked patch light",
+                "pbgi: indirect light from a cut at {} texels' solid angle into a {}² hemicube micro-buffer; near leaves rasterized with baked patch light",
                 s.angle, s.resolution
             ),
         ]
