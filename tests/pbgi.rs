@@ -187,3 +187,36 @@ fn receiver_clusters_of_one_equal_pbgi_and_larger_ones_share_far_splats() {
         "rmse {e} against PBGI"
     );
 }
+
+/// A perfectly specular surface degrades to the exact estimator (000 §A.8): camera rays
+/// on caustics' mirror ball are followed exactly to the diffuse floor, whose direct light
+/// is the path tracer's light sample. At `--max-depth 2` nothing is left to gather, so
+/// on the ball PBGI must be the path tracer, within noise.
+#[test]
+fn a_mirror_is_followed_exactly() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("a.canopy");
+    convert(&scene("caustics.glb"), &arc, None);
+    let window = [
+        "--width",
+        "32",
+        "--height",
+        "32",
+        "--crop",
+        "20,28,10,19",
+        "--max-depth",
+        "2",
+    ];
+    let (reference, _) = render(
+        &arc,
+        &dir.path().join("ref.exr"),
+        &[&window[..], &["--spp", "4096", "--seed", "3"]].concat(),
+    );
+    let (img, _) = render(
+        &arc,
+        &dir.path().join("pbgi.exr"),
+        &[&window[..], &["--integrator", "pbgi", "--spp", "1024"]].concat(),
+    );
+    assert!(all_finite(&img));
+    assert_mean_within_noise(&img, &reference, "mirror ball");
+}

@@ -400,7 +400,7 @@ impl PbgiIntegrator {
             if members.iter().all(|m| (c - m.p).dot(m.n) < -r) {
                 continue;
             }
-            if radius > self.settings.far * (c - xc.p).length() {
+            if !shared_far(self.settings.far, (c - xc.p).length(), radius, r) {
                 field.near.push((pid, i));
                 continue;
             }
@@ -635,6 +635,15 @@ fn baked_light(
 }
 
 /// The bounding sphere of a node's decoded box.
+/// FPBGI's near/far test for a node of bounding radius r at distance d from the active
+/// receiver, the cluster's members lying within `radius` of it: far for all when
+/// radius ≤ ε·d (003 §3, as corrected in NOTES-002-003 B.2) and every member lies outside
+/// NEAR radii (d − radius > NEAR·r), so no member inside the node's box shares its splat
+/// whatever ε is.
+fn shared_far(eps: f32, d: f32, radius: f32, r: f32) -> bool {
+    radius <= eps * d && d - radius > NEAR * r
+}
+
 fn node_sphere(node: &TNode) -> (V, f32) {
     let (lo, hi) = (V::from(node.lo), V::from(node.hi));
     ((lo + hi) * 0.5, (hi - lo).length() * 0.5)
@@ -802,5 +811,29 @@ impl Integrator for PbgiIntegrator {
 
     fn seconds(&self) -> Vec<(&'static str, f64)> {
         vec![("bake", self.bake_s)]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::test_rng::TestRng;
+
+    /// A receiver inside a node's box never shares that node's splat with its cluster,
+    /// however loose `--cluster-far` is.
+    #[test]
+    fn a_receiver_inside_a_nodes_box_keeps_the_node_near() {
+        let mut rng = TestRng::new(11);
+        let mut v = || V::new(rng.f32(), rng.f32(), rng.f32());
+        for _ in 0..2000 {
+            let (lo, size) = (v() * 4.0 - 2.0, v() + V::splat(0.01));
+            let (c, r) = ((lo + lo + size) * 0.5, size.length() * 0.5);
+            let inside = lo + size * v();
+            let xc = v() * 20.0 - 10.0;
+            let radius = (inside - xc).length() * (1.0 + v().x);
+            for eps in [0.01, 1.0, 100.0] {
+                assert!(!shared_far(eps, (c - xc).length(), radius, r));
+            }
+        }
     }
 }
