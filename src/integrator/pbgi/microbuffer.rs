@@ -71,7 +71,7 @@ impl Texels {
 }
 
 /// One node seen from the receiver.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, Default)]
 struct Fragment {
     texel: u32,
     depth: f32,
@@ -84,6 +84,9 @@ struct Fragment {
 #[derive(Default)]
 pub struct MicroBuffer {
     frags: Vec<Fragment>,
+    /// `frags` grouped by texel (a counting sort), and where each texel's group starts.
+    sorted: Vec<Fragment>,
+    start: Vec<u32>,
 }
 
 impl MicroBuffer {
@@ -159,24 +162,36 @@ impl MicroBuffer {
     /// Incident radiance per cube texel: fragments composited front to back, the rest
     /// of each texel seeing `background(texel)`.
     pub fn resolve(&mut self, texels: &Texels, background: impl Fn(usize) -> Vec3) -> Vec<Vec3> {
-        self.frags.sort_unstable_by(|a, b| {
-            (a.texel, a.depth, a.id)
-                .partial_cmp(&(b.texel, b.depth, b.id))
-                .expect("finite depths")
-        });
-        let mut out = vec![Vec3::ZERO; 6 * texels.n * texels.n];
-        let mut k = 0;
+        let count = 6 * texels.n * texels.n;
+        self.start.clear();
+        self.start.resize(count + 1, 0);
+        for f in &self.frags {
+            self.start[f.texel as usize + 1] += 1;
+        }
+        for t in 0..count {
+            self.start[t + 1] += self.start[t];
+        }
+        self.sorted.clear();
+        self.sorted.resize(
+            self.frags.len(),
+            self.frags.first().copied().unwrap_or_default(),
+        );
+        let mut next = self.start.clone();
+        for f in &self.frags {
+            let at = &mut next[f.texel as usize];
+            self.sorted[*at as usize] = *f;
+            *at += 1;
+        }
+        let mut out = vec![Vec3::ZERO; count];
         for &t in &texels.upper {
+            let group = &mut self.sorted
+                [self.start[t as usize] as usize..self.start[t as usize + 1] as usize];
+            group.sort_unstable_by(|a, b| a.depth.total_cmp(&b.depth).then(a.id.cmp(&b.id)));
             let (mut sum, mut open) = (Vec3::ZERO, 1.0f32);
-            while k < self.frags.len() && self.frags[k].texel < t {
-                k += 1;
-            }
-            while k < self.frags.len() && self.frags[k].texel == t {
-                let f = self.frags[k];
+            for f in group.iter() {
                 let take = f.coverage.min(open);
                 sum += f.radiance * take;
                 open -= take;
-                k += 1;
             }
             out[t as usize] = sum + background(t as usize) * open;
         }

@@ -142,6 +142,8 @@ struct Scratch {
     aimed: Vec<bool>,
     met: Vec<bool>,
     stack: Vec<(u32, u32)>,
+    /// The rays inside the cone of the leaf being rasterized.
+    in_cone: Vec<u32>,
 }
 
 thread_local! {
@@ -400,11 +402,15 @@ impl PbgiIntegrator {
             if members.iter().all(|m| (c - m.p).dot(m.n) < -r) {
                 continue;
             }
-            if !shared_far(self.settings.far, (c - xc.p).length(), radius, r) {
+            let d = (c - xc.p).length();
+            if radius > self.settings.far * d {
                 field.near.push((pid, i));
                 continue;
             }
-            if let Some(far) = self.far(&page, i, c, r, xc.p) {
+            if let Some(far) = self
+                .far(&page, i, c, r, xc.p)
+                .filter(|_| all_outside(d, radius, r))
+            {
                 scene.touched.insert(far.id);
                 field.far.push(far);
                 continue;
@@ -511,6 +517,15 @@ impl PbgiIntegrator {
             -1.0
         };
         let axis = v / d.max(f32::MIN_POSITIVE);
+        sc.in_cone.clear();
+        for (j, &(_, w)) in sc.rays.iter().enumerate() {
+            if w.dot(axis) >= cos_cone {
+                sc.in_cone.push(j as u32);
+            }
+        }
+        if sc.in_cone.is_empty() {
+            return;
+        }
         let (mut fragments, mut exact) = (0, 0);
         // Rays leave from just above x, as exact rays do, so x's neighbours on its own
         // surface (coplanar up to rounding) do not block its horizon.
@@ -526,11 +541,12 @@ impl PbgiIntegrator {
                 continue;
             }
             let slot = t - tris.start;
-            for (j, &(k, w)) in sc.rays.iter().enumerate() {
-                if w.dot(axis) < cos_cone {
-                    continue;
-                }
-                sc.aimed[j] = true;
+            for &j in &sc.in_cone {
+                sc.aimed[j as usize] = true;
+            }
+            for &j in &sc.in_cone {
+                let j = j as usize;
+                let (k, w) = sc.rays[j];
                 let Some((depth, b)) = intersect(o, w, p) else {
                     continue;
                 };
@@ -635,13 +651,12 @@ fn baked_light(
 }
 
 /// The bounding sphere of a node's decoded box.
-/// FPBGI's near/far test for a node of bounding radius r at distance d from the active
-/// receiver, the cluster's members lying within `radius` of it: far for all when
-/// radius ≤ ε·d (003 §3, as corrected in NOTES-002-003 B.2) and every member lies outside
-/// NEAR radii (d − radius > NEAR·r), so no member inside the node's box shares its splat
-/// whatever ε is.
-fn shared_far(eps: f32, d: f32, radius: f32, r: f32) -> bool {
-    radius <= eps * d && d - radius > NEAR * r
+/// Whether every member of a cluster (within `radius` of its active receiver) lies
+/// outside NEAR bounding radii r of a node at distance d from that receiver: only then
+/// may the cluster share the node's splat, so no member inside the node's box does,
+/// whatever `--cluster-far` is (003 §3's test R ≤ ε·d alone allows it when ε is large).
+fn all_outside(d: f32, radius: f32, r: f32) -> bool {
+    d - radius > NEAR * r
 }
 
 fn node_sphere(node: &TNode) -> (V, f32) {
@@ -819,8 +834,7 @@ mod tests {
     use super::*;
     use crate::test_rng::TestRng;
 
-    /// A receiver inside a node's box never shares that node's splat with its cluster,
-    /// however loose `--cluster-far` is.
+    /// A cluster with a member inside a node's box never shares that node's splat.
     #[test]
     fn a_receiver_inside_a_nodes_box_keeps_the_node_near() {
         let mut rng = TestRng::new(11);
@@ -831,9 +845,7 @@ mod tests {
             let inside = lo + size * v();
             let xc = v() * 20.0 - 10.0;
             let radius = (inside - xc).length() * (1.0 + v().x);
-            for eps in [0.01, 1.0, 100.0] {
-                assert!(!shared_far(eps, (c - xc).length(), radius, r));
-            }
+            assert!(!all_outside((c - xc).length(), radius, r));
         }
     }
 }
