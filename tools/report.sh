@@ -15,10 +15,10 @@ mkdir -p "$OUT"
 for scene in cbox bunny_box room room_glossy room_glass caustics; do
     $BIN --quiet convert "scenes/$scene.glb" -o "$OUT/$scene.canopy" > /dev/null
     $BIN --quiet eval "$OUT/$scene.canopy" --reference "scenes/refs/$scene.exr" \
-        --integrators path,cone --times "$TIMES" -o "$OUT/$scene"
+        --integrators path,cone,pbgi --times "$TIMES" -o "$OUT/$scene"
     rm -f "$OUT/$scene"/*.exr "$OUT/$scene"/eval_*.json
 done
-$BIN --quiet npp "$OUT/bunny_box.canopy" --resolutions 32,64,128,256 --noise 0.1 --spp 256 \
+$BIN --quiet npp "$OUT/bunny_box.canopy" --integrators path,cone,pbgi --resolutions 32,64,128,256 --noise 0.1 --spp 256 \
     -o "$OUT/bunny_box_npp"
 rm -f "$OUT"/*.canopy "$OUT/bunny_box_npp"/*.exr "$OUT/bunny_box_npp"/npp_*.json
 echo "report in $OUT"
