@@ -1,6 +1,7 @@
 //! Point-based GI (`--integrator pbgi`) against the path tracer on the same light paths.
 
 mod common;
+use canopy::image::Image;
 use common::*;
 
 /// PBGI's one bounce against the path tracer on the same light paths (camera → x → y →
@@ -12,36 +13,54 @@ fn one_bounce_mean_error(name: &str) -> f64 {
 
 /// PBGI with `extra` flags against the path tracer at `depth` in the same window.
 fn mean_error(name: &str, depth: u32, extra: &[&str]) -> f64 {
+    let (img, reference, stats) = pbgi_and_path(name, "0,32,8,32", depth, [8192, 16], extra);
+    assert!(stats["bake_samples"].as_u64().unwrap() > 0);
+    let (a, b) = (img.mean(), reference.mean());
+    (0..3)
+        .map(|c| (a[c] / b[c] - 1.0).abs())
+        .fold(0.0, f64::max)
+}
+
+/// PBGI (with `extra` flags) and the path tracer at `spp` = [path, PBGI], both at 32×32
+/// cropped to `crop` and at `--max-depth depth`: the images and PBGI's stats.
+fn pbgi_and_path(
+    name: &str,
+    crop: &str,
+    depth: u32,
+    spp: [u32; 2],
+    extra: &[&str],
+) -> (Image, Image, serde_json::Value) {
     let dir = tempfile::tempdir().unwrap();
     let arc = dir.path().join("a.canopy");
     convert(&scene(&format!("{name}.glb")), &arc, None);
-    let depth = depth.to_string();
+    let (depth, [path_spp, pbgi_spp]) = (depth.to_string(), spp.map(|n| n.to_string()));
     let window = [
         "--width",
         "32",
         "--height",
         "32",
         "--crop",
-        "0,32,8,32",
+        crop,
         "--max-depth",
         &depth,
     ];
     let (reference, _) = render(
         &arc,
         &dir.path().join("ref.exr"),
-        &[&window[..], &["--spp", "8192", "--seed", "3"]].concat(),
+        &[&window[..], &["--spp", &path_spp, "--seed", "3"]].concat(),
     );
     let (img, stats) = render(
         &arc,
         &dir.path().join("pbgi.exr"),
-        &[&window[..], &["--integrator", "pbgi", "--spp", "16"], extra].concat(),
+        &[
+            &window[..],
+            &["--integrator", "pbgi", "--spp", &pbgi_spp],
+            extra,
+        ]
+        .concat(),
     );
     assert!(all_finite(&img), "{name}: a pixel is NaN or negative");
-    assert!(stats["bake_samples"].as_u64().unwrap() > 0);
-    let (a, b) = (img.mean(), reference.mean());
-    (0..3)
-        .map(|c| (a[c] / b[c] - 1.0).abs())
-        .fold(0.0, f64::max)
+    (img, reference, stats)
 }
 
 /// `--bounces 2` bakes the cloud's light gathered again at every patch (000 Alg. 1), so
@@ -194,29 +213,6 @@ fn receiver_clusters_of_one_equal_pbgi_and_larger_ones_share_far_splats() {
 /// on the ball PBGI must be the path tracer, within noise.
 #[test]
 fn a_mirror_is_followed_exactly() {
-    let dir = tempfile::tempdir().unwrap();
-    let arc = dir.path().join("a.canopy");
-    convert(&scene("caustics.glb"), &arc, None);
-    let window = [
-        "--width",
-        "32",
-        "--height",
-        "32",
-        "--crop",
-        "20,28,10,19",
-        "--max-depth",
-        "2",
-    ];
-    let (reference, _) = render(
-        &arc,
-        &dir.path().join("ref.exr"),
-        &[&window[..], &["--spp", "4096", "--seed", "3"]].concat(),
-    );
-    let (img, _) = render(
-        &arc,
-        &dir.path().join("pbgi.exr"),
-        &[&window[..], &["--integrator", "pbgi", "--spp", "1024"]].concat(),
-    );
-    assert!(all_finite(&img));
+    let (img, reference, _) = pbgi_and_path("caustics", "20,28,10,19", 2, [4096, 1024], &[]);
     assert_mean_within_noise(&img, &reference, "mirror ball");
 }
