@@ -90,9 +90,10 @@ pub struct BakeSettings {
     #[arg(long = "patch-size", default_value_t = 0.01, value_parser = parse_patch_size)]
     pub patch_size: f32,
     /// Bounces of light the cloud carries (000 Alg. 1): 1 is direct light reflected once;
-    /// each further bounce gathers the previous bake's cloud at every patch, as PBGI's
-    /// receivers do (a 8² micro-buffer, the cut at one texel), and bakes again. PBGI then
-    /// stands for the path tracer at `--max-depth` 2 + N.
+    /// each further bounce bakes again, adding what the previous bake's cloud sends to one
+    /// point of every triangle (of every level-3 patch of a large one), gathered as PBGI's
+    /// receivers do with its default cut and micro-buffer. Each costs about a render of
+    /// one sample per triangle. PBGI then stands for the path tracer at `--max-depth` 2 + N.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=16))]
     pub bounces: u32,
 }
