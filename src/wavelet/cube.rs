@@ -44,6 +44,11 @@ pub fn face_st(d: Vec3) -> (usize, f32, f32) {
 /// Texel index (face·n² + y·n + x) of a direction.
 pub fn texel_of(d: Vec3, n: usize) -> usize {
     let (face, s, t) = face_st(d);
+    texel_at(face, s, t, n)
+}
+
+/// Texel index of the point (s, t) of a face, as [`face_st`] gives it.
+pub fn texel_at(face: usize, s: f32, t: f32, n: usize) -> usize {
     let cell = |c: f32| (((c + 1.0) * 0.5 * n as f32) as usize).min(n - 1);
     face * n * n + cell(t) * n + cell(s)
 }

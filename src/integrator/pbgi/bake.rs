@@ -174,10 +174,11 @@ fn bake_bounces(
     progress: &dyn Fn(u64),
 ) -> Result<u64> {
     let archive = &scene.cache.archive;
-    let gatherer = super::PbgiIntegrator::new(&super::PbgiSettings::default(), p.seed);
+    let gatherer = (p.bounces > 1)
+        .then(|| super::PbgiIntegrator::new(&super::PbgiSettings::default(), p.seed));
     let mut samples = 0;
     for b in 1..=p.bounces {
-        let gather = (b > 1).then_some(&gatherer);
+        let gather = gatherer.as_ref().filter(|_| b > 1);
         if b == p.bounces {
             samples += bake(scene, p, last, progress, gather)?;
             break;

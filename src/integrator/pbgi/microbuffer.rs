@@ -84,9 +84,11 @@ struct Fragment {
 #[derive(Default)]
 pub struct MicroBuffer {
     frags: Vec<Fragment>,
-    /// `frags` grouped by texel (a counting sort), and where each texel's group starts.
+    /// `frags` grouped by texel (a counting sort), where each texel's group starts, and
+    /// the sort's write position per texel.
     sorted: Vec<Fragment>,
     start: Vec<u32>,
+    cursor: Vec<u32>,
 }
 
 impl MicroBuffer {
@@ -116,7 +118,7 @@ impl MicroBuffer {
         let h = 2.0 / n as f32;
         // Sized in texels of the one under its centre, so a node of a texel's solid
         // angle aimed at its centre fills that texel exactly.
-        let centre = texels.solid_angle[cube::texel_of(dir, n)];
+        let centre = texels.solid_angle[cube::texel_at(face, s, t, n)];
         let side = (h * (solid_angle / centre).sqrt()).min(2.0);
         let span = |c: f32| {
             let lo = (c - 0.5 * side).clamp(-1.0, 1.0 - side);
@@ -176,9 +178,10 @@ impl MicroBuffer {
             self.frags.len(),
             self.frags.first().copied().unwrap_or_default(),
         );
-        let mut next = self.start.clone();
+        self.cursor.clear();
+        self.cursor.extend_from_slice(&self.start);
         for f in &self.frags {
-            let at = &mut next[f.texel as usize];
+            let at = &mut self.cursor[f.texel as usize];
             self.sorted[*at as usize] = *f;
             *at += 1;
         }

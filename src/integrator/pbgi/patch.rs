@@ -70,13 +70,16 @@ mod tests {
     use super::*;
     use canopy_format::radiance::pyramid_len;
 
+    /// A scalene triangle, not in a coordinate plane.
+    const TRIANGLE: [V; 3] = [
+        V::new(0.0, 0.0, 0.0),
+        V::new(4.0, 0.0, 1.0),
+        V::new(1.0, 3.0, 0.0),
+    ];
+
     #[test]
     fn patches_tile_their_triangle_and_keep_its_winding() {
-        let t = [
-            V::new(0.0, 0.0, 0.0),
-            V::new(4.0, 0.0, 1.0),
-            V::new(1.0, 3.0, 0.0),
-        ];
+        let t = TRIANGLE;
         let normal = (t[1] - t[0]).cross(t[2] - t[0]);
         for j in 0..=3 {
             let mut area = 0.0;
@@ -100,11 +103,7 @@ mod tests {
 
     #[test]
     fn locate_finds_the_patch_that_holds_a_point() {
-        let t = [
-            V::new(0.0, 0.0, 0.0),
-            V::new(4.0, 0.0, 1.0),
-            V::new(1.0, 3.0, 0.0),
-        ];
+        let t = TRIANGLE;
         let mut rng = crate::test_rng::TestRng::new(3);
         for _ in 0..200 {
             let (mut u, mut v) = (rng.f32(), rng.f32());
