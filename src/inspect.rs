@@ -51,9 +51,12 @@ pub struct RadianceSummary {
     pub decoded_bytes: u64,
     pub record_bytes_per_node: u32,
     pub bytes_per_node_on_disk: f64,
-    /// Wavelet coefficients (glossy nodes): none yet, every node stores one record.
+    /// Glossy light's Haar coefficients (decoded bytes), over the file and per node;
+    /// `wavelet_resolution` 0 when the bake stored none.
     pub coefficient_bytes: u64,
     pub coefficient_bytes_per_node: f64,
+    pub wavelet_resolution: u32,
+    pub wavelet_threshold: f32,
 }
 
 /// What a radiance file holds; with `verify`, every block is decoded and its values checked.
@@ -76,6 +79,8 @@ pub fn radiance(r: &RadianceFile, verify: bool) -> Result<RadianceSummary> {
         bytes_per_node_on_disk: h.file_len as f64 / nodes,
         coefficient_bytes: h.coef_bytes,
         coefficient_bytes_per_node: h.coef_bytes as f64 / nodes,
+        wavelet_resolution: h.wavelet_n,
+        wavelet_threshold: h.wavelet_threshold,
     })
 }
 
@@ -231,11 +236,18 @@ impl std::fmt::Display for Summary {
                 mib(r.decoded_bytes),
                 r.record_bytes_per_node
             )?;
-            writeln!(
-                f,
-                "  coefficients        {} bytes ({:.1} per node)",
-                r.coefficient_bytes, r.coefficient_bytes_per_node
-            )?;
+            if r.wavelet_resolution == 0 {
+                writeln!(f, "  coefficients        none (no glossy light stored)")?;
+            } else {
+                writeln!(
+                    f,
+                    "  coefficients        {} bytes ({:.1} per node), cube maps of {}² texels a face, threshold {}",
+                    r.coefficient_bytes,
+                    r.coefficient_bytes_per_node,
+                    r.wavelet_resolution,
+                    r.wavelet_threshold
+                )?;
+            }
         }
         Ok(())
     }

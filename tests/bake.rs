@@ -70,6 +70,47 @@ fn baked_light_pages_with_the_nodes_under_a_budget() {
     assert_eq!(rmse(&free, &tight), 0.0);
 }
 
+/// Glossy light (room_glossy's metal bunnies and silver plinth) rides in the file as Haar
+/// coefficients: `inspect` counts them, a render reading the file makes the in-process
+/// image, and under a budget that evicts pages the image does not change.
+#[test]
+fn glossy_coefficients_round_trip_through_the_file_and_the_budget() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("g.canopy");
+    convert(&scene("room_glossy.glb"), &arc, None);
+    let rad = dir.path().join("g.radiance");
+    bake(&arc, &rad, &["--wavelet-resolution", "4"]);
+    let info: serde_json::Value = serde_json::from_str(&ok(&[
+        "inspect",
+        s(&arc),
+        "--radiance",
+        s(&rad),
+        "--verify",
+        "--json",
+    ]))
+    .unwrap();
+    let r = &info["radiance"];
+    assert_eq!(r["wavelet_resolution"], 4, "{r}");
+    assert!(r["coefficient_bytes"].as_u64().unwrap() > 0, "{r}");
+
+    let pbgi = [&SMALL[..], &["--integrator", "pbgi"]].concat();
+    let (own, _) = render(
+        &arc,
+        &dir.path().join("own.exr"),
+        &[&pbgi[..], &["--wavelet-resolution", "4"]].concat(),
+    );
+    let read = [&pbgi[..], &["--radiance", s(&rad)]].concat();
+    let (free, _) = render(&arc, &dir.path().join("free.exr"), &read);
+    assert_eq!(rmse(&own, &free), 0.0);
+    let (tight, stats) = render(
+        &arc,
+        &dir.path().join("tight.exr"),
+        &[&read[..], &["--mem-budget", "40MiB", "--threads", "1"]].concat(),
+    );
+    assert!(stats["pages_evicted"].as_u64().unwrap() > 0, "{stats}");
+    assert_eq!(rmse(&free, &tight), 0.0);
+}
+
 #[test]
 fn a_bake_is_refused_with_another_archive() {
     let dir = tempfile::tempdir().unwrap();

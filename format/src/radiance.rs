@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 
 pub const RADIANCE_MAGIC: [u8; 8] = *b"CNPYRAD\x1a";
 pub const RADIANCE_VERSION_MAJOR: u16 = 1;
-pub const RADIANCE_VERSION_MINOR: u16 = 0;
+pub const RADIANCE_VERSION_MINOR: u16 = 1;
 
 /// What a node shows along each cube axis (+x, −x, +y, −y, +z, −z): projected area and
 /// reflected power (radiance times projected area) over its triangles.
@@ -35,6 +35,46 @@ pub fn pyramid_len(k: u32) -> u32 {
     ((1u32 << (2 * k + 2)) - 1) / 3
 }
 
+/// A node's stored coefficient vector (16 bytes): an average G or a detail D (000 §3.1),
+/// its values `values[first..first + count]`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct CoefRecord {
+    pub node: u32,
+    pub kind: u32,
+    pub first: u32,
+    pub count: u32,
+}
+
+impl CoefRecord {
+    pub const AVERAGE: u32 = 0;
+    pub const DETAIL: u32 = 1;
+}
+
+/// One Haar coefficient (16 bytes): its index in the node's vector (face·n² + Haar
+/// layout index) and its RGB value.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+pub struct CoefValue {
+    pub index: u32,
+    pub rgb: [f32; 3],
+}
+
+/// A page's wavelet coefficients (empty unless the bake stored glossy light).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct CoefBlock {
+    /// By node, ascending.
+    pub records: Vec<CoefRecord>,
+    pub values: Vec<CoefValue>,
+}
+
+impl CoefBlock {
+    /// Bytes in a block: two counts, then the records and the values.
+    pub fn bytes(&self) -> u64 {
+        8 + 16 * (self.records.len() + self.values.len()) as u64
+    }
+}
+
 /// One page's baked light.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct BakedBlock {
@@ -47,6 +87,8 @@ pub struct BakedBlock {
     /// holding its 4^j midpoint-split patches by index (children of patch i are
     /// 4i..4i+3 of the next level).
     pub patches: Vec<[f32; 3]>,
+    /// Glossy light, when the file has coefficients (`RadianceHeader::wavelet_n` > 0).
+    pub coefs: CoefBlock,
 }
 
 impl BakedBlock {
@@ -59,6 +101,7 @@ impl BakedBlock {
 
     pub fn bytes(&self) -> u64 {
         (self.nodes.len() * 96 + self.patch_of.len() * 4 + self.patches.len() * 12) as u64
+            + self.coefs.bytes()
     }
 }
 
@@ -84,11 +127,15 @@ pub struct RadianceHeader {
     pub blocks_offset: u64,
     /// xxh3-64 of the block table.
     pub blocks_checksum: u64,
-    /// Bytes of wavelet coefficients (0 in version 1.0).
+    /// Bytes of the blocks' coefficient sections, decompressed (0 without coefficients).
     pub coef_bytes: u64,
     /// xxh3-64 of this header with this field zeroed.
     pub header_checksum: u64,
-    pub reserved: [u8; 24],
+    /// Texels per cube-face side of the glossy radiance maps; 0: no coefficients (1.1).
+    pub wavelet_n: u32,
+    /// The truncation threshold, relative per page (1.1).
+    pub wavelet_threshold: f32,
+    pub reserved: [u8; 16],
 }
 
 const _: () = assert!(std::mem::size_of::<RadianceHeader>() == 128);
@@ -116,6 +163,9 @@ pub struct BakeInfo {
     pub seed: u32,
     /// Finest patch side as a fraction of the scene's diagonal.
     pub patch_size: f32,
+    /// Texels per cube-face side of glossy radiance (0: none) and the relative threshold.
+    pub wavelet_n: u32,
+    pub wavelet_threshold: f32,
 }
 
 /// Writes a radiance file block by block, in any page order; like the archive writer it
@@ -166,7 +216,9 @@ impl RadianceWriter {
             blocks_checksum: 0,
             coef_bytes: 0,
             header_checksum: 0,
-            reserved: [0; 24],
+            wavelet_n: info.wavelet_n,
+            wavelet_threshold: info.wavelet_threshold,
+            reserved: [0; 16],
         };
         let blocks = archive
             .pages
@@ -196,14 +248,16 @@ impl RadianceWriter {
     /// Appends page `page`'s block.
     pub fn push(&mut self, page: u32, block: &BakedBlock) -> Result<()> {
         let i = page as usize;
+        let coefs_fit = self.header.wavelet_n > 0 || block.coefs == CoefBlock::default();
         match (self.blocks.get(i), self.tri_counts.get(i)) {
             (Some(b), Some(&t))
                 if b.node_count as usize == block.nodes.len()
                     && t as usize == block.patch_of.len()
+                    && coefs_fit
                     && !self.written[i] => {}
             _ => {
                 return Err(self.misuse(format!(
-                    "block for page {page} ({} nodes, {} triangles) does not fit the archive or was written twice",
+                    "block for page {page} ({} nodes, {} triangles) does not fit the archive or the file, or was written twice",
                     block.nodes.len(),
                     block.patch_of.len()
                 )))
@@ -213,6 +267,14 @@ impl RadianceWriter {
         raw.extend_from_slice(bytemuck::cast_slice(&block.nodes));
         raw.extend_from_slice(bytemuck::cast_slice(&block.patch_of));
         raw.extend_from_slice(bytemuck::cast_slice(&block.patches));
+        if self.header.wavelet_n > 0 {
+            let c = &block.coefs;
+            raw.extend_from_slice(&(c.records.len() as u32).to_le_bytes());
+            raw.extend_from_slice(&(c.values.len() as u32).to_le_bytes());
+            raw.extend_from_slice(bytemuck::cast_slice(&c.records));
+            raw.extend_from_slice(bytemuck::cast_slice(&c.values));
+            self.header.coef_bytes += c.bytes();
+        }
         let packed = zstd::bulk::compress(&raw, 3).map_err(io(&self.path))?;
         self.blocks[i] = BlockEntry {
             offset: self.out.len(),
@@ -332,14 +394,22 @@ impl RadianceFile {
         }
         let blocks = read_blocks(&file, &h).map_err(bad)?;
         let mut packed = Vec::new();
+        let mut coef_bytes = 0;
         for (i, (b, p)) in blocks.iter().zip(&archive.pages).enumerate() {
-            check_block(b, h.blocks_offset, p).map_err(|what| bad(format!("block {i}: {what}")))?;
+            coef_bytes += check_block(b, h.blocks_offset, p, h.wavelet_n > 0)
+                .map_err(|what| bad(format!("block {i}: {what}")))?;
             packed.resize(b.compressed_len as usize, 0);
             if read_at(&file, &mut packed, b.offset, len) < packed.len()
                 || xxhash_rust::xxh3::xxh3_64(&packed) != b.checksum
             {
                 return Err(bad(format!("block {i}: checksum mismatch")));
             }
+        }
+        if coef_bytes != h.coef_bytes {
+            return Err(bad(format!(
+                "the blocks hold {coef_bytes} coefficient bytes, the header says {}",
+                h.coef_bytes
+            )));
         }
         Ok(RadianceFile {
             path: path.to_path_buf(),
@@ -387,13 +457,16 @@ impl RadianceFile {
             Err(e) => return Err(bad(format!("does not decompress: {e}"))),
         }
         let (nodes, rest) = raw.split_at(b.node_count as usize * 96);
-        let (patch_of, patches) = rest.split_at(tris * 4);
+        let (patch_of, rest) = rest.split_at(tris * 4);
+        let (patches, coefs) = rest.split_at(b.patch_count as usize * 12);
         let block = BakedBlock {
             nodes: bytemuck::pod_collect_to_vec(nodes),
             patch_of: bytemuck::pod_collect_to_vec(patch_of),
             patches: bytemuck::pod_collect_to_vec(patches),
+            coefs: read_coefs(coefs).map_err(&bad)?,
         };
-        check_values(&block).map_err(bad)?;
+        check_values(&block).map_err(&bad)?;
+        check_coefs(&block, self.header.wavelet_n).map_err(bad)?;
         Ok(block)
     }
 }
@@ -422,6 +495,72 @@ fn check_values(b: &BakedBlock) -> std::result::Result<(), String> {
     Ok(())
 }
 
+/// A block's coefficient section: two counts, records, values; empty when absent.
+fn read_coefs(raw: &[u8]) -> std::result::Result<CoefBlock, String> {
+    if raw.is_empty() {
+        return Ok(CoefBlock::default());
+    }
+    let count = |at: usize| u32::from_le_bytes(raw[at..at + 4].try_into().unwrap()) as u64;
+    let (r, v) = (count(0), count(4));
+    if 8 + 16 * (r + v) != raw.len() as u64 {
+        return Err(format!(
+            "{r} coefficient records and {v} values do not fill the {} bytes after the patches",
+            raw.len()
+        ));
+    }
+    let (records, values) = raw[8..].split_at(16 * r as usize);
+    Ok(CoefBlock {
+        records: bytemuck::pod_collect_to_vec(records),
+        values: bytemuck::pod_collect_to_vec(values),
+    })
+}
+
+/// Records by ascending node inside the page, each a known kind with its values next in
+/// line; indices ascending inside the 6·n² of a vector; values finite.
+fn check_coefs(b: &BakedBlock, n: u32) -> std::result::Result<(), String> {
+    let c = &b.coefs;
+    let texels = 6 * n * n;
+    let mut next = 0u64;
+    let mut last_node = None;
+    for (k, r) in c.records.iter().enumerate() {
+        let fits = (r.node as usize) < b.nodes.len()
+            && last_node.is_none_or(|l| r.node > l)
+            && r.kind <= CoefRecord::DETAIL
+            && r.count > 0
+            && r.first as u64 == next;
+        if !fits {
+            return Err(format!(
+                "coefficient record {k} (node {}, kind {}, values {}+{}) out of order or place",
+                r.node, r.kind, r.first, r.count
+            ));
+        }
+        next += r.count as u64;
+        let Some(vals) = c.values.get(r.first as usize..next as usize) else {
+            return Err(format!(
+                "coefficient record {k}: values past the {} stored",
+                c.values.len()
+            ));
+        };
+        if !vals.windows(2).all(|w| w[0].index < w[1].index)
+            || vals
+                .iter()
+                .any(|v| v.index >= texels || !v.rgb.iter().all(|x| x.is_finite()))
+        {
+            return Err(format!(
+                "coefficient record {k}: indices not ascending below {texels} or a non-finite value"
+            ));
+        }
+        last_node = Some(r.node);
+    }
+    if next != c.values.len() as u64 {
+        return Err(format!(
+            "{} coefficient values, the records use {next}",
+            c.values.len()
+        ));
+    }
+    Ok(())
+}
+
 /// Reads up to `buf.len()` bytes at `offset` of a file `len` long; returns how many.
 fn read_at(file: &File, buf: &mut [u8], offset: u64, len: u64) -> usize {
     use std::os::unix::fs::FileExt;
@@ -443,8 +582,20 @@ fn check_header(h: &RadianceHeader) -> std::result::Result<(), String> {
     if !(h.patch_size.is_finite() && h.patch_size > 0.0) {
         return Err(format!("patch size {}", h.patch_size));
     }
-    if h.coef_bytes != 0 || h.reserved != [0; 24] {
-        return Err("coefficient bytes or reserved bytes set (version 1.0 has none)".into());
+    if h.reserved != [0; 16] {
+        return Err("reserved bytes set".into());
+    }
+    if h.wavelet_n == 0 && (h.coef_bytes != 0 || h.wavelet_threshold != 0.0) {
+        return Err("coefficients without a cube-map resolution".into());
+    }
+    if h.wavelet_n != 0 && !(h.wavelet_n.is_power_of_two() && h.wavelet_n <= 64) {
+        return Err(format!(
+            "cube-map resolution {}, not a power of two up to 64",
+            h.wavelet_n
+        ));
+    }
+    if !(h.wavelet_threshold.is_finite() && h.wavelet_threshold >= 0.0) {
+        return Err(format!("wavelet threshold {}", h.wavelet_threshold));
     }
     if h.blocks_offset < 128 || h.blocks_offset.checked_add(table) != Some(h.file_len) {
         return Err(format!(
@@ -467,7 +618,13 @@ fn read_blocks(file: &File, h: &RadianceHeader) -> std::result::Result<Vec<Block
     Ok(blocks)
 }
 
-fn check_block(b: &BlockEntry, end: u64, page: &PageEntry) -> std::result::Result<(), String> {
+/// Checks an entry against its archive page; returns its coefficient section's bytes.
+fn check_block(
+    b: &BlockEntry,
+    end: u64,
+    page: &PageEntry,
+    coefs: bool,
+) -> std::result::Result<u64, String> {
     let nodes = page.node_count;
     if b.node_count != nodes {
         return Err(format!(
@@ -475,8 +632,13 @@ fn check_block(b: &BlockEntry, end: u64, page: &PageEntry) -> std::result::Resul
             b.node_count
         ));
     }
-    let raw = nodes as u64 * 96 + page.tri_count as u64 * 4 + b.patch_count as u64 * 12;
-    if b.raw_len as u64 != raw {
+    let fixed = nodes as u64 * 96 + page.tri_count as u64 * 4 + b.patch_count as u64 * 12;
+    let extra = (b.raw_len as u64).wrapping_sub(fixed);
+    let fits = match coefs {
+        false => extra == 0,
+        true => b.raw_len as u64 >= fixed + 8 && (extra - 8).is_multiple_of(16),
+    };
+    if !fits {
         return Err(format!(
             "raw length {} for {nodes} nodes, {} triangles and {} patches",
             b.raw_len, page.tri_count, b.patch_count
@@ -489,5 +651,71 @@ fn check_block(b: &BlockEntry, end: u64, page: &PageEntry) -> std::result::Resul
             b.offset + b.compressed_len as u64
         ));
     }
-    Ok(())
+    Ok(extra)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn block() -> BakedBlock {
+        let value = |index| CoefValue {
+            index,
+            rgb: [1.0, -2.0, 0.5],
+        };
+        BakedBlock {
+            nodes: vec![BakedNode::default(); 3],
+            patch_of: Vec::new(),
+            patches: Vec::new(),
+            coefs: CoefBlock {
+                records: vec![
+                    CoefRecord {
+                        node: 0,
+                        kind: CoefRecord::AVERAGE,
+                        first: 0,
+                        count: 2,
+                    },
+                    CoefRecord {
+                        node: 2,
+                        kind: CoefRecord::DETAIL,
+                        first: 2,
+                        count: 1,
+                    },
+                ],
+                values: vec![value(0), value(5), value(23)],
+            },
+        }
+    }
+
+    /// A coefficient section reads back as written; each way a record can lie about its
+    /// node, kind, values or indices is refused.
+    #[test]
+    fn coefficient_sections_round_trip_and_bad_records_are_refused() {
+        let good = block();
+        let c = &good.coefs;
+        let mut raw = Vec::new();
+        raw.extend_from_slice(&(c.records.len() as u32).to_le_bytes());
+        raw.extend_from_slice(&(c.values.len() as u32).to_le_bytes());
+        raw.extend_from_slice(bytemuck::cast_slice(&c.records));
+        raw.extend_from_slice(bytemuck::cast_slice(&c.values));
+        assert_eq!(raw.len() as u64, c.bytes());
+        assert_eq!(&read_coefs(&raw).unwrap(), c);
+        assert!(read_coefs(&raw[..raw.len() - 1]).is_err());
+        assert!(check_coefs(&good, 2).is_ok());
+        assert!(check_coefs(&good, 1).is_err(), "index 23 needs 6·2² texels");
+        let bad: [&dyn Fn(&mut CoefBlock); 7] = [
+            &|c| c.records[1].node = 0,
+            &|c| c.records[1].node = 3,
+            &|c| c.records[0].kind = 2,
+            &|c| c.records[1].first = 1,
+            &|c| c.records[1].count = 2,
+            &|c| c.values.swap(0, 1),
+            &|c| c.values[2].rgb[1] = f32::NAN,
+        ];
+        for (k, spoil) in bad.iter().enumerate() {
+            let mut b = good.clone();
+            spoil(&mut b.coefs);
+            assert!(check_coefs(&b, 2).is_err(), "spoiled record {k} accepted");
+        }
+    }
 }

@@ -15,6 +15,8 @@
 //! A radiance file (`canopy bake`) can be attached: each page then also carries its block
 //! of baked node light, loaded, counted against the budget and evicted with it.
 
+pub mod coefs;
+
 use anyhow::{bail, Result};
 use canopy_format::radiance::{BakedBlock, RadianceFile};
 use canopy_format::{Archive, Node, NodeFlags, Tri};
@@ -112,6 +114,9 @@ pub struct Page {
     pub shading: Vec<[u32; 3]>,
     /// The page's baked light (empty unless a radiance file is attached).
     pub baked: BakedBlock,
+    /// Per node, its glossy light decoded from `baked.coefs` (empty unless the bake
+    /// stored glossy light).
+    pub glossy: coefs::GlossyTexels,
     pub bytes: u64,
 }
 
@@ -174,6 +179,7 @@ impl Page {
             tris,
             shading,
             baked: BakedBlock::default(),
+            glossy: coefs::GlossyTexels::default(),
             bytes,
         })
     }
@@ -182,6 +188,13 @@ impl Page {
     pub fn with_baked(mut self, r: &RadianceFile) -> Result<Page> {
         self.baked = r.read_block(self.id)?;
         self.bytes += self.baked.bytes();
+        let n = r.header.wavelet_n as usize;
+        let glossy = coefs::decode(&self.bvh, self.roots, &self.baked, n)
+            .map_err(|e| anyhow::anyhow!("{}: block {}: {e}", r.path().display(), self.id))?;
+        if let Some(g) = glossy {
+            self.bytes += g.bytes();
+            self.glossy = g;
+        }
         Ok(self)
     }
 
@@ -195,6 +208,7 @@ impl Page {
             tris: Vec::new(),
             shading: Vec::new(),
             baked: BakedBlock::default(),
+            glossy: coefs::GlossyTexels::default(),
             bytes: 0,
         }
     }

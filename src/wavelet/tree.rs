@@ -198,6 +198,66 @@ impl<T: Coef> Coded<T> {
     pub fn depth(&self, node: usize) -> u32 {
         self.depth[node]
     }
+
+    /// What node keeps: its average G (depth ≤ m) or its detail D (deeper, not implied);
+    /// None when it keeps nothing.
+    pub fn stored(&self, node: usize) -> Option<(Kept, &SparseVec<T>)> {
+        match (&self.avg[node], &self.delta[node]) {
+            (Some(g), _) => Some((Kept::Average, g)),
+            (None, Some(d)) => Some((Kept::Detail, d)),
+            _ => None,
+        }
+    }
+}
+
+/// The two things a node can keep.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Kept {
+    Average,
+    Detail,
+}
+
+/// Every node's vector, parents before children, from what each node kept
+/// ([`Coded::stored`]): the reader's side of [`encode`], with the same bootstrap level m.
+/// Fails when a node kept something its place in the tree rules out.
+pub fn decode_all<T: Coef>(
+    shape: &Shape,
+    m: u32,
+    kept: &dyn Fn(usize) -> Option<(Kept, SparseVec<T>)>,
+) -> Result<Vec<SparseVec<T>>, String> {
+    let mut g = vec![SparseVec(Vec::new()); shape.children.len()];
+    let mut stack = vec![(shape.root, 0u32)];
+    let expect = |node: usize, want: Option<Kept>| match kept(node) {
+        None => Ok(SparseVec(Vec::new())),
+        Some((k, v)) if Some(k) == want => Ok(v),
+        Some((k, _)) => Err(format!(
+            "node {node} keeps {k:?} where it may keep {want:?}"
+        )),
+    };
+    g[shape.root] = expect(shape.root, Some(Kept::Average))?;
+    while let Some((node, depth)) = stack.pop() {
+        let kids = &shape.children[node];
+        if kids.is_empty() {
+            continue;
+        }
+        if depth < m {
+            for &c in kids {
+                g[c] = expect(c, Some(Kept::Average))?;
+            }
+        } else {
+            let heaviest = heaviest_child(kids, shape.weight);
+            let mut implied = SparseVec(Vec::new());
+            for &c in kids.iter().filter(|&&c| c != heaviest) {
+                let d = expect(c, Some(Kept::Detail))?;
+                implied = implied.add_scaled(&d, -shape.weight[c] / shape.weight[heaviest]);
+                g[c] = g[node].add_scaled(&d, 1.0);
+            }
+            expect(heaviest, None)?;
+            g[heaviest] = g[node].add_scaled(&implied, 1.0);
+        }
+        stack.extend(kids.iter().map(|&c| (c, depth + 1)));
+    }
+    Ok(g)
 }
 
 #[cfg(test)]
@@ -306,6 +366,19 @@ mod tests {
                 let got = c.vector(node);
                 for (i, x) in want.iter().enumerate() {
                     prop_assert!((got.get(i as u32) as f64 - x).abs() < 1e-4, "node {node} coef {i}");
+                }
+            }
+        }
+
+        #[test]
+        fn decoding_what_each_node_keeps_gives_every_vector((children, w, vals) in random_tree(), m in 0u32..6, t in 0.0f32..1.0) {
+            let c = code(&children, &w, &vals, m, t);
+            let shape = Shape { children: &children, weight: &w, root: 0 };
+            let all = decode_all(&shape, m, &|i| c.stored(i).map(|(k, v)| (k, v.clone()))).unwrap();
+            for (node, got) in all.iter().enumerate() {
+                let want = c.vector(node);
+                for i in 0..24 {
+                    prop_assert!((got.get(i) - want.get(i)).abs() < 1e-4, "node {node} coef {i}");
                 }
             }
         }

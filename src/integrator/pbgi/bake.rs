@@ -12,11 +12,13 @@
 //! mean light every way, covering A·Θ/d² (004 eq. 4.4), overstated the bunny's indirect
 //! light on bunny_box by half (README).
 
+use super::glossy::{self, GlossyMaps, WaveletMode};
 use super::patch;
 use crate::integrator::{sample_light, Receiver, Scene};
 use crate::paging::{deepest_first, NodeRef, Page};
 use crate::trace::{gamma, Cone, Tracer};
-use anyhow::Result;
+use crate::wavelet::tree::SparseVec;
+use anyhow::{bail, Result};
 use canopy_format::radiance::{BakeInfo, BakedBlock, BakedNode, RadianceFile, RadianceWriter};
 use glam::Vec3A as V;
 use rayon::prelude::*;
@@ -96,6 +98,26 @@ pub struct BakeSettings {
     /// one sample per triangle. PBGI then stands for the path tracer at `--max-depth` 2 + N.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=16))]
     pub bounces: u32,
+    /// Glossy light as Haar wavelets (000 §3.1): nodes of rough metal or rough dielectric
+    /// surfaces also store what their specular lobes reflect, per direction, on a cube map
+    /// coded along the tree. `auto`: when some material is glossy.
+    #[arg(long, value_enum, default_value_t = WaveletMode::Auto)]
+    pub wavelet: WaveletMode,
+    /// Texels per cube-face side of those maps (a power of two up to 32): finer follows
+    /// narrower lobes and costs more bake time and bytes.
+    #[arg(long = "wavelet-resolution", default_value_t = 8, value_parser = parse_wavelet_resolution)]
+    pub wavelet_resolution: usize,
+    /// Coefficients below this fraction of the largest of their page's roots are dropped
+    /// (0 keeps every one).
+    #[arg(long = "wavelet-threshold", default_value_t = 0.01, value_parser = crate::units::parse_non_negative)]
+    pub wavelet_threshold: f32,
+}
+
+fn parse_wavelet_resolution(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(n) if n.is_power_of_two() && n <= 32 => Ok(n),
+        _ => Err(format!("{s:?}: a power of two from 1 to 32")),
+    }
 }
 
 fn parse_patch_size(s: &str) -> Result<f32, String> {
@@ -112,6 +134,9 @@ impl BakeSettings {
             seed,
             patch_size: self.patch_size,
             bounces: self.bounces,
+            wavelet: self.wavelet,
+            wavelet_n: self.wavelet_resolution,
+            wavelet_threshold: self.wavelet_threshold,
         }
     }
 }
@@ -125,16 +150,36 @@ pub struct BakeParams {
     /// Finest patch side as a fraction of the scene's diagonal.
     pub patch_size: f32,
     pub bounces: u32,
+    pub wavelet: WaveletMode,
+    pub wavelet_n: usize,
+    pub wavelet_threshold: f32,
 }
 
 impl BakeParams {
-    fn info(&self, bounces: u32) -> BakeInfo {
+    fn info(&self, bounces: u32, maps: Option<&GlossyMaps>) -> BakeInfo {
         BakeInfo {
             bounces,
             samples_per_triangle: self.samples,
             seed: self.seed,
             patch_size: self.patch_size,
+            wavelet_n: maps.map_or(0, |m| m.n as u32),
+            wavelet_threshold: maps.map_or(0.0, |m| m.threshold),
         }
+    }
+
+    /// The glossy maps this scene gets under `--wavelet`.
+    fn maps(&self, scene: &Scene) -> Result<Option<GlossyMaps>> {
+        let glossy = scene.materials.iter().any(glossy::stores_glossy);
+        let on = match self.wavelet {
+            WaveletMode::Off => false,
+            WaveletMode::Auto => glossy,
+            WaveletMode::On if !glossy => bail!(
+                "--wavelet on: no material of {} is a rough metal or rough dielectric, so there is no glossy light to store",
+                scene.cache.archive.path().display()
+            ),
+            WaveletMode::On => true,
+        };
+        Ok(on.then(|| GlossyMaps::new(self.wavelet_n, self.wavelet_threshold)))
     }
 }
 
@@ -147,8 +192,9 @@ pub fn bake_file(
     progress: &dyn Fn(u64),
 ) -> Result<(u64, u64)> {
     let archive = &scene.cache.archive;
-    let mut out = RadianceWriter::create(path, archive, p.info(p.bounces))?;
-    let samples = bake_bounces(scene, p, &mut out, progress)?;
+    let maps = p.maps(scene)?;
+    let mut out = RadianceWriter::create(path, archive, p.info(p.bounces, maps.as_ref()))?;
+    let samples = bake_bounces(scene, p, maps.as_ref(), &mut out, progress)?;
     let decoded = out.decoded_bytes();
     out.finish()?;
     Ok((samples, decoded))
@@ -157,8 +203,9 @@ pub fn bake_file(
 /// Bakes into an unnamed scratch file (a render without `--radiance`) and opens it.
 pub fn bake_scratch(scene: &Scene, p: &BakeParams) -> Result<(RadianceFile, u64)> {
     let archive = &scene.cache.archive;
-    let mut out = RadianceWriter::temporary(archive, p.info(p.bounces))?;
-    let samples = bake_bounces(scene, p, &mut out, &|_| {})?;
+    let maps = p.maps(scene)?;
+    let mut out = RadianceWriter::temporary(archive, p.info(p.bounces, maps.as_ref()))?;
+    let samples = bake_bounces(scene, p, maps.as_ref(), &mut out, &|_| {})?;
     let file = out.finish()?;
     let r = RadianceFile::from_file(file, Path::new("(temporary bake)"), archive)?;
     Ok((r, samples))
@@ -170,6 +217,7 @@ pub fn bake_scratch(scene: &Scene, p: &BakeParams) -> Result<(RadianceFile, u64)
 fn bake_bounces(
     scene: &Scene,
     p: &BakeParams,
+    maps: Option<&GlossyMaps>,
     last: &mut RadianceWriter,
     progress: &dyn Fn(u64),
 ) -> Result<u64> {
@@ -180,11 +228,11 @@ fn bake_bounces(
     for b in 1..=p.bounces {
         let gather = gatherer.as_ref().filter(|_| b > 1);
         if b == p.bounces {
-            samples += bake(scene, p, last, progress, gather)?;
+            samples += bake(scene, p, maps, last, progress, gather)?;
             break;
         }
-        let mut out = RadianceWriter::temporary(archive, p.info(b))?;
-        samples += bake(scene, p, &mut out, progress, gather)?;
+        let mut out = RadianceWriter::temporary(archive, p.info(b, maps))?;
+        samples += bake(scene, p, maps, &mut out, progress, gather)?;
         let file = out.finish()?;
         let name = format!("(bounce {b} of the bake)");
         scene
@@ -208,6 +256,7 @@ const BATCH: usize = 64;
 fn bake(
     scene: &Scene,
     p: &BakeParams,
+    maps: Option<&GlossyMaps>,
     out: &mut RadianceWriter,
     progress: &dyn Fn(u64),
     gather: Option<&super::PbgiIntegrator>,
@@ -218,26 +267,39 @@ fn bake(
     // A right isosceles triangle of side patch_size·diagonal.
     let a_max = 0.5 * (p.patch_size * diag).powi(2);
     let mut roots = vec![[BakedNode::default(); 2]; archive.pages.len()];
+    let mut glossy_roots: Vec<Vec<SparseVec<glam::Vec3>>> = vec![Vec::new(); archive.pages.len()];
     let mut samples = 0;
     let pages: Vec<u32> = (0..archive.pages.len() as u32).collect();
     for level in deepest_first(archive, pages) {
         for batch in level.chunks(BATCH) {
-            let done = &roots;
-            let baked: Vec<(u32, BakedBlock, u64)> = batch
+            let done = Done {
+                roots: &roots,
+                glossy: &glossy_roots,
+            };
+            let baked: Vec<(u32, BakedBlock, Vec<SparseVec<glam::Vec3>>, u64)> = batch
                 .par_iter()
                 .map_init(
                     || Tracer::new(cache),
                     |tr, &id| {
                         let page = tr.page_handle(id);
-                        let (block, n) = bake_page(scene, tr, &page, done, p, a_max, gather);
-                        (id, block, n)
+                        let mut job = PageJob {
+                            scene,
+                            tr,
+                            p,
+                            a_max,
+                            gather,
+                            maps,
+                        };
+                        let (block, g, n) = job.bake_page(&page, &done);
+                        (id, block, g, n)
                     },
                 )
                 .collect();
-            for (id, block, n) in baked {
+            for (id, block, g, n) in baked {
                 for (r, v) in roots[id as usize].iter_mut().zip(&block.nodes) {
                     *r = *v;
                 }
+                glossy_roots[id as usize] = g;
                 out.push(id, &block)?;
                 samples += n;
                 progress(1);
@@ -250,51 +312,113 @@ fn bake(
     Ok(samples)
 }
 
-/// One page's block: nodes children before parents (a page stores parents first; child
-/// pages' roots are already in `roots`), triangles larger than `a_max` as patches.
-fn bake_page(
-    scene: &Scene,
-    tr: &mut Tracer,
-    page: &Page,
-    roots: &[[BakedNode; 2]],
-    p: &BakeParams,
+/// What deeper pages left for their parents: their roots' records and glossy vectors.
+struct Done<'a> {
+    roots: &'a [[BakedNode; 2]],
+    glossy: &'a [Vec<SparseVec<glam::Vec3>>],
+}
+
+/// One page's bake and what it needs.
+struct PageJob<'a, 'b> {
+    scene: &'a Scene,
+    tr: &'b mut Tracer<'a>,
+    p: &'a BakeParams,
     a_max: f32,
-    gather: Option<&super::PbgiIntegrator>,
-) -> (BakedBlock, u64) {
-    let mut block = BakedBlock {
-        nodes: vec![BakedNode::default(); page.bvh.len()],
-        patch_of: vec![0; page.tris.len()],
-        patches: Vec::new(),
-    };
-    let mut samples = 0;
-    for i in (0..page.bvh.len()).rev() {
-        let mut d = BakedNode::default();
-        match page.bvh[i].link() {
-            NodeRef::Leaf { first, count } => {
-                for k in first..(first + count).min(page.tris.len() as u32) {
-                    let key = ((page.first_node + i as u64) << 4) | (k - first) as u64;
-                    let tri = &page.tris[k as usize];
-                    let t = triangle(scene, tr, tri, p, a_max, key, gather);
-                    samples += t.samples;
-                    d.add(&t.node);
-                    block.patch_of[k as usize] = t.depth << 28 | block.patches.len() as u32;
-                    block.patches.extend(t.pyramid);
+    gather: Option<&'a super::PbgiIntegrator>,
+    maps: Option<&'a GlossyMaps>,
+}
+
+impl PageJob<'_, '_> {
+    /// One page's block: nodes children before parents (a page stores parents first; child
+    /// pages' roots are already in `done`), triangles larger than `a_max` as patches, and
+    /// with glossy maps the coefficients; also the exact glossy vectors of its roots.
+    fn bake_page(
+        &mut self,
+        page: &Page,
+        done: &Done,
+    ) -> (BakedBlock, Vec<SparseVec<glam::Vec3>>, u64) {
+        let mut block = BakedBlock {
+            nodes: vec![BakedNode::default(); page.bvh.len()],
+            patch_of: vec![0; page.tris.len()],
+            patches: Vec::new(),
+            coefs: Default::default(),
+        };
+        let mut leaf_maps = vec![None; page.bvh.len()];
+        let mut samples = 0;
+        for i in (0..page.bvh.len()).rev() {
+            let mut d = BakedNode::default();
+            match page.bvh[i].link() {
+                NodeRef::Leaf { first, count } => {
+                    let end = (first + count).min(page.tris.len() as u32);
+                    for k in first..end {
+                        let key = ((page.first_node + i as u64) << 4) | (k - first) as u64;
+                        let tri = &page.tris[k as usize];
+                        let t = triangle(
+                            self.scene,
+                            self.tr,
+                            tri,
+                            self.p,
+                            self.a_max,
+                            key,
+                            self.gather,
+                        );
+                        samples += t.samples;
+                        d.add(&t.node);
+                        block.patch_of[k as usize] = t.depth << 28 | block.patches.len() as u32;
+                        block.patches.extend(t.pyramid);
+                    }
+                    if let Some(m) = self.maps {
+                        let mut rng = Hash::new(
+                            self.p.seed as u64
+                                ^ (page.first_node + i as u64).wrapping_mul(0xA24B_AED4_963E_E407),
+                        );
+                        leaf_maps[i] = m.leaf(
+                            self.scene,
+                            self.tr,
+                            page,
+                            first..end,
+                            self.p.samples,
+                            &mut rng,
+                        );
+                    }
+                }
+                NodeRef::Inner(l, r) => {
+                    let (l, r) = (block.nodes[l as usize], block.nodes[r as usize]);
+                    d.add(&l);
+                    d.add(&r);
+                }
+                NodeRef::ChildPage(c) => {
+                    for r in done.roots.get(c as usize).into_iter().flatten() {
+                        d.add(r);
+                    }
                 }
             }
-            NodeRef::Inner(l, r) => {
-                let (l, r) = (block.nodes[l as usize], block.nodes[r as usize]);
-                d.add(&l);
-                d.add(&r);
-            }
-            NodeRef::ChildPage(c) => {
-                for r in roots.get(c as usize).into_iter().flatten() {
-                    d.add(r);
-                }
-            }
+            block.nodes[i] = d;
         }
-        block.nodes[i] = d;
+        let Some(m) = self.maps else {
+            return (block, Vec::new(), samples);
+        };
+        let nodes = &block.nodes;
+        let leaf = |i: usize| {
+            leaf_maps[i]
+                .clone()
+                .map(|dense| m.vector(dense, crate::paging::coefs::weight(&nodes[i])))
+        };
+        let child_roots = |c: u32| {
+            let (recs, vecs) = (done.roots.get(c as usize), done.glossy.get(c as usize));
+            match (recs, vecs) {
+                (Some(r), Some(v)) => r
+                    .iter()
+                    .zip(v)
+                    .map(|(r, v)| (crate::paging::coefs::weight(r), v.clone()))
+                    .collect(),
+                _ => Vec::new(),
+            }
+        };
+        let (coefs, roots) = m.code_page(page, nodes, &leaf, &child_roots);
+        block.coefs = coefs;
+        (block, roots, samples)
     }
-    (block, samples)
 }
 
 /// A triangle baked: its record, and its patch pyramid of depth `depth`.

@@ -27,6 +27,7 @@
 
 pub mod bake;
 pub mod cluster;
+pub mod glossy;
 pub mod microbuffer;
 pub mod patch;
 
@@ -208,14 +209,72 @@ impl PbgiIntegrator {
         (l, None)
     }
 
-    /// One bounce of indirect light at `s` from the cut, the near rays and the micro-buffer.
-    /// With a cluster's `field`, its far splats are taken as they are and the cut starts
-    /// from its near nodes instead of the root.
+    /// One bounce of indirect light at `s`: its diffuse lobe from the micro-buffer, its
+    /// rough specular lobes from one BSDF-sampled exact ray (a lobe narrower than a
+    /// micro-buffer texel would be convolved at a few texel centres only: with `--max-depth`
+    /// 3 on a rough silver plinth of α 0.04 that overstated its pixels by 8–11%).
     fn gather(
         &self,
         scene: &Scene,
         tr: &mut Tracer,
         s: &Surface,
+        key: u64,
+        field: Option<&Field>,
+    ) -> V {
+        let mut rng = Hash::new(key ^ 0x6A09_E667_F3BC_C909);
+        let glossy = Bsdf {
+            diffuse: V::ZERO,
+            ..s.bsdf
+        };
+        let mut l = self.glossy_ray(scene, tr, s, &glossy, &mut rng);
+        if s.bsdf.diffuse.max_element() > 0.0 {
+            l += self.gather_diffuse(scene, tr, s, &glossy, key, field);
+        }
+        l
+    }
+
+    /// The rough specular lobes' bounce: one direction sampled from them, its hit shaded
+    /// as a rasterized near hit is (baked light, else one light sample).
+    fn glossy_ray(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        s: &Surface,
+        glossy: &Bsdf,
+        rng: &mut Hash,
+    ) -> V {
+        let u = [rng.f32(), rng.f32(), rng.f32()];
+        let Some(bs) = glossy.sample(s.wo_l, u[0], [u[1], u[2]]) else {
+            return V::ZERO;
+        };
+        if bs.delta {
+            return V::ZERO;
+        }
+        let w = s.frame.to_world(bs.wi).normalize();
+        let ray = Ray {
+            o: offset_origin(s.p, s.err, s.ng, w),
+            d: w,
+            t_max: f32::INFINITY,
+        };
+        let Some(hit) = tr.closest_hit(&ray) else {
+            return V::ZERO;
+        };
+        scene.touched.insert(hit.leaf);
+        self.exact_hits.fetch_add(1, Relaxed);
+        let page = tr.page_handle(hit.page);
+        bs.weight * hit_light(scene, tr, &page, &hit, w, rng).0
+    }
+
+    /// The diffuse lobe's bounce from the cut, the near rays and the micro-buffer (`glossy`:
+    /// the other lobes, left out of the convolution). With a cluster's `field`, its far
+    /// splats are taken as they are and the cut starts from its near nodes instead of the
+    /// root.
+    fn gather_diffuse(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        s: &Surface,
+        glossy: &Bsdf,
         key: u64,
         field: Option<&Field>,
     ) -> V {
@@ -262,7 +321,8 @@ impl PbgiIntegrator {
             self.gap_rays.fetch_add(gaps, Relaxed);
             let incident = sc.mb.resolve(texels, |_| Vec3::ZERO);
             let f = MicroBuffer::convolve(texels, &incident, |w| {
-                Vec3::from(s.bsdf.eval(s.wo_l, V::from(w)).0)
+                let w = V::from(w);
+                Vec3::from(s.bsdf.eval(s.wo_l, w).0 - glossy.eval(s.wo_l, w).0)
             });
             V::from(f)
         })
@@ -357,7 +417,12 @@ impl PbgiIntegrator {
             .copied()
             .unwrap_or_default();
         // Seen from behind, a node still hides what lies beyond it.
-        let (front, power) = shown.toward(-v / d);
+        let (front, mut power) = shown.toward(-v / d);
+        if let Some(g) = page.glossy.get(i as usize, Vec3::from(-v / d)) {
+            // Haar truncation can ring below zero; no direction sends negative light.
+            let w = crate::paging::coefs::weight(&shown);
+            power += V::from(g * w).max(V::ZERO);
+        }
         let back = shown.toward(v / d).0;
         let area = front.max(back);
         let sends = if area > 0.0 { power / area } else { V::ZERO };
