@@ -1,7 +1,8 @@
 #!/bin/sh
 # The default speed-against-error report on the bundled scenes: converts cbox, bunny_box,
-# room, room_glossy, room_glass and caustics, runs `canopy eval` (path and cone integrators at 5, 15 and
-# 60 seconds) against the Mitsuba 3 references in scenes/refs, and `canopy npp` (both
+# room, room_glossy, room_glass, showroom and caustics, runs `canopy eval` (path, cone and
+# PBGI at 5, 15 and 60 seconds; on showroom also PBGI without glossy coefficients, in
+# showroom_flat/) against the Mitsuba 3 references in scenes/refs, and `canopy npp` (both
 # integrators, to 10% noise) on bunny_box. Results go to docs/report/<scene>/ (eval.csv,
 # eval.md, eval.svg; npp.csv, npp.svg). Takes about 4 minutes a scene.
 # Usage: sh tools/report.sh [TIMES]   e.g. TIMES=2s,5s,15s for a quick run
@@ -12,12 +13,15 @@ cargo build --release
 BIN=target/release/canopy
 OUT=docs/report
 mkdir -p "$OUT"
-for scene in cbox bunny_box room room_glossy room_glass caustics; do
+for scene in cbox bunny_box room room_glossy room_glass showroom caustics; do
     $BIN --quiet convert "scenes/$scene.glb" -o "$OUT/$scene.canopy" > /dev/null
     $BIN --quiet eval "$OUT/$scene.canopy" --reference "scenes/refs/$scene.exr" \
         --integrators path,cone,pbgi --times "$TIMES" -o "$OUT/$scene"
     rm -f "$OUT/$scene"/*.exr "$OUT/$scene"/eval_*.json
 done
+$BIN --quiet eval "$OUT/showroom.canopy" --reference scenes/refs/showroom.exr \
+    --integrators pbgi --wavelet off --times "$TIMES" -o "$OUT/showroom_flat"
+rm -f "$OUT/showroom_flat"/*.exr "$OUT/showroom_flat"/eval_*.json
 $BIN --quiet npp "$OUT/bunny_box.canopy" --integrators path,cone,pbgi --resolutions 32,64,128,256 --noise 0.1 --spp 256 \
     -o "$OUT/bunny_box_npp"
 rm -f "$OUT"/*.canopy "$OUT/bunny_box_npp"/*.exr "$OUT/bunny_box_npp"/npp_*.json

@@ -6,11 +6,14 @@ surfaces whose light varies (the lamp's hot spot), scanned meshes, two lights of
 different size. With --glossy the bunnies are rough gold and copper metals (GGX roughness
 0.3 and 0.5) and one plinth rough silver (0.2): the glossy variant. With --glass the
 bunnies are rough white glass (ior 1.5, GGX roughness 0.2 and 0.5): the rough-dielectric
-variant.
+variant. With --showroom one bunny is rough gold (0.3) and the other rough glass (0.3), the
+floor rough steel (0.4), and the ceiling panel the only light: the glossy scene of point-
+based GI (rough metal and rough dielectric objects on a rough floor under an area light).
 
     python3 tools/room_scene.py -o scenes/room.glb
     python3 tools/room_scene.py --glossy -o scenes/room_glossy.glb
     python3 tools/room_scene.py --glass -o scenes/room_glass.glb
+    python3 tools/room_scene.py --showroom -o scenes/showroom.glb
 """
 import argparse, math, os, struct
 
@@ -78,6 +81,7 @@ def main():
     ap.add_argument("-o", "--output", required=True)
     ap.add_argument("--glossy", action="store_true")
     ap.add_argument("--glass", action="store_true")
+    ap.add_argument("--showroom", action="store_true")
     a = ap.parse_args()
     ply = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "scenes", "bunny.ply")
     W, H, D = 2.0, 1.6, 2.0  # room half-width x, height y, half-depth z
@@ -97,13 +101,16 @@ def main():
         ("bunny_a", bunny(ply, [-0.65, 0.45, -0.65], 0.6), 8),
         ("bunny_b", bunny(ply, [0.65, 0.35, -0.55], 0.7), 9),
     ]
+    if a.showroom:
+        room = [r for r in room if r[0] != "lamp"]
     materials = [
-        lambert("floor", [0.55, 0.5, 0.45]), lambert("white", [0.8, 0.8, 0.8]),
+        metal("steel", [0.62, 0.62, 0.64], 0.4) if a.showroom else lambert("floor", [0.55, 0.5, 0.45]),
+        lambert("white", [0.8, 0.8, 0.8]),
         lambert("red", [0.7, 0.2, 0.15]), lambert("green", [0.2, 0.6, 0.25]),
         emitter("panel", 12.0), emitter("lamp", 6000.0), lambert("stone", [0.6, 0.6, 0.6]),
         metal("silver", [0.95, 0.93, 0.88], 0.2) if a.glossy else lambert("stone2", [0.6, 0.6, 0.6]),
-        metal("gold", [1.0, 0.78, 0.34], 0.3) if a.glossy else glass("glass_a", 0.2) if a.glass else lambert("bunny", [0.8, 0.8, 0.8]),
-        metal("copper", [0.95, 0.64, 0.54], 0.5) if a.glossy else glass("glass_b", 0.5) if a.glass else lambert("bunny2", [0.75, 0.7, 0.6]),
+        metal("gold", [1.0, 0.78, 0.34], 0.3) if a.glossy or a.showroom else glass("glass_a", 0.2) if a.glass else lambert("bunny", [0.8, 0.8, 0.8]),
+        glass("glass_b", 0.3) if a.showroom else metal("copper", [0.95, 0.64, 0.54], 0.5) if a.glossy else glass("glass_b", 0.5) if a.glass else lambert("bunny2", [0.75, 0.7, 0.6]),
     ]
     # Camera near the front wall, looking at the plinths and up at the ceiling.
     eye, at = [0.3, 1.0, 1.9], [0.0, 0.75, -0.6]
@@ -119,7 +126,7 @@ def main():
          qy[3] * qx[3] - qy[0] * qx[0] - qy[1] * qx[1] - qy[2] * qx[2]]
     write_glb(a.output, room, materials, {"yfov": 1.0, "aspectRatio": 4 / 3, "znear": 0.01}, {"translation": eye, "rotation": q},
               "canopy tools/room_scene.py", (128, 96),
-              ["KHR_materials_emissive_strength", "KHR_materials_specular"] + (["KHR_materials_transmission", "KHR_materials_ior"] if a.glass else []))
+              ["KHR_materials_emissive_strength", "KHR_materials_specular"] + (["KHR_materials_transmission", "KHR_materials_ior"] if a.glass or a.showroom else []))
 
 
 if __name__ == "__main__":

@@ -9,15 +9,20 @@
 //!   smallest micro-buffer texel's; otherwise its children are visited. Nodes wholly below
 //!   x's tangent plane are skipped;
 //! - a splatted node covers its projected area toward x over d² and sends the light it
-//!   reflects that way (`bake::Directional`, read from the page's baked block); seen from
-//!   behind it is a dark occluder;
+//!   reflects that way (`bake::Directional`, read from the page's baked block), plus, for
+//!   rough metal and rough dielectric surfaces, the glossy light its cube map holds in that
+//!   direction (`glossy`, Haar-coded in the file); seen from behind it is a dark occluder;
 //! - leaves too close for their solid angle are rasterized: x casts one ray per texel,
 //!   jittered inside it, and each ray meeting a leaf triangle leaves an opaque fragment at
 //!   its depth. A front hit on a diffuse surface sends the baked light of the finest patch
 //!   under it (`patch`: large triangles are baked as up to 4⁶ patches); other hits take
 //!   one light sample, as the path tracer would. A ray aimed at a leaf's sphere that meets
 //!   none of its triangles is traced exactly (what it finds could otherwise be missing);
-//! - `microbuffer` composites and convolves with x's BSDF (003 eq. 2.1).
+//! - `microbuffer` composites and convolves with x's diffuse lobe (003 eq. 2.1);
+//! - x's rough specular lobes, mostly narrower than a texel, take one exact ray sampled
+//!   from them instead, its hit shaded as a rasterized hit is. (WPBGI's adaptive
+//!   micro-buffer and wavelet BRDF product, 000 §3.2 and 002 §4.2, would gather them from
+//!   the cloud; not built.)
 //!
 //! Smooth mirrors and glass are followed exactly (one sampled bounce each, up to
 //! `SMOOTH_DEPTH`), so a perfectly specular surface degrades to the exact estimator
@@ -868,7 +873,7 @@ impl Integrator for PbgiIntegrator {
                 ),
             },
             format!(
-                "pbgi: indirect light from a cut at {} texels' solid angle into a {}² hemicube micro-buffer; near leaves rasterized with baked patch light",
+                "pbgi: indirect light from a cut at {} texels' solid angle into a {}² hemicube micro-buffer for diffuse lobes (glossy lobes: one exact ray); near leaves rasterized with baked patch light",
                 s.angle, s.resolution
             ),
         ]
