@@ -1,6 +1,10 @@
 //! Traversal rays/s on the paged tree (one thread, all pages resident): primary rays
 //! through the scene camera, and incoherent rays (closest hit and any hit) from points on
 //! surfaces in random directions, as a path tracer's bounces are.
+//!
+//! With `CANOPY_BENCH_RAYS=DIR` it also writes each scene's triangles and both ray sets to
+//! DIR as little-endian f32 (`NAME.tris`: 9 per triangle; `NAME.primary`, `NAME.bounce`:
+//! origin and direction, 6 per ray), for `tools/embree_compare.py` to trace the same rays.
 
 use canopy::camera::Camera;
 use canopy::convert::{convert, ConvertOptions};
@@ -47,6 +51,29 @@ fn rays(cache: &PageCache) -> (Vec<Ray>, Vec<Ray>) {
     (primary, bounce)
 }
 
+/// Writes `name`'s triangles and rays to `dir` (see the module comment).
+fn write_rays(dir: &Path, name: &str, cache: &PageCache, sets: [(&str, &[Ray]); 2]) {
+    let f32s = |values: &mut dyn Iterator<Item = f32>| -> Vec<u8> {
+        values.flat_map(f32::to_le_bytes).collect()
+    };
+    let pages = 0..cache.archive.pages.len() as u32;
+    let tris: Vec<f32> = pages
+        .flat_map(|id| cache.get(id).tris.clone())
+        .flat_map(|t| t.p.into_iter().flatten())
+        .collect();
+    let write = |ext: &str, bytes: Vec<u8>| {
+        let path = dir.join(format!("{name}.{ext}"));
+        std::fs::write(&path, bytes).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    };
+    write("tris", f32s(&mut tris.into_iter()));
+    for (ext, rays) in sets {
+        let mut values = rays
+            .iter()
+            .flat_map(|r| r.o.to_array().into_iter().chain(r.d.to_array()));
+        write(ext, f32s(&mut values));
+    }
+}
+
 fn bench_trace(c: &mut Criterion) {
     let dir = tempfile::tempdir().unwrap();
     let mut g = c.benchmark_group("trace");
@@ -56,6 +83,10 @@ fn bench_trace(c: &mut Criterion) {
         convert(&ConvertOptions::new(vec![scene], out.clone())).unwrap();
         let cache = PageCache::new(Arc::new(Archive::open(&out).unwrap()), None, 1).unwrap();
         let (primary, bounce) = rays(&cache);
+        if let Some(dir) = std::env::var_os("CANOPY_BENCH_RAYS") {
+            let sets = [("primary", &primary[..]), ("bounce", &bounce[..])];
+            write_rays(Path::new(&dir), name, &cache, sets);
+        }
         let mut tr = Tracer::new(&cache);
         g.throughput(Throughput::Elements(primary.len() as u64));
         g.bench_function(format!("{name}/primary closest"), |b| {
