@@ -270,6 +270,8 @@ fn bake(
     let mut glossy_roots: Vec<Vec<SparseVec<glam::Vec3>>> = vec![Vec::new(); archive.pages.len()];
     let mut samples = 0;
     let pages: Vec<u32> = (0..archive.pages.len() as u32).collect();
+    // Glossy vectors of the level below, which only this level's pages read.
+    let mut below: Vec<u32> = Vec::new();
     for level in deepest_first(archive, pages) {
         for batch in level.chunks(BATCH) {
             let done = Done {
@@ -304,6 +306,9 @@ fn bake(
                 samples += n;
                 progress(1);
             }
+        }
+        for id in std::mem::replace(&mut below, level) {
+            glossy_roots[id as usize] = Vec::new();
         }
     }
     if let Some(e) = cache.error() {
