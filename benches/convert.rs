@@ -1,7 +1,9 @@
 //! Converter triangles/s (bundled scenes, end to end: import, build, compress, write) and
-//! page decode MB/s (checksum + zstd + parse + index checks, per decoded byte).
+//! page decode MB/s (checksum + zstd + parse + index checks, per decoded byte; then the
+//! renderer's decode, and its four-wide tree build alone).
 
 use canopy::convert::{convert, ConvertOptions};
+use canopy::paging::{wide, Page};
 use canopy_format::Archive;
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
 use std::path::{Path, PathBuf};
@@ -41,6 +43,25 @@ fn bench_decode(c: &mut Criterion) {
         b.iter(|| {
             for p in 0..a.pages.len() as u32 {
                 std::hint::black_box(a.read_page(p).unwrap());
+            }
+        })
+    });
+    // The renderer's decode: the above, then boxes dequantized, triangles expanded and the
+    // four-wide tree built; and that build alone.
+    g.bench_function("sponza_pages_for_traversal", |b| {
+        b.iter(|| {
+            for p in 0..a.pages.len() as u32 {
+                std::hint::black_box(Page::decode(&a, p).unwrap());
+            }
+        })
+    });
+    let pages: Vec<Page> = (0..a.pages.len() as u32)
+        .map(|p| Page::decode(&a, p).unwrap())
+        .collect();
+    g.bench_function("sponza_wide_build", |b| {
+        b.iter(|| {
+            for p in &pages {
+                std::hint::black_box(wide::build(&p.bvh, p.roots));
             }
         })
     });

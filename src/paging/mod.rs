@@ -16,6 +16,7 @@
 //! of baked node light, loaded, counted against the budget and evicted with it.
 
 pub mod coefs;
+pub mod wide;
 
 use anyhow::{bail, Result};
 use canopy_format::radiance::{BakedBlock, RadianceFile};
@@ -109,6 +110,8 @@ pub struct Page {
     pub roots: u32,
     pub nodes: Vec<Node>,
     pub bvh: Vec<TNode>,
+    /// The same tree four-wide, for exact rays.
+    pub wide: Vec<wide::Wide>,
     pub tris: Vec<TriW>,
     /// Per triangle, octahedral shading normals of its vertices (empty without normals).
     pub shading: Vec<[u32; 3]>,
@@ -165,9 +168,11 @@ impl Page {
                 .collect()
         };
         let e = &archive.pages[id as usize];
+        let wide = wide::build(&bvh, e.root_count as u32);
         let bytes = (std::mem::size_of::<Page>()
             + c.nodes.len() * std::mem::size_of::<Node>()
             + bvh.len() * std::mem::size_of::<TNode>()
+            + wide.len() * std::mem::size_of::<wide::Wide>()
             + tris.len() * std::mem::size_of::<TriW>()
             + shading.len() * 12) as u64;
         Ok(Page {
@@ -176,6 +181,7 @@ impl Page {
             roots: e.root_count as u32,
             nodes: c.nodes,
             bvh,
+            wide,
             tris,
             shading,
             baked: BakedBlock::default(),
@@ -205,6 +211,7 @@ impl Page {
             roots: 0,
             nodes: Vec::new(),
             bvh: Vec::new(),
+            wide: Vec::new(),
             tris: Vec::new(),
             shading: Vec::new(),
             baked: BakedBlock::default(),

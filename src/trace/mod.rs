@@ -7,9 +7,10 @@
 //! floating-point error bound of the hit point (pbrt-v4 §6.8), which grows with the point's
 //! magnitude instead of being a fixed epsilon.
 
+use crate::paging::wide::{self, Wide};
 use crate::paging::{NodeRef, Page, PageCache, TNode, TriW};
 use canopy_format::Node;
-use glam::Vec3A as V;
+use glam::{Vec3A as V, Vec4};
 use std::sync::Arc;
 
 /// Deepest tree the renderer accepts (the traversal stack holds at most depth + 1 entries).
@@ -207,6 +208,38 @@ impl Prep {
     }
 }
 
+/// The box test of `Prep::box_hit` on a wide node's four lanes at once, the same
+/// arithmetic per lane.
+struct Prep4 {
+    o: [Vec4; 3],
+    inv: [Vec4; 3],
+}
+
+impl Prep4 {
+    fn new(p: &Prep) -> Prep4 {
+        Prep4 {
+            o: [0, 1, 2].map(|k| Vec4::splat(p.o[k])),
+            inv: [0, 1, 2].map(|k| Vec4::splat(p.inv[k])),
+        }
+    }
+
+    /// Entry distances of the four boxes, and a bit per lane whose box the ray meets
+    /// before `t_max` (empty lanes' bits are meaningless).
+    #[inline]
+    fn hit(&self, w: &Wide, t_max: f32) -> (Vec4, u32) {
+        let grow = Vec4::splat(1.0 + 2.0 * gamma(3));
+        let axis = |k: usize| {
+            let t0 = (w.lo[k] - self.o[k]) * self.inv[k];
+            let t1 = (w.hi[k] - self.o[k]) * self.inv[k];
+            (t0.min(t1), t0.max(t1) * grow)
+        };
+        let ((nx, fx), (ny, fy), (nz, fz)) = (axis(0), axis(1), axis(2));
+        let enter = nx.max(ny).max(nz).max(Vec4::ZERO);
+        let exit = fx.min(fy).min(fz).min(Vec4::splat(t_max));
+        (enter, enter.cmple(exit).bitmask())
+    }
+}
+
 /// A cone (frustum) along a ray: radius r(t) = |r0 + tan α · t| (004 eq. 4.17). The LOD
 /// rule compares r(t)·`scale` (the user's `--cone-scale`; 0: never stop early, exact rays).
 #[derive(Clone, Copy, Debug)]
@@ -309,16 +342,16 @@ impl<'a> Tracer<'a> {
         &self.held[slot].as_ref().expect("held page").1
     }
 
-    /// Walks the paged tree front to back. `on_tri` gets each triangle the ray meets and
-    /// returns true to accept it (closing `t_max` to its distance); with `any`, the first
-    /// accepted hit ends the walk.
+    /// Walks the paged binary tree front to back with the cone's level-of-detail rule:
+    /// `on_tri` gets each triangle the ray meets (closing `t_max` to its distance),
+    /// `on_node` each node the cone stops at; with `any`, the first of either ends the walk.
     #[inline]
     fn traverse(
         &mut self,
         ray: &Ray,
         mut on_tri: impl FnMut(&Page, u32, u32, f32, [f32; 3]),
         any: bool,
-        mut lod: Option<(&Cone, &mut NodeVisitor)>,
+        (cone, on_node): (&Cone, &mut NodeVisitor),
     ) -> bool {
         self.rays += 1;
         let prep = Prep::new(ray);
@@ -349,22 +382,20 @@ impl<'a> Tracer<'a> {
             let Some(node) = page.bvh.get(ni as usize) else {
                 continue;
             };
-            if let Some((cone, on_node)) = lod.as_mut() {
-                // 004 eq. 4.12: stop at a node the cone cannot resolve, unless the ray
-                // starts inside it (end of §4.5.2) or ends inside it.
-                let side = (V::from(node.hi) - V::from(node.lo)).max_element();
-                if cone.radius(tn) * cone.scale > side
-                    && !inside(ray.o, node)
-                    && !end.is_some_and(|e| inside(e, node))
-                {
-                    on_node(page, ni, tn);
-                    found = true;
-                    if any {
-                        break 'walk;
-                    }
-                    t_max = tn;
-                    continue;
+            // 004 eq. 4.12: stop at a node the cone cannot resolve, unless the ray starts
+            // inside it (end of §4.5.2) or ends inside it.
+            let side = (V::from(node.hi) - V::from(node.lo)).max_element();
+            if cone.radius(tn) * cone.scale > side
+                && !inside(ray.o, node)
+                && !end.is_some_and(|e| inside(e, node))
+            {
+                on_node(page, ni, tn);
+                found = true;
+                if any {
+                    break 'walk;
                 }
+                t_max = tn;
+                continue;
             }
             let (l, r) = match node.link() {
                 NodeRef::Leaf { first, count } => {
@@ -414,6 +445,92 @@ impl<'a> Tracer<'a> {
         found
     }
 
+    /// Walks the paged four-wide tree front to back (exact rays): `on_tri` gets each
+    /// triangle the ray meets (closing `t_max` to its distance); with `any`, the first
+    /// hit ends the walk.
+    #[inline]
+    fn traverse_wide(
+        &mut self,
+        ray: &Ray,
+        mut on_tri: impl FnMut(&Page, u32, u32, f32, [f32; 3]),
+        any: bool,
+    ) -> bool {
+        self.rays += 1;
+        let prep = Prep::new(ray);
+        let lanes = Prep4::new(&prep);
+        let mut t_max = ray.t_max;
+        let mut stack = std::mem::take(&mut self.stack);
+        stack.clear();
+        self.check_epoch();
+        let root = self.cache.root_page();
+        let mut cur = self.page(root);
+        if !self.held(cur).wide.is_empty() {
+            stack.push((root, wide::WIDE, 0.0));
+        }
+        let mut found = false;
+        'walk: while let Some((pid, r, tn)) = stack.pop() {
+            if tn > t_max {
+                continue;
+            }
+            if self.held(cur).id != pid {
+                cur = self.page(pid);
+            }
+            let index = r & !wide::KIND;
+            match r & wide::KIND {
+                wide::LEAF => {
+                    let page = self.held(cur);
+                    let Some(NodeRef::Leaf { first, count }) =
+                        page.bvh.get(index as usize).map(TNode::link)
+                    else {
+                        continue;
+                    };
+                    for ti in first..(first + count).min(page.tris.len() as u32) {
+                        if let Some((t, b)) = prep.tri_hit(&page.tris[ti as usize], t_max) {
+                            on_tri(page, index, ti, t, b);
+                            found = true;
+                            if any {
+                                break 'walk;
+                            }
+                            t_max = t;
+                        }
+                    }
+                }
+                wide::PAGE => {
+                    cur = self.page(index);
+                    let child = self.held(cur);
+                    if child.roots >= 2 && !child.wide.is_empty() {
+                        stack.push((index, wide::WIDE, tn));
+                    }
+                }
+                _ => {
+                    let Some(w) = self.held(cur).wide.get(index as usize) else {
+                        continue;
+                    };
+                    let (enter, mut mask) = lanes.hit(w, t_max);
+                    let mut hits = [(0.0f32, 0u32); 4];
+                    let mut n = 0;
+                    while mask != 0 {
+                        let lane = mask.trailing_zeros() as usize;
+                        mask &= mask - 1;
+                        if w.child[lane] & wide::KIND != wide::EMPTY {
+                            hits[n] = (enter[lane], w.child[lane]);
+                            n += 1;
+                        }
+                    }
+                    // Farthest first on the stack, so the nearest is walked first. Any hit
+                    // ends the walk: the lanes' own order (the binary tree's, left first) was
+                    // 2.4× faster than nearest first on sponza's bounce rays.
+                    if !any {
+                        hits[..n].sort_unstable_by(|a, b| b.0.total_cmp(&a.0));
+                    }
+                    stack.extend(hits[..n].iter().map(|&(t, c)| (pid, c, t)));
+                }
+            }
+        }
+        self.stack = stack;
+        found
+    }
+
     /// A handle on page `id` for walks of the tree other than rays' (PBGI's cut).
     pub fn page_handle(&mut self, id: u32) -> Arc<Page> {
         self.check_epoch();
@@ -424,18 +541,17 @@ impl<'a> Tracer<'a> {
     /// Nearest intersection along the ray, if any, before `ray.t_max`.
     pub fn closest_hit(&mut self, ray: &Ray) -> Option<Hit> {
         let mut best: Option<Hit> = None;
-        self.traverse(
+        self.traverse_wide(
             ray,
             |page, leaf, ti, t, b| best = Some(Hit::new(page, leaf, ti, t, b)),
             false,
-            None,
         );
         best
     }
 
     /// Whether anything blocks the ray before `ray.t_max`.
     pub fn occluded(&mut self, ray: &Ray) -> bool {
-        self.traverse(ray, |_, _, _, _, _| {}, true, None)
+        self.traverse_wide(ray, |_, _, _, _, _| {}, true)
     }
 
     /// Whether a shadow cone meets anything before `ray.t_max`: like `occluded`, but a node
@@ -445,12 +561,7 @@ impl<'a> Tracer<'a> {
         if cone.scale <= 0.0 {
             return self.occluded(ray);
         }
-        self.traverse(
-            ray,
-            |_, _, _, _, _| {},
-            true,
-            Some((cone, &mut |_, _, _| {})),
-        )
+        self.traverse(ray, |_, _, _, _, _| {}, true, (cone, &mut |_, _, _| {}))
     }
 
     /// Nearest hit of a cone: a leaf triangle, or the first node whose box the cone's
@@ -470,7 +581,7 @@ impl<'a> Tracer<'a> {
             ray,
             |page, leaf, ti, t, b| tri_best = Some(Hit::new(page, leaf, ti, t, b)),
             false,
-            Some((cone, &mut on_node)),
+            (cone, &mut on_node),
         );
         // Both callbacks close t_max, so whichever came last is the nearest.
         match (tri_best, node_best) {

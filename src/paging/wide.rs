@@ -1,0 +1,106 @@
+//! A page's tree for exact rays, four children to a node with their boxes as SIMD lanes
+//! (Embree's BVH4 layout), built from the binary tree when the page is decoded. Each
+//! node takes the binary children and opens the largest inner one until it has four.
+//! Leaves and child-page links keep their binary node, so hits and links read the binary
+//! tree as before; the cone integrator's level-of-detail walk stays on the binary tree,
+//! whose every node it may stop at.
+
+use super::{NodeRef, TNode};
+use glam::Vec4;
+
+/// Four child boxes, per axis, one child per lane, and what each child is.
+#[derive(Clone, Copy, Debug)]
+#[repr(C, align(16))]
+pub struct Wide {
+    pub lo: [Vec4; 3],
+    pub hi: [Vec4; 3],
+    pub child: [u32; 4],
+}
+
+const _: () = assert!(std::mem::size_of::<Wide>() == 112);
+
+/// A child's kind in the top two bits of `Wide::child`, its index below.
+pub const KIND: u32 = 3 << 30;
+/// Another wide node of the page.
+pub const WIDE: u32 = 0;
+/// A leaf: its binary node in the page.
+pub const LEAF: u32 = 1 << 30;
+/// A child page (its wide root is node 0).
+pub const PAGE: u32 = 2 << 30;
+/// No child: the lane's box is empty and never hit.
+pub const EMPTY: u32 = 3 << 30;
+
+impl Wide {
+    const NONE: Wide = Wide {
+        lo: [Vec4::INFINITY; 3],
+        hi: [Vec4::NEG_INFINITY; 3],
+        child: [EMPTY; 4],
+    };
+}
+
+/// The wide tree of a page whose binary tree is `bvh` with roots 0..`roots`; node 0 is
+/// the root (empty when the page has no nodes). A binary child index not above its
+/// parent's (impossible in a valid archive) is dropped, so the build always ends.
+pub fn build(bvh: &[TNode], roots: u32) -> Vec<Wide> {
+    let top: Vec<u32> = (0..roots.min(bvh.len() as u32)).collect();
+    if top.is_empty() {
+        return Vec::new();
+    }
+    let mut out = vec![Wide::NONE];
+    let mut work = vec![(0usize, top)];
+    while let Some((slot, mut kids)) = work.pop() {
+        open_until_four(bvh, &mut kids);
+        let mut w = Wide::NONE;
+        for (lane, &k) in kids.iter().enumerate() {
+            let n = &bvh[k as usize];
+            for axis in 0..3 {
+                w.lo[axis][lane] = n.lo[axis];
+                w.hi[axis][lane] = n.hi[axis];
+            }
+            w.child[lane] = match n.link() {
+                NodeRef::Inner(l, r) => {
+                    let s = out.len();
+                    out.push(Wide::NONE);
+                    work.push((s, children(bvh, k, l, r)));
+                    WIDE | s as u32
+                }
+                NodeRef::Leaf { .. } => LEAF | k,
+                NodeRef::ChildPage(p) => PAGE | p,
+            };
+        }
+        out[slot] = w;
+    }
+    out
+}
+
+/// Inner node k's children l and r that exist and lie after it.
+fn children(bvh: &[TNode], k: u32, l: u32, r: u32) -> Vec<u32> {
+    [l, r]
+        .into_iter()
+        .filter(|&c| c > k && (c as usize) < bvh.len())
+        .collect()
+}
+
+/// Replaces the inner node of largest box surface among `kids` by its children while
+/// there are fewer than four.
+fn open_until_four(bvh: &[TNode], kids: &mut Vec<u32>) {
+    while kids.len() < 4 {
+        let area = |k: u32| {
+            let n = &bvh[k as usize];
+            let e = glam::Vec3::from(n.hi) - glam::Vec3::from(n.lo);
+            e.x * e.y + e.y * e.z + e.z * e.x
+        };
+        let best = kids
+            .iter()
+            .enumerate()
+            .filter_map(|(i, &k)| match bvh[k as usize].link() {
+                NodeRef::Inner(l, r) => Some((i, k, l, r)),
+                _ => None,
+            })
+            .max_by(|a, b| area(a.1).total_cmp(&area(b.1)));
+        let Some((i, k, l, r)) = best else {
+            return;
+        };
+        kids.splice(i..=i, children(bvh, k, l, r));
+    }
+}
