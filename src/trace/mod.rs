@@ -147,6 +147,32 @@ impl Prep {
         (enter <= exit).then_some(enter)
     }
 
+    /// Tests leaf `ni`'s triangles `tris` of `page`, passing each hit to `on_tri` and
+    /// closing `t_max` to it; with `any`, stops at the first. Whether any was met.
+    #[inline]
+    fn leaf(
+        &self,
+        page: &Page,
+        ni: u32,
+        tris: std::ops::Range<u32>,
+        t_max: &mut f32,
+        on_tri: &mut impl FnMut(&Page, u32, u32, f32, [f32; 3]),
+        any: bool,
+    ) -> bool {
+        let mut met = false;
+        for ti in tris.start..tris.end.min(page.tris.len() as u32) {
+            if let Some((t, b)) = self.tri_hit(&page.tris[ti as usize], *t_max) {
+                on_tri(page, ni, ti, t, b);
+                met = true;
+                if any {
+                    break;
+                }
+                *t_max = t;
+            }
+        }
+        met
+    }
+
     /// Woop–Benthin–Wald watertight ray–triangle test (pbrt-v4 `Triangle::Intersect`).
     #[inline]
     fn tri_hit(&self, tri: &TriW, t_max: f32) -> Option<(f32, [f32; 3])> {
@@ -399,15 +425,10 @@ impl<'a> Tracer<'a> {
             }
             let (l, r) = match node.link() {
                 NodeRef::Leaf { first, count } => {
-                    let end = (first + count).min(page.tris.len() as u32);
-                    for ti in first..end {
-                        if let Some((t, b)) = prep.tri_hit(&page.tris[ti as usize], t_max) {
-                            on_tri(page, ni, ti, t, b);
-                            found = true;
-                            if any {
-                                break 'walk;
-                            }
-                            t_max = t;
+                    if prep.leaf(page, ni, first..first + count, &mut t_max, &mut on_tri, any) {
+                        found = true;
+                        if any {
+                            break 'walk;
                         }
                     }
                     continue;
@@ -484,14 +505,11 @@ impl<'a> Tracer<'a> {
                     else {
                         continue;
                     };
-                    for ti in first..(first + count).min(page.tris.len() as u32) {
-                        if let Some((t, b)) = prep.tri_hit(&page.tris[ti as usize], t_max) {
-                            on_tri(page, index, ti, t, b);
-                            found = true;
-                            if any {
-                                break 'walk;
-                            }
-                            t_max = t;
+                    let tris = first..first + count;
+                    if prep.leaf(page, index, tris, &mut t_max, &mut on_tri, any) {
+                        found = true;
+                        if any {
+                            break 'walk;
                         }
                     }
                 }
