@@ -432,4 +432,87 @@ mod tests {
             assert_eq!(c.vector(2).get(i), g[i as usize] - h[i as usize]);
         }
     }
+
+    /// A very bright small emitter seen in glossy maps: leaves whose faces vary between 1
+    /// and 6 with one texel at 10⁴, coded with a threshold and decoded back to texels, ring at most as
+    /// far as the truncation allows: per coefficient t at a node of depth ≤ m and t more
+    /// per level below (equal weights), each texel summing the 1 + 3·log₂ n coefficients
+    /// of its Haar path with amplitudes at most 1. No texel is NaN, none falls below
+    /// minus that bound, and threshold 0 gives every texel back.
+    #[test]
+    fn a_bright_spike_rings_within_the_truncation_bound() {
+        let n = 8;
+        // A complete binary tree of depth 3: node i has children 2i + 1, 2i + 2.
+        let children: Vec<Vec<usize>> = (0..15)
+            .map(|i| {
+                if i < 7 {
+                    vec![2 * i + 1, 2 * i + 2]
+                } else {
+                    Vec::new()
+                }
+            })
+            .collect();
+        let w = vec![1.0; 15];
+        let mut rng = crate::test_rng::TestRng::new(5);
+        let leaf_faces: Vec<Vec<f32>> = (0..15)
+            .map(|_| {
+                let mut f: Vec<f32> = (0..n * n).map(|_| 1.0 + 5.0 * rng.f32()).collect();
+                f[(rng.f32() * (n * n) as f32) as usize % (n * n)] = 1e4;
+                f
+            })
+            .collect();
+        let leaf = |i: usize| {
+            let mut f = leaf_faces[i].clone();
+            super::super::haar::forward(&mut f, n);
+            SparseVec(
+                f.into_iter()
+                    .enumerate()
+                    .map(|(k, c)| (k as u32, c))
+                    .collect(),
+            )
+        };
+        let shape = Shape {
+            children: &children,
+            weight: &w,
+            root: 0,
+        };
+        let stored = |t: f32| encode(&shape, &leaf, 1, t).stored_coefficients();
+        assert!(stored(1.0) < stored(0.0) && stored(100.0) < stored(1.0));
+        let texels = |t: f32| {
+            let coded = encode(&shape, &leaf, 1, t);
+            let g =
+                decode_all(&shape, 1, &|i| coded.stored(i).map(|(k, v)| (k, v.clone()))).unwrap();
+            g.into_iter()
+                .map(|v| {
+                    let mut f = vec![0.0; n * n];
+                    for (k, c) in v.0 {
+                        f[k as usize] = c;
+                    }
+                    super::super::haar::inverse(&mut f, n);
+                    f
+                })
+                .collect::<Vec<_>>()
+        };
+        let exact = texels(0.0);
+        for i in 7..15 {
+            for (a, b) in exact[i].iter().zip(&leaf_faces[i]) {
+                assert!((a - b).abs() < 1e-2 * b, "leaf {i}: {a} for {b}");
+            }
+        }
+        let path = 1.0 + 3.0 * (n as f32).log2();
+        for t in [1.0, 10.0, 100.0] {
+            let got = texels(t);
+            for (node, (g, e)) in got.iter().zip(&exact).enumerate() {
+                let depth = (node + 1).ilog2() as f32;
+                let bound = t * depth.max(1.0) * path + 1e-2;
+                for (a, b) in g.iter().zip(e) {
+                    assert!(
+                        a.is_finite() && (a - b).abs() <= bound,
+                        "t {t}, node {node}: {a} for {b}, bound {bound}"
+                    );
+                    assert!(*a >= -bound);
+                }
+            }
+        }
+    }
 }
