@@ -464,19 +464,12 @@ fn triangle(
         return dark(BakedNode::patch(area, ng, V::ZERO));
     }
     let err = (v[0].abs() + v[1].abs() + v[2].abs()) * gamma(7);
-    let point = |tri: [V; 3], rng: &mut Hash| {
-        let (mut a, mut b) = (rng.f32(), rng.f32());
-        if a + b > 1.0 {
-            (a, b) = (1.0 - a, 1.0 - b);
-        }
-        tri[0] + (tri[1] - tri[0]) * a + (tri[2] - tri[0]) * b
-    };
     let seeded = |key: u64| Hash::new(p.seed as u64 ^ key.wrapping_mul(0x9E37_79B9_7F4A_7C15));
     let mut direct = |tri: [V; 3], key: u64| {
         let mut rng = seeded(key);
         let mut sum = V::ZERO;
         for _ in 0..p.samples {
-            let q = point(tri, &mut rng);
+            let q = uniform_point(tri, &mut rng);
             // Light sampling alone (BSDF pdf 0 gives it full weight): nothing else samples
             // the emitters here.
             sum += sample_light(
@@ -505,7 +498,7 @@ fn triangle(
         let m = k.min(INDIRECT_DEPTH);
         for i in 0..1usize << (2 * m) {
             let mut rng = seeded(patch_key(i) ^ 0x5bd1_e995);
-            let q = point(patch::patch(v, m, i), &mut rng);
+            let q = uniform_point(patch::patch(v, m, i), &mut rng);
             let e = rho * FRAC_1_PI * g.irradiance(scene, tr, q, err, ng, rng.u64());
             let under = 1usize << (2 * (k - m));
             for f in &mut finest[i * under..(i + 1) * under] {
@@ -520,6 +513,15 @@ fn triangle(
         samples: p.samples as u64 * finest.len() as u64,
         pyramid: patch::pyramid(&finest, k),
     }
+}
+
+/// A uniform point of triangle `tri` (the unit square folded onto it).
+pub fn uniform_point(tri: [V; 3], rng: &mut Hash) -> V {
+    let (mut a, mut b) = (rng.f32(), rng.f32());
+    if a + b > 1.0 {
+        (a, b) = (1.0 - a, 1.0 - b);
+    }
+    tri[0] + (tri[1] - tri[0]) * a + (tri[2] - tri[0]) * b
 }
 
 /// SplitMix64: independent uniforms per triangle without a shared generator.

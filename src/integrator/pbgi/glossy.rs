@@ -10,7 +10,7 @@
 //! light samples at area-weighted points of their glossy triangles, one sample serving
 //! every texel. Perfect mirrors and glass are left out: the renderer follows them exactly.
 
-use super::bake::Hash;
+use super::bake::{uniform_point, Hash};
 use crate::integrator::{sample_light, Receiver, Scene};
 use crate::material::{Bsdf, Frame, Material};
 use crate::paging::coefs::{weight, PageShape, BOOTSTRAP};
@@ -115,11 +115,7 @@ impl GlossyMaps {
     ) {
         let cross = (p[1] - p[0]).cross(p[2] - p[0]);
         let ng = cross.normalize();
-        let (mut a, mut b) = (rng.f32(), rng.f32());
-        if a + b > 1.0 {
-            (a, b) = (1.0 - a, 1.0 - b);
-        }
-        let q = p[0] + (p[1] - p[0]) * a + (p[2] - p[0]) * b;
+        let q = uniform_point(p, rng);
         let err = (p[0].abs() + p[1].abs() + p[2].abs()) * gamma(7);
         let wi = Cell::new(V::ZERO);
         // Light sampling alone, as the diffuse bake: E·(cos/pdf) now, the BSDF per texel.
@@ -179,17 +175,13 @@ impl GlossyMaps {
         let shape = PageShape::new(&page.bvh, page.roots, nodes);
         let mut g = vec![SparseVec::default(); page.bvh.len()];
         for i in (0..page.bvh.len()).rev() {
-            let parts: Vec<(f32, SparseVec<Vec3>)> = match page.bvh[i].link() {
-                NodeRef::Leaf { .. } => leaf(i).map(|v| (1.0, v)).into_iter().collect(),
-                NodeRef::ChildPage(c) => child_roots(c),
-                NodeRef::Inner(l, r) => [l, r]
-                    .map(|c| (shape.weight[c as usize], g[c as usize].clone()))
-                    .into(),
-            };
-            let total = match page.bvh[i].link() {
-                NodeRef::Leaf { .. } => 1.0,
-                NodeRef::ChildPage(_) => weight(&nodes[i]),
-                NodeRef::Inner(..) => parts.iter().map(|p| p.0).sum(),
+            let (parts, total): (Vec<(f32, SparseVec<Vec3>)>, f32) = match page.bvh[i].link() {
+                NodeRef::Leaf { .. } => (leaf(i).map(|v| (1.0, v)).into_iter().collect(), 1.0),
+                NodeRef::ChildPage(c) => (child_roots(c), weight(&nodes[i])),
+                NodeRef::Inner(l, r) => {
+                    let kids = [l, r].map(|c| (shape.weight[c as usize], g[c as usize].clone()));
+                    (kids.to_vec(), kids[0].0 + kids[1].0)
+                }
             };
             g[i] = parts.iter().fold(SparseVec::default(), |acc, (w, v)| {
                 acc.add_scaled(v, w / total)
