@@ -15,9 +15,12 @@ pub struct Wide {
     pub lo: [Vec4; 3],
     pub hi: [Vec4; 3],
     pub child: [u32; 4],
+    /// A bit per lane that holds a child: the empty lanes' inverted boxes would pass the
+    /// box test (their infinities cancel), so the walk masks them out with this.
+    pub used: u32,
 }
 
-const _: () = assert!(std::mem::size_of::<Wide>() == 112);
+const _: () = assert!(std::mem::size_of::<Wide>() == 128);
 
 /// A child's kind in the top two bits of `Wide::child`, its index below.
 pub const KIND: u32 = 3 << 30;
@@ -35,6 +38,7 @@ impl Wide {
         lo: [Vec4::INFINITY; 3],
         hi: [Vec4::NEG_INFINITY; 3],
         child: [EMPTY; 4],
+        used: 0,
     };
 }
 
@@ -51,6 +55,7 @@ pub fn build(bvh: &[TNode], roots: u32) -> Vec<Wide> {
     while let Some((slot, mut kids)) = work.pop() {
         open_until_four(bvh, &mut kids);
         let mut w = Wide::NONE;
+        w.used = (1 << kids.len()) - 1;
         for (lane, &k) in kids.iter().enumerate() {
             let n = &bvh[k as usize];
             for axis in 0..3 {

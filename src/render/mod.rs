@@ -232,7 +232,7 @@ fn render_tile(
     tally.rays.fetch_add(tr.rays, Relaxed);
     tally.paths.fetch_add(c.paths, Relaxed);
     tally.nonfinite.fetch_add(c.nonfinite, Relaxed);
-    scene.cache.add_lookups(tr.page_lookups);
+    scene.cache.add_lookups(tr.page_lookups());
     out
 }
 

@@ -57,7 +57,7 @@ pub fn light_pass(
                 let s = PixelSampler::new(seed ^ 0x9e37_79b9, i, pass);
                 deposits += trace_photon(scene, store, keys, &mut tr, &s) as u64;
             }
-            scene.cache.add_lookups(tr.page_lookups);
+            scene.cache.add_lookups(tr.page_lookups());
             (tr.rays, deposits)
         })
         .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
