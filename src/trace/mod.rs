@@ -312,15 +312,19 @@ pub enum ConeHit {
 
 /// The wide node `w`'s children whose lanes are set in `mask`, in the order a walk visits
 /// them: the first is returned, the rest pushed on `stack` (as children of page `pid`,
-/// or as the root of the child page they link to) so that they pop in order. A closest-hit walk goes nearest first (equal distances:
-/// the higher lane first); an any-hit walk goes from the highest lane down, the binary
-/// tree's right-hand side first, which was 2.4× faster than nearest first on sponza's
-/// bounce rays.
+/// or as the root of the child page they link to) so that they pop in order.
+///
+/// A closest-hit walk goes nearest first (equal distances: the higher lane first). An
+/// any-hit walk goes first to the boxes the ray enters from outside, then to those it
+/// starts inside (entry distance 0), each group from the highest lane down: a ray leaving
+/// a surface rarely hits the surface's own neighbourhood, which nearest first would open
+/// to the leaves first. On sponza's bounce rays this order is 3.0× faster than the
+/// lanes' own order and 6.5× faster than nearest first.
 #[inline]
 fn visit_order(
     w: &Wide,
     enter: Vec4,
-    mut mask: u32,
+    mask: u32,
     any: bool,
     pid: u32,
     stack: &mut Vec<(u32, u32, f32)>,
@@ -330,11 +334,17 @@ fn visit_order(
     }
     let mut hits = [(0.0f32, 0u32); 4];
     let mut n = 0;
-    while mask != 0 {
-        let lane = 31 - mask.leading_zeros() as usize;
-        mask &= !(1 << lane);
-        hits[n] = (enter[lane], w.child[lane]);
-        n += 1;
+    let outside = match any {
+        true => enter.cmpgt(Vec4::ZERO).bitmask() & mask,
+        false => mask,
+    };
+    for mut group in [outside, mask & !outside] {
+        while group != 0 {
+            let lane = 31 - group.leading_zeros() as usize;
+            group &= !(1 << lane);
+            hits[n] = (enter[lane], w.child[lane]);
+            n += 1;
+        }
     }
     let hits = &mut hits[..n];
     if !any {
