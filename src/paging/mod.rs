@@ -33,7 +33,8 @@ const TRIM_EVERY: u64 = 1024;
 pub const PIN_LEVELS: u16 = 2;
 
 /// Traversal view of a node: decoded bounds and links. The link is packed (kind in the top
-/// two bits of `a`) so the node is 32 bytes; read it through `link`.
+/// two bits of `a`; a leaf's count in the low four bits of `b`, its first block of
+/// `Page::tri4` above them) so the node is 32 bytes; read it through `link` and `tri4`.
 #[derive(Clone, Copy, Debug, Default)]
 #[repr(C, align(32))]
 pub struct TNode {
@@ -76,11 +77,23 @@ impl TNode {
         match self.a & KIND_MASK {
             LEAF => NodeRef::Leaf {
                 first: x,
-                count: self.b,
+                count: self.b & 15,
             },
             CHILD_PAGE => NodeRef::ChildPage(x),
             _ => NodeRef::Inner(x, self.b),
         }
+    }
+
+    /// A leaf's first block of `Page::tri4`.
+    #[inline]
+    pub fn tri4(&self) -> u32 {
+        self.b >> 4
+    }
+
+    /// Sets a leaf's first block of `Page::tri4` (below 2^28; counts are at most 8).
+    fn set_tri4(&mut self, block: u32) {
+        debug_assert!(self.a & KIND_MASK == LEAF && block < 1 << 28);
+        self.b = (self.b & 15) | block << 4;
     }
 }
 
@@ -112,6 +125,8 @@ pub struct Page {
     pub bvh: Vec<TNode>,
     /// The same tree four-wide, for exact rays.
     pub wide: Vec<wide::Wide>,
+    /// Each leaf's triangles four to a block, from the leaf's `TNode::tri4` on.
+    pub tri4: Vec<wide::Tri4>,
     pub tris: Vec<TriW>,
     /// Per triangle, octahedral shading normals of its vertices (empty without normals).
     pub shading: Vec<[u32; 3]>,
@@ -133,7 +148,7 @@ impl Page {
                 archive.path().display()
             );
         }
-        let bvh = c
+        let mut bvh = c
             .nodes
             .iter()
             .map(|n| {
@@ -169,10 +184,18 @@ impl Page {
         };
         let e = &archive.pages[id as usize];
         let wide = wide::build(&bvh, e.root_count as u32);
+        let tri4 = wide::tri4s(&mut bvh, &tris).ok_or_else(|| {
+            anyhow::anyhow!(
+                "{}: page {id}: {} triangles are more than a page can index",
+                archive.path().display(),
+                tris.len()
+            )
+        })?;
         let bytes = (std::mem::size_of::<Page>()
             + c.nodes.len() * std::mem::size_of::<Node>()
             + bvh.len() * std::mem::size_of::<TNode>()
             + wide.len() * std::mem::size_of::<wide::Wide>()
+            + tri4.len() * std::mem::size_of::<wide::Tri4>()
             + tris.len() * std::mem::size_of::<TriW>()
             + shading.len() * 12) as u64;
         Ok(Page {
@@ -182,6 +205,7 @@ impl Page {
             nodes: c.nodes,
             bvh,
             wide,
+            tri4,
             tris,
             shading,
             baked: BakedBlock::default(),
@@ -212,6 +236,7 @@ impl Page {
             nodes: Vec::new(),
             bvh: Vec::new(),
             wide: Vec::new(),
+            tri4: Vec::new(),
             tris: Vec::new(),
             shading: Vec::new(),
             baked: BakedBlock::default(),

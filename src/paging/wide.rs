@@ -1,11 +1,12 @@
 //! A page's tree for exact rays, four children to a node with their boxes as SIMD lanes
-//! (Embree's BVH4 layout), built from the binary tree when the page is decoded. Each
+//! (Embree's BVH4 layout), and its leaves' triangles four to a block, one per lane, both
+//! built from the binary tree when the page is decoded. Each
 //! node takes the binary children and opens the largest inner one until it has four.
 //! Leaves and child-page links keep their binary node, so hits and links read the binary
 //! tree as before; the cone integrator's level-of-detail walk stays on the binary tree,
 //! whose every node it may stop at.
 
-use super::{NodeRef, TNode};
+use super::{NodeRef, TNode, TriW};
 use glam::Vec4;
 
 /// Four child boxes, per axis, one child per lane, and what each child is.
@@ -32,6 +33,51 @@ pub const LEAF: u32 = 1 << 30;
 pub const PAGE: u32 = 2 << 30;
 /// No child: the lane's box is empty and never hit.
 pub const EMPTY: u32 = 3 << 30;
+
+/// Four triangles' vertices, one triangle per lane: `v[vertex][axis]`. Lanes past a
+/// leaf's last triangle hold zeros and are masked off by the walk.
+#[derive(Clone, Copy, Debug, Default)]
+#[repr(C, align(16))]
+pub struct Tri4 {
+    pub v: [[Vec4; 3]; 3],
+}
+
+impl Tri4 {
+    /// The block of up to four triangles `quad`, in lane order.
+    pub fn new(quad: &[TriW]) -> Tri4 {
+        let mut b = Tri4::default();
+        for (lane, t) in quad.iter().take(4).enumerate() {
+            for (v, p) in t.p.iter().enumerate() {
+                for (axis, &c) in p.iter().enumerate() {
+                    b.v[v][axis][lane] = c;
+                }
+            }
+        }
+        b
+    }
+}
+
+/// The leaves' triangles of a page as blocks of four, recording each leaf's first block in
+/// its node; `None` if the blocks outnumber what a node can record.
+pub fn tri4s(bvh: &mut [TNode], tris: &[TriW]) -> Option<Vec<Tri4>> {
+    let mut out = Vec::new();
+    for node in bvh.iter_mut() {
+        let NodeRef::Leaf { first, count } = node.link() else {
+            continue;
+        };
+        if out.len() >= 1 << 28 {
+            return None;
+        }
+        node.set_tri4(out.len() as u32);
+        let end = (first + count).min(tris.len() as u32) as usize;
+        out.extend(
+            tris[(first as usize).min(end)..end]
+                .chunks(4)
+                .map(Tri4::new),
+        );
+    }
+    Some(out)
+}
 
 impl Wide {
     const NONE: Wide = Wide {

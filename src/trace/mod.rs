@@ -7,7 +7,7 @@
 //! floating-point error bound of the hit point (pbrt-v4 §6.8), which grows with the point's
 //! magnitude instead of being a fixed epsilon.
 
-use crate::paging::wide::{self, Wide};
+use crate::paging::wide::{self, Tri4, Wide};
 use crate::paging::{NodeRef, Page, PageCache, TNode, TriW};
 use canopy_format::Node;
 use glam::{Vec3A as V, Vec4};
@@ -101,36 +101,17 @@ pub fn offset_origin(p: V, err: V, n: V, w: V) -> V {
     V::new(step(po.x, off.x), step(po.y, off.y), step(po.z, off.z))
 }
 
-/// Per-ray constants of the watertight test and the box test.
+/// Per-ray constants of the box test.
 struct Prep {
     o: V,
     inv: V,
-    k: [usize; 3],
-    s: [f32; 3],
 }
 
 impl Prep {
     fn new(r: &Ray) -> Prep {
-        let a = r.d.abs();
-        let kz = if a.x > a.y {
-            if a.x > a.z {
-                0
-            } else {
-                2
-            }
-        } else if a.y > a.z {
-            1
-        } else {
-            2
-        };
-        let kx = (kz + 1) % 3;
-        let ky = (kx + 1) % 3;
-        let d = r.d.to_array();
         Prep {
             o: r.o,
             inv: V::ONE / r.d,
-            k: [kx, ky, kz],
-            s: [-d[kx] / d[kz], -d[ky] / d[kz], 1.0 / d[kz]],
         }
     }
 
@@ -146,106 +127,52 @@ impl Prep {
         let exit = far.min_element().min(t_max);
         (enter <= exit).then_some(enter)
     }
-
-    /// Tests leaf `ni`'s triangles `tris` of `page`, passing each hit to `on_tri` and
-    /// closing `t_max` to it; with `any`, stops at the first. Whether any was met.
-    #[inline]
-    fn leaf(
-        &self,
-        page: &Page,
-        ni: u32,
-        tris: std::ops::Range<u32>,
-        t_max: &mut f32,
-        on_tri: &mut impl FnMut(&Page, u32, u32, f32, [f32; 3]),
-        any: bool,
-    ) -> bool {
-        let mut met = false;
-        for ti in tris.start..tris.end.min(page.tris.len() as u32) {
-            if let Some((t, b)) = self.tri_hit(&page.tris[ti as usize], *t_max) {
-                on_tri(page, ni, ti, t, b);
-                met = true;
-                if any {
-                    break;
-                }
-                *t_max = t;
-            }
-        }
-        met
-    }
-
-    /// Woop–Benthin–Wald watertight ray–triangle test (pbrt-v4 `Triangle::Intersect`).
-    #[inline]
-    fn tri_hit(&self, tri: &TriW, t_max: f32) -> Option<(f32, [f32; 3])> {
-        let [kx, ky, kz] = self.k;
-        let [sx, sy, sz] = self.s;
-        let o = self.o.to_array();
-        let tr = |p: &[f32; 3]| {
-            let z = p[kz] - o[kz];
-            ((p[kx] - o[kx] + sx * z, p[ky] - o[ky] + sy * z), z)
-        };
-        let (xy0, z0) = tr(&tri.p[0]);
-        let (xy1, z1) = tr(&tri.p[1]);
-        let (xy2, z2) = tr(&tri.p[2]);
-        let xy = [xy0, xy1, xy2];
-        let edge = |a: (f32, f32), b: (f32, f32)| {
-            let e = a.0 * b.1 - a.1 * b.0;
-            if e == 0.0 {
-                // Exactly on an edge in f32: decide in f64 so neighbours agree.
-                (a.0 as f64 * b.1 as f64 - a.1 as f64 * b.0 as f64) as f32
-            } else {
-                e
-            }
-        };
-        let e0 = edge(xy[1], xy[2]);
-        let e1 = edge(xy[2], xy[0]);
-        let e2 = edge(xy[0], xy[1]);
-        if (e0 < 0.0 || e1 < 0.0 || e2 < 0.0) && (e0 > 0.0 || e1 > 0.0 || e2 > 0.0) {
-            return None;
-        }
-        let det = e0 + e1 + e2;
-        if det == 0.0 {
-            return None;
-        }
-        let z = [z0 * sz, z1 * sz, z2 * sz];
-        let ts = e0 * z[0] + e1 * z[1] + e2 * z[2];
-        if det < 0.0 && (ts >= 0.0 || ts < t_max * det) {
-            return None;
-        }
-        if det > 0.0 && (ts <= 0.0 || ts > t_max * det) {
-            return None;
-        }
-        let inv = 1.0 / det;
-        let tt = ts * inv;
-        // pbrt-v4: reject hits closer than the error bound of t (behind the origin).
-        let max_z = z[0].abs().max(z[1].abs()).max(z[2].abs());
-        let delta_z = gamma(3) * max_z;
-        let max_x = xy[0].0.abs().max(xy[1].0.abs()).max(xy[2].0.abs());
-        let max_y = xy[0].1.abs().max(xy[1].1.abs()).max(xy[2].1.abs());
-        let delta_x = gamma(5) * (max_x + max_z);
-        let delta_y = gamma(5) * (max_y + max_z);
-        let delta_e = 2.0 * (gamma(2) * max_x * max_y + delta_y * max_x + delta_x * max_y);
-        let max_e = e0.abs().max(e1.abs()).max(e2.abs());
-        let delta_t =
-            3.0 * (gamma(3) * max_e * max_z + delta_e * max_z + delta_z * max_e) * inv.abs();
-        if tt <= delta_t {
-            return None;
-        }
-        Some((tt, [e0 * inv, e1 * inv, e2 * inv]))
-    }
 }
 
-/// The box test of `Prep::box_hit` on a wide node's four lanes at once, the same
-/// arithmetic per lane.
+/// The box test of `Prep::box_hit` on a wide node's four lanes at once, and the
+/// watertight triangle test on four triangles at once, each with the same arithmetic per
+/// lane as one at a time (no fused multiply-adds, the same order of operations), so a
+/// lane's result is the scalar test's bit for bit.
 struct Prep4 {
     o: [Vec4; 3],
     inv: [Vec4; 3],
+    /// The ray's axes permuted so that its largest direction component is the third.
+    k: [usize; 3],
+    /// The shear of the watertight test (pbrt-v4 `Triangle::Intersect`).
+    s: [Vec4; 3],
+}
+
+/// What the watertight test leaves for its comparison with `t_max`, per lane.
+struct Tri4Hits {
+    ts: Vec4,
+    det: Vec4,
+    t: Vec4,
+    b: [Vec4; 3],
 }
 
 impl Prep4 {
-    fn new(p: &Prep) -> Prep4 {
+    fn new(r: &Ray) -> Prep4 {
+        let a = r.d.abs();
+        let kz = if a.x > a.y {
+            if a.x > a.z {
+                0
+            } else {
+                2
+            }
+        } else if a.y > a.z {
+            1
+        } else {
+            2
+        };
+        let kx = (kz + 1) % 3;
+        let ky = (kx + 1) % 3;
+        let d = r.d.to_array();
+        let inv = V::ONE / r.d;
         Prep4 {
-            o: [0, 1, 2].map(|k| Vec4::splat(p.o[k])),
-            inv: [0, 1, 2].map(|k| Vec4::splat(p.inv[k])),
+            o: [0, 1, 2].map(|k| Vec4::splat(r.o[k])),
+            inv: [0, 1, 2].map(|k| Vec4::splat(inv[k])),
+            k: [kx, ky, kz],
+            s: [-d[kx] / d[kz], -d[ky] / d[kz], 1.0 / d[kz]].map(Vec4::splat),
         }
     }
 
@@ -263,6 +190,110 @@ impl Prep4 {
         let enter = nx.max(ny).max(nz).max(Vec4::ZERO);
         let exit = fx.min(fy).min(fz).min(Vec4::splat(t_max));
         (enter, enter.cmple(exit).bitmask())
+    }
+
+    /// Woop–Benthin–Wald watertight ray–triangle test (pbrt-v4 `Triangle::Intersect`) on
+    /// the lanes of `tri` set in `mask`, all but the comparison with `t_max`: the lanes
+    /// that pass, and what `leaf` needs to finish.
+    #[inline]
+    fn tri_hits(&self, tri: &Tri4, mask: u32) -> (u32, Tri4Hits) {
+        let [kx, ky, kz] = self.k;
+        let [sx, sy, sz] = self.s;
+        let [ox, oy, oz] = [self.o[kx], self.o[ky], self.o[kz]];
+        let tr = |v: &[Vec4; 3]| {
+            let z = v[kz] - oz;
+            ([v[kx] - ox + sx * z, v[ky] - oy + sy * z], z)
+        };
+        let (xy0, z0) = tr(&tri.v[0]);
+        let (xy1, z1) = tr(&tri.v[1]);
+        let (xy2, z2) = tr(&tri.v[2]);
+        let xy = [xy0, xy1, xy2];
+        let edge = |a: [Vec4; 2], b: [Vec4; 2]| a[0] * b[1] - a[1] * b[0];
+        let mut e = [edge(xy1, xy2), edge(xy2, xy0), edge(xy0, xy1)];
+        let zero = |e: Vec4| e.cmpeq(Vec4::ZERO).bitmask();
+        let mut exact = (zero(e[0]) | zero(e[1]) | zero(e[2])) & mask;
+        while exact != 0 {
+            // Exactly on an edge in f32: decide in f64 so neighbours agree.
+            let lane = exact.trailing_zeros() as usize;
+            exact &= exact - 1;
+            for (i, (a, b)) in [(1, 2), (2, 0), (0, 1)].into_iter().enumerate() {
+                if e[i][lane] == 0.0 {
+                    let (a, b) = (xy[a].map(|c| c[lane] as f64), xy[b].map(|c| c[lane] as f64));
+                    e[i][lane] = (a[0] * b[1] - a[1] * b[0]) as f32;
+                }
+            }
+        }
+        let [e0, e1, e2] = e;
+        let neg = |v: Vec4| v.cmplt(Vec4::ZERO).bitmask();
+        let pos = |v: Vec4| v.cmpgt(Vec4::ZERO).bitmask();
+        let mut fail = (neg(e0) | neg(e1) | neg(e2)) & (pos(e0) | pos(e1) | pos(e2));
+        let det = e0 + e1 + e2;
+        fail |= zero(det);
+        let z = [z0 * sz, z1 * sz, z2 * sz];
+        let ts = e0 * z[0] + e1 * z[1] + e2 * z[2];
+        fail |= neg(det) & ts.cmpge(Vec4::ZERO).bitmask();
+        fail |= pos(det) & ts.cmple(Vec4::ZERO).bitmask();
+        let inv = Vec4::ONE / det;
+        let t = ts * inv;
+        // pbrt-v4: reject hits closer than the error bound of t (behind the origin).
+        let max3 = |a: Vec4, b: Vec4, c: Vec4| a.abs().max(b.abs()).max(c.abs());
+        let max_z = max3(z[0], z[1], z[2]);
+        let delta_z = Vec4::splat(gamma(3)) * max_z;
+        let max_x = max3(xy0[0], xy1[0], xy2[0]);
+        let max_y = max3(xy0[1], xy1[1], xy2[1]);
+        let delta_x = Vec4::splat(gamma(5)) * (max_x + max_z);
+        let delta_y = Vec4::splat(gamma(5)) * (max_y + max_z);
+        let delta_e = Vec4::splat(2.0)
+            * (Vec4::splat(gamma(2)) * max_x * max_y + delta_y * max_x + delta_x * max_y);
+        let max_e = max3(e0, e1, e2);
+        let delta_t = Vec4::splat(3.0)
+            * (Vec4::splat(gamma(3)) * max_e * max_z + delta_e * max_z + delta_z * max_e)
+            * inv.abs();
+        fail |= t.cmple(delta_t).bitmask();
+        let b = [e0 * inv, e1 * inv, e2 * inv];
+        (mask & !fail, Tri4Hits { ts, det, t, b })
+    }
+
+    /// Tests leaf `ni`'s triangles `tris` of `page` four at a time, passing each hit to
+    /// `on_tri` in the triangles' order and closing `t_max` to it, as one triangle at a
+    /// time would; with `any`, stops at the first. Whether any was met.
+    #[inline]
+    fn leaf(
+        &self,
+        page: &Page,
+        ni: u32,
+        tris: std::ops::Range<u32>,
+        t_max: &mut f32,
+        on_tri: &mut impl FnMut(&Page, u32, u32, f32, [f32; 3]),
+        any: bool,
+    ) -> bool {
+        let end = tris.end.min(page.tris.len() as u32);
+        let Some(block0) = page.bvh.get(ni as usize).map(TNode::tri4) else {
+            return false;
+        };
+        let mut met = false;
+        for (j, first) in (tris.start..end).step_by(4).enumerate() {
+            let Some(tri) = page.tri4.get(block0 as usize + j) else {
+                break;
+            };
+            let (mut pass, h) = self.tri_hits(tri, (1 << (end - first).min(4)) - 1);
+            while pass != 0 {
+                let lane = pass.trailing_zeros() as usize;
+                pass &= pass - 1;
+                let (ts, det) = (h.ts[lane], h.det[lane]);
+                if (det < 0.0 && ts < *t_max * det) || (det > 0.0 && ts > *t_max * det) {
+                    continue;
+                }
+                let b = h.b.map(|b| b[lane]);
+                on_tri(page, ni, first + lane as u32, h.t[lane], b);
+                met = true;
+                if any {
+                    return true;
+                }
+                *t_max = h.t[lane];
+            }
+        }
+        met
     }
 }
 
@@ -443,6 +474,7 @@ impl<'a> Tracer<'a> {
     ) -> bool {
         self.rays += 1;
         let prep = Prep::new(ray);
+        let lanes = Prep4::new(ray);
         // A node holding the far end of a bounded ray (a light) is never an occluder.
         let end = ray.t_max.is_finite().then(|| ray.o + ray.d * ray.t_max);
         let mut t_max = ray.t_max;
@@ -485,7 +517,7 @@ impl<'a> Tracer<'a> {
             }
             let (l, r) = match node.link() {
                 NodeRef::Leaf { first, count } => {
-                    if prep.leaf(page, ni, first..first + count, &mut t_max, &mut on_tri, any) {
+                    if lanes.leaf(page, ni, first..first + count, &mut t_max, &mut on_tri, any) {
                         found = true;
                         if any {
                             break 'walk;
@@ -537,8 +569,7 @@ impl<'a> Tracer<'a> {
         any: bool,
     ) -> bool {
         self.rays += 1;
-        let prep = Prep::new(ray);
-        let lanes = Prep4::new(&prep);
+        let lanes = Prep4::new(ray);
         let mut t_max = ray.t_max;
         let mut stack = std::mem::take(&mut self.stack);
         stack.clear();
@@ -573,7 +604,7 @@ impl<'a> Tracer<'a> {
                         continue;
                     };
                     let tris = first..first + count;
-                    if prep.leaf(page, index, tris, &mut t_max, &mut on_tri, any) {
+                    if lanes.leaf(page, index, tris, &mut t_max, &mut on_tri, any) {
                         found = true;
                         if any {
                             break 'walk;
@@ -656,5 +687,130 @@ impl<'a> Tracer<'a> {
             (_, Some(n)) => Some(n),
             (h, None) => h.map(ConeHit::Tri),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::test_rng::TestRng;
+
+    /// The watertight test one triangle at a time, as pbrt-v4's `Triangle::Intersect`
+    /// writes it: the reference the four-lane test must match bit for bit.
+    fn tri_hit(p: &Prep4, tri: &TriW, t_max: f32) -> Option<(f32, [f32; 3])> {
+        let [kx, ky, kz] = p.k;
+        let [sx, sy, sz] = p.s.map(|v| v.x);
+        let o = p.o.map(|v| v.x);
+        let tr = |p: &[f32; 3]| {
+            let z = p[kz] - o[kz];
+            ((p[kx] - o[kx] + sx * z, p[ky] - o[ky] + sy * z), z)
+        };
+        let (xy0, z0) = tr(&tri.p[0]);
+        let (xy1, z1) = tr(&tri.p[1]);
+        let (xy2, z2) = tr(&tri.p[2]);
+        let xy = [xy0, xy1, xy2];
+        let edge = |a: (f32, f32), b: (f32, f32)| {
+            let e = a.0 * b.1 - a.1 * b.0;
+            if e == 0.0 {
+                // Exactly on an edge in f32: decide in f64 so neighbours agree.
+                (a.0 as f64 * b.1 as f64 - a.1 as f64 * b.0 as f64) as f32
+            } else {
+                e
+            }
+        };
+        let e0 = edge(xy[1], xy[2]);
+        let e1 = edge(xy[2], xy[0]);
+        let e2 = edge(xy[0], xy[1]);
+        if (e0 < 0.0 || e1 < 0.0 || e2 < 0.0) && (e0 > 0.0 || e1 > 0.0 || e2 > 0.0) {
+            return None;
+        }
+        let det = e0 + e1 + e2;
+        if det == 0.0 {
+            return None;
+        }
+        let z = [z0 * sz, z1 * sz, z2 * sz];
+        let ts = e0 * z[0] + e1 * z[1] + e2 * z[2];
+        if det < 0.0 && (ts >= 0.0 || ts < t_max * det) {
+            return None;
+        }
+        if det > 0.0 && (ts <= 0.0 || ts > t_max * det) {
+            return None;
+        }
+        let inv = 1.0 / det;
+        let tt = ts * inv;
+        // pbrt-v4: reject hits closer than the error bound of t (behind the origin).
+        let max_z = z[0].abs().max(z[1].abs()).max(z[2].abs());
+        let delta_z = gamma(3) * max_z;
+        let max_x = xy[0].0.abs().max(xy[1].0.abs()).max(xy[2].0.abs());
+        let max_y = xy[0].1.abs().max(xy[1].1.abs()).max(xy[2].1.abs());
+        let delta_x = gamma(5) * (max_x + max_z);
+        let delta_y = gamma(5) * (max_y + max_z);
+        let delta_e = 2.0 * (gamma(2) * max_x * max_y + delta_y * max_x + delta_x * max_y);
+        let max_e = e0.abs().max(e1.abs()).max(e2.abs());
+        let delta_t =
+            3.0 * (gamma(3) * max_e * max_z + delta_e * max_z + delta_z * max_e) * inv.abs();
+        if tt <= delta_t {
+            return None;
+        }
+        Some((tt, [e0 * inv, e1 * inv, e2 * inv]))
+    }
+
+    /// Four-lane results of `tri` (lanes 0..4) closed against `t_max` as `Prep4::leaf`
+    /// does, each lane on its own.
+    fn lanes(p: &Prep4, tris: &[TriW; 4], t_max: f32) -> [Option<(f32, [f32; 3])>; 4] {
+        let (pass, h) = p.tri_hits(&Tri4::new(tris), 15);
+        std::array::from_fn(|lane| {
+            let (ts, det) = (h.ts[lane], h.det[lane]);
+            let far = (det < 0.0 && ts < t_max * det) || (det > 0.0 && ts > t_max * det);
+            (pass & 1 << lane != 0 && !far).then(|| (h.t[lane], h.b.map(|b| b[lane])))
+        })
+    }
+
+    #[test]
+    fn four_lanes_match_the_one_triangle_test_bit_for_bit() {
+        let mut rng = TestRng::new(15);
+        let bits = |h: Option<(f32, [f32; 3])>| h.map(|(t, b)| (t.to_bits(), b.map(f32::to_bits)));
+        let mut hits = 0;
+        for i in 0..20_000 {
+            // Rays through a shared vertex, along shared edges, axis-aligned and scaled far
+            // from the origin, against triangles that share those vertices and edges.
+            let scale = [1e-3, 1.0, 1e4][i % 3];
+            let q = [rng.v(scale), rng.v(scale), rng.v(scale), rng.v(scale)];
+            let target = match i % 4 {
+                0 => q[0],
+                1 => q[0].lerp(q[1], rng.f32()),
+                _ => q[0] * 0.3 + q[1] * 0.3 + q[2] * 0.4,
+            };
+            let o = rng.v(2.0 * scale);
+            let mut d = target - o;
+            if i % 5 == 0 {
+                d = V::new(d.x, 0.0, if i % 2 == 0 { 0.0 } else { d.z });
+            }
+            if d == V::ZERO {
+                continue;
+            }
+            let ray = Ray {
+                o,
+                d,
+                t_max: f32::INFINITY,
+            };
+            let p = Prep4::new(&ray);
+            let tri = |a: usize, b: usize, c: usize| TriW {
+                p: [q[a], q[b], q[c]].map(|v| v.to_array()),
+                material: 0,
+            };
+            let tris = [tri(0, 1, 2), tri(1, 0, 3), tri(0, 2, 3), tri(2, 2, 3)];
+            let t_max = [f32::INFINITY, 1.0, 0.5][i % 3];
+            let four = lanes(&p, &tris, t_max);
+            for (lane, t) in tris.iter().enumerate() {
+                let one = tri_hit(&p, t, t_max);
+                hits += one.is_some() as u32;
+                assert_eq!(bits(four[lane]), bits(one), "ray {i}, lane {lane}");
+            }
+        }
+        assert!(
+            hits > 5_000,
+            "only {hits} hits: the rays miss too often to test much"
+        );
     }
 }
