@@ -183,7 +183,6 @@ impl Page {
                 .collect()
         };
         let e = &archive.pages[id as usize];
-        let wide = wide::build(&bvh, e.root_count as u32);
         let tri4 = wide::tri4s(&mut bvh, &tris).ok_or_else(|| {
             anyhow::anyhow!(
                 "{}: page {id}: {} triangles are more than a page can index",
@@ -191,6 +190,7 @@ impl Page {
                 tris.len()
             )
         })?;
+        let wide = wide::build(&bvh, e.root_count as u32);
         let bytes = (std::mem::size_of::<Page>()
             + c.nodes.len() * std::mem::size_of::<Node>()
             + bvh.len() * std::mem::size_of::<TNode>()

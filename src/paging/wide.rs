@@ -1,10 +1,10 @@
 //! A page's tree for exact rays, four children to a node with their boxes as SIMD lanes
 //! (Embree's BVH4 layout), and its leaves' triangles four to a block, one per lane, both
-//! built from the binary tree when the page is decoded. Each
-//! node takes the binary children and opens the largest inner one until it has four.
-//! Leaves and child-page links keep their binary node, so hits and links read the binary
-//! tree as before; the cone integrator's level-of-detail walk stays on the binary tree,
-//! whose every node it may stop at.
+//! built from the binary tree when the page is decoded. Each node takes the binary
+//! children and opens the largest inner one until it has four. A leaf's lane names its
+//! first triangle block, and the block its leaf, so a walk reads no binary node; the cone
+//! integrator's level-of-detail walk stays on the binary tree, whose every node it may
+//! stop at.
 
 use super::{NodeRef, TNode, TriW};
 use glam::Vec4;
@@ -27,7 +27,7 @@ const _: () = assert!(std::mem::size_of::<Wide>() == 128);
 pub const KIND: u32 = 3 << 30;
 /// Another wide node of the page.
 pub const WIDE: u32 = 0;
-/// A leaf: its binary node in the page.
+/// A leaf: its first block of `Page::tri4`.
 pub const LEAF: u32 = 1 << 30;
 /// A child page (its wide root is node 0).
 pub const PAGE: u32 = 2 << 30;
@@ -35,15 +35,27 @@ pub const PAGE: u32 = 2 << 30;
 pub const EMPTY: u32 = 3 << 30;
 
 /// Four triangles' vertices, one triangle per lane: `v[vertex][axis]`. Lanes past a
-/// leaf's last triangle hold zeros and are masked off by the walk.
+/// leaf's last triangle hold zeros and are masked off by the walk. Every block of a leaf
+/// names the leaf, so a walk that reaches a leaf through its block reads no node.
 #[derive(Clone, Copy, Debug, Default)]
 #[repr(C, align(16))]
 pub struct Tri4 {
     pub v: [[Vec4; 3]; 3],
+    /// The leaf (a binary node of the page).
+    pub leaf: u32,
+    /// The leaf's first triangle in the page.
+    pub first: u32,
+    /// The leaf's triangles (1 to 8): its blocks follow this one up to that count.
+    pub count: u32,
 }
 
+const _: () = assert!(std::mem::size_of::<Tri4>() == 160);
+
+/// A leaf's `TNode::tri4` when it has no triangles, so no block.
+pub const NO_BLOCK: u32 = (1 << 28) - 1;
+
 impl Tri4 {
-    /// The block of up to four triangles `quad`, in lane order.
+    /// The block of up to four triangles `quad`, in lane order, of no leaf.
     pub fn new(quad: &[TriW]) -> Tri4 {
         let mut b = Tri4::default();
         for (lane, t) in quad.iter().take(4).enumerate() {
@@ -61,20 +73,26 @@ impl Tri4 {
 /// its node; `None` if the blocks outnumber what a node can record.
 pub fn tri4s(bvh: &mut [TNode], tris: &[TriW]) -> Option<Vec<Tri4>> {
     let mut out = Vec::new();
-    for node in bvh.iter_mut() {
+    for (leaf, node) in bvh.iter_mut().enumerate() {
         let NodeRef::Leaf { first, count } = node.link() else {
             continue;
         };
-        if out.len() >= 1 << 28 {
+        let end = (first + count).min(tris.len() as u32);
+        let first = first.min(end);
+        if first == end {
+            node.set_tri4(NO_BLOCK);
+            continue;
+        }
+        if out.len() >= NO_BLOCK as usize {
             return None;
         }
         node.set_tri4(out.len() as u32);
-        let end = (first + count).min(tris.len() as u32) as usize;
-        out.extend(
-            tris[(first as usize).min(end)..end]
-                .chunks(4)
-                .map(Tri4::new),
-        );
+        out.extend(tris[first as usize..end as usize].chunks(4).map(|q| Tri4 {
+            leaf: leaf as u32,
+            first,
+            count: end - first,
+            ..Tri4::new(q)
+        }));
     }
     Some(out)
 }
@@ -101,7 +119,6 @@ pub fn build(bvh: &[TNode], roots: u32) -> Vec<Wide> {
     while let Some((slot, mut kids)) = work.pop() {
         open_until_four(bvh, &mut kids);
         let mut w = Wide::NONE;
-        w.used = (1 << kids.len()) - 1;
         for (lane, &k) in kids.iter().enumerate() {
             let n = &bvh[k as usize];
             for axis in 0..3 {
@@ -115,9 +132,11 @@ pub fn build(bvh: &[TNode], roots: u32) -> Vec<Wide> {
                     work.push((s, children(bvh, k, l, r)));
                     WIDE | s as u32
                 }
-                NodeRef::Leaf { .. } => LEAF | k,
+                NodeRef::Leaf { .. } if n.tri4() == NO_BLOCK => continue,
+                NodeRef::Leaf { .. } => LEAF | n.tri4(),
                 NodeRef::ChildPage(p) => PAGE | p,
             };
+            w.used |= 1 << lane;
         }
         out[slot] = w;
     }
