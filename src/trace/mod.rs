@@ -429,7 +429,7 @@ struct Held {
 }
 
 /// Page handles a thread holds at most (a power of two).
-const HELD: usize = 64;
+const HELD: usize = 256;
 
 impl Held {
     /// Drops every handle if the cache evicted anything since they were taken.
