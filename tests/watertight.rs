@@ -323,10 +323,13 @@ fn tracer_rays_through_shared_edges_and_vertices_never_slip_through() {
     );
 }
 
-/// Exact rays walk the four-wide tree built at page decode; the cone walk stays on the
-/// binary tree, and with `Cone::EXACT` it never stops at a node. On random rays through
-/// bunny_box in small pages (links between pages everywhere, and a budget that evicts)
-/// both walks find the same nearest distance, and any-hit agrees with closest-hit.
+/// Exact rays and widening cones walk the four-wide tree built at page decode; a cone
+/// whose radius does not grow walks the binary tree throughout. A cone and its mirror
+/// (r0 and tan α negated) have the same radius |r0 + t·tan α| bit for bit, so the binary
+/// walk of the mirror is the reference for the four-wide walk of the cone: on random rays
+/// and cones through bunny_box in small pages (links between pages everywhere, and a budget
+/// that evicts) both meet the same thing (the same node, or a triangle) at the same
+/// distance, any-hit agrees with closest-hit, and exact rays agree with `Cone::EXACT`.
 #[test]
 fn the_four_wide_walk_finds_what_the_binary_walk_finds() {
     use canopy::trace::{Cone, ConeHit, Ray, Tracer};
@@ -347,30 +350,55 @@ fn the_four_wide_walk_finds_what_the_binary_walk_finds() {
         Vec3A::from(a.header.bounds_min),
         Vec3A::from(a.header.bounds_max),
     );
+    let diag = (hi - lo).length();
     let cache = canopy::paging::PageCache::new(a, Some(2 << 20), 1).unwrap();
     let mut tr = Tracer::new(&cache);
     let mut rng = TestRng::new(7);
     let mut rnd = || rng.f32();
-    let mut hits = 0;
+    let (mut hits, mut stops) = (0, 0);
+    let seen = |h: Option<ConeHit>| match h {
+        Some(ConeHit::Tri(h)) => Some((h.t, u64::MAX, h.leaf, h.slot)),
+        Some(ConeHit::Node { node, t, .. }) => Some((t, node, 0, 0)),
+        None => None,
+    };
     for i in 0..20_000 {
         let o = lo + (hi - lo) * Vec3A::new(rnd(), rnd(), rnd());
         let d = Vec3A::new(rnd() - 0.5, rnd() - 0.5, rnd() - 0.5).normalize();
         let t_max = if i % 2 == 0 {
             f32::INFINITY
         } else {
-            rnd() * 300.0
+            rnd() * 2.0 * diag
         };
         let ray = Ray { o, d, t_max };
-        let wide = tr.closest_hit(&ray).map(|h| h.t);
-        let binary = match tr.cone_hit(&ray, &Cone::EXACT) {
-            Some(ConeHit::Tri(h)) => Some(h.t),
-            Some(ConeHit::Node { .. }) => panic!("an exact cone stopped at a node"),
-            None => None,
+        let cone = Cone {
+            r0: rnd() * 0.01 * diag,
+            tan_a: rnd() * 0.5,
+            scale: [0.0, 1.0, 2.0][i % 3],
+            spread: 0.0,
         };
-        assert_eq!(wide, binary, "ray {i}: {ray:?}");
-        assert_eq!(tr.occluded(&ray), wide.is_some(), "ray {i}: {ray:?}");
-        hits += wide.is_some() as u32;
+        let mirror = Cone {
+            r0: -cone.r0,
+            tan_a: -cone.tan_a,
+            ..cone
+        };
+        let wide = seen(tr.cone_hit(&ray, &cone));
+        assert_eq!(
+            wide,
+            seen(tr.cone_hit(&ray, &mirror)),
+            "ray {i}: {ray:?} {cone:?}"
+        );
+        let occluded = tr.cone_occluded(&ray, &cone);
+        assert_eq!(occluded, wide.is_some(), "ray {i}: {ray:?} {cone:?}");
+        assert_eq!(occluded, tr.cone_occluded(&ray, &mirror), "ray {i}");
+        let exact = tr.closest_hit(&ray).map(|h| h.t);
+        if cone.scale == 0.0 {
+            assert_eq!(exact, wide.map(|w| w.0), "ray {i}: {ray:?}");
+        }
+        assert_eq!(tr.occluded(&ray), exact.is_some(), "ray {i}: {ray:?}");
+        hits += exact.is_some() as u32;
+        stops += wide.is_some_and(|w| w.1 != u64::MAX) as u32;
     }
+    assert!(stops > 1_000, "only {stops} cones stopped at a node");
     assert!(
         hits > 5_000 && cache.stats().pages_evicted > 0,
         "{hits} hits"

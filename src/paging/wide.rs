@@ -2,9 +2,9 @@
 //! (Embree's BVH4 layout), and its leaves' triangles four to a block, one per lane, both
 //! built from the binary tree when the page is decoded. Each node takes the binary
 //! children and opens the largest inner one until it has four. A leaf's lane names its
-//! first triangle block, and the block its leaf, so a walk reads no binary node; the cone
-//! integrator's level-of-detail walk stays on the binary tree, whose every node it may
-//! stop at.
+//! first triangle block, and the block its leaf, so a walk reads no binary node. Each
+//! wide node names the binary node it descends from, so that a cone, which may stop at
+//! any binary node, can go on down the binary tree where the lanes skip a level.
 
 use super::{NodeRef, TNode, TriW};
 use glam::Vec4;
@@ -19,9 +19,24 @@ pub struct Wide {
     /// A bit per lane that holds a child: the empty lanes' inverted boxes would pass the
     /// box test (their infinities cancel), so the walk masks them out with this.
     pub used: u32,
+    /// The binary node whose descendants the lanes are (`ROOTS`: the page's roots), where
+    /// a cone's walk goes on down the binary tree when it might stop at a node the lanes
+    /// skip.
+    pub node: u32,
+    /// The binary nodes between `node` and the lanes (`NONE` where fewer than two;
+    /// `MANY` in both where more), whose boxes a cone's walk tests too: the cone might
+    /// stop at one whose lanes the ray misses.
+    pub skipped: [u32; 2],
 }
 
 const _: () = assert!(std::mem::size_of::<Wide>() == 128);
+
+/// `Wide::node` of a page's root: its lanes descend from the page's roots.
+pub const ROOTS: u32 = u32::MAX;
+/// No node, in `Wide::skipped`.
+pub const NONE: u32 = u32::MAX;
+/// More skipped nodes than `Wide::skipped` holds.
+pub const MANY: u32 = u32::MAX - 1;
 
 /// A child's kind in the top two bits of `Wide::child`, its index below.
 pub const KIND: u32 = 3 << 30;
@@ -51,7 +66,7 @@ pub struct Tri4 {
 
 const _: () = assert!(std::mem::size_of::<Tri4>() == 160);
 
-/// A leaf's `TNode::tri4` when it has no triangles, so no block.
+/// A leaf's `TNode::tri4` when it has no triangles, so no block (no page has this many).
 pub const NO_BLOCK: u32 = (1 << 28) - 1;
 
 impl Tri4 {
@@ -103,6 +118,8 @@ impl Wide {
         hi: [Vec4::NEG_INFINITY; 3],
         child: [EMPTY; 4],
         used: 0,
+        node: ROOTS,
+        skipped: [NONE; 2],
     };
 }
 
@@ -115,10 +132,19 @@ pub fn build(bvh: &[TNode], roots: u32) -> Vec<Wide> {
         return Vec::new();
     }
     let mut out = vec![Wide::NONE];
-    let mut work = vec![(0usize, top)];
-    while let Some((slot, mut kids)) = work.pop() {
-        open_until_four(bvh, &mut kids);
-        let mut w = Wide::NONE;
+    let mut work = vec![(0usize, ROOTS, top)];
+    while let Some((slot, node, mut kids)) = work.pop() {
+        let skipped = match open_until_four(bvh, &mut kids)[..] {
+            [] => [NONE; 2],
+            [a] => [a, NONE],
+            [a, b] => [a, b],
+            _ => [MANY; 2],
+        };
+        let mut w = Wide {
+            node,
+            skipped,
+            ..Wide::NONE
+        };
         for (lane, &k) in kids.iter().enumerate() {
             let n = &bvh[k as usize];
             for axis in 0..3 {
@@ -129,10 +155,9 @@ pub fn build(bvh: &[TNode], roots: u32) -> Vec<Wide> {
                 NodeRef::Inner(l, r) => {
                     let s = out.len();
                     out.push(Wide::NONE);
-                    work.push((s, children(bvh, k, l, r)));
+                    work.push((s, k, children(bvh, k, l, r)));
                     WIDE | s as u32
                 }
-                NodeRef::Leaf { .. } if n.tri4() == NO_BLOCK => continue,
                 NodeRef::Leaf { .. } => LEAF | n.tri4(),
                 NodeRef::ChildPage(p) => PAGE | p,
             };
@@ -152,8 +177,9 @@ fn children(bvh: &[TNode], k: u32, l: u32, r: u32) -> Vec<u32> {
 }
 
 /// Replaces the inner node of largest box surface among `kids` by its children while
-/// there are fewer than four.
-fn open_until_four(bvh: &[TNode], kids: &mut Vec<u32>) {
+/// there are fewer than four; the nodes it replaced.
+fn open_until_four(bvh: &[TNode], kids: &mut Vec<u32>) -> Vec<u32> {
+    let mut opened = Vec::new();
     while kids.len() < 4 {
         let area = |k: u32| {
             let n = &bvh[k as usize];
@@ -169,8 +195,10 @@ fn open_until_four(bvh: &[TNode], kids: &mut Vec<u32>) {
             })
             .max_by(|a, b| area(a.1).total_cmp(&area(b.1)));
         let Some((i, k, l, r)) = best else {
-            return;
+            break;
         };
         kids.splice(i..=i, children(bvh, k, l, r));
+        opened.push(k);
     }
+    opened
 }

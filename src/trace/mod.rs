@@ -203,6 +203,24 @@ impl Prep4 {
         (enter, enter.cmple(exit).bitmask())
     }
 
+    /// The lanes of `w` at whose boxes, entered at `enter`, `cone` would stop: the binary
+    /// walk's rule per lane, with the same arithmetic.
+    #[inline]
+    fn stops(&self, w: &Wide, enter: Vec4, cone: &Cone, end: Option<V>) -> u32 {
+        let side = (w.hi[0] - w.lo[0])
+            .max(w.hi[1] - w.lo[1])
+            .max(w.hi[2] - w.lo[2]);
+        let radius = (Vec4::splat(cone.r0) + Vec4::splat(cone.tan_a) * enter).abs();
+        let wide = (radius * Vec4::splat(cone.scale)).cmpgt(side).bitmask();
+        let inside = |p: [Vec4; 3]| {
+            (0..3).fold(15, |m, k| {
+                m & p[k].cmpge(w.lo[k]).bitmask() & p[k].cmple(w.hi[k]).bitmask()
+            })
+        };
+        let ends = end.map_or(0, |e| inside([0, 1, 2].map(|k| Vec4::splat(e[k]))));
+        wide & !inside(self.o) & !ends
+    }
+
     /// Woop–Benthin–Wald watertight ray–triangle test (pbrt-v4 `Triangle::Intersect`) on
     /// the lanes of `tri` set in `mask`, all but the comparison with `t_max`: the lanes
     /// that pass, and what `leaf` needs to finish.
@@ -374,14 +392,15 @@ fn visit_order(
     mask: u32,
     any: bool,
     pid: u32,
-    stack: &mut Vec<(u32, u32, f32)>,
-) -> Option<u32> {
+    stack: &mut Stack,
+) -> Option<(u32, f32)> {
     let entry = |c: u32, t: f32| match c & wide::KIND {
         wide::PAGE => (c & !wide::KIND, wide::WIDE, t),
         _ => (pid, c, t),
     };
     if mask & mask.wrapping_sub(1) == 0 {
-        return (mask != 0).then(|| w.child[mask.trailing_zeros() as usize]);
+        let lane = mask.trailing_zeros() as usize;
+        return (mask != 0).then(|| (w.child[lane], enter[lane]));
     }
     let t = enter.to_array();
     let mut hits = [(0.0f32, 0u32); 4];
@@ -410,7 +429,37 @@ fn visit_order(
     for &(t, c) in hits[1..n].iter().rev() {
         stack.push(entry(c, t));
     }
-    Some(hits[0].1)
+    Some((hits[0].1, hits[0].0))
+}
+
+/// The walk's stack: (page, entry as `Wide::child` codes it, box entry distance).
+type Stack = Vec<(u32, u32, f32)>;
+
+/// A stack entry whose kind is `EMPTY` (which no lane pushes) is a binary node of its page.
+const BINARY: u32 = wide::EMPTY;
+
+/// Pushes the binary nodes `kids` of `page` that the ray meets before `t_max`, the nearer
+/// last (popped first).
+#[inline]
+fn push_pair(prep: &Prep, page: &Page, [l, r]: [u32; 2], t_max: f32, stack: &mut Stack) {
+    let (Some(ln), Some(rn)) = (page.bvh.get(l as usize), page.bvh.get(r as usize)) else {
+        return;
+    };
+    let id = page.id;
+    match (prep.box_hit(ln, t_max), prep.box_hit(rn, t_max)) {
+        (Some(a), Some(b)) => {
+            let (near, far) = if a <= b {
+                ((l, a), (r, b))
+            } else {
+                ((r, b), (l, a))
+            };
+            stack.push((id, BINARY | far.0, far.1));
+            stack.push((id, BINARY | near.0, near.1));
+        }
+        (Some(a), None) => stack.push((id, BINARY | l, a)),
+        (None, Some(b)) => stack.push((id, BINARY | r, b)),
+        (None, None) => {}
+    }
 }
 
 fn inside(p: V, n: &TNode) -> bool {
@@ -457,7 +506,7 @@ impl Held {
 pub struct Tracer<'a> {
     pub cache: &'a PageCache,
     held: Held,
-    stack: Vec<(u32, u32, f32)>,
+    stack: Stack,
     pub rays: u64,
 }
 
@@ -480,11 +529,20 @@ impl<'a> Tracer<'a> {
         self.held.lookups
     }
 
-    /// Walks the paged binary tree front to back with the cone's level-of-detail rule:
-    /// `on_tri` gets each triangle the ray meets (closing `t_max` to its distance),
-    /// `on_node` each node the cone stops at; with `any`, the first of either ends the walk.
+    /// Walks the paged tree front to back: `on_tri` gets each triangle the ray meets
+    /// (closing `t_max` to its distance), `on_node` each node the cone stops at; with
+    /// `any`, the first of either ends the walk.
+    ///
+    /// Exact rays walk the four-wide tree. A cone stops at a binary node it cannot resolve
+    /// (004 eq. 4.12), and the wide tree skips binary levels, so where a cone might stop at
+    /// one of a wide node's lanes the walk goes on from the binary node the lanes descend
+    /// from, down the binary tree, exactly as a binary walk would. Where no lane stops, no
+    /// skipped node would have: a skipped node's box holds its lanes' boxes, so the cone
+    /// enters it no later, and (its radius growing along the ray) no wider, than it enters
+    /// a lane, while the node is no smaller. A cone whose radius does not grow walks the
+    /// binary tree throughout.
     #[inline]
-    fn traverse(
+    fn walk(
         &mut self,
         ray: &Ray,
         mut on_tri: impl FnMut(TriRef),
@@ -494,8 +552,16 @@ impl<'a> Tracer<'a> {
         self.rays += 1;
         let prep = Prep::new(ray);
         let lanes = Prep4::new(ray);
+        let lod = cone.scale > 0.0;
+        let grows = cone.r0 >= 0.0 && cone.tan_a >= 0.0;
         // A node holding the far end of a bounded ray (a light) is never an occluder.
         let end = ray.t_max.is_finite().then(|| ray.o + ray.d * ray.t_max);
+        let stops = |n: &TNode, t: f32| {
+            let side = (V::from(n.hi) - V::from(n.lo)).max_element();
+            cone.radius(t) * cone.scale > side
+                && !inside(ray.o, n)
+                && !end.is_some_and(|e| inside(e, n))
+        };
         let mut t_max = ray.t_max;
         let mut stack = std::mem::take(&mut self.stack);
         stack.clear();
@@ -503,100 +569,12 @@ impl<'a> Tracer<'a> {
         let held = &mut self.held;
         held.check_epoch(cache);
         let mut page: &Page = held.get(cache, cache.root_page());
-        for r in 0..page.roots.min(page.bvh.len() as u32) {
-            if let Some(t) = prep.box_hit(&page.bvh[r as usize], t_max) {
-                stack.push((page.id, r, t));
-            }
-        }
-        let mut found = false;
-        'walk: while let Some((pid, ni, tn)) = stack.pop() {
-            if tn > t_max {
-                continue;
-            }
-            if page.id != pid {
-                page = held.get(cache, pid);
-            }
-            let Some(node) = page.bvh.get(ni as usize) else {
-                continue;
-            };
-            // 004 eq. 4.12: stop at a node the cone cannot resolve, unless the ray starts
-            // inside it (end of §4.5.2) or ends inside it.
-            let side = (V::from(node.hi) - V::from(node.lo)).max_element();
-            if cone.radius(tn) * cone.scale > side
-                && !inside(ray.o, node)
-                && !end.is_some_and(|e| inside(e, node))
-            {
-                on_node(page, ni, tn);
-                found = true;
-                if any {
-                    break 'walk;
-                }
-                t_max = tn;
-                continue;
-            }
-            let (l, r) = match node.link() {
-                NodeRef::Leaf { .. } => {
-                    if lanes.leaf(page, node.tri4(), &mut t_max, &mut on_tri, any) {
-                        found = true;
-                        if any {
-                            break 'walk;
-                        }
-                    }
-                    continue;
-                }
-                NodeRef::Inner(l, r) => (l, r),
-                NodeRef::ChildPage(child) => {
-                    page = held.get(cache, child);
-                    if page.roots < 2 {
-                        continue;
-                    }
-                    (0, 1)
-                }
-            };
-            let (Some(ln), Some(rn)) = (page.bvh.get(l as usize), page.bvh.get(r as usize)) else {
-                continue;
-            };
-            let id = page.id;
-            match (prep.box_hit(ln, t_max), prep.box_hit(rn, t_max)) {
-                (Some(a), Some(b)) => {
-                    let (near, far) = if a <= b {
-                        ((l, a), (r, b))
-                    } else {
-                        ((r, b), (l, a))
-                    };
-                    stack.push((id, far.0, far.1));
-                    stack.push((id, near.0, near.1));
-                }
-                (Some(a), None) => stack.push((id, l, a)),
-                (None, Some(b)) => stack.push((id, r, b)),
-                (None, None) => {}
-            }
-        }
-        self.stack = stack;
-        found
-    }
-
-    /// Walks the paged four-wide tree front to back (exact rays): `on_tri` gets each
-    /// triangle the ray meets (closing `t_max` to its distance); with `any`, the first
-    /// hit ends the walk. The walk goes on to the first child to visit without a trip
-    /// through the stack, which holds the rest.
-    #[inline]
-    fn traverse_wide(&mut self, ray: &Ray, mut on_tri: impl FnMut(TriRef), any: bool) -> bool {
-        self.rays += 1;
-        let lanes = Prep4::new(ray);
-        let mut t_max = ray.t_max;
-        let mut stack = std::mem::take(&mut self.stack);
-        stack.clear();
-        let cache = self.cache;
-        let held = &mut self.held;
-        held.check_epoch(cache);
-        let mut page: &Page = held.get(cache, cache.root_page());
-        // The child of `page` to walk next, as `Wide::child` codes it.
-        let mut next = (!page.wide.is_empty()).then_some(wide::WIDE);
+        // The entry of `page` to walk next, as `Wide::child` codes it, and its distance.
+        let mut next = (!page.wide.is_empty()).then_some((wide::WIDE, 0.0));
         let mut found = false;
         'walk: loop {
-            let r = match next.take() {
-                Some(r) => r,
+            let (r, tn) = match next.take() {
+                Some(e) => e,
                 None => loop {
                     let Some((pid, r, tn)) = stack.pop() else {
                         break 'walk;
@@ -605,7 +583,7 @@ impl<'a> Tracer<'a> {
                         if page.id != pid {
                             page = held.get(cache, pid);
                         }
-                        break r;
+                        break (r, tn);
                     }
                 },
             };
@@ -622,7 +600,38 @@ impl<'a> Tracer<'a> {
                 wide::PAGE => {
                     page = held.get(cache, index);
                     if page.roots >= 2 && !page.wide.is_empty() {
-                        next = Some(wide::WIDE);
+                        next = Some((wide::WIDE, tn));
+                    }
+                }
+                BINARY => {
+                    let Some(node) = page.bvh.get(index as usize) else {
+                        continue;
+                    };
+                    if lod && stops(node, tn) {
+                        on_node(page, index, tn);
+                        found = true;
+                        if any {
+                            break 'walk;
+                        }
+                        t_max = tn;
+                        continue;
+                    }
+                    match node.link() {
+                        NodeRef::Leaf { .. } => {
+                            if lanes.leaf(page, node.tri4(), &mut t_max, &mut on_tri, any) {
+                                found = true;
+                                if any {
+                                    break 'walk;
+                                }
+                            }
+                        }
+                        NodeRef::Inner(l, r) => push_pair(&prep, page, [l, r], t_max, &mut stack),
+                        NodeRef::ChildPage(child) => {
+                            page = held.get(cache, child);
+                            if page.roots >= 2 && !page.wide.is_empty() {
+                                next = Some((wide::WIDE, tn));
+                            }
+                        }
                     }
                 }
                 _ => {
@@ -630,7 +639,36 @@ impl<'a> Tracer<'a> {
                         continue;
                     };
                     let (enter, mask) = lanes.hit(w, t_max);
-                    next = visit_order(w, enter, mask & w.used, any, page.id, &mut stack);
+                    let mask = mask & w.used;
+                    let binary = lod
+                        && (!grows
+                            || lanes.stops(w, enter, cone, end) & mask != 0
+                            || w.skipped.iter().any(|&k| match k {
+                                wide::MANY => true,
+                                k => page.bvh.get(k as usize).is_some_and(|n| {
+                                    prep.box_hit(n, t_max).is_some_and(|t| stops(n, t))
+                                }),
+                            }));
+                    if binary {
+                        match w.node {
+                            wide::ROOTS => {
+                                for root in 0..page.roots.min(page.bvh.len() as u32) {
+                                    if let Some(t) = prep.box_hit(&page.bvh[root as usize], t_max) {
+                                        stack.push((page.id, BINARY | root, t));
+                                    }
+                                }
+                            }
+                            k => {
+                                if let Some(NodeRef::Inner(l, r)) =
+                                    page.bvh.get(k as usize).map(TNode::link)
+                                {
+                                    push_pair(&prep, page, [l, r], t_max, &mut stack);
+                                }
+                            }
+                        }
+                        continue;
+                    }
+                    next = visit_order(w, enter, mask, any, page.id, &mut stack);
                 }
             }
         }
@@ -652,13 +690,18 @@ impl<'a> Tracer<'a> {
     /// Nearest intersection along the ray, if any, before `ray.t_max`.
     pub fn closest_hit(&mut self, ray: &Ray) -> Option<Hit> {
         let mut best: Option<TriRef> = None;
-        self.traverse_wide(ray, |r| best = Some(r), false);
+        self.walk(
+            ray,
+            |r| best = Some(r),
+            false,
+            (&Cone::EXACT, &mut |_, _, _| {}),
+        );
         best.map(|r| self.hit(&r))
     }
 
     /// Whether anything blocks the ray before `ray.t_max`.
     pub fn occluded(&mut self, ray: &Ray) -> bool {
-        self.traverse_wide(ray, |_| {}, true)
+        self.walk(ray, |_| {}, true, (&Cone::EXACT, &mut |_, _, _| {}))
     }
 
     /// Whether a shadow cone meets anything before `ray.t_max`: like `occluded`, but a node
@@ -668,7 +711,7 @@ impl<'a> Tracer<'a> {
         if cone.scale <= 0.0 {
             return self.occluded(ray);
         }
-        self.traverse(ray, |_| {}, true, (cone, &mut |_, _, _| {}))
+        self.walk(ray, |_| {}, true, (cone, &mut |_, _, _| {}))
     }
 
     /// Nearest hit of a cone: a leaf triangle, or the first node whose box the cone's
@@ -684,7 +727,7 @@ impl<'a> Tracer<'a> {
                 record: *record,
             })
         };
-        self.traverse(ray, |r| tri_best = Some(r), false, (cone, &mut on_node));
+        self.walk(ray, |r| tri_best = Some(r), false, (cone, &mut on_node));
         // Both callbacks close t_max, so whichever came last is the nearest.
         match (tri_best, node_best) {
             (Some(r), Some(ConeHit::Node { t, .. })) if r.t <= t => {
