@@ -617,21 +617,9 @@ impl<'a> Tracer<'a> {
                         continue;
                     }
                     match node.link() {
-                        NodeRef::Leaf { .. } => {
-                            if lanes.leaf(page, node.tri4(), &mut t_max, &mut on_tri, any) {
-                                found = true;
-                                if any {
-                                    break 'walk;
-                                }
-                            }
-                        }
+                        NodeRef::Leaf { .. } => next = Some((wide::LEAF | node.tri4(), tn)),
                         NodeRef::Inner(l, r) => push_pair(&prep, page, [l, r], t_max, &mut stack),
-                        NodeRef::ChildPage(child) => {
-                            page = held.get(cache, child);
-                            if page.roots >= 2 && !page.wide.is_empty() {
-                                next = Some((wide::WIDE, tn));
-                            }
-                        }
+                        NodeRef::ChildPage(child) => next = Some((wide::PAGE | child, tn)),
                     }
                 }
                 _ => {
