@@ -58,7 +58,10 @@ fn write_rays(dir: &Path, name: &str, cache: &PageCache, sets: [(&str, &[Ray]); 
     };
     let pages = 0..cache.archive.pages.len() as u32;
     let tris: Vec<f32> = pages
-        .flat_map(|id| cache.get(id).tris.clone())
+        .flat_map(|id| {
+            let page = cache.get(id);
+            (0..page.tri_count()).filter_map(move |i| page.tri(i))
+        })
         .flat_map(|t| t.p.into_iter().flatten())
         .collect();
     let write = |ext: &str, bytes: Vec<u8>| {

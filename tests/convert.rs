@@ -316,7 +316,9 @@ fn decoded_pages_keep_every_node_kind_and_link() {
             assert_eq!(t.link(), want, "page {pg}");
             assert_eq!((t.lo, t.hi), a.grid(pg).dequant_box(&n.bounds));
         }
-        for (tri, w) in c.tris.iter().zip(&p.tris) {
+        assert_eq!(p.tri_count() as usize, c.tris.len());
+        for (i, tri) in c.tris.iter().enumerate() {
+            let w = p.tri(i as u32).expect("a leaf holds every triangle");
             assert_eq!(w.p, tri.v.map(|k| c.verts[k as usize]));
             assert_eq!(w.material, tri.material as u32);
         }

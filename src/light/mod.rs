@@ -151,15 +151,17 @@ impl Lights {
             match page.bvh[ni as usize].link() {
                 NodeRef::Leaf { first, count } => {
                     let leaf = page.first_node + ni as u64;
-                    let tris = &page.tris[first as usize..(first + count) as usize];
-                    for (slot, tri) in tris.iter().enumerate() {
+                    for slot in 0..count {
+                        let Some(tri) = page.tri(first + slot) else {
+                            continue;
+                        };
                         let m = &materials[tri.material as usize];
                         if !m.is_emissive() {
                             continue;
                         }
                         let e = Emitter::triangle(tri.p.map(V::from), m.emission, m.double_sided);
                         if let Some(e) = e {
-                            by_leaf.insert((leaf, slot as u32), emitters.len() as u32);
+                            by_leaf.insert((leaf, slot), emitters.len() as u32);
                             emitters.push(e);
                         }
                     }

@@ -125,9 +125,11 @@ pub struct Page {
     pub bvh: Vec<TNode>,
     /// The same tree four-wide, for exact rays.
     pub wide: Vec<wide::Wide>,
-    /// Each leaf's triangles four to a block, from the leaf's `TNode::tri4` on.
+    /// Each leaf's triangles four to a block, from the leaf's `TNode::tri4` on: the
+    /// page's only copy of its triangles (read one through `tri`).
     pub tri4: Vec<wide::Tri4>,
-    pub tris: Vec<TriW>,
+    /// Per triangle, its place in `tri4` (block × 4 + lane, or `wide::NO_SLOT`).
+    tri_slot: Vec<u32>,
     /// Per triangle, octahedral shading normals of its vertices (empty without normals).
     pub shading: Vec<[u32; 3]>,
     /// The page's baked light (empty unless a radiance file is attached).
@@ -139,6 +141,19 @@ pub struct Page {
 }
 
 impl Page {
+    /// Triangle `i` of the page, if a leaf holds it.
+    #[inline]
+    pub fn tri(&self, i: u32) -> Option<TriW> {
+        let slot = *self.tri_slot.get(i as usize)?;
+        let block = self.tri4.get(slot as usize / 4)?;
+        Some(block.tri(slot as usize % 4))
+    }
+
+    /// The page's triangles, whether a leaf holds them or not.
+    pub fn tri_count(&self) -> u32 {
+        self.tri_slot.len() as u32
+    }
+
     pub fn decode(archive: &Archive, id: u32) -> Result<Page> {
         let c = archive.read_page(id)?;
         let grid = archive.grid(id);
@@ -183,7 +198,7 @@ impl Page {
                 .collect()
         };
         let e = &archive.pages[id as usize];
-        let tri4 = wide::tri4s(&mut bvh, &tris).ok_or_else(|| {
+        let (tri4, tri_slot) = wide::tri4s(&mut bvh, &tris).ok_or_else(|| {
             anyhow::anyhow!(
                 "{}: page {id}: {} triangles are more than a page can index",
                 archive.path().display(),
@@ -196,7 +211,7 @@ impl Page {
             + bvh.len() * std::mem::size_of::<TNode>()
             + wide.len() * std::mem::size_of::<wide::Wide>()
             + tri4.len() * std::mem::size_of::<wide::Tri4>()
-            + tris.len() * std::mem::size_of::<TriW>()
+            + tri_slot.len() * 4
             + shading.len() * 12) as u64;
         Ok(Page {
             id,
@@ -206,7 +221,7 @@ impl Page {
             bvh,
             wide,
             tri4,
-            tris,
+            tri_slot,
             shading,
             baked: BakedBlock::default(),
             glossy: coefs::GlossyTexels::default(),
@@ -237,7 +252,7 @@ impl Page {
             bvh: Vec::new(),
             wide: Vec::new(),
             tri4: Vec::new(),
-            tris: Vec::new(),
+            tri_slot: Vec::new(),
             shading: Vec::new(),
             baked: BakedBlock::default(),
             glossy: coefs::GlossyTexels::default(),

@@ -56,6 +56,8 @@ pub const EMPTY: u32 = 3 << 30;
 #[repr(C, align(16))]
 pub struct Tri4 {
     pub v: [[Vec4; 3]; 3],
+    /// Each lane's material.
+    pub material: [u32; 4],
     /// The leaf (a binary node of the page).
     pub leaf: u32,
     /// The leaf's first triangle in the page.
@@ -64,7 +66,7 @@ pub struct Tri4 {
     pub count: u32,
 }
 
-const _: () = assert!(std::mem::size_of::<Tri4>() == 160);
+const _: () = assert!(std::mem::size_of::<Tri4>() == 176);
 
 /// A leaf's `TNode::tri4` when it has no triangles, so no block (no page has this many).
 pub const NO_BLOCK: u32 = (1 << 28) - 1;
@@ -74,6 +76,7 @@ impl Tri4 {
     pub fn new(quad: &[TriW]) -> Tri4 {
         let mut b = Tri4::default();
         for (lane, t) in quad.iter().take(4).enumerate() {
+            b.material[lane] = t.material;
             for (v, p) in t.p.iter().enumerate() {
                 for (axis, &c) in p.iter().enumerate() {
                     b.v[v][axis][lane] = c;
@@ -82,12 +85,26 @@ impl Tri4 {
         }
         b
     }
+
+    /// The triangle in `lane`.
+    pub fn tri(&self, lane: usize) -> TriW {
+        TriW {
+            // Through arrays: indexing a `Vec4` branches on the lane.
+            p: self.v.map(|axes| axes.map(|c| c.to_array()[lane])),
+            material: self.material[lane],
+        }
+    }
 }
 
+/// `Page::tri4`'s slot of a triangle no leaf holds.
+pub const NO_SLOT: u32 = u32::MAX;
+
 /// The leaves' triangles of a page as blocks of four, recording each leaf's first block in
-/// its node; `None` if the blocks outnumber what a node can record.
-pub fn tri4s(bvh: &mut [TNode], tris: &[TriW]) -> Option<Vec<Tri4>> {
+/// its node, and each triangle's slot (block × 4 + lane); `None` if the blocks outnumber
+/// what a node can record.
+pub fn tri4s(bvh: &mut [TNode], tris: &[TriW]) -> Option<(Vec<Tri4>, Vec<u32>)> {
     let mut out = Vec::new();
+    let mut slots = vec![NO_SLOT; tris.len()];
     for (leaf, node) in bvh.iter_mut().enumerate() {
         let NodeRef::Leaf { first, count } = node.link() else {
             continue;
@@ -102,6 +119,9 @@ pub fn tri4s(bvh: &mut [TNode], tris: &[TriW]) -> Option<Vec<Tri4>> {
             return None;
         }
         node.set_tri4(out.len() as u32);
+        for (k, slot) in slots[first as usize..end as usize].iter_mut().enumerate() {
+            *slot = (out.len() * 4 + k) as u32;
+        }
         out.extend(tris[first as usize..end as usize].chunks(4).map(|q| Tri4 {
             leaf: leaf as u32,
             first,
@@ -109,7 +129,7 @@ pub fn tri4s(bvh: &mut [TNode], tris: &[TriW]) -> Option<Vec<Tri4>> {
             ..Tri4::new(q)
         }));
     }
-    Some(out)
+    Some((out, slots))
 }
 
 impl Wide {

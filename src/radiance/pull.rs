@@ -86,8 +86,8 @@ fn pull_page(cache: &PageCache, store: &RadianceStore, keys: Keys, page: &Page) 
         let parts: Vec<Part> = match link {
             NodeRef::Leaf { first, count } => (0..count)
                 .filter_map(|k| {
-                    let t = page.tris.get((first + k) as usize)?;
-                    Some(triangle_part(store, keys, here, k, t))
+                    let t = page.tri(first + k)?;
+                    Some(triangle_part(store, keys, here, k, &t))
                 })
                 .collect(),
             NodeRef::Inner(l, r) => [l, r]
@@ -150,13 +150,12 @@ mod tests {
         match page.bvh[i as usize].link() {
             NodeRef::Inner(l, r) => add(subtree(cache, value, pg, l), subtree(cache, value, pg, r)),
             NodeRef::ChildPage(c) => add(subtree(cache, value, c, 0), subtree(cache, value, c, 1)),
-            NodeRef::Leaf { first, count } => {
-                (first..first + count).fold(([0.0; 3], 0.0), |acc, k| {
-                    let t = &page.tris[k as usize];
-                    let area = super::super::tri_area(t) as f64;
-                    add(acc, (value(t).map(|x| x * area), area))
-                })
-            }
+            NodeRef::Leaf { first, count } => (first..first + count)
+                .filter_map(|k| page.tri(k))
+                .fold(([0.0; 3], 0.0), |acc, t| {
+                    let area = super::super::tri_area(&t) as f64;
+                    add(acc, (value(&t).map(|x| x * area), area))
+                }),
         }
     }
 
@@ -197,7 +196,7 @@ mod tests {
                     continue;
                 };
                 for k in 0..count {
-                    let t = &page.tris[(first + k) as usize];
+                    let t = &page.tri(first + k).expect("a leaf's triangle");
                     let v = value(t).map(|x| x as f32);
                     for (cell, _) in keys.cells(t) {
                         let key = keys.tri(page.first_node + i as u64, k, cell);

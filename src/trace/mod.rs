@@ -52,8 +52,9 @@ struct TriRef {
     /// The leaf, a node of the page, and its first triangle.
     leaf: u32,
     first: u32,
-    /// The triangle in the page.
+    /// The triangle in the page, and its place in the page's blocks (block × 4 + lane).
     index: u32,
+    block_slot: u32,
     t: f32,
     b: [f32; 3],
 }
@@ -65,7 +66,7 @@ impl Hit {
         Hit {
             t: r.t,
             b: r.b,
-            tri: page.tris[r.index as usize],
+            tri: page.tri4[r.block_slot as usize / 4].tri(r.block_slot as usize % 4),
             page: page.id,
             leaf: page.first_node + leaf as u64,
             slot: r.index - r.first,
@@ -313,6 +314,7 @@ impl Prep4 {
                     leaf,
                     first,
                     index: first + 4 * j + lane as u32,
+                    block_slot: (block + j) * 4 + lane as u32,
                     t: h.t[lane],
                     b: h.b.map(|b| b[lane]),
                 });

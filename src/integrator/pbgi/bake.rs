@@ -344,7 +344,7 @@ impl PageJob<'_, '_> {
     ) -> (BakedBlock, Vec<SparseVec<glam::Vec3>>, u64) {
         let mut block = BakedBlock {
             nodes: vec![BakedNode::default(); page.bvh.len()],
-            patch_of: vec![0; page.tris.len()],
+            patch_of: vec![0; page.tri_count() as usize],
             patches: Vec::new(),
             coefs: Default::default(),
         };
@@ -354,14 +354,16 @@ impl PageJob<'_, '_> {
             let mut d = BakedNode::default();
             match page.bvh[i].link() {
                 NodeRef::Leaf { first, count } => {
-                    let end = (first + count).min(page.tris.len() as u32);
+                    let end = (first + count).min(page.tri_count());
                     for k in first..end {
                         let key = ((page.first_node + i as u64) << 4) | (k - first) as u64;
-                        let tri = &page.tris[k as usize];
+                        let Some(tri) = page.tri(k) else {
+                            continue;
+                        };
                         let t = triangle(
                             self.scene,
                             self.tr,
-                            tri,
+                            &tri,
                             self.p,
                             self.a_max,
                             key,

@@ -67,13 +67,13 @@ impl GlossyMaps {
         samples: u32,
         rng: &mut Hash,
     ) -> Option<Vec<Vec3>> {
-        let glossy: Vec<(usize, f32)> = tris
+        let glossy: Vec<(u32, f32)> = tris
             .filter_map(|t| {
-                let tri = page.tris.get(t as usize)?;
+                let tri = page.tri(t)?;
                 let m = scene.materials.get(tri.material as usize)?;
                 let v = tri.p.map(V::from);
                 let a = 0.5 * (v[1] - v[0]).cross(v[2] - v[0]).length();
-                (stores_glossy(m) && a > 0.0 && a.is_finite()).then_some((t as usize, a))
+                (stores_glossy(m) && a > 0.0 && a.is_finite()).then_some((t, a))
             })
             .collect();
         if glossy.is_empty() {
@@ -90,7 +90,9 @@ impl GlossyMaps {
                     pick < 0.0
                 })
                 .unwrap_or(&glossy[glossy.len() - 1]);
-            let tri = &page.tris[t];
+            let Some(tri) = page.tri(t) else {
+                continue;
+            };
             let bsdf = Bsdf {
                 diffuse: V::ZERO,
                 ..scene.materials[tri.material as usize].bsdf(true)

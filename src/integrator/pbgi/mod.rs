@@ -601,7 +601,7 @@ impl PbgiIntegrator {
         // surface (coplanar up to rounding) do not block its horizon.
         let o = offset_origin(s.p, s.err, s.ng, s.n);
         for t in tris.clone() {
-            let Some(tri) = page.tris.get(t as usize) else {
+            let Some(tri) = page.tri(t) else {
                 continue;
             };
             let p = tri.p.map(V::from);
@@ -624,7 +624,7 @@ impl PbgiIntegrator {
                 let hit = Hit {
                     t: depth,
                     b,
-                    tri: *tri,
+                    tri,
                     page: page.id,
                     leaf,
                     slot,
