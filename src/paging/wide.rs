@@ -23,7 +23,7 @@ pub struct Wide {
     /// a cone's walk goes on down the binary tree when it might stop at a node the lanes
     /// skip.
     pub node: u32,
-    /// The binary nodes between `node` and the lanes (`NONE` where fewer than two;
+    /// The binary nodes between `node` and the lanes (`NO_NODE` where fewer than two;
     /// `MANY` in both where more), whose boxes a cone's walk tests too: the cone might
     /// stop at one whose lanes the ray misses.
     pub skipped: [u32; 2],
@@ -34,7 +34,7 @@ const _: () = assert!(std::mem::size_of::<Wide>() == 128);
 /// `Wide::node` of a page's root: its lanes descend from the page's roots.
 pub const ROOTS: u32 = u32::MAX;
 /// No node, in `Wide::skipped`.
-pub const NONE: u32 = u32::MAX;
+pub const NO_NODE: u32 = u32::MAX;
 /// More skipped nodes than `Wide::skipped` holds.
 pub const MANY: u32 = u32::MAX - 1;
 
@@ -139,7 +139,7 @@ impl Wide {
         child: [EMPTY; 4],
         used: 0,
         node: ROOTS,
-        skipped: [NONE; 2],
+        skipped: [NO_NODE; 2],
     };
 }
 
@@ -155,8 +155,8 @@ pub fn build(bvh: &[TNode], roots: u32) -> Vec<Wide> {
     let mut work = vec![(0usize, ROOTS, top)];
     while let Some((slot, node, mut kids)) = work.pop() {
         let skipped = match open_until_four(bvh, &mut kids)[..] {
-            [] => [NONE; 2],
-            [a] => [a, NONE],
+            [] => [NO_NODE; 2],
+            [a] => [a, NO_NODE],
             [a, b] => [a, b],
             _ => [MANY; 2],
         };

@@ -631,6 +631,7 @@ impl<'a> Tracer<'a> {
                         && (!grows
                             || lanes.stops(w, enter, cone, end) & mask != 0
                             || w.skipped.iter().any(|&k| match k {
+                                wide::NO_NODE => false,
                                 wide::MANY => true,
                                 k => page.bvh.get(k as usize).is_some_and(|n| {
                                     prep.box_hit(n, t_max).is_some_and(|t| stops(n, t))
