@@ -85,12 +85,16 @@ pub fn f16_decode(bits: u16) -> f32 {
     half::f16::from_bits(bits).to_f32()
 }
 
+/// The normal stream's "no shading normal" code: x = y = −32768, which `snorm16` never
+/// writes. A reader shades such a vertex with the face normal.
+pub const NO_NORMAL: u32 = 0x8000_8000;
+
 /// Unit vector as two snorm16 octahedral coordinates packed in a u32 (x low, y high).
-/// Angular error below 1e-4 rad.
+/// Angular error below 1e-4 rad. A zero or non-finite vector has no direction: `NO_NORMAL`.
 pub fn oct_encode(n: [f32; 3]) -> u32 {
     let l1 = n[0].abs() + n[1].abs() + n[2].abs();
     if l1.is_nan() || l1 <= 0.0 || !l1.is_finite() {
-        return oct_pack(0.0, 0.0);
+        return NO_NORMAL;
     }
     let (mut x, mut y) = (n[0] / l1, n[1] / l1);
     if n[2] < 0.0 {
@@ -117,10 +121,12 @@ pub fn oct_decode(bits: u32) -> [f32; 3] {
 
 /// The grid a page quantizes its node bounds on: 65535 steps per axis between `lo` and `hi`.
 ///
-/// `dequant(0) == lo`, `dequant(65535) == hi` exactly, and `dequant` is monotone, so
-/// `quantize_down`/`quantize_up` can pick codes whose decoded value is provably on the
-/// conservative side: the decoded box always contains the true box (004 §4.2 keeps positions
-/// in float for that reason; we keep the guarantee and spend 2 bytes per coordinate).
+/// `dequant(0) == lo`, `dequant(65535) == hi` exactly, and every decoding order a reader may
+/// use (separate f32 operations, a fused multiply-add, a multiply by the reciprocal of 65535)
+/// is monotone in the code and within `DECODE_ULPS` ulps of the exact value. The writer
+/// picks codes whose exact value is that margin on the conservative side, so the decoded
+/// box contains the true box in every such order (004 §4.2 keeps positions in float for
+/// that reason; we keep the guarantee and spend 2 bytes per coordinate).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Grid {
     pub lo: [f32; 3],
@@ -128,6 +134,18 @@ pub struct Grid {
 }
 
 pub const QMAX: u16 = u16::MAX;
+
+/// Bound, in ulps of max(|lo|, |hi|), on how far any IEEE-correct f32 evaluation of
+/// lo + (hi − lo)·q/65535 lies from its exact value: hi − lo rounds by ≤ 1 ulp, q/65535 (or
+/// q·(1/65535)) by ≤ 2 relative units, the product by ≤ 1 and, at most 2·max(|lo|, |hi|)
+/// large, by ≤ 6 ulps in all; the sum by ≤ ½ ulp. FORMAT.md states it.
+pub const DECODE_ULPS: f64 = 8.0;
+
+/// Spacing of f32 values just above |m| (the smallest subnormal for 0).
+pub fn ulp(m: f32) -> f64 {
+    let a = m.abs();
+    (a.next_up() - a) as f64
+}
 
 impl Grid {
     pub fn dequant(&self, axis: usize, q: u16) -> f32 {
@@ -139,35 +157,36 @@ impl Grid {
         }
     }
 
-    fn estimate(&self, axis: usize, v: f32) -> u16 {
+    /// The exact value of code `q` (in f64, whose own rounding is 2⁻²⁹ of an f32 ulp).
+    pub fn exact(&self, axis: usize, q: u16) -> f64 {
         let (lo, hi) = (self.lo[axis] as f64, self.hi[axis] as f64);
-        let t = if hi > lo {
-            (v as f64 - lo) / (hi - lo)
-        } else {
-            0.0
-        };
+        lo + (hi - lo) * q as f64 / QMAX as f64
+    }
+
+    /// Most any decoding order may stray from `exact` on this axis.
+    pub fn margin(&self, axis: usize) -> f64 {
+        DECODE_ULPS * ulp(self.lo[axis].abs().max(self.hi[axis].abs()))
+    }
+
+    fn estimate(&self, axis: usize, v: f64) -> u16 {
+        let (lo, hi) = (self.lo[axis] as f64, self.hi[axis] as f64);
+        let t = if hi > lo { (v - lo) / (hi - lo) } else { 0.0 };
         (t * QMAX as f64).clamp(0.0, QMAX as f64) as u16
     }
 
-    /// Largest code whose decoded value is <= v (0 when v <= lo).
+    /// Largest code that decodes ≤ v in every decoding order (0 when v ≤ lo + margin).
     pub fn quantize_down(&self, axis: usize, v: f32) -> u16 {
-        let ok = |q: u16| self.dequant(axis, q) <= v;
-        let e = self.estimate(axis, v);
-        for q in [
-            e,
-            e.saturating_sub(1),
-            e.saturating_add(1),
-            e.saturating_sub(2),
-        ] {
-            if ok(q) && (q == QMAX || !ok(q + 1)) {
-                return q;
-            }
+        let limit = v as f64 - self.margin(axis);
+        let ok = |q: u16| q == 0 || self.exact(axis, q) <= limit;
+        let e = self.estimate(axis, limit);
+        if let Some(q) = [e, e.saturating_sub(1), e.saturating_add(1)]
+            .into_iter()
+            .find(|&q| ok(q) && (q == QMAX || !ok(q + 1)))
+        {
+            return q;
         }
         // Rounding put the estimate off; binary search the monotone predicate.
-        let (mut a, mut b) = (0u32, QMAX as u32 + 1); // ok(a) assumed, !ok(b)
-        if !ok(0) {
-            return 0;
-        }
+        let (mut a, mut b) = (0u32, QMAX as u32 + 1); // ok(a), !ok(b)
         while b - a > 1 {
             let m = (a + b) / 2;
             if ok(m as u16) {
@@ -179,22 +198,16 @@ impl Grid {
         a as u16
     }
 
-    /// Smallest code whose decoded value is >= v (QMAX when v >= hi).
+    /// Smallest code that decodes ≥ v in every decoding order (QMAX when v ≥ hi − margin).
     pub fn quantize_up(&self, axis: usize, v: f32) -> u16 {
-        let ok = |q: u16| self.dequant(axis, q) >= v;
-        let e = self.estimate(axis, v).saturating_add(1);
-        for q in [
-            e,
-            e.saturating_sub(1),
-            e.saturating_add(1),
-            e.saturating_add(2),
-        ] {
-            if ok(q) && (q == 0 || !ok(q - 1)) {
-                return q;
-            }
-        }
-        if !ok(QMAX) {
-            return QMAX;
+        let limit = v as f64 + self.margin(axis);
+        let ok = |q: u16| q == QMAX || self.exact(axis, q) >= limit;
+        let e = self.estimate(axis, limit).saturating_add(1);
+        if let Some(q) = [e, e.saturating_sub(1), e.saturating_add(1)]
+            .into_iter()
+            .find(|&q| ok(q) && (q == 0 || !ok(q - 1)))
+        {
+            return q;
         }
         let (mut a, mut b) = (-1i32, QMAX as i32); // !ok(a), ok(b)
         while b - a > 1 {
@@ -229,15 +242,15 @@ impl Grid {
         (lo, hi)
     }
 
-    /// Nearest code (not conservative), for points such as the cluster centroid.
-    /// Error <= one grid step per axis.
+    /// Nearest code to v by exact value (not conservative), for points such as the cluster
+    /// centroid: in any decoding order the error is at most half a grid step plus `margin`.
     pub fn quantize_nearest(&self, axis: usize, v: f32) -> u16 {
-        let lo = self.quantize_down(axis, v);
-        if lo < QMAX && (self.dequant(axis, lo + 1) - v).abs() < (v - self.dequant(axis, lo)).abs()
-        {
-            lo + 1
+        let e = self.estimate(axis, v as f64);
+        let dist = |q: u16| (self.exact(axis, q) - v as f64).abs();
+        if e < QMAX && dist(e + 1) < dist(e) {
+            e + 1
         } else {
-            lo
+            e
         }
     }
 }

@@ -82,22 +82,29 @@ pub fn check_header(h: &Header) -> Result<(), String> {
     Ok(())
 }
 
-/// Each table inside the table area, after the pages.
+/// The tables back to back after the pages, in the order materials, cameras, lights, pages,
+/// the last ending at `file_len` (the tables checksum covers exactly them).
 pub fn check_table_ranges(h: &Header) -> Result<(), String> {
-    let start = h.materials.offset;
+    let mut at = h.materials.offset as u128;
     for (name, t) in [
         ("material", &h.materials),
         ("camera", &h.cameras),
         ("light", &h.lights),
         ("page", &h.pages),
     ] {
-        let end = t.offset as u128 + t.count as u128 * t.record_size as u128;
-        if t.offset < start || end > h.file_len as u128 {
+        if t.offset as u128 != at {
             return Err(format!(
-                "{name} table at {}+{}×{} outside the table area {start}..{}",
-                t.offset, t.count, t.record_size, h.file_len
+                "{name} table at {}, expected at {at} (tables are back to back)",
+                t.offset
             ));
         }
+        at += t.count as u128 * t.record_size as u128;
+    }
+    if at != h.file_len as u128 {
+        return Err(format!(
+            "tables end at {at}, the file at {} (the page table is last)",
+            h.file_len
+        ));
     }
     if h.materials.count > u16::MAX as u32 + 1 {
         return Err(format!(

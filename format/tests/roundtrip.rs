@@ -5,6 +5,28 @@ use canopy_format::codec::*;
 use canopy_format::Grid;
 use proptest::prelude::*;
 
+/// Code q on [lo, hi] decoded in each order FORMAT.md allows: separate operations, a fused
+/// multiply-add, a multiply by the reciprocal of 65535, and both.
+fn decodings(lo: f32, hi: f32, q: u16) -> [f32; 4] {
+    let d = hi - lo;
+    let t = q as f32 / 65535.0;
+    let r = q as f32 * (1.0f32 / 65535.0);
+    [lo + d * t, d.mul_add(t, lo), lo + d * r, d.mul_add(r, lo)].map(|v| match q {
+        0 => lo,
+        65535 => hi,
+        _ => v.clamp(lo, hi),
+    })
+}
+
+/// The box of codes `q` on `grid` in decoding order `k`.
+fn decoded_in(grid: &Grid, q: &[u16; 6], k: usize) -> Box3 {
+    let at = |a: usize, c: u16| decodings(grid.lo[a], grid.hi[a], c)[k];
+    (
+        [0, 1, 2].map(|a| at(a, q[a])),
+        [0, 1, 2].map(|a| at(a, q[a + 3])),
+    )
+}
+
 fn contains(outer: &Box3, inner: &Box3) -> bool {
     (0..3).all(|a| outer.0[a] <= inner.0[a] && inner.1[a] <= outer.1[a])
 }
@@ -54,18 +76,21 @@ proptest! {
     fn quantized_boxes_are_conservative_and_nested(((plo, phi), (clo, chi)) in nested()) {
         let grid = Grid { lo: plo, hi: phi };
         let parent_q = grid.quantize_box(plo, phi, None);
-        let parent = grid.dequant_box(&parent_q);
-        prop_assert!(contains(&parent, &(plo, phi)), "parent {parent:?} misses {plo:?}..{phi:?}");
         let child_q = grid.quantize_box(clo, chi, Some(&parent_q));
-        let child = grid.dequant_box(&child_q);
-        prop_assert!(contains(&child, &(clo, chi)), "child {child:?} misses {clo:?}..{chi:?}");
-        prop_assert!(contains(&parent, &child));
-        // Tightness: at most one grid step of slack per side (plus float rounding).
-        for a in 0..3 {
-            let step = (phi[a] - plo[a]) / 65535.0;
-            let slack = step + 4.0 * f32::EPSILON * plo[a].abs().max(phi[a].abs());
-            prop_assert!(clo[a] - child.0[a] <= slack && child.1[a] - chi[a] <= slack);
+        for k in 0..4 {
+            let parent = decoded_in(&grid, &parent_q, k);
+            prop_assert!(contains(&parent, &(plo, phi)), "order {k}: parent {parent:?} misses {plo:?}..{phi:?}");
+            let child = decoded_in(&grid, &child_q, k);
+            prop_assert!(contains(&child, &(clo, chi)), "order {k}: child {child:?} misses {clo:?}..{chi:?}");
+            prop_assert!(contains(&parent, &child));
+            // Tightness: at most one grid step plus twice the decoding margin per side.
+            for a in 0..3 {
+                let step = (phi[a] as f64 - plo[a] as f64) / 65535.0;
+                let slack = (step + 2.0 * grid.margin(a)) as f32;
+                prop_assert!(clo[a] - child.0[a] <= slack && child.1[a] - chi[a] <= slack);
+            }
         }
+        prop_assert_eq!(grid.dequant_box(&child_q), decoded_in(&grid, &child_q, 0));
     }
 
     #[test]
@@ -74,10 +99,16 @@ proptest! {
         let p = [0, 1, 2].map(|i| (lo[i] + ext[i] * t[i]).clamp(lo[i], hi[i]));
         let grid = Grid { lo, hi };
         let q = grid.quantize_box(p, p, None);
-        prop_assert!(contains(&grid.dequant_box(&q), &(p, p)));
-        let c = [0, 1, 2].map(|a| grid.dequant(a, grid.quantize_nearest(a, p[a])));
         for a in 0..3 {
-            prop_assert!((c[a] - p[a]).abs() <= ext[a] / 65535.0 + 4.0 * f32::EPSILON * p[a].abs().max(1e-30));
+            let near = grid.quantize_nearest(a, p[a]);
+            let step = (hi[a] as f64 - lo[a] as f64) / 65535.0;
+            for k in 0..4 {
+                let b = decoded_in(&grid, &q, k);
+                prop_assert!(b.0[a] <= p[a] && p[a] <= b.1[a], "order {k}: {b:?} misses {p:?}");
+                // The centroid's bound in FORMAT.md: half a step plus the decoding margin.
+                let c = decodings(lo[a], hi[a], near)[k] as f64;
+                prop_assert!((c - p[a] as f64).abs() <= step / 2.0 + grid.margin(a), "order {k}: {c} for {}", p[a]);
+            }
         }
     }
 

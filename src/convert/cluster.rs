@@ -83,6 +83,25 @@ pub struct Cluster {
     pub m: MatSummary,
 }
 
+/// Euclidean distance in f64 (exact to well under an f32 ulp of the result).
+pub fn distance(a: [f32; 3], b: [f32; 3]) -> f64 {
+    (0..3)
+        .map(|i| (a[i] as f64 - b[i] as f64).powi(2))
+        .sum::<f64>()
+        .sqrt()
+}
+
+/// The smallest f32 ≥ x (x a distance, so ≥ 0; f64's own rounding is 2⁻²⁹ of an f32 ulp and
+/// the next f32 up covers it), so a radius stays conservative after rounding.
+pub fn round_up(x: f64) -> f32 {
+    let f = x as f32;
+    if f as f64 >= x * (1.0 + 1e-15) {
+        f
+    } else {
+        f.next_up()
+    }
+}
+
 fn add3(a: &mut [f32; 3], b: [f32; 3], w: f32) {
     for i in 0..3 {
         a[i] += b[i] * w;
@@ -109,15 +128,8 @@ impl Cluster {
         };
         let centroid =
             [0, 1, 2].map(|a| ((p[0][a] as f64 + p[1][a] as f64 + p[2][a] as f64) / 3.0) as f32);
-        let radius = p
-            .iter()
-            .map(|v| {
-                (0..3)
-                    .map(|a| (v[a] - centroid[a]).powi(2))
-                    .sum::<f32>()
-                    .sqrt()
-            })
-            .fold(0.0, f32::max);
+        let radius = p.iter().map(|v| distance(*v, centroid)).fold(0.0, f64::max);
+        let radius = round_up(radius);
         let w = area.max(1e-30);
         let mut s = Cluster {
             area,
@@ -157,11 +169,8 @@ impl Cluster {
         add3(&mut s.centroid, b.centroid, 1.0);
         s.add_material(&b.m, 1.0);
         let c = s.mean_centroid();
-        let reach = |x: &Cluster| {
-            let xc = x.mean_centroid();
-            (0..3).map(|i| (xc[i] - c[i]).powi(2)).sum::<f32>().sqrt() + x.radius
-        };
-        s.radius = reach(a).max(reach(b));
+        let reach = |x: &Cluster| distance(x.mean_centroid(), c) + x.radius as f64;
+        s.radius = round_up(reach(a).max(reach(b)));
         s
     }
 

@@ -5,8 +5,8 @@
 //! the pages holding their children. Pages are numbered breadth-first so the top of the tree comes first;
 //! nodes within a page are in depth-first order.
 
+use super::cluster::round_up;
 use super::tree::{Kind, Tree};
-use canopy_format::codec::oct_encode;
 use canopy_format::{Grid, NodeFlags, PageContents, Tri};
 use std::collections::{HashMap, VecDeque};
 
@@ -159,6 +159,7 @@ impl Plan {
             let c = b.cluster.mean_centroid();
             node.centroid =
                 [0, 1, 2].map(|a| grid.quantize_nearest(a, c[a].clamp(b.lo[a], b.hi[a])));
+            node.radius = decoded_radius(&grid, node.centroid, c, b.cluster.radius);
             match b.kind {
                 Kind::Inner([l, r]) => match self.child_plan[id as usize] {
                     NONE => {
@@ -186,11 +187,7 @@ impl Plan {
                             *verts.entry(key).or_insert_with(|| {
                                 out.verts.push(t.p[k]);
                                 if normals {
-                                    out.normals.push(if t.n[k] == 0 {
-                                        oct_encode([0.0, 0.0, 1.0])
-                                    } else {
-                                        t.n[k]
-                                    });
+                                    out.normals.push(t.n[k]);
                                 }
                                 u16::try_from(out.verts.len() - 1)
                                     .expect("page vertex count fits u16")
@@ -207,4 +204,13 @@ impl Plan {
         }
         (out, externals)
     }
+}
+
+/// A radius around the decoded centroid code `q` from one of `r` around the mean `c`: the
+/// triangle inequality, with the most any decoding order may move the decoded point.
+fn decoded_radius(grid: &Grid, q: [u16; 3], c: [f32; 3], r: f32) -> f32 {
+    let sq = |v: [f64; 3]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+    let moved = sq([0, 1, 2].map(|a| grid.exact(a, q[a]) - c[a] as f64));
+    let stray = sq([0, 1, 2].map(|a| grid.margin(a)));
+    round_up(r as f64 + moved + stray)
 }

@@ -30,7 +30,10 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
         .ok_or_else(|| anyhow!("{}: no scene", path.display()))?;
     check_forest(&doc).map_err(|e| anyhow!("{}: {e}", path.display()))?;
     let mut count = 0u64;
+    // Depth-first pre-order, roots and children in the order the file lists them: cameras,
+    // lights and triangles keep the file's order (FORMAT.md states it).
     let mut stack: Vec<(gltf::Node, Mat4)> = gscene.nodes().map(|n| (n, Mat4::IDENTITY)).collect();
+    stack.reverse();
     let mut seen = vec![false; doc.nodes().len()];
     while let Some((node, parent)) = stack.pop() {
         if std::mem::replace(&mut seen[node.index()], true) {
@@ -48,9 +51,9 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
                 node.name().unwrap_or("?")
             );
         }
-        for child in node.children() {
-            stack.push((child, world));
-        }
+        let first = stack.len();
+        stack.extend(node.children().map(|child| (child, world)));
+        stack[first..].reverse();
         if let Some(cam) = node.camera() {
             if let Some(rec) = camera(&cam, &node, world, width, height) {
                 scene.cameras.push(rec);

@@ -11,7 +11,7 @@ pub use scene_file::SceneFile;
 
 use anyhow::{bail, Result};
 use bytemuck::{Pod, Zeroable};
-use canopy_format::codec::oct_encode;
+use canopy_format::codec::{oct_encode, NO_NORMAL};
 use canopy_format::{CameraRecord, LightRecord, MaterialRecord};
 use std::path::Path;
 
@@ -140,7 +140,7 @@ pub fn make_tri(
         Some(n) if n.iter().flatten().all(|x| x.is_finite()) => {
             (n.map(oct_encode), mean_curvature(&p, &n))
         }
-        _ => ([0; 3], 0.0),
+        _ => ([NO_NORMAL; 3], 0.0),
     };
     Ok(SpillTri {
         p,

@@ -1,0 +1,247 @@
+//! A second decoder, written from `format/FORMAT.md` alone: it reads archives as bytes at the
+//! spec's offsets (no `canopy_format` type), decodes node boxes and centroids in every order
+//! the spec allows (separate f32 operations, fused multiply-add, multiply by the reciprocal
+//! of 65535) and checks the nesting and containment FORMAT.md promises: every child's box
+//! inside its parent's, every triangle inside its leaf's box, every node's sphere around its
+//! decoded centroid holding its subtree's vertices. On the bundled scenes and on random
+//! meshes, tiny ones far from the origin among them.
+
+mod common;
+use common::*;
+use proptest::prelude::*;
+use std::path::Path;
+
+// Offsets and sizes from FORMAT.md.
+const HEADER_ROOT_PAGE: usize = 88;
+const HEADER_PAGES: usize = 152;
+const ENTRY_SIZE: usize = 96;
+const PAGE_HEADER: usize = 32;
+const NODE_SIZE: usize = 128;
+const TRI_SIZE: usize = 8;
+const LEAF: u8 = 1;
+const CHILD_PAGE: u8 = 2;
+const ORDERS: usize = 4;
+
+fn u16_at(b: &[u8], o: usize) -> u16 {
+    u16::from_le_bytes(b[o..o + 2].try_into().unwrap())
+}
+fn u32_at(b: &[u8], o: usize) -> u32 {
+    u32::from_le_bytes(b[o..o + 4].try_into().unwrap())
+}
+fn u64_at(b: &[u8], o: usize) -> u64 {
+    u64::from_le_bytes(b[o..o + 8].try_into().unwrap())
+}
+fn f32_at(b: &[u8], o: usize) -> f32 {
+    f32::from_le_bytes(b[o..o + 4].try_into().unwrap())
+}
+fn vec3_at(b: &[u8], o: usize) -> [f32; 3] {
+    [0, 1, 2].map(|i| f32_at(b, o + 4 * i))
+}
+
+/// Code q on [lo, hi] in decoding order k.
+fn decode(lo: f32, hi: f32, q: u16, k: usize) -> f32 {
+    let t = q as f32 / 65535.0;
+    let r = q as f32 * (1.0f32 / 65535.0);
+    let d = hi - lo;
+    match q {
+        0 => lo,
+        65535 => hi,
+        _ => [lo + d * t, d.mul_add(t, lo), lo + d * r, d.mul_add(r, lo)][k].clamp(lo, hi),
+    }
+}
+
+struct Page {
+    lo: [f32; 3],
+    hi: [f32; 3],
+    raw: Vec<u8>,
+    nodes: usize,
+    tris: usize,
+}
+
+impl Page {
+    fn node(&self, i: usize) -> &[u8] {
+        let o = PAGE_HEADER + i * NODE_SIZE;
+        &self.raw[o..o + NODE_SIZE]
+    }
+
+    fn decoded_box(&self, i: usize, k: usize) -> ([f32; 3], [f32; 3]) {
+        let n = self.node(i);
+        let at = |a: usize, f: usize| decode(self.lo[a], self.hi[a], u16_at(n, 2 * f), k);
+        ([0, 1, 2].map(|a| at(a, a)), [0, 1, 2].map(|a| at(a, a + 3)))
+    }
+
+    fn centroid(&self, i: usize, k: usize) -> [f32; 3] {
+        let n = self.node(i);
+        [0, 1, 2].map(|a| decode(self.lo[a], self.hi[a], u16_at(n, 64 + 2 * a), k))
+    }
+
+    fn vertex(&self, v: usize) -> [f32; 3] {
+        vec3_at(
+            &self.raw,
+            PAGE_HEADER + self.nodes * NODE_SIZE + self.tris * TRI_SIZE + 12 * v,
+        )
+    }
+
+    fn triangle(&self, t: usize) -> [[f32; 3]; 3] {
+        let o = PAGE_HEADER + self.nodes * NODE_SIZE + t * TRI_SIZE;
+        [0, 1, 2].map(|j| self.vertex(u16_at(&self.raw, o + 2 * j) as usize))
+    }
+}
+
+fn read_pages(file: &[u8]) -> (Vec<Page>, usize) {
+    let table = u64_at(file, HEADER_PAGES) as usize;
+    let count = u32_at(file, HEADER_PAGES + 8) as usize;
+    let pages = (0..count)
+        .map(|p| {
+            let e = &file[table + p * ENTRY_SIZE..table + (p + 1) * ENTRY_SIZE];
+            let off = u64_at(e, 0) as usize;
+            let frame = &file[off..off + u32_at(e, 8) as usize];
+            Page {
+                lo: vec3_at(e, 60),
+                hi: vec3_at(e, 72),
+                raw: zstd::bulk::decompress(frame, u32_at(e, 12) as usize).unwrap(),
+                nodes: u32_at(e, 32) as usize,
+                tris: u32_at(e, 36) as usize,
+            }
+        })
+        .collect();
+    (pages, u32_at(file, HEADER_ROOT_PAGE) as usize)
+}
+
+fn inside(outer: &([f32; 3], [f32; 3]), inner: &([f32; 3], [f32; 3])) -> bool {
+    (0..3).all(|a| outer.0[a] <= inner.0[a] && inner.1[a] <= outer.1[a])
+}
+
+/// What the walk found: nodes and vertices checked, and every broken promise.
+#[derive(Default)]
+struct Findings {
+    nodes: usize,
+    vertices: usize,
+    broken: Vec<String>,
+}
+
+/// Walks node `i` of page `p` in decoding order `k`; `spheres` are the ancestors' (and its
+/// own, pushed here) decoded centroids and radii, which every vertex below must lie in.
+fn walk(
+    pages: &[Page],
+    p: usize,
+    i: usize,
+    k: usize,
+    spheres: &mut Vec<([f32; 3], f32)>,
+    f: &mut Findings,
+) {
+    let page = &pages[p];
+    let n = page.node(i);
+    let bx = page.decoded_box(i, k);
+    spheres.push((page.centroid(i, k), f32_at(n, 24)));
+    f.nodes += 1;
+    let (flags, link) = (n[38], [u32_at(n, 12), u32_at(n, 16)]);
+    if flags & LEAF != 0 {
+        for t in link[0]..link[0] + link[1] {
+            for v in page.triangle(t as usize) {
+                f.vertices += 1;
+                if !inside(&bx, &(v, v)) {
+                    f.broken.push(format!(
+                        "order {k}: page {p} leaf {i}: vertex {v:?} outside {bx:?}"
+                    ));
+                }
+                for (c, r) in spheres.iter() {
+                    let d = (0..3)
+                        .map(|a| (v[a] as f64 - c[a] as f64).powi(2))
+                        .sum::<f64>()
+                        .sqrt();
+                    if d > *r as f64 {
+                        f.broken.push(format!("order {k}: page {p} leaf {i}: vertex {v:?} at {d} from a centroid {c:?}, radius {r}"));
+                    }
+                }
+            }
+        }
+    } else if flags & CHILD_PAGE != 0 {
+        let c = link[0] as usize;
+        for root in 0..2 {
+            if !inside(&bx, &pages[c].decoded_box(root, k)) {
+                f.broken.push(format!(
+                    "order {k}: page {c} root {root} outside page {p} node {i}"
+                ));
+            }
+            walk(pages, c, root, k, spheres, f);
+        }
+    } else {
+        for c in link {
+            if !inside(&bx, &page.decoded_box(c as usize, k)) {
+                f.broken.push(format!(
+                    "order {k}: page {p} node {c} outside its parent {i}"
+                ));
+            }
+            walk(pages, p, c as usize, k, spheres, f);
+        }
+    }
+    spheres.pop();
+}
+
+/// Checks an archive in every decoding order; returns the nodes visited per order.
+fn check(archive: &Path) -> usize {
+    let file = std::fs::read(archive).unwrap();
+    let (pages, root) = read_pages(&file);
+    let mut visited = 0;
+    for k in 0..ORDERS {
+        let mut f = Findings::default();
+        walk(&pages, root, 0, k, &mut Vec::new(), &mut f);
+        assert!(
+            f.broken.is_empty(),
+            "{}: {} broken promises, first: {:?}",
+            archive.display(),
+            f.broken.len(),
+            &f.broken[..f.broken.len().min(5)]
+        );
+        assert!(f.vertices > 0);
+        visited = f.nodes;
+    }
+    visited
+}
+
+#[test]
+fn bundled_scenes_keep_every_promise_in_every_decoding_order() {
+    let dir = tempfile::tempdir().unwrap();
+    for name in ["cbox.glb", "bunny_box.glb", "sponza.glb"] {
+        let out = dir.path().join(format!("{name}.canopy"));
+        convert(&scene(name), &out, None);
+        let file = std::fs::read(&out).unwrap();
+        let nodes = u64_at(&file, 40) as usize;
+        assert_eq!(check(&out), nodes, "{name}: the walk reaches every node");
+    }
+}
+
+/// A random mesh of `n` triangles around `origin`, `size` across, as OBJ text.
+fn obj(origin: [f32; 3], size: f32, coords: &[f32]) -> String {
+    let mut s = String::new();
+    for v in coords.chunks(3) {
+        let p = [0, 1, 2].map(|a| origin[a] + size * v[a]);
+        s += &format!("v {:e} {:e} {:e}\n", p[0], p[1], p[2]);
+    }
+    for t in 0..coords.len() / 9 {
+        s += &format!("f {} {} {}\n", 3 * t + 1, 3 * t + 2, 3 * t + 3);
+    }
+    s
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(24))]
+
+    #[test]
+    fn random_meshes_keep_every_promise(
+        origin in prop::array::uniform3(prop_oneof![Just(0.0f32), -1e6f32..1e6, Just(3.0e5)]),
+        size in prop_oneof![Just(1e-3f32), 1e-2f32..10.0, Just(1e4)],
+        coords in prop::collection::vec(0.0f32..1.0, 9..9 * 3000),
+    ) {
+        let dir = tempfile::tempdir().unwrap();
+        let input = dir.path().join("m.obj");
+        let coords = &coords[..coords.len() / 9 * 9];
+        std::fs::write(&input, obj(origin, size, coords)).unwrap();
+        let out = dir.path().join("m.canopy");
+        let mut opts = canopy::convert::ConvertOptions::new(vec![input], out.clone());
+        opts.page_nodes = 16;
+        canopy::convert::convert(&opts).unwrap();
+        check(&out);
+    }
+}
