@@ -56,7 +56,7 @@ fn write_rays(dir: &Path, name: &str, cache: &PageCache, sets: [(&str, &[Ray]); 
     let f32s = |values: &mut dyn Iterator<Item = f32>| -> Vec<u8> {
         values.flat_map(f32::to_le_bytes).collect()
     };
-    let pages = 0..cache.archive.pages.len() as u32;
+    let pages = 0..cache.archive.page_count();
     let tris: Vec<f32> = pages
         .flat_map(|id| {
             let page = cache.get(id);

@@ -84,17 +84,17 @@ pub fn radiance(r: &RadianceFile, verify: bool) -> Result<RadianceSummary> {
     })
 }
 
-pub fn summarize(a: &Archive) -> Summary {
+pub fn summarize(a: &Archive) -> Result<Summary> {
     let h = &a.header;
+    let pages = a.entries()?;
     let file_bytes = std::fs::metadata(a.path()).map(|m| m.len()).unwrap_or(0);
-    let compressed: u64 = a.pages.iter().map(|e| e.compressed_len as u64).sum();
-    let decoded: u64 = a.pages.iter().map(|e| e.raw_len as u64).sum();
-    let tri_paths: u64 = a
-        .pages
+    let compressed: u64 = pages.iter().map(|e| e.compressed_len as u64).sum();
+    let decoded: u64 = pages.iter().map(|e| e.raw_len as u64).sum();
+    let tri_paths: u64 = pages
         .iter()
         .map(|e| e.tri_count as u64 * (e.level as u64 + 1))
         .sum();
-    Summary {
+    Ok(Summary {
         path: a.path().display().to_string(),
         version: format!("{}.{}", h.version_major, h.version_minor),
         node_bytes: std::mem::size_of::<Node>(),
@@ -102,17 +102,16 @@ pub fn summarize(a: &Archive) -> Summary {
         triangles: h.triangles,
         vertices: h.vertices,
         nodes: h.nodes,
-        pages: a.pages.len() as u64,
+        pages: pages.len() as u64,
         depth: h.depth,
         file_bytes,
         decoded_bytes: decoded,
         compression_ratio: decoded as f64 / compressed.max(1) as f64,
         bytes_per_node_on_disk: file_bytes as f64 / h.nodes.max(1) as f64,
         bytes_per_input_triangle: file_bytes as f64 / h.input_triangles.max(1) as f64,
-        mean_nodes_per_page: h.nodes as f64 / a.pages.len().max(1) as f64,
+        mean_nodes_per_page: h.nodes as f64 / pages.len().max(1) as f64,
         mean_pages_per_path: tri_paths as f64 / h.triangles.max(1) as f64,
-        max_pages_per_path: a
-            .pages
+        max_pages_per_path: pages
             .iter()
             .filter(|e| e.tri_count > 0)
             .map(|e| e.level as u64 + 1)
@@ -131,13 +130,13 @@ pub fn summarize(a: &Archive) -> Summary {
         bounds_max: h.bounds_max,
         verified: false,
         radiance: None,
-    }
+    })
 }
 
 /// Decodes and checks every page (in parallel), then the cross-page totals.
 pub fn verify(a: &Archive, s: &mut Summary, show_progress: bool) -> Result<()> {
-    let bar = progress::bar(show_progress, a.pages.len() as u64, "verifying");
-    let reports: Vec<PageReport> = (0..a.pages.len() as u32)
+    let bar = progress::bar(show_progress, a.page_count() as u64, "verifying");
+    let reports: Vec<PageReport> = (0..a.page_count())
         .into_par_iter()
         .map(|p| {
             let r = a.verify_page(p);

@@ -167,7 +167,7 @@ fn flipped_byte_in_a_page() {
     let dir = tempfile::tempdir().unwrap();
     let (good, bytes) = archive(dir.path());
     let a = canopy_format::Archive::open(&good).unwrap();
-    let e = a.pages[a.pages.len() / 2];
+    let e = a.entry(a.page_count() / 2).unwrap();
     let mut bad = bytes.clone();
     bad[e.offset as usize + e.compressed_len as usize / 2] ^= 0x10;
     inspect_fails(&write(dir.path(), "flip.canopy", &bad), "checksum mismatch");
@@ -202,6 +202,16 @@ fn newer_format_version() {
         &write(dir.path(), "future.canopy", &bytes),
         "newer than this canopy reads",
     );
+}
+
+#[test]
+fn older_format_version() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, mut bytes) = archive(dir.path());
+    bytes[8..10].copy_from_slice(&1u16.to_le_bytes());
+    let path = write(dir.path(), "old.canopy", &bytes);
+    inspect_fails(&path, "older than this canopy reads");
+    inspect_fails(&path, "canopy convert");
 }
 
 #[test]

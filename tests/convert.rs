@@ -214,12 +214,12 @@ fn cluster_attributes_are_area_weighted_means_of_their_triangles() {
         "64",
     ]);
     let a = Archive::open(&out).unwrap();
-    let pages: Vec<_> = (0..a.pages.len() as u32)
+    let pages: Vec<_> = (0..a.page_count())
         .map(|p| a.read_page(p).unwrap())
         .collect();
     let mut checked = 0;
     for (pg, c) in pages.iter().enumerate() {
-        let grid = a.grid(pg as u32);
+        let grid = a.grid(pg as u32).unwrap();
         let step = (0..3)
             .map(|k| ((grid.hi[k] - grid.lo[k]) / 65535.0).powi(2))
             .sum::<f32>()
@@ -292,12 +292,12 @@ fn decoded_pages_keep_every_node_kind_and_link() {
     ]);
     let a = Archive::open(&out).unwrap();
     let mut kinds = [0u32; 3];
-    for pg in 0..a.pages.len() as u32 {
+    for pg in 0..a.page_count() {
         let c = a.read_page(pg).unwrap();
         let p = Page::decode(&a, pg).unwrap();
         assert_eq!(
             (p.first_node, p.nodes.len()),
-            (a.pages[pg as usize].first_node, c.nodes.len())
+            (a.entry(pg).unwrap().first_node, c.nodes.len())
         );
         for (n, t) in c.nodes.iter().zip(&p.bvh) {
             let want = if n.is_leaf() {
@@ -314,7 +314,7 @@ fn decoded_pages_keep_every_node_kind_and_link() {
                 NodeRef::Inner(n.link[0], n.link[1])
             };
             assert_eq!(t.link(), want, "page {pg}");
-            assert_eq!((t.lo, t.hi), a.grid(pg).dequant_box(&n.bounds));
+            assert_eq!((t.lo, t.hi), a.grid(pg).unwrap().dequant_box(&n.bounds));
         }
         assert_eq!(p.tri_count() as usize, c.tris.len());
         for (i, tri) in c.tris.iter().enumerate() {

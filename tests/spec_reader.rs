@@ -14,9 +14,8 @@ use std::path::Path;
 // Offsets and sizes from FORMAT.md.
 const HEADER_ROOT_PAGE: usize = 88;
 const HEADER_PAGES: usize = 152;
-const ENTRY_SIZE: usize = 96;
+const HEADER_NODE_SIZE: usize = 184;
 const PAGE_HEADER: usize = 32;
-const NODE_SIZE: usize = 128;
 const TRI_SIZE: usize = 8;
 const LEAF: u8 = 1;
 const CHILD_PAGE: u8 = 2;
@@ -51,6 +50,7 @@ fn decode(lo: f32, hi: f32, q: u16, k: usize) -> f32 {
 }
 
 struct Page {
+    node_size: usize,
     lo: [f32; 3],
     hi: [f32; 3],
     raw: Vec<u8>,
@@ -60,8 +60,8 @@ struct Page {
 
 impl Page {
     fn node(&self, i: usize) -> &[u8] {
-        let o = PAGE_HEADER + i * NODE_SIZE;
-        &self.raw[o..o + NODE_SIZE]
+        let o = PAGE_HEADER + i * self.node_size;
+        &self.raw[o..o + self.node_size]
     }
 
     fn decoded_box(&self, i: usize, k: usize) -> ([f32; 3], [f32; 3]) {
@@ -78,12 +78,12 @@ impl Page {
     fn vertex(&self, v: usize) -> [f32; 3] {
         vec3_at(
             &self.raw,
-            PAGE_HEADER + self.nodes * NODE_SIZE + self.tris * TRI_SIZE + 12 * v,
+            PAGE_HEADER + self.nodes * self.node_size + self.tris * TRI_SIZE + 12 * v,
         )
     }
 
     fn triangle(&self, t: usize) -> [[f32; 3]; 3] {
-        let o = PAGE_HEADER + self.nodes * NODE_SIZE + t * TRI_SIZE;
+        let o = PAGE_HEADER + self.nodes * self.node_size + t * TRI_SIZE;
         [0, 1, 2].map(|j| self.vertex(u16_at(&self.raw, o + 2 * j) as usize))
     }
 }
@@ -91,12 +91,15 @@ impl Page {
 fn read_pages(file: &[u8]) -> (Vec<Page>, usize) {
     let table = u64_at(file, HEADER_PAGES) as usize;
     let count = u32_at(file, HEADER_PAGES + 8) as usize;
+    let stride = u32_at(file, HEADER_PAGES + 12) as usize;
+    let node_size = u32_at(file, HEADER_NODE_SIZE) as usize;
     let pages = (0..count)
         .map(|p| {
-            let e = &file[table + p * ENTRY_SIZE..table + (p + 1) * ENTRY_SIZE];
+            let e = &file[table + p * stride..table + (p + 1) * stride];
             let off = u64_at(e, 0) as usize;
             let frame = &file[off..off + u32_at(e, 8) as usize];
             Page {
+                node_size,
                 lo: vec3_at(e, 60),
                 hi: vec3_at(e, 72),
                 raw: zstd::bulk::decompress(frame, u32_at(e, 12) as usize).unwrap(),
@@ -210,6 +213,72 @@ fn bundled_scenes_keep_every_promise_in_every_decoding_order() {
         let nodes = u64_at(&file, 40) as usize;
         assert_eq!(check(&out), nodes, "{name}: the walk reaches every node");
     }
+}
+
+/// An archive rewritten as a later minor version might write it: every table record 8 bytes
+/// longer and an optional feature bit this reader does not know. FORMAT.md says readers
+/// skip the one and ignore the other; the scene must read, verify and render as before.
+#[test]
+fn longer_records_and_unknown_optional_features_are_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let good = dir.path().join("cbox.canopy");
+    convert(&scene("cbox.glb"), &good, None);
+    let file = std::fs::read(&good).unwrap();
+    let xxh3 = xxhash_rust::xxh3::xxh3_64;
+    let table = |at: usize| {
+        (
+            u64_at(&file, at) as usize,
+            u32_at(&file, at + 8) as usize,
+            u32_at(&file, at + 12) as usize,
+        )
+    };
+    let start = table(104).0;
+    let mut out = file[..start].to_vec();
+    let mut header = file[..256].to_vec();
+    let mut grow = |out: &mut Vec<u8>, at: usize, entry: bool| {
+        let (offset, count, size) = table(at);
+        header[at..at + 8].copy_from_slice(&(out.len() as u64).to_le_bytes());
+        header[at + 12..at + 16].copy_from_slice(&(size as u32 + 8).to_le_bytes());
+        for r in file[offset..offset + count * size].chunks(size) {
+            let mut rec = [r, &[0u8; 8][..]].concat();
+            if entry {
+                rec[84..92].fill(0);
+                let c = xxh3(&rec);
+                rec[84..92].copy_from_slice(&c.to_le_bytes());
+            }
+            out.extend_from_slice(&rec);
+        }
+    };
+    for at in [104, 120, 136] {
+        grow(&mut out, at, false);
+    }
+    let tables = xxh3(&out[start..]);
+    out.resize(out.len().next_multiple_of(64), 0);
+    grow(&mut out, 152, true);
+    header[56..64].copy_from_slice(&(out.len() as u64).to_le_bytes());
+    header[168..176].copy_from_slice(&tables.to_le_bytes());
+    let features = u64_at(&header, 16) | 1 << 20;
+    header[16..24].copy_from_slice(&features.to_le_bytes());
+    header[176..184].fill(0);
+    let h = xxh3(&header);
+    header[176..184].copy_from_slice(&h.to_le_bytes());
+    out[..256].copy_from_slice(&header);
+    let later = dir.path().join("later.canopy");
+    std::fs::write(&later, &out).unwrap();
+    assert!(ok(&["inspect", "--verify", s(&later)]).contains("verify              ok"));
+    let args = [
+        "--integrator",
+        "path",
+        "--width",
+        "24",
+        "--height",
+        "24",
+        "--spp",
+        "2",
+    ];
+    let (a, _) = render(&good, &dir.path().join("a.exr"), &args);
+    let (b, _) = render(&later, &dir.path().join("b.exr"), &args);
+    assert_eq!(a.pixels, b.pixels);
 }
 
 /// A random mesh of `n` triangles around `origin`, `size` across, as OBJ text.

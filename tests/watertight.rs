@@ -69,7 +69,7 @@ fn trace(a: &Archive, pages: &[PageContents], o: V, d: V) -> Option<(f64, [[f32;
     while let Some((page, i)) = stack.pop() {
         let c = &pages[page as usize];
         let n = &c.nodes[i as usize];
-        let (lo, hi) = a.grid(page).dequant_box(&n.bounds);
+        let (lo, hi) = a.grid(page).unwrap().dequant_box(&n.bounds);
         if !hits_box(o, d, lo, hi, best.map_or(f64::INFINITY, |b| b.0)) {
             continue;
         }
@@ -103,7 +103,7 @@ fn check(budget: &str) {
         budget,
     ]);
     let a = Archive::open(&out).unwrap();
-    let pages: Vec<PageContents> = (0..a.pages.len() as u32)
+    let pages: Vec<PageContents> = (0..a.page_count())
         .map(|p| a.read_page(p).unwrap())
         .collect();
     let (verts, tris) = read_mesh(&scene("bunny.ply")).unwrap();
@@ -269,7 +269,7 @@ fn tracer_rays_through_shared_edges_and_vertices_never_slip_through() {
         "15",
     ]);
     let a = std::sync::Arc::new(Archive::open(&arc).unwrap());
-    assert!(a.pages.len() > 20);
+    assert!(a.page_count() > 20);
     let cache = canopy::paging::PageCache::new(a, None, 1).unwrap();
     let mut tr = Tracer::new(&cache);
     let mut targets: Vec<Vec3A> = verts.iter().map(|&p| Vec3A::from(p)).collect();

@@ -19,6 +19,12 @@ pub enum FormatError {
         major: u16,
         minor: u16,
     },
+    #[error("{path}: archive format version {major}.{minor} is older than this canopy reads ({}.x); convert the source again with `canopy convert`", crate::VERSION_MAJOR)]
+    OlderVersion {
+        path: PathBuf,
+        major: u16,
+        minor: u16,
+    },
     #[error("{path}: truncated archive: {what} needs bytes up to {needed}, file has {len}")]
     Truncated {
         path: PathBuf,

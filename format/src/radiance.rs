@@ -197,6 +197,7 @@ impl RadianceWriter {
         archive: &Archive,
         info: BakeInfo,
     ) -> Result<RadianceWriter> {
+        let entries = archive.entries()?;
         let header = RadianceHeader {
             magic: RADIANCE_MAGIC,
             version_major: RADIANCE_VERSION_MAJOR,
@@ -205,7 +206,7 @@ impl RadianceWriter {
             archive_checksum: archive.header.header_checksum,
             archive_len: archive.header.file_len,
             nodes: archive.header.nodes,
-            pages: archive.pages.len() as u32,
+            pages: entries.len() as u32,
             record_size: std::mem::size_of::<BakedNode>() as u32,
             bounces: info.bounces,
             samples_per_triangle: info.samples_per_triangle,
@@ -220,8 +221,7 @@ impl RadianceWriter {
             wavelet_threshold: info.wavelet_threshold,
             reserved: [0; 16],
         };
-        let blocks = archive
-            .pages
+        let blocks = entries
             .iter()
             .map(|p| BlockEntry {
                 node_count: p.node_count,
@@ -233,8 +233,8 @@ impl RadianceWriter {
             path: path.to_path_buf(),
             header,
             blocks,
-            tri_counts: archive.pages.iter().map(|p| p.tri_count).collect(),
-            written: vec![false; archive.pages.len()],
+            tri_counts: entries.iter().map(|p| p.tri_count).collect(),
+            written: vec![false; entries.len()],
         })
     }
 
@@ -383,19 +383,20 @@ impl RadianceFile {
                 h.archive_checksum, h.archive_len, a.header_checksum, a.file_len
             )));
         }
-        if (h.nodes, h.pages as usize) != (a.nodes, archive.pages.len()) {
+        if (h.nodes, h.pages) != (a.nodes, archive.page_count()) {
             return Err(wrong(format!(
                 "{} nodes in {} pages, not {} in {}",
                 h.nodes,
                 h.pages,
                 a.nodes,
-                archive.pages.len()
+                archive.page_count()
             )));
         }
+        let entries = archive.entries()?;
         let blocks = read_blocks(&file, &h).map_err(bad)?;
         let mut packed = Vec::new();
         let mut coef_bytes = 0;
-        for (i, (b, p)) in blocks.iter().zip(&archive.pages).enumerate() {
+        for (i, (b, p)) in blocks.iter().zip(&entries).enumerate() {
             coef_bytes += check_block(b, h.blocks_offset, p, h.wavelet_n > 0)
                 .map_err(|what| bad(format!("block {i}: {what}")))?;
             packed.resize(b.compressed_len as usize, 0);
@@ -416,7 +417,7 @@ impl RadianceFile {
             file,
             header: h,
             blocks,
-            tri_counts: archive.pages.iter().map(|p| p.tri_count).collect(),
+            tri_counts: entries.iter().map(|p| p.tri_count).collect(),
         })
     }
 

@@ -18,7 +18,6 @@ pub struct Archive {
     pub materials: Vec<MaterialRecord>,
     pub cameras: Vec<CameraRecord>,
     pub lights: Vec<LightRecord>,
-    pub pages: Vec<PageEntry>,
 }
 
 impl Archive {
@@ -64,11 +63,19 @@ impl Archive {
             });
         }
         let header: Header = bytemuck::pod_read_unaligned(&map[..256]);
-        if header.version_major > VERSION_MAJOR {
+        let (major, minor) = (header.version_major, header.version_minor);
+        if major > VERSION_MAJOR {
             return Err(FormatError::NewerVersion {
                 path: p,
-                major: header.version_major,
-                minor: header.version_minor,
+                major,
+                minor,
+            });
+        }
+        if (1..VERSION_MAJOR).contains(&major) {
+            return Err(FormatError::OlderVersion {
+                path: p,
+                major,
+                minor,
             });
         }
         let corrupt = |what: String| FormatError::Corrupt {
@@ -95,51 +102,64 @@ impl Archive {
                 len,
             });
         }
-        let tables_start = header.materials.offset;
-        if tables_start < 256 || tables_start > len {
-            return Err(corrupt(format!(
-                "table offset {tables_start} outside the file"
-            )));
-        }
-        if xxhash_rust::xxh3::xxh3_64(&map[tables_start as usize..]) != header.tables_checksum {
+        check_table_ranges(&header).map_err(&corrupt)?;
+        let small = header.materials.offset as usize..header.pages.offset as usize;
+        let padded = |t: &TableRef| t.offset + t.count as u64 * t.record_size as u64;
+        if xxhash_rust::xxh3::xxh3_64(&map[small.start..padded(&header.lights) as usize])
+            != header.tables_checksum
+            || map[padded(&header.lights) as usize..small.end]
+                .iter()
+                .any(|&b| b != 0)
+        {
             return Err(corrupt("table checksum mismatch".into()));
         }
-        check_table_ranges(&header).map_err(&corrupt)?;
-        let materials =
-            read_table::<MaterialRecord>(&map, &header.materials, "material table", &p)?;
-        let cameras = read_table::<CameraRecord>(&map, &header.cameras, "camera table", &p)?;
-        let lights = read_table::<LightRecord>(&map, &header.lights, "light table", &p)?;
-        let pages = read_table::<PageEntry>(&map, &header.pages, "page table", &p)?;
-        if pages.is_empty() || header.root_page as usize >= pages.len() {
+        let materials = read_table::<MaterialRecord>(&map, &header.materials);
+        let cameras = read_table::<CameraRecord>(&map, &header.cameras);
+        let lights = read_table::<LightRecord>(&map, &header.lights);
+        if header.pages.count == 0 || header.root_page >= header.pages.count {
             return Err(corrupt(format!(
                 "root page {} of {} pages",
-                header.root_page,
-                pages.len()
+                header.root_page, header.pages.count
             )));
         }
         check_tables(&header, &materials, &cameras, &lights).map_err(&corrupt)?;
-        check_page_tree(&header, &pages).map_err(|(page, what)| FormatError::BadPage {
-            path: p.clone(),
-            page,
-            what,
-        })?;
-        check_page_extents(&header, &pages, tables_start).map_err(|e| match e {
-            (Some(page), what) => FormatError::BadPage {
-                path: p.clone(),
-                page,
-                what,
-            },
-            (None, what) => corrupt(what),
-        })?;
-        Ok(Self {
+        let archive = Self {
             path: p,
             map,
             header,
             materials,
             cameras,
             lights,
-            pages,
-        })
+        };
+        archive.entry(header.root_page)?;
+        Ok(archive)
+    }
+
+    /// Pages in the archive.
+    pub fn page_count(&self) -> u32 {
+        self.header.pages.count
+    }
+
+    /// Every page's entry, checked: for what needs the whole table (`verify`, a bake).
+    pub fn entries(&self) -> Result<Vec<PageEntry>> {
+        (0..self.page_count()).map(|i| self.entry(i)).collect()
+    }
+
+    /// Page `page`'s table entry, after checking its own checksum and what it claims
+    /// (`check_entry`): constant time, so opening an archive costs the same at any size.
+    pub fn entry(&self, page: u32) -> Result<PageEntry> {
+        let t = &self.header.pages;
+        if page >= t.count {
+            return Err(self.page_err(page, format!("no such page ({} pages)", t.count)));
+        }
+        let at = (t.offset + page as u64 * t.record_size as u64) as usize;
+        let record = &self.map[at..at + t.record_size as usize];
+        let e: PageEntry = bytemuck::pod_read_unaligned(&record[..96]);
+        if PageEntry::checksum_of(record) != e.entry_checksum() {
+            return Err(self.page_err(page, "page-table entry checksum mismatch"));
+        }
+        check_entry(&self.header, page, &e).map_err(|what| self.page_err(page, what))?;
+        Ok(e)
     }
 
     pub fn path(&self) -> &Path {
@@ -156,10 +176,7 @@ impl Archive {
 
     /// The compressed bytes of a page, after checking its checksum.
     pub fn page_bytes(&self, page: u32) -> Result<&[u8]> {
-        let e = self
-            .pages
-            .get(page as usize)
-            .ok_or_else(|| self.page_err(page, "no such page"))?;
+        let e = self.entry(page)?;
         let bytes = &self.map[e.offset as usize..(e.offset + e.compressed_len as u64) as usize];
         if xxhash_rust::xxh3::xxh3_64(bytes) != e.checksum {
             return Err(self.page_err(page, "checksum mismatch (the page is corrupt)"));
@@ -171,7 +188,7 @@ impl Archive {
     /// the page can index without further checks.
     pub fn read_page(&self, page: u32) -> Result<PageContents> {
         let bytes = self.page_bytes(page)?;
-        let e = &self.pages[page as usize];
+        let e = self.entry(page)?;
         let raw = zstd::bulk::decompress(bytes, e.raw_len as usize)
             .map_err(|err| self.page_err(page, format!("zstd: {err}")))?;
         self.release(e.offset as usize, e.compressed_len as usize);
@@ -200,7 +217,11 @@ impl Archive {
             at += n;
             s
         };
-        let nodes: Vec<Node> = bytemuck::pod_collect_to_vec(take(h.node_count as usize * 128));
+        let size = self.header.node_size as usize;
+        let nodes: Vec<Node> = take(h.node_count as usize * size)
+            .chunks_exact(size)
+            .map(|r| bytemuck::pod_read_unaligned(&r[..NODE_SIZE as usize]))
+            .collect();
         let tris: Vec<Tri> = bytemuck::pod_collect_to_vec(take(h.tri_count as usize * 8));
         let verts: Vec<[f32; 3]> = bytemuck::pod_collect_to_vec(take(h.vert_count as usize * 12));
         let normals: Vec<u32> = if has_normals {
@@ -208,20 +229,19 @@ impl Archive {
         } else {
             Vec::new()
         };
-        let coefs = take(h.coef_bytes as usize).to_vec();
         let contents = PageContents {
             nodes,
             tris,
             verts,
             normals,
-            coefs,
         };
         self.check_indices(page, &contents)?;
         Ok(contents)
     }
 
     fn check_indices(&self, page: u32, c: &PageContents) -> Result<()> {
-        check_page(&self.header, self.materials.len(), &self.pages, page, c)
+        let entry = |i: u32| self.entry(i).map_err(|e| e.to_string());
+        check_page(&self.header, self.materials.len(), &entry, page, c)
             .map_err(|what| self.page_err(page, what))
     }
 
@@ -253,32 +273,17 @@ impl Archive {
     }
 
     /// The quantization grid of a page.
-    pub fn grid(&self, page: u32) -> Grid {
-        self.pages[page as usize].grid()
+    pub fn grid(&self, page: u32) -> Result<Grid> {
+        Ok(self.entry(page)?.grid())
     }
 }
 
-fn read_table<T: bytemuck::Pod>(map: &[u8], t: &TableRef, what: &str, p: &Path) -> Result<Vec<T>> {
-    let size = std::mem::size_of::<T>() as u32;
-    if t.record_size != size {
-        return Err(FormatError::Corrupt {
-            path: p.to_path_buf(),
-            what: format!("{what}: record size {} (expected {size})", t.record_size),
-        });
-    }
-    let end = t
-        .offset
-        .checked_add(t.count as u64 * size as u64)
-        .filter(|&e| e <= map.len() as u64);
-    let Some(end) = end else {
-        return Err(FormatError::Truncated {
-            path: p.to_path_buf(),
-            what: what.into(),
-            needed: t.offset + t.count as u64 * size as u64,
-            len: map.len() as u64,
-        });
-    };
-    Ok(bytemuck::pod_collect_to_vec(
-        &map[t.offset as usize..end as usize],
-    ))
+/// A table's records (its range is inside the file: `check_table_ranges`); bytes past the
+/// known record size are a later minor version's and are skipped.
+fn read_table<T: bytemuck::Pod>(map: &[u8], t: &TableRef) -> Vec<T> {
+    let at = t.offset as usize;
+    map[at..at + t.count as usize * t.record_size as usize]
+        .chunks_exact(t.record_size as usize)
+        .map(|r| bytemuck::pod_read_unaligned(&r[..std::mem::size_of::<T>()]))
+        .collect()
 }

@@ -4,13 +4,21 @@
 use bytemuck::{Pod, Zeroable};
 
 pub const MAGIC: [u8; 8] = *b"CANOPY\x00\x1a";
-pub const VERSION_MAJOR: u16 = 1;
+pub const VERSION_MAJOR: u16 = 2;
 pub const VERSION_MINOR: u16 = 0;
 pub const PAGE_MAGIC: [u8; 4] = *b"PAGE";
+/// Page frames and tables start at multiples of this many bytes, so records can be read in
+/// place from the mapping.
+pub const ALIGN: u64 = 64;
+/// Bytes of a node record in this version (a later minor version may grow it; readers read
+/// the first `NODE_SIZE` bytes of each `Header::node_size`).
+pub const NODE_SIZE: u32 = 128;
 /// Page-table value for "no parent".
 pub const NONE: u32 = u32::MAX;
 
-/// Scene features, recorded by the converter so the renderer can skip what a scene cannot use.
+/// Scene features. Bits 0–31 are optional: they describe the scene so the renderer can skip
+/// what it cannot use, and a reader ignores bits it does not know. Bits 32–63 are required:
+/// they change how the archive must be read, and a reader refuses bits it does not know.
 pub struct Features;
 impl Features {
     pub const EMITTERS: u64 = 1;
@@ -18,12 +26,16 @@ impl Features {
     pub const TRANSMISSIVE: u64 = 4;
     /// The input referenced textures; they are not stored (factors only), see FORMAT.md.
     pub const TEXTURED_INPUT: u64 = 8;
-    /// Pages carry a per-vertex shading-normal stream.
-    pub const SHADING_NORMALS: u64 = 16;
     pub const PUNCTUAL_LIGHTS: u64 = 32;
-    /// Pages carry per-node coefficient streams.
-    pub const COEFFICIENTS: u64 = 64;
-    pub const ALL: u64 = 127;
+    /// Pages carry a per-vertex shading-normal stream (required: it changes the page layout).
+    pub const SHADING_NORMALS: u64 = 1 << 32;
+    pub const REQUIRED: u64 = 0xFFFF_FFFF_0000_0000;
+    pub const ALL: u64 = Self::EMITTERS
+        | Self::GLOSSY
+        | Self::TRANSMISSIVE
+        | Self::TEXTURED_INPUT
+        | Self::PUNCTUAL_LIGHTS
+        | Self::SHADING_NORMALS;
 
     pub fn names(bits: u64) -> Vec<&'static str> {
         [
@@ -33,7 +45,6 @@ impl Features {
             (Self::TEXTURED_INPUT, "textured-input"),
             (Self::SHADING_NORMALS, "shading-normals"),
             (Self::PUNCTUAL_LIGHTS, "punctual-lights"),
-            (Self::COEFFICIENTS, "coefficients"),
         ]
         .iter()
         .filter(|(b, _)| bits & b != 0)
@@ -75,11 +86,13 @@ pub struct Header {
     pub cameras: TableRef,
     pub lights: TableRef,
     pub pages: TableRef,
-    /// xxh3-64 of every byte from the first table to the end of the file.
+    /// xxh3-64 of the material, camera and light tables (each page entry has its own).
     pub tables_checksum: u64,
     /// xxh3-64 of this header with this field zeroed.
     pub header_checksum: u64,
-    pub reserved: [u8; 72],
+    /// Bytes per node record (`NODE_SIZE` or more).
+    pub node_size: u32,
+    pub reserved: [u8; 68],
 }
 
 const _: () = assert!(std::mem::size_of::<Header>() == 256);
@@ -110,12 +123,31 @@ pub struct PageEntry {
     /// The quantization grid: the exact union of the root nodes' bounds.
     pub bounds_min: [f32; 3],
     pub bounds_max: [f32; 3],
-    pub reserved: [u8; 12],
+    /// xxh3-64 of the entry's record with this field zero, as two little-endian words.
+    pub entry_checksum: [u32; 2],
+    pub reserved: [u8; 4],
 }
 
 const _: () = assert!(std::mem::size_of::<PageEntry>() == 96);
 
 impl PageEntry {
+    /// The checksum a record of these bytes should carry (`entry_checksum` zeroed).
+    pub fn checksum_of(record: &[u8]) -> u64 {
+        let mut r = record.to_vec();
+        r[84..92].fill(0);
+        xxhash_rust::xxh3::xxh3_64(&r)
+    }
+
+    pub fn entry_checksum(&self) -> u64 {
+        self.entry_checksum[0] as u64 | (self.entry_checksum[1] as u64) << 32
+    }
+
+    /// Sets `entry_checksum` for a record of exactly this entry's 96 bytes.
+    pub fn seal(&mut self) {
+        let c = Self::checksum_of(bytemuck::bytes_of(self));
+        self.entry_checksum = [c as u32, (c >> 32) as u32];
+    }
+
     pub fn grid(&self) -> crate::codec::Grid {
         crate::codec::Grid {
             lo: self.bounds_min,

@@ -1,7 +1,10 @@
 //! Structural checks of what an archive claims, beyond its checksums: a file whose checksums
 //! were recomputed after it was altered must still be refused before any value reaches the
-//! renderer. `check_tables` and `check_page_tree` run at open (they cost O(pages + records));
-//! `check_page` runs on every decoded page and is linear in its size.
+//! renderer. `check_header`, `check_table_ranges` and `check_tables` run at open (they cost
+//! O(materials + cameras + lights), nothing per page); `check_entry` runs on every page-table
+//! entry read and `check_page` on every decoded page, linear in its size. What only the
+//! whole page table shows (nodes numbered consecutively, every page linked once) is
+//! `verify`'s.
 
 use crate::node::{Node, NodeFlags};
 use crate::records::*;
@@ -14,8 +17,6 @@ pub const MAX_LEAF_TRIANGLES: u32 = 8;
 pub const MAX_PAGE_NODES: u32 = 1 << 16;
 /// Longest root-to-leaf path accepted, in edges.
 pub const MAX_TREE_DEPTH: u32 = 250;
-/// Largest coefficient stream of one page.
-pub const MAX_COEF_BYTES: u32 = 64 << 20;
 /// Largest camera resolution a record may ask for.
 pub const MAX_SIDE: u32 = 32768;
 
@@ -42,11 +43,23 @@ pub fn box_ok(lo: &[f32; 3], hi: &[f32; 3]) -> bool {
 
 /// Header fields that do not depend on the tables.
 pub fn check_header(h: &Header) -> Result<(), String> {
-    if h.version_major == 0 {
-        return Err("format version 0 does not exist".into());
+    if h.version_major != VERSION_MAJOR {
+        return Err(format!(
+            "format version {} is not {VERSION_MAJOR}",
+            h.version_major
+        ));
     }
-    if h.features & !Features::ALL != 0 {
-        return Err(format!("unknown feature bits {:#x}", h.features));
+    let unknown = h.features & Features::REQUIRED & !Features::ALL;
+    if unknown != 0 {
+        return Err(format!(
+            "required feature bits {unknown:#x} unknown to this reader"
+        ));
+    }
+    if h.node_size < NODE_SIZE || !h.node_size.is_multiple_of(8) || h.node_size > 4096 {
+        return Err(format!(
+            "node records of {} bytes (at least {NODE_SIZE}, a multiple of 8)",
+            h.node_size
+        ));
     }
     if h.input_triangles != h.triangles {
         return Err(format!(
@@ -82,20 +95,42 @@ pub fn check_header(h: &Header) -> Result<(), String> {
     Ok(())
 }
 
-/// The tables back to back after the pages, in the order materials, cameras, lights, pages,
-/// the last ending at `file_len` (the tables checksum covers exactly them).
+/// The material, camera and light tables back to back from an aligned offset after the
+/// pages; the page table at the next aligned offset, ending at `file_len`. Records at least
+/// their known size, a multiple of 8 (readers skip bytes a later minor version adds).
 pub fn check_table_ranges(h: &Header) -> Result<(), String> {
     let mut at = h.materials.offset as u128;
-    for (name, t) in [
-        ("material", &h.materials),
-        ("camera", &h.cameras),
-        ("light", &h.lights),
-        ("page", &h.pages),
+    if at < 256 || !at.is_multiple_of(ALIGN as u128) {
+        return Err(format!(
+            "tables start at {at}, not an aligned offset after the header"
+        ));
+    }
+    for (name, t, known) in [
+        (
+            "material",
+            &h.materials,
+            std::mem::size_of::<MaterialRecord>(),
+        ),
+        ("camera", &h.cameras, std::mem::size_of::<CameraRecord>()),
+        ("light", &h.lights, std::mem::size_of::<LightRecord>()),
+        ("page", &h.pages, std::mem::size_of::<PageEntry>()),
     ] {
+        if name == "page" {
+            at = at.next_multiple_of(ALIGN as u128);
+        }
         if t.offset as u128 != at {
             return Err(format!(
                 "{name} table at {}, expected at {at} (tables are back to back)",
                 t.offset
+            ));
+        }
+        if (t.record_size as usize) < known
+            || !t.record_size.is_multiple_of(8)
+            || t.record_size > 4096
+        {
+            return Err(format!(
+                "{name} records of {} bytes (at least {known}, a multiple of 8)",
+                t.record_size
             ));
         }
         at += t.count as u128 * t.record_size as u128;
@@ -232,130 +267,84 @@ pub fn check_tables(
     Ok(())
 }
 
-/// Each page's bytes inside the page area (before `tables_start`), its `raw_len` what its
-/// counts imply, nodes numbered consecutively, and the node and vertex totals the header's.
-/// The error names the page where one is at fault.
-pub fn check_page_extents(
-    h: &Header,
-    pages: &[PageEntry],
-    tables_start: u64,
-) -> Result<(), (Option<u32>, String)> {
-    let (mut nodes, mut vertices) = (0u64, 0u64);
-    for (i, e) in pages.iter().enumerate() {
-        let fail = |what: String| Err((Some(i as u32), what));
-        let end = e.offset.checked_add(e.compressed_len as u64);
-        if e.offset < 256 || end.is_none_or(|end| end > tables_start) {
-            return fail(format!(
-                "bytes {}+{} outside the page area",
-                e.offset, e.compressed_len
-            ));
-        }
-        let ph = PageHeader {
-            magic: PAGE_MAGIC,
-            node_count: e.node_count,
-            tri_count: e.tri_count,
-            vert_count: e.vert_count,
-            coef_bytes: e.coef_bytes,
-            has_normals: (h.features & Features::SHADING_NORMALS != 0) as u32,
-            reserved: [0; 8],
-        };
-        if raw_page_len(&ph) != e.raw_len as usize || e.first_node != nodes || e.node_count == 0 {
-            return fail("page-table counts are inconsistent".into());
-        }
-        nodes += e.node_count as u64;
-        vertices += e.vert_count as u64;
-    }
-    if (nodes, vertices) != (h.nodes, h.vertices) {
-        return Err((
-            None,
-            format!(
-                "page table holds {nodes} nodes and {vertices} vertices, header says {} and {}",
-                h.nodes, h.vertices
-            ),
+/// One page-table entry (its checksum already checked), in constant time: its bytes inside
+/// the page area at an aligned offset, `raw_len` what its counts imply, counts within what
+/// the header allows, node numbers inside the header's total, finite ordered bounds, and its
+/// place in the page tree (the root page has no parent, level 0, one root and the scene
+/// bounds; every other page names another page as parent and holds 2 roots). That the
+/// parent really links it, one level up, is checked when the parent's link is followed.
+pub fn check_entry(h: &Header, page: u32, e: &PageEntry) -> Result<(), String> {
+    let end = e.offset.checked_add(e.compressed_len as u64);
+    if e.offset < 256
+        || !e.offset.is_multiple_of(ALIGN)
+        || end.is_none_or(|end| end > h.materials.offset)
+    {
+        return Err(format!(
+            "bytes {}+{} not an aligned range of the page area",
+            e.offset, e.compressed_len
         ));
     }
-    Ok(())
-}
-
-/// The page tree as the page table describes it: one root page with no parent at level 0;
-/// every other page names an existing node of a page one level up, no two pages the same
-/// node (so the parent links form a tree), with finite ordered bounds. Returns the failing
-/// page and what is wrong.
-pub fn check_page_tree(h: &Header, pages: &[PageEntry]) -> Result<(), (u32, String)> {
-    let mut claimed = std::collections::HashSet::with_capacity(pages.len());
-    let has_coefs = h.features & Features::COEFFICIENTS != 0;
-    for (i, e) in pages.iter().enumerate() {
-        let fail = |what: String| Err((i as u32, what));
-        if !box_ok(&e.bounds_min, &e.bounds_max) {
-            return fail(format!(
-                "bounds {:?}..{:?} are not a finite box",
-                e.bounds_min, e.bounds_max
+    let ph = PageHeader {
+        magic: PAGE_MAGIC,
+        node_count: e.node_count,
+        tri_count: e.tri_count,
+        vert_count: e.vert_count,
+        coef_bytes: 0,
+        has_normals: (h.features & Features::SHADING_NORMALS != 0) as u32,
+        reserved: [0; 8],
+    };
+    if e.node_count == 0 || e.node_count > h.page_nodes_max {
+        return Err(format!(
+            "{} nodes (1 to the header's {} per page)",
+            e.node_count, h.page_nodes_max
+        ));
+    }
+    // Leaves hold every triangle once, at most max_leaf_triangles each: this bounds what a
+    // page can make the reader allocate.
+    if e.tri_count as u64 > e.node_count as u64 * h.max_leaf_triangles as u64
+        || e.vert_count > (u16::MAX as u32 + 1).min(e.tri_count.saturating_mul(3))
+    {
+        return Err(format!(
+            "{} triangles and {} vertices in {} nodes",
+            e.tri_count, e.vert_count, e.node_count
+        ));
+    }
+    if raw_page_len(&ph, h.node_size) != e.raw_len as usize || e.coef_bytes != 0 {
+        return Err("page-table counts are inconsistent".into());
+    }
+    if e.first_node
+        .checked_add(e.node_count as u64)
+        .is_none_or(|n| n > h.nodes)
+    {
+        return Err(format!(
+            "nodes {}+{} beyond the archive's {}",
+            e.first_node, e.node_count, h.nodes
+        ));
+    }
+    if !box_ok(&e.bounds_min, &e.bounds_max) {
+        return Err(format!(
+            "bounds {:?}..{:?} are not a finite box",
+            e.bounds_min, e.bounds_max
+        ));
+    }
+    if !zeroed(&e.reserved) {
+        return Err("reserved bytes are not zero".into());
+    }
+    if page == h.root_page {
+        if (e.parent_page, e.parent_node, e.level, e.root_count) != (NONE, NONE, 0, 1) {
+            return Err(format!(
+                "the root page names parent {}/{} at level {} with {} roots (expected none, level 0, one root)",
+                e.parent_page as i64, e.parent_node as i64, e.level, e.root_count
             ));
         }
-        if e.node_count > h.page_nodes_max {
-            return fail(format!(
-                "{} nodes, more than the header's {} per page",
-                e.node_count, h.page_nodes_max
-            ));
+        if e.bounds_min != h.bounds_min || e.bounds_max != h.bounds_max {
+            return Err("the root page's bounds are not the scene bounds".into());
         }
-        // Leaves hold every triangle once, at most max_leaf_triangles each: this bounds what
-        // a page can make the reader allocate.
-        if e.tri_count as u64 > e.node_count as u64 * h.max_leaf_triangles as u64
-            || e.vert_count > (u16::MAX as u32 + 1).min(e.tri_count.saturating_mul(3))
-        {
-            return fail(format!(
-                "{} triangles and {} vertices in {} nodes",
-                e.tri_count, e.vert_count, e.node_count
-            ));
-        }
-        if e.coef_bytes > MAX_COEF_BYTES {
-            return fail(format!("{} coefficient bytes", e.coef_bytes));
-        }
-        if e.coef_bytes != 0 && !has_coefs {
-            return fail("a coefficient stream without the coefficients feature".into());
-        }
-        if !zeroed(&e.reserved) {
-            return fail("reserved bytes are not zero".into());
-        }
-        if i as u32 == h.root_page {
-            if (e.parent_page, e.parent_node, e.level, e.root_count) != (NONE, NONE, 0, 1) {
-                return fail(format!(
-                    "the root page names parent {}/{} at level {} with {} roots (expected none, level 0, one root)",
-                    e.parent_page as i64, e.parent_node as i64, e.level, e.root_count
-                ));
-            }
-            if e.bounds_min != h.bounds_min || e.bounds_max != h.bounds_max {
-                return fail("the root page's bounds are not the scene bounds".into());
-            }
-            continue;
-        }
-        let Some(parent) = pages.get(e.parent_page as usize) else {
-            return fail(format!(
-                "parent page {} does not exist",
-                e.parent_page as i64
-            ));
-        };
-        if e.root_count != 2 {
-            return fail(format!("{} roots (a child page holds 2)", e.root_count));
-        }
-        if e.parent_node >= parent.node_count {
-            return fail(format!(
-                "parent node {} outside page {}'s {} nodes",
-                e.parent_node, e.parent_page, parent.node_count
-            ));
-        }
-        if Some(e.level) != parent.level.checked_add(1) {
-            return fail(format!(
-                "level {} under page {} of level {}",
-                e.level, e.parent_page, parent.level
-            ));
-        }
-        if !claimed.insert((e.parent_page, e.parent_node)) {
-            return fail(format!(
-                "page {} node {} is already the parent of another page",
-                e.parent_page, e.parent_node
-            ));
-        }
+    } else if e.parent_page >= h.pages.count || e.parent_page == page || e.root_count != 2 {
+        return Err(format!(
+            "parent page {} of {} pages, {} roots (a child page names another page and holds 2)",
+            e.parent_page as i64, h.pages.count, e.root_count
+        ));
     }
     Ok(())
 }
@@ -363,15 +352,16 @@ pub fn check_page_tree(h: &Header, pages: &[PageEntry]) -> Result<(), (u32, Stri
 /// One decoded page, in time linear in its size: every node's kind, links and values; the
 /// in-page nodes form a forest under the page's roots (each non-root node the child of
 /// exactly one node before it); every triangle in exactly one leaf; vertices finite.
+/// `entry` reads another page's entry (checked).
 pub fn check_page(
     h: &Header,
     materials: usize,
-    pages: &[PageEntry],
+    entry: &dyn Fn(u32) -> Result<PageEntry, String>,
     page: u32,
     c: &PageContents,
 ) -> Result<(), String> {
     let (n, t, v) = (c.nodes.len(), c.tris.len(), c.verts.len());
-    let e = &pages[page as usize];
+    let e = &entry(page)?;
     let roots = e.root_count as usize;
     // Boxes are compared decoded: where the grid is finer than f32 near its values (or
     // flat), several codes decode alike and a min code may exceed its max code.
@@ -387,7 +377,7 @@ pub fn check_page(
         if (0..3).any(|a| boxes[i].0[a] > boxes[i].1[a]) {
             return Err(format!("node {i}: inverted bounds {:?}", boxes[i]));
         }
-        check_node(h, pages, page, i, node).map_err(|what| format!("node {i}: {what}"))?;
+        check_node(h, entry, (page, e), i, node).map_err(|what| format!("node {i}: {what}"))?;
         let [a, b] = node.link.map(|x| x as usize);
         if node.is_leaf() {
             if a.checked_add(b).is_none_or(|end| end > t) || b == 0 {
@@ -449,8 +439,8 @@ fn nests(parent: &Box3, child: &Box3) -> bool {
 
 fn check_node(
     h: &Header,
-    pages: &[PageEntry],
-    page: u32,
+    entry: &dyn Fn(u32) -> Result<PageEntry, String>,
+    (page, e): (u32, &PageEntry),
     i: usize,
     node: &Node,
 ) -> Result<(), String> {
@@ -472,10 +462,9 @@ fn check_node(
     if node.reserved0 != 0 || !zeroed(&node.reserved1) {
         return Err("reserved bytes are not zero".into());
     }
-    let coefs = pages[page as usize].coef_bytes;
-    if node.coef != NONE && node.coef >= coefs {
+    if node.coef != NONE {
         return Err(format!(
-            "coefficient offset {} outside the page's {coefs} bytes",
+            "coefficient offset {} (there is no coefficient stream)",
             node.coef
         ));
     }
@@ -486,15 +475,16 @@ fn check_node(
             node.link[1], h.max_leaf_triangles
         )),
         (false, true) => {
-            let a = node.link[0] as usize;
-            let child = pages.get(a);
-            if node.link[1] != 0
-                || child.is_none_or(|e| {
-                    e.parent_page != page || e.parent_node != i as u32 || a == h.root_page as usize
-                })
+            let a = node.link[0];
+            if a >= h.pages.count || a == h.root_page || node.link[1] != 0 {
+                return Err(format!("child page {a} of {} pages", h.pages.count));
+            }
+            let child = entry(a)?;
+            if (child.parent_page, child.parent_node) != (page, i as u32)
+                || Some(child.level) != e.level.checked_add(1)
             {
                 Err(format!(
-                    "child page {a} does not name this node as its parent"
+                    "child page {a} does not name this node as its parent one level up"
                 ))
             } else {
                 Ok(())

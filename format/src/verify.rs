@@ -35,7 +35,7 @@ impl Archive {
     /// Checks one page (its structure was checked when it was read).
     pub fn verify_page(&self, page: u32) -> Result<PageReport> {
         let c = self.read_page(page)?;
-        let e = self.pages[page as usize];
+        let e = self.entry(page)?;
         let err = |what: String| FormatError::BadPage {
             path: self.path().to_path_buf(),
             page,
@@ -96,7 +96,7 @@ impl Archive {
                     }
                 }
             } else if node.has_child_page() {
-                let child = &self.pages[node.link[0] as usize];
+                let child = self.entry(node.link[0])?;
                 if !contains(&b, &(child.bounds_min, child.bounds_max)) {
                     return Err(err(format!(
                         "node {i}: child page {} extends outside it",
@@ -126,14 +126,33 @@ impl Archive {
     }
 
     /// Combines per-page reports: every non-root page linked exactly once by a node with its
-    /// roots' flags, and the header's triangles, depth, bounds and features what pages hold.
+    /// roots' flags, nodes numbered consecutively in table order, and the header's nodes,
+    /// vertices, triangles, depth, bounds and features what pages hold.
     pub fn verify_totals(&self, reports: &[PageReport]) -> Result<()> {
         let corrupt = |what: String| FormatError::Corrupt {
             path: self.path().to_path_buf(),
             what,
         };
         let h = &self.header;
-        let mut linked = vec![0u32; self.pages.len()];
+        let entries = self.entries()?;
+        let (mut nodes, mut vertices) = (0u64, 0u64);
+        for (i, e) in entries.iter().enumerate() {
+            if e.first_node != nodes {
+                return Err(corrupt(format!(
+                    "page {i}: first node {}, expected {nodes} (pages number nodes consecutively)",
+                    e.first_node
+                )));
+            }
+            nodes += e.node_count as u64;
+            vertices += e.vert_count as u64;
+        }
+        if (nodes, vertices) != (h.nodes, h.vertices) {
+            return Err(corrupt(format!(
+                "the page table holds {nodes} nodes and {vertices} vertices, header says {} and {}",
+                h.nodes, h.vertices
+            )));
+        }
+        let mut linked = vec![0u32; entries.len()];
         for r in reports {
             for &(c, _, flags) in &r.child_pages {
                 linked[c as usize] += 1;
@@ -160,9 +179,9 @@ impl Archive {
             )));
         }
         // Depth of each page's roots: parents sit at lower levels, so visit by level.
-        let mut order: Vec<usize> = (0..self.pages.len()).collect();
-        order.sort_by_key(|&i| self.pages[i].level);
-        let mut root_depth = vec![0u32; self.pages.len()];
+        let mut order: Vec<usize> = (0..entries.len()).collect();
+        order.sort_by_key(|&i| entries[i].level);
+        let mut root_depth = vec![0u32; entries.len()];
         let mut depth = 0;
         for &p in &order {
             for &(c, d, _) in &reports[p].child_pages {

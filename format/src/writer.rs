@@ -16,7 +16,6 @@ pub struct PageContents {
     pub verts: Vec<[f32; 3]>,
     /// Octahedral shading normals, one per vertex, or empty.
     pub normals: Vec<u32>,
-    pub coefs: Vec<u8>,
 }
 
 /// A page compressed and checksummed, ready to append.
@@ -27,7 +26,6 @@ pub struct EncodedPage {
     pub node_count: u32,
     pub tri_count: u32,
     pub vert_count: u32,
-    pub coef_bytes: u32,
 }
 
 /// Where a page sits in the page tree.
@@ -54,17 +52,16 @@ pub fn encode_page(
         node_count: p.nodes.len() as u32,
         tri_count: p.tris.len() as u32,
         vert_count: p.verts.len() as u32,
-        coef_bytes: p.coefs.len() as u32,
+        coef_bytes: 0,
         has_normals: normals as u32,
         reserved: [0; 8],
     };
-    let mut raw = Vec::with_capacity(raw_page_len(&header));
+    let mut raw = Vec::with_capacity(raw_page_len(&header, NODE_SIZE));
     raw.extend_from_slice(bytemuck::bytes_of(&header));
     raw.extend_from_slice(bytemuck::cast_slice(&p.nodes));
     raw.extend_from_slice(bytemuck::cast_slice(&p.tris));
     raw.extend_from_slice(bytemuck::cast_slice(&p.verts));
     raw.extend_from_slice(bytemuck::cast_slice(&p.normals));
-    raw.extend_from_slice(&p.coefs);
     let bytes = zstd::bulk::compress(&raw, zstd_level)?;
     Ok(EncodedPage {
         checksum: xxhash_rust::xxh3::xxh3_64(&bytes),
@@ -73,23 +70,21 @@ pub fn encode_page(
         node_count: header.node_count,
         tri_count: header.tri_count,
         vert_count: header.vert_count,
-        coef_bytes: header.coef_bytes,
     })
 }
 
-/// Decompressed size a page header implies.
-pub fn raw_page_len(h: &PageHeader) -> usize {
+/// Decompressed size a page header implies, with node records of `node_size` bytes.
+pub fn raw_page_len(h: &PageHeader, node_size: u32) -> usize {
     let normals = if h.has_normals != 0 {
         h.vert_count as usize * 4
     } else {
         0
     };
     std::mem::size_of::<PageHeader>()
-        + h.node_count as usize * std::mem::size_of::<Node>()
+        + h.node_count as usize * node_size as usize
         + h.tri_count as usize * std::mem::size_of::<Tri>()
         + h.vert_count as usize * 12
         + normals
-        + h.coef_bytes as usize
 }
 
 /// Scene-level values the header carries.
@@ -138,6 +133,7 @@ impl ArchiveWriter {
 
     /// Appends a page; returns its index. Pages get global node numbers in append order.
     pub fn push(&mut self, page: &EncodedPage, meta: PageMeta) -> Result<u32> {
+        self.pad()?;
         let offset = self.out.len();
         self.out.write_all(&page.bytes)?;
         self.pages.push(PageEntry {
@@ -149,19 +145,26 @@ impl ArchiveWriter {
             node_count: page.node_count,
             tri_count: page.tri_count,
             vert_count: page.vert_count,
-            coef_bytes: page.coef_bytes,
+            coef_bytes: 0,
             parent_page: meta.parent_page,
             parent_node: meta.parent_node,
             level: 0,
             root_count: meta.root_count,
             bounds_min: meta.bounds_min,
             bounds_max: meta.bounds_max,
-            reserved: [0; 12],
+            entry_checksum: [0; 2],
+            reserved: [0; 4],
         });
         self.nodes += page.node_count as u64;
         self.tris += page.tri_count as u64;
         self.verts += page.vert_count as u64;
         Ok(self.pages.len() as u32 - 1)
+    }
+
+    /// Zeros up to the next multiple of `ALIGN`.
+    fn pad(&mut self) -> Result<()> {
+        let pad = self.out.len().next_multiple_of(ALIGN) - self.out.len();
+        self.out.write_all(&[0; ALIGN as usize][..pad as usize])
     }
 
     /// Records a page's parent once it is known (pages below are often written first).
@@ -203,14 +206,22 @@ impl ArchiveWriter {
         }
     }
 
-    /// Writes the tables and header, syncs, and renames into place.
+    /// Writes the tables and header, syncs, and renames into place. The material, camera and
+    /// light tables go back to back from an aligned offset; the page table, each entry
+    /// sealed with its own checksum, from the next aligned offset to the end.
     pub fn finish(mut self, info: &SceneInfo) -> Result<()> {
         self.fill_levels();
+        for e in &mut self.pages {
+            e.seal();
+        }
+        self.pad()?;
         let base = self.out.len();
         let mut tables = Vec::new();
         let materials = append_table(&mut tables, base, &info.materials);
         let cameras = append_table(&mut tables, base, &info.cameras);
         let lights = append_table(&mut tables, base, &info.lights);
+        let tables_checksum = xxhash_rust::xxh3::xxh3_64(&tables);
+        tables.resize((tables.len() as u64).next_multiple_of(ALIGN) as usize, 0);
         let pages = append_table(&mut tables, base, &self.pages);
         let mut header = Header {
             magic: MAGIC,
@@ -233,9 +244,10 @@ impl ArchiveWriter {
             cameras,
             lights,
             pages,
-            tables_checksum: xxhash_rust::xxh3::xxh3_64(&tables),
+            tables_checksum,
             header_checksum: 0,
-            reserved: [0; 72],
+            node_size: NODE_SIZE,
+            reserved: [0; 68],
         };
         header.header_checksum = xxhash_rust::xxh3::xxh3_64(bytemuck::bytes_of(&header));
         self.out.write_all(&tables)?;

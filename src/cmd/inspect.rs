@@ -22,7 +22,7 @@ pub struct InspectArgs {
 
 pub fn run(a: InspectArgs, progress: bool) -> Result<()> {
     let archive = canopy_format::Archive::open(&a.archive)?;
-    let mut s = inspect::summarize(&archive);
+    let mut s = inspect::summarize(&archive)?;
     if a.verify {
         inspect::verify(&archive, &mut s, progress)?;
     }

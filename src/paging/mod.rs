@@ -20,7 +20,7 @@ pub mod wide;
 
 use anyhow::{bail, Result};
 use canopy_format::radiance::{BakedBlock, RadianceFile};
-use canopy_format::{Archive, Node, NodeFlags, Tri};
+use canopy_format::{Archive, Node, NodeFlags, PageEntry, Tri};
 use crossbeam_channel::{Receiver, Sender, TrySendError};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, Mutex, RwLock};
@@ -99,8 +99,8 @@ impl TNode {
 
 /// `pages` ordered deepest level first and grouped by level: a page's children come before
 /// it, and the pages of one group are independent of each other.
-pub fn deepest_first(archive: &Archive, mut pages: Vec<u32>) -> Vec<Vec<u32>> {
-    let level = |i: &u32| archive.pages[*i as usize].level;
+pub fn deepest_first(entries: &[PageEntry], mut pages: Vec<u32>) -> Vec<Vec<u32>> {
+    let level = |i: &u32| entries[*i as usize].level;
     pages.sort_by_key(|i| std::cmp::Reverse(level(i)));
     pages
         .chunk_by(|a, b| level(a) == level(b))
@@ -156,7 +156,7 @@ impl Page {
 
     pub fn decode(archive: &Archive, id: u32) -> Result<Page> {
         let c = archive.read_page(id)?;
-        let grid = archive.grid(id);
+        let grid = archive.grid(id)?;
         if c.nodes.iter().any(|n| n.link[0] >= 1 << 30) {
             bail!(
                 "{}: page {id}: a link does not fit 30 bits",
@@ -197,7 +197,7 @@ impl Page {
                 .map(|t| t.v.map(|v| c.normals[v as usize]))
                 .collect()
         };
-        let e = &archive.pages[id as usize];
+        let e = &archive.entry(id)?;
         let (tri4, tri_slot) = wide::tri4s(&mut bvh, &tris).ok_or_else(|| {
             anyhow::anyhow!(
                 "{}: page {id}: {} triangles are more than a page can index",
@@ -286,6 +286,9 @@ pub struct CacheStats {
 
 pub struct PageCache {
     pub archive: Arc<Archive>,
+    /// The page table, each entry checked, read once when the cache starts (a renderer
+    /// needs every page's level and size to pin and budget; opening the archive does not).
+    pub entries: Vec<PageEntry>,
     slots: Vec<Slot>,
     budget: u64,
     resident: AtomicU64,
@@ -320,8 +323,7 @@ pub fn one_arena() {
 }
 
 /// Decoded size of a page without decoding it (from its page-table counts).
-pub fn decoded_size(archive: &Archive, id: u32) -> u64 {
-    let e = &archive.pages[id as usize];
+pub fn decoded_size(archive: &Archive, e: &PageEntry) -> u64 {
     let normals = archive.header.features & canopy_format::Features::SHADING_NORMALS != 0;
     (std::mem::size_of::<Page>()
         + e.node_count as usize * (std::mem::size_of::<Node>() + std::mem::size_of::<TNode>())
@@ -334,21 +336,23 @@ impl PageCache {
     /// budget that cannot hold the pinned pages plus a working set is an error naming the
     /// minimum.
     pub fn new(archive: Arc<Archive>, budget: Option<u64>, threads: usize) -> Result<Arc<Self>> {
-        let n = archive.pages.len();
-        let slots: Vec<Slot> = archive
-            .pages
+        let entries = archive.entries()?;
+        let n = entries.len();
+        let slots: Vec<Slot> = entries
             .iter()
             .map(|e| Slot {
                 pinned: e.level < PIN_LEVELS,
                 ..Default::default()
             })
             .collect();
-        let pinned: u64 = (0..n as u32)
-            .filter(|&i| slots[i as usize].pinned)
-            .map(|i| decoded_size(&archive, i))
+        let pinned: u64 = entries
+            .iter()
+            .filter(|e| e.level < PIN_LEVELS)
+            .map(|e| decoded_size(&archive, e))
             .sum();
-        let largest = (0..n as u32)
-            .map(|i| decoded_size(&archive, i))
+        let largest = entries
+            .iter()
+            .map(|e| decoded_size(&archive, e))
             .max()
             .unwrap_or(0);
         let minimum = Self::minimum(pinned, largest, threads);
@@ -364,6 +368,7 @@ impl PageCache {
             }
         }
         let cache = Arc::new(PageCache {
+            entries,
             slots,
             budget: budget.unwrap_or(u64::MAX),
             resident: AtomicU64::new(0),
@@ -610,8 +615,9 @@ impl PageCache {
 
     /// Total decoded size of the whole archive (what an unlimited budget could reach).
     pub fn archive_decoded_bytes(&self) -> u64 {
-        (0..self.slots.len() as u32)
-            .map(|i| decoded_size(&self.archive, i))
+        self.entries
+            .iter()
+            .map(|e| decoded_size(&self.archive, e))
             .sum()
     }
 

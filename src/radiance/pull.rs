@@ -9,19 +9,18 @@ use crate::paging::{deepest_first, NodeRef, Page, PageCache};
 use rayon::prelude::*;
 
 pub fn pull(cache: &PageCache, store: &RadianceStore, keys: Keys) {
-    let archive = &cache.archive;
     let mut pages = store.take_dirty();
     // A changed page changes its parent page's cut node: pull the ancestors too.
     let mut seen: std::collections::HashSet<u32> = pages.iter().copied().collect();
     let mut i = 0;
     while i < pages.len() {
-        let parent = archive.pages[pages[i] as usize].parent_page;
+        let parent = cache.entries[pages[i] as usize].parent_page;
         if parent != canopy_format::NONE && seen.insert(parent) {
             pages.push(parent);
         }
         i += 1;
     }
-    for level in deepest_first(archive, pages) {
+    for level in deepest_first(&cache.entries, pages) {
         level.par_iter().for_each(|&id| {
             if let Some(page) = cache.get_resident(id) {
                 pull_page(cache, store, keys, &page);
@@ -178,7 +177,11 @@ mod tests {
         o.scene = Some(toml);
         crate::convert::convert(&o).unwrap();
         let archive = Arc::new(Archive::open(&arc).unwrap());
-        assert!(archive.pages.len() > 10, "{} pages", archive.pages.len());
+        assert!(
+            archive.page_count() as usize > 10,
+            "{} pages",
+            archive.page_count() as usize
+        );
         let cache = PageCache::new(Arc::clone(&archive), None, 1).unwrap();
         let value = |t: &TriW| {
             let x =
@@ -186,9 +189,9 @@ mod tests {
             [x, 1.0 - x, 0.25 + x * x]
         };
         let keys = Keys::new(&archive.header);
-        let store = RadianceStore::new(1024, None, archive.pages.len());
+        let store = RadianceStore::new(1024, None, archive.page_count() as usize);
         store.add_photons(1);
-        for pg in 0..archive.pages.len() as u32 {
+        for pg in 0..archive.page_count() {
             let page = cache.get(pg);
             store.mark_dirty(pg);
             for (i, n) in page.bvh.iter().enumerate() {
@@ -208,7 +211,7 @@ mod tests {
         }
         pull(&cache, &store, keys);
         let mut checked = 0;
-        for pg in 0..archive.pages.len() as u32 {
+        for pg in 0..archive.page_count() {
             let page = cache.get(pg);
             for i in 0..page.bvh.len() as u32 {
                 let (sum, area) = subtree(&cache, &value, pg, i);

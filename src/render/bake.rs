@@ -84,7 +84,7 @@ pub fn bake(o: &BakeOptions) -> Result<BakeReport> {
     )?;
     let bar = crate::progress::bar(
         o.progress,
-        archive.pages.len() as u64 * o.bake.bounces as u64,
+        archive.page_count() as u64 * o.bake.bounces as u64,
         "baking pages",
     );
     let (samples, decoded_bytes) =
@@ -95,7 +95,7 @@ pub fn bake(o: &BakeOptions) -> Result<BakeReport> {
         .len();
     Ok(BakeReport {
         nodes: archive.header.nodes,
-        pages: archive.pages.len() as u64,
+        pages: archive.page_count() as u64,
         triangles: archive.header.triangles,
         light_samples: samples,
         seconds: t0.elapsed().as_secs_f64(),

@@ -101,10 +101,13 @@ pub fn peak_rss_bytes() -> u64 {
 /// were loaded, deepest first, marking a node when a child is marked.
 pub fn ancestors_closure(scene: &Scene) -> Result<u64> {
     let archive = &scene.cache.archive;
-    let pages = (0..archive.pages.len() as u32)
+    let pages = (0..archive.page_count())
         .filter(|&i| scene.cache.was_touched(i))
         .collect();
-    for id in deepest_first(archive, pages).into_iter().flatten() {
+    for id in deepest_first(&scene.cache.entries, pages)
+        .into_iter()
+        .flatten()
+    {
         let page = Page::decode(archive, id)?;
         let first = page.first_node;
         let marked = |n: u64| scene.touched.contains(n);
@@ -112,7 +115,7 @@ pub fn ancestors_closure(scene: &Scene) -> Result<u64> {
             let hit = match n.link() {
                 NodeRef::Inner(l, r) => marked(first + l as u64) || marked(first + r as u64),
                 NodeRef::ChildPage(c) => {
-                    let f = archive.pages[c as usize].first_node;
+                    let f = scene.cache.entries[c as usize].first_node;
                     marked(f) || marked(f + 1)
                 }
                 NodeRef::Leaf { .. } => false,

@@ -92,9 +92,10 @@ pub struct Parts {
 impl Parts {
     pub fn read(path: &Path) -> Result<Parts> {
         let a = canopy_format::Archive::open(path)?;
-        let pages = (0..a.pages.len() as u32)
+        let entries = a.entries()?;
+        let pages = (0..a.page_count())
             .map(|i| {
-                let e = a.pages[i as usize];
+                let e = entries[i as usize];
                 Ok(zstd::bulk::decompress(
                     a.page_bytes(i)?,
                     e.raw_len as usize,
@@ -104,58 +105,54 @@ impl Parts {
         Ok(Parts {
             header: a.header,
             pages,
-            entries: a.pages.clone(),
+            entries,
             materials: a.materials.clone(),
             cameras: a.cameras.clone(),
             lights: a.lights.clone(),
         })
     }
 
-    /// Writes the archive back with every offset, length and checksum recomputed, so only
-    /// the mutation itself is wrong.
+    /// Writes the archive back with every offset, length, alignment and checksum recomputed,
+    /// so only the mutation itself is wrong.
     pub fn assemble(&self) -> Vec<u8> {
         let mut out = vec![0u8; 256];
+        let align = |out: &mut Vec<u8>| out.resize(out.len().next_multiple_of(ALIGN as usize), 0);
         let mut entries = self.entries.clone();
         for (e, raw) in entries.iter_mut().zip(&self.pages) {
             let z = zstd::bulk::compress(raw, 1).expect("zstd");
+            align(&mut out);
             e.offset = out.len() as u64;
             e.compressed_len = z.len() as u32;
             e.checksum = xxhash_rust::xxh3::xxh3_64(&z);
+            e.seal();
             out.extend_from_slice(&z);
         }
+        align(&mut out);
         let mut h = self.header;
-        let mut table = |bytes: &[u8], count: usize, size: usize, t: &mut TableRef| {
-            t.offset = out.len() as u64;
-            t.count = count as u32;
-            t.record_size = size as u32;
-            out.extend_from_slice(bytes);
-        };
+        let table =
+            |out: &mut Vec<u8>, bytes: &[u8], count: usize, size: usize, t: &mut TableRef| {
+                t.offset = out.len() as u64;
+                t.count = count as u32;
+                t.record_size = size as u32;
+                out.extend_from_slice(bytes);
+            };
+        let materials = bytemuck::cast_slice(&self.materials);
         table(
-            bytemuck::cast_slice(&self.materials),
+            &mut out,
+            materials,
             self.materials.len(),
             128,
             &mut h.materials,
         );
-        table(
-            bytemuck::cast_slice(&self.cameras),
-            self.cameras.len(),
-            128,
-            &mut h.cameras,
-        );
-        table(
-            bytemuck::cast_slice(&self.lights),
-            self.lights.len(),
-            96,
-            &mut h.lights,
-        );
-        table(
-            bytemuck::cast_slice(&entries),
-            entries.len(),
-            96,
-            &mut h.pages,
-        );
-        h.file_len = out.len() as u64;
+        let cameras = bytemuck::cast_slice(&self.cameras);
+        table(&mut out, cameras, self.cameras.len(), 128, &mut h.cameras);
+        let lights = bytemuck::cast_slice(&self.lights);
+        table(&mut out, lights, self.lights.len(), 96, &mut h.lights);
         h.tables_checksum = xxhash_rust::xxh3::xxh3_64(&out[h.materials.offset as usize..]);
+        align(&mut out);
+        let pages = bytemuck::cast_slice(&entries);
+        table(&mut out, pages, entries.len(), 96, &mut h.pages);
+        h.file_len = out.len() as u64;
         h.header_checksum = 0;
         h.header_checksum = xxhash_rust::xxh3::xxh3_64(bytemuck::bytes_of(&h));
         out[..256].copy_from_slice(bytemuck::bytes_of(&h));
@@ -328,7 +325,7 @@ pub fn integrators() -> [Settings; 2] {
 /// catches panics.
 pub fn exercise_archive(path: &Path, dir: &Path) -> Result<()> {
     let a = canopy_format::Archive::open(path)?;
-    let mut s = canopy::inspect::summarize(&a);
+    let mut s = canopy::inspect::summarize(&a)?;
     let verified = canopy::inspect::verify(&a, &mut s, false);
     drop(a);
     for integrator in integrators() {

@@ -43,7 +43,10 @@ fn first_error(path: &Path, dir: &Path) -> Option<String> {
         Ok(a) => a,
         Err(e) => return Some(format!("{e:#}")),
     };
-    let mut s = canopy::inspect::summarize(&a);
+    let mut s = match canopy::inspect::summarize(&a) {
+        Ok(s) => s,
+        Err(e) => return Some(format!("{e:#}")),
+    };
     if let Err(e) = canopy::inspect::verify(&a, &mut s, false) {
         return Some(format!("{e:#}"));
     }
@@ -135,9 +138,9 @@ fn table_lies(base: &Parts) -> Vec<(&'static str, Edit, &'static str)> {
         ),
         ("vertices", Box::new(|p| p.header.vertices += 1), "vertices"),
         (
-            "unknown feature bit",
+            "unknown required feature bit",
             Box::new(|p| p.header.features |= 1 << 40),
-            "unknown feature",
+            "required feature bits 0x10000000000 unknown",
         ),
         (
             "emitters feature cleared",

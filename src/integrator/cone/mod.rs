@@ -170,7 +170,11 @@ impl ConeIntegrator {
         let [w, h] = target.window;
         ConeIntegrator {
             settings: settings.clone(),
-            store: RadianceStore::new(settings.samples, target.state_bytes, archive.pages.len()),
+            store: RadianceStore::new(
+                settings.samples,
+                target.state_bytes,
+                archive.page_count() as usize,
+            ),
             keys: Keys::new(&archive.header),
             primary: Cone {
                 r0: 0.0,

@@ -266,13 +266,13 @@ fn bake(
     let diag = (V::from(archive.header.bounds_max) - V::from(archive.header.bounds_min)).length();
     // A right isosceles triangle of side patch_size·diagonal.
     let a_max = 0.5 * (p.patch_size * diag).powi(2);
-    let mut roots = vec![[BakedNode::default(); 2]; archive.pages.len()];
-    let mut glossy_roots: Vec<Vec<SparseVec<glam::Vec3>>> = vec![Vec::new(); archive.pages.len()];
+    let mut roots = vec![[BakedNode::default(); 2]; cache.entries.len()];
+    let mut glossy_roots: Vec<Vec<SparseVec<glam::Vec3>>> = vec![Vec::new(); cache.entries.len()];
     let mut samples = 0;
-    let pages: Vec<u32> = (0..archive.pages.len() as u32).collect();
+    let pages: Vec<u32> = (0..cache.entries.len() as u32).collect();
     // Glossy vectors of the level below, which only this level's pages read.
     let mut below: Vec<u32> = Vec::new();
-    for level in deepest_first(archive, pages) {
+    for level in deepest_first(&cache.entries, pages) {
         for batch in level.chunks(BATCH) {
             let done = Done {
                 roots: &roots,
