@@ -33,7 +33,7 @@ fn a_baked_file_gives_the_in_process_image_and_a_budget_changes_no_byte() {
     let (free, tight) = (dir.path().join("a.radiance"), dir.path().join("b.radiance"));
     let r = bake(&arc, &free, &[]);
     assert!(r["pages"].as_u64().unwrap() > 10 && r["light_samples"].as_u64().unwrap() > 0);
-    let r = bake(&arc, &tight, &["--mem-budget", "4MiB", "--threads", "2"]);
+    let r = bake(&arc, &tight, &["--mem-budget", "5MiB", "--threads", "2"]);
     assert!(r["pages_evicted"].as_u64().unwrap() > 0, "{r}");
     assert_eq!(
         std::fs::read(&free).unwrap(),

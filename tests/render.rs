@@ -16,7 +16,7 @@ fn path_tracer_mean_matches_mitsuba() {
         let (img, stats) = render(
             &arc,
             &dir.path().join(format!("{name}.exr")),
-            &["--spp", spp],
+            &["--spp", spp, "--node-stats"],
         );
         assert_mean_within_noise(&img, &reference(name), name);
         assert_eq!(stats["nonfinite_samples"], 0, "{name}");

@@ -40,6 +40,12 @@ pub struct RenderArgs {
     /// Write render statistics as JSON here.
     #[arg(long)]
     stats: Option<PathBuf>,
+    /// Also count the nodes the render used (hit nodes and their ancestors, 004 §5.2) for
+    /// the stats' unique_nodes_touched and nodes_per_pixel. It re-reads every page the render
+    /// touched: under a tight budget that costs seconds (8 s after a 42-s render of 200 M
+    /// triangles at 1 GiB). `canopy npp` always counts.
+    #[arg(long)]
+    node_stats: bool,
     /// Last: the cone integrator's flags end the help under their own heading.
     #[command(flatten)]
     pub settings: RenderSettings,
@@ -72,6 +78,7 @@ impl RenderSettings {
             preview: false,
             exposure: 1.0,
             stats: None,
+            node_stats: false,
             progress,
         }
     }
@@ -86,6 +93,7 @@ pub fn run(a: RenderArgs, progress: bool) -> Result<()> {
         preview: a.preview,
         exposure: a.exposure,
         stats: a.stats,
+        node_stats: a.node_stats,
         ..a.settings
             .options(a.archive, a.output.clone(), a.spp, progress)
     };

@@ -1,6 +1,8 @@
 //! PLY, ASCII and binary (either endianness): vertices with x, y, z and optional nx, ny, nz;
 //! faces as a vertex-index list, fan-triangulated. Vertex positions are held in memory
-//! (12 bytes a vertex, 24 with normals); faces stream.
+//! (12 bytes a vertex, 24 with normals) up to `IN_MEMORY_BYTES`, beyond that in an unnamed
+//! temporary file read through a map whose pages are released as faces stream, so an
+//! indexed mesh of any size imports in bounded memory; faces stream.
 
 use super::{context, make_tri, raw_mesh_material, SceneDesc, SceneFile, TriangleSink};
 use anyhow::{bail, Context, Result};
@@ -200,6 +202,77 @@ impl<R: BufRead> RecordReader<R> {
     }
 }
 
+/// Most bytes of vertex arrays kept in memory; larger ones go to a mapped temporary file.
+const IN_MEMORY_BYTES: u64 = 64 << 20;
+/// Faces between releases of a mapped vertex file's resident pages.
+const RELEASE_EVERY: u64 = 1 << 20;
+
+/// One vertex attribute array while it is read, in memory or in a temporary file.
+enum VertexSink {
+    Mem(Vec<[f32; 3]>),
+    File(std::io::BufWriter<std::fs::File>),
+}
+
+/// A vertex attribute array once read.
+enum Vertices {
+    Mem(Vec<[f32; 3]>),
+    Mapped(memmap2::Mmap),
+}
+
+impl VertexSink {
+    fn new(count: u64) -> std::io::Result<VertexSink> {
+        Ok(if count * 12 > IN_MEMORY_BYTES {
+            VertexSink::File(std::io::BufWriter::with_capacity(
+                1 << 20,
+                tempfile::tempfile()?,
+            ))
+        } else {
+            VertexSink::Mem(Vec::with_capacity(count as usize))
+        })
+    }
+
+    fn push(&mut self, v: [f32; 3]) -> std::io::Result<()> {
+        match self {
+            VertexSink::Mem(m) => m.push(v),
+            VertexSink::File(w) => std::io::Write::write_all(w, bytemuck::bytes_of(&v))?,
+        }
+        Ok(())
+    }
+
+    fn finish(self) -> std::io::Result<Vertices> {
+        Ok(match self {
+            VertexSink::Mem(m) => Vertices::Mem(m),
+            VertexSink::File(w) => {
+                let f = w.into_inner().map_err(|e| e.into_error())?;
+                // SAFETY: the file is unnamed and ours alone; nothing else can change it.
+                Vertices::Mapped(unsafe { memmap2::Mmap::map(&f)? })
+            }
+        })
+    }
+}
+
+impl Vertices {
+    fn as_slice(&self) -> &[[f32; 3]] {
+        match self {
+            Vertices::Mem(m) => m,
+            // A map is page aligned, so f32 triples read in place.
+            Vertices::Mapped(m) => bytemuck::cast_slice(&m[..]),
+        }
+    }
+
+    /// Drops a mapped file's pages from the resident set (they fault back in when read).
+    fn release(&self) {
+        #[cfg(unix)]
+        if let Vertices::Mapped(m) = self {
+            // SAFETY: a private read-only map of an unnamed file: after MADV_DONTNEED a read
+            // faults the same bytes back in.
+            unsafe {
+                m.unchecked_advise(memmap2::UncheckedAdvice::DontNeed).ok();
+            }
+        }
+    }
+}
+
 type FaceFn<'a> = dyn FnMut(u64, &[u32], &[[f32; 3]], &[[f32; 3]]) -> Result<()> + 'a;
 
 pub fn import(
@@ -269,8 +342,8 @@ fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
         at: 0,
         buf: [0; 8],
     };
-    let mut pos: Vec<[f32; 3]> = Vec::new();
-    let mut nrm: Vec<[f32; 3]> = Vec::new();
+    let mut pos = Vertices::Mem(Vec::new());
+    let mut nrm = Vertices::Mem(Vec::new());
     let mut has_normals = false;
     let mut vals = Vec::new();
     for e in &elems {
@@ -303,7 +376,12 @@ fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
                     (Some(a), Some(b), Some(c)) => Some([a, b, c]),
                     _ => None,
                 };
-                pos.reserve(e.count as usize);
+                let io = |err: std::io::Error| {
+                    anyhow::anyhow!("{}: vertex spill file: {err}", path.display())
+                };
+                let mut pos_in = VertexSink::new(e.count).map_err(io)?;
+                let mut nrm_in =
+                    VertexSink::new(if normals.is_some() { e.count } else { 0 }).map_err(io)?;
                 for i in 0..e.count {
                     vals.clear();
                     for p in &e.props {
@@ -317,11 +395,16 @@ fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
                             vals.push(rr.scalar(p.ty).map_err(eof(i))?);
                         }
                     }
-                    pos.push([vals[x] as f32, vals[y] as f32, vals[z] as f32]);
+                    pos_in
+                        .push([vals[x] as f32, vals[y] as f32, vals[z] as f32])
+                        .map_err(io)?;
                     if let Some([a, b, c]) = normals {
-                        nrm.push([vals[a] as f32, vals[b] as f32, vals[c] as f32]);
+                        nrm_in
+                            .push([vals[a] as f32, vals[b] as f32, vals[c] as f32])
+                            .map_err(io)?;
                     }
                 }
+                (pos, nrm) = (pos_in.finish().map_err(io)?, nrm_in.finish().map_err(io)?);
                 has_normals = normals.is_some();
             }
             "face" => {
@@ -334,6 +417,7 @@ fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
                     );
                 };
                 let mut idx: Vec<u32> = Vec::new();
+                let (ps, ns) = (pos.as_slice(), nrm.as_slice());
                 for i in 0..e.count {
                     for (pi, p) in e.props.iter().enumerate() {
                         if let Some(ct) = p.list {
@@ -344,8 +428,8 @@ fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
                             for _ in 0..n as usize {
                                 let v = rr.scalar(p.ty).map_err(eof(i))?;
                                 if pi == li {
-                                    if v < 0.0 || v >= pos.len() as f64 {
-                                        bail!("{}: face {i}: vertex index {v} out of range ({} vertices)", path.display(), pos.len());
+                                    if v < 0.0 || v >= ps.len() as f64 {
+                                        bail!("{}: face {i}: vertex index {v} out of range ({} vertices)", path.display(), ps.len());
                                     }
                                     idx.push(v as u32);
                                 }
@@ -354,7 +438,11 @@ fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
                             rr.scalar(p.ty).map_err(eof(i))?;
                         }
                     }
-                    face(i, &idx, &pos, &nrm)?;
+                    face(i, &idx, ps, ns)?;
+                    if i % RELEASE_EVERY == RELEASE_EVERY - 1 {
+                        pos.release();
+                        nrm.release();
+                    }
                 }
             }
             _ => {

@@ -49,6 +49,9 @@ pub struct RenderOptions {
     pub preview: bool,
     pub exposure: f32,
     pub stats: Option<PathBuf>,
+    /// Count the nodes the render used (`ancestors_closure`), which re-reads every page
+    /// it touched; the noise checkpoints always count.
+    pub node_stats: bool,
     pub progress: bool,
 }
 
@@ -251,7 +254,10 @@ fn summarize(
         growth,
     } = run;
     let scene = &s.scene;
-    let unique = ancestors_closure(scene)?;
+    let unique = match o.node_stats || o.noise.is_some() {
+        true => Some(ancestors_closure(scene)?),
+        false => None,
+    };
     let [state, per_pixel] = integ.state_bytes();
     let mut cache = scene.cache.stats();
     cache.resident_bytes_peak += scene.touched.bytes() + state;
@@ -275,7 +281,7 @@ fn summarize(
         cache,
         film_bytes: film.bytes() + per_pixel,
         unique_nodes_touched: unique,
-        nodes_per_pixel: unique as f64 / (film.width() as f64 * film.height() as f64),
+        nodes_per_pixel: unique.map(|u| u as f64 / (film.width() as f64 * film.height() as f64)),
         rays,
         paths,
         rays_per_second: rays as f64 / render_s,

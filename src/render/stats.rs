@@ -1,8 +1,9 @@
 //! What a render reports: `--stats` JSON and the summary line.
 
 use crate::integrator::{Kind, Scene, Stats};
-use crate::paging::{deepest_first, CacheStats, NodeRef, Page};
+use crate::paging::{deepest_first, CacheStats};
 use anyhow::Result;
+use rayon::prelude::*;
 use std::collections::BTreeMap;
 
 #[derive(Clone, Debug, Default, serde::Serialize)]
@@ -34,8 +35,11 @@ pub struct RenderStats {
     #[serde(flatten)]
     pub cache: CacheStats,
     pub film_bytes: u64,
-    pub unique_nodes_touched: u64,
-    pub nodes_per_pixel: f64,
+    /// With `--node-stats`: hit nodes and their ancestors (004 §5.2).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub unique_nodes_touched: Option<u64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub nodes_per_pixel: Option<f64>,
     pub rays: u64,
     pub paths: u64,
     pub rays_per_second: f64,
@@ -98,32 +102,34 @@ pub fn peak_rss_bytes() -> u64 {
 }
 
 /// Nodes touched = leaves hit plus all their ancestors (004 §5.2). Walks the pages that
-/// were loaded, deepest first, marking a node when a child is marked.
+/// were loaded, deepest first, marking a node when a child is marked. It reads only the
+/// pages' node records (no traversal structures), the pages of one level in parallel.
 pub fn ancestors_closure(scene: &Scene) -> Result<u64> {
     let archive = &scene.cache.archive;
+    let entries = &scene.cache.entries;
     let pages = (0..archive.page_count())
         .filter(|&i| scene.cache.was_touched(i))
         .collect();
-    for id in deepest_first(&scene.cache.entries, pages)
-        .into_iter()
-        .flatten()
-    {
-        let page = Page::decode(archive, id)?;
-        let first = page.first_node;
-        let marked = |n: u64| scene.touched.contains(n);
-        for (i, n) in page.bvh.iter().enumerate().rev() {
-            let hit = match n.link() {
-                NodeRef::Inner(l, r) => marked(first + l as u64) || marked(first + r as u64),
-                NodeRef::ChildPage(c) => {
-                    let f = scene.cache.entries[c as usize].first_node;
+    for level in deepest_first(entries, pages) {
+        level.par_iter().try_for_each(|&id| -> Result<()> {
+            let nodes = archive.read_page(id)?.nodes;
+            let first = entries[id as usize].first_node;
+            let marked = |n: u64| scene.touched.contains(n);
+            for (i, n) in nodes.iter().enumerate().rev() {
+                let hit = if n.is_leaf() {
+                    false
+                } else if n.has_child_page() {
+                    let f = entries[n.link[0] as usize].first_node;
                     marked(f) || marked(f + 1)
+                } else {
+                    marked(first + n.link[0] as u64) || marked(first + n.link[1] as u64)
+                };
+                if hit {
+                    scene.touched.insert(first + i as u64);
                 }
-                NodeRef::Leaf { .. } => false,
-            };
-            if hit {
-                scene.touched.insert(first + i as u64);
             }
-        }
+            Ok(())
+        })?;
     }
     Ok(scene.touched.count())
 }

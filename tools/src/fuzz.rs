@@ -306,6 +306,7 @@ pub fn tiny_render(archive: &Path, dir: &Path, integrator: Settings) -> RenderOp
         preview: false,
         exposure: 1.0,
         stats: None,
+        node_stats: true,
         progress: false,
     }
 }
