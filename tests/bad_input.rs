@@ -297,32 +297,6 @@ fn the_next_conversion_removes_a_dead_writers_temporary() {
     assert!(live.exists(), "a live writer's temporary was removed");
 }
 
-fn tiny_glb(
-    dir: &Path,
-    name: &str,
-    edit: impl Fn(&mut serde_json::Value, &mut Vec<u8>),
-) -> PathBuf {
-    let glb = std::fs::read(scene("cbox.glb")).unwrap();
-    let jlen = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
-    let mut json: serde_json::Value = serde_json::from_slice(&glb[20..20 + jlen]).unwrap();
-    let mut bin = glb[20 + jlen + 8..].to_vec();
-    edit(&mut json, &mut bin);
-    let mut j = serde_json::to_vec(&json).unwrap();
-    while !j.len().is_multiple_of(4) {
-        j.push(b' ');
-    }
-    let mut out = b"glTF".to_vec();
-    out.extend(2u32.to_le_bytes());
-    out.extend(((12 + 8 + j.len() + 8 + bin.len()) as u32).to_le_bytes());
-    out.extend((j.len() as u32).to_le_bytes());
-    out.extend(b"JSON");
-    out.extend(&j);
-    out.extend((bin.len() as u32).to_le_bytes());
-    out.extend(b"BIN\0");
-    out.extend(&bin);
-    write(dir, name, &out)
-}
-
 /// Spec-invalid accessors that panicked inside the gltf crate, and a buffer whose declared
 /// length disagrees with the BIN chunk, are clear errors.
 #[test]

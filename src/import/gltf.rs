@@ -63,59 +63,76 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
             scene.lights.push(punctual(&light, world));
         }
         let Some(mesh) = node.mesh() else { continue };
-        let normal_m = Mat3::from_mat4(world).inverse().transpose();
-        let flip = world.determinant() < 0.0;
-        for (pi, prim) in mesh.primitives().enumerate() {
-            let what = |t: usize| {
-                format!(
-                    "{}: mesh '{}' primitive {pi} triangle {t}",
+        let instances = gpu_instances(&doc, &node, &buffers).map_err(|e| {
+            anyhow!(
+                "{}: node '{}': {e}",
+                path.display(),
+                node.name().unwrap_or("?")
+            )
+        })?;
+        for instance in instances {
+            let world = world * instance;
+            if !world.is_finite() {
+                bail!(
+                    "{}: node '{}' has an instance with a non-finite transform",
                     path.display(),
-                    mesh.name().unwrap_or("?")
-                )
-            };
-            let mat = match (prim.material().index(), default_mat) {
-                (Some(i), _) => base + i as u32,
-                (None, Some(m)) => m,
-                (None, None) => {
-                    let m = scene.add_material(super::default_material("default"))?;
-                    *default_mat.insert(m)
-                }
-            };
-            check_primitive(&prim).map_err(|e| anyhow!("{}: {e}", what(0)))?;
-            let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d[..]));
-            let Some(pos) = reader.read_positions() else {
-                continue;
-            };
-            let pos: Vec<Vec3> = pos.map(|p| world.transform_point3(Vec3::from(p))).collect();
-            let nrm: Option<Vec<Vec3>> = reader
-                .read_normals()
-                .map(|n| {
-                    n.map(|n| (normal_m * Vec3::from(n)).normalize_or_zero())
-                        .collect::<Vec<_>>()
-                })
-                .filter(|n| n.len() == pos.len());
-            if nrm.is_some() {
-                scene.has_normals = true;
+                    node.name().unwrap_or("?")
+                );
             }
-            let idx: Vec<u32> = match reader.read_indices() {
-                Some(i) => i.into_u32().collect(),
-                None => (0..pos.len() as u32).collect(),
-            };
-            for (t, mut tri) in triangles(prim.mode(), &idx).enumerate() {
-                if flip {
-                    tri.swap(1, 2);
+            let normal_m = Mat3::from_mat4(world).inverse().transpose();
+            let flip = world.determinant() < 0.0;
+            for (pi, prim) in mesh.primitives().enumerate() {
+                let what = |t: usize| {
+                    format!(
+                        "{}: mesh '{}' primitive {pi} triangle {t}",
+                        path.display(),
+                        mesh.name().unwrap_or("?")
+                    )
+                };
+                let mat = match (prim.material().index(), default_mat) {
+                    (Some(i), _) => base + i as u32,
+                    (None, Some(m)) => m,
+                    (None, None) => {
+                        let m = scene.add_material(super::default_material("default"))?;
+                        *default_mat.insert(m)
+                    }
+                };
+                check_primitive(&prim).map_err(|e| anyhow!("{}: {e}", what(0)))?;
+                let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d[..]));
+                let Some(pos) = reader.read_positions() else {
+                    continue;
+                };
+                let pos: Vec<Vec3> = pos.map(|p| world.transform_point3(Vec3::from(p))).collect();
+                let nrm: Option<Vec<Vec3>> = reader
+                    .read_normals()
+                    .map(|n| {
+                        n.map(|n| (normal_m * Vec3::from(n)).normalize_or_zero())
+                            .collect::<Vec<_>>()
+                    })
+                    .filter(|n| n.len() == pos.len());
+                if nrm.is_some() {
+                    scene.has_normals = true;
                 }
-                if let Some(&bad) = tri.iter().find(|&&i| i as usize >= pos.len()) {
-                    bail!(
-                        "{}: index {bad} out of range ({} vertices)",
-                        what(t),
-                        pos.len()
-                    );
+                let idx: Vec<u32> = match reader.read_indices() {
+                    Some(i) => i.into_u32().collect(),
+                    None => (0..pos.len() as u32).collect(),
+                };
+                for (t, mut tri) in triangles(prim.mode(), &idx).enumerate() {
+                    if flip {
+                        tri.swap(1, 2);
+                    }
+                    if let Some(&bad) = tri.iter().find(|&&i| i as usize >= pos.len()) {
+                        bail!(
+                            "{}: index {bad} out of range ({} vertices)",
+                            what(t),
+                            pos.len()
+                        );
+                    }
+                    let p = tri.map(|i| pos[i as usize].to_array());
+                    let n = nrm.as_ref().map(|n| tri.map(|i| n[i as usize].to_array()));
+                    sink.push(make_tri(p, n, mat, &|| what(t))?)?;
+                    count += 1;
                 }
-                let p = tri.map(|i| pos[i as usize].to_array());
-                let n = nrm.as_ref().map(|n| tri.map(|i| n[i as usize].to_array()));
-                sink.push(make_tri(p, n, mat, &|| what(t))?)?;
-                count += 1;
             }
         }
     }
@@ -230,9 +247,71 @@ fn load_buffer(b: &gltf::Buffer, blob: Option<&[u8]>, dir: &Path) -> Result<Vec<
     Ok(data)
 }
 
+/// A node's EXT_mesh_gpu_instancing transforms (translation, rotation, scale per instance,
+/// in the node's space), or the identity alone. Each instance's triangles are stored: the
+/// archive does not share them yet.
+fn gpu_instances(
+    doc: &gltf::Document,
+    node: &gltf::Node,
+    buffers: &[Vec<u8>],
+) -> Result<Vec<Mat4>> {
+    use gltf::accessor::{DataType, Dimensions, Iter};
+    let Some(ext) = node.extension_value("EXT_mesh_gpu_instancing") else {
+        return Ok(vec![Mat4::IDENTITY]);
+    };
+    let accessor = |name: &str, dims| -> Result<Option<gltf::Accessor>> {
+        let Some(v) = ext["attributes"].get(name) else {
+            return Ok(None);
+        };
+        let a = v
+            .as_u64()
+            .and_then(|i| doc.accessors().nth(i as usize))
+            .ok_or_else(|| anyhow!("EXT_mesh_gpu_instancing {name}: {v} is not an accessor"))?;
+        check_accessor(
+            &a,
+            &format!("{name} accessor {}", a.index()),
+            &[DataType::F32],
+            dims,
+        )?;
+        Ok(Some(a))
+    };
+    let data = |b: gltf::Buffer| buffers.get(b.index()).map(|d| &d[..]);
+    let read3 = |a: Option<gltf::Accessor>| {
+        a.and_then(|a| Iter::<[f32; 3]>::new(a, data))
+            .map(|it| it.map(Vec3::from).collect::<Vec<_>>())
+    };
+    let t = read3(accessor("TRANSLATION", Dimensions::Vec3)?);
+    let s = read3(accessor("SCALE", Dimensions::Vec3)?);
+    let r: Option<Vec<glam::Quat>> = accessor("ROTATION", Dimensions::Vec4)?
+        .and_then(|a| Iter::<[f32; 4]>::new(a, data))
+        .map(|it| it.map(|q| glam::Quat::from_array(q).normalize()).collect());
+    let counts: Vec<usize> = [
+        t.as_ref().map(Vec::len),
+        r.as_ref().map(Vec::len),
+        s.as_ref().map(Vec::len),
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
+    let Some(&n) = counts.first() else {
+        bail!("EXT_mesh_gpu_instancing names no TRANSLATION, ROTATION or SCALE accessor");
+    };
+    if counts.iter().any(|&c| c != n) {
+        bail!("EXT_mesh_gpu_instancing accessors of {counts:?} elements (the spec requires one count)");
+    }
+    Ok((0..n)
+        .map(|i| {
+            Mat4::from_scale_rotation_translation(
+                s.as_ref().map_or(Vec3::ONE, |s| s[i]),
+                r.as_ref().map_or(glam::Quat::IDENTITY, |r| r[i]),
+                t.as_ref().map_or(Vec3::ZERO, |t| t[i]),
+            )
+        })
+        .collect())
+}
+
 /// The accessors a primitive's triangles are read from, checked before the gltf crate reads
-/// them: types the spec allows, no sparse storage, every element inside its buffer view and
-/// every view inside its buffer.
+/// them (`check_accessor`).
 fn check_primitive(prim: &gltf::Primitive) -> Result<()> {
     use gltf::accessor::{DataType, Dimensions};
     use gltf::Semantic;
@@ -249,49 +328,60 @@ fn check_primitive(prim: &gltf::Primitive) -> Result<()> {
         wanted.push((a, "indices", ints, Dimensions::Scalar));
     }
     for (a, name, types, dims) in wanted {
-        let what = format!("{name} accessor {}", a.index());
-        if !types.contains(&a.data_type()) || a.dimensions() != dims || a.normalized() {
-            bail!(
-                "{what} is {:?} {:?}{}, the spec requires {dims:?} of {types:?}",
-                a.dimensions(),
-                a.data_type(),
-                if a.normalized() { " normalized" } else { "" }
-            );
-        }
-        if a.sparse().is_some() {
-            bail!("{what} is sparse, which Canopy does not read");
-        }
-        let Some(view) = a.view() else {
-            bail!("{what} has no buffer view");
-        };
-        let elem = a.size();
-        let stride = view.stride().unwrap_or(elem);
-        if stride < elem || stride % a.data_type().size() != 0 {
-            bail!(
-                "{what}: buffer view {} stride {stride} for {elem}-byte elements",
-                view.index()
-            );
-        }
-        let need = match a.count() {
-            0 => 0,
-            n => a.offset() as u128 + stride as u128 * (n as u128 - 1) + elem as u128,
-        };
-        if need > view.length() as u128 {
-            bail!(
-                "{what}: {} elements need {need} bytes of buffer view {}, which has {}",
-                a.count(),
-                view.index(),
-                view.length()
-            );
-        }
-        if view.offset() as u128 + view.length() as u128 > view.buffer().length() as u128 {
-            bail!(
-                "buffer view {} ends past buffer {}'s {} bytes",
-                view.index(),
-                view.buffer().index(),
-                view.buffer().length()
-            );
-        }
+        check_accessor(&a, &format!("{name} accessor {}", a.index()), types, dims)?;
+    }
+    Ok(())
+}
+
+/// An accessor checked before the gltf crate reads it: a type the spec allows, no sparse
+/// storage, every element inside its buffer view and the view inside its buffer.
+fn check_accessor(
+    a: &gltf::Accessor,
+    what: &str,
+    types: &[gltf::accessor::DataType],
+    dims: gltf::accessor::Dimensions,
+) -> Result<()> {
+    if !types.contains(&a.data_type()) || a.dimensions() != dims || a.normalized() {
+        bail!(
+            "{what} is {:?} {:?}{}, the spec requires {dims:?} of {types:?}",
+            a.dimensions(),
+            a.data_type(),
+            if a.normalized() { " normalized" } else { "" }
+        );
+    }
+    if a.sparse().is_some() {
+        bail!("{what} is sparse, which Canopy does not read");
+    }
+    let Some(view) = a.view() else {
+        bail!("{what} has no buffer view");
+    };
+    let elem = a.size();
+    let stride = view.stride().unwrap_or(elem);
+    if stride < elem || stride % a.data_type().size() != 0 {
+        bail!(
+            "{what}: buffer view {} stride {stride} for {elem}-byte elements",
+            view.index()
+        );
+    }
+    let need = match a.count() {
+        0 => 0,
+        n => a.offset() as u128 + stride as u128 * (n as u128 - 1) + elem as u128,
+    };
+    if need > view.length() as u128 {
+        bail!(
+            "{what}: {} elements need {need} bytes of buffer view {}, which has {}",
+            a.count(),
+            view.index(),
+            view.length()
+        );
+    }
+    if view.offset() as u128 + view.length() as u128 > view.buffer().length() as u128 {
+        bail!(
+            "buffer view {} ends past buffer {}'s {} bytes",
+            view.index(),
+            view.buffer().index(),
+            view.buffer().length()
+        );
     }
     Ok(())
 }

@@ -190,3 +190,32 @@ mod test_rng;
 // Not every test binary draws random numbers.
 #[allow(unused_imports)]
 pub use test_rng::TestRng;
+
+/// cbox.glb with its JSON and BIN chunk edited, written to `dir/name`.
+pub fn tiny_glb(
+    dir: &Path,
+    name: &str,
+    edit: impl Fn(&mut serde_json::Value, &mut Vec<u8>),
+) -> PathBuf {
+    let glb = std::fs::read(scene("cbox.glb")).unwrap();
+    let jlen = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
+    let mut json: serde_json::Value = serde_json::from_slice(&glb[20..20 + jlen]).unwrap();
+    let mut bin = glb[20 + jlen + 8..].to_vec();
+    edit(&mut json, &mut bin);
+    let mut j = serde_json::to_vec(&json).unwrap();
+    while !j.len().is_multiple_of(4) {
+        j.push(b' ');
+    }
+    let mut out = b"glTF".to_vec();
+    out.extend(2u32.to_le_bytes());
+    out.extend(((12 + 8 + j.len() + 8 + bin.len()) as u32).to_le_bytes());
+    out.extend((j.len() as u32).to_le_bytes());
+    out.extend(b"JSON");
+    out.extend(&j);
+    out.extend((bin.len() as u32).to_le_bytes());
+    out.extend(b"BIN\0");
+    out.extend(&bin);
+    let p = dir.join(name);
+    std::fs::write(&p, &out).unwrap();
+    p
+}
