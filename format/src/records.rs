@@ -133,9 +133,11 @@ const _: () = assert!(std::mem::size_of::<PageEntry>() == 96);
 impl PageEntry {
     /// The checksum a record of these bytes should carry (`entry_checksum` zeroed).
     pub fn checksum_of(record: &[u8]) -> u64 {
-        let mut r = record.to_vec();
-        r[84..92].fill(0);
-        xxhash_rust::xxh3::xxh3_64(&r)
+        let mut h = xxhash_rust::xxh3::Xxh3::new();
+        h.update(&record[..84]);
+        h.update(&[0; 8]);
+        h.update(&record[92..]);
+        h.digest()
     }
 
     pub fn entry_checksum(&self) -> u64 {
