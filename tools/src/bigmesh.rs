@@ -1,8 +1,11 @@
 //! Makes a huge binary PLY from a real mesh: `--copies` (or enough copies for
 //! `--triangles`) of the input, each rotated about y, scaled and placed on a jittered grid,
-//! streamed to disk with memory for one copy of the input only.
+//! streamed to disk with memory for one copy of the input only. With a `.glb` output the
+//! same copies are instances (`EXT_mesh_gpu_instancing`) of one stored mesh: a forest of a
+//! billion triangles in a file of a few megabytes.
 //!
 //!     bigmesh ../shared/data/bunny.ply --triangles 50000000 -o big.ply
+//!     bigmesh ../shared/data/bunny.ply --triangles 1000000000 -o forest.glb
 
 use anyhow::{bail, Context, Result};
 use clap::Parser;
@@ -16,7 +19,8 @@ use std::path::PathBuf;
 struct Args {
     /// Input mesh (PLY).
     input: PathBuf,
-    /// Output PLY.
+    /// Output: a PLY of every copy's triangles, or a .glb of one mesh and an instance per
+    /// copy.
     #[arg(short, long)]
     output: PathBuf,
     /// Number of triangles wanted (rounded up to whole copies).
@@ -54,7 +58,11 @@ fn main() -> Result<()> {
         (None, None) => bail!("give --triangles or --copies"),
     }
     .max(1);
-    if (verts.len() as u64).saturating_mul(copies) > u32::MAX as u64 {
+    let glb = a
+        .output
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("glb"));
+    if !glb && (verts.len() as u64).saturating_mul(copies) > u32::MAX as u64 {
         bail!(
             "{} copies need more than 2^32 vertices, which PLY indices here cannot address",
             copies
@@ -87,6 +95,19 @@ fn main() -> Result<()> {
             )
         })
         .collect();
+    if glb {
+        let bytes = instanced_glb(&verts, &tris, lo, &place)?;
+        std::fs::write(&a.output, bytes)
+            .with_context(|| format!("{}: cannot write", a.output.display()))?;
+        eprintln!(
+            "{}: {} instanced triangles, {} instances of {} triangles",
+            a.output.display(),
+            tris.len() as u64 * copies,
+            copies,
+            tris.len()
+        );
+        return Ok(());
+    }
     let f = std::fs::File::create(&a.output)
         .with_context(|| format!("{}: cannot create", a.output.display()))?;
     let mut w = BufWriter::with_capacity(4 << 20, f);
@@ -122,4 +143,86 @@ fn main() -> Result<()> {
         a.output.display()
     );
     Ok(())
+}
+
+/// A glb of the mesh (shifted so `lo` is its origin, as the PLY copies are) and one
+/// instance per placement: translation, rotation about y and uniform scale, giving the
+/// PLY's vertices (`rotate(scale · (v − lo)) + offset`).
+fn instanced_glb(
+    verts: &[[f32; 3]],
+    tris: &[[u32; 3]],
+    lo: [f32; 3],
+    place: &[(f32, f32, [f32; 3])],
+) -> Result<Vec<u8>> {
+    let mut bin: Vec<u8> = Vec::new();
+    let mut views = Vec::new();
+    let mut view = |bin: &mut Vec<u8>, data: &[u8]| {
+        views.push(
+            serde_json::json!({"buffer": 0, "byteOffset": bin.len(), "byteLength": data.len()}),
+        );
+        bin.extend_from_slice(data);
+        views.len() - 1
+    };
+    let local: Vec<[f32; 3]> = verts
+        .iter()
+        .map(|v| [0, 1, 2].map(|k| v[k] - lo[k]))
+        .collect();
+    let (mut vmin, mut vmax) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+    for v in &local {
+        for k in 0..3 {
+            vmin[k] = vmin[k].min(v[k]);
+            vmax[k] = vmax[k].max(v[k]);
+        }
+    }
+    let f32s = |v: &mut dyn Iterator<Item = f32>| v.flat_map(f32::to_le_bytes).collect::<Vec<u8>>();
+    let pos = view(&mut bin, &f32s(&mut local.iter().flatten().copied()));
+    let idx: Vec<u8> = tris
+        .iter()
+        .flatten()
+        .flat_map(|i| i.to_le_bytes())
+        .collect();
+    let idx = view(&mut bin, &idx);
+    let t = view(&mut bin, &f32s(&mut place.iter().flat_map(|p| p.2)));
+    let r = view(
+        &mut bin,
+        &f32s(&mut place.iter().flat_map(|p| {
+            let (s, c) = (0.5 * p.0).sin_cos();
+            [0.0, s, 0.0, c]
+        })),
+    );
+    let sc = view(&mut bin, &f32s(&mut place.iter().flat_map(|p| [p.1; 3])));
+    let n = place.len();
+    let json = serde_json::json!({
+        "asset": {"version": "2.0", "generator": "canopy bigmesh"},
+        "extensionsUsed": ["EXT_mesh_gpu_instancing"],
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "extensions": {"EXT_mesh_gpu_instancing": {"attributes": {"TRANSLATION": 2, "ROTATION": 3, "SCALE": 4}}}}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1}]}],
+        "buffers": [{"byteLength": bin.len()}],
+        "bufferViews": views,
+        "accessors": [
+            {"bufferView": pos, "componentType": 5126, "count": local.len(), "type": "VEC3", "min": vmin, "max": vmax},
+            {"bufferView": idx, "componentType": 5125, "count": tris.len() * 3, "type": "SCALAR"},
+            {"bufferView": t, "componentType": 5126, "count": n, "type": "VEC3"},
+            {"bufferView": r, "componentType": 5126, "count": n, "type": "VEC4"},
+            {"bufferView": sc, "componentType": 5126, "count": n, "type": "VEC3"},
+        ],
+    });
+    let mut j = serde_json::to_vec(&json)?;
+    while j.len() % 4 != 0 {
+        j.push(b' ');
+    }
+    let total = 12 + 8 + j.len() + 8 + bin.len();
+    let mut out = Vec::with_capacity(total);
+    out.extend_from_slice(b"glTF");
+    out.extend_from_slice(&2u32.to_le_bytes());
+    out.extend_from_slice(&u32::try_from(total)?.to_le_bytes());
+    out.extend_from_slice(&(j.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"JSON");
+    out.extend_from_slice(&j);
+    out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"BIN\0");
+    out.extend_from_slice(&bin);
+    Ok(out)
 }
