@@ -209,20 +209,9 @@ fn instanced_glb(
             {"bufferView": sc, "componentType": 5126, "count": n, "type": "VEC3"},
         ],
     });
-    let mut j = serde_json::to_vec(&json)?;
-    while j.len() % 4 != 0 {
-        j.push(b' ');
+    let out = canopy_tools::glb::glb_join(&json, &bin);
+    if out.len() > u32::MAX as usize {
+        bail!("{} bytes of mesh and instances do not fit a glb", out.len());
     }
-    let total = 12 + 8 + j.len() + 8 + bin.len();
-    let mut out = Vec::with_capacity(total);
-    out.extend_from_slice(b"glTF");
-    out.extend_from_slice(&2u32.to_le_bytes());
-    out.extend_from_slice(&u32::try_from(total)?.to_le_bytes());
-    out.extend_from_slice(&(j.len() as u32).to_le_bytes());
-    out.extend_from_slice(b"JSON");
-    out.extend_from_slice(&j);
-    out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
-    out.extend_from_slice(b"BIN\0");
-    out.extend_from_slice(&bin);
     Ok(out)
 }
