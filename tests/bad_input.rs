@@ -491,7 +491,7 @@ fn primitives_without_a_material_share_one_default() {
     let out = dir.path().join("plain.canopy");
     ok(&["--quiet", "convert", s(&input), "-o", s(&out)]);
     let a = canopy_format::Archive::open(&out).unwrap();
-    assert_eq!((a.header.triangles, a.materials.len()), (6, 1));
+    assert_eq!((a.header.input_triangles, a.materials.len()), (6, 1));
 }
 
 /// `convert` never writes over one of its inputs (`-o` naming the input, by any path), and

@@ -329,78 +329,66 @@ fn decoded_pages_keep_every_node_kind_and_link() {
     );
 }
 
-/// cbox.glb with the first mesh node instanced by EXT_mesh_gpu_instancing: `translations`
-/// as its TRANSLATION accessor and `scales` (if any) as SCALE.
-fn gpu_instanced(
-    dir: &std::path::Path,
-    name: &str,
-    translations: &[[f32; 3]],
-    scales: &[[f32; 3]],
-) -> std::path::PathBuf {
-    tiny_glb(dir, name, |json, bin| {
-        let mut attributes = serde_json::Map::new();
-        for (attr, values) in [("TRANSLATION", translations), ("SCALE", scales)] {
-            if values.is_empty() {
-                continue;
-            }
-            while bin.len() % 4 != 0 {
-                bin.push(0);
-            }
-            let offset = bin.len();
-            for v in values.iter().flatten() {
-                bin.extend(v.to_le_bytes());
-            }
-            let views = json["bufferViews"].as_array_mut().unwrap();
-            views.push(serde_json::json!({"buffer": 0, "byteOffset": offset, "byteLength": values.len() * 12}));
-            let view = views.len() - 1;
-            let accessors = json["accessors"].as_array_mut().unwrap();
-            accessors.push(serde_json::json!({"bufferView": view, "componentType": 5126, "count": values.len(), "type": "VEC3"}));
-            attributes.insert(attr.into(), (accessors.len() - 1).into());
-        }
-        json["buffers"][0]["byteLength"] = bin.len().into();
-        json["extensionsUsed"] = serde_json::json!(["EXT_mesh_gpu_instancing"]);
-        let node = json["nodes"]
-            .as_array_mut()
-            .unwrap()
-            .iter_mut()
-            .find(|n| n.get("mesh").is_some())
-            .unwrap();
-        node["extensions"] =
-            serde_json::json!({"EXT_mesh_gpu_instancing": {"attributes": attributes}});
-    })
-}
-
-/// EXT_mesh_gpu_instancing: every instance's triangles are stored (flattened), where they
-/// are placed; an instance list with unequal accessor counts is a clear error.
+/// EXT_mesh_gpu_instancing: a mesh placed three times is stored once with an instance per
+/// placement (input triangles count every copy); `--flatten-instances` stores every copy.
+/// Both span the same scene (the instanced bounds are conservative: they may only grow,
+/// by rounding). A mesh placed once is stored as it is; unequal accessor counts are a
+/// clear error.
 #[test]
-fn gpu_instanced_meshes_are_stored_once_per_instance() {
+fn gpu_instanced_meshes_are_stored_once() {
     let dir = tempfile::tempdir().unwrap();
-    let archive = |input: &std::path::Path| {
-        let out = input.with_extension("canopy");
-        convert(input, &out, None);
+    let archive = |input: &std::path::Path, flatten: bool| {
+        let out = input.with_extension(if flatten { "flat.canopy" } else { "canopy" });
+        let mut args = vec!["--quiet", "convert", s(input), "-o", s(&out)];
+        if flatten {
+            args.push("--flatten-instances");
+        }
+        ok(&args);
+        ok(&["inspect", s(&out), "--verify"]);
         Archive::open(&out).unwrap().header
     };
-    let base = archive(&scene("cbox.glb"));
-    let one = archive(&gpu_instanced(dir.path(), "one.glb", &[[0.0; 3]], &[]));
-    assert_eq!(one.triangles, base.triangles);
+    let base = archive(&scene("cbox.glb"), false);
+    let one = archive(
+        &gpu_instanced(dir.path(), "one.glb", "floor", &[[0.0; 3]], &[]),
+        false,
+    );
+    assert_eq!(
+        (one.triangles, one.features),
+        (base.triangles, base.features)
+    );
     assert_eq!(
         (one.bounds_min, one.bounds_max),
         (base.bounds_min, base.bounds_max)
     );
     let far = base.bounds_max[0] + 10.0;
-    let three = archive(&gpu_instanced(
-        dir.path(),
-        "three.glb",
-        &[[0.0; 3], [far, 0.0, 0.0], [0.0, 0.0, -far]],
-        &[],
-    ));
-    let mesh = (three.triangles - base.triangles) / 2;
-    assert!(mesh > 0 && three.triangles == base.triangles + 2 * mesh);
+    let places = [[0.0; 3], [far, 0.0, 0.0], [0.0, 0.0, -far]];
+    let input = gpu_instanced(dir.path(), "three.glb", "floor", &places, &[]);
+    let flat = archive(&input, true);
+    let shared = archive(&input, false);
+    let mesh = (flat.triangles - base.triangles) / 2;
+    assert!(mesh > 0 && flat.triangles == base.triangles + 2 * mesh);
+    assert_eq!(flat.features & Features::INSTANCES, 0);
+    assert_ne!(shared.features & Features::INSTANCES, 0);
+    assert_eq!(shared.input_triangles, flat.triangles);
+    assert_eq!(shared.triangles, base.triangles);
     assert!(
-        three.bounds_max[0] > far && three.bounds_min[2] < -far / 2.0,
-        "{three:?}"
+        flat.bounds_max[0] > far && flat.bounds_min[2] < -far / 2.0,
+        "{flat:?}"
     );
-    let bad = gpu_instanced(dir.path(), "bad.glb", &[[0.0; 3], [1.0; 3]], &[[1.0; 3]]);
+    for a in 0..3 {
+        let slack = 1e-5 * (flat.bounds_max[a] - flat.bounds_min[a]);
+        assert!(shared.bounds_min[a] <= flat.bounds_min[a]);
+        assert!(shared.bounds_max[a] >= flat.bounds_max[a]);
+        assert!(shared.bounds_min[a] >= flat.bounds_min[a] - slack);
+        assert!(shared.bounds_max[a] <= flat.bounds_max[a] + slack);
+    }
+    let bad = gpu_instanced(
+        dir.path(),
+        "bad.glb",
+        "floor",
+        &[[0.0; 3], [1.0; 3]],
+        &[[1.0; 3]],
+    );
     let err = fails(&["convert", s(&bad), "-o", s(&dir.path().join("bad.canopy"))]);
     assert!(
         err.contains("bad.glb") && err.contains("one count"),

@@ -71,12 +71,17 @@ impl NodeFlags {
     pub const GLOSSY: u8 = 8;
     /// The subtree contains transmissive surfaces.
     pub const TRANSMISSIVE: u8 = 16;
-    pub const ALL: u8 = 31;
+    /// A leaf whose `link[0]` is an instance: its subtree is the instance's prototype.
+    pub const INSTANCE: u8 = 32;
+    pub const ALL: u8 = 63;
 }
 
 impl Node {
     pub fn is_leaf(&self) -> bool {
         self.flags & NodeFlags::LEAF != 0
+    }
+    pub fn is_instance(&self) -> bool {
+        self.flags & NodeFlags::INSTANCE != 0
     }
     pub fn has_child_page(&self) -> bool {
         self.flags & NodeFlags::CHILD_PAGE != 0

@@ -18,6 +18,7 @@ pub struct Archive {
     pub materials: Vec<MaterialRecord>,
     pub cameras: Vec<CameraRecord>,
     pub lights: Vec<LightRecord>,
+    pub instances: Vec<InstanceRecord>,
 }
 
 impl Archive {
@@ -104,18 +105,16 @@ impl Archive {
         }
         check_table_ranges(&header).map_err(&corrupt)?;
         let small = header.materials.offset as usize..header.pages.offset as usize;
-        let padded = |t: &TableRef| t.offset + t.count as u64 * t.record_size as u64;
-        if xxhash_rust::xxh3::xxh3_64(&map[small.start..padded(&header.lights) as usize])
-            != header.tables_checksum
-            || map[padded(&header.lights) as usize..small.end]
-                .iter()
-                .any(|&b| b != 0)
+        let end = small_tables_end(&header) as usize;
+        if xxhash_rust::xxh3::xxh3_64(&map[small.start..end]) != header.tables_checksum
+            || map[end..small.end].iter().any(|&b| b != 0)
         {
             return Err(corrupt("table checksum mismatch".into()));
         }
         let materials = read_table::<MaterialRecord>(&map, &header.materials);
         let cameras = read_table::<CameraRecord>(&map, &header.cameras);
         let lights = read_table::<LightRecord>(&map, &header.lights);
+        let instances = read_table::<InstanceRecord>(&map, &header.instances);
         if header.pages.count == 0 || header.root_page >= header.pages.count {
             return Err(corrupt(format!(
                 "root page {} of {} pages",
@@ -123,6 +122,7 @@ impl Archive {
             )));
         }
         check_tables(&header, &materials, &cameras, &lights).map_err(&corrupt)?;
+        check_instances(&header, &instances).map_err(&corrupt)?;
         let archive = Self {
             path: p,
             map,
@@ -130,9 +130,29 @@ impl Archive {
             materials,
             cameras,
             lights,
+            instances,
         };
         archive.entry(header.root_page)?;
+        archive.check_prototypes()?;
         Ok(archive)
+    }
+
+    /// Every prototype page the instances name is a tree's root page (no parent, level 0,
+    /// one root): one entry read per distinct prototype.
+    fn check_prototypes(&self) -> Result<()> {
+        let mut pages: Vec<u32> = self.instances.iter().map(|i| i.prototype_page).collect();
+        pages.sort_unstable();
+        pages.dedup();
+        for p in pages {
+            let e = self.entry(p)?;
+            if p == self.header.root_page || e.parent_page != NONE || e.root_count != 1 {
+                return Err(self.page_err(
+                    p,
+                    "an instance names it, but it is not a prototype's root page",
+                ));
+            }
+        }
+        Ok(())
     }
 
     /// Pages in the archive.

@@ -5,7 +5,7 @@ use bytemuck::{Pod, Zeroable};
 
 pub const MAGIC: [u8; 8] = *b"CANOPY\x00\x1a";
 pub const VERSION_MAJOR: u16 = 2;
-pub const VERSION_MINOR: u16 = 0;
+pub const VERSION_MINOR: u16 = 1;
 pub const PAGE_MAGIC: [u8; 4] = *b"PAGE";
 /// Page frames and tables start at multiples of this many bytes, so records can be read in
 /// place from the mapping.
@@ -29,13 +29,17 @@ impl Features {
     pub const PUNCTUAL_LIGHTS: u64 = 32;
     /// Pages carry a per-vertex shading-normal stream (required: it changes the page layout).
     pub const SHADING_NORMALS: u64 = 1 << 32;
+    /// The instance table is not empty: instance leaves name a prototype subtree and a
+    /// transform (required: a reader that ignored them would lose geometry).
+    pub const INSTANCES: u64 = 1 << 33;
     pub const REQUIRED: u64 = 0xFFFF_FFFF_0000_0000;
     pub const ALL: u64 = Self::EMITTERS
         | Self::GLOSSY
         | Self::TRANSMISSIVE
         | Self::TEXTURED_INPUT
         | Self::PUNCTUAL_LIGHTS
-        | Self::SHADING_NORMALS;
+        | Self::SHADING_NORMALS
+        | Self::INSTANCES;
 
     pub fn names(bits: u64) -> Vec<&'static str> {
         [
@@ -45,6 +49,7 @@ impl Features {
             (Self::TEXTURED_INPUT, "textured-input"),
             (Self::SHADING_NORMALS, "shading-normals"),
             (Self::PUNCTUAL_LIGHTS, "punctual-lights"),
+            (Self::INSTANCES, "instances"),
         ]
         .iter()
         .filter(|(b, _)| bits & b != 0)
@@ -92,10 +97,94 @@ pub struct Header {
     pub header_checksum: u64,
     /// Bytes per node record (`NODE_SIZE` or more).
     pub node_size: u32,
-    pub reserved: [u8; 68],
+    pub reserved0: u32,
+    /// Version 2.1: the instance table, right after the lights (all zero in 2.0 files).
+    pub instances: TableRef,
+    pub reserved: [u8; 48],
 }
 
 const _: () = assert!(std::mem::size_of::<Header>() == 256);
+const _: () = assert!(std::mem::offset_of!(Header, instances) == 192);
+
+/// One placement of a prototype subtree (64 bytes): instance leaves of the tree name it.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct InstanceRecord {
+    /// Object-to-world, column-major 3×4 (images of the x, y, z axes, then the translation);
+    /// finite and invertible.
+    pub to_world: [f32; 12],
+    /// The page whose node 0 is the prototype's root (no parent page, one root).
+    pub prototype_page: u32,
+    pub reserved: [u8; 12],
+}
+
+const _: () = assert!(std::mem::size_of::<InstanceRecord>() == 64);
+
+impl InstanceRecord {
+    /// The transform as rows of f64 (`m[row][col]`, column 3 the translation).
+    pub fn matrix(&self) -> [[f64; 4]; 3] {
+        let t = &self.to_world;
+        [0, 1, 2].map(|r| [0, 1, 2, 3].map(|c| t[c * 3 + r] as f64))
+    }
+
+    /// The determinant of the transform's 3×3 part, in f64.
+    pub fn det(&self) -> f64 {
+        let m = self.matrix();
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    }
+
+    /// A box holding the image of box `lo..hi` under the transform in every IEEE-correct
+    /// evaluation order: the eight corners mapped in f64 (exact to 2⁻⁵³ relative), then
+    /// widened outward by 4 ulps of the largest coordinate magnitude of the result before
+    /// rounding to f32 (f32 evaluation of one output coordinate errs by at most
+    /// γ₃ Σ|m·x| < 4 ulps of that sum).
+    pub fn world_box(&self, lo: [f32; 3], hi: [f32; 3]) -> ([f32; 3], [f32; 3]) {
+        let m = self.matrix();
+        let mut out_lo = [f64::INFINITY; 3];
+        let mut out_hi = [f64::NEG_INFINITY; 3];
+        let mut mag = [0f64; 3];
+        for corner in 0..8 {
+            let p = [0, 1, 2].map(|a| if corner >> a & 1 == 0 { lo[a] } else { hi[a] } as f64);
+            for r in 0..3 {
+                let v = m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3];
+                let s = (m[r][0] * p[0]).abs()
+                    + (m[r][1] * p[1]).abs()
+                    + (m[r][2] * p[2]).abs()
+                    + m[r][3].abs();
+                out_lo[r] = out_lo[r].min(v);
+                out_hi[r] = out_hi[r].max(v);
+                mag[r] = mag[r].max(s);
+            }
+        }
+        let pad = |r: usize| 4.0 * mag[r] * f32::EPSILON as f64;
+        (
+            [0, 1, 2].map(|r| round_down(out_lo[r] - pad(r))),
+            [0, 1, 2].map(|r| round_up(out_hi[r] + pad(r))),
+        )
+    }
+}
+
+/// The largest f32 ≤ x.
+fn round_down(x: f64) -> f32 {
+    let f = x as f32;
+    if f as f64 > x {
+        f.next_down()
+    } else {
+        f
+    }
+}
+
+/// The smallest f32 ≥ x.
+fn round_up(x: f64) -> f32 {
+    let f = x as f32;
+    if (f as f64) < x {
+        f.next_up()
+    } else {
+        f
+    }
+}
 
 /// One page-table entry (96 bytes).
 #[repr(C)]

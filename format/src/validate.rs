@@ -61,7 +61,9 @@ pub fn check_header(h: &Header) -> Result<(), String> {
             h.node_size
         ));
     }
-    if h.input_triangles != h.triangles {
+    // Instanced triangles are stored once per prototype; anything else is stored as read.
+    let instanced = h.features & Features::INSTANCES != 0;
+    if h.input_triangles != h.triangles && !(instanced && h.input_triangles > h.triangles) {
         return Err(format!(
             "{} input triangles but {} stored",
             h.input_triangles, h.triangles
@@ -88,15 +90,42 @@ pub fn check_header(h: &Header) -> Result<(), String> {
             h.page_nodes_max
         ));
     }
-    // A newer minor version may give the reserved bytes a meaning.
-    if h.version_minor == VERSION_MINOR && !zeroed(&h.reserved) {
+    // A newer minor version may give the reserved bytes a meaning; 2.0 had no instances.
+    if h.version_minor <= VERSION_MINOR && (!zeroed(&h.reserved) || h.reserved0 != 0)
+        || h.version_minor == 0 && h.instances != TableRef::default()
+    {
         return Err("reserved header bytes are not zero".into());
     }
     Ok(())
 }
 
-/// The material, camera and light tables back to back from an aligned offset after the
-/// pages; the page table at the next aligned offset, ending at `file_len`. Records at least
+/// The tables after the pages, in file order, with their known record sizes: the instance
+/// table exists from version 2.1.
+pub fn small_tables(h: &Header) -> Vec<(&'static str, &TableRef, usize)> {
+    let mut t = vec![
+        (
+            "material",
+            &h.materials,
+            std::mem::size_of::<MaterialRecord>(),
+        ),
+        ("camera", &h.cameras, std::mem::size_of::<CameraRecord>()),
+        ("light", &h.lights, std::mem::size_of::<LightRecord>()),
+    ];
+    if h.version_minor >= 1 {
+        let known = std::mem::size_of::<InstanceRecord>();
+        t.push(("instance", &h.instances, known));
+    }
+    t
+}
+
+/// Where the tables the tables checksum covers end.
+pub fn small_tables_end(h: &Header) -> u64 {
+    let (_, t, _) = *small_tables(h).last().expect("three tables at least");
+    t.offset + t.count as u64 * t.record_size as u64
+}
+
+/// The material, camera, light (and instance) tables back to back from an aligned offset
+/// after the pages; the page table at the next aligned offset, ending at `file_len`. Records at least
 /// their known size, a multiple of 8 (readers skip bytes a later minor version adds).
 pub fn check_table_ranges(h: &Header) -> Result<(), String> {
     let mut at = h.materials.offset as u128;
@@ -105,16 +134,9 @@ pub fn check_table_ranges(h: &Header) -> Result<(), String> {
             "tables start at {at}, not an aligned offset after the header"
         ));
     }
-    for (name, t, known) in [
-        (
-            "material",
-            &h.materials,
-            std::mem::size_of::<MaterialRecord>(),
-        ),
-        ("camera", &h.cameras, std::mem::size_of::<CameraRecord>()),
-        ("light", &h.lights, std::mem::size_of::<LightRecord>()),
-        ("page", &h.pages, std::mem::size_of::<PageEntry>()),
-    ] {
+    let mut tables = small_tables(h);
+    tables.push(("page", &h.pages, std::mem::size_of::<PageEntry>()));
+    for (name, t, known) in tables {
         if name == "page" {
             at = at.next_multiple_of(ALIGN as u128);
         }
@@ -267,6 +289,55 @@ pub fn check_tables(
     Ok(())
 }
 
+/// Most instances an archive may hold (a node's instance link leaves room for a kind tag).
+pub const MAX_INSTANCES: u32 = 1 << 29;
+
+/// The instance records: a finite, invertible transform, a prototype page in range, zero
+/// reserved bytes; and the INSTANCES feature set exactly when there are some. That each
+/// prototype page is a tree's root page is `Archive::open`'s check (it reads entries).
+pub fn check_instances(h: &Header, instances: &[InstanceRecord]) -> Result<(), String> {
+    if (h.features & Features::INSTANCES != 0) == instances.is_empty() {
+        return Err(format!(
+            "the instances feature disagrees with the {} instances",
+            instances.len()
+        ));
+    }
+    if instances.len() > MAX_INSTANCES as usize {
+        return Err(format!(
+            "{} instances (at most {MAX_INSTANCES})",
+            instances.len()
+        ));
+    }
+    for (i, r) in instances.iter().enumerate() {
+        check_transform(r).map_err(|e| format!("instance {i}: {e}"))?;
+        if r.prototype_page >= h.pages.count {
+            return Err(format!(
+                "instance {i}: prototype page {} of {} pages",
+                r.prototype_page, h.pages.count
+            ));
+        }
+        if !zeroed(&r.reserved) {
+            return Err(format!("instance {i}: reserved bytes are not zero"));
+        }
+    }
+    Ok(())
+}
+
+/// An instance's transform is finite and invertible: |det| above 10⁻¹² of its largest
+/// entry cubed (and above 10⁻³⁰), so the inverse the renderer takes is usable.
+pub fn check_transform(r: &InstanceRecord) -> Result<(), String> {
+    let m = r.matrix();
+    let det = r.det();
+    let scale = m
+        .iter()
+        .flat_map(|row| &row[..3])
+        .fold(0f64, |a, x| a.max(x.abs()));
+    if !finite(&r.to_world) || det.abs() <= 1e-12 * scale.powi(3) || det.abs() < 1e-30 {
+        return Err("the transform is not finite and invertible".into());
+    }
+    Ok(())
+}
+
 /// One page-table entry (its checksum already checked), in constant time: its bytes inside
 /// the page area at an aligned offset, `raw_len` what its counts imply, counts within what
 /// the header allows, node numbers inside the header's total, finite ordered bounds, and its
@@ -340,6 +411,14 @@ pub fn check_entry(h: &Header, page: u32, e: &PageEntry) -> Result<(), String> {
         if e.bounds_min != h.bounds_min || e.bounds_max != h.bounds_max {
             return Err("the root page's bounds are not the scene bounds".into());
         }
+    } else if e.parent_page == NONE && h.features & Features::INSTANCES != 0 {
+        // A prototype's root page: instances link it (checked at open).
+        if (e.parent_node, e.level, e.root_count) != (NONE, 0, 1) {
+            return Err(format!(
+                "a page without parent at level {} with {} roots (a prototype's root page is level 0 with one root)",
+                e.level, e.root_count
+            ));
+        }
     } else if e.parent_page >= h.pages.count || e.parent_page == page || e.root_count != 2 {
         return Err(format!(
             "parent page {} of {} pages, {} roots (a child page names another page and holds 2)",
@@ -379,7 +458,9 @@ pub fn check_page(
         }
         check_node(h, entry, (page, e), i, node).map_err(|what| format!("node {i}: {what}"))?;
         let [a, b] = node.link.map(|x| x as usize);
-        if node.is_leaf() {
+        if node.is_instance() {
+            // No triangles of the page: its geometry is the prototype's.
+        } else if node.is_leaf() {
             if a.checked_add(b).is_none_or(|end| end > t) || b == 0 {
                 return Err(format!(
                     "node {i}: triangles {a}+{b} outside the page's {t}"
@@ -467,6 +548,20 @@ fn check_node(
             "coefficient offset {} (there is no coefficient stream)",
             node.coef
         ));
+    }
+    if node.is_instance() {
+        return if !node.is_leaf() || node.has_child_page() {
+            Err("an instance that is not a plain leaf".into())
+        } else if node.link[0] >= h.instances.count || node.link[1] != 0 {
+            Err(format!(
+                "instance {} of {}",
+                node.link[0], h.instances.count
+            ))
+        } else if node.flags & NodeFlags::EMISSIVE != 0 {
+            Err("an emissive instance (emitters are never instanced)".into())
+        } else {
+            Ok(())
+        };
     }
     match (node.is_leaf(), node.has_child_page()) {
         (true, true) => Err("both a leaf and a page link".into()),

@@ -22,6 +22,8 @@ pub struct PageReport {
     pub max_node_depth: u32,
     /// Union of the roots' aggregate flags.
     pub root_flags: u8,
+    /// Instance leaves: (instance, the leaf's aggregate flags).
+    pub instance_leaves: Vec<(u32, u8)>,
     /// Exact bounds of the page's vertices (empty box for a page without triangles).
     pub lo: [f32; 3],
     pub hi: [f32; 3],
@@ -69,7 +71,21 @@ impl Archive {
                 }));
             }
             report.max_node_depth = report.max_node_depth.max(d);
-            if node.is_leaf() {
+            if node.is_instance() {
+                let inst = &self.instances[node.link[0] as usize];
+                let proto = self.entry(inst.prototype_page)?;
+                let world = inst.world_box(proto.bounds_min, proto.bounds_max);
+                if !contains(&b, &world) {
+                    return Err(err(format!(
+                        "instance leaf {i}: its prototype's box {world:?} is outside it"
+                    )));
+                }
+                report
+                    .instance_leaves
+                    .push((node.link[0], node.flags & AGGREGATE));
+                report.lo = [0, 1, 2].map(|a| report.lo[a].min(world.0[a]));
+                report.hi = [0, 1, 2].map(|a| report.hi[a].max(world.1[a]));
+            } else if node.is_leaf() {
                 report.leaves += 1;
                 report.triangles += node.link[1] as u64;
                 report.path_pages_sum += e.level as u64 + 1;
@@ -153,7 +169,17 @@ impl Archive {
             )));
         }
         let mut linked = vec![0u32; entries.len()];
+        let mut prototype = vec![false; entries.len()];
         for r in reports {
+            for &(inst, flags) in &r.instance_leaves {
+                let p = self.instances[inst as usize].prototype_page as usize;
+                prototype[p] = true;
+                if reports[p].root_flags != flags {
+                    return Err(corrupt(format!(
+                        "instance {inst}: its leaf's flags disagree with prototype page {p}"
+                    )));
+                }
+            }
             for &(c, _, flags) in &r.child_pages {
                 linked[c as usize] += 1;
                 if reports[c as usize].root_flags != flags {
@@ -164,7 +190,7 @@ impl Archive {
             }
         }
         for (i, &n) in linked.iter().enumerate() {
-            let want = (i as u32 != h.root_page) as u32;
+            let want = (i as u32 != h.root_page && !prototype[i]) as u32;
             if n != want {
                 return Err(corrupt(format!(
                     "page {i} is linked {n} times (expected {want})"
@@ -195,8 +221,22 @@ impl Archive {
                 h.depth
             )));
         }
+        // The scene's tree: prototypes' pages hold object-space vertices, and instance
+        // leaves count by their boxes (in their page's report).
+        let mut in_scene = vec![false; entries.len()];
+        in_scene[h.root_page as usize] = true;
+        for &p in &order {
+            for &(c, _, _) in &reports[p].child_pages {
+                in_scene[c as usize] = in_scene[p];
+            }
+        }
         let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
-        for r in reports {
+        for r in reports
+            .iter()
+            .zip(&in_scene)
+            .filter(|(_, &s)| s)
+            .map(|(r, _)| r)
+        {
             for a in 0..3 {
                 lo[a] = lo[a].min(r.lo[a]);
                 hi[a] = hi[a].max(r.hi[a]);

@@ -101,6 +101,7 @@ pub struct SceneInfo {
     pub materials: Vec<MaterialRecord>,
     pub cameras: Vec<CameraRecord>,
     pub lights: Vec<LightRecord>,
+    pub instances: Vec<InstanceRecord>,
 }
 
 pub struct ArchiveWriter {
@@ -206,8 +207,8 @@ impl ArchiveWriter {
         }
     }
 
-    /// Writes the tables and header, syncs, and renames into place. The material, camera and
-    /// light tables go back to back from an aligned offset; the page table, each entry
+    /// Writes the tables and header, syncs, and renames into place. The material, camera,
+    /// light and instance tables go back to back from an aligned offset; the page table, each entry
     /// sealed with its own checksum, from the next aligned offset to the end.
     pub fn finish(mut self, info: &SceneInfo) -> Result<()> {
         self.fill_levels();
@@ -220,6 +221,7 @@ impl ArchiveWriter {
         let materials = append_table(&mut tables, base, &info.materials);
         let cameras = append_table(&mut tables, base, &info.cameras);
         let lights = append_table(&mut tables, base, &info.lights);
+        let instances = append_table(&mut tables, base, &info.instances);
         let tables_checksum = xxhash_rust::xxh3::xxh3_64(&tables);
         tables.resize((tables.len() as u64).next_multiple_of(ALIGN) as usize, 0);
         let pages = append_table(&mut tables, base, &self.pages);
@@ -247,7 +249,9 @@ impl ArchiveWriter {
             tables_checksum,
             header_checksum: 0,
             node_size: NODE_SIZE,
-            reserved: [0; 68],
+            reserved0: 0,
+            instances,
+            reserved: [0; 48],
         };
         header.header_checksum = xxhash_rust::xxh3::xxh3_64(bytemuck::bytes_of(&header));
         self.out.write_all(&tables)?;

@@ -69,8 +69,83 @@ fn nested() -> impl Strategy<Value = (Box3, Box3)> {
         })
 }
 
+/// A transform of the kinds scenes use: rotation (a unit quaternion), a scale per axis
+/// (possibly mirrored), a translation, from the adversarial coordinates.
+fn transform() -> impl Strategy<Value = canopy_format::InstanceRecord> {
+    (
+        prop::array::uniform4(-1.0f64..1.0),
+        prop::array::uniform3(prop_oneof![0.01f64..100.0, -100.0f64..-0.01]),
+        prop::array::uniform3(coord()),
+    )
+        .prop_map(|(q, s, t)| {
+            let n = q.iter().map(|x| x * x).sum::<f64>().sqrt().max(1e-9);
+            let [w, x, y, z] = q.map(|c| c / n);
+            let r = [
+                [
+                    1.0 - 2.0 * (y * y + z * z),
+                    2.0 * (x * y - w * z),
+                    2.0 * (x * z + w * y),
+                ],
+                [
+                    2.0 * (x * y + w * z),
+                    1.0 - 2.0 * (x * x + z * z),
+                    2.0 * (y * z - w * x),
+                ],
+                [
+                    2.0 * (x * z - w * y),
+                    2.0 * (y * z + w * x),
+                    1.0 - 2.0 * (x * x + y * y),
+                ],
+            ];
+            let mut to_world = [0f32; 12];
+            for c in 0..3 {
+                for row in 0..3 {
+                    to_world[c * 3 + row] = (r[row][c] * s[c]) as f32;
+                }
+                to_world[9 + c] = t[c];
+            }
+            canopy_format::InstanceRecord {
+                to_world,
+                prototype_page: 0,
+                reserved: [0; 12],
+            }
+        })
+}
+
+/// A point mapped by `m` (rows of f32) in f32, by separate operations or fused ones.
+fn mapped(m: &[[f32; 4]; 3], p: [f32; 3], fused: bool) -> [f32; 3] {
+    [0, 1, 2].map(|r| {
+        let [a, b, c, t] = m[r];
+        if fused {
+            a.mul_add(p[0], b.mul_add(p[1], c.mul_add(p[2], t)))
+        } else {
+            a * p[0] + b * p[1] + c * p[2] + t
+        }
+    })
+}
+
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(4000))]
+
+    /// An instance's box holds its prototype's box mapped by the transform in f32, with or
+    /// without fused multiply-adds, at the corners and inside (FORMAT.md, Instances).
+    #[test]
+    fn instance_boxes_hold_the_mapped_prototype(((lo, hi), _) in nested(), r in transform(), t in prop::array::uniform3(0.0f32..1.0)) {
+        let (wlo, whi) = r.world_box(lo, hi);
+        let m = r.matrix().map(|row| row.map(|x| x as f32));
+        let inside = [0, 1, 2].map(|a| (lo[a] + (hi[a] - lo[a]) * t[a]).clamp(lo[a], hi[a]));
+        for corner in 0..9 {
+            let p = match corner {
+                8 => inside,
+                c => [0, 1, 2].map(|a| if c >> a & 1 == 0 { lo[a] } else { hi[a] }),
+            };
+            for fused in [false, true] {
+                let q = mapped(&m, p, fused);
+                prop_assert!(contains(&(wlo, whi), &(q, q)), "{q:?} outside {wlo:?}..{whi:?}");
+            }
+        }
+    }
+
 
     #[test]
     fn quantized_boxes_are_conservative_and_nested(((plo, phi), (clo, chi)) in nested()) {

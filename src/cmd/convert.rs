@@ -32,6 +32,12 @@ pub struct ConvertArgs {
     /// `fast` (about a fifth less build time), or `auto`: medium up to 8M triangles.
     #[arg(long, value_enum, default_value_t = BvhQuality::Auto)]
     bvh: BvhQuality,
+    /// Store every placement of a glTF mesh as its own triangles. By default a mesh placed
+    /// more than once (by several nodes or EXT_mesh_gpu_instancing) and emitting no light is
+    /// stored once, with an instance per placement; the cone and PBGI integrators need
+    /// flattened archives.
+    #[arg(long)]
+    flatten_instances: bool,
     /// Also print the summary as JSON.
     #[arg(long)]
     json: bool,
@@ -46,6 +52,7 @@ pub fn run(a: ConvertArgs, progress: bool) -> Result<()> {
         page_nodes: a.page_nodes as usize,
         zstd_level: a.zstd_level,
         bvh: a.bvh,
+        flatten_instances: a.flatten_instances,
         progress,
     };
     let r = convert(&opts)?;

@@ -23,14 +23,22 @@ pub struct Chunks<'a> {
     pub triangles: u64,
     pub normals: bool,
     pub threads: usize,
+    /// Draw a progress bar.
+    pub show: bool,
 }
 
-/// Builds every chunk and the top tree over them, appending all pages to `writer`.
-/// Returns the scene's root node and the number of its page.
-pub fn build(writer: &mut ArchiveWriter, c: Chunks, opts: &ConvertOptions) -> Result<(BNode, u32)> {
-    let bar = progress::bar(opts.progress, c.triangles, "building");
+/// Builds every chunk and the top tree over them and the `extra` leaves (instances),
+/// appending all pages to `writer`. Returns the root node and the number of its page, which
+/// holds the root as node 0.
+pub fn build(
+    writer: &mut ArchiveWriter,
+    c: Chunks,
+    extra: Vec<BNode>,
+    opts: &ConvertOptions,
+) -> Result<(BNode, u32)> {
+    let bar = progress::bar(c.show, c.triangles, "building");
     let chunk_count = c.files.len();
-    let single = chunk_count == 1;
+    let single = chunk_count == 1 && extra.is_empty();
     let mut top = Tree {
         nodes: Vec::new(),
         tris: Vec::new(),
@@ -104,7 +112,14 @@ pub fn build(writer: &mut ArchiveWriter, c: Chunks, opts: &ConvertOptions) -> Re
     })?;
     bar.finish_and_clear();
     if !single {
-        let leaves: Vec<u32> = (0..top.nodes.len() as u32).collect();
+        let mut leaves: Vec<u32> = (0..top.nodes.len() as u32).collect();
+        if !extra.is_empty() {
+            top.nodes.extend(extra);
+            leaves = top.morton_order((0..top.nodes.len() as u32).collect());
+        }
+        if leaves.is_empty() {
+            bail!("no triangles in the inputs");
+        }
         top.root = top.balanced(&leaves);
         root_page = write_pages(writer, &top, vec![top.root], opts, c.normals)?;
         scene_root = Some(top.nodes[top.root as usize].clone());

@@ -91,6 +91,28 @@ pub fn distance(a: [f32; 3], b: [f32; 3]) -> f64 {
         .sqrt()
 }
 
+/// σ_max of the 3×3 part of `m`: the square root of the largest eigenvalue of MᵀM, by the
+/// trigonometric solution of the symmetric eigenproblem.
+fn largest_singular_value(m: &[[f64; 4]; 3]) -> f64 {
+    let a: [[f64; 3]; 3] =
+        std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|k| m[k][i] * m[k][j]).sum()));
+    let p1 = a[0][1].powi(2) + a[0][2].powi(2) + a[1][2].powi(2);
+    let q = (a[0][0] + a[1][1] + a[2][2]) / 3.0;
+    let p2 = (0..3).map(|i| (a[i][i] - q).powi(2)).sum::<f64>() + 2.0 * p1;
+    let p = (p2 / 6.0).sqrt();
+    if p <= q.abs() * 1e-15 {
+        return q.max(0.0).sqrt();
+    }
+    let b: [[f64; 3]; 3] = std::array::from_fn(|i| {
+        std::array::from_fn(|j| (a[i][j] - if i == j { q } else { 0.0 }) / p)
+    });
+    let det_b = b[0][0] * (b[1][1] * b[2][2] - b[1][2] * b[2][1])
+        - b[0][1] * (b[1][0] * b[2][2] - b[1][2] * b[2][0])
+        + b[0][2] * (b[1][0] * b[2][1] - b[1][1] * b[2][0]);
+    let phi = (det_b / 2.0).clamp(-1.0, 1.0).acos() / 3.0;
+    (q + 2.0 * p * phi.cos()).max(0.0).sqrt()
+}
+
 /// The smallest f32 ≥ x (x a distance, so ≥ 0; f64's own rounding is 2⁻²⁹ of an f32 ulp and
 /// the next f32 up covers it), so a radius stays conservative after rounding.
 pub fn round_up(x: f64) -> f32 {
@@ -174,6 +196,45 @@ impl Cluster {
         s
     }
 
+    /// The cluster of a subtree's image under the affine map `m` (rows, column 3 the
+    /// translation) with determinant `det`: the means of its materials are unchanged; the
+    /// centroid is mapped; the radius grows by the largest singular value; area scales by
+    /// |det|^⅔ and curvature by |det|^−⅓ (exact for rotations, uniform scales, mirrors and
+    /// translations; a mean over a non-uniform stretch would need every triangle); the
+    /// normal sum maps by the cofactor matrix det·M⁻ᵀ (how a stretched triangle's
+    /// e1 × e2 maps, winding reversed by mirrors), scaled so its length keeps meaning
+    /// coherence (at most 1).
+    pub fn transformed(&self, m: &[[f64; 4]; 3], det: f64) -> Cluster {
+        let s2 = det.abs().powf(2.0 / 3.0);
+        let map = |p: [f64; 3]| [0, 1, 2].map(|r| (0..3).map(|c| m[r][c] * p[c]).sum::<f64>());
+        let cof = |r: usize, c: usize| {
+            let (r1, r2) = ((r + 1) % 3, (r + 2) % 3);
+            let (c1, c2) = ((c + 1) % 3, (c + 2) % 3);
+            m[r1][c1] * m[r2][c2] - m[r1][c2] * m[r2][c1]
+        };
+        let n = self.normal.map(f64::from);
+        let mut normal = [0, 1, 2].map(|r| (0..3).map(|c| cof(r, c) * n[c]).sum::<f64>() / s2);
+        let len = normal.iter().map(|x| x * x).sum::<f64>().sqrt();
+        let w = self.weight as f64;
+        if len > w {
+            normal = normal.map(|x| x * w / len);
+        }
+        let c = self.mean_centroid().map(f64::from);
+        let mc = map(c);
+        let centre = [0, 1, 2].map(|r| mc[r] + m[r][3]);
+        let mut out = Cluster {
+            area: (self.area as f64 * s2) as f32,
+            normal: normal.map(|x| x as f32),
+            centroid: centre.map(|x| (x * w) as f32),
+            curvature: (self.curvature as f64 / det.abs().cbrt()) as f32,
+            ..*self
+        };
+        let stored = out.mean_centroid();
+        let reach = self.radius as f64 * largest_singular_value(m) * (1.0 + 1e-6);
+        out.radius = round_up(reach + distance(stored, centre.map(|x| x as f32)) + f64::EPSILON);
+        out
+    }
+
     pub fn mean_centroid(&self) -> [f32; 3] {
         self.centroid.map(|c| c / self.weight)
     }
@@ -200,5 +261,103 @@ impl Cluster {
         n.specular_tint = mean3(self.m.tint).map(unorm8);
         n.coef = u32::MAX;
         n
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::test_rng::TestRng;
+
+    /// Rows of a rotation about a random axis, scaled per axis by `s`, then translated.
+    fn affine(rng: &mut TestRng, s: [f64; 3]) -> [[f64; 4]; 3] {
+        let a = glam::DVec3::new(rng.f64() - 0.5, rng.f64() - 0.5, rng.f64() - 0.5).normalize();
+        let r = glam::DMat3::from_axis_angle(a, rng.f64() * 6.0);
+        std::array::from_fn(|row| {
+            let mut m = [0.0; 4];
+            for c in 0..3 {
+                m[c] = r.col(c)[row] * s[c];
+            }
+            m[3] = (rng.f64() - 0.5) * 100.0;
+            m
+        })
+    }
+
+    fn det(m: &[[f64; 4]; 3]) -> f64 {
+        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+    }
+
+    /// A transformed cluster's sphere holds every mapped vertex (any affine map), and its
+    /// area and normal are what the mapped triangles' would give for rotations, uniform
+    /// scales and mirrors.
+    #[test]
+    fn transformed_clusters_bound_and_match_their_mapped_triangles() {
+        let mut rng = TestRng::new(11);
+        let m = MatSummary::of(&crate::import::default_material("m"));
+        for case in 0..200 {
+            let tris: Vec<[[f32; 3]; 3]> = (0..1 + case % 7)
+                .map(|_| {
+                    let c = rng.v(10.0);
+                    [0, 1, 2].map(|_| (c + rng.v(1.0)).to_array())
+                })
+                .collect();
+            let sum = |t: &[[[f32; 3]; 3]]| {
+                t.iter()
+                    .map(|p| Cluster::triangle(p, 0.0, &m))
+                    .reduce(|a, b| Cluster::merge(&a, &b))
+                    .unwrap()
+            };
+            let uniform = case % 2 == 0;
+            let k = 0.1 + rng.f64() * 3.0;
+            let sign = if case % 3 == 0 { -1.0 } else { 1.0 };
+            let s = match uniform {
+                true => [sign * k, k, k],
+                false => [sign * k, 0.2 + rng.f64(), 1.0 + rng.f64() * 4.0],
+            };
+            let map = affine(&mut rng, s);
+            let got = sum(&tris).transformed(&map, det(&map));
+            let moved: Vec<[[f32; 3]; 3]> = tris
+                .iter()
+                .map(|t| {
+                    t.map(|p| {
+                        [0, 1, 2].map(|r| {
+                            (0..3).map(|c| map[r][c] * p[c] as f64).sum::<f64>() as f32
+                                + map[r][3] as f32
+                        })
+                    })
+                })
+                .collect();
+            let centre = got.mean_centroid();
+            for v in moved.iter().flatten() {
+                let d = distance(*v, centre);
+                assert!(
+                    d <= got.radius as f64 * (1.0 + 1e-5),
+                    "case {case}: {d} > {}",
+                    got.radius
+                );
+            }
+            if uniform {
+                let want = sum(&moved);
+                let rel = (got.area / want.area - 1.0).abs();
+                assert!(
+                    rel < 1e-3,
+                    "case {case}: area {} vs {}",
+                    got.area,
+                    want.area
+                );
+                let (a, b) = (
+                    got.normal.map(|x| x / got.weight),
+                    want.normal.map(|x| x / want.weight),
+                );
+                for i in 0..3 {
+                    assert!(
+                        (a[i] - b[i]).abs() < 1e-3,
+                        "case {case}: normal {a:?} vs {b:?}"
+                    );
+                }
+            }
+        }
     }
 }

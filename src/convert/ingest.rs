@@ -6,6 +6,7 @@ use super::{ConvertOptions, MatSummary};
 use crate::import::{self, SceneDesc, SceneFile, SpillTri, TriangleSink};
 use crate::progress;
 use anyhow::{bail, Context, Result};
+use canopy_format::validate::MAX_INSTANCES;
 use canopy_format::{Features, NodeFlags};
 use std::path::Path;
 
@@ -16,24 +17,94 @@ struct Spill {
     hi: [f32; 3],
     materials_used: Vec<bool>,
     bar: indicatif::ProgressBar,
+    /// Prototypes and instances; None when every placement is flattened.
+    shared: Option<Shared>,
+}
+
+/// Meshes stored once: their triangles (object space) in one spill file, prototype after
+/// prototype, and the placements.
+pub struct Shared {
+    out: SpillWriter,
+    pub prototypes: Vec<Prototype>,
+    pub instances: Vec<(u32, [f32; 12])>,
+    open: Option<Prototype>,
+}
+
+/// The prototypes' triangles, the prototypes, and the instances (prototype, object-to-world).
+pub type SharedMeshes = (spill::Spill, Vec<Prototype>, Vec<(u32, [f32; 12])>);
+
+/// One prototype's triangles in the shared spill file.
+#[derive(Clone, Copy)]
+pub struct Prototype {
+    pub start: u64,
+    pub count: u64,
+    /// Bounds of the triangles' centroids.
+    pub lo: [f32; 3],
+    pub hi: [f32; 3],
 }
 
 impl TriangleSink for Spill {
     fn push(&mut self, t: SpillTri) -> Result<()> {
-        for (a, c) in t.centroid().into_iter().enumerate() {
-            self.lo[a] = self.lo[a].min(c);
-            self.hi[a] = self.hi[a].max(c);
-        }
         let m = t.material as usize;
         if m >= self.materials_used.len() {
             self.materials_used.resize(m + 1, false);
         }
         self.materials_used[m] = true;
-        self.out.write(&t)?;
-        self.count += 1;
-        if self.count.is_multiple_of(65536) {
-            self.bar.set_position(self.count);
+        let (out, count, lo, hi) = match &mut self.shared {
+            Some(Shared {
+                out, open: Some(p), ..
+            }) => (out, &mut p.count, &mut p.lo, &mut p.hi),
+            _ => (&mut self.out, &mut self.count, &mut self.lo, &mut self.hi),
+        };
+        for (a, c) in t.centroid().into_iter().enumerate() {
+            lo[a] = lo[a].min(c);
+            hi[a] = hi[a].max(c);
         }
+        out.write(&t)?;
+        *count += 1;
+        if count.is_multiple_of(65536) {
+            self.bar.inc(65536);
+        }
+        Ok(())
+    }
+
+    fn shares_meshes(&self) -> bool {
+        self.shared.is_some()
+    }
+
+    fn begin_prototype(&mut self) -> Result<()> {
+        let s = self
+            .shared
+            .as_mut()
+            .context("prototypes while flattening")?;
+        s.open = Some(Prototype {
+            start: s.out.position(),
+            count: 0,
+            lo: [f32::INFINITY; 3],
+            hi: [f32::NEG_INFINITY; 3],
+        });
+        Ok(())
+    }
+
+    fn end_prototype(&mut self) -> Result<(u32, u64)> {
+        let s = self
+            .shared
+            .as_mut()
+            .context("prototypes while flattening")?;
+        let p = s.open.take().context("no prototype was begun")?;
+        s.prototypes.push(p);
+        Ok((s.prototypes.len() as u32 - 1, p.count))
+    }
+
+    fn instance(&mut self, prototype: u32, to_world: [f32; 12]) -> Result<()> {
+        let s = self.shared.as_mut().context("instances while flattening")?;
+        if prototype as usize >= s.prototypes.len() || s.instances.len() >= MAX_INSTANCES as usize {
+            bail!(
+                "instance {} of prototype {prototype}: out of range (at most {MAX_INSTANCES} instances)",
+                s.instances.len()
+            );
+        }
+        s.instances.push((prototype, to_world));
         Ok(())
     }
 }
@@ -84,6 +155,8 @@ pub struct Imported {
     pub lo: [f32; 3],
     pub hi: [f32; 3],
     materials_used: Vec<bool>,
+    /// The prototypes' spill and the instances (None when flattening).
+    pub shared: Option<SharedMeshes>,
 }
 
 /// Imports every input (and the scene file's records) into a spill file in `dir`.
@@ -101,9 +174,22 @@ pub fn import_inputs(opts: &ConvertOptions, file: &SceneFile, dir: &Path) -> Res
         hi: [f32::NEG_INFINITY; 3],
         materials_used: Vec::new(),
         bar: progress::counter(opts.progress, "importing", "triangles"),
+        shared: match opts.flatten_instances {
+            true => None,
+            false => Some(Shared {
+                out: SpillWriter::create(dir, 256 << 10)?,
+                prototypes: Vec::new(),
+                instances: Vec::new(),
+                open: None,
+            }),
+        },
     };
     import_all(opts, file, &mut scene, &mut spill)?;
     spill.bar.finish_and_clear();
+    let shared = match spill.shared {
+        Some(s) if !s.instances.is_empty() => Some((s.out.finish()?, s.prototypes, s.instances)),
+        _ => None,
+    };
     Ok(Imported {
         scene,
         spill: spill.out.finish()?,
@@ -111,6 +197,7 @@ pub fn import_inputs(opts: &ConvertOptions, file: &SceneFile, dir: &Path) -> Res
         lo: spill.lo,
         hi: spill.hi,
         materials_used: spill.materials_used,
+        shared,
     })
 }
 
@@ -133,6 +220,7 @@ impl Imported {
             (self.scene.has_normals, Features::SHADING_NORMALS),
             (self.scene.textured, Features::TEXTURED_INPUT),
             (!self.scene.lights.is_empty(), Features::PUNCTUAL_LIGHTS),
+            (self.shared.is_some(), Features::INSTANCES),
         ] {
             if has {
                 features |= feature;

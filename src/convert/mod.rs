@@ -7,10 +7,14 @@
 //! 3. `chunks`: each chunk is loaded alone and built (`tree`: PLOC via obvhs), its nodes'
 //!    attributes aggregated (`cluster`), cut into pages and encoded (`pages`); only its root
 //!    stays in memory. A balanced tree over the chunk roots forms the top pages.
+//!
+//! Meshes placed more than once (`instances`) are built first, each as its own tree through
+//! stages 2–3; their instances become leaves of the top tree.
 
 mod chunks;
 mod cluster;
 mod ingest;
+mod instances;
 mod pages;
 mod partition;
 mod spill;
@@ -39,6 +43,8 @@ pub struct ConvertOptions {
     pub page_nodes: usize,
     pub zstd_level: i32,
     pub bvh: BvhQuality,
+    /// Store every placement of a mesh as its own triangles (no instances).
+    pub flatten_instances: bool,
     pub progress: bool,
 }
 
@@ -54,6 +60,7 @@ impl ConvertOptions {
             page_nodes: 512,
             zstd_level: 1,
             bvh: BvhQuality::Auto,
+            flatten_instances: false,
             progress: false,
         }
     }
@@ -74,7 +81,11 @@ const AUTO_FAST_ABOVE: u64 = 8_000_000;
 
 #[derive(Debug, Default, serde::Serialize)]
 pub struct ConvertReport {
+    /// Triangles the inputs place (each instance's counted).
     pub input_triangles: u64,
+    /// Meshes stored once, and their placements.
+    pub prototypes: u64,
+    pub instances: u64,
     pub chunks: u64,
     pub nodes: u64,
     pub pages: u64,
@@ -100,6 +111,13 @@ impl std::fmt::Display for ConvertReport {
             self.archive_bytes as f64 / (1 << 20) as f64,
             self.archive_bytes as f64 / self.input_triangles.max(1) as f64
         )?;
+        if self.instances > 0 {
+            writeln!(
+                f,
+                "  {} meshes stored once, placed {} times",
+                self.prototypes, self.instances
+            )?;
+        }
         write!(
             f,
             "  {:.2} s (import {:.2}, partition {:.2}, build {:.2}), {:.2} M triangles/s",
@@ -148,9 +166,29 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         .collect();
     let features = imported.features(&mats);
 
-    let t1 = Instant::now();
     let threads = rayon::current_num_threads().max(1);
     let cap = (opts.mem_budget - FIXED_BYTES) / BUILD_BYTES_PER_TRI / threads as u64;
+    let normals = features & Features::SHADING_NORMALS != 0;
+    let t2 = Instant::now();
+    let placed = match imported.shared {
+        Some(shared) => {
+            let b = instances::Build {
+                mats: &mats,
+                normals,
+                threads,
+                cap,
+                dir: &dir,
+            };
+            instances::build(&mut writer, shared, &b, opts)?
+        }
+        None => instances::Placed::default(),
+    };
+    report.input_triangles += placed.instanced_triangles;
+    report.prototypes = placed.prototypes;
+    report.instances = placed.records.len() as u64;
+    let mut seconds_build = t2.elapsed().as_secs_f64();
+
+    let t1 = Instant::now();
     let bounds = [imported.lo, imported.hi];
     let files = partition::partition(imported.spill, total, bounds, cap, &dir, opts.progress)?;
     report.chunks = files.len() as u64;
@@ -161,24 +199,27 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         files,
         mats: &mats,
         triangles: total,
-        normals: features & Features::SHADING_NORMALS != 0,
+        normals,
         threads,
+        show: opts.progress,
     };
-    let (root, root_page) = chunks::build(&mut writer, chunks, opts)?;
-    report.seconds_build = t2.elapsed().as_secs_f64();
+    let (root, root_page) = chunks::build(&mut writer, chunks, placed.leaves, opts)?;
+    seconds_build += t2.elapsed().as_secs_f64();
+    report.seconds_build = seconds_build;
     let scene = imported.scene;
     let info = SceneInfo {
         features,
-        input_triangles: total,
+        input_triangles: report.input_triangles,
         bounds_min: root.lo,
         bounds_max: root.hi,
         root_page,
-        depth: root.height,
+        depth: root.height.max(placed.depth),
         max_leaf_triangles: MAX_LEAF_TRIS,
         page_nodes_max: opts.page_nodes as u32,
         materials: scene.materials,
         cameras: scene.cameras,
         lights: scene.lights,
+        instances: placed.records,
     };
     report.pages = writer.page_count() as u64;
     report.nodes = writer.node_count();

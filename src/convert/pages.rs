@@ -173,6 +173,10 @@ impl Plan {
                         node.link = [base + child, 0];
                     }
                 },
+                Kind::Instance { index } => {
+                    node.flags |= NodeFlags::LEAF | NodeFlags::INSTANCE;
+                    node.link = [index, 0];
+                }
                 Kind::External { page } => {
                     node.flags |= NodeFlags::CHILD_PAGE;
                     node.link = [page, 0];

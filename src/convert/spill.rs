@@ -34,6 +34,8 @@ struct Attr {
 
 pub struct SpillWriter {
     out: BufWriter<File>,
+    /// Bytes written so far: where the next record starts.
+    written: u64,
     /// The directory, for messages (the file has no name).
     path: PathBuf,
 }
@@ -45,8 +47,14 @@ impl SpillWriter {
             .with_context(|| format!("{}: cannot create a spill file", dir.display()))?;
         Ok(SpillWriter {
             out: BufWriter::with_capacity(buffer, file),
+            written: 0,
             path: dir.join("(spill file)"),
         })
+    }
+
+    /// Where the next record will start, for `for_each_in`.
+    pub fn position(&self) -> u64 {
+        self.written
     }
 
     pub fn write(&mut self, t: &SpillTri) -> Result<()> {
@@ -66,6 +74,7 @@ impl SpillWriter {
             };
             r = self.out.write_all(bytemuck::bytes_of(&a));
         }
+        self.written += 40 + 16 * attr as u64;
         r.with_context(|| format!("{}: writing spill file", self.path.display()))
     }
 
@@ -91,16 +100,30 @@ pub struct Spill {
 }
 
 /// Calls `f` on every triangle of a spill file, in order.
-pub fn for_each(spill: &Spill, mut f: impl FnMut(&SpillTri) -> Result<()>) -> Result<()> {
+pub fn for_each(spill: &Spill, f: impl FnMut(&SpillTri) -> Result<()>) -> Result<()> {
+    for_each_in(spill, 0, u64::MAX, f)
+}
+
+/// Calls `f` on the `count` triangles (or up to the end) from byte `start`, a record start
+/// `SpillWriter::position` returned.
+pub fn for_each_in(
+    spill: &Spill,
+    start: u64,
+    count: u64,
+    mut f: impl FnMut(&SpillTri) -> Result<()>,
+) -> Result<()> {
     let path = &spill.path;
     let mut file = &spill.file;
-    file.seek(SeekFrom::Start(0))
-        .with_context(|| format!("{}: rewinding", path.display()))?;
+    file.seek(SeekFrom::Start(start))
+        .with_context(|| format!("{}: seeking", path.display()))?;
     let mut r = BufReader::with_capacity(1 << 20, file);
     let err = || format!("{}: reading spill", path.display());
-    loop {
+    for _ in 0..count {
         if r.fill_buf().with_context(err)?.is_empty() {
-            return Ok(());
+            if count == u64::MAX {
+                return Ok(());
+            }
+            bail!("{}: the spill file ends early", path.display());
         }
         let mut rec = Rec::zeroed();
         r.read_exact(bytemuck::bytes_of_mut(&mut rec))
@@ -119,6 +142,7 @@ pub fn for_each(spill: &Spill, mut f: impl FnMut(&SpillTri) -> Result<()>) -> Re
         }
         f(&t)?;
     }
+    Ok(())
 }
 
 pub fn read_all(spill: &Spill) -> Result<Vec<SpillTri>> {

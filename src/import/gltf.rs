@@ -1,5 +1,6 @@
 //! glTF 2.0 (.gltf/.glb): mesh primitives under the default scene with node transforms
-//! applied (instances flattened), perspective cameras, metallic-roughness materials with the
+//! applied, meshes placed more than once stored once with their instances (unless the sink
+//! flattens), perspective cameras, metallic-roughness materials with the
 //! KHR extensions Canopy models, and KHR_lights_punctual.
 
 use super::{make_tri, SceneDesc, TriangleSink};
@@ -29,6 +30,8 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
         .or_else(|| doc.scenes().next())
         .ok_or_else(|| anyhow!("{}: no scene", path.display()))?;
     check_forest(&doc).map_err(|e| anyhow!("{}: {e}", path.display()))?;
+    let shared = shared_meshes(&doc, &buffers, scene, base, sink.shares_meshes());
+    let mut prototypes: Vec<Option<(u32, u64)>> = vec![None; doc.meshes().len()];
     let mut count = 0u64;
     // Depth-first pre-order, roots and children in the order the file lists them: cameras,
     // lights and triangles keep the file's order (FORMAT.md states it).
@@ -63,80 +66,169 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
             scene.lights.push(punctual(&light, world));
         }
         let Some(mesh) = node.mesh() else { continue };
-        let instances = gpu_instances(&doc, &node, &buffers).map_err(|e| {
+        let named = |e: anyhow::Error| {
             anyhow!(
                 "{}: node '{}': {e}",
                 path.display(),
                 node.name().unwrap_or("?")
             )
-        })?;
+        };
+        let instances = gpu_instances(&doc, &node, &buffers).map_err(named)?;
+        if instances.iter().any(|i| !(world * *i).is_finite()) {
+            bail!(
+                "{}: node '{}' has an instance with a non-finite transform",
+                path.display(),
+                node.name().unwrap_or("?")
+            );
+        }
+        let mut m = MeshCtx {
+            path,
+            mesh: &mesh,
+            buffers: &buffers,
+            base,
+            default_mat: &mut default_mat,
+            scene,
+            sink,
+        };
+        if !shared[mesh.index()] {
+            for instance in instances {
+                count += m.push(world * instance)?;
+            }
+            continue;
+        }
+        let (proto, tris) = match prototypes[mesh.index()] {
+            Some(p) => p,
+            None => {
+                m.sink.begin_prototype()?;
+                m.push(Mat4::IDENTITY)?;
+                *prototypes[mesh.index()].insert(m.sink.end_prototype()?)
+            }
+        };
+        if tris == 0 {
+            continue;
+        }
         for instance in instances {
-            let world = world * instance;
-            if !world.is_finite() {
-                bail!(
-                    "{}: node '{}' has an instance with a non-finite transform",
-                    path.display(),
-                    node.name().unwrap_or("?")
-                );
-            }
-            let normal_m = Mat3::from_mat4(world).inverse().transpose();
-            let flip = world.determinant() < 0.0;
-            for (pi, prim) in mesh.primitives().enumerate() {
-                let what = |t: usize| {
-                    format!(
-                        "{}: mesh '{}' primitive {pi} triangle {t}",
-                        path.display(),
-                        mesh.name().unwrap_or("?")
-                    )
-                };
-                let mat = match (prim.material().index(), default_mat) {
-                    (Some(i), _) => base + i as u32,
-                    (None, Some(m)) => m,
-                    (None, None) => {
-                        let m = scene.add_material(super::default_material("default"))?;
-                        *default_mat.insert(m)
-                    }
-                };
-                check_primitive(&prim).map_err(|e| anyhow!("{}: {e}", what(0)))?;
-                let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d[..]));
-                let Some(pos) = reader.read_positions() else {
-                    continue;
-                };
-                let pos: Vec<Vec3> = pos.map(|p| world.transform_point3(Vec3::from(p))).collect();
-                let nrm: Option<Vec<Vec3>> = reader
-                    .read_normals()
-                    .map(|n| {
-                        n.map(|n| (normal_m * Vec3::from(n)).normalize_or_zero())
-                            .collect::<Vec<_>>()
-                    })
-                    .filter(|n| n.len() == pos.len());
-                if nrm.is_some() {
-                    scene.has_normals = true;
-                }
-                let idx: Vec<u32> = match reader.read_indices() {
-                    Some(i) => i.into_u32().collect(),
-                    None => (0..pos.len() as u32).collect(),
-                };
-                for (t, mut tri) in triangles(prim.mode(), &idx).enumerate() {
-                    if flip {
-                        tri.swap(1, 2);
-                    }
-                    if let Some(&bad) = tri.iter().find(|&&i| i as usize >= pos.len()) {
-                        bail!(
-                            "{}: index {bad} out of range ({} vertices)",
-                            what(t),
-                            pos.len()
-                        );
-                    }
-                    let p = tri.map(|i| pos[i as usize].to_array());
-                    let n = nrm.as_ref().map(|n| tri.map(|i| n[i as usize].to_array()));
-                    sink.push(make_tri(p, n, mat, &|| what(t))?)?;
-                    count += 1;
-                }
-            }
+            let c = (world * instance).to_cols_array();
+            let to_world = std::array::from_fn(|i| c[i / 3 * 4 + i % 3]);
+            sink.instance(proto, to_world)?;
+            count += tris;
         }
     }
     Ok(count)
+}
+
+/// Meshes to store once as prototypes: placed more than once (by several nodes or
+/// EXT_mesh_gpu_instancing) and emitting no light (the light sampler works on world-space
+/// emitters, so emissive meshes are flattened). None when the sink flattens.
+fn shared_meshes(
+    doc: &gltf::Document,
+    buffers: &[Vec<u8>],
+    scene: &SceneDesc,
+    base: u32,
+    sharing: bool,
+) -> Vec<bool> {
+    let mut uses = vec![0usize; doc.meshes().len()];
+    if sharing {
+        for node in doc.nodes() {
+            if let Some(m) = node.mesh() {
+                // A bad instancing extension is reported by the walk, naming the node.
+                uses[m.index()] += gpu_instances(doc, &node, buffers).map_or(1, |i| i.len());
+            }
+        }
+    }
+    doc.meshes()
+        .map(|mesh| {
+            uses[mesh.index()] >= 2
+                && mesh.primitives().all(|p| {
+                    p.material().index().is_none_or(|i| {
+                        scene.materials[base as usize + i]
+                            .emission
+                            .iter()
+                            .all(|&e| e <= 0.0)
+                    })
+                })
+        })
+        .collect()
+}
+
+/// One mesh's primitives pushed under a transform.
+struct MeshCtx<'a> {
+    path: &'a Path,
+    mesh: &'a gltf::Mesh<'a>,
+    buffers: &'a [Vec<u8>],
+    /// The file's first material in the scene's table.
+    base: u32,
+    default_mat: &'a mut Option<u32>,
+    scene: &'a mut SceneDesc,
+    sink: &'a mut dyn TriangleSink,
+}
+
+impl MeshCtx<'_> {
+    /// Pushes every triangle of the mesh transformed by `world` (mirroring transforms
+    /// reverse the winding); returns how many.
+    fn push(&mut self, world: Mat4) -> Result<u64> {
+        let (path, mesh) = (self.path, self.mesh);
+        let normal_m = Mat3::from_mat4(world).inverse().transpose();
+        let flip = world.determinant() < 0.0;
+        let mut count = 0;
+        for (pi, prim) in mesh.primitives().enumerate() {
+            let what = |t: usize| {
+                format!(
+                    "{}: mesh '{}' primitive {pi} triangle {t}",
+                    path.display(),
+                    mesh.name().unwrap_or("?")
+                )
+            };
+            let mat = match (prim.material().index(), *self.default_mat) {
+                (Some(i), _) => self.base + i as u32,
+                (None, Some(m)) => m,
+                (None, None) => {
+                    let m = self
+                        .scene
+                        .add_material(super::default_material("default"))?;
+                    *self.default_mat.insert(m)
+                }
+            };
+            check_primitive(&prim).map_err(|e| anyhow!("{}: {e}", what(0)))?;
+            let buffers = self.buffers;
+            let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d[..]));
+            let Some(pos) = reader.read_positions() else {
+                continue;
+            };
+            let pos: Vec<Vec3> = pos.map(|p| world.transform_point3(Vec3::from(p))).collect();
+            let nrm: Option<Vec<Vec3>> = reader
+                .read_normals()
+                .map(|n| {
+                    n.map(|n| (normal_m * Vec3::from(n)).normalize_or_zero())
+                        .collect::<Vec<_>>()
+                })
+                .filter(|n| n.len() == pos.len());
+            if nrm.is_some() {
+                self.scene.has_normals = true;
+            }
+            let idx: Vec<u32> = match reader.read_indices() {
+                Some(i) => i.into_u32().collect(),
+                None => (0..pos.len() as u32).collect(),
+            };
+            for (t, mut tri) in triangles(prim.mode(), &idx).enumerate() {
+                if flip {
+                    tri.swap(1, 2);
+                }
+                if let Some(&bad) = tri.iter().find(|&&i| i as usize >= pos.len()) {
+                    bail!(
+                        "{}: index {bad} out of range ({} vertices)",
+                        what(t),
+                        pos.len()
+                    );
+                }
+                let p = tri.map(|i| pos[i as usize].to_array());
+                let n = nrm.as_ref().map(|n| tri.map(|i| n[i as usize].to_array()));
+                self.sink.push(make_tri(p, n, mat, &|| what(t))?)?;
+                count += 1;
+            }
+        }
+        Ok(count)
+    }
 }
 
 /// glTF nodes form a forest: no node is the child of two nodes or its own ancestor (the
@@ -248,8 +340,7 @@ fn load_buffer(b: &gltf::Buffer, blob: Option<&[u8]>, dir: &Path) -> Result<Vec<
 }
 
 /// A node's EXT_mesh_gpu_instancing transforms (translation, rotation, scale per instance,
-/// in the node's space), or the identity alone. Each instance's triangles are stored: the
-/// archive does not share them yet.
+/// in the node's space), or the identity alone.
 fn gpu_instances(
     doc: &gltf::Document,
     node: &gltf::Node,

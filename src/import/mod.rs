@@ -33,9 +33,18 @@ impl SpillTri {
     }
 }
 
-/// Receives the triangles an importer produces.
+/// Receives the triangles an importer produces, and the instances of meshes it stores once.
 pub trait TriangleSink {
     fn push(&mut self, t: SpillTri) -> Result<()>;
+    /// Whether a mesh placed several times may be stored once, as a prototype with
+    /// instances (false with `--flatten-instances`: every placement is pushed in world space).
+    fn shares_meshes(&self) -> bool;
+    /// Starts a prototype: the triangles pushed until `end_prototype` are in its object space.
+    fn begin_prototype(&mut self) -> Result<()>;
+    /// Ends the prototype; returns its number and how many triangles it holds.
+    fn end_prototype(&mut self) -> Result<(u32, u64)>;
+    /// Places prototype `prototype` with an object-to-world transform (column-major 3×4).
+    fn instance(&mut self, prototype: u32, to_world: [f32; 12]) -> Result<()>;
 }
 
 /// Scene-level records collected from all inputs.

@@ -60,6 +60,15 @@ impl Settings {
         }
     }
 
+    /// Refuses an archive with instances for the integrators that store light per node:
+    /// two copies in different light would share it (they need `--flatten-instances`).
+    pub fn refuse_instances(&self, archive: &canopy_format::Archive) -> anyhow::Result<()> {
+        match self {
+            Settings::Path => Ok(()),
+            _ => refuse_instances(archive, &format!("the {:?} integrator", self.kind())),
+        }
+    }
+
     pub fn build(&self, scene: &Scene, target: &Target) -> Box<dyn Integrator> {
         match self {
             Settings::Path => Box::new(path::PathIntegrator),
@@ -293,4 +302,15 @@ pub fn sample_light(
         1.0
     };
     fv * ls.weight * w * clamp
+}
+
+/// An error for `what` on an archive with instances, naming the fix.
+pub fn refuse_instances(archive: &canopy_format::Archive, what: &str) -> anyhow::Result<()> {
+    if archive.header.features & canopy_format::Features::INSTANCES != 0 {
+        anyhow::bail!(
+            "{}: {what} does not support instanced archives yet (its stored light would be shared by every copy); convert with --flatten-instances, or render with --integrator path",
+            archive.path().display()
+        );
+    }
+    Ok(())
 }

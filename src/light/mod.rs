@@ -167,6 +167,8 @@ impl Lights {
                     }
                 }
                 NodeRef::Inner(l, r) => stack.extend([(pi, l), (pi, r)]),
+                // Never emissive (checked when the page is read): skipped above.
+                NodeRef::Instance(_) => {}
                 NodeRef::ChildPage(child) => {
                     pages.push(Page::decode(archive, child)?);
                     let at = pages.len() as u32 - 1;

@@ -16,6 +16,7 @@
 //! of baked node light, loaded, counted against the budget and evicted with it.
 
 pub mod coefs;
+pub mod instance;
 pub mod wide;
 
 use anyhow::{bail, Result};
@@ -48,6 +49,7 @@ const _: () = assert!(std::mem::size_of::<TNode>() == 32);
 const KIND_MASK: u32 = 3 << 30;
 const LEAF: u32 = 1 << 30;
 const CHILD_PAGE: u32 = 2 << 30;
+const INSTANCE: u32 = 3 << 30;
 
 /// Where a node leads: the one reading of the page encoding's links.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -58,6 +60,8 @@ pub enum NodeRef {
     Leaf { first: u32, count: u32 },
     /// The subtree continues in this page, whose roots 0 and 1 are the node's children.
     ChildPage(u32),
+    /// A leaf whose geometry is this instance's prototype.
+    Instance(u32),
 }
 
 impl TNode {
@@ -67,6 +71,7 @@ impl TNode {
             NodeRef::Inner(l, r) => (l, r),
             NodeRef::Leaf { first, count } => (LEAF | first, count),
             NodeRef::ChildPage(p) => (CHILD_PAGE | p, 0),
+            NodeRef::Instance(i) => (INSTANCE | i, 0),
         };
         TNode { lo, a, hi, b }
     }
@@ -80,6 +85,7 @@ impl TNode {
                 count: self.b & 15,
             },
             CHILD_PAGE => NodeRef::ChildPage(x),
+            INSTANCE => NodeRef::Instance(x),
             _ => NodeRef::Inner(x, self.b),
         }
     }
@@ -168,7 +174,9 @@ impl Page {
             .iter()
             .map(|n| {
                 let (lo, hi) = grid.dequant_box(&n.bounds);
-                let link = if n.flags & NodeFlags::LEAF != 0 {
+                let link = if n.flags & NodeFlags::INSTANCE != 0 {
+                    NodeRef::Instance(n.link[0])
+                } else if n.flags & NodeFlags::LEAF != 0 {
                     NodeRef::Leaf {
                         first: n.link[0],
                         count: n.link[1],
@@ -292,6 +300,8 @@ pub struct PageCache {
     /// The page table, each entry checked, read once when the cache starts (a renderer
     /// needs every page's level and size to pin and budget; opening the archive does not).
     pub entries: Vec<PageEntry>,
+    /// The archive's instances, by index.
+    pub instances: Vec<instance::Instance>,
     slots: Vec<Slot>,
     budget: u64,
     resident: AtomicU64,
@@ -372,6 +382,11 @@ impl PageCache {
         }
         let cache = Arc::new(PageCache {
             entries,
+            instances: archive
+                .instances
+                .iter()
+                .map(instance::Instance::new)
+                .collect(),
             slots,
             budget: budget.unwrap_or(u64::MAX),
             resident: AtomicU64::new(0),

@@ -83,6 +83,8 @@ fn pull_page(cache: &PageCache, store: &RadianceStore, keys: Keys, page: &Page) 
         let here = page.first_node + i as u64;
         let link = n.link();
         let parts: Vec<Part> = match link {
+            // The cone integrator refuses instanced archives (`integrator::refuse_instances`).
+            NodeRef::Instance(_) => continue,
             NodeRef::Leaf { first, count } => (0..count)
                 .filter_map(|k| {
                     let t = page.tri(first + k)?;
@@ -155,6 +157,7 @@ mod tests {
                     let area = super::super::tri_area(&t) as f64;
                     add(acc, (value(&t).map(|x| x * area), area))
                 }),
+            NodeRef::Instance(_) => panic!("the test scene has no instances"),
         }
     }
 

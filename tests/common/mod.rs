@@ -219,3 +219,45 @@ pub fn tiny_glb(
     std::fs::write(&p, &out).unwrap();
     p
 }
+
+/// cbox.glb with node `node` instanced by EXT_mesh_gpu_instancing: `translations` as its
+/// TRANSLATION accessor and `scales` (if any) as SCALE.
+pub fn gpu_instanced(
+    dir: &Path,
+    name: &str,
+    node: &str,
+    translations: &[[f32; 3]],
+    scales: &[[f32; 3]],
+) -> PathBuf {
+    tiny_glb(dir, name, |json, bin| {
+        let mut attributes = serde_json::Map::new();
+        for (attr, values) in [("TRANSLATION", translations), ("SCALE", scales)] {
+            if values.is_empty() {
+                continue;
+            }
+            while bin.len() % 4 != 0 {
+                bin.push(0);
+            }
+            let offset = bin.len();
+            for v in values.iter().flatten() {
+                bin.extend(v.to_le_bytes());
+            }
+            let views = json["bufferViews"].as_array_mut().unwrap();
+            views.push(serde_json::json!({"buffer": 0, "byteOffset": offset, "byteLength": values.len() * 12}));
+            let view = views.len() - 1;
+            let accessors = json["accessors"].as_array_mut().unwrap();
+            accessors.push(serde_json::json!({"bufferView": view, "componentType": 5126, "count": values.len(), "type": "VEC3"}));
+            attributes.insert(attr.into(), (accessors.len() - 1).into());
+        }
+        json["buffers"][0]["byteLength"] = bin.len().into();
+        json["extensionsUsed"] = serde_json::json!(["EXT_mesh_gpu_instancing"]);
+        let node = json["nodes"]
+            .as_array_mut()
+            .unwrap()
+            .iter_mut()
+            .find(|n| n["name"] == node)
+            .unwrap();
+        node["extensions"] =
+            serde_json::json!({"EXT_mesh_gpu_instancing": {"attributes": attributes}});
+    })
+}

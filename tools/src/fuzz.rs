@@ -88,6 +88,7 @@ pub struct Parts {
     pub materials: Vec<MaterialRecord>,
     pub cameras: Vec<CameraRecord>,
     pub lights: Vec<LightRecord>,
+    pub instances: Vec<InstanceRecord>,
 }
 
 impl Parts {
@@ -110,6 +111,7 @@ impl Parts {
             materials: a.materials.clone(),
             cameras: a.cameras.clone(),
             lights: a.lights.clone(),
+            instances: a.instances.clone(),
         })
     }
 
@@ -149,6 +151,14 @@ impl Parts {
         table(&mut out, cameras, self.cameras.len(), 128, &mut h.cameras);
         let lights = bytemuck::cast_slice(&self.lights);
         table(&mut out, lights, self.lights.len(), 96, &mut h.lights);
+        let instances = bytemuck::cast_slice(&self.instances);
+        table(
+            &mut out,
+            instances,
+            self.instances.len(),
+            64,
+            &mut h.instances,
+        );
         h.tables_checksum = xxhash_rust::xxh3::xxh3_64(&out[h.materials.offset as usize..]);
         align(&mut out);
         let pages = bytemuck::cast_slice(&entries);
@@ -323,14 +333,20 @@ pub fn integrators() -> [Settings; 2] {
     [Settings::Path, Settings::Cone(cone)]
 }
 
-/// Open, verify every page, and render with both integrators. Errors are fine; the caller
+/// Open, verify every page, and render with both integrators (the path tracer alone on an
+/// instanced archive). Errors are fine; the caller
 /// catches panics.
 pub fn exercise_archive(path: &Path, dir: &Path) -> Result<()> {
     let a = canopy_format::Archive::open(path)?;
     let mut s = canopy::inspect::summarize(&a)?;
     let verified = canopy::inspect::verify(&a, &mut s, false);
+    // Integrators that refuse instanced archives are asked once, for their error.
+    let usable: Vec<Settings> = integrators()
+        .into_iter()
+        .filter(|i| i.refuse_instances(&a).is_ok())
+        .collect();
     drop(a);
-    for integrator in integrators() {
+    for integrator in usable {
         render(&tiny_render(path, dir, integrator))?;
     }
     verified
@@ -454,13 +470,15 @@ pub fn seed_inputs() -> Vec<(&'static str, Vec<u8>)> {
         ("m.mtl", mtl.as_bytes().to_vec()),
         ("a.ply", ply.as_bytes().to_vec()),
         ("bin.ply", bply),
-        ("s.glb", seed_glb()),
+        ("s.glb", seed_glb(false)),
+        ("i.glb", seed_glb(true)),
     ]
 }
 
 /// A glb: two triangles (an emitter over a glass floor), interleaved positions and normals,
-/// u16 indices, a camera.
-fn seed_glb() -> Vec<u8> {
+/// u16 indices, a camera. `instanced`: also the glass floor as a mesh of its own placed
+/// three times (translated, rotated and mirrored, scaled), which `convert` stores once.
+fn seed_glb(instanced: bool) -> Vec<u8> {
     let verts: [[f32; 6]; 6] = [
         [-1., 2., -1., 0., -1., 0.],
         [1., 2., -1., 0., -1., 0.],
@@ -477,7 +495,7 @@ fn seed_glb() -> Vec<u8> {
     for i in [0u16, 2, 1, 3, 5, 4, 0, 0] {
         bin.extend(i.to_le_bytes());
     }
-    let json = serde_json::json!({
+    let mut json = serde_json::json!({
         "asset": {"version": "2.0"},
         "scene": 0,
         "scenes": [{"nodes": [0, 1]}],
@@ -504,6 +522,17 @@ fn seed_glb() -> Vec<u8> {
             {"bufferView": 1, "byteOffset": 6, "componentType": 5123, "count": 3, "type": "SCALAR"}
         ]
     });
+    if instanced {
+        json["meshes"].as_array_mut().expect("meshes").push(serde_json::json!(
+            {"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 3, "material": 1}]}
+        ));
+        json["nodes"].as_array_mut().expect("nodes").extend([
+            serde_json::json!({"mesh": 1, "translation": [0.0, -1.0, -4.0]}),
+            serde_json::json!({"mesh": 1, "rotation": [0.0, 0.3826834, 0.0, 0.9238795], "scale": [-1.0, 1.0, 1.0], "translation": [2.0, 0.5, -6.0]}),
+            serde_json::json!({"mesh": 1, "scale": [0.5, 2.0, 0.5], "translation": [-2.0, 1.0, -5.0]}),
+        ]);
+        json["scenes"][0]["nodes"] = serde_json::json!([0, 1, 2, 3, 4]);
+    }
     glb_join(&json, &bin)
 }
 
@@ -535,7 +564,7 @@ pub fn exercise_input(dir: &Path, files: &[(&str, Vec<u8>)], main: &str) -> Resu
 pub fn seed_archives(dir: &Path) -> Result<Vec<(Parts, Vec<u8>)>> {
     let inputs = seed_inputs();
     let mut out = Vec::new();
-    for main in ["s.glb", "m.obj", "a.ply"] {
+    for main in ["s.glb", "m.obj", "a.ply", "i.glb"] {
         let d = dir.join(format!("seed-{main}"));
         std::fs::create_dir_all(&d)?;
         for (name, bytes) in &inputs {
@@ -545,7 +574,7 @@ pub fn seed_archives(dir: &Path) -> Result<Vec<(Parts, Vec<u8>)>> {
         let path = d.join("x.canopy");
         let mut o = ConvertOptions::new(vec![d.join(main)], path.clone());
         o.page_nodes = 3;
-        if main != "s.glb" {
+        if !main.ends_with(".glb") {
             o.scene = Some(d.join("scene.toml"));
         }
         convert(&o).with_context(|| format!("converting the seed {main}"))?;

@@ -31,7 +31,7 @@ fn mutated_archives_and_inputs_never_panic_or_hang() {
 fn unmutated_seeds_convert_verify_and_render() {
     let dir = tempfile::tempdir().unwrap();
     let inputs = fuzz::seed_inputs();
-    for main in ["s.glb", "m.obj", "a.ply", "bin.ply"] {
+    for main in ["s.glb", "m.obj", "a.ply", "bin.ply", "i.glb"] {
         let d = dir.path().join(main);
         std::fs::create_dir_all(&d).unwrap();
         fuzz::exercise_input(&d, &inputs, main).unwrap_or_else(|e| panic!("{main}: {e:#}"));

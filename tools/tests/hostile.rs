@@ -37,7 +37,8 @@ fn set_node(p: &mut Parts, page: usize, i: usize, n: &Node) {
     p.pages[page][32 + i * 128..32 + (i + 1) * 128].copy_from_slice(bytemuck::bytes_of(n));
 }
 
-/// Open, verify every page and render with both integrators: the first error met.
+/// Open, verify every page and render with both integrators (the path tracer alone on an
+/// instanced archive): the first error met.
 fn first_error(path: &Path, dir: &Path) -> Option<String> {
     let a = match Archive::open(path) {
         Ok(a) => a,
@@ -50,7 +51,8 @@ fn first_error(path: &Path, dir: &Path) -> Option<String> {
     if let Err(e) = canopy::inspect::verify(&a, &mut s, false) {
         return Some(format!("{e:#}"));
     }
-    for i in fuzz::integrators() {
+    let usable = fuzz::integrators().into_iter();
+    for i in usable.filter(|i| i.refuse_instances(&a).is_ok()) {
         if let Err(e) = render(&fuzz::tiny_render(path, dir, i)) {
             return Some(format!("{e:#}"));
         }
@@ -261,16 +263,124 @@ fn node_lies(base: &Parts) -> Vec<(&'static str, Edit, &'static str)> {
     ]
 }
 
+/// Lies about instances, in the instanced seed (a glass floor placed three times).
+fn instance_lies(base: &Parts) -> Vec<(&'static str, Edit, &'static str)> {
+    assert!(base.instances.len() == 3, "the seed has three instances");
+    let root = base.header.root_page as usize;
+    let proto = base.instances[0].prototype_page as usize;
+    let (page, leaf) = (0..base.pages.len())
+        .flat_map(|p| (0..base.entries[p].node_count as usize).map(move |k| (p, k)))
+        .find(|&(p, k)| node(base, p, k).is_instance())
+        .expect("an instance leaf");
+    let child = (0..base.entries.len())
+        .find(|&i| base.entries[i].parent_page != canopy_format::NONE)
+        .expect("a child page");
+    let node_edit = move |f: fn(&mut Node)| -> Edit {
+        Box::new(move |p: &mut Parts| {
+            let mut n = node(p, page, leaf);
+            f(&mut n);
+            set_node(p, page, leaf, &n);
+        })
+    };
+    vec![
+        (
+            "instance of the root page",
+            Box::new(move |p| p.instances[0].prototype_page = root as u32),
+            "not a prototype's root page",
+        ),
+        (
+            "instance of a child page",
+            Box::new(move |p| p.instances[1].prototype_page = child as u32),
+            "not a prototype's root page",
+        ),
+        (
+            "instance of no page",
+            Box::new(|p| p.instances[2].prototype_page = 1 << 20),
+            "prototype page",
+        ),
+        (
+            "singular transform",
+            Box::new(|p| p.instances[0].to_world[..9].fill(0.0)),
+            "invertible",
+        ),
+        (
+            "NaN transform",
+            Box::new(|p| p.instances[1].to_world[10] = f32::NAN),
+            "invertible",
+        ),
+        (
+            "reserved instance byte",
+            Box::new(|p| p.instances[2].reserved[4] = 1),
+            "reserved",
+        ),
+        (
+            "instances feature cleared",
+            Box::new(|p| p.header.features &= !canopy_format::Features::INSTANCES),
+            "5 input triangles but 3 stored",
+        ),
+        (
+            "instance moved away from its leaf",
+            Box::new(|p| p.instances[0].to_world[9] += 100.0),
+            "outside it",
+        ),
+        (
+            "a prototype's root page given a level",
+            Box::new(move |p| p.entries[proto].level = 1),
+            "level",
+        ),
+        (
+            "instance leaf naming no instance",
+            node_edit(|n| n.link[0] = 7),
+            "instance 7 of 3",
+        ),
+        (
+            "emissive instance leaf",
+            node_edit(|n| n.flags |= NodeFlags::EMISSIVE),
+            "emissive instance",
+        ),
+        (
+            "instance leaf with a page link",
+            node_edit(|n| n.flags |= NodeFlags::CHILD_PAGE),
+            "not a plain leaf",
+        ),
+    ]
+}
+
 #[test]
 fn checksum_valid_lies_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     let base = seed(dir.path());
     let path = dir.path().join("lie.canopy");
-    for (what, edit, expect) in table_lies(&base).into_iter().chain(node_lies(&base)) {
+    refuse_all(
+        &base,
+        table_lies(&base).into_iter().chain(node_lies(&base)),
+        dir.path(),
+    );
+    let instanced = fuzz::seed_archives(dir.path()).unwrap().pop().unwrap().0;
+    refuse_all(
+        &instanced,
+        instance_lies(&instanced).into_iter(),
+        dir.path(),
+    );
+    // The unchanged archives pass, so each refusal above is the edit's doing.
+    for p in [&base, &instanced] {
+        std::fs::write(&path, p.assemble()).unwrap();
+        assert_eq!(first_error(&path, dir.path()), None);
+    }
+}
+
+/// Each edit of `base` is refused with an error naming the file and containing its text.
+fn refuse_all(
+    base: &Parts,
+    lies: impl Iterator<Item = (&'static str, Edit, &'static str)>,
+    dir: &Path,
+) {
+    let path = dir.join("lie.canopy");
+    for (what, edit, expect) in lies {
         let mut p = base.clone();
         edit(&mut p);
         std::fs::write(&path, p.assemble()).unwrap();
-        let err = first_error(&path, dir.path()).unwrap_or_else(|| panic!("{what}: accepted"));
+        let err = first_error(&path, dir).unwrap_or_else(|| panic!("{what}: accepted"));
         assert!(
             err.contains("lie.canopy"),
             "{what}: the error does not name the file: {err}"
@@ -280,9 +390,6 @@ fn checksum_valid_lies_are_refused() {
             "{what}: expected '{expect}' in: {err}"
         );
     }
-    // The unchanged archive passes, so each refusal above is the edit's doing.
-    std::fs::write(&path, base.assemble()).unwrap();
-    assert_eq!(first_error(&path, dir.path()), None);
 }
 
 /// A page whose nodes form a DAG (node k with children k+1 and k+2) made `render` run for

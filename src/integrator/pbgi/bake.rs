@@ -399,6 +399,8 @@ impl PageJob<'_, '_> {
                         d.add(r);
                     }
                 }
+                // Bakes refuse instanced archives (`integrator::refuse_instances`).
+                NodeRef::Instance(_) => {}
             }
             block.nodes[i] = d;
         }

@@ -39,7 +39,7 @@ pub mod patch;
 use super::{bsdf_term, sample_light, Counters, Integrator, PixelSample, Receiver, Scene, Stats};
 use crate::material::{Bsdf, Frame};
 use crate::paging::{NodeRef, Page, TNode};
-use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer};
+use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer, NO_INSTANCE};
 use crate::wavelet::cube;
 use anyhow::Result;
 use bake::{Directional, Hash};
@@ -393,6 +393,8 @@ impl PbgiIntegrator {
                 }
                 NodeRef::Inner(l, rr) => sc.stack.extend([(pid, l), (pid, rr)]),
                 NodeRef::ChildPage(cp) => sc.stack.extend([(cp, 0), (cp, 1)]),
+                // PBGI refuses instanced archives (`integrator::refuse_instances`).
+                NodeRef::Instance(_) => {}
             }
         }
         self.splatted.fetch_add(splatted, Relaxed);
@@ -489,6 +491,7 @@ impl PbgiIntegrator {
                 NodeRef::Leaf { .. } => field.near.push((pid, i)),
                 NodeRef::Inner(l, rr) => stack.extend([(pid, l), (pid, rr)]),
                 NodeRef::ChildPage(cp) => stack.extend([(cp, 0), (cp, 1)]),
+                NodeRef::Instance(_) => {}
             }
         }
         self.splatted.fetch_add(field.far.len() as u64, Relaxed);
@@ -629,6 +632,8 @@ impl PbgiIntegrator {
                     leaf,
                     slot,
                     curvature: 0.0,
+                    instance: NO_INSTANCE,
+                    transform_err: V::ZERO,
                 };
                 let (sends, sampled) = hit_light(scene, tr, page, &hit, w, rng);
                 exact += sampled as u64;
