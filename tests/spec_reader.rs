@@ -282,6 +282,32 @@ fn longer_records_and_unknown_optional_features_are_read() {
     assert_eq!(a.pixels, b.pixels);
 }
 
+/// A version 2.0 file (before instances: minor 0, the instance table's bytes reserved and
+/// zero) still opens, verifies and renders as the 2.1 file it was rewritten from. (Opening
+/// one panicked when the reader first learnt the instance table: its record size was 0.)
+#[test]
+fn version_2_0_archives_still_open() {
+    let dir = tempfile::tempdir().unwrap();
+    let good = dir.path().join("cbox.canopy");
+    convert(&scene("cbox.glb"), &good, None);
+    let mut file = std::fs::read(&good).unwrap();
+    assert_eq!(u32_at(&file, 196), 0, "cbox has no instances");
+    file[10..12].copy_from_slice(&0u16.to_le_bytes());
+    file[192..208].fill(0);
+    file[176..184].fill(0);
+    let h = xxhash_rust::xxh3::xxh3_64(&file[..256]);
+    file[176..184].copy_from_slice(&h.to_le_bytes());
+    let old = dir.path().join("old.canopy");
+    std::fs::write(&old, &file).unwrap();
+    let report = ok(&["inspect", "--verify", s(&old)]);
+    assert!(report.contains("format version      2.0"), "{report}");
+    assert!(report.contains("verify              ok"), "{report}");
+    let args = ["--width", "24", "--height", "24", "--spp", "2"];
+    let (a, _) = render(&good, &dir.path().join("a.exr"), &args);
+    let (b, _) = render(&old, &dir.path().join("b.exr"), &args);
+    assert_eq!(a.pixels, b.pixels);
+}
+
 /// A random mesh of `n` triangles around `origin`, `size` across, as OBJ text.
 fn obj(origin: [f32; 3], size: f32, coords: &[f32]) -> String {
     let mut s = String::new();

@@ -301,6 +301,10 @@ impl Archive {
 /// A table's records (its range is inside the file: `check_table_ranges`); bytes past the
 /// known record size are a later minor version's and are skipped.
 fn read_table<T: bytemuck::Pod>(map: &[u8], t: &TableRef) -> Vec<T> {
+    if t.count == 0 {
+        // A 2.0 file's instance table is all zero, record size included.
+        return Vec::new();
+    }
     let at = t.offset as usize;
     map[at..at + t.count as usize * t.record_size as usize]
         .chunks_exact(t.record_size as usize)

@@ -10,7 +10,7 @@
 use super::{bsdf_term, sample_light, Counters, Integrator, PixelSample, Receiver, Scene, Stats};
 use crate::material::Frame;
 use crate::sampler::PixelSampler;
-use crate::trace::{offset_origin, Cone, Ray, Tracer};
+use crate::trace::{offset_origin, Cone, Ray, Tracer, NO_INSTANCE};
 use glam::Vec3A as V;
 
 /// Veach's power heuristic (β = 2) for two sampling strategies' pdfs.
@@ -63,6 +63,9 @@ pub fn radiance(
             break;
         };
         scene.touched.insert(hit.leaf);
+        if hit.instance != NO_INSTANCE {
+            scene.touched.insert(hit.instance_leaf);
+        }
         let m = &scene.materials[hit.tri.material as usize];
         let ng_raw = hit.ng();
         let area = 0.5 * ng_raw.length();

@@ -44,7 +44,8 @@ pub const KIND: u32 = 3 << 30;
 pub const WIDE: u32 = 0;
 /// A leaf: its first block of `Page::tri4`.
 pub const LEAF: u32 = 1 << 30;
-/// With `LEAF`: an instance (its index below; triangle blocks never reach this bit).
+/// With `LEAF`: an instance leaf, its binary node below (triangle blocks never reach this
+/// bit).
 pub const INSTANCE: u32 = 1 << 29;
 /// A child page (its wide root is node 0).
 pub const PAGE: u32 = 2 << 30;
@@ -182,7 +183,7 @@ pub fn build(bvh: &[TNode], roots: u32) -> Vec<Wide> {
                 }
                 NodeRef::Leaf { .. } => LEAF | n.tri4(),
                 NodeRef::ChildPage(p) => PAGE | p,
-                NodeRef::Instance(i) => LEAF | INSTANCE | i,
+                NodeRef::Instance(_) => LEAF | INSTANCE | k,
             };
             w.used |= 1 << lane;
         }

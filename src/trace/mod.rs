@@ -7,6 +7,8 @@
 //! floating-point error bound of the hit point (pbrt-v4 §6.8), which grows with the point's
 //! magnitude instead of being a fixed epsilon.
 
+mod instance;
+
 use crate::paging::instance::Instance;
 use crate::paging::wide::{self, Tri4, Wide};
 use crate::paging::{NodeRef, Page, PageCache, TNode, TriW};
@@ -47,6 +49,8 @@ pub struct Hit {
     /// The instance whose prototype holds the triangle (`NO_INSTANCE`: none); `tri` is in
     /// world space either way.
     pub instance: u32,
+    /// That instance's leaf in the scene's tree (global node number), for node statistics.
+    pub instance_leaf: u64,
     /// What transforming `tri` to world space adds to the hit point's error bound.
     pub transform_err: V,
 }
@@ -67,6 +71,8 @@ struct TriRef {
     t: f32,
     b: [f32; 3],
     instance: u32,
+    /// The instance leaf the walk came through (global node number; 0 outside instances).
+    via: u64,
 }
 
 impl Hit {
@@ -85,6 +91,7 @@ impl Hit {
                 .get(leaf as usize)
                 .map_or(0.0, |n| canopy_format::codec::f16_decode(n.curvature)),
             instance: r.instance,
+            instance_leaf: r.via,
             transform_err: V::ZERO,
         }
     }
@@ -92,11 +99,11 @@ impl Hit {
     /// The hit of a prototype's triangle moved into world space by its instance: the
     /// vertices transformed (so normals and winding follow, mirrors included), the
     /// curvature scaled by |det|^−⅓ as the converter scales a cluster's.
-    fn placed(mut self, instance: &Instance) -> Hit {
-        let (p, err) = instance.to_world(self.tri.p);
+    fn placed(mut self, placed_by: &Instance) -> Hit {
+        let (p, err) = instance::to_world(placed_by, self.tri.p);
         self.tri.p = p;
         self.transform_err = err;
-        self.curvature *= instance.curvature_scale();
+        self.curvature *= placed_by.curvature_scale();
         self
     }
 
@@ -341,6 +348,7 @@ impl Prep4 {
                     t: h.t[lane],
                     b: h.b.map(|b| b[lane]),
                     instance: NO_INSTANCE,
+                    via: 0,
                 });
                 met = true;
                 if any {
@@ -467,13 +475,14 @@ struct Walk<'w> {
 
 impl Walk<'_> {
     /// Walks the four-wide tree under page `start`'s roots with `self.ray`, front to back,
-    /// going on to the first child to visit without a trip through `stack`. An instance
-    /// leaf is walked with `inner` as its stack; without one (inside a prototype, where
-    /// the converter writes no instance) it is skipped. Kept apart from the cone's walk:
+    /// going on to the first child to visit without a trip through `stack`. With
+    /// `INSTANCED`, an instance leaf is walked with `inner` as its stack; without (inside a
+    /// prototype, where the converter writes no instance, or in an archive without
+    /// instances) it is skipped. Kept apart from the cone's walk:
     /// with the cone's binary steps in, even unused, the trace bench's exact rays were
     /// 5–16% slower.
     #[inline(always)]
-    fn exact(
+    fn exact<const INSTANCED: bool>(
         &self,
         held: &mut Held,
         stack: &mut Stack,
@@ -506,13 +515,9 @@ impl Walk<'_> {
             };
             let index = r & !wide::KIND;
             match r & wide::KIND {
-                wide::LEAF if index & wide::INSTANCE != 0 => {
-                    let Some(inner) = inner.as_deref_mut() else {
-                        continue;
-                    };
+                wide::LEAF if INSTANCED && index & wide::INSTANCE != 0 => {
                     let pid = page.id;
-                    let inst = index & !wide::INSTANCE;
-                    if self.instance(held, inner, inst, &mut t_max, on_tri) {
+                    if self.enter(held, inner.as_deref_mut(), pid, index, &mut t_max, on_tri) {
                         found = true;
                         if any {
                             break 'walk;
@@ -547,22 +552,42 @@ impl Walk<'_> {
         found
     }
 
-    /// Walks instance `inst`'s prototype with the ray moved into its object space
-    /// (`Instance::ray_to_object`): hits go to `on_tri` at their world distance, tagged
-    /// with the instance, and close `t_max`.
+    /// The walk of `exact` into the instance leaf `index` of page `pid`, out of its loop.
+    #[inline(never)]
+    fn enter(
+        &self,
+        held: &mut Held,
+        inner: Option<&mut Stack>,
+        pid: u32,
+        index: u32,
+        t_max: &mut f32,
+        on_tri: &mut dyn FnMut(TriRef),
+    ) -> bool {
+        let Some(inner) = inner else {
+            return false;
+        };
+        match instance_at(held.get(self.cache, pid), index) {
+            Some(inst) => self.instance(held, inner, inst, t_max, on_tri),
+            None => false,
+        }
+    }
+
+    /// Walks the prototype of instance `inst` (reached through the leaf `via`) with the
+    /// ray moved into its object space (`Instance::ray_to_object`): hits go to `on_tri` at
+    /// their world distance, tagged with the instance, and close `t_max`.
     #[inline(never)]
     fn instance(
         &self,
         held: &mut Held,
         stack: &mut Stack,
-        inst: u32,
+        (inst, via): (u32, u64),
         t_max: &mut f32,
         on_tri: &mut dyn FnMut(TriRef),
     ) -> bool {
-        let Some(instance) = self.cache.instances.get(inst as usize) else {
+        let Some(placed) = self.cache.instances.get(inst as usize) else {
             return false;
         };
-        let (o, d, dt) = instance.ray_to_object(self.ray.o, self.ray.d);
+        let (o, d, dt) = instance::ray_to_object(placed, self.ray.o, self.ray.d);
         let local = Ray {
             o,
             d,
@@ -577,14 +602,25 @@ impl Walk<'_> {
         let mut tagged = |mut r: TriRef| {
             r.t += dt;
             r.instance = inst;
+            r.via = via;
             nearest = Some(r.t);
             on_tri(r)
         };
-        let found = walk.exact(held, stack, None, instance.page, &mut tagged);
+        let found = walk.exact::<false>(held, stack, None, placed.page, &mut tagged);
         if let Some(t) = nearest {
             *t_max = t_max.min(t);
         }
         found
+    }
+}
+
+/// The instance of binary node `node` of `page` and the node's global number, if it is an
+/// instance leaf.
+#[inline]
+fn instance_at(page: &Page, node: u32) -> Option<(u32, u64)> {
+    match page.bvh.get((node & !wide::INSTANCE) as usize)?.link() {
+        NodeRef::Instance(i) => Some((i, page.first_node + (node & !wide::INSTANCE) as u64)),
+        _ => None,
     }
 }
 
@@ -662,6 +698,8 @@ pub struct Tracer<'a> {
     stack: Stack,
     /// The stack of walks inside an instance.
     inner: Stack,
+    /// Whether the archive has instances (walks without them skip the instance step).
+    instanced: bool,
     pub rays: u64,
 }
 
@@ -676,6 +714,7 @@ impl<'a> Tracer<'a> {
             },
             stack: Vec::with_capacity(64),
             inner: Vec::with_capacity(64),
+            instanced: !cache.instances.is_empty(),
             rays: 0,
         }
     }
@@ -697,7 +736,8 @@ impl<'a> Tracer<'a> {
     /// skipped node would have: a skipped node's box holds its lanes' boxes, so the cone
     /// enters it no later, and (its radius growing along the ray) no wider, than it enters
     /// a lane, while the node is no smaller. A cone whose radius does not grow walks the
-    /// binary tree throughout.
+    /// binary tree throughout. Instance leaves are skipped: the integrators that cast
+    /// cones refuse instanced archives (`Settings::refuse_instances`).
     #[inline]
     fn walk(
         &mut self,
@@ -721,13 +761,10 @@ impl<'a> Tracer<'a> {
         };
         let mut t_max = ray.t_max;
         let mut stack = std::mem::take(&mut self.stack);
-        let mut inner = std::mem::take(&mut self.inner);
         stack.clear();
         let cache = self.cache;
         let held = &mut self.held;
         held.check_epoch(cache);
-        // Instances are walked exactly: a cone never stops inside one.
-        let exact = Walk { cache, ray, any };
         let mut page: &Page = held.get(cache, cache.root_page());
         // The entry of `page` to walk next, as `Wide::child` codes it, and its distance.
         let mut next = (!page.wide.is_empty()).then_some((wide::WIDE, 0.0));
@@ -749,17 +786,6 @@ impl<'a> Tracer<'a> {
             };
             let index = r & !wide::KIND;
             match r & wide::KIND {
-                wide::LEAF if index & wide::INSTANCE != 0 => {
-                    let pid = page.id;
-                    let inst = index & !wide::INSTANCE;
-                    if exact.instance(held, &mut inner, inst, &mut t_max, &mut on_tri) {
-                        found = true;
-                        if any {
-                            break 'walk;
-                        }
-                    }
-                    page = held.get(cache, pid);
-                }
                 wide::LEAF => {
                     if lanes.leaf(page, index, &mut t_max, &mut on_tri, any) {
                         found = true;
@@ -791,7 +817,9 @@ impl<'a> Tracer<'a> {
                         NodeRef::Leaf { .. } => next = Some((wide::LEAF | node.tri4(), tn)),
                         NodeRef::Inner(l, r) => push_pair(prep, page, [l, r], t_max, &mut stack),
                         NodeRef::ChildPage(child) => next = Some((wide::PAGE | child, tn)),
-                        NodeRef::Instance(i) => next = Some((wide::LEAF | wide::INSTANCE | i, tn)),
+                        // Skipped, as the lanes' instance leaves are (`lanes.leaf` finds no
+                        // block): integrators that cast cones refuse instanced archives.
+                        NodeRef::Instance(_) => {}
                     }
                 }
                 _ => {
@@ -834,7 +862,6 @@ impl<'a> Tracer<'a> {
             }
         }
         self.stack = stack;
-        self.inner = inner;
         found
     }
 
@@ -842,27 +869,31 @@ impl<'a> Tracer<'a> {
     /// triangle the ray meets (closing `t_max` to its distance); with `any`, the first
     /// hit ends the walk.
     #[inline]
-    fn walk_exact(&mut self, ray: &Ray, mut on_tri: impl FnMut(TriRef), any: bool) -> bool {
+    fn walk_exact<const INSTANCED: bool>(
+        &mut self,
+        ray: &Ray,
+        mut on_tri: impl FnMut(TriRef),
+        any: bool,
+    ) -> bool {
         self.rays += 1;
-        let mut stack = std::mem::take(&mut self.stack);
-        let mut inner = std::mem::take(&mut self.inner);
-        self.held.check_epoch(self.cache);
-        let walk = Walk {
-            cache: self.cache,
-            ray,
-            any,
-        };
-        let root = self.cache.root_page();
-        let found = walk.exact(
-            &mut self.held,
-            &mut stack,
-            Some(&mut inner),
-            root,
-            &mut on_tri,
-        );
-        self.stack = stack;
-        self.inner = inner;
-        found
+        let Tracer {
+            cache,
+            held,
+            stack,
+            inner,
+            ..
+        } = self;
+        held.check_epoch(cache);
+        let walk = Walk { cache, ray, any };
+        let inner = INSTANCED.then_some(inner);
+        walk.exact::<INSTANCED>(held, stack, inner, cache.root_page(), &mut on_tri)
+    }
+
+    /// `walk_exact` in an archive with instances, out of line: with both walks in line,
+    /// sponza's any-hit rays (no instances) were 12% slower.
+    #[inline(never)]
+    fn walk_instanced(&mut self, ray: &Ray, on_tri: impl FnMut(TriRef), any: bool) -> bool {
+        self.walk_exact::<true>(ray, on_tri, any)
     }
 
     /// The `Hit` of a triangle a walk found, in world space.
@@ -883,13 +914,19 @@ impl<'a> Tracer<'a> {
     /// Nearest intersection along the ray, if any, before `ray.t_max`.
     pub fn closest_hit(&mut self, ray: &Ray) -> Option<Hit> {
         let mut best: Option<TriRef> = None;
-        self.walk_exact(ray, |r| best = Some(r), false);
+        match self.instanced {
+            false => self.walk_exact::<false>(ray, |r| best = Some(r), false),
+            true => self.walk_instanced(ray, |r| best = Some(r), false),
+        };
         best.map(|r| self.hit(&r))
     }
 
     /// Whether anything blocks the ray before `ray.t_max`.
     pub fn occluded(&mut self, ray: &Ray) -> bool {
-        self.walk_exact(ray, |_| {}, true)
+        match self.instanced {
+            false => self.walk_exact::<false>(ray, |_| {}, true),
+            true => self.walk_instanced(ray, |_| {}, true),
+        }
     }
 
     /// Whether a shadow cone meets anything before `ray.t_max`: like `occluded`, but a node

@@ -633,6 +633,7 @@ impl PbgiIntegrator {
                     slot,
                     curvature: 0.0,
                     instance: NO_INSTANCE,
+                    instance_leaf: 0,
                     transform_err: V::ZERO,
                 };
                 let (sends, sampled) = hit_light(scene, tr, page, &hit, w, rng);
