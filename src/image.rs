@@ -49,14 +49,102 @@ impl Image {
     }
 
     pub fn write_exr(&self, path: &Path) -> Result<()> {
+        self.write_exr_framed(path, &Frame::whole(self))
+    }
+
+    /// OpenEXR with the image as the data window at `frame.origin` inside a display window
+    /// of `frame.display` (a tile of a larger frame, as OpenEXR intends), and `frame.tags`
+    /// as text attributes of the file.
+    pub fn write_exr_framed(&self, path: &Path, frame: &Frame) -> Result<()> {
+        use exr::prelude::*;
         let w = self.width as usize;
+        let mut attributes = LayerAttributes {
+            layer_position: Vec2(frame.origin[0] as i32, frame.origin[1] as i32),
+            ..Default::default()
+        };
+        for (k, v) in &frame.tags {
+            attributes.other.insert(
+                Text::new_or_panic(k.as_str()),
+                exr::meta::attribute::AttributeValue::Text(Text::new_or_panic(v.as_str())),
+            );
+        }
+        let pixels = |p: Vec2<usize>| {
+            let v = self.pixels[p.y() * w + p.x()];
+            (v[0], v[1], v[2])
+        };
+        let layer = Layer::new(
+            (w, self.height as usize),
+            attributes,
+            Encoding::FAST_LOSSLESS,
+            SpecificChannels::rgb(pixels),
+        );
+        let mut image = exr::image::Image::from_layer(layer);
+        image.attributes.display_window = IntegerBounds::new(
+            Vec2(0, 0),
+            Vec2(frame.display[0] as usize, frame.display[1] as usize),
+        );
         write_atomically(path, |tmp| {
-            exr::prelude::write_rgb_file(tmp, w, self.height as usize, |x, y| {
-                let p = self.pixels[y * w + x];
-                (p[0], p[1], p[2])
-            })
-            .map_err(|e| anyhow::anyhow!("{e}"))
+            image
+                .write()
+                .to_file(tmp)
+                .map_err(|e| anyhow::anyhow!("{e}"))
         })
+    }
+
+    /// An OpenEXR image with where it lies in its display window and its text attributes.
+    pub fn read_exr_framed(path: &Path) -> Result<(Self, Frame)> {
+        use exr::prelude::*;
+        if !path.exists() {
+            bail!("{}: no such file", path.display());
+        }
+        let bad = |e: exr::error::Error| {
+            anyhow::anyhow!("{}: not a readable OpenEXR image: {e}", path.display())
+        };
+        let read = read()
+            .no_deep_data()
+            .largest_resolution_level()
+            .rgba_channels(
+                |res, _| Self::new(res.width() as u32, res.height() as u32),
+                |img: &mut Self, pos, (r, g, b, _a): (f32, f32, f32, f32)| {
+                    let i = pos.y() * img.width as usize + pos.x();
+                    img.pixels[i] = [r, g, b];
+                },
+            )
+            .first_valid_layer()
+            .all_attributes()
+            .from_file(path)
+            .map_err(bad)?;
+        let display = read.attributes.display_window;
+        let at = read.layer_data.attributes.layer_position - display.position;
+        if display.size.x() > u32::MAX as usize
+            || display.size.y() > u32::MAX as usize
+            || at.x() < 0
+            || at.y() < 0
+        {
+            bail!(
+                "{}: the data window is not inside the display window",
+                path.display()
+            );
+        }
+        let mut tags: Vec<(String, String)> = read
+            .layer_data
+            .attributes
+            .other
+            .iter()
+            .filter_map(|(k, v)| match v {
+                exr::meta::attribute::AttributeValue::Text(t) => {
+                    Some((k.to_string(), t.to_string()))
+                }
+                _ => None,
+            })
+            .collect();
+        tags.sort();
+        let frame = Frame {
+            display: [display.size.x() as u32, display.size.y() as u32],
+            origin: [at.x() as u32, at.y() as u32],
+            tags,
+        };
+        Ok((read.layer_data.channel_data.pixels, frame))
     }
 
     /// sRGB PNG: clamp to [0, 1] after `exposure` (a scale), then the sRGB transfer curve.
@@ -67,6 +155,36 @@ impl Image {
             .flat_map(|p| p.map(|v| (srgb(v * exposure) * 255.0 + 0.5) as u8))
             .collect();
         write_png_rgb(path, self.width, self.height, &bytes)
+    }
+}
+
+/// Where an image lies in the frame it belongs to, and what made it.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Frame {
+    /// Width and height of the whole frame (the EXR display window).
+    pub display: [u32; 2],
+    /// The image's top-left pixel in the frame (the data window's position).
+    pub origin: [u32; 2],
+    /// (name, value) text attributes, sorted by name.
+    pub tags: Vec<(String, String)>,
+}
+
+impl Frame {
+    /// An image that is its whole frame, without tags.
+    pub fn whole(img: &Image) -> Frame {
+        Frame {
+            display: [img.width, img.height],
+            origin: [0, 0],
+            tags: Vec::new(),
+        }
+    }
+
+    /// The value of tag `name`, if present.
+    pub fn tag(&self, name: &str) -> Option<&str> {
+        self.tags
+            .iter()
+            .find(|(k, _)| k == name)
+            .map(|(_, v)| v.as_str())
     }
 }
 

@@ -1,6 +1,7 @@
 //! The command line: one module per subcommand, each a function over its parsed arguments;
 //! what they print is the `Display` of the library's result types.
 
+mod assemble;
 mod bake;
 mod compare;
 mod convert;
@@ -36,6 +37,7 @@ enum Cmd {
     Eval(sweep::EvalArgs),
     Compare(compare::CompareArgs),
     Inspect(inspect::InspectArgs),
+    Assemble(assemble::AssembleArgs),
 }
 
 /// Render settings shared by `render`, `npp` and `eval`.
@@ -144,7 +146,7 @@ pub fn run() -> Result<()> {
         Cmd::Npp(a) => a.settings.mem_budget,
         Cmd::Eval(a) => a.settings.mem_budget,
         Cmd::Bake(a) => a.mem_budget(),
-        Cmd::Convert(_) | Cmd::Compare(_) | Cmd::Inspect(_) => None,
+        Cmd::Convert(_) | Cmd::Compare(_) | Cmd::Inspect(_) | Cmd::Assemble(_) => None,
     };
     if budget.is_some() {
         canopy::paging::one_arena();
@@ -168,5 +170,6 @@ pub fn run() -> Result<()> {
         }
         Cmd::Compare(a) => compare::run(a),
         Cmd::Inspect(a) => inspect::run(a, show),
+        Cmd::Assemble(a) => assemble::run(a),
     }
 }

@@ -28,7 +28,9 @@ pub struct RenderArgs {
     /// Image height.
     #[arg(long)]
     height: Option<u32>,
-    /// Render only the window X0,X1,Y0,Y1 (pixels, half-open); the image is the window.
+    /// Render only the window X0,X1,Y0,Y1 (pixels, half-open): the EXR's data window is
+    /// that tile inside the whole frame's display window, and its attributes name the
+    /// archive, settings and seed, so `canopy assemble` can join tiles into the frame.
     #[arg(long, value_parser = parse_crop)]
     crop: Option<[u32; 4]>,
     /// Also write a tone-mapped sRGB PNG beside the EXR.

@@ -2,6 +2,7 @@
 //! samples over tiles, each sample asked of the integrator (`integrator::Integrator`), which
 //! it knows only through that trait.
 
+pub mod assemble;
 pub mod bake;
 mod film;
 mod setup;
@@ -14,7 +15,7 @@ use film::{Film, Sums};
 use setup::Setup;
 use stats::{ancestors_closure, peak_rss_bytes};
 
-use crate::image::Image;
+use crate::image::{Frame, Image};
 use crate::integrator::{self, Counters, Integrator, PixelSample, Scene, Target};
 use crate::progress;
 use crate::sampler::PixelSampler;
@@ -169,7 +170,12 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
 
     let img = film.image(done);
     let t2 = Instant::now();
-    img.write_exr(&s.exr)?;
+    let frame = Frame {
+        display: [s.width, s.height],
+        origin: [s.window[0], s.window[2]],
+        tags: identity(o, &s),
+    };
+    img.write_exr_framed(&s.exr, &frame)?;
     if let Some(p) = &s.png {
         img.write_png(p, o.exposure)?;
     }
@@ -187,6 +193,30 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         crate::image::write_atomically(p, |tmp| Ok(std::fs::write(tmp, json)?))?;
     }
     Ok((img, stats))
+}
+
+/// The archive's identity: its header checksum (which covers its tables checksum, size
+/// and counts), in hex.
+fn archive_checksum(scene: &Scene) -> String {
+    format!("{:016x}", scene.cache.archive.header.header_checksum)
+}
+
+/// The settings that decide a pixel's value (not threads, budget or exposure), as text:
+/// tiles of one frame must agree on it.
+fn settings_text(o: &RenderOptions, s: &Setup) -> String {
+    format!(
+        "{:?} spp={} time={:?} noise={:?} max_depth={:?} camera={:?} size={}x{}",
+        o.integrator, o.spp, o.time, o.noise, o.max_depth, o.camera, s.width, s.height
+    )
+}
+
+/// The EXR attributes naming what made an image (`RenderStats` carries the same).
+fn identity(o: &RenderOptions, s: &Setup) -> Vec<(String, String)> {
+    vec![
+        ("canopy.archive".into(), archive_checksum(&s.scene)),
+        ("canopy.seed".into(), o.seed.to_string()),
+        ("canopy.settings".into(), settings_text(o, s)),
+    ]
 }
 
 /// Renders samples `first..first + count` of a tile's pixels; returns their sums.
@@ -269,6 +299,9 @@ fn summarize(
     }
     Ok(RenderStats {
         integrator: o.integrator.kind(),
+        archive_checksum: archive_checksum(&s.scene),
+        settings: settings_text(o, s),
+        seed: o.seed,
         spp: done,
         width: s.width,
         height: s.height,

@@ -21,6 +21,12 @@ pub struct Seconds {
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct RenderStats {
     pub integrator: Kind,
+    /// What made the image, as its EXR's attributes say it (`canopy assemble` checks that
+    /// tiles agree): the archive's header checksum, the settings that decide pixels, and
+    /// the seed.
+    pub archive_checksum: String,
+    pub settings: String,
+    pub seed: u32,
     pub spp: u32,
     pub width: u32,
     pub height: u32,

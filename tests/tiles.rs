@@ -1,0 +1,108 @@
+//! Frames rendered as tiles (`render --crop`) and joined by `canopy assemble`.
+
+mod common;
+use canopy::image::Image;
+use common::*;
+use std::path::{Path, PathBuf};
+
+/// Renders `archive` at 64×48, 4 spp, seed 9, the window `crop` (x0,x1,y0,y1) if any.
+fn tile(archive: &Path, out: &Path, crop: Option<&str>, spp: &str) -> PathBuf {
+    let mut args = vec![
+        "--quiet",
+        "render",
+        s(archive),
+        "-o",
+        s(out),
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--spp",
+        spp,
+        "--seed",
+        "9",
+    ];
+    if let Some(c) = crop {
+        args.extend(["--crop", c]);
+    }
+    ok(&args);
+    out.to_path_buf()
+}
+
+/// Path tracer: tiles of uneven sizes, assembled, are the single-process image bit for
+/// bit; each tile's EXR places its data window in the 64×48 display window.
+#[test]
+fn assembled_tiles_are_the_whole_render_bit_for_bit() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("cbox.canopy");
+    convert(&scene("cbox.glb"), &arc, None);
+    let whole = tile(&arc, &dir.path().join("whole.exr"), None, "4");
+    let crops = ["0,23,0,17", "23,64,0,17", "0,41,17,48", "41,64,17,48"];
+    let tiles: Vec<PathBuf> = crops
+        .iter()
+        .enumerate()
+        .map(|(i, c)| tile(&arc, &dir.path().join(format!("t{i}.exr")), Some(c), "4"))
+        .collect();
+    let (t1, f1) = Image::read_exr_framed(&tiles[1]).unwrap();
+    assert_eq!(
+        (t1.width, t1.height, f1.origin, f1.display),
+        (41, 17, [23, 0], [64, 48])
+    );
+    let full = dir.path().join("full.exr");
+    let mut args = vec!["assemble"];
+    args.extend(tiles.iter().rev().map(|t| s(t)));
+    args.extend(["-o", s(&full)]);
+    ok(&args);
+    let (a, b) = (
+        Image::read_exr(&full).unwrap(),
+        Image::read_exr(&whole).unwrap(),
+    );
+    assert_eq!((a.width, a.height), (64, 48));
+    assert!(
+        a.pixels == b.pixels,
+        "the assembled frame differs from the whole render"
+    );
+}
+
+/// A missing, duplicated, overlapping or foreign tile, one with other settings, a gap or a
+/// truncated file: a clear error naming the tile, exit status 1, no output.
+#[test]
+fn bad_tile_sets_are_refused_and_write_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (arc, other) = (d.join("cbox.canopy"), d.join("bunny.canopy"));
+    convert(&scene("cbox.glb"), &arc, None);
+    convert(&scene("bunny_box.glb"), &other, None);
+    let top = tile(&arc, &d.join("top.exr"), Some("0,64,0,24"), "2");
+    let bottom = tile(&arc, &d.join("bottom.exr"), Some("0,64,24,48"), "2");
+    let wide = tile(&arc, &d.join("wide.exr"), Some("0,64,20,48"), "2");
+    let foreign = tile(&other, &d.join("foreign.exr"), Some("0,64,24,48"), "2");
+    let more = tile(&arc, &d.join("more.exr"), Some("0,64,24,48"), "3");
+    let cut = d.join("cut.exr");
+    let bytes = std::fs::read(&bottom).unwrap();
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    let (out, nope) = (d.join("out.exr"), d.join("nope.exr"));
+    let cases: [(&str, Vec<&Path>, &str); 7] = [
+        ("missing", vec![&top, &nope], "nope.exr: no such file"),
+        ("duplicated", vec![&top, &top, &bottom], "given twice"),
+        ("overlapping", vec![&top, &wide], "overlap at pixel (0, 20)"),
+        ("gap", vec![&top], "uncovered, the first at (0, 24)"),
+        ("foreign", vec![&top, &foreign], "from another archive"),
+        ("other settings", vec![&top, &more], "with other settings"),
+        (
+            "truncated",
+            vec![&top, &cut],
+            "cut.exr: not a readable OpenEXR",
+        ),
+    ];
+    for (what, tiles, expect) in cases {
+        let mut args = vec!["assemble"];
+        args.extend(tiles.iter().map(|t| s(t)));
+        args.extend(["-o", s(&out)]);
+        let out_ = canopy(&args);
+        let err = String::from_utf8_lossy(&out_.stderr);
+        assert_eq!(out_.status.code(), Some(1), "{what}: {err}");
+        assert!(err.contains(expect), "{what}: expected '{expect}' in {err}");
+        assert!(!out.exists(), "{what}: an output was written");
+    }
+}
