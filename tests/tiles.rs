@@ -106,3 +106,85 @@ fn bad_tile_sets_are_refused_and_write_nothing() {
         assert!(!out.exists(), "{what}: an output was written");
     }
 }
+
+/// The cone integrator's light store: a pre-pass writes it, a render reads it and keeps
+/// adding (its own store, written out, holds at least what it read); a store from another
+/// archive, another --cone-samples, or truncated is refused by name, exit 1, no image.
+#[test]
+fn light_stores_carry_over_and_bad_ones_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (arc, other) = (d.join("cbox.canopy"), d.join("bunny.canopy"));
+    convert(&scene("cbox.glb"), &arc, None);
+    convert(&scene("bunny_box.glb"), &other, None);
+    let cone = |archive: &Path, out: &str, samples: &str, extra: &[&str]| {
+        let mut args = vec![
+            "render",
+            s(archive),
+            "-o",
+            "",
+            "--integrator",
+            "cone",
+            "--width",
+            "32",
+            "--height",
+            "32",
+            "--spp",
+            "2",
+            "--cone-samples",
+            samples,
+        ];
+        let out = d.join(out);
+        args[3] = s(&out);
+        args.extend(extra);
+        (canopy(&args), out)
+    };
+    let (first, second) = (d.join("first.store"), d.join("second.store"));
+    let (run, _) = cone(&arc, "pre.exr", "64", &["--store-out", s(&first)]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let both = ["--store-in", s(&first), "--store-out", s(&second)];
+    let (run, _) = cone(&arc, "next.exr", "64", &both);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let entries = |p: &Path| {
+        let b = std::fs::read(p).unwrap();
+        u64::from_le_bytes(b[40..48].try_into().unwrap())
+    };
+    assert!(entries(&first) > 0 && entries(&second) >= entries(&first));
+    let cut = d.join("cut.store");
+    let bytes = std::fs::read(&first).unwrap();
+    std::fs::write(&cut, &bytes[..bytes.len() - 9]).unwrap();
+    for (what, archive, store, samples, expect) in [
+        (
+            "another archive",
+            &other,
+            &first,
+            "64",
+            "belongs to another archive",
+        ),
+        ("truncated", &arc, &cut, "64", "truncated or corrupt"),
+        (
+            "another limit",
+            &arc,
+            &first,
+            "32",
+            "stored under --cone-samples 64",
+        ),
+    ] {
+        let (run, out) = cone(archive, "bad.exr", samples, &["--store-in", s(store)]);
+        let err = String::from_utf8_lossy(&run.stderr);
+        assert_eq!(run.status.code(), Some(1), "{what}: {err}");
+        assert!(
+            err.contains(expect) && err.contains(s(store)),
+            "{what}: {err}"
+        );
+        assert!(!out.exists(), "{what}: an image was written");
+    }
+}

@@ -142,6 +142,12 @@ pub trait Integrator: Send + Sync {
     }
     /// After a pass, `done` samples per pixel in all.
     fn end_pass(&mut self, _scene: &Scene, _done: u32) {}
+
+    /// After the last pass, before the image is written (the cone integrator saves its
+    /// stored light here).
+    fn finish(&mut self, _scene: &Scene) -> anyhow::Result<()> {
+        Ok(())
+    }
     /// What ran and why, for the stats' `passes`.
     fn passes(&self) -> Vec<String>;
     fn stats(&self) -> Stats;

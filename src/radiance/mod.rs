@@ -7,6 +7,7 @@
 //! so the hit triangle's own albedo multiplies it: a leaf mixes up to 8 triangles and their
 //! materials, and the average incident light is what they share.
 
+pub mod file;
 mod keys;
 mod pull;
 
@@ -207,6 +208,40 @@ impl RadianceStore {
 
     pub fn bytes(&self) -> u64 {
         self.len() as u64 * ENTRY_BYTES
+    }
+
+    /// Every entry, by key.
+    pub fn sorted(&self) -> Vec<(u64, Entry)> {
+        let mut all: Vec<(u64, Entry)> = self
+            .shards
+            .iter()
+            .flat_map(|s| {
+                let m = s.lock().expect("store");
+                m.iter().map(|(k, e)| (*k, *e)).collect::<Vec<_>>()
+            })
+            .collect();
+        all.sort_unstable_by_key(|(k, _)| *k);
+        all
+    }
+
+    /// Starts from saved entries and photon count (`file::load`); None if the budget's
+    /// share cannot hold them.
+    pub fn restore(&self, entries: Vec<(u64, Entry)>, photons: u64) -> Option<()> {
+        if entries.len() > self.max_entries {
+            return None;
+        }
+        for (k, e) in entries {
+            if self.shard(k).lock().expect("store").insert(k, e).is_none() {
+                self.entries.fetch_add(1, Relaxed);
+            }
+        }
+        self.photons.store(photons, Relaxed);
+        Some(())
+    }
+
+    /// Entries the budget's share allows.
+    pub fn capacity(&self) -> usize {
+        self.max_entries
     }
 
     /// Nodes whose counter reached the limit.

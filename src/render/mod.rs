@@ -163,6 +163,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         }
     }
     bar.finish_and_clear();
+    integ.finish(scene)?;
     seconds.render = t1.elapsed().as_secs_f64();
     seconds.parts.extend(integ.seconds());
     scene.cache.stop_prefetch();

@@ -2,6 +2,8 @@
 # Renders one frame on a Slurm cluster as horizontal tiles: a job array with one task per
 # tile (`canopy render --crop`, each under its own --mem), then an assembly job that runs
 # once every tile succeeded (`canopy assemble`, --dependency=afterok). Prints the job ids.
+# With --integrator cone, a pre-pass at a quarter of the resolution writes the stored light
+# (--store-out) and every tile starts from it (--store-in), so tiles show no seams.
 #
 #   canopy-frame.sh ARCHIVE OUT.exr --tiles N --width W --height H [--concurrent K]
 #                   [render options, e.g. --spp 256 --seed 1 --mem-budget 2GiB]
@@ -10,7 +12,6 @@
 # node sees. The canopy binary is $CANOPY (default: canopy on PATH), also as every node
 # sees it. --mem per task is --mem-budget plus 256 MiB for code, film and buffers (2 GiB
 # without a budget). --concurrent K runs at most K tiles at once (sbatch --array=...%K).
-# Without a shared light store, tiles of the cone integrator learn their light apart.
 set -euo pipefail
 
 usage() {
@@ -28,7 +29,7 @@ archive=$1
 out=$2
 shift 2
 canopy=${CANOPY:-canopy}
-tiles='' width='' height='' budget='' concurrent=''
+tiles='' width='' height='' budget='' concurrent='' integrator=path
 opts=()
 while [ $# -gt 0 ]; do
     case $1 in
@@ -37,8 +38,10 @@ while [ $# -gt 0 ]; do
     case $1 in
         --tiles) tiles=${2-}; shift 2 ;;
         --concurrent) concurrent=${2-}; shift 2 ;;
-        --width) width=${2-}; opts+=(--width "$width"); shift 2 ;;
-        --height) height=${2-}; opts+=(--height "$height"); shift 2 ;;
+        --width) width=${2-}; shift 2 ;;
+        --height) height=${2-}; shift 2 ;;
+        --integrator) [ $# -ge 2 ] || fail "$1 needs a value"; integrator=$2; opts+=("$1" "$2"); shift 2 ;;
+        --store-in|--store-out) fail "$1 is set by canopy-frame.sh (the pre-pass writes the store)" ;;
         --mem-budget) budget=${2-}; opts+=(--mem-budget "$budget"); shift 2 ;;
         --crop|-o|--output|--stats) fail "$1 is set by canopy-frame.sh per tile" ;;
         -h|--help) usage ;;
@@ -74,14 +77,35 @@ dir="$out.tiles"
 mkdir -p "$dir"
 canopy=$(command -v "$canopy")
 
+# Each argument shell-quoted after a space (nothing for none).
+quoted() { for a in "$@"; do printf ' %q' "$a"; done; }
+shared=()
+after=()
+if [ "$integrator" = cone ]; then
+    shared=(--store-in "$dir/light.store")
+    {
+        echo '#!/usr/bin/env bash'
+        printf 'exec %q --quiet render %q -o %q --store-out %q --width %d --height %d' \
+            "$canopy" "$archive" "$dir/prepass.exr" "$dir/light.store" \
+            $(( (width + 3) / 4 )) $(( (height + 3) / 4 ))
+        quoted "${opts[@]}"
+        echo
+    } > "$dir/prepass.sh"
+    chmod +x "$dir/prepass.sh"
+    pre=$(sbatch --parsable --job-name=canopy-prepass --mem="${mem}M" -o "$dir/prepass.log" \
+        "$dir/prepass.sh")
+    pre=${pre%%;*}
+    after=(--dependency="afterok:$pre")
+    echo "pre-pass: job $pre (stored light -> $dir/light.store)"
+fi
 {
     echo '#!/usr/bin/env bash'
     echo 'set -euo pipefail'
     echo "i=\$SLURM_ARRAY_TASK_ID"
     echo "y0=\$(( i * $height / $tiles )); y1=\$(( (i + 1) * $height / $tiles ))"
-    printf 'exec %q --quiet render %q -o %q --crop 0,%d,$y0,$y1 --stats %q' \
-        "$canopy" "$archive" "$dir/tile_\$i.exr" "$width" "$dir/tile_\$i.json"
-    printf ' %q' "${opts[@]}"
+    printf 'exec %q --quiet render %q -o %q --crop 0,%d,$y0,$y1 --stats %q --width %d --height %d' \
+        "$canopy" "$archive" "$dir/tile_\$i.exr" "$width" "$dir/tile_\$i.json" "$width" "$height"
+    quoted "${opts[@]}" "${shared[@]}"
     echo
 } > "$dir/tile.sh"
 # %q quotes the $ of the task's variables; let the task's shell expand them.
@@ -95,7 +119,7 @@ sed -i 's/\\\$i/$i/g; s/\\\$y0/$y0/g; s/\\\$y1/$y1/g' "$dir/tile.sh"
 chmod +x "$dir/tile.sh" "$dir/assemble.sh"
 
 range="0-$((tiles - 1))${concurrent:+%$concurrent}"
-array=$(sbatch --parsable --job-name=canopy-tile --array="$range" --mem="${mem}M" \
+array=$(sbatch --parsable --job-name=canopy-tile --array="$range" --mem="${mem}M" "${after[@]}" \
     --cpus-per-task=1 -o "$dir/tile_%a.log" "$dir/tile.sh")
 array=${array%%;*}
 assembly=$(sbatch --parsable --job-name=canopy-assemble --dependency="afterok:$array" \

@@ -114,6 +114,15 @@ pub struct ConeSettings {
     /// shading. 0 turns it off.
     #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(0..=256))]
     pub edge_rays: u32,
+    /// Start from the stored light in this file (written by `--store-out` from the same
+    /// archive and --cone-samples): tiles of one frame that start from one pre-pass's light
+    /// show no seams. The render still adds its own samples.
+    #[arg(long, value_name = "LIGHT.store")]
+    pub store_in: Option<std::path::PathBuf>,
+    /// Write the stored light to this file when the render ends (FORMAT.md, "The light
+    /// store file").
+    #[arg(long, value_name = "LIGHT.store")]
+    pub store_out: Option<std::path::PathBuf>,
 }
 
 impl Default for ConeSettings {
@@ -246,6 +255,9 @@ impl Integrator for ConeIntegrator {
     }
 
     fn begin_pass(&mut self, scene: &Scene, first: u32, count: u32) -> anyhow::Result<u64> {
+        if let (0, Some(path)) = (first, &self.settings.store_in) {
+            crate::radiance::file::load(&self.store, &scene.cache.archive.header, path)?;
+        }
         let start = Instant::now();
         self.store.begin_pass(first + count);
         let mut rays = 0;
@@ -288,6 +300,14 @@ impl Integrator for ConeIntegrator {
             acc + v
         });
         rest + sum / k as f32
+    }
+
+    fn finish(&mut self, scene: &Scene) -> anyhow::Result<()> {
+        if let Some(path) = &self.settings.store_out {
+            pull(&scene.cache, &self.store, self.keys);
+            crate::radiance::file::save(&self.store, &scene.cache.archive.header, path)?;
+        }
+        Ok(())
     }
 
     /// Pull after passes 1, 2, 4, 8 and then every 8th: a pull walks every resident page,
