@@ -89,8 +89,8 @@ pub struct Target {
     pub seed: u32,
     /// Pixels of the full image.
     pub pixels: u64,
-    /// Width and height of the window rendered (`--crop`, else the image).
-    pub window: [u32; 2],
+    /// The window rendered in image pixels, x0, x1, y0, y1 (`--crop`, else the image).
+    pub window: [u32; 4],
     /// Bytes the integrator's state may take (None: unbounded).
     pub state_bytes: Option<u64>,
 }

@@ -81,7 +81,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     let target = Target {
         seed: o.seed,
         pixels: s.width as u64 * s.height as u64,
-        window: [film.width(), film.height()],
+        window: s.window,
         state_bytes: s.state_bytes,
     };
     let mut integ = o.integrator.build(scene, &target);

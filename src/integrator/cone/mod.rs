@@ -163,9 +163,12 @@ pub struct ConeIntegrator {
     light_pass: (bool, String),
     photons: u32,
     deposits: u64,
-    /// Per pixel of the window: primary samples that saw emission and that did not.
+    /// Per pixel of the apron: primary samples that saw emission and that did not.
     seen: Vec<[AtomicU32; 2]>,
-    window_width: u32,
+    /// The window rendered, and the apron: the window and the pixels around it, inside
+    /// the image (x0, x1, y0, y1). A tile's edge mask needs its neighbours' samples.
+    window: [u32; 4],
+    apron: [u32; 4],
     /// Pixels taking edge rays this pass.
     edge: Vec<bool>,
     pull_s: f64,
@@ -176,7 +179,14 @@ impl ConeIntegrator {
     pub fn new(settings: &ConeSettings, scene: &Scene, target: &Target) -> ConeIntegrator {
         let archive = &scene.cache.archive;
         let cam = &scene.camera;
-        let [w, h] = target.window;
+        let window = target.window;
+        let apron = [
+            window[0].saturating_sub(1),
+            (window[1] + 1).min(cam.width),
+            window[2].saturating_sub(1),
+            (window[3] + 1).min(cam.height),
+        ];
+        let (w, h) = (apron[1] - apron[0], apron[3] - apron[2]);
         ConeIntegrator {
             settings: settings.clone(),
             store: RadianceStore::new(
@@ -201,14 +211,18 @@ impl ConeIntegrator {
             seen: (0..w as usize * h as usize)
                 .map(|_| Default::default())
                 .collect(),
-            window_width: w,
+            window,
+            apron,
             edge: Vec::new(),
             pull_s: 0.0,
             light_s: 0.0,
         }
     }
 
-    fn tally(&self, at: usize, v: V) {
+    /// Counts whether a primary sample of image pixel (x, y) saw emission.
+    fn tally(&self, x: u32, y: u32, v: V) {
+        let [x0, x1, y0, _] = self.apron;
+        let at = (y.wrapping_sub(y0) * (x1 - x0) + x.wrapping_sub(x0)) as usize;
         if let Some(n) = self.seen.get(at) {
             let n = &n[usize::from(v.max_element() <= 0.0)];
             n.fetch_update(Relaxed, Relaxed, |x| Some(x.saturating_add(1)))
@@ -222,7 +236,40 @@ impl ConeIntegrator {
             .iter()
             .map(|s| s.each_ref().map(|n| n.load(Relaxed)))
             .collect();
-        edge_mask(&seen, self.window_width)
+        let [ax0, ax1, ay0, _] = self.apron;
+        let [x0, x1, y0, y1] = self.window;
+        let mask = edge_mask(&seen, ax1 - ax0);
+        (y0..y1)
+            .flat_map(|y| (x0..x1).map(move |x| ((y - ay0) * (ax1 - ax0) + x - ax0) as usize))
+            .map(|i| mask[i])
+            .collect()
+    }
+
+    /// The primary samples `first..first + count` of the apron's pixels outside the
+    /// window, tallied as a full-frame render tallies them (the same sample positions), so
+    /// a tile's edge mask at its border is the whole frame's there: without them a tile
+    /// found other silhouettes at its border rows, a seam (sponza, 8 tiles, 4 spp: border
+    /// rows 17× the interior's row-to-row change).
+    fn tally_apron(&self, scene: &Scene, first: u32, count: u32) -> u64 {
+        let ([ax0, ax1, ay0, ay1], [x0, x1, y0, y1]) = (self.apron, self.window);
+        let cam = &scene.camera;
+        let mut tr = Tracer::new(&scene.cache);
+        let mut c = Counters::default();
+        for y in ay0..ay1 {
+            for x in ax0..ax1 {
+                if (x0..x1).contains(&x) && (y0..y1).contains(&y) {
+                    continue;
+                }
+                for index in first..first + count {
+                    let [jx, jy, ..] =
+                        PixelSampler::new(self.seed, y * cam.width + x, index).get4(0);
+                    let r = cam.ray(x as f32 + jx, y as f32 + jy);
+                    let v = seen_emission(scene, &mut tr, &r, &self.primary, &mut c);
+                    self.tally(x, y, v);
+                }
+            }
+        }
+        tr.rays
     }
 }
 
@@ -276,13 +323,14 @@ impl Integrator for ConeIntegrator {
         }
         if self.settings.edge_rays > 0 {
             self.edge = self.edge_mask();
+            rays += self.tally_apron(scene, first, count);
         }
         Ok(rays)
     }
 
     fn sample(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample, c: &mut Counters) -> V {
         let (rest, own) = self.radiance(scene, tr, px.ray, &px.sampler, c);
-        self.tally(px.at, own);
+        self.tally(px.x, px.y, own);
         // At an emitter's silhouette (found by earlier passes) the emission seen is
         // averaged over `edge_rays` positions of a denser stratified sequence: an unbiased
         // estimate of the same pixel integral, each ray a primary cone without shading.
@@ -295,9 +343,7 @@ impl Integrator for ConeIntegrator {
             let index = px.index.wrapping_mul(k).wrapping_add(j);
             let [ex, ey, ..] = PixelSampler::new(self.seed ^ EDGE_SEED, pixel, index).get4(0);
             let r = scene.camera.ray(px.x as f32 + ex, px.y as f32 + ey);
-            let v = seen_emission(scene, tr, &r, &self.primary, c);
-            self.tally(px.at, v);
-            acc + v
+            acc + seen_emission(scene, tr, &r, &self.primary, c)
         });
         rest + sum / k as f32
     }
