@@ -216,8 +216,21 @@ fn cone_tiles_show_no_seam_at_their_borders() {
     convert(&scene("sponza.glb"), &arc, None);
     let render = |out: &Path, crop: Option<String>| {
         let mut args = vec![
-            "--quiet", "render", s(&arc), "-o", s(out), "--integrator", "cone", "--width",
-            "128", "--height", "128", "--spp", "4", "--seed", "6",
+            "--quiet",
+            "render",
+            s(&arc),
+            "-o",
+            s(out),
+            "--integrator",
+            "cone",
+            "--width",
+            "128",
+            "--height",
+            "128",
+            "--spp",
+            "4",
+            "--seed",
+            "6",
         ];
         let crop = crop.unwrap_or_default();
         if !crop.is_empty() {
@@ -238,11 +251,17 @@ fn cone_tiles_show_no_seam_at_their_borders() {
     args.extend(["-o", s(&full)]);
     ok(&args);
     let one = render(&dir.path().join("one.exr"), None);
-    let rows = row_means(&Image::read_exr(&full).unwrap(), &Image::read_exr(&one).unwrap());
+    let rows = row_means(
+        &Image::read_exr(&full).unwrap(),
+        &Image::read_exr(&one).unwrap(),
+    );
     let jump = |k: usize| (rows[k + 1] - rows[k]).abs();
     let border: Vec<f64> = (1..8).map(|t| jump(16 * t - 1)).collect();
     let interior: Vec<f64> = (0..127).filter(|k| (k + 1) % 16 != 0).map(jump).collect();
     let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
     let (b, i) = (mean(&border), mean(&interior));
-    assert!(b < 2.0 * i, "border row jump {b:.5} vs interior {i:.5}: {border:?}");
+    assert!(
+        b < 2.0 * i,
+        "border row jump {b:.5} vs interior {i:.5}: {border:?}"
+    );
 }
