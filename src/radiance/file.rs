@@ -6,6 +6,7 @@
 use super::{Entry, RadianceStore};
 use anyhow::{bail, Context, Result};
 use bytemuck::{Pod, Zeroable};
+use canopy_format::atomic::AtomicFile;
 use canopy_format::Header;
 use std::path::Path;
 
@@ -58,7 +59,7 @@ fn checksum(h: &StoreHeader) -> u64 {
     xxhash_rust::xxh3::xxh3_64(bytemuck::bytes_of(&c))
 }
 
-/// Writes `store` for the archive of header `a` to `path`, atomically.
+/// Writes `store` for the archive of header `a` to `path`: the file appears only complete.
 pub fn save(store: &RadianceStore, a: &Header, path: &Path) -> Result<u64> {
     let records: Vec<Record> = store
         .sorted()
@@ -89,11 +90,10 @@ pub fn save(store: &RadianceStore, a: &Header, path: &Path) -> Result<u64> {
         ..Zeroable::zeroed()
     };
     h.header_checksum = checksum(&h);
-    crate::image::write_atomically(path, |tmp| {
-        let mut bytes = bytemuck::bytes_of(&h).to_vec();
-        bytes.extend_from_slice(&body);
-        Ok(std::fs::write(tmp, bytes)?)
-    })?;
+    // The archive writer's atomic file: the header goes in last, the name only once whole.
+    let mut out = AtomicFile::create(path, 128)?;
+    out.write_all(&body)?;
+    out.commit(bytemuck::bytes_of(&h))?;
     Ok(records.len() as u64)
 }
 
