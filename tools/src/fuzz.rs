@@ -45,7 +45,7 @@ pub const CLASSES: [&str; 9] = [
     "archive: truncated or extended",
     "archive: header field, checksums recomputed",
     "archive: page-table field, checksums recomputed",
-    "archive: material/camera/light field, checksums recomputed",
+    "archive: material/camera/light/instance field, checksums recomputed",
     "archive: decoded page bytes (nodes, links, triangles, vertices), recompressed and rechecksummed",
     "archive: page tree rewired (DAG, cycle, shared child), rechecksummed",
     "input: glTF JSON value replaced (accessors, views, buffers, strides, types)",
@@ -237,10 +237,11 @@ pub fn mutate_archive(base: &Parts, raw: &[u8], rng: &mut Rng) -> (usize, Vec<u8
             p.assemble()
         }
         4 => {
-            match rng.below(3) {
+            match rng.below(4) {
                 0 => poke_record(&mut p.materials, rng),
                 1 => poke_record(&mut p.cameras, rng),
-                _ => poke_record(&mut p.lights, rng),
+                2 => poke_record(&mut p.lights, rng),
+                _ => poke_record(&mut p.instances, rng),
             }
             p.assemble()
         }
