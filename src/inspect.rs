@@ -33,6 +33,9 @@ pub struct Summary {
     pub materials: Vec<String>,
     pub cameras: Vec<String>,
     pub lights: usize,
+    /// Placements of prototypes, and the distinct prototypes they place.
+    pub instances: usize,
+    pub prototypes: usize,
     pub bounds_min: [f32; 3],
     pub bounds_max: [f32; 3],
     pub verified: bool,
@@ -126,6 +129,13 @@ pub fn summarize(a: &Archive) -> Result<Summary> {
             .map(|c| format!("{} {}x{}", name_str(&c.name), c.width, c.height))
             .collect(),
         lights: a.lights.len(),
+        instances: a.instances.len(),
+        prototypes: {
+            let mut p: Vec<u32> = a.instances.iter().map(|i| i.prototype_page).collect();
+            p.sort_unstable();
+            p.dedup();
+            p.len()
+        },
         bounds_min: h.bounds_min,
         bounds_max: h.bounds_max,
         verified: false,
@@ -212,6 +222,13 @@ impl std::fmt::Display for Summary {
         )?;
         writeln!(f, "  cameras             {}", list_or_none(&s.cameras))?;
         writeln!(f, "  punctual lights     {}", s.lights)?;
+        if s.instances > 0 {
+            writeln!(
+                f,
+                "  instances           {} of {} prototypes",
+                s.instances, s.prototypes
+            )?;
+        }
         writeln!(
             f,
             "  bounds              {:?} .. {:?}",

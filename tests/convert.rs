@@ -369,6 +369,11 @@ fn gpu_instanced_meshes_are_stored_once() {
     assert!(mesh > 0 && flat.triangles == base.triangles + 2 * mesh);
     assert_eq!(flat.features & Features::INSTANCES, 0);
     assert_ne!(shared.features & Features::INSTANCES, 0);
+    let report = ok(&["inspect", s(&input.with_extension("canopy"))]);
+    assert!(
+        report.contains("instances           3 of 1 prototypes"),
+        "{report}"
+    );
     assert_eq!(shared.input_triangles, flat.triangles);
     assert_eq!(shared.triangles, base.triangles);
     assert!(
