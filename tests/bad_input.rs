@@ -617,8 +617,9 @@ fn a_cone_flag_under_the_path_tracer_is_an_error_naming_it() {
     ok(&args);
 }
 
-/// `npp` and `eval` take `--integrators`; a single `--integrator` or a noise target that is
-/// not a positive number is a usage error (status 2) that says so.
+/// `npp` and `eval` take `--integrators`; a single `--integrator`, a noise target that is
+/// not a positive number or a `--store-out` (each cone run would overwrite it) is a usage
+/// error (status 2) that says so.
 #[test]
 fn npp_and_eval_refuse_a_single_integrator_and_a_bad_noise_target() {
     let dir = tempfile::tempdir().unwrap();
@@ -637,6 +638,10 @@ fn npp_and_eval_refuse_a_single_integrator_and_a_bad_noise_target() {
         (vec!["npp", a, "-o", d, "--noise", "0"], "positive"),
         (vec!["npp", a, "-o", d, "--noise", "NaN"], "positive"),
         (vec!["npp", a, "-o", d, "--spp", "0"], "--spp"),
+        (
+            vec!["eval", a, "--reference", a, "--store-out", "x.store"],
+            "--store-out applies to canopy render",
+        ),
     ] {
         let run = canopy(&args);
         let err = String::from_utf8_lossy(&run.stderr);

@@ -116,12 +116,20 @@ fn reject_unused(name: &str, sub: &ArgMatches, kinds: &[Kind]) {
     }
 }
 
-/// `npp` and `eval` run every integrator of `--integrators`; `--integrator` would be ignored.
+/// `npp` and `eval` run every integrator of `--integrators`; `--integrator` would be ignored,
+/// and `--store-out` overwritten by each run.
 fn reject_single_integrator(name: &str, sub: &ArgMatches) {
     if sub.value_source("integrator") == Some(ValueSource::CommandLine) {
         conflict(
             name,
             "--integrator does not apply here; use --integrators (a list, e.g. path,cone)".into(),
+        );
+    }
+    // Every cone run of a sweep would write the store over the last one's.
+    if sub.value_source("store_out") == Some(ValueSource::CommandLine) {
+        conflict(
+            name,
+            "--store-out applies to canopy render (one render, one store)".into(),
         );
     }
 }
