@@ -32,20 +32,9 @@ impl Image {
         s.map(|v| v / self.pixels.len().max(1) as f64)
     }
 
+    /// An OpenEXR image's pixels (its data window), wherever it lies in its frame.
     pub fn read_exr(path: &Path) -> Result<Image> {
-        if !path.exists() {
-            bail!("{}: no such file", path.display());
-        }
-        let img = exr::prelude::read_first_rgba_layer_from_file(
-            path,
-            |res, _| Image::new(res.width() as u32, res.height() as u32),
-            |img: &mut Image, pos, (r, g, b, _a): (f32, f32, f32, f32)| {
-                let i = pos.y() * img.width as usize + pos.x();
-                img.pixels[i] = [r, g, b];
-            },
-        )
-        .with_context(|| format!("{}: not a readable OpenEXR image", path.display()))?;
-        Ok(img.layer_data.channel_data.pixels)
+        Ok(Self::read_exr_framed(path)?.0)
     }
 
     pub fn write_exr(&self, path: &Path) -> Result<()> {

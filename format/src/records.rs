@@ -127,12 +127,14 @@ impl InstanceRecord {
         [0, 1, 2].map(|r| [0, 1, 2, 3].map(|c| t[c * 3 + r] as f64))
     }
 
+    /// The transform's 3×3 part, rows.
+    pub fn linear(&self) -> [[f64; 3]; 3] {
+        self.matrix().map(|row| [row[0], row[1], row[2]])
+    }
+
     /// The determinant of the transform's 3×3 part, in f64.
     pub fn det(&self) -> f64 {
-        let m = self.matrix();
-        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
+        det3(&self.linear())
     }
 
     /// A box holding the image of box `lo..hi` under the transform in every IEEE-correct
@@ -164,6 +166,23 @@ impl InstanceRecord {
             [0, 1, 2].map(|r| round_up(out_hi[r] + pad(r))),
         )
     }
+}
+
+/// The cofactor matrix of `a`: cof[r][c] = (−1)^(r+c) × the minor of a[r][c], so that
+/// det a = Σ_c a[0][c]·cof[0][c] and a⁻¹ = cofᵀ / det a.
+pub fn cofactors3(a: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
+    std::array::from_fn(|r| {
+        std::array::from_fn(|c| {
+            let (r1, r2, c1, c2) = ((r + 1) % 3, (r + 2) % 3, (c + 1) % 3, (c + 2) % 3);
+            a[r1][c1] * a[r2][c2] - a[r1][c2] * a[r2][c1]
+        })
+    })
+}
+
+/// The determinant of `a`.
+pub fn det3(a: &[[f64; 3]; 3]) -> f64 {
+    let cof = cofactors3(a);
+    (0..3).map(|c| a[0][c] * cof[0][c]).sum()
 }
 
 /// The largest f32 ≤ x.

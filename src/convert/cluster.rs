@@ -3,6 +3,7 @@
 //! normals and deliberately not normalized.
 
 use canopy_format::codec::{f16_encode, rgbe64_encode, snorm16, unorm8};
+use canopy_format::{cofactors3, det3};
 use canopy_format::{MaterialRecord, Node, NodeFlags};
 
 /// cos θ at which the Fresnel table is sampled (004 §4.3.1, five samples).
@@ -106,10 +107,7 @@ fn largest_singular_value(m: &[[f64; 4]; 3]) -> f64 {
     let b: [[f64; 3]; 3] = std::array::from_fn(|i| {
         std::array::from_fn(|j| (a[i][j] - if i == j { q } else { 0.0 }) / p)
     });
-    let det_b = b[0][0] * (b[1][1] * b[2][2] - b[1][2] * b[2][1])
-        - b[0][1] * (b[1][0] * b[2][2] - b[1][2] * b[2][0])
-        + b[0][2] * (b[1][0] * b[2][1] - b[1][1] * b[2][0]);
-    let phi = (det_b / 2.0).clamp(-1.0, 1.0).acos() / 3.0;
+    let phi = (det3(&b) / 2.0).clamp(-1.0, 1.0).acos() / 3.0;
     (q + 2.0 * p * phi.cos()).max(0.0).sqrt()
 }
 
@@ -197,23 +195,20 @@ impl Cluster {
     }
 
     /// The cluster of a subtree's image under the affine map `m` (rows, column 3 the
-    /// translation) with determinant `det`: the means of its materials are unchanged; the
+    /// translation): the means of its materials are unchanged; the
     /// centroid is mapped; the radius grows by the largest singular value; area scales by
     /// |det|^⅔ and curvature by |det|^−⅓ (exact for rotations, uniform scales, mirrors and
     /// translations; a mean over a non-uniform stretch would need every triangle); the
     /// normal sum maps by the cofactor matrix det·M⁻ᵀ (how a stretched triangle's
     /// e1 × e2 maps, winding reversed by mirrors), scaled so its length keeps meaning
     /// coherence (at most 1).
-    pub fn transformed(&self, m: &[[f64; 4]; 3], det: f64) -> Cluster {
+    pub fn transformed(&self, m: &[[f64; 4]; 3]) -> Cluster {
+        let linear = m.map(|row| [row[0], row[1], row[2]]);
+        let (cof, det) = (cofactors3(&linear), det3(&linear));
         let s2 = det.abs().powf(2.0 / 3.0);
         let map = |p: [f64; 3]| [0, 1, 2].map(|r| (0..3).map(|c| m[r][c] * p[c]).sum::<f64>());
-        let cof = |r: usize, c: usize| {
-            let (r1, r2) = ((r + 1) % 3, (r + 2) % 3);
-            let (c1, c2) = ((c + 1) % 3, (c + 2) % 3);
-            m[r1][c1] * m[r2][c2] - m[r1][c2] * m[r2][c1]
-        };
         let n = self.normal.map(f64::from);
-        let mut normal = [0, 1, 2].map(|r| (0..3).map(|c| cof(r, c) * n[c]).sum::<f64>() / s2);
+        let mut normal = [0, 1, 2].map(|r| (0..3).map(|c| cof[r][c] * n[c]).sum::<f64>() / s2);
         let len = normal.iter().map(|x| x * x).sum::<f64>().sqrt();
         let w = self.weight as f64;
         if len > w {
@@ -283,12 +278,6 @@ mod tests {
         })
     }
 
-    fn det(m: &[[f64; 4]; 3]) -> f64 {
-        m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0])
-    }
-
     /// A transformed cluster's sphere holds every mapped vertex (any affine map), and its
     /// area and normal are what the mapped triangles' would give for rotations, uniform
     /// scales and mirrors.
@@ -317,7 +306,7 @@ mod tests {
                 false => [sign * k, 0.2 + rng.f64(), 1.0 + rng.f64() * 4.0],
             };
             let map = affine(&mut rng, s);
-            let got = sum(&tris).transformed(&map, det(&map));
+            let got = sum(&tris).transformed(&map);
             let moved: Vec<[[f32; 3]; 3]> = tris
                 .iter()
                 .map(|t| {

@@ -84,7 +84,7 @@ pub fn build(
             kind: Kind::Instance {
                 index: placed.records.len() as u32,
             },
-            cluster: root.cluster.transformed(&record.matrix(), record.det()),
+            cluster: root.cluster.transformed(&record.matrix()),
             height: 0,
         });
         placed.records.push(record);

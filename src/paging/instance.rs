@@ -13,6 +13,8 @@ pub struct Instance {
     pub page: u32,
     pub to_world: Rows,
     pub to_object: Rows,
+    /// How the transform scales curvature: |det|^−⅓ (exact for uniform scales).
+    pub curvature_scale: f32,
 }
 
 impl Instance {
@@ -21,13 +23,9 @@ impl Instance {
     pub fn new(r: &InstanceRecord) -> Instance {
         let m = r.matrix();
         let det = r.det();
-        let cof = |r: usize, c: usize| {
-            let (r1, r2) = ((r + 1) % 3, (r + 2) % 3);
-            let (c1, c2) = ((c + 1) % 3, (c + 2) % 3);
-            m[r1][c1] * m[r2][c2] - m[r1][c2] * m[r2][c1]
-        };
+        let cof = canopy_format::cofactors3(&r.linear());
         // The inverse of the linear part is the transposed cofactor matrix over det.
-        let inv: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| cof(j, i) / det));
+        let inv: [[f64; 3]; 3] = std::array::from_fn(|i| std::array::from_fn(|j| cof[j][i] / det));
         let to_object = std::array::from_fn(|i| {
             let t = -(0..3).map(|j| inv[i][j] * m[j][3]).sum::<f64>();
             [
@@ -41,15 +39,7 @@ impl Instance {
             page: r.prototype_page,
             to_world: m.map(|row| row.map(|x| x as f32)),
             to_object,
+            curvature_scale: det.abs().cbrt().recip() as f32,
         }
-    }
-
-    /// How the transform scales curvature: |det|^−⅓ (exact for uniform scales).
-    pub fn curvature_scale(&self) -> f32 {
-        let m = &self.to_world;
-        let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
-            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
-            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
-        det.abs().cbrt().recip()
     }
 }

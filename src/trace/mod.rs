@@ -103,7 +103,7 @@ impl Hit {
         let (p, err) = instance::to_world(placed_by, self.tri.p);
         self.tri.p = p;
         self.transform_err = err;
-        self.curvature *= placed_by.curvature_scale();
+        self.curvature *= placed_by.curvature_scale;
         self
     }
 

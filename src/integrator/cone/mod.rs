@@ -169,6 +169,8 @@ pub struct ConeIntegrator {
     /// the image (x0, x1, y0, y1). A tile's edge mask needs its neighbours' samples.
     window: [u32; 4],
     apron: [u32; 4],
+    /// The apron's pixels outside the window (none for a whole frame).
+    ring: Vec<[u32; 2]>,
     /// Pixels taking edge rays this pass.
     edge: Vec<bool>,
     pull_s: f64,
@@ -213,6 +215,12 @@ impl ConeIntegrator {
                 .collect(),
             window,
             apron,
+            ring: (apron[2]..apron[3])
+                .flat_map(|y| (apron[0]..apron[1]).map(move |x| [x, y]))
+                .filter(|&[x, y]| {
+                    !(window[0]..window[1]).contains(&x) || !(window[2]..window[3]).contains(&y)
+                })
+                .collect(),
             edge: Vec::new(),
             pull_s: 0.0,
             light_s: 0.0,
@@ -245,28 +253,24 @@ impl ConeIntegrator {
             .collect()
     }
 
-    /// The primary samples `first..first + count` of the apron's pixels outside the
-    /// window, tallied as a full-frame render tallies them (the same sample positions), so
-    /// a tile's edge mask at its border is the whole frame's there: without them a tile
-    /// found other silhouettes at its border rows, a seam (sponza, 8 tiles, 4 spp: border
-    /// rows 17× the interior's row-to-row change).
+    /// The primary samples `first..first + count` of the ring's pixels, tallied as a
+    /// full-frame render tallies them (the same sample positions), so a tile's edge mask
+    /// at its border is the whole frame's there: without them a tile found other
+    /// silhouettes at its border rows, a seam (sponza, 8 tiles, 4 spp: the worst border
+    /// row's jump 17× the interior rows' mean).
     fn tally_apron(&self, scene: &Scene, first: u32, count: u32) -> u64 {
-        let ([ax0, ax1, ay0, ay1], [x0, x1, y0, y1]) = (self.apron, self.window);
+        if self.ring.is_empty() {
+            return 0;
+        }
         let cam = &scene.camera;
         let mut tr = Tracer::new(&scene.cache);
         let mut c = Counters::default();
-        for y in ay0..ay1 {
-            for x in ax0..ax1 {
-                if (x0..x1).contains(&x) && (y0..y1).contains(&y) {
-                    continue;
-                }
-                for index in first..first + count {
-                    let [jx, jy, ..] =
-                        PixelSampler::new(self.seed, y * cam.width + x, index).get4(0);
-                    let r = cam.ray(x as f32 + jx, y as f32 + jy);
-                    let v = seen_emission(scene, &mut tr, &r, &self.primary, &mut c);
-                    self.tally(x, y, v);
-                }
+        for &[x, y] in &self.ring {
+            for index in first..first + count {
+                let [jx, jy, ..] = PixelSampler::new(self.seed, y * cam.width + x, index).get4(0);
+                let r = cam.ray(x as f32 + jx, y as f32 + jy);
+                let v = seen_emission(scene, &mut tr, &r, &self.primary, &mut c);
+                self.tally(x, y, v);
             }
         }
         tr.rays
