@@ -19,6 +19,7 @@ pub mod sampler;
 pub mod sweep;
 #[cfg(test)]
 mod test_rng;
+pub mod texture;
 pub mod trace;
 pub mod units;
 pub mod wavelet;

@@ -33,6 +33,8 @@ pub struct Material {
     pub specular_color: V,
     pub emission: V,
     pub double_sided: bool,
+    /// baseColorFactor's alpha (textures multiply theirs in).
+    pub opacity: f32,
 }
 
 impl Material {
@@ -48,6 +50,7 @@ impl Material {
             specular_color: V::from(m.specular_color).max(V::ZERO),
             emission: V::from(m.emission).max(V::ZERO),
             double_sided: m.flags & MaterialRecord::DOUBLE_SIDED != 0,
+            opacity: m.base_color[3].clamp(0.0, 1.0),
         }
     }
 

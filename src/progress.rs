@@ -39,3 +39,15 @@ pub fn counter(enabled: bool, what: &str, unit: &str) -> ProgressBar {
     b.set_message(what.to_string());
     b
 }
+
+/// Peak resident set of this process (VmHWM), 0 where /proc is unavailable.
+pub fn peak_rss_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1)?.parse::<u64>().ok())
+        })
+        .map_or(0, |kb| kb * 1024)
+}

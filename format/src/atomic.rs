@@ -79,6 +79,11 @@ impl AtomicFile {
         })
     }
 
+    /// The path the file will have.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
     /// Bytes written so far.
     pub fn len(&self) -> u64 {
         self.len

@@ -5,6 +5,8 @@
 const RGBE_BITS: [u32; 3] = [19, 19, 18];
 const RGBE_BIAS: i32 = 128;
 
+use std::sync::OnceLock;
+
 /// Encodes a non-negative RGB radiance as E8R19G19B18 (bits 63..56 exponent, then R, G, B).
 ///
 /// Negative, NaN and values below 2^-128 encode as zero; values are clamped to 2^127.
@@ -53,6 +55,41 @@ pub fn rgbe64_decode(bits: u64) -> [f32; 3] {
 }
 
 /// [0, 1] as value/255, rounded to nearest. Error <= 0.5/255; out-of-range input is clamped.
+/// sRGB-encoded byte to linear (IEC 61966-2-1).
+pub fn srgb_to_linear(c: u8) -> f32 {
+    static LUT: OnceLock<[f32; 256]> = OnceLock::new();
+    LUT.get_or_init(|| {
+        std::array::from_fn(|i| {
+            let v = i as f32 / 255.0;
+            if v <= 0.04045 {
+                v / 12.92
+            } else {
+                ((v + 0.055) / 1.055).powf(2.4)
+            }
+        })
+    })[c as usize]
+}
+
+/// Linear value in [0, 1] to the nearest sRGB-encoded byte (a 2¹⁶-entry table: its step is
+/// under a twentieth of a byte even at the dark end).
+pub fn linear_to_srgb(v: f32) -> u8 {
+    static LUT: OnceLock<Vec<u8>> = OnceLock::new();
+    let lut = LUT.get_or_init(|| {
+        (0..=65535u32)
+            .map(|i| {
+                let v = i as f32 / 65535.0;
+                let s = if v <= 0.0031308 {
+                    12.92 * v
+                } else {
+                    1.055 * v.powf(1.0 / 2.4) - 0.055
+                };
+                (s * 255.0).round().clamp(0.0, 255.0) as u8
+            })
+            .collect()
+    });
+    lut[(v.clamp(0.0, 1.0) * 65535.0).round() as usize]
+}
+
 pub fn unorm8(v: f32) -> u8 {
     if v.is_nan() {
         return 0;

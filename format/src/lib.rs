@@ -23,4 +23,7 @@ pub use node::{Node, NodeFlags, Tri};
 pub use reader::Archive;
 pub use records::*;
 pub use verify::PageReport;
-pub use writer::{encode_page, ArchiveWriter, EncodedPage, PageContents, PageMeta, SceneInfo};
+pub use writer::{
+    encode_page, encode_tile, ArchiveWriter, EncodedPage, EncodedTile, PageContents, PageMeta,
+    SceneInfo, Streams,
+};

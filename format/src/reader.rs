@@ -8,7 +8,7 @@ use crate::error::{FormatError, Result};
 use crate::node::{Node, Tri};
 use crate::records::*;
 use crate::validate::*;
-use crate::writer::PageContents;
+use crate::writer::{PageContents, Streams};
 use std::path::{Path, PathBuf};
 
 pub struct Archive {
@@ -19,6 +19,8 @@ pub struct Archive {
     pub cameras: Vec<CameraRecord>,
     pub lights: Vec<LightRecord>,
     pub instances: Vec<InstanceRecord>,
+    pub textures: Vec<TextureRecord>,
+    tiles: Vec<TileEntry>,
 }
 
 impl Archive {
@@ -115,6 +117,15 @@ impl Archive {
         let cameras = read_table::<CameraRecord>(&map, &header.cameras);
         let lights = read_table::<LightRecord>(&map, &header.lights);
         let instances = read_table::<InstanceRecord>(&map, &header.instances);
+        let mut materials = materials;
+        if header.version_minor < 2 {
+            // Before 2.2 these bytes were reserved (zero): no textures.
+            for m in &mut materials {
+                m.textures = [MaterialRecord::NO_TEXTURE; 4];
+            }
+        }
+        let textures = read_table::<TextureRecord>(&map, &header.textures);
+        let tiles = read_table::<TileEntry>(&map, &header.tiles);
         if header.pages.count == 0 || header.root_page >= header.pages.count {
             return Err(corrupt(format!(
                 "root page {} of {} pages",
@@ -123,6 +134,7 @@ impl Archive {
         }
         check_tables(&header, &materials, &cameras, &lights).map_err(&corrupt)?;
         check_instances(&header, &instances).map_err(&corrupt)?;
+        check_textures(header.materials.offset, &materials, &textures, &tiles).map_err(&corrupt)?;
         let archive = Self {
             path: p,
             map,
@@ -131,6 +143,8 @@ impl Archive {
             cameras,
             lights,
             instances,
+            textures,
+            tiles,
         };
         archive.entry(header.root_page)?;
         archive.check_prototypes()?;
@@ -223,11 +237,12 @@ impl Archive {
             ));
         }
         let h: PageHeader = bytemuck::pod_read_unaligned(&raw[..32]);
-        let has_normals = self.header.features & Features::SHADING_NORMALS != 0;
+        let streams = Streams::of(self.header.features);
         if h.magic != PAGE_MAGIC
             || (h.node_count, h.tri_count, h.vert_count, h.coef_bytes)
                 != (e.node_count, e.tri_count, e.vert_count, e.coef_bytes)
-            || (h.has_normals != 0) != has_normals
+            || (h.has_normals != 0) != streams.normals
+            || (h.has_uvs != 0) != streams.uvs
         {
             return Err(self.page_err(page, "page header disagrees with the page table"));
         }
@@ -244,8 +259,13 @@ impl Archive {
             .collect();
         let tris: Vec<Tri> = bytemuck::pod_collect_to_vec(take(h.tri_count as usize * 8));
         let verts: Vec<[f32; 3]> = bytemuck::pod_collect_to_vec(take(h.vert_count as usize * 12));
-        let normals: Vec<u32> = if has_normals {
+        let normals: Vec<u32> = if streams.normals {
             bytemuck::pod_collect_to_vec(take(h.vert_count as usize * 4))
+        } else {
+            Vec::new()
+        };
+        let uvs: Vec<[f32; 2]> = if streams.uvs {
+            bytemuck::pod_collect_to_vec(take(h.vert_count as usize * 8))
         } else {
             Vec::new()
         };
@@ -254,9 +274,43 @@ impl Archive {
             tris,
             verts,
             normals,
+            uvs,
         };
         self.check_indices(page, &contents)?;
         Ok(contents)
+    }
+
+    /// Decompresses texture tile `index` (`TILE_BYTES` of RGBA8), after checking its checksum.
+    pub fn read_tile(&self, index: u32) -> Result<Vec<u8>> {
+        let bad = |what: String| FormatError::Corrupt {
+            path: self.path.clone(),
+            what: format!("texture tile {index}: {what}"),
+        };
+        let e = self
+            .tiles
+            .get(index as usize)
+            .ok_or_else(|| bad(format!("not among {} tiles", self.tiles.len())))?;
+        let bytes = &self.map[e.offset as usize..(e.offset + e.compressed_len as u64) as usize];
+        if xxhash_rust::xxh3::xxh3_64(bytes) != e.checksum {
+            return Err(bad("checksum mismatch (the tile is corrupt)".into()));
+        }
+        let raw = zstd::bulk::decompress(bytes, TILE_BYTES as usize)
+            .map_err(|err| bad(format!("zstd: {err}")))?;
+        self.release(e.offset as usize, e.compressed_len as usize);
+        if raw.len() != TILE_BYTES as usize {
+            return Err(bad(format!("decompressed to {} bytes", raw.len())));
+        }
+        Ok(raw)
+    }
+
+    /// Entries of the tile table.
+    pub fn tile_count(&self) -> u32 {
+        self.tiles.len() as u32
+    }
+
+    /// Compressed bytes of all texture tiles.
+    pub fn tile_bytes(&self) -> u64 {
+        self.tiles.iter().map(|t| t.compressed_len as u64).sum()
     }
 
     fn check_indices(&self, page: u32, c: &PageContents) -> Result<()> {

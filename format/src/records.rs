@@ -5,7 +5,7 @@ use bytemuck::{Pod, Zeroable};
 
 pub const MAGIC: [u8; 8] = *b"CANOPY\x00\x1a";
 pub const VERSION_MAJOR: u16 = 2;
-pub const VERSION_MINOR: u16 = 1;
+pub const VERSION_MINOR: u16 = 2;
 pub const PAGE_MAGIC: [u8; 4] = *b"PAGE";
 /// Page frames and tables start at multiples of this many bytes, so records can be read in
 /// place from the mapping.
@@ -32,6 +32,9 @@ impl Features {
     /// The instance table is not empty: instance leaves name a prototype subtree and a
     /// transform (required: a reader that ignored them would lose geometry).
     pub const INSTANCES: u64 = 1 << 33;
+    /// Pages carry a per-vertex texture-coordinate stream (required: it changes the page
+    /// layout). Version 2.2.
+    pub const TEXCOORDS: u64 = 1 << 34;
     pub const REQUIRED: u64 = 0xFFFF_FFFF_0000_0000;
     pub const ALL: u64 = Self::EMITTERS
         | Self::GLOSSY
@@ -39,7 +42,8 @@ impl Features {
         | Self::TEXTURED_INPUT
         | Self::PUNCTUAL_LIGHTS
         | Self::SHADING_NORMALS
-        | Self::INSTANCES;
+        | Self::INSTANCES
+        | Self::TEXCOORDS;
 
     pub fn names(bits: u64) -> Vec<&'static str> {
         [
@@ -50,6 +54,7 @@ impl Features {
             (Self::SHADING_NORMALS, "shading-normals"),
             (Self::PUNCTUAL_LIGHTS, "punctual-lights"),
             (Self::INSTANCES, "instances"),
+            (Self::TEXCOORDS, "texcoords"),
         ]
         .iter()
         .filter(|(b, _)| bits & b != 0)
@@ -100,11 +105,98 @@ pub struct Header {
     pub reserved0: u32,
     /// Version 2.1: the instance table, right after the lights (all zero in 2.0 files).
     pub instances: TableRef,
-    pub reserved: [u8; 48],
+    /// Version 2.2: the texture table and the texture-tile table, after the instances (all
+    /// zero before 2.2).
+    pub textures: TableRef,
+    pub tiles: TableRef,
+    pub reserved: [u8; 16],
 }
 
 const _: () = assert!(std::mem::size_of::<Header>() == 256);
 const _: () = assert!(std::mem::offset_of!(Header, instances) == 192);
+const _: () = assert!(std::mem::offset_of!(Header, textures) == 208);
+
+/// Texels on a side of a texture tile.
+pub const TILE: u32 = 64;
+/// Bytes of a decoded tile: `TILE`² texels of RGBA8.
+pub const TILE_BYTES: u32 = TILE * TILE * 4;
+
+/// One texture (64 bytes): a MIP pyramid of RGBA8 tiles, level 0 the image as read. Level
+/// l is max(1, width >> l) × max(1, height >> l) texels; its tiles follow level l − 1's in
+/// row-major order, `TILE` × `TILE` texels each (texels past the level's edge are zero).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct TextureRecord {
+    pub name: [u8; 24],
+    pub width: u32,
+    pub height: u32,
+    /// ⌊log2 max(width, height)⌋ + 1.
+    pub levels: u32,
+    /// This texture's first entry in the tile table.
+    pub first_tile: u32,
+    /// `SRGB`, and the wrap modes of s (bits 8–9) and t (bits 10–11).
+    pub flags: u32,
+    /// Mean of level 0 in linear RGBA (sRGB decoded when `SRGB`).
+    pub mean: [f32; 4],
+    pub reserved: [u8; 4],
+}
+
+const _: () = assert!(std::mem::size_of::<TextureRecord>() == 64);
+
+impl TextureRecord {
+    /// RGB texels hold sRGB-encoded values (alpha is always linear).
+    pub const SRGB: u32 = 1;
+    pub const WRAP_REPEAT: u32 = 0;
+    pub const WRAP_CLAMP: u32 = 1;
+    pub const WRAP_MIRROR: u32 = 2;
+    pub const ALL_FLAGS: u32 = 1 | 0xF00;
+
+    /// Wrap mode of s (axis 0) or t (axis 1).
+    pub fn wrap(&self, axis: usize) -> u32 {
+        self.flags >> (8 + 2 * axis) & 3
+    }
+
+    /// Size of level `l` in texels.
+    pub fn level_size(&self, l: u32) -> (u32, u32) {
+        ((self.width >> l).max(1), (self.height >> l).max(1))
+    }
+
+    /// Tiles across and down level `l`.
+    pub fn level_tiles(&self, l: u32) -> (u32, u32) {
+        let (w, h) = self.level_size(l);
+        (w.div_ceil(TILE), h.div_ceil(TILE))
+    }
+
+    /// Tiles of the whole pyramid (u64: a corrupt record may claim absurd sizes).
+    pub fn tile_count(&self) -> u64 {
+        (0..self.levels.min(32))
+            .map(|l| {
+                let (x, y) = self.level_tiles(l);
+                x as u64 * y as u64
+            })
+            .sum()
+    }
+
+    /// Levels of a full pyramid of a width × height image.
+    pub fn full_levels(width: u32, height: u32) -> u32 {
+        32 - width.max(height).max(1).leading_zeros()
+    }
+}
+
+/// Where one compressed tile sits (32 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct TileEntry {
+    pub offset: u64,
+    pub compressed_len: u32,
+    /// `TILE_BYTES`.
+    pub raw_len: u32,
+    /// xxh3-64 of the compressed bytes.
+    pub checksum: u64,
+    pub reserved: [u8; 8],
+}
+
+const _: () = assert!(std::mem::size_of::<TileEntry>() == 32);
 
 /// One placement of a prototype subtree (64 bytes): instance leaves of the tree name it.
 #[repr(C)]
@@ -277,7 +369,9 @@ pub struct PageHeader {
     pub coef_bytes: u32,
     /// 1 when a shading-normal stream follows the vertices.
     pub has_normals: u32,
-    pub reserved: [u8; 8],
+    /// 1 when a texture-coordinate stream follows (version 2.2).
+    pub has_uvs: u32,
+    pub reserved: [u8; 4],
 }
 
 const _: () = assert!(std::mem::size_of::<PageHeader>() == 32);
@@ -314,7 +408,12 @@ pub struct MaterialRecord {
     pub specular: f32,
     pub specular_color: [f32; 3],
     pub flags: u32,
-    pub reserved: [u8; 16],
+    /// Version 2.2: texture indices of base colour, metallic-roughness, emission and normal
+    /// (`NO_TEXTURE`: none).
+    pub textures: [u16; 4],
+    /// With `ALPHA_MASK`: texels whose alpha is below this are holes.
+    pub alpha_cutoff: f32,
+    pub reserved: [u8; 4],
 }
 
 const _: () = assert!(std::mem::size_of::<MaterialRecord>() == 128);
@@ -322,6 +421,15 @@ const _: () = assert!(std::mem::size_of::<MaterialRecord>() == 128);
 impl MaterialRecord {
     pub const DOUBLE_SIDED: u32 = 1;
     pub const TEXTURED: u32 = 2;
+    /// glTF alphaMode MASK: alpha below `alpha_cutoff` is a hole.
+    pub const ALPHA_MASK: u32 = 4;
+    /// glTF alphaMode BLEND: alpha is the probability a ray stops (stochastic opacity).
+    pub const ALPHA_BLEND: u32 = 8;
+    pub const NO_TEXTURE: u16 = u16::MAX;
+    pub const BASE_COLOR: usize = 0;
+    pub const METALLIC_ROUGHNESS: usize = 1;
+    pub const EMISSIVE: usize = 2;
+    pub const NORMAL: usize = 3;
 }
 
 /// Perspective camera (128 bytes).

@@ -90,9 +90,12 @@ pub fn check_header(h: &Header) -> Result<(), String> {
             h.page_nodes_max
         ));
     }
-    // A newer minor version may give the reserved bytes a meaning; 2.0 had no instances.
+    // A newer minor version may give the reserved bytes a meaning; 2.0 had no instances,
+    // 2.1 no textures.
     if h.version_minor <= VERSION_MINOR && (!zeroed(&h.reserved) || h.reserved0 != 0)
         || h.version_minor == 0 && h.instances != TableRef::default()
+        || h.version_minor <= 1
+            && (h.textures != TableRef::default() || h.tiles != TableRef::default())
     {
         return Err("reserved header bytes are not zero".into());
     }
@@ -114,6 +117,10 @@ pub fn small_tables(h: &Header) -> Vec<(&'static str, &TableRef, usize)> {
     if h.version_minor >= 1 {
         let known = std::mem::size_of::<InstanceRecord>();
         t.push(("instance", &h.instances, known));
+    }
+    if h.version_minor >= 2 {
+        t.push(("texture", &h.textures, std::mem::size_of::<TextureRecord>()));
+        t.push(("tile", &h.tiles, std::mem::size_of::<TileEntry>()));
     }
     t
 }
@@ -194,11 +201,93 @@ pub fn check_material(m: &MaterialRecord) -> Result<(), String> {
             m.ior.is_finite() && (m.ior >= 1.0 || m.ior == 0.0) && m.ior <= 1e3,
         ),
     ])?;
-    if m.flags & !(MaterialRecord::DOUBLE_SIDED | MaterialRecord::TEXTURED) != 0 {
+    let known = MaterialRecord::DOUBLE_SIDED
+        | MaterialRecord::TEXTURED
+        | MaterialRecord::ALPHA_MASK
+        | MaterialRecord::ALPHA_BLEND;
+    if m.flags & !known != 0 {
         return Err(format!("unknown flags {:#x}", m.flags));
     }
+    let alpha = MaterialRecord::ALPHA_MASK | MaterialRecord::ALPHA_BLEND;
+    if m.flags & alpha == alpha {
+        return Err("both alpha mask and alpha blend".into());
+    }
+    first_bad(&[("alpha cutoff", in_unit(&[m.alpha_cutoff]))])?;
     if !zeroed(&m.reserved) {
         return Err("reserved bytes are not zero".into());
+    }
+    Ok(())
+}
+
+/// Largest texture accepted: fewer than 2³¹ texels in level 0.
+pub const MAX_TEXELS: u64 = (1 << 31) - 1;
+
+/// The texture and tile tables (version 2.2): each texture a full pyramid of at most
+/// `MAX_TEXELS` texels whose tiles are the next run of the tile table (textures in order,
+/// every tile used once); tiles inside the page area; every material's texture index in
+/// range. `data_end` is where the page area ends.
+pub fn check_textures(
+    data_end: u64,
+    materials: &[MaterialRecord],
+    textures: &[TextureRecord],
+    tiles: &[TileEntry],
+) -> Result<(), String> {
+    let mut next = 0u64;
+    for (i, t) in textures.iter().enumerate() {
+        let texels = t.width as u64 * t.height as u64;
+        if t.width == 0 || t.height == 0 || texels > MAX_TEXELS {
+            return Err(format!(
+                "texture {i}: {}×{} texels (1 to {MAX_TEXELS})",
+                t.width, t.height
+            ));
+        }
+        if t.levels != TextureRecord::full_levels(t.width, t.height) {
+            return Err(format!("texture {i}: {} MIP levels", t.levels));
+        }
+        if t.first_tile as u64 != next {
+            return Err(format!(
+                "texture {i}: tiles from {}, expected from {next}",
+                t.first_tile
+            ));
+        }
+        next += t.tile_count();
+        if t.flags & !TextureRecord::ALL_FLAGS != 0 || t.wrap(0) > 2 || t.wrap(1) > 2 {
+            return Err(format!("texture {i}: unknown flags {:#x}", t.flags));
+        }
+        first_bad(&[("mean", in_unit(&t.mean))]).map_err(|e| format!("texture {i}: {e}"))?;
+        if !zeroed(&t.reserved) {
+            return Err(format!("texture {i}: reserved bytes are not zero"));
+        }
+    }
+    if next != tiles.len() as u64 {
+        return Err(format!(
+            "the textures use {next} tiles, the tile table holds {}",
+            tiles.len()
+        ));
+    }
+    for (i, e) in tiles.iter().enumerate() {
+        let end = e.offset.checked_add(e.compressed_len as u64);
+        if e.offset < 256 || end.is_none_or(|end| end > data_end) {
+            return Err(format!(
+                "tile {i}: bytes {}+{} outside the data area",
+                e.offset, e.compressed_len
+            ));
+        }
+        if e.raw_len != TILE_BYTES || !zeroed(&e.reserved) {
+            return Err(format!(
+                "tile {i}: raw length {} or reserved bytes",
+                e.raw_len
+            ));
+        }
+    }
+    for (i, m) in materials.iter().enumerate() {
+        if let Some(&t) = m
+            .textures
+            .iter()
+            .find(|&&t| t != MaterialRecord::NO_TEXTURE && t as usize >= textures.len())
+        {
+            return Err(format!("material {i}: texture {t} of {}", textures.len()));
+        }
     }
     Ok(())
 }
@@ -362,7 +451,8 @@ pub fn check_entry(h: &Header, page: u32, e: &PageEntry) -> Result<(), String> {
         vert_count: e.vert_count,
         coef_bytes: 0,
         has_normals: (h.features & Features::SHADING_NORMALS != 0) as u32,
-        reserved: [0; 8],
+        has_uvs: (h.features & Features::TEXCOORDS != 0) as u32,
+        reserved: [0; 4],
     };
     if e.node_count == 0 || e.node_count > h.page_nodes_max {
         return Err(format!(
@@ -507,6 +597,12 @@ pub fn check_page(
     }
     if let Some(i) = c.verts.iter().position(|p| !finite(p)) {
         return Err(format!("vertex {i} is not finite: {:?}", c.verts[i]));
+    }
+    if let Some(i) = c.uvs.iter().position(|uv| !finite(uv)) {
+        return Err(format!(
+            "texture coordinate {i} is not finite: {:?}",
+            c.uvs[i]
+        ));
     }
     Ok(())
 }

@@ -6,6 +6,7 @@ use crate::atomic::AtomicFile;
 use crate::error::Result;
 use crate::node::{Node, Tri};
 use crate::records::*;
+use bytemuck::Zeroable;
 use std::path::Path;
 
 /// The decoded contents of one page.
@@ -16,6 +17,26 @@ pub struct PageContents {
     pub verts: Vec<[f32; 3]>,
     /// Octahedral shading normals, one per vertex, or empty.
     pub normals: Vec<u32>,
+    /// Texture coordinates, one per vertex, or empty.
+    pub uvs: Vec<[f32; 2]>,
+}
+
+/// Which per-vertex streams follow the positions in every page of an archive.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Streams {
+    /// SHADING_NORMALS.
+    pub normals: bool,
+    /// TEXCOORDS.
+    pub uvs: bool,
+}
+
+impl Streams {
+    pub fn of(features: u64) -> Streams {
+        Streams {
+            normals: features & Features::SHADING_NORMALS != 0,
+            uvs: features & Features::TEXCOORDS != 0,
+        }
+    }
 }
 
 /// A page compressed and checksummed, ready to append.
@@ -39,22 +60,27 @@ pub struct PageMeta {
 }
 
 /// Serializes and compresses a page. Pure, so callers can encode pages in parallel.
-/// `normals` is the archive's SHADING_NORMALS feature: every page of such an archive says
-/// so in its header, a page without vertices too.
+/// `streams` are the archive's: every page of such an archive says so in its header, a page
+/// without vertices too.
 pub fn encode_page(
     p: &PageContents,
-    normals: bool,
+    streams: Streams,
     zstd_level: i32,
 ) -> std::io::Result<EncodedPage> {
-    assert_eq!(p.normals.len(), if normals { p.verts.len() } else { 0 });
+    assert_eq!(
+        p.normals.len(),
+        if streams.normals { p.verts.len() } else { 0 }
+    );
+    assert_eq!(p.uvs.len(), if streams.uvs { p.verts.len() } else { 0 });
     let header = PageHeader {
         magic: PAGE_MAGIC,
         node_count: p.nodes.len() as u32,
         tri_count: p.tris.len() as u32,
         vert_count: p.verts.len() as u32,
         coef_bytes: 0,
-        has_normals: normals as u32,
-        reserved: [0; 8],
+        has_normals: streams.normals as u32,
+        has_uvs: streams.uvs as u32,
+        reserved: [0; 4],
     };
     let mut raw = Vec::with_capacity(raw_page_len(&header, NODE_SIZE));
     raw.extend_from_slice(bytemuck::bytes_of(&header));
@@ -62,6 +88,7 @@ pub fn encode_page(
     raw.extend_from_slice(bytemuck::cast_slice(&p.tris));
     raw.extend_from_slice(bytemuck::cast_slice(&p.verts));
     raw.extend_from_slice(bytemuck::cast_slice(&p.normals));
+    raw.extend_from_slice(bytemuck::cast_slice(&p.uvs));
     let bytes = zstd::bulk::compress(&raw, zstd_level)?;
     Ok(EncodedPage {
         checksum: xxhash_rust::xxh3::xxh3_64(&bytes),
@@ -73,18 +100,29 @@ pub fn encode_page(
     })
 }
 
+/// A texture tile compressed and checksummed, ready to append.
+pub struct EncodedTile {
+    pub bytes: Vec<u8>,
+    pub checksum: u64,
+}
+
+/// Compresses one tile of `TILE_BYTES` RGBA8 texels. Pure, so tiles can be encoded in parallel.
+pub fn encode_tile(texels: &[u8], zstd_level: i32) -> std::io::Result<EncodedTile> {
+    assert_eq!(texels.len(), TILE_BYTES as usize);
+    let bytes = zstd::bulk::compress(texels, zstd_level)?;
+    Ok(EncodedTile {
+        checksum: xxhash_rust::xxh3::xxh3_64(&bytes),
+        bytes,
+    })
+}
+
 /// Decompressed size a page header implies, with node records of `node_size` bytes.
 pub fn raw_page_len(h: &PageHeader, node_size: u32) -> usize {
-    let normals = if h.has_normals != 0 {
-        h.vert_count as usize * 4
-    } else {
-        0
-    };
+    let per_vertex = 12 + 4 * (h.has_normals != 0) as usize + 8 * (h.has_uvs != 0) as usize;
     std::mem::size_of::<PageHeader>()
         + h.node_count as usize * node_size as usize
         + h.tri_count as usize * std::mem::size_of::<Tri>()
-        + h.vert_count as usize * 12
-        + normals
+        + h.vert_count as usize * per_vertex
 }
 
 /// Scene-level values the header carries.
@@ -102,11 +140,14 @@ pub struct SceneInfo {
     pub cameras: Vec<CameraRecord>,
     pub lights: Vec<LightRecord>,
     pub instances: Vec<InstanceRecord>,
+    /// Textures whose tiles were appended with `push_tile`, numbered from 0.
+    pub textures: Vec<TextureRecord>,
 }
 
 pub struct ArchiveWriter {
     out: AtomicFile,
     pages: Vec<PageEntry>,
+    tiles: Vec<TileEntry>,
     nodes: u64,
     tris: u64,
     verts: u64,
@@ -118,6 +159,7 @@ impl ArchiveWriter {
         Ok(Self {
             out: AtomicFile::create(path, 256)?,
             pages: Vec::new(),
+            tiles: Vec::new(),
             nodes: 0,
             tris: 0,
             verts: 0,
@@ -160,6 +202,42 @@ impl ArchiveWriter {
         self.tris += page.tri_count as u64;
         self.verts += page.vert_count as u64;
         Ok(self.pages.len() as u32 - 1)
+    }
+
+    /// Reserves `count` consecutive tile-table entries (a texture's pyramid); returns the
+    /// first. Each must then be filled by `put_tile`, in any order.
+    pub fn reserve_tiles(&mut self, count: u64) -> Result<u32> {
+        let first = self.tiles.len() as u64;
+        if first + count > u32::MAX as u64 {
+            return Err(crate::error::FormatError::Corrupt {
+                path: self.out.path().to_path_buf(),
+                what: format!(
+                    "{} texture tiles are more than a tile table holds",
+                    first + count
+                ),
+            });
+        }
+        self.tiles
+            .resize((first + count) as usize, TileEntry::zeroed());
+        Ok(first as u32)
+    }
+
+    /// Appends tile `index` (reserved by `reserve_tiles`), as `encode_tile` made it.
+    pub fn put_tile(&mut self, index: u32, tile: &EncodedTile) -> Result<()> {
+        self.pad()?;
+        self.tiles[index as usize] = TileEntry {
+            offset: self.out.len(),
+            compressed_len: tile.bytes.len() as u32,
+            raw_len: TILE_BYTES,
+            checksum: tile.checksum,
+            reserved: [0; 8],
+        };
+        self.out.write_all(&tile.bytes)
+    }
+
+    /// Compressed bytes of the tiles written so far.
+    pub fn tile_bytes(&self) -> u64 {
+        self.tiles.iter().map(|t| t.compressed_len as u64).sum()
     }
 
     /// Zeros up to the next multiple of `ALIGN`.
@@ -208,9 +286,15 @@ impl ArchiveWriter {
     }
 
     /// Writes the tables and header, syncs, and renames into place. The material, camera,
-    /// light and instance tables go back to back from an aligned offset; the page table, each entry
+    /// light, instance, texture and tile tables go back to back from an aligned offset; the page table, each entry
     /// sealed with its own checksum, from the next aligned offset to the end.
     pub fn finish(mut self, info: &SceneInfo) -> Result<()> {
+        if let Some(i) = self.tiles.iter().position(|t| t.raw_len == 0) {
+            return Err(crate::error::FormatError::Corrupt {
+                path: self.out.path().to_path_buf(),
+                what: format!("texture tile {i} was reserved but never written"),
+            });
+        }
         self.fill_levels();
         for e in &mut self.pages {
             e.seal();
@@ -222,6 +306,8 @@ impl ArchiveWriter {
         let cameras = append_table(&mut tables, base, &info.cameras);
         let lights = append_table(&mut tables, base, &info.lights);
         let instances = append_table(&mut tables, base, &info.instances);
+        let textures = append_table(&mut tables, base, &info.textures);
+        let tiles = append_table(&mut tables, base, &self.tiles);
         let tables_checksum = xxhash_rust::xxh3::xxh3_64(&tables);
         tables.resize((tables.len() as u64).next_multiple_of(ALIGN) as usize, 0);
         let pages = append_table(&mut tables, base, &self.pages);
@@ -251,7 +337,9 @@ impl ArchiveWriter {
             node_size: NODE_SIZE,
             reserved0: 0,
             instances,
-            reserved: [0; 48],
+            textures,
+            tiles,
+            reserved: [0; 16],
         };
         header.header_checksum = xxhash_rust::xxh3::xxh3_64(bytemuck::bytes_of(&header));
         self.out.write_all(&tables)?;

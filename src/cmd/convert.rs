@@ -1,10 +1,13 @@
 use anyhow::Result;
-use canopy::convert::{convert, BvhQuality, ConvertOptions};
+use canopy::convert::{convert, BvhQuality, ConvertOptions, MissingTextures};
 use canopy::units;
 use clap::Args;
 use std::path::PathBuf;
 
 /// Convert meshes and scenes (glTF .gltf/.glb, PLY, OBJ) into a node archive.
+///
+/// Textures (glTF base colour, metallic-roughness and emission; OBJ map_Kd and map_Ke; PNG,
+/// JPEG or TGA) are stored as tiled MIP pyramids beside the pages.
 ///
 /// Several inputs merge into one scene. Memory stays under --mem-budget however large the
 /// input: triangles are spilled to disk beside the output and built chunk by chunk.
@@ -38,6 +41,10 @@ pub struct ConvertArgs {
     /// flattened archives.
     #[arg(long)]
     flatten_instances: bool,
+    /// A texture file that is not there: `error` (the default) stops the conversion naming
+    /// it; `warn` prints a warning and its materials keep their factors alone.
+    #[arg(long, value_enum, default_value_t = MissingTextures::Error)]
+    missing_textures: MissingTextures,
     /// Also print the summary as JSON.
     #[arg(long)]
     json: bool,
@@ -53,6 +60,7 @@ pub fn run(a: ConvertArgs, progress: bool) -> Result<()> {
         zstd_level: a.zstd_level,
         bvh: a.bvh,
         flatten_instances: a.flatten_instances,
+        missing_textures: a.missing_textures,
         progress,
     };
     let r = convert(&opts)?;

@@ -13,6 +13,7 @@ use anyhow::Result;
 use canopy::integrator::cone::ConeSettings;
 use canopy::integrator::pbgi::PbgiSettings;
 use canopy::integrator::{Kind, Settings};
+use canopy::texture::TextureFilter;
 use canopy::units;
 use clap::parser::ValueSource;
 use clap::{ArgMatches, Args, CommandFactory, FromArgMatches, Parser, Subcommand};
@@ -63,6 +64,11 @@ struct RenderSettings {
     /// Longest path in segments (1: only emitters seen directly); default unbounded.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     max_depth: Option<u32>,
+    /// Texture filtering: `trilinear` MIP filtering over each sample's footprint (ray
+    /// differentials, or the cone's width), or `point`: the full-resolution texture at the
+    /// sample's point (aliases unless many samples are taken; for checking the filter).
+    #[arg(long, value_enum, default_value_t = TextureFilter::Trilinear)]
+    texture_filter: TextureFilter,
     #[command(flatten)]
     cone: ConeSettings,
     #[command(flatten)]

@@ -76,6 +76,7 @@ impl RenderSettings {
             seed: self.seed,
             threads: self.threads,
             max_depth: self.max_depth,
+            texture_filter: self.texture_filter,
             crop: None,
             preview: false,
             exposure: 1.0,

@@ -9,7 +9,7 @@ use super::{BvhQuality, ConvertOptions, MatSummary, AUTO_FAST_ABOVE};
 use crate::import::SpillTri;
 use crate::progress;
 use anyhow::{bail, Context, Result};
-use canopy_format::{encode_page, ArchiveWriter, EncodedPage, PageMeta, NONE};
+use canopy_format::{encode_page, ArchiveWriter, EncodedPage, PageMeta, Streams, NONE};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -21,7 +21,7 @@ pub struct Chunks<'a> {
     pub files: Vec<spill::Spill>,
     pub mats: &'a [MatSummary],
     pub triangles: u64,
-    pub normals: bool,
+    pub streams: Streams,
     pub threads: usize,
     /// Draw a progress bar.
     pub show: bool,
@@ -55,7 +55,7 @@ pub fn build(
             q => q == BvhQuality::Fast,
         },
         opts,
-        normals: c.normals,
+        streams: c.streams,
         claim: AtomicUsize::new(0),
         turn: Mutex::new(Turn {
             next: 0,
@@ -121,7 +121,7 @@ pub fn build(
             bail!("no triangles in the inputs");
         }
         top.root = top.balanced(&leaves);
-        root_page = write_pages(writer, &top, vec![top.root], opts, c.normals)?;
+        root_page = write_pages(writer, &top, vec![top.root], opts, c.streams)?;
         scene_root = Some(top.nodes[top.root as usize].clone());
     }
     let Some(scene_root) = scene_root else {
@@ -162,7 +162,7 @@ struct ChunkJob<'a> {
     single: bool,
     fast: bool,
     opts: &'a ConvertOptions,
-    normals: bool,
+    streams: Streams,
     claim: AtomicUsize,
     turn: Mutex<Turn>,
     turn_changed: Condvar,
@@ -233,7 +233,7 @@ impl ChunkJob<'_> {
             });
         };
         let pages = match &plan {
-            Some(plan) if count > 0 => encode_pages(&tree, plan, base, self.opts, self.normals)?,
+            Some(plan) if count > 0 => encode_pages(&tree, plan, base, self.opts, self.streams)?,
             _ => EncodedPages {
                 base,
                 pages: Vec::new(),
@@ -261,12 +261,12 @@ fn encode_pages(
     plan: &Plan,
     base: u32,
     opts: &ConvertOptions,
-    normals: bool,
+    streams: Streams,
 ) -> Result<EncodedPages> {
     let pages = (0..plan.pages.len())
         .into_par_iter()
         .map(|i| {
-            let (contents, externals) = plan.encode(tree, i, base, normals);
+            let (contents, externals) = plan.encode(tree, i, base, streams);
             let grid = plan.grid(tree, i);
             let (parent_page, parent_node) = match plan.parent_of(i) {
                 Some((p, local)) => (base + p, local),
@@ -279,7 +279,7 @@ fn encode_pages(
                 bounds_min: grid.lo,
                 bounds_max: grid.hi,
             };
-            encode_page(&contents, normals, opts.zstd_level).map(|e| (e, meta, externals))
+            encode_page(&contents, streams, opts.zstd_level).map(|e| (e, meta, externals))
         })
         .collect::<std::io::Result<_>>()
         .context("compressing pages")?;
@@ -306,9 +306,9 @@ fn write_pages(
     tree: &Tree,
     roots: Vec<u32>,
     opts: &ConvertOptions,
-    normals: bool,
+    streams: Streams,
 ) -> Result<u32> {
     let plan = Plan::new(tree, roots, opts.page_nodes);
-    let enc = encode_pages(tree, &plan, writer.page_count(), opts, normals)?;
+    let enc = encode_pages(tree, &plan, writer.page_count(), opts, streams)?;
     append_pages(writer, enc)
 }

@@ -4,7 +4,7 @@
 
 use canopy_format::codec::{f16_encode, rgbe64_encode, snorm16, unorm8};
 use canopy_format::{cofactors3, det3};
-use canopy_format::{MaterialRecord, Node, NodeFlags};
+use canopy_format::{MaterialRecord, Node, NodeFlags, TextureRecord};
 
 /// cos θ at which the Fresnel table is sampled (004 §4.3.1, five samples).
 pub const REFLECT_COS: [f32; 5] = [0.0, 0.25, 0.5, 0.75, 1.0];
@@ -31,8 +31,23 @@ impl MatSummary {
     /// glTF metallic-roughness (spec Appendix B) reduced to the thesis' cluster BRDF:
     /// p_reflect(θ) from Schlick with the layer's F0 and weight, refraction and diffuse
     /// fractions from transmission and the base colour.
-    pub fn of(m: &MaterialRecord) -> Self {
-        let base = [m.base_color[0], m.base_color[1], m.base_color[2]].map(|c| c.clamp(0.0, 1.0));
+    ///
+    /// A textured factor is scaled by its texture's mean over the whole image: a cluster's
+    /// value is the mean over the texture, not yet over the texels under its triangles.
+    pub fn of(m: &MaterialRecord, textures: &[TextureRecord]) -> Self {
+        let mean = |slot: usize| {
+            textures
+                .get(m.textures[slot] as usize)
+                .map_or([1.0; 4], |t| t.mean)
+        };
+        let (tex_base, tex_emit) = (
+            mean(MaterialRecord::BASE_COLOR),
+            mean(MaterialRecord::EMISSIVE),
+        );
+        let base = [0, 1, 2].map(|c| (m.base_color[c] * tex_base[c]).clamp(0.0, 1.0));
+        let mut m = *m;
+        m.emission = [0, 1, 2].map(|c| m.emission[c] * tex_emit[c]);
+        let m = &m;
         let metal = m.metallic.clamp(0.0, 1.0);
         let trans = m.transmission.clamp(0.0, 1.0) * (1.0 - metal);
         let r0 = ((m.ior - 1.0) / (m.ior + 1.0)).powi(2);
@@ -284,7 +299,7 @@ mod tests {
     #[test]
     fn transformed_clusters_bound_and_match_their_mapped_triangles() {
         let mut rng = TestRng::new(11);
-        let m = MatSummary::of(&crate::import::default_material("m"));
+        let m = MatSummary::of(&crate::import::default_material("m"), &[]);
         for case in 0..200 {
             let tris: Vec<[[f32; 3]; 3]> = (0..1 + case % 7)
                 .map(|_| {

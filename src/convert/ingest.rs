@@ -219,6 +219,10 @@ impl Imported {
         for (has, feature) in [
             (self.scene.has_normals, Features::SHADING_NORMALS),
             (self.scene.textured, Features::TEXTURED_INPUT),
+            (
+                self.scene.has_uvs && !self.scene.textures.is_empty(),
+                Features::TEXCOORDS,
+            ),
             (!self.scene.lights.is_empty(), Features::PUNCTUAL_LIGHTS),
             (self.shared.is_some(), Features::INSTANCES),
         ] {

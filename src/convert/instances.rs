@@ -11,13 +11,13 @@ use super::{partition, ConvertOptions, MatSummary};
 use crate::progress;
 use anyhow::Result;
 use canopy_format::validate::check_transform;
-use canopy_format::{ArchiveWriter, InstanceRecord};
+use canopy_format::{ArchiveWriter, InstanceRecord, Streams};
 use std::path::Path;
 
 /// What every prototype's build shares.
 pub struct Build<'a> {
     pub mats: &'a [MatSummary],
-    pub normals: bool,
+    pub streams: Streams,
     pub threads: usize,
     /// Most triangles in one chunk.
     pub cap: u64,
@@ -108,7 +108,7 @@ fn prototype(
         files,
         mats: b.mats,
         triangles: p.count,
-        normals: b.normals,
+        streams: b.streams,
         threads: b.threads,
         show: false,
     };

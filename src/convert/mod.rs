@@ -18,14 +18,15 @@ mod instances;
 mod pages;
 mod partition;
 mod spill;
+mod textures;
 mod tree;
 
 pub use cluster::{MatSummary, REFLECT_COS};
 pub use tree::MAX_LEAF_TRIS;
 
 use crate::import::SceneFile;
-use anyhow::{bail, Result};
-use canopy_format::{ArchiveWriter, Features, SceneInfo};
+use anyhow::{bail, Context, Result};
+use canopy_format::{ArchiveWriter, SceneInfo, Streams};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -45,7 +46,17 @@ pub struct ConvertOptions {
     pub bvh: BvhQuality,
     /// Store every placement of a mesh as its own triangles (no instances).
     pub flatten_instances: bool,
+    /// A texture file that does not exist: an error, or a warning and the factor alone.
+    pub missing_textures: MissingTextures,
     pub progress: bool,
+}
+
+/// What `convert` does about a texture file that is not there.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum MissingTextures {
+    Error,
+    /// Warn, and let the materials keep their factors alone.
+    Warn,
 }
 
 impl ConvertOptions {
@@ -61,6 +72,7 @@ impl ConvertOptions {
             zstd_level: 1,
             bvh: BvhQuality::Auto,
             flatten_instances: false,
+            missing_textures: MissingTextures::Error,
             progress: false,
         }
     }
@@ -90,10 +102,15 @@ pub struct ConvertReport {
     pub nodes: u64,
     pub pages: u64,
     pub archive_bytes: u64,
+    pub textures: u64,
+    /// Compressed bytes of the texture tiles.
+    pub texture_bytes: u64,
     pub seconds_import: f64,
     pub seconds_partition: f64,
     pub seconds_build: f64,
     pub seconds_total: f64,
+    /// Peak resident set of the process when the archive was complete.
+    pub peak_rss_bytes: u64,
 }
 
 impl std::fmt::Display for ConvertReport {
@@ -111,6 +128,14 @@ impl std::fmt::Display for ConvertReport {
             self.archive_bytes as f64 / (1 << 20) as f64,
             self.archive_bytes as f64 / self.input_triangles.max(1) as f64
         )?;
+        if self.textures > 0 {
+            writeln!(
+                f,
+                "  {} textures, {:.2} MiB of tiles",
+                self.textures,
+                self.texture_bytes as f64 / (1 << 20) as f64
+            )?;
+        }
         if self.instances > 0 {
             writeln!(
                 f,
@@ -120,14 +145,62 @@ impl std::fmt::Display for ConvertReport {
         }
         write!(
             f,
-            "  {:.2} s (import {:.2}, partition {:.2}, build {:.2}), {:.2} M triangles/s",
+            "  {:.2} s (import {:.2}, partition {:.2}, build {:.2}), {:.2} M triangles/s, peak RSS {:.1} MiB",
             self.seconds_total,
             self.seconds_import,
             self.seconds_partition,
             self.seconds_build,
-            per_s / 1e6
+            per_s / 1e6,
+            self.peak_rss_bytes as f64 / (1 << 20) as f64
         )
     }
+}
+
+/// Writes every texture the materials name and returns their records; with
+/// `--missing-textures warn` a texture whose file is absent is dropped (its materials keep
+/// their factors) and the remaining ones renumbered.
+fn write_textures(
+    writer: &mut ArchiveWriter,
+    scene: &mut crate::import::SceneDesc,
+    opts: &ConvertOptions,
+) -> Result<Vec<canopy_format::TextureRecord>> {
+    let mut records = Vec::new();
+    let mut index = Vec::with_capacity(scene.textures.len());
+    for (i, src) in scene.textures.iter().enumerate() {
+        let missing = src
+            .file
+            .as_ref()
+            .filter(|f| src.bytes.is_none() && !f.exists());
+        if let Some(f) = missing {
+            if opts.missing_textures == MissingTextures::Warn {
+                eprintln!(
+                    "warning: {}: texture file missing; its materials keep their factors",
+                    f.display()
+                );
+                index.push(canopy_format::MaterialRecord::NO_TEXTURE);
+                continue;
+            }
+            bail!(
+                "{}: texture file missing (--missing-textures warn converts without it)",
+                f.display()
+            );
+        }
+        if opts.progress {
+            eprintln!("texture {}/{}: {}", i + 1, scene.textures.len(), src.name);
+        }
+        let rec = textures::write_texture(writer, src, opts.zstd_level)
+            .with_context(|| format!("texture {}", src.describe()))?;
+        index.push(records.len() as u16);
+        records.push(rec);
+    }
+    for m in &mut scene.materials {
+        for t in &mut m.textures {
+            if let Some(&new) = index.get(*t as usize) {
+                *t = new;
+            }
+        }
+    }
+    Ok(records)
 }
 
 pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
@@ -158,23 +231,27 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         seconds_import: t0.elapsed().as_secs_f64(),
         ..Default::default()
     };
+    let mut imported = imported;
+    let textures = write_textures(&mut writer, &mut imported.scene, opts)?;
+    report.textures = textures.len() as u64;
+    report.texture_bytes = writer.tile_bytes();
     let mats: Vec<MatSummary> = imported
         .scene
         .materials
         .iter()
-        .map(MatSummary::of)
+        .map(|m| MatSummary::of(m, &textures))
         .collect();
     let features = imported.features(&mats);
 
     let threads = rayon::current_num_threads().max(1);
     let cap = (opts.mem_budget - FIXED_BYTES) / BUILD_BYTES_PER_TRI / threads as u64;
-    let normals = features & Features::SHADING_NORMALS != 0;
+    let streams = Streams::of(features);
     let t2 = Instant::now();
     let placed = match imported.shared {
         Some(shared) => {
             let b = instances::Build {
                 mats: &mats,
-                normals,
+                streams,
                 threads,
                 cap,
                 dir: &dir,
@@ -199,7 +276,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         files,
         mats: &mats,
         triangles: total,
-        normals,
+        streams,
         threads,
         show: opts.progress,
     };
@@ -220,6 +297,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         cameras: scene.cameras,
         lights: scene.lights,
         instances: placed.records,
+        textures,
     };
     report.pages = writer.page_count() as u64;
     report.nodes = writer.node_count();
@@ -228,5 +306,6 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         .map(|m| m.len())
         .unwrap_or(0);
     report.seconds_total = t0.elapsed().as_secs_f64();
+    report.peak_rss_bytes = crate::progress::peak_rss_bytes();
     Ok(report)
 }

@@ -7,7 +7,7 @@
 
 use super::cluster::round_up;
 use super::tree::{Kind, Tree};
-use canopy_format::{Grid, NodeFlags, PageContents, Tri};
+use canopy_format::{Grid, NodeFlags, PageContents, Streams, Tri};
 use std::collections::{HashMap, VecDeque};
 
 pub struct PagePlan {
@@ -143,13 +143,13 @@ impl Plan {
         tree: &Tree,
         page: usize,
         base: u32,
-        normals: bool,
+        streams: Streams,
     ) -> (PageContents, Vec<(u32, u32)>) {
         let p = &self.pages[page];
         let grid = self.grid(tree, page);
         let mut out = PageContents::default();
         let mut externals = Vec::new();
-        let mut verts: FastMap<([u32; 3], u32), u16> = FastMap::default();
+        let mut verts: FastMap<([u32; 3], u32, [u32; 2]), u16> = FastMap::default();
         // Quantized bounds of each node's parent, by local index (roots have none).
         let mut parent_q: Vec<Option<[u16; 6]>> = vec![None; p.nodes.len()];
         for (local, &id) in p.nodes.iter().enumerate() {
@@ -187,11 +187,16 @@ impl Plan {
                     node.link = [out.tris.len() as u32, count];
                     for t in &tree.tris[first as usize..(first + count) as usize] {
                         let v = [0, 1, 2].map(|k| {
-                            let key = (t.p[k].map(f32::to_bits), if normals { t.n[k] } else { 0 });
+                            let n = if streams.normals { t.n[k] } else { 0 };
+                            let uv = if streams.uvs { t.uv[k] } else { [0.0; 2] };
+                            let key = (t.p[k].map(f32::to_bits), n, uv.map(f32::to_bits));
                             *verts.entry(key).or_insert_with(|| {
                                 out.verts.push(t.p[k]);
-                                if normals {
+                                if streams.normals {
                                     out.normals.push(t.n[k]);
+                                }
+                                if streams.uvs {
+                                    out.uvs.push(uv);
                                 }
                                 u16::try_from(out.verts.len() - 1)
                                     .expect("page vertex count fits u16")

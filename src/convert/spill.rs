@@ -5,7 +5,8 @@
 //! process ends, even by SIGKILL, and nothing of a conversion is left behind.
 //!
 //! A record is 40 bytes (positions and material). Triangles with shading normals or
-//! curvature add a 16-byte attribute record, flagged in the material's top bit, so meshes
+//! curvature add a 16-byte attribute record, flagged in the material's top bit (texture
+//! coordinates a 24-byte one, flagged in the next bit), so meshes
 //! without normals cost 40 bytes a triangle on disk instead of 56: spill I/O is most of the
 //! time a conversion larger than the page cache's dirty limit spends.
 
@@ -17,6 +18,8 @@ use std::io::{BufRead, BufReader, BufWriter, Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 const HAS_ATTR: u32 = 1 << 31;
+/// A 24-byte texture-coordinate record follows (after the attribute record, if any).
+const HAS_UV: u32 = 1 << 30;
 
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
@@ -58,13 +61,14 @@ impl SpillWriter {
     }
 
     pub fn write(&mut self, t: &SpillTri) -> Result<()> {
-        if t.material & HAS_ATTR != 0 {
+        if t.material & (HAS_ATTR | HAS_UV) != 0 {
             bail!("material index {} is out of range", t.material);
         }
         let attr = t.n != [0; 3] || t.curvature != 0.0;
+        let uv = t.uv != [[0.0; 2]; 3];
         let rec = Rec {
             p: t.p,
-            material: t.material | if attr { HAS_ATTR } else { 0 },
+            material: t.material | if attr { HAS_ATTR } else { 0 } | if uv { HAS_UV } else { 0 },
         };
         let mut r = self.out.write_all(bytemuck::bytes_of(&rec));
         if attr && r.is_ok() {
@@ -74,7 +78,10 @@ impl SpillWriter {
             };
             r = self.out.write_all(bytemuck::bytes_of(&a));
         }
-        self.written += 40 + 16 * attr as u64;
+        if uv && r.is_ok() {
+            r = self.out.write_all(bytemuck::bytes_of(&t.uv));
+        }
+        self.written += 40 + 16 * attr as u64 + 24 * uv as u64;
         r.with_context(|| format!("{}: writing spill file", self.path.display()))
     }
 
@@ -130,7 +137,7 @@ pub fn for_each_in(
             .with_context(err)?;
         let mut t = SpillTri {
             p: rec.p,
-            material: rec.material & !HAS_ATTR,
+            material: rec.material & !(HAS_ATTR | HAS_UV),
             ..Default::default()
         };
         if rec.material & HAS_ATTR != 0 {
@@ -139,6 +146,10 @@ pub fn for_each_in(
                 .with_context(err)?;
             t.n = a.n;
             t.curvature = a.curvature;
+        }
+        if rec.material & HAS_UV != 0 {
+            r.read_exact(bytemuck::bytes_of_mut(&mut t.uv))
+                .with_context(err)?;
         }
         f(&t)?;
     }
@@ -171,6 +182,11 @@ mod tests {
                 n: if i % 3 == 0 { [i, i + 1, 7] } else { [0; 3] },
                 material: i % 5,
                 curvature: if i % 7 == 0 { i as f32 * 0.5 } else { 0.0 },
+                uv: if i % 4 == 1 {
+                    [[i as f32, 0.5], [-2.0, 1e-3], [0.0, 7.0]]
+                } else {
+                    [[0.0; 2]; 3]
+                },
             })
             .collect();
         let mut w = SpillWriter::create(dir.path(), 4096).unwrap();
@@ -183,12 +199,13 @@ mod tests {
             0,
             "a spill file has no name"
         );
-        let plain = tris
+        let attrs = tris
             .iter()
-            .filter(|t| t.n == [0; 3] && t.curvature == 0.0)
+            .filter(|t| t.n != [0; 3] || t.curvature != 0.0)
             .count() as u64;
+        let uvs = tris.iter().filter(|t| t.uv != [[0.0; 2]; 3]).count() as u64;
         let len = spill.file.metadata().unwrap().len();
-        assert_eq!(len, plain * 40 + (tris.len() as u64 - plain) * 56);
+        assert_eq!(len, tris.len() as u64 * 40 + attrs * 16 + uvs * 24);
         assert_eq!(read_all(&spill).unwrap(), tris);
     }
 

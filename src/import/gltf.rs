@@ -3,9 +3,9 @@
 //! flattens), perspective cameras, metallic-roughness materials with the
 //! KHR extensions Canopy models, and KHR_lights_punctual.
 
-use super::{make_tri, SceneDesc, TriangleSink};
+use super::{make_tri, SceneDesc, TextureSource, TriangleSink};
 use anyhow::{anyhow, bail, Context, Result};
-use canopy_format::{name_bytes, CameraRecord, LightRecord, MaterialRecord};
+use canopy_format::{name_bytes, CameraRecord, LightRecord, MaterialRecord, TextureRecord};
 use glam::{Mat3, Mat4, Vec3};
 use gltf::mesh::Mode;
 use std::path::Path;
@@ -17,12 +17,22 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
     let (doc, buffers) = load(path)?;
     let (width, height) = render_size(&doc);
     let base = scene.materials.len() as u32;
+    let dir = path.parent().unwrap_or(Path::new("."));
+    let mut uv_maps = Vec::new();
     for m in doc.materials() {
-        let rec = material(&m);
+        let named = |e: anyhow::Error| {
+            anyhow!(
+                "{}: material '{}': {e}",
+                path.display(),
+                m.name().unwrap_or("?")
+            )
+        };
+        let (rec, uv) = material(&m, scene, &buffers, dir).map_err(named)?;
         if rec.flags & MaterialRecord::TEXTURED != 0 {
             scene.textured = true;
         }
         scene.add_material(rec)?;
+        uv_maps.push(uv);
     }
     let mut default_mat = None;
     let gscene = doc
@@ -85,6 +95,7 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
             path,
             mesh: &mesh,
             buffers: &buffers,
+            uv_maps: &uv_maps,
             base,
             default_mat: &mut default_mat,
             scene,
@@ -157,6 +168,8 @@ struct MeshCtx<'a> {
     mesh: &'a gltf::Mesh<'a>,
     buffers: &'a [Vec<u8>],
     /// The file's first material in the scene's table.
+    /// Per glTF material, how its texture coordinates are read (None: untextured).
+    uv_maps: &'a [Option<UvMap>],
     base: u32,
     default_mat: &'a mut Option<u32>,
     scene: &'a mut SceneDesc,
@@ -206,6 +219,17 @@ impl MeshCtx<'_> {
             if nrm.is_some() {
                 self.scene.has_normals = true;
             }
+            let uv_map = prim.material().index().and_then(|i| self.uv_maps[i]);
+            let uvs: Option<Vec<[f32; 2]>> = match uv_map {
+                Some(map) => reader
+                    .read_tex_coords(map.set)
+                    .map(|t| t.into_f32().map(|uv| map.apply(uv)).collect::<Vec<_>>())
+                    .filter(|t| t.len() == pos.len()),
+                None => None,
+            };
+            if uvs.is_some() {
+                self.scene.has_uvs = true;
+            }
             let idx: Vec<u32> = match reader.read_indices() {
                 Some(i) => i.into_u32().collect(),
                 None => (0..pos.len() as u32).collect(),
@@ -223,7 +247,14 @@ impl MeshCtx<'_> {
                 }
                 let p = tri.map(|i| pos[i as usize].to_array());
                 let n = nrm.as_ref().map(|n| tri.map(|i| n[i as usize].to_array()));
-                self.sink.push(make_tri(p, n, mat, &|| what(t))?)?;
+                let mut st = make_tri(p, n, mat, &|| what(t))?;
+                if let Some(uv) = &uvs {
+                    st.uv = tri.map(|i| uv[i as usize]);
+                    if st.uv.iter().flatten().any(|x| !x.is_finite()) {
+                        bail!("{}: non-finite texture coordinate {:?}", what(t), st.uv);
+                    }
+                }
+                self.sink.push(st)?;
                 count += 1;
             }
         }
@@ -510,14 +541,50 @@ fn render_size(doc: &gltf::Document) -> (u32, u32) {
     (get("width"), get("height"))
 }
 
-fn material(m: &gltf::Material) -> MaterialRecord {
+/// How a material's texture coordinates are read: the set, then KHR_texture_transform's
+/// matrix (translation · rotation · scale, rows of a 2×3 affine map).
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct UvMap {
+    set: u32,
+    m: [[f32; 3]; 2],
+}
+
+impl UvMap {
+    fn of(info: &gltf::texture::Info) -> UvMap {
+        let (set, m) = match info.texture_transform() {
+            Some(t) => {
+                let ([ox, oy], r, [sx, sy]) = (t.offset(), t.rotation(), t.scale());
+                let (s, c) = r.sin_cos();
+                let set = t.tex_coord().unwrap_or(info.tex_coord());
+                (set, [[c * sx, s * sy, ox], [-s * sx, c * sy, oy]])
+            }
+            None => (info.tex_coord(), [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
+        };
+        UvMap { set, m }
+    }
+
+    fn apply(&self, [u, v]: [f32; 2]) -> [f32; 2] {
+        self.m.map(|r| r[0] * u + r[1] * v + r[2])
+    }
+}
+
+/// The material record, its textures added to `scene`, and how its texture coordinates are
+/// read. All textures of a material share one coordinate set and transform (the archive
+/// stores one set per vertex); a material that mixes them is refused.
+fn material(
+    m: &gltf::Material,
+    scene: &mut SceneDesc,
+    buffers: &[Vec<u8>],
+    dir: &Path,
+) -> Result<(MaterialRecord, Option<UvMap>)> {
     let pbr = m.pbr_metallic_roughness();
     let strength = m.emissive_strength().unwrap_or(1.0);
     let spec = m.specular();
+    let normal = m.normal_texture();
     let textured = pbr.base_color_texture().is_some()
         || pbr.metallic_roughness_texture().is_some()
         || m.emissive_texture().is_some()
-        || m.normal_texture().is_some();
+        || normal.is_some();
     let mut flags = 0;
     if m.double_sided() {
         flags |= MaterialRecord::DOUBLE_SIDED;
@@ -525,7 +592,32 @@ fn material(m: &gltf::Material) -> MaterialRecord {
     if textured {
         flags |= MaterialRecord::TEXTURED;
     }
-    MaterialRecord {
+    match m.alpha_mode() {
+        gltf::material::AlphaMode::Mask => flags |= MaterialRecord::ALPHA_MASK,
+        gltf::material::AlphaMode::Blend => flags |= MaterialRecord::ALPHA_BLEND,
+        gltf::material::AlphaMode::Opaque => {}
+    }
+    let mut textures = [MaterialRecord::NO_TEXTURE; 4];
+    let mut uv: Option<UvMap> = None;
+    let slots = [
+        (MaterialRecord::BASE_COLOR, pbr.base_color_texture(), true),
+        (
+            MaterialRecord::METALLIC_ROUGHNESS,
+            pbr.metallic_roughness_texture(),
+            false,
+        ),
+        (MaterialRecord::EMISSIVE, m.emissive_texture(), true),
+    ];
+    for (slot, info, srgb) in slots {
+        let Some(info) = info else { continue };
+        let map = UvMap::of(&info);
+        if uv.is_some_and(|u| u != map) {
+            bail!("its textures use different texture coordinates or transforms (Canopy stores one set per vertex)");
+        }
+        uv = Some(map);
+        textures[slot] = scene.add_texture(texture_source(&info.texture(), srgb, buffers, dir)?)?;
+    }
+    let rec = MaterialRecord {
         name: name_bytes(m.name().unwrap_or("")),
         base_color: pbr.base_color_factor(),
         emission: m.emissive_factor().map(|e| e * strength),
@@ -542,8 +634,78 @@ fn material(m: &gltf::Material) -> MaterialRecord {
             .map(|s| s.specular_color_factor())
             .unwrap_or([1.0; 3]),
         flags,
-        reserved: [0; 16],
+        textures,
+        alpha_cutoff: m.alpha_cutoff().unwrap_or(0.5),
+        reserved: [0; 4],
+    };
+    Ok((rec, uv))
+}
+
+/// Where a glTF texture's image is: a buffer view, a data URI or a file beside the glTF.
+fn texture_source(
+    t: &gltf::Texture,
+    srgb: bool,
+    buffers: &[Vec<u8>],
+    dir: &Path,
+) -> Result<TextureSource> {
+    use gltf::texture::WrappingMode;
+    let wrap = |w: WrappingMode| match w {
+        WrappingMode::Repeat => TextureRecord::WRAP_REPEAT,
+        WrappingMode::ClampToEdge => TextureRecord::WRAP_CLAMP,
+        WrappingMode::MirroredRepeat => TextureRecord::WRAP_MIRROR,
+    };
+    let sampler = t.sampler();
+    let image = t.source();
+    let mut src = TextureSource {
+        file: None,
+        bytes: None,
+        name: image.name().unwrap_or("").to_string(),
+        srgb,
+        wrap: [wrap(sampler.wrap_s()), wrap(sampler.wrap_t())],
+    };
+    match image.source() {
+        gltf::image::Source::View { view, .. } => {
+            let data = buffers
+                .get(view.buffer().index())
+                .and_then(|b| b.get(view.offset()..view.offset().checked_add(view.length())?))
+                .ok_or_else(|| {
+                    anyhow!(
+                        "image {}: its buffer view lies outside its buffer",
+                        image.index()
+                    )
+                })?;
+            src.bytes = Some(std::sync::Arc::new(data.to_vec()));
+            if src.name.is_empty() {
+                src.name = format!("image {}", image.index());
+            }
+        }
+        gltf::image::Source::Uri { uri, .. } if uri.starts_with("data:") => {
+            use base64::Engine;
+            let (_, payload) = uri
+                .split_once(";base64,")
+                .ok_or_else(|| anyhow!("image {}: a data URI that is not base64", image.index()))?;
+            let data = base64::engine::general_purpose::STANDARD
+                .decode(payload)
+                .map_err(|e| anyhow!("image {}: bad base64 data: {e}", image.index()))?;
+            src.bytes = Some(std::sync::Arc::new(data));
+            if src.name.is_empty() {
+                src.name = format!("image {}", image.index());
+            }
+        }
+        gltf::image::Source::Uri { uri, .. } => {
+            let name = urlencoding::decode(uri)
+                .map_err(|_| anyhow!("image {}: URI {uri:?} is not UTF-8", image.index()))?;
+            if name.contains(':') {
+                bail!(
+                    "image {}: URI {uri:?} is not a relative file name",
+                    image.index()
+                );
+            }
+            src.name = name.rsplit('/').next().unwrap_or(&name).to_string();
+            src.file = Some(dir.join(&*name));
+        }
     }
+    Ok(src)
 }
 
 fn camera(

@@ -25,6 +25,8 @@ pub struct SpillTri {
     pub material: u32,
     /// Mean curvature κ_s (004 eq. 4.23, edge-wise form), 0 without vertex normals.
     pub curvature: f32,
+    /// Texture coordinates of the vertices (zero when the input had none).
+    pub uv: [[f32; 2]; 3],
 }
 
 impl SpillTri {
@@ -55,6 +57,33 @@ pub struct SceneDesc {
     pub lights: Vec<LightRecord>,
     pub has_normals: bool,
     pub textured: bool,
+    /// Some triangle carries texture coordinates.
+    pub has_uvs: bool,
+    /// The images materials name, in texture-table order.
+    pub textures: Vec<TextureSource>,
+}
+
+impl TextureSource {
+    /// The file, or the embedded image's name, for messages.
+    pub fn describe(&self) -> String {
+        match &self.file {
+            Some(f) if self.bytes.is_none() => f.display().to_string(),
+            _ => format!("'{}' (embedded)", self.name),
+        }
+    }
+}
+
+/// Where a texture's image comes from, and how it is read.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TextureSource {
+    /// A file, or bytes embedded in the input (named for messages by `name`).
+    pub file: Option<std::path::PathBuf>,
+    pub bytes: Option<std::sync::Arc<Vec<u8>>>,
+    pub name: String,
+    /// Colour data (base colour, emission): sRGB-encoded texels.
+    pub srgb: bool,
+    /// `TextureRecord` wrap modes of s and t.
+    pub wrap: [u32; 2],
 }
 
 impl SceneDesc {
@@ -86,6 +115,18 @@ impl SceneDesc {
         Ok(())
     }
 
+    /// The index of texture `t` (added unless an equal one is there).
+    pub fn add_texture(&mut self, t: TextureSource) -> Result<u16> {
+        if let Some(i) = self.textures.iter().position(|x| *x == t) {
+            return Ok(i as u16);
+        }
+        if self.textures.len() >= MaterialRecord::NO_TEXTURE as usize {
+            bail!("more than {} textures", MaterialRecord::NO_TEXTURE);
+        }
+        self.textures.push(t);
+        Ok(self.textures.len() as u16 - 1)
+    }
+
     pub fn add_material(&mut self, m: MaterialRecord) -> Result<u32> {
         if self.materials.len() >= u16::MAX as usize {
             bail!("more than {} materials", u16::MAX);
@@ -108,7 +149,9 @@ pub fn default_material(name: &str) -> MaterialRecord {
         specular: 0.0,
         specular_color: [1.0; 3],
         flags: MaterialRecord::DOUBLE_SIDED,
-        reserved: [0; 16],
+        textures: [MaterialRecord::NO_TEXTURE; 4],
+        alpha_cutoff: 0.5,
+        reserved: [0; 4],
     }
 }
 
@@ -156,6 +199,7 @@ pub fn make_tri(
         n: n_enc,
         material,
         curvature,
+        uv: [[0.0; 2]; 3],
     })
 }
 

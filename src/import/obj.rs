@@ -1,9 +1,11 @@
-//! Wavefront OBJ with MTL: `v`, `vn`, `f` (polygons fan-triangulated, negative indices
+//! Wavefront OBJ with MTL: `v`, `vn`, `vt`, `f` (polygons fan-triangulated, negative indices
 //! allowed), `usemtl`, `mtllib`. Vertices are held in memory; faces stream.
 
-use super::{context, make_tri, raw_mesh_material, SceneDesc, SceneFile, TriangleSink};
+use super::{
+    context, make_tri, raw_mesh_material, SceneDesc, SceneFile, TextureSource, TriangleSink,
+};
 use anyhow::{bail, Result};
-use canopy_format::{name_bytes, MaterialRecord};
+use canopy_format::{name_bytes, MaterialRecord, TextureRecord};
 use std::collections::HashMap;
 use std::io::BufReader;
 use std::path::Path;
@@ -42,12 +44,29 @@ fn lines<'a>(
     })
 }
 
-/// Parses an MTL library into named materials (Kd, Ks, Ns, Ke, Ni, d/Tr).
-fn read_mtl(path: &Path) -> Result<HashMap<String, MaterialRecord>> {
+/// An MTL material and the images its `map_Kd` and `map_Ke` name.
+type MtlEntry = (MaterialRecord, [Option<TextureSource>; 2]);
+
+/// The image file a `map_*` statement names: its last word (options such as `-s u v w`
+/// come first), relative to the library's directory.
+fn map_file(dir: &Path, rest: &[&str], srgb: bool) -> Option<TextureSource> {
+    let name = rest.last()?;
+    Some(TextureSource {
+        file: Some(dir.join(name.replace('\\', "/"))),
+        bytes: None,
+        name: name.to_string(),
+        srgb,
+        wrap: [TextureRecord::WRAP_REPEAT; 2],
+    })
+}
+
+/// Parses an MTL library into named materials (Kd, Ks, Ns, Ke, Ni, d/Tr, map_Kd, map_Ke).
+fn read_mtl(path: &Path) -> Result<HashMap<String, MtlEntry>> {
     super::check_regular(path, MAX_MTL, "material library")?;
     let f = std::fs::File::open(path).map_err(context(path))?;
+    let dir = path.parent().unwrap_or(Path::new("."));
     let mut out = HashMap::new();
-    let mut cur: Option<(String, MaterialRecord)> = None;
+    let mut cur: Option<(String, MtlEntry)> = None;
     for (ln, line) in lines(f, path) {
         let line = line?;
         let w: Vec<&str> = line.split_whitespace().collect();
@@ -61,10 +80,12 @@ fn read_mtl(path: &Path) -> Result<HashMap<String, MaterialRecord>> {
             let name = rest.join(" ");
             let mut m = super::default_material(&name);
             m.name = name_bytes(&name);
-            cur = Some((name, m));
+            cur = Some((name, (m, [None, None])));
             continue;
         }
-        let Some((_, m)) = cur.as_mut() else { continue };
+        let Some((_, (m, maps))) = cur.as_mut() else {
+            continue;
+        };
         let ln = ln + 1;
         match key {
             // MTL files in the wild stray outside glTF's ranges (Kd 1.2, Ni 0): clamp what is
@@ -101,6 +122,10 @@ fn read_mtl(path: &Path) -> Result<HashMap<String, MaterialRecord>> {
             }
             "d" => m.transmission = 1.0 - floats::<1>(rest, path, ln)?[0].clamp(0.0, 1.0),
             "Tr" => m.transmission = floats::<1>(rest, path, ln)?[0].clamp(0.0, 1.0),
+            "map_Kd" | "map_Ke" => {
+                m.flags |= MaterialRecord::TEXTURED;
+                maps[(key == "map_Ke") as usize] = map_file(dir, rest, true);
+            }
             _ => {}
         }
     }
@@ -120,11 +145,12 @@ pub fn import(
     let dir = path.parent().unwrap_or(Path::new("."));
     let mut pos: Vec<[f32; 3]> = Vec::new();
     let mut nrm: Vec<[f32; 3]> = Vec::new();
-    let mut library: HashMap<String, MaterialRecord> = HashMap::new();
+    let mut tex: Vec<[f32; 2]> = Vec::new();
+    let mut library: HashMap<String, MtlEntry> = HashMap::new();
     let mut indices: HashMap<String, u32> = HashMap::new();
     let mut material = None;
     let mut count = 0u64;
-    let mut face: Vec<(u32, Option<u32>)> = Vec::new();
+    let mut face: Vec<(u32, Option<u32>, Option<u32>)> = Vec::new();
     for (ln, line) in lines(f, path) {
         let line = line?;
         let w: Vec<&str> = line.split_whitespace().collect();
@@ -134,6 +160,11 @@ pub fn import(
         match key {
             "v" => pos.push(floats::<3>(rest, path, ln)?),
             "vn" => nrm.push(floats::<3>(rest, path, ln)?),
+            // OBJ's t runs up the image, glTF's (and the archive's) down.
+            "vt" => {
+                let [u, v] = floats::<2>(&rest[..rest.len().min(2)], path, ln)?;
+                tex.push([u, 1.0 - v]);
+            }
             "mtllib" => {
                 for lib in rest {
                     library.extend(read_mtl(&dir.join(lib))?);
@@ -141,7 +172,7 @@ pub fn import(
             }
             "usemtl" => {
                 let name = rest.join(" ");
-                let Some(m) = library.get(&name) else {
+                let Some((m, maps)) = library.get(&name) else {
                     bail!(
                         "{}:{ln}: material '{name}' is not in any mtllib",
                         path.display()
@@ -153,7 +184,14 @@ pub fn import(
                 material = Some(match indices.get(&name) {
                     Some(&i) => i,
                     None => {
-                        let i = scene.add_material(*m)?;
+                        let mut m = *m;
+                        let slots = [MaterialRecord::BASE_COLOR, MaterialRecord::EMISSIVE];
+                        for (slot, src) in slots.into_iter().zip(maps) {
+                            if let Some(src) = src {
+                                m.textures[slot] = scene.add_texture(src.clone())?;
+                            }
+                        }
+                        let i = scene.add_material(m)?;
                         indices.insert(name, i);
                         i
                     }
@@ -186,20 +224,28 @@ pub fn import(
                     let Some(p) = resolve(parts.next(), pos.len())? else {
                         bail!("{}:{ln}: face without vertex index", path.display())
                     };
-                    let _uv = parts.next();
-                    face.push((p, resolve(parts.next(), nrm.len())?));
+                    let t = resolve(parts.next(), tex.len())?;
+                    face.push((p, t, resolve(parts.next(), nrm.len())?));
                 }
                 for k in 2..face.len() {
                     let tri = [face[0], face[k - 1], face[k]];
-                    let p = tri.map(|(v, _)| pos[v as usize]);
+                    let p = tri.map(|(v, _, _)| pos[v as usize]);
                     let n = tri
                         .iter()
-                        .all(|(_, n)| n.is_some())
-                        .then(|| tri.map(|(_, n)| nrm[n.unwrap() as usize]));
+                        .all(|(_, _, n)| n.is_some())
+                        .then(|| tri.map(|(_, _, n)| nrm[n.unwrap() as usize]));
                     if n.is_some() {
                         scene.has_normals = true;
                     }
-                    sink.push(make_tri(p, n, mat, &|| format!("{}:{ln}", path.display()))?)?;
+                    let mut t = make_tri(p, n, mat, &|| format!("{}:{ln}", path.display()))?;
+                    if tri.iter().all(|(_, t, _)| t.is_some()) {
+                        t.uv = tri.map(|(_, t, _)| tex[t.unwrap() as usize]);
+                        scene.has_uvs = true;
+                        if t.uv.iter().flatten().any(|x| !x.is_finite()) {
+                            bail!("{}:{ln}: non-finite texture coordinate", path.display());
+                        }
+                    }
+                    sink.push(t)?;
                     count += 1;
                 }
             }

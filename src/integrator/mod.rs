@@ -13,7 +13,8 @@ use crate::light::Lights;
 use crate::material::{Bsdf, Frame, Material};
 use crate::paging::PageCache;
 use crate::sampler::PixelSampler;
-use crate::trace::{offset_origin, Cone, Ray, Tracer};
+use crate::texture::{self, Lookup, Textures};
+use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer};
 use glam::Vec3A as V;
 use path::power_heuristic;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
@@ -164,6 +165,9 @@ pub trait Integrator: Send + Sync {
 pub struct Scene {
     pub cache: Arc<PageCache>,
     pub materials: Vec<Material>,
+    pub textures: Textures,
+    /// The factor on a sample's footprint for texture filtering (`TextureFilter::footprint_scale`).
+    pub texture_scale: f32,
     pub lights: Lights,
     pub camera: Camera,
     /// Longest path in segments (1: emitters seen directly); None for unbounded.
@@ -173,6 +177,50 @@ pub struct Scene {
 }
 
 impl Scene {
+    /// Material `index` as shaded at a triangle point (barycentrics `b`, texture
+    /// coordinates `uv`) met along direction `d` with a footprint `spread` wide there, and
+    /// its opacity (see `Textures::shade`). Untextured materials are returned as they are.
+    #[inline]
+    pub fn material_at(
+        &self,
+        index: u32,
+        tri: &[[f32; 3]; 3],
+        uv: [[f32; 2]; 3],
+        b: [f32; 3],
+        d: V,
+        spread: f32,
+    ) -> (Material, f32) {
+        let m = &self.materials[index as usize];
+        if !self.textures.varies(index) {
+            return (*m, 1.0);
+        }
+        let (at, width) = texture::footprint(tri.map(V::from), uv, b, d, spread);
+        self.textures
+            .shade(&mut Lookup::new(&self.cache), m, index, at, width)
+    }
+
+    /// The material at a hit, with the path tracer's footprint: a pixel's spread at the
+    /// hit's distance from the camera (pbrt-v4's `Approximate_dp_dxy`, used at every bounce).
+    pub fn material_at_hit(&self, hit: &Hit, d: V) -> (Material, f32) {
+        let pixel = 2.0 * self.camera.tan_half / self.camera.height.max(1) as f32;
+        let spread = self.texture_scale * pixel * (hit.point().0 - self.camera.pos).length();
+        self.material_at(hit.tri.material, &hit.tri.p, hit.uv, hit.b, d, spread)
+    }
+
+    /// The material at a cone's triangle hit: the cone's width there is the footprint.
+    pub fn material_at_cone(&self, hit: &Hit, ray: &Ray, cone: &Cone) -> Material {
+        let spread = self.texture_scale * 2.0 * cone.radius(hit.t);
+        let m = hit.tri.material;
+        self.material_at(m, &hit.tri.p, hit.uv, hit.b, ray.d, spread)
+            .0
+    }
+
+    /// Material `index` with its textures' means (for values over a whole triangle).
+    pub fn mean_material(&self, index: u32) -> Material {
+        self.textures
+            .mean_shade(&self.materials[index as usize], index)
+    }
+
     /// Whether a hit at `depth` (segments before it, from 0) is on the last segment
     /// `--max-depth` allows: it keeps the emission it sees and scatters nothing.
     pub fn last_segment(&self, depth: u32) -> bool {
@@ -294,7 +342,8 @@ pub fn sample_light(
         return V::ZERO;
     }
     let from = offset_origin(at.p, at.err, at.n, ls.wi);
-    if tr.cone_occluded(&ls.shadow_ray(from), shadow_cone) {
+    let seen = transmittance(scene, tr, ls.shadow_ray(from), shadow_cone);
+    if seen <= 0.0 {
         return V::ZERO;
     }
     let w = if ls.pdf > 0.0 {
@@ -307,7 +356,36 @@ pub fn sample_light(
     } else {
         1.0
     };
-    fv * ls.weight * w * clamp
+    fv * ls.weight * w * clamp * seen
+}
+
+/// The fraction of light a shadow ray carries: 0 or 1, or between under alpha blend. With
+/// alpha materials an exact ray looks through holes, up to `MAX_PASSES` of them (a shadow
+/// cone treats every surface as opaque).
+fn transmittance(scene: &Scene, tr: &mut Tracer, mut ray: Ray, cone: &Cone) -> f32 {
+    if cone.scale > 0.0 || !scene.textures.has_alpha() {
+        return if tr.cone_occluded(&ray, cone) {
+            0.0
+        } else {
+            1.0
+        };
+    }
+    let mut seen = 1.0f32;
+    for _ in 0..path::MAX_PASSES {
+        let Some(hit) = tr.closest_hit(&ray) else {
+            return seen;
+        };
+        let (_, opacity) = scene.material_at_hit(&hit, ray.d);
+        seen *= 1.0 - opacity;
+        let n = hit.ng();
+        if seen <= 0.0 || n == V::ZERO {
+            return 0.0;
+        }
+        let (p, err) = hit.point();
+        ray.o = offset_origin(p, err, n.normalize(), ray.d);
+        ray.t_max -= hit.t;
+    }
+    0.0
 }
 
 /// An error for `what` on an archive with instances, naming the fix.

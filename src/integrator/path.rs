@@ -23,6 +23,9 @@ pub fn power_heuristic(a: f32, b: f32) -> f32 {
     }
 }
 
+/// Most alpha holes one path segment or shadow ray passes through.
+pub const MAX_PASSES: u32 = 64;
+
 pub struct PathIntegrator;
 
 impl Integrator for PathIntegrator {
@@ -54,6 +57,9 @@ pub fn radiance(
     // The last scattering point and its normal, where its light sample was chosen.
     let mut prev = (V::ZERO, V::ZERO);
     let mut depth = 0u32;
+    // Surfaces passed through (alpha holes) on this path, and the distance since `prev`.
+    let mut passes = 0u32;
+    let mut travelled = 0.0f32;
     loop {
         // Sample sets: 0 is the pixel position; bounce k uses sets 2k+1 (light choice, light
         // point, lobe) and 2k+2 (direction, roulette).
@@ -66,13 +72,26 @@ pub fn radiance(
         if hit.instance != NO_INSTANCE {
             scene.touched.insert(hit.instance_leaf);
         }
-        let m = &scene.materials[hit.tri.material as usize];
         let ng_raw = hit.ng();
         let area = 0.5 * ng_raw.length();
         if area.is_nan() || area <= 0.0 {
             break;
         }
         let ng = ng_raw / (2.0 * area);
+        let (m, opacity) = scene.material_at_hit(&hit, ray.d);
+        let m = &m;
+        if opacity < 1.0 && passes < MAX_PASSES {
+            // Stochastic opacity: the path goes on through a hole (alpha mask) or with
+            // probability 1 − alpha (blend), unscattered and with its depth unchanged.
+            let u = (ud0 + passes as f32 * 0.618_034).fract();
+            if u >= opacity {
+                passes += 1;
+                travelled += hit.t * ray.d.length();
+                let (p, err) = hit.point();
+                ray.o = offset_origin(p, err, ng, ray.d);
+                continue;
+            }
+        }
         let wo = -ray.d.normalize();
         let front = ng.dot(wo) > 0.0;
         let le = m.emitted(front);
@@ -80,7 +99,7 @@ pub fn radiance(
             if prev_delta {
                 l += beta * le;
             } else {
-                let dist2 = (hit.t * ray.d.length()).powi(2);
+                let dist2 = (travelled + hit.t * ray.d.length()).powi(2);
                 let light_pdf = scene.lights.pdf_li(
                     prev,
                     scene.lights.emitter_at(hit.leaf, hit.slot),
@@ -124,6 +143,7 @@ pub fn radiance(
         prev_pdf = bs.pdf;
         prev_delta = bs.delta;
         prev = (p, ng);
+        travelled = 0.0;
         let wi = frame.to_world(bs.wi).normalize();
         ray = Ray {
             o: offset_origin(p, err, ng, wi),

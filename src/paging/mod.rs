@@ -138,6 +138,8 @@ pub struct Page {
     tri_slot: Vec<u32>,
     /// Per triangle, octahedral shading normals of its vertices (empty without normals).
     pub shading: Vec<[u32; 3]>,
+    /// Per triangle, its vertices' texture coordinates (empty without TEXCOORDS).
+    pub uvs: Vec<[[f32; 2]; 3]>,
     /// The page's baked light (empty unless a radiance file is attached).
     pub baked: BakedBlock,
     /// Per node, its glossy light decoded from `baked.coefs` (empty unless the bake
@@ -205,6 +207,14 @@ impl Page {
                 .map(|t| t.v.map(|v| c.normals[v as usize]))
                 .collect()
         };
+        let uvs: Vec<[[f32; 2]; 3]> = if c.uvs.is_empty() {
+            Vec::new()
+        } else {
+            c.tris
+                .iter()
+                .map(|t| t.v.map(|v| c.uvs[v as usize]))
+                .collect()
+        };
         let e = &archive.entry(id)?;
         let (tri4, tri_slot) = wide::tri4s(&mut bvh, &tris).ok_or_else(|| {
             anyhow::anyhow!(
@@ -223,7 +233,8 @@ impl Page {
             + wide.capacity() * std::mem::size_of::<wide::Wide>()
             + tri4.capacity() * std::mem::size_of::<wide::Tri4>()
             + tri_slot.capacity() * 4
-            + shading.capacity() * 12) as u64;
+            + shading.capacity() * 12
+            + uvs.capacity() * 24) as u64;
         Ok(Page {
             id,
             first_node: e.first_node,
@@ -234,6 +245,7 @@ impl Page {
             tri4,
             tri_slot,
             shading,
+            uvs,
             baked: BakedBlock::default(),
             glossy: coefs::GlossyTexels::default(),
             bytes,
@@ -265,6 +277,7 @@ impl Page {
             tri4: Vec::new(),
             tri_slot: Vec::new(),
             shading: Vec::new(),
+            uvs: Vec::new(),
             baked: BakedBlock::default(),
             glossy: coefs::GlossyTexels::default(),
             bytes: 0,
@@ -279,8 +292,20 @@ struct Slot {
     pinned: bool,
 }
 
+/// A decoded texture tile: `TILE_BYTES` of RGBA8.
+pub type TileData = Arc<Vec<u8>>;
+
+#[derive(Default)]
+struct TileSlot {
+    data: RwLock<Option<TileData>>,
+    referenced: AtomicBool,
+}
+
+/// Bytes a resident tile counts against the budget (texels and bookkeeping).
+const TILE_COST: u64 = canopy_format::TILE_BYTES as u64 + 64;
+
 /// Cache counters, read at the end of a render.
-#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+#[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct CacheStats {
     pub pages_loaded: u64,
     pub pages_evicted: u64,
@@ -293,6 +318,13 @@ pub struct CacheStats {
     pub pinned_bytes: u64,
     pub pages_touched: u64,
     pub cache_hit_rate: f64,
+    pub texture_tiles_loaded: u64,
+    pub texture_tiles_evicted: u64,
+    /// Decoded texture bytes resident at the end, and at most.
+    pub texture_bytes_resident: u64,
+    pub texture_bytes_peak: u64,
+    /// Tiles loaded per MIP level (index = level), over all textures.
+    pub texture_tiles_loaded_per_level: Vec<u64>,
 }
 
 pub struct PageCache {
@@ -303,6 +335,13 @@ pub struct PageCache {
     /// The archive's instances, by index.
     pub instances: Vec<instance::Instance>,
     slots: Vec<Slot>,
+    tiles: Vec<TileSlot>,
+    /// MIP level of each tile, for the stats.
+    tile_level: Vec<u8>,
+    tile_loads: Vec<AtomicU64>,
+    tile_evictions: AtomicU64,
+    tile_resident: AtomicU64,
+    tile_resident_peak: AtomicU64,
     budget: u64,
     resident: AtomicU64,
     resident_peak: AtomicU64,
@@ -337,11 +376,12 @@ pub fn one_arena() {
 
 /// Decoded size of a page without decoding it (from its page-table counts).
 pub fn decoded_size(archive: &Archive, e: &PageEntry) -> u64 {
-    let normals = archive.header.features & canopy_format::Features::SHADING_NORMALS != 0;
+    let streams = canopy_format::Streams::of(archive.header.features);
+    let per_tri =
+        std::mem::size_of::<TriW>() + 12 * streams.normals as usize + 24 * streams.uvs as usize;
     (std::mem::size_of::<Page>()
         + e.node_count as usize * (std::mem::size_of::<Node>() + std::mem::size_of::<TNode>())
-        + e.tri_count as usize * (std::mem::size_of::<TriW>() + if normals { 12 } else { 0 }))
-        as u64
+        + e.tri_count as usize * per_tri) as u64
 }
 
 impl PageCache {
@@ -380,7 +420,20 @@ impl PageCache {
                 );
             }
         }
+        let mut tile_level = Vec::with_capacity(archive.tile_count() as usize);
+        for t in &archive.textures {
+            for l in 0..t.levels {
+                let (x, y) = t.level_tiles(l);
+                tile_level.extend(std::iter::repeat_n(l as u8, (x * y) as usize));
+            }
+        }
         let cache = Arc::new(PageCache {
+            tiles: (0..tile_level.len()).map(|_| TileSlot::default()).collect(),
+            tile_loads: (0..32).map(|_| AtomicU64::new(0)).collect(),
+            tile_level,
+            tile_evictions: AtomicU64::new(0),
+            tile_resident: AtomicU64::new(0),
+            tile_resident_peak: AtomicU64::new(0),
             entries,
             instances: archive
                 .instances
@@ -547,18 +600,79 @@ impl PageCache {
         page
     }
 
-    /// CLOCK sweep until resident bytes fit the budget (at most two turns of the hand).
+    /// Texture tile `index`, loading it if needed. A tile that fails to decode is recorded
+    /// as the cache's error and served as zeros.
+    pub fn tile(&self, index: u32) -> TileData {
+        let slot = &self.tiles[index as usize];
+        if let Some(t) = slot.data.read().expect("tile slot").as_ref() {
+            if !slot.referenced.load(Relaxed) {
+                slot.referenced.store(true, Relaxed);
+            }
+            return Arc::clone(t);
+        }
+        let data = Arc::new(match self.archive.read_tile(index) {
+            Ok(d) => d,
+            Err(e) => {
+                self.error
+                    .lock()
+                    .expect("error lock")
+                    .get_or_insert_with(|| format!("{e:#}"));
+                vec![0; canopy_format::TILE_BYTES as usize]
+            }
+        });
+        {
+            let mut w = slot.data.write().expect("tile slot");
+            if let Some(t) = w.as_ref() {
+                return Arc::clone(t);
+            }
+            *w = Some(Arc::clone(&data));
+        }
+        slot.referenced.store(true, Relaxed);
+        self.tile_loads[self.tile_level[index as usize] as usize].fetch_add(1, Relaxed);
+        let t = self.tile_resident.fetch_add(TILE_COST, Relaxed) + TILE_COST;
+        self.tile_resident_peak.fetch_max(t, Relaxed);
+        let now = self.resident.fetch_add(TILE_COST, Relaxed) + TILE_COST;
+        if now > self.budget {
+            self.evict(self.slots.len() as u32 + index);
+        }
+        self.resident_peak
+            .fetch_max(self.resident.load(Relaxed), Relaxed);
+        data
+    }
+
+    /// Drops tile `i` if its reference bit is clear (clearing it otherwise).
+    fn evict_tile(&self, i: usize) {
+        let slot = &self.tiles[i];
+        if slot.referenced.swap(false, Relaxed) {
+            return;
+        }
+        if slot.data.write().expect("tile slot").take().is_some() {
+            self.resident.fetch_sub(TILE_COST, Relaxed);
+            self.tile_resident.fetch_sub(TILE_COST, Relaxed);
+            self.tile_evictions.fetch_add(1, Relaxed);
+        }
+    }
+
+    /// CLOCK sweep over pages and tiles (tiles numbered after the pages) until resident
+    /// bytes fit the budget (at most two turns of the hand); `keep` is the slot just loaded.
     fn evict(&self, keep: u32) {
         let mut hand = self.hand.lock().expect("clock lock");
-        let n = self.slots.len();
+        let n = self.slots.len() + self.tiles.len();
         for _ in 0..2 * n {
             if self.resident.load(Relaxed) <= self.budget {
                 break;
             }
             let i = *hand;
             *hand = (i + 1) % n;
+            if i as u32 == keep {
+                continue;
+            }
+            if i >= self.slots.len() {
+                self.evict_tile(i - self.slots.len());
+                continue;
+            }
             let slot = &self.slots[i];
-            if slot.pinned || i as u32 == keep {
+            if slot.pinned {
                 continue;
             }
             if slot.referenced.swap(false, Relaxed) {
@@ -627,6 +741,17 @@ impl PageCache {
                 hits as f64 / (hits + misses) as f64
             } else {
                 1.0
+            },
+            texture_tiles_loaded: self.tile_loads.iter().map(|l| l.load(Relaxed)).sum(),
+            texture_tiles_evicted: self.tile_evictions.load(Relaxed),
+            texture_bytes_resident: self.tile_resident.load(Relaxed),
+            texture_bytes_peak: self.tile_resident_peak.load(Relaxed),
+            texture_tiles_loaded_per_level: {
+                let mut v: Vec<u64> = self.tile_loads.iter().map(|l| l.load(Relaxed)).collect();
+                while v.last() == Some(&0) {
+                    v.pop();
+                }
+                v
             },
         }
     }

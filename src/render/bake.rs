@@ -3,10 +3,10 @@
 //! --radiance` pages in with the nodes.
 
 use super::setup::open_scene;
-use super::stats::peak_rss_bytes;
 use crate::camera::Camera;
 use crate::image::{check_writable, same_file};
 use crate::integrator::pbgi::bake::{bake_file, BakeSettings};
+use crate::progress::peak_rss_bytes;
 use anyhow::{bail, Context, Result};
 use canopy_format::Archive;
 use std::fmt;

@@ -11,9 +11,11 @@ mod stats;
 pub use setup::MAX_SIDE;
 pub use stats::{Checkpoint, RenderStats, Seconds};
 
+use crate::progress::peak_rss_bytes;
+use crate::texture::TextureFilter;
 use film::{Film, Sums};
 use setup::Setup;
-use stats::{ancestors_closure, peak_rss_bytes};
+use stats::ancestors_closure;
 
 use crate::image::{Frame, Image};
 use crate::integrator::{self, Counters, Integrator, PixelSample, Scene, Target};
@@ -45,6 +47,7 @@ pub struct RenderOptions {
     pub seed: u32,
     pub threads: Option<usize>,
     pub max_depth: Option<u32>,
+    pub texture_filter: TextureFilter,
     /// x0, x1, y0, y1 in pixels (half-open).
     pub crop: Option<[u32; 4]>,
     pub preview: bool,
@@ -206,8 +209,16 @@ fn archive_checksum(scene: &Scene) -> String {
 /// tiles of one frame must agree on it.
 fn settings_text(o: &RenderOptions, s: &Setup) -> String {
     format!(
-        "{:?} spp={} time={:?} noise={:?} max_depth={:?} camera={:?} size={}x{}",
-        o.integrator, o.spp, o.time, o.noise, o.max_depth, o.camera, s.width, s.height
+        "{:?} spp={} time={:?} noise={:?} max_depth={:?} textures={:?} camera={:?} size={}x{}",
+        o.integrator,
+        o.spp,
+        o.time,
+        o.noise,
+        o.max_depth,
+        o.texture_filter,
+        o.camera,
+        s.width,
+        s.height
     )
 }
 

@@ -8,9 +8,10 @@ use crate::integrator::{NodeSet, Scene};
 use crate::light::Lights;
 use crate::material::Material;
 use crate::paging::PageCache;
+use crate::texture::Textures;
 use crate::trace::MAX_DEPTH;
 use anyhow::{bail, Context, Result};
-use canopy_format::{Archive, CameraRecord};
+use canopy_format::{Archive, CameraRecord, MaterialRecord};
 use glam::Vec3A as V;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -145,13 +146,15 @@ impl Setup {
             .context("starting worker threads")?;
         let state_bytes = o.mem_budget.map(|b| o.integrator.state_share(b));
         let camera = Camera::new(cam, width, height);
-        let scene = open_scene(
+        let mut scene = open_scene(
             archive,
             camera,
             o.mem_budget.map(|b| (b, state_bytes.unwrap_or(0))),
             threads,
             o.max_depth,
         )?;
+        let spp = o.time.is_none().then_some(o.spp);
+        scene.texture_scale = o.texture_filter.footprint_scale(spp);
         Ok(Setup {
             exr,
             png,
@@ -171,12 +174,14 @@ impl Setup {
 const RESERVE: u64 = 32 << 20;
 /// Per page: its table entry and cache slot.
 const PER_PAGE: u64 = 128;
+/// Per texture tile: its table entry, cache slot and level.
+const PER_TILE: u64 = 72;
 
 /// What a budget of `b` bytes keeps back from the page cache for an archive of `pages`
 /// pages (200 M triangles at 1 GiB: RSS 1.27 GiB before, when the cache counted vector
 /// lengths and had the whole budget).
-fn reserve(b: u64, pages: u64) -> u64 {
-    RESERVE.min(b / 8) + pages * PER_PAGE
+fn reserve(b: u64, pages: u64, tiles: u64) -> u64 {
+    RESERVE.min(b / 8) + pages * PER_PAGE + tiles * PER_TILE
 }
 
 /// The scene an archive describes, its pages under `budget` = (total, bytes kept aside for
@@ -199,7 +204,9 @@ pub fn open_scene(
     let touched = NodeSet::new(archive.header.nodes);
     let budget = match budget {
         Some((b, state)) => {
-            let others = touched.bytes() + state + reserve(b, archive.page_count() as u64);
+            let others = touched.bytes()
+                + state
+                + reserve(b, archive.page_count() as u64, archive.tile_count() as u64);
             Some(b.checked_sub(others).with_context(|| {
                 format!("--mem-budget {b} cannot even hold the node statistics and the page table")
             })?)
@@ -207,11 +214,23 @@ pub fn open_scene(
         None => None,
     };
     let cache = PageCache::new(Arc::clone(&archive), budget, threads)?;
+    // Emission textures enter as their mean (lights are sampled by their factor): see
+    // `Textures`.
     let materials: Vec<Material> = archive
         .materials
         .iter()
-        .map(Material::from_record)
+        .map(|r| {
+            let mut m = Material::from_record(r);
+            if let Some(t) = archive
+                .textures
+                .get(r.textures[MaterialRecord::EMISSIVE] as usize)
+            {
+                m.emission *= V::new(t.mean[0], t.mean[1], t.mean[2]);
+            }
+            m
+        })
         .collect();
+    let textures = Textures::new(&archive.textures, &archive.materials);
     let (lo, hi) = (
         V::from(archive.header.bounds_min),
         V::from(archive.header.bounds_max),
@@ -220,6 +239,8 @@ pub fn open_scene(
     Ok(Scene {
         cache,
         materials,
+        textures,
+        texture_scale: 1.0,
         camera,
         lights,
         max_depth,

@@ -95,18 +95,6 @@ impl std::fmt::Display for RenderStats {
     }
 }
 
-/// Peak resident set of this process (VmHWM), 0 where /proc is unavailable.
-pub fn peak_rss_bytes() -> u64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1)?.parse::<u64>().ok())
-        })
-        .map_or(0, |kb| kb * 1024)
-}
-
 /// Nodes touched = leaves hit plus all their ancestors (004 §5.2). Walks the pages that
 /// were loaded, deepest first, marking a node when a child is marked. It reads only the
 /// pages' node records (no traversal structures), the pages of one level in parallel.

@@ -53,6 +53,8 @@ pub struct Hit {
     pub instance_leaf: u64,
     /// What transforming `tri` to world space adds to the hit point's error bound.
     pub transform_err: V,
+    /// Texture coordinates of the triangle's vertices (zero without TEXCOORDS).
+    pub uv: [[f32; 2]; 3],
 }
 
 /// `Hit::instance` of a triangle outside every instance.
@@ -93,6 +95,7 @@ impl Hit {
             instance: r.instance,
             instance_leaf: r.via,
             transform_err: V::ZERO,
+            uv: page.uvs.get(r.index as usize).copied().unwrap_or_default(),
         }
     }
 

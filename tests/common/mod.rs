@@ -191,6 +191,8 @@ mod test_rng;
 #[allow(unused_imports)]
 pub use test_rng::TestRng;
 
+pub mod textured;
+
 /// cbox.glb with its JSON and BIN chunk edited, written to `dir/name`.
 pub fn tiny_glb(
     dir: &Path,

@@ -314,6 +314,7 @@ pub fn tiny_render(archive: &Path, dir: &Path, integrator: Settings) -> RenderOp
         seed: 0,
         threads: Some(2),
         max_depth: Some(4),
+        texture_filter: canopy::texture::TextureFilter::Trilinear,
         crop: None,
         preview: false,
         exposure: 1.0,

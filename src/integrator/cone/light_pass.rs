@@ -83,7 +83,9 @@ fn trace_photon(
         let Some(hit) = tr.closest_hit(&ray) else {
             return false;
         };
-        let m = &scene.materials[hit.tri.material as usize];
+        let m = &scene
+            .material_at(hit.tri.material, &hit.tri.p, hit.uv, hit.b, ray.d, 0.0)
+            .0;
         let ng = hit.ng().normalize_or_zero();
         let wo = -ray.d;
         let front = ng.dot(wo) > 0.0;

@@ -344,7 +344,7 @@ impl ConeIntegrator {
         at: &Here,
         pend: &mut Pending,
     ) -> Event {
-        let m = &scene.materials[h.tri.material as usize];
+        let m = &scene.material_at_cone(h, &path.ray, &path.cone);
         if m.absorbs(at.front) {
             return Event::Stop;
         }

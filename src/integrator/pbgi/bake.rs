@@ -452,7 +452,7 @@ fn triangle(
     let v = t.p.map(V::from);
     let cross = (v[1] - v[0]).cross(v[2] - v[0]);
     let area = 0.5 * cross.length();
-    let m = &scene.materials[t.material as usize];
+    let m = &scene.mean_material(t.material);
     let rho = m.bsdf(true).diffuse;
     let dark = |node| BakedTriangle {
         node,

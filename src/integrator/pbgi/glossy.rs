@@ -95,7 +95,7 @@ impl GlossyMaps {
             };
             let bsdf = Bsdf {
                 diffuse: V::ZERO,
-                ..scene.materials[tri.material as usize].bsdf(true)
+                ..scene.mean_material(tri.material).bsdf(true)
             };
             self.sample(scene, tr, tri.p.map(V::from), bsdf, rng, &mut map);
         }

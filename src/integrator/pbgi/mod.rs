@@ -635,6 +635,7 @@ impl PbgiIntegrator {
                     instance: NO_INSTANCE,
                     instance_leaf: 0,
                     transform_err: V::ZERO,
+                    uv: page.uvs.get(t as usize).copied().unwrap_or_default(),
                 };
                 let (sends, sampled) = hit_light(scene, tr, page, &hit, w, rng);
                 exact += sampled as u64;
@@ -783,7 +784,7 @@ struct Surface {
 
 impl Surface {
     fn at(scene: &Scene, hit: &Hit, d: V) -> Option<Surface> {
-        let m = &scene.materials[hit.tri.material as usize];
+        let m = &scene.material_at_hit(hit, d).0;
         let ng_raw = hit.ng();
         let len = ng_raw.length();
         if len.is_nan() || len <= 0.0 {
