@@ -36,6 +36,10 @@ pub struct Summary {
     /// Placements of prototypes, and the distinct prototypes they place.
     pub instances: usize,
     pub prototypes: usize,
+    /// Textures (name and level-0 size), their tiles and the tiles' compressed bytes.
+    pub textures: Vec<String>,
+    pub texture_tiles: u32,
+    pub texture_bytes: u64,
     pub bounds_min: [f32; 3],
     pub bounds_max: [f32; 3],
     pub verified: bool,
@@ -136,6 +140,13 @@ pub fn summarize(a: &Archive) -> Result<Summary> {
             p.dedup();
             p.len()
         },
+        textures: a
+            .textures
+            .iter()
+            .map(|t| format!("{} {}x{}", name_str(&t.name), t.width, t.height))
+            .collect(),
+        texture_tiles: a.tile_count(),
+        texture_bytes: a.tile_bytes(),
         bounds_min: h.bounds_min,
         bounds_max: h.bounds_max,
         verified: false,
@@ -222,6 +233,21 @@ impl std::fmt::Display for Summary {
         )?;
         writeln!(f, "  cameras             {}", list_or_none(&s.cameras))?;
         writeln!(f, "  punctual lights     {}", s.lights)?;
+        writeln!(
+            f,
+            "  textures            {}{}",
+            s.textures.len(),
+            if s.textures.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    " in {} tiles, {:.2} MiB: {}",
+                    s.texture_tiles,
+                    s.texture_bytes as f64 / 1048576.0,
+                    s.textures.join(", ")
+                )
+            }
+        )?;
         if s.instances > 0 {
             writeln!(
                 f,

@@ -221,3 +221,158 @@ fn a_texture_larger_than_the_budget_converts_in_bounded_memory_and_loads_only_th
     assert!(levels.len() > 8, "{levels:?}");
     assert_eq!(levels[..3], [0, 0, 0], "fine levels loaded: {levels:?}");
 }
+
+/// A PNG holding only a header that claims `w` × `h` RGBA texels (and no image data).
+fn png_header_only(path: &std::path::Path, w: u32, h: u32) {
+    fn crc32(bytes: &[u8]) -> u32 {
+        let mut c = !0u32;
+        for &b in bytes {
+            c ^= b as u32;
+            for _ in 0..8 {
+                c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
+            }
+        }
+        !c
+    }
+    let mut ihdr = b"IHDR".to_vec();
+    ihdr.extend(w.to_be_bytes());
+    ihdr.extend(h.to_be_bytes());
+    ihdr.extend([8, 6, 0, 0, 0]);
+    let mut out = b"\x89PNG\r\n\x1a\n".to_vec();
+    out.extend(13u32.to_be_bytes());
+    out.extend(&ihdr);
+    out.extend(crc32(&ihdr).to_be_bytes());
+    out.extend(0u32.to_be_bytes());
+    out.extend(b"IEND");
+    out.extend(crc32(b"IEND").to_be_bytes());
+    std::fs::write(path, out).unwrap();
+}
+
+#[test]
+fn bad_textures_are_refused_by_name_and_leave_no_archive() {
+    let dir = tempfile::tempdir().unwrap();
+    let gltf = plane_gltf(dir.path(), "plane.gltf", &Plane::default());
+    let out = dir.path().join("p.canopy");
+    let image = dir.path().join("checker.png");
+    let refused = |what: &str, expect: &[&str]| {
+        let err = fails(&["--quiet", "convert", s(&gltf), "-o", s(&out)]);
+        for e in expect {
+            assert!(err.contains(e), "{what}: '{e}' not in: {err}");
+        }
+        assert!(!out.exists(), "{what}: an archive was written");
+        let leftovers: Vec<_> = std::fs::read_dir(dir.path()).unwrap().flatten().filter(|e| e.file_name().to_string_lossy().contains(".tmp")).collect();
+        assert!(leftovers.is_empty(), "{what}: {leftovers:?} left behind");
+    };
+    refused("missing", &["checker.png", "missing", "--missing-textures warn"]);
+
+    // With --missing-textures warn the plane keeps its factor (white) and says so.
+    let run = canopy(&["--quiet", "convert", s(&gltf), "-o", s(&out), "--missing-textures", "warn"]);
+    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    let warning = String::from_utf8_lossy(&run.stderr);
+    assert!(warning.contains("warning") && warning.contains("checker.png"), "{warning}");
+    let report = ok(&["inspect", s(&out)]);
+    assert!(report.contains("textures            0"), "{report}");
+    std::fs::remove_file(&out).unwrap();
+
+    std::fs::write(&image, b"\x89PNG\r\n\x1a\nthis is not a PNG stream").unwrap();
+    refused("corrupt PNG", &["checker.png"]);
+    checker_png(&image, 64, 4, |_, _| false);
+    let mut bytes = std::fs::read(&image).unwrap();
+    bytes.truncate(bytes.len() / 2);
+    std::fs::write(&image, &bytes).unwrap();
+    refused("truncated PNG", &["checker.png"]);
+    std::fs::write(&image, [0xFF, 0xD8, 0xFF, 0xE0, 0, 16, b'J', b'F', b'I', b'F', 0, 1, 2, 3]).unwrap();
+    refused("corrupt JPEG", &["checker.png"]);
+    png_header_only(&image, 0, 16);
+    refused("zero-sized", &["checker.png"]);
+    png_header_only(&image, 65536, 32768);
+    refused("absurd", &["checker.png", "65536×32768"]);
+}
+
+#[test]
+fn an_obj_with_map_kd_renders_as_the_same_gltf_plane() {
+    let dir = tempfile::tempdir().unwrap();
+    // Squares with holes in one corner: an upside-down or mirrored image would move them.
+    checker_png(&dir.path().join("checker.png"), 256, 8, |x, y| x < 2 && y < 3);
+    let plane = Plane {
+        repeat: 0.1,
+        bare: true,
+        ..Plane::default()
+    };
+    let gltf = plane_gltf(dir.path(), "plane.gltf", &plane);
+    // The same plane as OBJ: `vt` counts v up the image, so it stores 1 − v.
+    let (s_, near, far, r) = (60.0f32, 4.0f32, -150.0f32, 0.1f32);
+    let corners = [[-s_, near], [s_, near], [s_, far], [-s_, far]];
+    let mut obj = String::from("mtllib plane.mtl\nusemtl checker\n");
+    for [x, z] in corners {
+        obj += &format!("v {x} 0 {z}\nvt {} {}\n", x * r, 1.0 - z * r);
+    }
+    obj += "f 1/1 2/2 3/3\nf 1/1 3/3 4/4\n";
+    std::fs::write(dir.path().join("plane.obj"), obj).unwrap();
+    std::fs::write(dir.path().join("plane.mtl"), "newmtl checker\nKd 1 1 1\nmap_Kd -bm 1 checker.png\n").unwrap();
+    let toml = "[[camera]]\nposition = [0.0, 3.0, 0.0]\nlook_at = [0.5, 0.0, -4.0]\nwidth = 64\nheight = 64\nyfov_degrees = 60.0\n\
+                [[light]]\ntype = \"directional\"\ndirection = [0.2, -1.0, -0.3]\nintensity = 3.0\n";
+    let scene = dir.path().join("s.toml");
+    std::fs::write(&scene, toml).unwrap();
+    let args = ["--spp", "4", "--max-depth", "2"];
+    let mut images = Vec::new();
+    for input in ["plane.gltf", "plane.obj"] {
+        let out = dir.path().join(format!("{input}.canopy"));
+        convert(&dir.path().join(input), &out, Some(&scene));
+        images.push(render(&out, &dir.path().join(format!("{input}.exr")), &args).0);
+    }
+    assert!(images[0].mean()[0] > 0.05);
+    let err = rmse(&images[0], &images[1]);
+    assert!(err < 1e-5, "OBJ and glTF planes differ: RMSE {err}");
+}
+
+#[test]
+fn alpha_masks_cut_holes_for_camera_and_shadow_rays() {
+    let dir = tempfile::tempdir().unwrap();
+    // A quarter of the squares are holes; a red floor lies 0.3 below.
+    checker_png(&dir.path().join("checker.png"), 256, 8, |x, y| (x + 2 * y) % 4 == 0);
+    let mut fractions = Vec::new();
+    for mode in ["OPAQUE", "MASK"] {
+        let plane = Plane {
+            repeat: 0.5,
+            pitch: 50.0,
+            height: 2.0,
+            alpha_mode: Some(mode),
+            floor_below: Some(0.3),
+            ..Plane::default()
+        };
+        let gltf = plane_gltf(dir.path(), &format!("{mode}.gltf"), &plane);
+        let out = dir.path().join(format!("{mode}.canopy"));
+        convert(&gltf, &out, None);
+        let (img, _) = render(&out, &dir.path().join(format!("{mode}.exr")), &["--spp", "4", "--width", "64", "--height", "64", "--max-depth", "2", "--texture-filter", "point"]);
+        // Lit red floor seen through a hole: red well above green.
+        let red = img.pixels.iter().filter(|p| p[0] > 0.02 && p[0] > 3.0 * p[1]).count();
+        fractions.push(red as f64 / img.pixels.len() as f64);
+    }
+    eprintln!("red floor seen on {:.3} (opaque) and {:.3} (mask) of the pixels", fractions[0], fractions[1]);
+    assert_eq!(fractions[0], 0.0, "an opaque plane shows the floor");
+    // A quarter of the plane is holes, and the lit part of the floor under each is smaller
+    // than the hole (shadow rays pass the same holes): some, but under a quarter.
+    assert!((0.02..0.25).contains(&fractions[1]), "{fractions:?}");
+}
+
+#[test]
+fn a_corrupt_tile_fails_the_render_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let archive = checker_archive(dir.path(), 256, 8, Plane::default());
+    let mut bytes = std::fs::read(&archive).unwrap();
+    // The tile table (header offset 224: offset, count) gives each tile's frame: flip a
+    // byte in every one, so whichever the render reads first is damaged.
+    let table = u64::from_le_bytes(bytes[224..232].try_into().unwrap()) as usize;
+    let count = u32::from_le_bytes(bytes[232..236].try_into().unwrap()) as usize;
+    for t in 0..count {
+        let at = table + 32 * t;
+        let frame = u64::from_le_bytes(bytes[at..at + 8].try_into().unwrap()) as usize;
+        bytes[frame + 3] ^= 0x55;
+    }
+    std::fs::write(&archive, &bytes).unwrap();
+    let out = dir.path().join("r.exr");
+    let err = fails(&["render", s(&archive), "-o", s(&out), "--spp", "1", "--width", "32", "--height", "32"]);
+    assert!(err.contains("texture tile") && err.contains("checksum"), "{err}");
+    assert!(!out.exists(), "an image was written");
+}

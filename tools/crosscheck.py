@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Render a glTF binary (.glb) with Mitsuba 3 as an independent reference for Canopy.
+"""Render a glTF scene (.glb, or .gltf with its buffers and images beside it) with Mitsuba 3
+as an independent reference for Canopy.
 
     pip install mitsuba
     python3 tools/crosscheck.py scenes/cbox.glb -o cbox_mitsuba.exr --spp 1024 [--threads N]
@@ -12,7 +13,11 @@ metallic-roughness materials (pure Lambert when metallic = 0, roughness = 1 and
 KHR_materials_specular.specularFactor = 0; smooth white glass as `dielectric`; white
 metals as `conductor`/`roughconductor` with no absorption; Mitsuba's `principled`
 otherwise), emission
-(emissiveFactor × KHR_materials_emissive_strength, front face only unless double-sided).
+(emissiveFactor × KHR_materials_emissive_strength, front face only unless double-sided),
+and on Lambertian materials a baseColorTexture (TEXCOORD_0, repeat wrapping): the image is
+decoded to linear RGB, multiplied by baseColorFactor and given to a `bitmap` texture
+(bilinear, no MIP maps: what Canopy converges to as its filter narrows), with
+alphaMode MASK as Mitsuba's `mask` over the image's alpha cut at alphaCutoff.
 Prints the render time and paths per second (spp × pixels / seconds) and writes a JSON
 beside the EXR, so `canopy render` can be timed against it on the same machine.
 """
@@ -36,10 +41,21 @@ def load_glb(path):
     return doc, binary
 
 
+def load_gltf(path):
+    """A .gltf's JSON and its one buffer (a file beside it)."""
+    import os
+    doc = json.load(open(path))
+    bufs = doc.get("buffers", [])
+    if len(bufs) != 1 or "uri" not in bufs[0] or bufs[0]["uri"].startswith("data:"):
+        sys.exit(f"{path}: expected one external buffer")
+    binary = open(os.path.join(os.path.dirname(path), bufs[0]["uri"]), "rb").read()
+    return doc, binary
+
+
 def accessor(doc, binary, i):
     a = doc["accessors"][i]
     view = doc["bufferViews"][a["bufferView"]]
-    comps = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}[a["type"]]
+    comps = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}[a["type"]]
     dtype = {5126: np.float32, 5125: np.uint32, 5123: np.uint16, 5121: np.uint8}[a["componentType"]]
     start = view.get("byteOffset", 0) + a.get("byteOffset", 0)
     stride = view.get("byteStride", 0)
@@ -67,7 +83,29 @@ def node_matrix(n):
     return t @ r @ s
 
 
-def bsdf_of(mi, m):
+def texture_of(mi, doc, scene_dir, tmp, info, factor, name):
+    """A `bitmap` texture of image `info` times `factor`, in linear RGB, and (for a mask)
+    a `bitmap` of its alpha channel cut at `cutoff`; written as EXR files under tmp."""
+    import os
+    key = (info["index"], tuple(factor))
+    if key in texture_of.made:
+        return texture_of.made[key]
+    image = doc["images"][doc["textures"][info["index"]]["source"]]
+    bmp = mi.Bitmap(os.path.join(scene_dir, image["uri"]))
+    arr = np.array(bmp.convert(mi.Bitmap.PixelFormat.RGBA, mi.Struct.Type.Float32, srgb_gamma=False))
+    rgb = arr[:, :, :3] * np.array(factor[:3], dtype=np.float32)
+    path = f"{tmp}/{name}.exr"
+    mi.Bitmap(np.ascontiguousarray(rgb)).write(path)
+    tex = {"type": "bitmap", "filename": path, "raw": True, "filter_type": "bilinear", "wrap_mode": "repeat"}
+    texture_of.made[key] = (tex, arr[:, :, 3] * factor[3])
+    return texture_of.made[key]
+
+
+texture_of.made = {}
+
+
+def bsdf_of(mi, m, doc=None, scene_dir=None, tmp=None, name=""):
+    import os
     pbr = m.get("pbrMetallicRoughness", {})
     base = pbr.get("baseColorFactor", [1, 1, 1, 1])[:3]
     metallic = pbr.get("metallicFactor", 1.0)
@@ -77,7 +115,12 @@ def bsdf_of(mi, m):
     trans = ext.get("KHR_materials_transmission", {}).get("transmissionFactor", 0.0)
     ior = ext.get("KHR_materials_ior", {}).get("ior", 1.5)
     white = all(c == 1 for c in base)
-    if metallic == 0 and spec == 0 and trans == 0:
+    alpha = None
+    if metallic == 0 and spec == 0 and trans == 0 and "baseColorTexture" in pbr:
+        tex, alpha = texture_of(mi, doc, scene_dir, tmp, pbr["baseColorTexture"],
+                                pbr.get("baseColorFactor", [1, 1, 1, 1]), name)
+        b = {"type": "diffuse", "reflectance": tex}
+    elif metallic == 0 and spec == 0 and trans == 0:
         b = {"type": "diffuse", "reflectance": {"type": "rgb", "value": base}}
     elif metallic == 0 and trans == 1 and rough == 0 and white and spec == 1:
         # Smooth glass: glTF's dielectric interface with the exact Fresnel term.
@@ -105,6 +148,13 @@ def bsdf_of(mi, m):
             b["specular"] = spec * 0.5
     if m.get("doubleSided", False):
         b = {"type": "twosided", "material": b}
+    if alpha is not None and m.get("alphaMode") == "MASK":
+        path = f"{tmp}/{m.get('name', name)}_mask.exr"
+        if not os.path.exists(path):
+            cut = (alpha >= m.get("alphaCutoff", 0.5)).astype(np.float32)
+            mi.Bitmap(np.ascontiguousarray(cut[:, :, None])).write(path)
+        b = {"type": "mask", "material": b,
+             "opacity": {"type": "bitmap", "filename": path, "raw": True, "filter_type": "bilinear", "wrap_mode": "repeat"}}
     return b
 
 
@@ -122,7 +172,9 @@ def main():
     import mitsuba as mi
 
     mi.set_variant("scalar_rgb")
-    doc, binary = load_glb(a.scene)
+    import os
+    doc, binary = load_gltf(a.scene) if a.scene.endswith(".gltf") else load_glb(a.scene)
+    scene_dir = os.path.dirname(a.scene)
     render = doc.get("extras", {}).get("render", {})
     width = a.width or render.get("width", 512)
     height = a.height or render.get("height", 512)
@@ -158,16 +210,19 @@ def main():
                     else np.arange(len(pos)).reshape(-1, 3)
                 if np.linalg.det(m[:3, :3]) < 0:
                     idx = idx[:, ::-1]
-                mesh = mi.Mesh(f"m{count}", len(pos), len(idx))
+                uv = p["attributes"].get("TEXCOORD_0")
+                mesh = mi.Mesh(f"m{count}", len(pos), len(idx), has_vertex_texcoords=uv is not None)
                 params = mi.traverse(mesh)
                 params["vertex_positions"] = pos.astype(np.float32).ravel()
+                if uv is not None:
+                    params["vertex_texcoords"] = accessor(doc, binary, uv).astype(np.float32).ravel()
                 params["faces"] = idx.astype(np.uint32).ravel()
                 params.update()
                 mat = mats[p["material"]] if "material" in p else {}
                 ply = f"{tmp}/m{count}.ply"
                 mesh.write_ply(ply)
                 entry = {"type": "ply", "filename": ply, "face_normals": True,
-                         "bsdf": bsdf_of(mi, mat)}
+                         "bsdf": bsdf_of(mi, mat, doc, scene_dir, tmp, f"t{count}")}
                 strength = mat.get("extensions", {}).get("KHR_materials_emissive_strength", {}).get("emissiveStrength", 1.0)
                 le = [c * strength for c in mat.get("emissiveFactor", [0, 0, 0])]
                 if max(le) > 0:

@@ -300,7 +300,7 @@ impl Archive {
         if raw.len() != TILE_BYTES as usize {
             return Err(bad(format!("decompressed to {} bytes", raw.len())));
         }
-        Ok(raw)
+        Ok(crate::codec::tile_unfilter(&raw, TILE as usize))
     }
 
     /// Entries of the tile table.

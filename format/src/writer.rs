@@ -109,7 +109,8 @@ pub struct EncodedTile {
 /// Compresses one tile of `TILE_BYTES` RGBA8 texels. Pure, so tiles can be encoded in parallel.
 pub fn encode_tile(texels: &[u8], zstd_level: i32) -> std::io::Result<EncodedTile> {
     assert_eq!(texels.len(), TILE_BYTES as usize);
-    let bytes = zstd::bulk::compress(texels, zstd_level)?;
+    let stored = crate::codec::tile_filter(texels, TILE as usize);
+    let bytes = zstd::bulk::compress(&stored, zstd_level)?;
     Ok(EncodedTile {
         checksum: xxhash_rust::xxh3::xxh3_64(&bytes),
         bytes,

@@ -231,3 +231,24 @@ fn rgbe64_special_values() {
     let d = rgbe64_decode(rgbe64_encode([1e30, 1.0, 0.0]));
     assert!((d[0] - 1e30).abs() <= 1e30 * 2f32.powi(-17));
 }
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+
+    /// A tile's stored form gives back its texels exactly, smooth or random.
+    #[test]
+    fn tile_filter_round_trips(seed in any::<u64>(), smooth in any::<bool>()) {
+        let side = 64usize;
+        let mut x = seed | 1;
+        let texels: Vec<u8> = (0..side * side * 4)
+            .map(|i| {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                if smooth { ((i / 4 % side + i / 4 / side) as u64 + (x & 3)) as u8 } else { x as u8 }
+            })
+            .collect();
+        let stored = canopy_format::codec::tile_filter(&texels, side);
+        prop_assert_eq!(canopy_format::codec::tile_unfilter(&stored, side), texels);
+    }
+}

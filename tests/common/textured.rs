@@ -41,6 +41,8 @@ pub struct Plane<'a> {
     pub alpha_mode: Option<&'a str>,
     /// A second, untextured plane this far below (seen through holes), or None.
     pub floor_below: Option<f32>,
+    /// Leave out the camera and the light (a scene file gives them).
+    pub bare: bool,
 }
 
 impl Default for Plane<'_> {
@@ -52,6 +54,7 @@ impl Default for Plane<'_> {
             pitch: 12.0,
             alpha_mode: None,
             floor_below: None,
+            bare: false,
         }
     }
 }
@@ -83,8 +86,10 @@ pub fn plane_gltf(dir: &Path, name: &str, p: &Plane) -> PathBuf {
     let half = |deg: f32| (deg.to_radians() / 2.0).sin_cos();
     let (ps, pc) = half(-p.pitch);
     let (ls, lc) = half(-60.0);
+    // Lambertian: no specular layer, as an MTL material without Ks.
     let mut material = serde_json::json!({
-        "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "metallicFactor": 0.0, "roughnessFactor": 1.0}
+        "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "metallicFactor": 0.0, "roughnessFactor": 1.0},
+        "extensions": {"KHR_materials_specular": {"specularFactor": 0.0}}
     });
     if let Some(mode) = p.alpha_mode {
         material["alphaMode"] = mode.into();
@@ -109,9 +114,9 @@ pub fn plane_gltf(dir: &Path, name: &str, p: &Plane) -> PathBuf {
         primitives
             .push(serde_json::json!({"attributes": {"POSITION": 0}, "indices": 3, "material": 1}));
     }
-    let json = serde_json::json!({
+    let mut json = serde_json::json!({
         "asset": {"version": "2.0"},
-        "extensionsUsed": ["KHR_lights_punctual"],
+        "extensionsUsed": ["KHR_lights_punctual", "KHR_materials_specular"],
         "extensions": {"KHR_lights_punctual": {"lights": [{"type": "directional", "intensity": 3.0}]}},
         "scene": 0,
         "scenes": [{"nodes": [0, 1, 2]}],
@@ -133,6 +138,9 @@ pub fn plane_gltf(dir: &Path, name: &str, p: &Plane) -> PathBuf {
         "bufferViews": views,
         "accessors": accessors
     });
+    if p.bare {
+        json["scenes"][0]["nodes"] = serde_json::json!([0]);
+    }
     let path = dir.join(name);
     std::fs::write(&path, serde_json::to_vec_pretty(&json).unwrap()).unwrap();
     path
