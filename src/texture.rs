@@ -11,7 +11,7 @@
 
 use crate::material::Material;
 use crate::paging::{PageCache, TileData};
-use canopy_format::codec::srgb_to_linear;
+use canopy_format::codec::texel_to_linear;
 use canopy_format::{MaterialRecord, TextureRecord, TILE};
 use glam::Vec3A as V;
 
@@ -57,6 +57,8 @@ pub struct Textures {
     /// Per texture, the first tile of each level (tile-table indices).
     level_first: Vec<Vec<u32>>,
     bindings: Vec<Binding>,
+    /// Some material has an alpha mode.
+    alpha: bool,
 }
 
 impl Textures {
@@ -79,7 +81,7 @@ impl Textures {
             let t = m.textures[s];
             (t != MaterialRecord::NO_TEXTURE && (t as usize) < records.len()).then_some(t as u32)
         };
-        let bindings = materials
+        let bindings: Vec<Binding> = materials
             .iter()
             .map(|m| Binding {
                 base: slot(m, MaterialRecord::BASE_COLOR),
@@ -91,6 +93,7 @@ impl Textures {
         Textures {
             records: records.to_vec(),
             level_first,
+            alpha: bindings.iter().any(|b| b.mask.is_some() || b.blend),
             bindings,
         }
     }
@@ -105,7 +108,7 @@ impl Textures {
 
     /// Whether some material cuts holes (alpha mask or blend): rays must then test alpha.
     pub fn has_alpha(&self) -> bool {
-        self.bindings.iter().any(|b| b.mask.is_some() || b.blend)
+        self.alpha
     }
 
     /// Material `index` with its textures' means in place of texels: what a baked or
@@ -192,15 +195,7 @@ impl<'a> Lookup<'a> {
         let index = tex.level_first[t as usize][level as usize] + (y / TILE) * tx + x / TILE;
         let at = (((y % TILE) * TILE + x % TILE) * 4) as usize;
         let srgb = r.flags & TextureRecord::SRGB != 0;
-        let px = &self.tile(index)[at..at + 4];
-        let c = |v: u8| {
-            if srgb {
-                srgb_to_linear(v)
-            } else {
-                v as f32 / 255.0
-            }
-        };
-        [c(px[0]), c(px[1]), c(px[2]), px[3] as f32 / 255.0]
+        texel_to_linear(&self.tile(index)[at..at + 4], srgb)
     }
 
     /// Bilinear interpolation of `level` at `uv` (texel centres at half-integers).

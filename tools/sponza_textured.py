@@ -20,33 +20,13 @@ import argparse, json, os, struct, subprocess, sys
 import xml.etree.ElementTree as ET
 import numpy as np
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from crosscheck import accessor, load_glb  # noqa: E402
+
 
 def git_bytes(repo, path):
     r = subprocess.run(["git", "--git-dir", repo, "show", f"HEAD:{path}"], capture_output=True)
     return r.stdout if r.returncode == 0 else None
-
-
-def load_glb(path):
-    data = open(path, "rb").read()
-    off, doc, binary = 12, None, b""
-    while off < len(data):
-        length, kind = struct.unpack_from("<I4s", data, off)
-        chunk = data[off + 8: off + 8 + length]
-        if kind == b"JSON":
-            doc = json.loads(chunk)
-        elif kind == b"BIN\x00":
-            binary = chunk
-        off += 8 + length
-    return doc, binary
-
-
-def accessor(doc, binary, i):
-    a = doc["accessors"][i]
-    v = doc["bufferViews"][a["bufferView"]]
-    comps = {"SCALAR": 1, "VEC2": 2, "VEC3": 3}[a["type"]]
-    dtype = {5126: np.float32, 5125: np.uint32, 5123: np.uint16}[a["componentType"]]
-    start = v.get("byteOffset", 0) + a.get("byteOffset", 0)
-    return np.frombuffer(binary, dtype, a["count"] * comps, start).reshape(a["count"], comps)
 
 
 def parse_obj(text):

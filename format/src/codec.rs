@@ -90,10 +90,27 @@ pub fn linear_to_srgb(v: f32) -> u8 {
     lut[(v.clamp(0.0, 1.0) * 65535.0).round() as usize]
 }
 
+/// An RGBA8 texel in linear values: RGB through `srgb_to_linear` when `srgb`, alpha always
+/// linear (FORMAT.md, "Textures").
+pub fn texel_to_linear(px: &[u8], srgb: bool) -> [f32; 4] {
+    let c = |v: u8| {
+        if srgb {
+            srgb_to_linear(v)
+        } else {
+            v as f32 / 255.0
+        }
+    };
+    [c(px[0]), c(px[1]), c(px[2]), px[3] as f32 / 255.0]
+}
+
 /// PNG's Paeth predictor (RFC 2083 §6.6) from the left, upper and upper-left bytes.
 fn paeth(a: u8, b: u8, c: u8) -> u8 {
     let p = a as i16 + b as i16 - c as i16;
-    let (pa, pb, pc) = ((p - a as i16).abs(), (p - b as i16).abs(), (p - c as i16).abs());
+    let (pa, pb, pc) = (
+        (p - a as i16).abs(),
+        (p - b as i16).abs(),
+        (p - c as i16).abs(),
+    );
     if pa <= pb && pa <= pc {
         a
     } else if pb <= pc {
@@ -115,7 +132,11 @@ pub fn tile_filter(texels: &[u8], side: usize) -> Vec<u8> {
             for x in 0..side {
                 let a = if x > 0 { at(x - 1, y, c) } else { 0 };
                 let b = if y > 0 { at(x, y - 1, c) } else { 0 };
-                let d = if x > 0 && y > 0 { at(x - 1, y - 1, c) } else { 0 };
+                let d = if x > 0 && y > 0 {
+                    at(x - 1, y - 1, c)
+                } else {
+                    0
+                };
                 out[(c * side + y) * side + x] = at(x, y, c).wrapping_sub(paeth(a, b, d));
             }
         }

@@ -303,6 +303,11 @@ impl Archive {
         Ok(crate::codec::tile_unfilter(&raw, TILE as usize))
     }
 
+    /// The tile table (each entry checked at open).
+    pub fn tile_entries(&self) -> &[TileEntry] {
+        &self.tiles
+    }
+
     /// Entries of the tile table.
     pub fn tile_count(&self) -> u32 {
         self.tiles.len() as u32

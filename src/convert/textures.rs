@@ -6,7 +6,7 @@
 
 use crate::import::TextureSource;
 use anyhow::{anyhow, bail, Context, Result};
-use canopy_format::codec::{linear_to_srgb, srgb_to_linear};
+use canopy_format::codec::{linear_to_srgb, texel_to_linear};
 use canopy_format::validate::MAX_TEXELS;
 use canopy_format::{encode_tile, name_bytes, ArchiveWriter, TextureRecord, TILE, TILE_BYTES};
 use rayon::prelude::*;
@@ -195,16 +195,7 @@ impl Level {
         };
         let lin: Vec<f32> = row
             .chunks_exact(4)
-            .flat_map(|p| {
-                let c = |v: u8| {
-                    if srgb {
-                        srgb_to_linear(v)
-                    } else {
-                        v as f32 / 255.0
-                    }
-                };
-                [c(p[0]), c(p[1]), c(p[2]), p[3] as f32 / 255.0]
-            })
+            .flat_map(|p| texel_to_linear(p, srgb))
             .collect();
         let pair = if self.h == 1 {
             lin
@@ -279,18 +270,11 @@ pub fn write_texture(
     for y in 0..h {
         rows.next_row(&mut row)
             .with_context(|| format!("row {y} of {h}"))?;
-        let mut line = [0f64; 4];
         for p in row.chunks_exact(4) {
+            let t = texel_to_linear(p, src.srgb);
             for c in 0..4 {
-                line[c] += if src.srgb && c < 3 {
-                    srgb_to_linear(p[c]) as f64
-                } else {
-                    p[c] as f64 / 255.0
-                };
+                sum[c] += t[c] as f64;
             }
-        }
-        for c in 0..4 {
-            sum[c] += line[c];
         }
         top.push(&row, src.srgb, &mut ready);
         if ready.len() >= BATCH || y + 1 == h {

@@ -319,6 +319,7 @@ fn load(path: &Path) -> Result<(gltf::Document, Vec<Vec<u8>>)> {
             }
         }
     }
+    check_images(&json).map_err(|e| anyhow!("{}: {e}", path.display()))?;
     let doc = gltf::Document::from_json(json).map_err(|e| bad(&e))?;
     let dir = path.parent().unwrap_or(Path::new("."));
     let buffers = doc
@@ -327,6 +328,40 @@ fn load(path: &Path) -> Result<(gltf::Document, Vec<Vec<u8>>)> {
         .collect::<Result<Vec<_>>>()
         .with_context(|| path.display().to_string())?;
     Ok((doc, buffers))
+}
+
+/// Every texture's image and sampler exist, and every image names a buffer view in range
+/// with its MIME type, or a URI (the gltf crate's accessors unwrap these).
+fn check_images(json: &gltf::json::Root) -> Result<()> {
+    for (i, t) in json.textures.iter().enumerate() {
+        if t.source.value() >= json.images.len() {
+            bail!(
+                "texture {i} names image {} of {}",
+                t.source.value(),
+                json.images.len()
+            );
+        }
+        if let Some(s) = t.sampler.filter(|s| s.value() >= json.samplers.len()) {
+            bail!(
+                "texture {i} names sampler {} of {}",
+                s.value(),
+                json.samplers.len()
+            );
+        }
+    }
+    for (i, im) in json.images.iter().enumerate() {
+        match (&im.buffer_view, &im.mime_type, &im.uri) {
+            (Some(v), Some(_), _) if v.value() < json.buffer_views.len() => {}
+            (Some(v), _, _) => bail!(
+                "image {i}: buffer view {} of {} (with a MIME type) required",
+                v.value(),
+                json.buffer_views.len()
+            ),
+            (None, _, Some(_)) => {}
+            (None, _, None) => bail!("image {i} has neither a URI nor a buffer view"),
+        }
+    }
+    Ok(())
 }
 
 /// One buffer's bytes: the GLB BIN chunk (its length the declared one, padded by at most 3

@@ -45,7 +45,7 @@ pub const CLASSES: [&str; 9] = [
     "archive: truncated or extended",
     "archive: header field, checksums recomputed",
     "archive: page-table field, checksums recomputed",
-    "archive: material/camera/light/instance field, checksums recomputed",
+    "archive: material/camera/light/instance/texture field, checksums recomputed",
     "archive: decoded page bytes (nodes, links, triangles, vertices), recompressed and rechecksummed",
     "archive: page tree rewired (DAG, cycle, shared child), rechecksummed",
     "input: glTF JSON value replaced (accessors, views, buffers, strides, types)",
@@ -89,6 +89,12 @@ pub struct Parts {
     pub cameras: Vec<CameraRecord>,
     pub lights: Vec<LightRecord>,
     pub instances: Vec<InstanceRecord>,
+    pub textures: Vec<TextureRecord>,
+    /// Decoded texels of each texture tile.
+    pub tiles: Vec<Vec<u8>>,
+    /// Tile indices in the order their frames lie in the file (the converter writes them
+    /// as the pyramid is built, before the pages).
+    pub tile_order: Vec<u32>,
 }
 
 impl Parts {
@@ -112,6 +118,15 @@ impl Parts {
             cameras: a.cameras.clone(),
             lights: a.lights.clone(),
             instances: a.instances.clone(),
+            textures: a.textures.clone(),
+            tiles: (0..a.tile_count())
+                .map(|i| Ok(a.read_tile(i)?))
+                .collect::<Result<Vec<_>>>()?,
+            tile_order: {
+                let mut order: Vec<u32> = (0..a.tile_count()).collect();
+                order.sort_by_key(|&i| a.tile_entries()[i as usize].offset);
+                order
+            },
         })
     }
 
@@ -120,6 +135,19 @@ impl Parts {
     pub fn assemble(&self) -> Vec<u8> {
         let mut out = vec![0u8; 256];
         let align = |out: &mut Vec<u8>| out.resize(out.len().next_multiple_of(ALIGN as usize), 0);
+        let mut tiles = vec![<TileEntry as bytemuck::Zeroable>::zeroed(); self.tiles.len()];
+        for &i in &self.tile_order {
+            let e = canopy_format::encode_tile(&self.tiles[i as usize], 1).expect("zstd");
+            align(&mut out);
+            tiles[i as usize] = TileEntry {
+                offset: out.len() as u64,
+                compressed_len: e.bytes.len() as u32,
+                raw_len: canopy_format::TILE_BYTES,
+                checksum: e.checksum,
+                reserved: [0; 8],
+            };
+            out.extend_from_slice(&e.bytes);
+        }
         let mut entries = self.entries.clone();
         for (e, raw) in entries.iter_mut().zip(&self.pages) {
             let z = zstd::bulk::compress(raw, 1).expect("zstd");
@@ -130,6 +158,7 @@ impl Parts {
             e.seal();
             out.extend_from_slice(&z);
         }
+        align(&mut out);
         align(&mut out);
         let mut h = self.header;
         let table =
@@ -159,6 +188,10 @@ impl Parts {
             64,
             &mut h.instances,
         );
+        let textures = bytemuck::cast_slice(&self.textures);
+        table(&mut out, textures, self.textures.len(), 64, &mut h.textures);
+        let tile_table = bytemuck::cast_slice(&tiles);
+        table(&mut out, tile_table, tiles.len(), 32, &mut h.tiles);
         h.tables_checksum = xxhash_rust::xxh3::xxh3_64(&out[h.materials.offset as usize..]);
         align(&mut out);
         let pages = bytemuck::cast_slice(&entries);
@@ -237,10 +270,11 @@ pub fn mutate_archive(base: &Parts, raw: &[u8], rng: &mut Rng) -> (usize, Vec<u8
             p.assemble()
         }
         4 => {
-            match rng.below(4) {
+            match rng.below(5) {
                 0 => poke_record(&mut p.materials, rng),
                 1 => poke_record(&mut p.cameras, rng),
                 2 => poke_record(&mut p.lights, rng),
+                3 => poke_record(&mut p.textures, rng),
                 _ => poke_record(&mut p.instances, rng),
             }
             p.assemble()
@@ -524,6 +558,9 @@ fn seed_glb(instanced: bool) -> Vec<u8> {
             {"bufferView": 1, "byteOffset": 6, "componentType": 5123, "count": 3, "type": "SCALAR"}
         ]
     });
+    if !instanced {
+        textured(&mut json, &mut bin);
+    }
     if instanced {
         json["meshes"].as_array_mut().expect("meshes").push(serde_json::json!(
             {"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 3, "material": 1}]}
@@ -536,6 +573,57 @@ fn seed_glb(instanced: bool) -> Vec<u8> {
         json["scenes"][0]["nodes"] = serde_json::json!([0, 1, 2, 3, 4]);
     }
     glb_join(&json, &bin)
+}
+
+/// Gives the floor of `seed_glb` texture coordinates and an 8×8 RGBA PNG (in the BIN
+/// chunk) as a masked base-colour texture, so archives from it hold textures and tiles.
+fn textured(json: &mut serde_json::Value, bin: &mut Vec<u8>) {
+    let uv_at = bin.len();
+    for uv in [
+        [0f32, 0.],
+        [1., 0.],
+        [0.5, 1.],
+        [0., 0.],
+        [3., 0.],
+        [1.5, 2.],
+    ] {
+        bin.extend(uv.iter().flat_map(|x| x.to_le_bytes()));
+    }
+    let mut png_bytes = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut png_bytes, 8, 8);
+        enc.set_color(png::ColorType::Rgba);
+        let mut w = enc.write_header().expect("png header");
+        let texels: Vec<u8> = (0..64u8)
+            .flat_map(|i| [i * 4, 255 - i * 4, 128, if i % 5 == 0 { 0 } else { 255 }])
+            .collect();
+        w.write_image_data(&texels).expect("png data");
+    }
+    let png_at = bin.len();
+    bin.extend(&png_bytes);
+    while !bin.len().is_multiple_of(4) {
+        bin.push(0);
+    }
+    json["buffers"][0]["byteLength"] = bin.len().into();
+    let views = json["bufferViews"].as_array_mut().expect("views");
+    views.push(serde_json::json!({"buffer": 0, "byteOffset": uv_at, "byteLength": 48}));
+    views.push(
+        serde_json::json!({"buffer": 0, "byteOffset": png_at, "byteLength": png_bytes.len()}),
+    );
+    json["accessors"].as_array_mut().expect("accessors").push(
+        serde_json::json!({"bufferView": 2, "componentType": 5126, "count": 6, "type": "VEC2"}),
+    );
+    json["images"] = serde_json::json!([{"bufferView": 3, "mimeType": "image/png"}]);
+    json["textures"] = serde_json::json!([{"source": 0}]);
+    json["materials"][1]["pbrMetallicRoughness"]["baseColorTexture"] =
+        serde_json::json!({"index": 0});
+    json["materials"][1]["alphaMode"] = "MASK".into();
+    for p in json["meshes"][0]["primitives"]
+        .as_array_mut()
+        .expect("primitives")
+    {
+        p["attributes"]["TEXCOORD_0"] = 4.into();
+    }
 }
 
 /// The scene file that gives OBJ and PLY seeds a camera and a lamp.

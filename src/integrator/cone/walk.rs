@@ -6,7 +6,7 @@
 use super::cluster::{hit_emission, phong_lobe, reflect_lut, theta_norm};
 use super::optics::{bent_tan, jitter};
 use super::{ConeIntegrator, FRESH, STORE_TAN};
-use crate::integrator::path::power_heuristic;
+use crate::integrator::path::{power_heuristic, MAX_PASSES};
 use crate::integrator::{bsdf_term, sample_light, Counters, Receiver, Scene};
 use crate::material::{cosine_hemisphere, Frame};
 use crate::radiance::RadianceStore;
@@ -259,6 +259,17 @@ fn widened(cone: &Cone) -> Cone {
     }
 }
 
+/// Whether a cone's triangle hit falls in an alpha hole (mask) or, under blend, is passed
+/// with probability 1 − alpha, as the path tracer does. Nodes are opaque.
+fn through_hole(scene: &Scene, hit: &ConeHit, path: &Path, at: &Here, passes: u32) -> bool {
+    let ConeHit::Tri(h) = hit else {
+        return false;
+    };
+    let spread = scene.texture_scale * 2.0 * path.cone.radius(h.t);
+    let (_, opacity) = scene.material_at(h.tri.material, &h.tri.p, h.uv, h.b, path.ray.d, spread);
+    opacity < 1.0 && (at.dir[0] + passes as f32 * 0.618_034).fract() >= opacity
+}
+
 impl ConeIntegrator {
     /// Radiance along a primary cone, as (everything but the emission seen at the primary
     /// hit, that emission).
@@ -285,10 +296,19 @@ impl ConeIntegrator {
             mask_caustics: self.store.photons() > 0,
             smooth_chain: false,
         };
+        let alpha = scene.textures.has_alpha();
+        let mut passes = 0;
         while let Some(hit) = tr.cone_hit(&path.ray, &path.cone) {
             let Some(at) = Here::new(&hit, &path.ray, s, path.depth) else {
                 break;
             };
+            if alpha && passes < MAX_PASSES && through_hole(scene, &hit, &path, &at, passes) {
+                // A cut-out: the cone goes on unchanged (its width kept) past the surface.
+                passes += 1;
+                path.cone.r0 = path.cone.radius(at.t);
+                path.ray.o = offset_origin(at.p, at.err, at.ng, path.ray.d);
+                continue;
+            }
             let (node, page) = match &hit {
                 ConeHit::Tri(h) => (h.leaf, h.page),
                 ConeHit::Node { node, page, .. } => (*node, *page),
