@@ -114,21 +114,7 @@ impl Textures {
     /// Material `index` with its textures' means in place of texels: what a baked or
     /// clustered value over its whole surface sees.
     pub fn mean_shade(&self, m: &Material, index: u32) -> Material {
-        let mut out = *m;
-        let Some(b) = self.bindings.get(index as usize) else {
-            return out;
-        };
-        if let Some(t) = b.base {
-            let c = self.records[t as usize].mean;
-            out.base = (m.base * V::new(c[0], c[1], c[2])).clamp(V::ZERO, V::ONE);
-        }
-        if let Some(t) = b.metallic_roughness {
-            let c = self.records[t as usize].mean;
-            out.metallic = (m.metallic * c[2]).clamp(0.0, 1.0);
-            let r = (m.alpha.sqrt() * c[1]).clamp(0.0, 1.0);
-            out.alpha = r * r;
-        }
-        out
+        self.apply(m, index, |t| self.records[t as usize].mean).0
     }
 
     /// Material `index` as shaded at texture coordinates `uv` with filter width `width`
@@ -142,19 +128,30 @@ impl Textures {
         uv: [f32; 2],
         width: f32,
     ) -> (Material, f32) {
+        self.apply(m, index, |t| look.trilinear(self, t, uv, width))
+    }
+
+    /// `m` with each of material `index`'s textures multiplying its factor (glTF 2.0
+    /// §3.9: base colour RGBA; roughness from G, metalness from B), `texel(t)` giving
+    /// texture t's linear RGBA; and the opacity its alpha mode makes of the alpha.
+    fn apply(
+        &self,
+        m: &Material,
+        index: u32,
+        mut texel: impl FnMut(u32) -> [f32; 4],
+    ) -> (Material, f32) {
         let mut out = *m;
         let Some(b) = self.bindings.get(index as usize) else {
             return (out, 1.0);
         };
         let mut alpha = m.opacity;
         if let Some(t) = b.base {
-            let c = look.trilinear(self, t, uv, width);
+            let c = texel(t);
             out.base = (m.base * V::new(c[0], c[1], c[2])).clamp(V::ZERO, V::ONE);
             alpha *= c[3];
         }
         if let Some(t) = b.metallic_roughness {
-            // glTF: roughness in G, metalness in B.
-            let c = look.trilinear(self, t, uv, width);
+            let c = texel(t);
             out.metallic = (m.metallic * c[2]).clamp(0.0, 1.0);
             let r = (m.alpha.sqrt() * c[1]).clamp(0.0, 1.0);
             out.alpha = r * r;
