@@ -11,7 +11,7 @@
 
 use crate::material::Material;
 use crate::paging::{PageCache, TileData};
-use canopy_format::codec::texel_to_linear;
+use canopy_format::codec::{texel_to_linear, wrap_texel};
 use canopy_format::{MaterialRecord, TextureRecord, TILE};
 use glam::Vec3A as V;
 
@@ -187,7 +187,7 @@ impl<'a> Lookup<'a> {
     fn texel(&mut self, tex: &Textures, t: u32, level: u32, x: i64, y: i64) -> [f32; 4] {
         let r = &tex.records[t as usize];
         let (w, h) = r.level_size(level);
-        let (x, y) = (wrap(x, w, r.wrap(0)), wrap(y, h, r.wrap(1)));
+        let (x, y) = (wrap_texel(x, w, r.wrap(0)), wrap_texel(y, h, r.wrap(1)));
         let (tx, _) = r.level_tiles(level);
         let index = tex.level_first[t as usize][level as usize] + (y / TILE) * tx + x / TILE;
         let at = (((y % TILE) * TILE + x % TILE) * 4) as usize;
@@ -239,23 +239,6 @@ impl<'a> Lookup<'a> {
         let b = self.bilinear(tex, t, l0 as u32 + 1, uv);
         std::array::from_fn(|k| a[k] + d * (b[k] - a[k]))
     }
-}
-
-/// Texel coordinate `x` wrapped into 0..n by `mode`.
-fn wrap(x: i64, n: u32, mode: u32) -> u32 {
-    let n = n as i64;
-    (match mode {
-        TextureRecord::WRAP_CLAMP => x.clamp(0, n - 1),
-        TextureRecord::WRAP_MIRROR => {
-            let m = x.rem_euclid(2 * n);
-            if m >= n {
-                2 * n - 1 - m
-            } else {
-                m
-            }
-        }
-        _ => x.rem_euclid(n),
-    }) as u32
 }
 
 /// Texture coordinates at barycentrics `b` of a triangle with positions `p` and texture
@@ -317,15 +300,15 @@ mod tests {
     #[test]
     fn wrap_modes_fold_as_gltf_says() {
         let r: Vec<u32> = (-5..9)
-            .map(|x| wrap(x, 4, TextureRecord::WRAP_REPEAT))
+            .map(|x| wrap_texel(x, 4, TextureRecord::WRAP_REPEAT))
             .collect();
         assert_eq!(r, [3, 0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3, 0]);
         let m: Vec<u32> = (-5..9)
-            .map(|x| wrap(x, 4, TextureRecord::WRAP_MIRROR))
+            .map(|x| wrap_texel(x, 4, TextureRecord::WRAP_MIRROR))
             .collect();
         assert_eq!(m, [3, 3, 2, 1, 0, 0, 1, 2, 3, 3, 2, 1, 0, 0]);
         let c: Vec<u32> = (-2..6)
-            .map(|x| wrap(x, 4, TextureRecord::WRAP_CLAMP))
+            .map(|x| wrap_texel(x, 4, TextureRecord::WRAP_CLAMP))
             .collect();
         assert_eq!(c, [0, 0, 0, 1, 2, 3, 3, 3]);
     }

@@ -103,6 +103,24 @@ pub fn texel_to_linear(px: &[u8], srgb: bool) -> [f32; 4] {
     [c(px[0]), c(px[1]), c(px[2]), px[3] as f32 / 255.0]
 }
 
+/// Texel coordinate `x` wrapped into 0..n by a `TextureRecord` wrap mode (glTF's repeat,
+/// clamp to edge, mirrored repeat).
+pub fn wrap_texel(x: i64, n: u32, mode: u32) -> u32 {
+    let n = n as i64;
+    (match mode {
+        crate::TextureRecord::WRAP_CLAMP => x.clamp(0, n - 1),
+        crate::TextureRecord::WRAP_MIRROR => {
+            let m = x.rem_euclid(2 * n);
+            if m >= n {
+                2 * n - 1 - m
+            } else {
+                m
+            }
+        }
+        _ => x.rem_euclid(n),
+    }) as u32
+}
+
 /// PNG's Paeth predictor (RFC 2083 §6.6) from the left, upper and upper-left bytes.
 fn paeth(a: u8, b: u8, c: u8) -> u8 {
     let p = a as i16 + b as i16 - c as i16;

@@ -5,7 +5,7 @@
 use super::pages::Plan;
 use super::spill;
 use super::tree::{BNode, Kind, Tree};
-use super::{BvhQuality, ConvertOptions, MatSummary, AUTO_FAST_ABOVE};
+use super::{BvhQuality, ConvertOptions, MatTable, AUTO_FAST_ABOVE};
 use crate::import::SpillTri;
 use crate::progress;
 use anyhow::{bail, Context, Result};
@@ -19,7 +19,7 @@ use std::sync::{Condvar, Mutex};
 /// Pages of one archive's chunks: which chunk trees, how to build and encode them.
 pub struct Chunks<'a> {
     pub files: Vec<spill::Spill>,
-    pub mats: &'a [MatSummary],
+    pub mats: &'a MatTable,
     pub triangles: u64,
     pub streams: Streams,
     pub threads: usize,
@@ -158,7 +158,7 @@ struct Turn {
 struct ChunkJob<'a> {
     /// Each chunk's spill, taken (and so freed) by the worker that builds it.
     files: Vec<Mutex<Option<spill::Spill>>>,
-    mats: &'a [MatSummary],
+    mats: &'a MatTable,
     single: bool,
     fast: bool,
     opts: &'a ConvertOptions,

@@ -2,6 +2,8 @@
 //! area-weighted mean of the children, the normal is the area-weighted mean of unit face
 //! normals and deliberately not normalized.
 
+use super::textures::Coarse;
+use crate::import::SpillTri;
 use canopy_format::codec::{f16_encode, rgbe64_encode, snorm16, unorm8};
 use canopy_format::{cofactors3, det3};
 use canopy_format::{MaterialRecord, Node, NodeFlags, TextureRecord};
@@ -84,6 +86,69 @@ impl MatSummary {
             emission: m.emission.map(|e| e.max(0.0)),
             flags,
         }
+    }
+}
+
+/// The materials as the tree sees them: each material's summary over its whole textures
+/// (`MatSummary::of`), and for a textured one what a single triangle takes instead: its
+/// textures' mean over the texels under it (004 §4.2–4.4 with textures), from the coarse
+/// level whose texel spans the triangle (`Coarse::mean_over`).
+pub struct MatTable {
+    pub summaries: Vec<MatSummary>,
+    records: Vec<MaterialRecord>,
+    textures: Vec<TextureRecord>,
+    coarse: Vec<Coarse>,
+}
+
+impl MatTable {
+    pub fn new(
+        records: &[MaterialRecord],
+        textures: &[TextureRecord],
+        coarse: Vec<Coarse>,
+    ) -> Self {
+        MatTable {
+            summaries: records
+                .iter()
+                .map(|m| MatSummary::of(m, textures))
+                .collect(),
+            records: records.to_vec(),
+            textures: textures.to_vec(),
+            coarse,
+        }
+    }
+
+    /// What triangle `t` contributes per unit area.
+    pub fn of(&self, t: &SpillTri) -> MatSummary {
+        let i = t.material as usize;
+        let m = &self.records[i];
+        let slots = [
+            MaterialRecord::BASE_COLOR,
+            MaterialRecord::METALLIC_ROUGHNESS,
+            MaterialRecord::EMISSIVE,
+        ];
+        if slots
+            .iter()
+            .all(|&s| m.textures[s] as usize >= self.textures.len())
+        {
+            return self.summaries[i];
+        }
+        let mut rec = *m;
+        for slot in slots {
+            let Some(tex) = self.textures.get(m.textures[slot] as usize) else {
+                continue;
+            };
+            let c = self.coarse[m.textures[slot] as usize].mean_over(tex, &t.uv);
+            match slot {
+                MaterialRecord::BASE_COLOR => (0..3).for_each(|k| rec.base_color[k] *= c[k]),
+                MaterialRecord::EMISSIVE => (0..3).for_each(|k| rec.emission[k] *= c[k]),
+                _ => {
+                    rec.metallic *= c[2];
+                    rec.roughness *= c[1];
+                }
+            }
+            rec.textures[slot] = MaterialRecord::NO_TEXTURE;
+        }
+        MatSummary::of(&rec, &self.textures)
     }
 }
 

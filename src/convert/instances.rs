@@ -7,7 +7,7 @@ use super::chunks::{self, Chunks};
 use super::ingest::{Prototype, SharedMeshes};
 use super::spill::{self, Spill, SpillWriter};
 use super::tree::{BNode, Kind};
-use super::{partition, ConvertOptions, MatSummary};
+use super::{partition, ConvertOptions, MatTable};
 use crate::progress;
 use anyhow::Result;
 use canopy_format::validate::check_transform;
@@ -16,7 +16,7 @@ use std::path::Path;
 
 /// What every prototype's build shares.
 pub struct Build<'a> {
-    pub mats: &'a [MatSummary],
+    pub mats: &'a MatTable,
     pub streams: Streams,
     pub threads: usize,
     /// Most triangles in one chunk.

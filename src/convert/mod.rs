@@ -21,7 +21,7 @@ mod spill;
 mod textures;
 mod tree;
 
-pub use cluster::{MatSummary, REFLECT_COS};
+pub use cluster::{MatSummary, MatTable, REFLECT_COS};
 pub use tree::MAX_LEAF_TRIS;
 
 use crate::import::SceneFile;
@@ -158,15 +158,16 @@ impl std::fmt::Display for ConvertReport {
     }
 }
 
-/// Writes every texture the materials name and returns their records; with
+/// Writes every texture the materials name and returns their records and coarse levels; with
 /// `--missing-textures warn` a texture whose file is absent is dropped (its materials keep
 /// their factors) and the remaining ones renumbered.
 fn write_textures(
     writer: &mut ArchiveWriter,
     scene: &mut crate::import::SceneDesc,
     opts: &ConvertOptions,
-) -> Result<Vec<canopy_format::TextureRecord>> {
+) -> Result<(Vec<canopy_format::TextureRecord>, Vec<textures::Coarse>)> {
     let mut records = Vec::new();
+    let mut coarse = Vec::new();
     let mut index = Vec::with_capacity(scene.textures.len());
     for (i, src) in scene.textures.iter().enumerate() {
         let missing = src
@@ -190,10 +191,11 @@ fn write_textures(
         if opts.progress {
             eprintln!("texture {}/{}: {}", i + 1, scene.textures.len(), src.name);
         }
-        let rec = textures::write_texture(writer, src, opts.zstd_level)
+        let (rec, levels) = textures::write_texture(writer, src, opts.zstd_level)
             .with_context(|| format!("texture {}", src.describe()))?;
         index.push(records.len() as u16);
         records.push(rec);
+        coarse.push(levels);
     }
     for m in &mut scene.materials {
         for t in &mut m.textures {
@@ -202,7 +204,7 @@ fn write_textures(
             }
         }
     }
-    Ok(records)
+    Ok((records, coarse))
 }
 
 pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
@@ -234,16 +236,11 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         ..Default::default()
     };
     let mut imported = imported;
-    let textures = write_textures(&mut writer, &mut imported.scene, opts)?;
+    let (textures, coarse) = write_textures(&mut writer, &mut imported.scene, opts)?;
     report.textures = textures.len() as u64;
     report.texture_bytes = writer.tile_bytes();
-    let mats: Vec<MatSummary> = imported
-        .scene
-        .materials
-        .iter()
-        .map(|m| MatSummary::of(m, &textures))
-        .collect();
-    let features = imported.features(&mats);
+    let mats = MatTable::new(&imported.scene.materials, &textures, coarse);
+    let features = imported.features(&mats.summaries);
 
     let threads = rayon::current_num_threads().max(1);
     let cap = (opts.mem_budget - FIXED_BYTES) / BUILD_BYTES_PER_TRI / threads as u64;

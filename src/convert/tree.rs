@@ -1,7 +1,7 @@
 //! An in-memory binary tree over one chunk of triangles (built with obvhs's PLOC builder),
 //! with exact f32 bounds and aggregated cluster attributes per node.
 
-use super::cluster::{Cluster, MatSummary};
+use super::cluster::{Cluster, MatTable};
 use crate::import::SpillTri;
 use glam::Vec3A;
 use obvhs::{bvh2::builder::build_bvh2_from_tris, triangle::Triangle, BvhBuildParams};
@@ -115,7 +115,7 @@ impl Tree {
     }
 
     /// A leaf over `tris[first..first+count]`.
-    pub fn leaf(&mut self, first: u32, count: u32, mats: &[MatSummary]) -> u32 {
+    pub fn leaf(&mut self, first: u32, count: u32, mats: &MatTable) -> u32 {
         let ts = &self.tris[first as usize..(first + count) as usize];
         let mut lo = [f32::INFINITY; 3];
         let mut hi = [f32::NEG_INFINITY; 3];
@@ -127,7 +127,7 @@ impl Tree {
                     hi[a] = hi[a].max(v[a]);
                 }
             }
-            let c = Cluster::triangle(&t.p, t.curvature, &mats[t.material as usize]);
+            let c = Cluster::triangle(&t.p, t.curvature, &mats.of(t));
             cluster = Some(match cluster {
                 Some(s) => Cluster::merge(&s, &c),
                 None => c,
@@ -193,7 +193,7 @@ impl Tree {
     /// PLOC pairs equal boxes one pair per sweep, which made such inputs quadratic. The
     /// rest is built with PLOC (obvhs); a balanced tree in Morton order joins the parts.
     /// `fast` picks obvhs's fast preset (no post-collapse reinsertion) over medium.
-    pub fn build(tris: Vec<SpillTri>, mats: &[MatSummary], fast: bool) -> Tree {
+    pub fn build(tris: Vec<SpillTri>, mats: &MatTable, fast: bool) -> Tree {
         let (plain, groups) = split_coincident(tris);
         let mut tree = match plain.is_empty() {
             true => Tree {
@@ -224,7 +224,7 @@ impl Tree {
     }
 
     /// The hierarchy of `tris` (not empty) by PLOC.
-    fn build_ploc(tris: Vec<SpillTri>, mats: &[MatSummary], fast: bool) -> Tree {
+    fn build_ploc(tris: Vec<SpillTri>, mats: &MatTable, fast: bool) -> Tree {
         let prims: Vec<Triangle> = tris
             .iter()
             .map(|t| Triangle {
