@@ -11,7 +11,7 @@
 
 use crate::material::Material;
 use crate::paging::{PageCache, TileData};
-use canopy_format::codec::{texel_to_linear, wrap_texel};
+use canopy_format::codec::{bilinear, texel_to_linear};
 use canopy_format::{MaterialRecord, TextureRecord, TILE};
 use glam::Vec3A as V;
 
@@ -183,11 +183,9 @@ impl<'a> Lookup<'a> {
         &self.last.as_ref().expect("set above").1
     }
 
-    /// Texel (x, y) of `level` after wrapping, in linear RGBA.
-    fn texel(&mut self, tex: &Textures, t: u32, level: u32, x: i64, y: i64) -> [f32; 4] {
+    /// Texel (x, y) of `level` (in range), in linear RGBA.
+    fn texel(&mut self, tex: &Textures, t: u32, level: u32, x: u32, y: u32) -> [f32; 4] {
         let r = &tex.records[t as usize];
-        let (w, h) = r.level_size(level);
-        let (x, y) = (wrap_texel(x, w, r.wrap(0)), wrap_texel(y, h, r.wrap(1)));
         let (tx, _) = r.level_tiles(level);
         let index = tex.level_first[t as usize][level as usize] + (y / TILE) * tx + x / TILE;
         let at = (((y % TILE) * TILE + x % TILE) * 4) as usize;
@@ -195,29 +193,12 @@ impl<'a> Lookup<'a> {
         texel_to_linear(&self.tile(index)[at..at + 4], srgb)
     }
 
-    /// Bilinear interpolation of `level` at `uv` (texel centres at half-integers).
+    /// Bilinear interpolation of `level` at `uv`.
     fn bilinear(&mut self, tex: &Textures, t: u32, level: u32, uv: [f32; 2]) -> [f32; 4] {
-        let (w, h) = tex.records[t as usize].level_size(level);
-        let x = uv[0] * w as f32 - 0.5;
-        let y = uv[1] * h as f32 - 0.5;
-        let (x0, y0) = (x.floor(), y.floor());
-        let (dx, dy) = (x - x0, y - y0);
-        let (x0, y0) = (x0 as i64, y0 as i64);
-        let mut out = [0.0; 4];
-        for (ox, oy, wgt) in [
-            (0, 0, (1.0 - dx) * (1.0 - dy)),
-            (1, 0, dx * (1.0 - dy)),
-            (0, 1, (1.0 - dx) * dy),
-            (1, 1, dx * dy),
-        ] {
-            if wgt > 0.0 {
-                let c = self.texel(tex, t, level, x0 + ox, y0 + oy);
-                for k in 0..4 {
-                    out[k] += wgt * c[k];
-                }
-            }
-        }
-        out
+        let r = &tex.records[t as usize];
+        bilinear(uv, r.level_size(level), [r.wrap(0), r.wrap(1)], |x, y| {
+            self.texel(tex, t, level, x, y)
+        })
     }
 
     /// Trilinear filtering of texture `t` at `uv` over a filter `width` (texture space).
@@ -296,22 +277,6 @@ pub fn footprint(p: [V; 3], uv: [[f32; 2]; 3], b: [f32; 3], d: V, spread: f32) -
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn wrap_modes_fold_as_gltf_says() {
-        let r: Vec<u32> = (-5..9)
-            .map(|x| wrap_texel(x, 4, TextureRecord::WRAP_REPEAT))
-            .collect();
-        assert_eq!(r, [3, 0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3, 0]);
-        let m: Vec<u32> = (-5..9)
-            .map(|x| wrap_texel(x, 4, TextureRecord::WRAP_MIRROR))
-            .collect();
-        assert_eq!(m, [3, 3, 2, 1, 0, 0, 1, 2, 3, 3, 2, 1, 0, 0]);
-        let c: Vec<u32> = (-2..6)
-            .map(|x| wrap_texel(x, 4, TextureRecord::WRAP_CLAMP))
-            .collect();
-        assert_eq!(c, [0, 0, 0, 1, 2, 3, 3, 3]);
-    }
 
     #[test]
     fn a_footprint_head_on_maps_to_its_texture_width() {

@@ -121,6 +121,40 @@ pub fn wrap_texel(x: i64, n: u32, mode: u32) -> u32 {
     }) as u32
 }
 
+/// Bilinear interpolation at texture coordinates `uv` over a level of `size` texels (texel
+/// centres at half-integers, pbrt-v4's `MIPMap::Bilerp`), coordinates wrapped by the
+/// `TextureRecord` modes `wrap`; `texel(x, y)` gives the linear RGBA of an in-range texel.
+pub fn bilinear(
+    uv: [f32; 2],
+    size: (u32, u32),
+    wrap: [u32; 2],
+    mut texel: impl FnMut(u32, u32) -> [f32; 4],
+) -> [f32; 4] {
+    let x = uv[0] * size.0 as f32 - 0.5;
+    let y = uv[1] * size.1 as f32 - 0.5;
+    let (x0, y0) = (x.floor(), y.floor());
+    let (dx, dy) = (x - x0, y - y0);
+    let (x0, y0) = (x0 as i64, y0 as i64);
+    let mut out = [0.0; 4];
+    for (ox, oy, wgt) in [
+        (0, 0, (1.0 - dx) * (1.0 - dy)),
+        (1, 0, dx * (1.0 - dy)),
+        (0, 1, (1.0 - dx) * dy),
+        (1, 1, dx * dy),
+    ] {
+        if wgt > 0.0 {
+            let c = texel(
+                wrap_texel(x0 + ox, size.0, wrap[0]),
+                wrap_texel(y0 + oy, size.1, wrap[1]),
+            );
+            for k in 0..4 {
+                out[k] += wgt * c[k];
+            }
+        }
+    }
+    out
+}
+
 /// PNG's Paeth predictor (RFC 2083 §6.6) from the left, upper and upper-left bytes.
 fn paeth(a: u8, b: u8, c: u8) -> u8 {
     let p = a as i16 + b as i16 - c as i16;

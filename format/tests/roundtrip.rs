@@ -252,3 +252,19 @@ proptest! {
         prop_assert_eq!(canopy_format::codec::tile_unfilter(&stored, side), texels);
     }
 }
+
+#[test]
+fn wrap_modes_fold_as_gltf_says() {
+    let r: Vec<u32> = (-5..9)
+        .map(|x| wrap_texel(x, 4, canopy_format::TextureRecord::WRAP_REPEAT))
+        .collect();
+    assert_eq!(r, [3, 0, 1, 2, 3, 0, 1, 2, 3, 0, 1, 2, 3, 0]);
+    let m: Vec<u32> = (-5..9)
+        .map(|x| wrap_texel(x, 4, canopy_format::TextureRecord::WRAP_MIRROR))
+        .collect();
+    assert_eq!(m, [3, 3, 2, 1, 0, 0, 1, 2, 3, 3, 2, 1, 0, 0]);
+    let c: Vec<u32> = (-2..6)
+        .map(|x| wrap_texel(x, 4, canopy_format::TextureRecord::WRAP_CLAMP))
+        .collect();
+    assert_eq!(c, [0, 0, 0, 1, 2, 3, 3, 3]);
+}

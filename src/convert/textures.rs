@@ -6,7 +6,7 @@
 
 use crate::import::TextureSource;
 use anyhow::{anyhow, bail, Context, Result};
-use canopy_format::codec::{linear_to_srgb, texel_to_linear, wrap_texel};
+use canopy_format::codec::{bilinear, linear_to_srgb, texel_to_linear};
 use canopy_format::validate::MAX_TEXELS;
 use canopy_format::{encode_tile, name_bytes, ArchiveWriter, TextureRecord, TILE, TILE_BYTES};
 use rayon::prelude::*;
@@ -55,24 +55,10 @@ impl Coarse {
         if !(c[0].is_finite() && c[1].is_finite()) {
             return [0.0; 4];
         }
-        let (x, y) = (c[0] * w as f32 - 0.5, c[1] * h as f32 - 0.5);
-        let (x0, y0) = (x.floor(), y.floor());
-        let (dx, dy) = (x - x0, y - y0);
-        let mut out = [0.0; 4];
-        for (ox, oy, wgt) in [
-            (0, 0, (1.0 - dx) * (1.0 - dy)),
-            (1, 0, dx * (1.0 - dy)),
-            (0, 1, (1.0 - dx) * dy),
-            (1, 1, dx * dy),
-        ] {
-            let tx = wrap_texel(x0 as i64 + ox, w, t.wrap(0));
-            let ty = wrap_texel(y0 as i64 + oy, h, t.wrap(1));
-            let at = ((ty * w + tx) * 4) as usize;
-            for k in 0..4 {
-                out[k] += wgt * texels[at + k];
-            }
-        }
-        out
+        bilinear(c, (w, h), [t.wrap(0), t.wrap(1)], |x, y| {
+            let at = ((y * w + x) * 4) as usize;
+            std::array::from_fn(|k| texels[at + k])
+        })
     }
 }
 
