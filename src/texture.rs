@@ -54,7 +54,7 @@ struct Binding {
 #[derive(Default)]
 pub struct Textures {
     records: Vec<TextureRecord>,
-    /// Per texture, the first tile of each level (tile-table indices).
+    /// Per texture, the first tile of each level (tile-table indices; one more at the end).
     level_first: Vec<Vec<u32>>,
     bindings: Vec<Binding>,
     /// Some material has an alpha mode.
@@ -63,20 +63,7 @@ pub struct Textures {
 
 impl Textures {
     pub fn new(records: &[TextureRecord], materials: &[MaterialRecord]) -> Textures {
-        let level_first = records
-            .iter()
-            .map(|t| {
-                let mut at = t.first_tile;
-                (0..t.levels)
-                    .map(|l| {
-                        let first = at;
-                        let (x, y) = t.level_tiles(l);
-                        at += x * y;
-                        first
-                    })
-                    .collect()
-            })
-            .collect();
+        let level_first = records.iter().map(|t| t.level_first_tiles()).collect();
         let slot = |m: &MaterialRecord, s: usize| {
             let t = m.textures[s];
             (t != MaterialRecord::NO_TEXTURE && (t as usize) < records.len()).then_some(t as u32)

@@ -167,6 +167,19 @@ impl TextureRecord {
         (w.div_ceil(TILE), h.div_ceil(TILE))
     }
 
+    /// Tile-table index of each level's first tile, and one past the last level's tiles
+    /// (`levels + 1` entries). For a record `check_textures` accepted.
+    pub fn level_first_tiles(&self) -> Vec<u32> {
+        let mut at = self.first_tile;
+        let mut out = vec![at];
+        for l in 0..self.levels {
+            let (x, y) = self.level_tiles(l);
+            at += x * y;
+            out.push(at);
+        }
+        out
+    }
+
     /// Tiles of the whole pyramid (u64: a corrupt record may claim absurd sizes).
     pub fn tile_count(&self) -> u64 {
         (0..self.levels.min(32))

@@ -364,6 +364,26 @@ fn check_images(json: &gltf::json::Root) -> Result<()> {
     Ok(())
 }
 
+/// The bytes of a base64 `data:` URI.
+fn data_uri(uri: &str) -> Result<Vec<u8>> {
+    use base64::Engine;
+    let (_, payload) = uri
+        .split_once(";base64,")
+        .ok_or_else(|| anyhow!("a data URI that is not base64"))?;
+    base64::engine::general_purpose::STANDARD
+        .decode(payload)
+        .map_err(|e| anyhow!("bad base64 data: {e}"))
+}
+
+/// The file name a URI gives, percent-decoded; refused unless relative (no scheme).
+fn relative_file(uri: &str) -> Result<String> {
+    let name = urlencoding::decode(uri).map_err(|_| anyhow!("URI {uri:?} is not UTF-8"))?;
+    if name.contains(':') {
+        bail!("URI {uri:?} is not a relative file name");
+    }
+    Ok(name.into_owned())
+}
+
 /// One buffer's bytes: the GLB BIN chunk (its length the declared one, padded by at most 3
 /// bytes, as the GLB spec writes it), a base64 data URI, or a regular file beside the glTF.
 fn load_buffer(b: &gltf::Buffer, blob: Option<&[u8]>, dir: &Path) -> Result<Vec<u8>> {
@@ -381,21 +401,11 @@ fn load_buffer(b: &gltf::Buffer, blob: Option<&[u8]>, dir: &Path) -> Result<Vec<
             bin.to_vec()
         }
         gltf::buffer::Source::Uri(uri) if uri.starts_with("data:") => {
-            use base64::Engine;
-            let (_, payload) = uri
-                .split_once(";base64,")
-                .ok_or_else(|| anyhow!("buffer {i}: a data URI that is not base64"))?;
-            base64::engine::general_purpose::STANDARD
-                .decode(payload)
-                .map_err(|e| anyhow!("buffer {i}: bad base64 data: {e}"))?
+            data_uri(uri).map_err(|e| anyhow!("buffer {i}: {e}"))?
         }
         gltf::buffer::Source::Uri(uri) => {
-            let name = urlencoding::decode(uri)
-                .map_err(|_| anyhow!("buffer {i}: URI {uri:?} is not UTF-8"))?;
-            if name.contains(':') {
-                bail!("buffer {i}: URI {uri:?} is not a relative file name");
-            }
-            super::read_regular(&dir.join(&*name), MAX_SIDE_FILE, "glTF buffer")?
+            let name = relative_file(uri).map_err(|e| anyhow!("buffer {i}: {e}"))?;
+            super::read_regular(&dir.join(&name), MAX_SIDE_FILE, "glTF buffer")?
         }
     };
     if data.len() < want {
@@ -715,29 +725,16 @@ fn texture_source(
             }
         }
         gltf::image::Source::Uri { uri, .. } if uri.starts_with("data:") => {
-            use base64::Engine;
-            let (_, payload) = uri
-                .split_once(";base64,")
-                .ok_or_else(|| anyhow!("image {}: a data URI that is not base64", image.index()))?;
-            let data = base64::engine::general_purpose::STANDARD
-                .decode(payload)
-                .map_err(|e| anyhow!("image {}: bad base64 data: {e}", image.index()))?;
+            let data = data_uri(uri).map_err(|e| anyhow!("image {}: {e}", image.index()))?;
             src.bytes = Some(std::sync::Arc::new(data));
             if src.name.is_empty() {
                 src.name = format!("image {}", image.index());
             }
         }
         gltf::image::Source::Uri { uri, .. } => {
-            let name = urlencoding::decode(uri)
-                .map_err(|_| anyhow!("image {}: URI {uri:?} is not UTF-8", image.index()))?;
-            if name.contains(':') {
-                bail!(
-                    "image {}: URI {uri:?} is not a relative file name",
-                    image.index()
-                );
-            }
+            let name = relative_file(uri).map_err(|e| anyhow!("image {}: {e}", image.index()))?;
             src.name = name.rsplit('/').next().unwrap_or(&name).to_string();
-            src.file = Some(dir.join(&*name));
+            src.file = Some(dir.join(&name));
         }
     }
     Ok(src)

@@ -202,6 +202,9 @@ impl Scene {
     /// The material at a hit, with the path tracer's footprint: a pixel's spread at the
     /// hit's distance from the camera (pbrt-v4's `Approximate_dp_dxy`, used at every bounce).
     pub fn material_at_hit(&self, hit: &Hit, d: V) -> (Material, f32) {
+        if !self.textures.varies(hit.tri.material) {
+            return (self.materials[hit.tri.material as usize], 1.0);
+        }
         let pixel = 2.0 * self.camera.tan_half / self.camera.height.max(1) as f32;
         let spread = self.texture_scale * pixel * (hit.point().0 - self.camera.pos).length();
         self.material_at(hit.tri.material, &hit.tri.p, hit.uv, hit.b, d, spread)

@@ -26,6 +26,13 @@ pub fn power_heuristic(a: f32, b: f32) -> f32 {
 /// Most alpha holes one path segment or shadow ray passes through.
 pub const MAX_PASSES: u32 = 64;
 
+/// Stochastic opacity: whether a ray goes on through a surface of `opacity` (a hole under
+/// an alpha mask; with probability 1 − alpha under blend), from the sample number `u` moved
+/// along a golden-ratio sequence for the `passes` already made on this segment.
+pub fn passes_through(opacity: f32, u: f32, passes: u32) -> bool {
+    opacity < 1.0 && (u + passes as f32 * 0.618_034).fract() >= opacity
+}
+
 pub struct PathIntegrator;
 
 impl Integrator for PathIntegrator {
@@ -80,17 +87,13 @@ pub fn radiance(
         let ng = ng_raw / (2.0 * area);
         let (m, opacity) = scene.material_at_hit(&hit, ray.d);
         let m = &m;
-        if opacity < 1.0 && passes < MAX_PASSES {
-            // Stochastic opacity: the path goes on through a hole (alpha mask) or with
-            // probability 1 − alpha (blend), unscattered and with its depth unchanged.
-            let u = (ud0 + passes as f32 * 0.618_034).fract();
-            if u >= opacity {
-                passes += 1;
-                travelled += hit.t * ray.d.length();
-                let (p, err) = hit.point();
-                ray.o = offset_origin(p, err, ng, ray.d);
-                continue;
-            }
+        if passes < MAX_PASSES && passes_through(opacity, ud0, passes) {
+            // Unscattered, its depth unchanged.
+            passes += 1;
+            travelled += hit.t * ray.d.length();
+            let (p, err) = hit.point();
+            ray.o = offset_origin(p, err, ng, ray.d);
+            continue;
         }
         let wo = -ray.d.normalize();
         let front = ng.dot(wo) > 0.0;

@@ -422,9 +422,8 @@ impl PageCache {
         }
         let mut tile_level = Vec::with_capacity(archive.tile_count() as usize);
         for t in &archive.textures {
-            for l in 0..t.levels {
-                let (x, y) = t.level_tiles(l);
-                tile_level.extend(std::iter::repeat_n(l as u8, (x * y) as usize));
+            for (l, run) in t.level_first_tiles().windows(2).enumerate() {
+                tile_level.extend(std::iter::repeat_n(l as u8, (run[1] - run[0]) as usize));
             }
         }
         let cache = Arc::new(PageCache {
@@ -569,10 +568,7 @@ impl PageCache {
         let page = match self.decode(id) {
             Ok(p) => p,
             Err(e) => {
-                self.error
-                    .lock()
-                    .expect("error lock")
-                    .get_or_insert_with(|| format!("{e:#}"));
+                self.record_error(&e);
                 Page::empty(id)
             }
         };
@@ -591,12 +587,7 @@ impl PageCache {
         slot.referenced.store(true, Relaxed);
         self.loads.fetch_add(1, Relaxed);
         self.decoded.fetch_add(page.bytes, Relaxed);
-        let now = self.resident.fetch_add(page.bytes, Relaxed) + page.bytes;
-        if now > self.budget {
-            self.evict(id);
-        }
-        self.resident_peak
-            .fetch_max(self.resident.load(Relaxed), Relaxed);
+        self.admit(page.bytes, id);
         page
     }
 
@@ -613,10 +604,7 @@ impl PageCache {
         let data = Arc::new(match self.archive.read_tile(index) {
             Ok(d) => d,
             Err(e) => {
-                self.error
-                    .lock()
-                    .expect("error lock")
-                    .get_or_insert_with(|| format!("{e:#}"));
+                self.record_error(&e);
                 vec![0; canopy_format::TILE_BYTES as usize]
             }
         });
@@ -631,13 +619,27 @@ impl PageCache {
         self.tile_loads[self.tile_level[index as usize] as usize].fetch_add(1, Relaxed);
         let t = self.tile_resident.fetch_add(TILE_COST, Relaxed) + TILE_COST;
         self.tile_resident_peak.fetch_max(t, Relaxed);
-        let now = self.resident.fetch_add(TILE_COST, Relaxed) + TILE_COST;
+        self.admit(TILE_COST, self.slots.len() as u32 + index);
+        data
+    }
+
+    /// The first error met is kept; later ones are dropped.
+    fn record_error(&self, e: &dyn std::fmt::Display) {
+        self.error
+            .lock()
+            .expect("error lock")
+            .get_or_insert_with(|| format!("{e:#}"));
+    }
+
+    /// Counts `bytes` just made resident in CLOCK slot `slot` (pages, then tiles), evicting
+    /// others while over budget.
+    fn admit(&self, bytes: u64, slot: u32) {
+        let now = self.resident.fetch_add(bytes, Relaxed) + bytes;
         if now > self.budget {
-            self.evict(self.slots.len() as u32 + index);
+            self.evict(slot);
         }
         self.resident_peak
             .fetch_max(self.resident.load(Relaxed), Relaxed);
-        data
     }
 
     /// Drops tile `i` if its reference bit is clear (clearing it otherwise).

@@ -6,7 +6,7 @@
 use super::cluster::{hit_emission, phong_lobe, reflect_lut, theta_norm};
 use super::optics::{bent_tan, jitter};
 use super::{ConeIntegrator, FRESH, STORE_TAN};
-use crate::integrator::path::{power_heuristic, MAX_PASSES};
+use crate::integrator::path::{passes_through, power_heuristic, MAX_PASSES};
 use crate::integrator::{bsdf_term, sample_light, Counters, Receiver, Scene};
 use crate::material::{cosine_hemisphere, Frame};
 use crate::radiance::RadianceStore;
@@ -267,7 +267,7 @@ fn through_hole(scene: &Scene, hit: &ConeHit, path: &Path, at: &Here, passes: u3
     };
     let spread = scene.texture_scale * 2.0 * path.cone.radius(h.t);
     let (_, opacity) = scene.material_at(h.tri.material, &h.tri.p, h.uv, h.b, path.ray.d, spread);
-    opacity < 1.0 && (at.dir[0] + passes as f32 * 0.618_034).fract() >= opacity
+    passes_through(opacity, at.dir[0], passes)
 }
 
 impl ConeIntegrator {
