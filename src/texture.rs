@@ -48,6 +48,28 @@ struct Binding {
     mask: Option<f32>,
     /// `ALPHA_BLEND`.
     blend: bool,
+    /// The normal texture and its scale.
+    normal: Option<(u32, f32)>,
+}
+
+/// A material as shaded at one point of a surface.
+pub struct Shaded {
+    pub m: Material,
+    /// 0 or 1 under an alpha mask, the texel's alpha under blend, 1 otherwise.
+    pub opacity: f32,
+    /// The normal texture's tangent-space normal there (unit; +z off the surface).
+    pub bump: Option<V>,
+}
+
+impl Shaded {
+    /// A material that does not vary over its surface.
+    pub fn plain(m: Material) -> Shaded {
+        Shaded {
+            m,
+            opacity: 1.0,
+            bump: None,
+        }
+    }
 }
 
 /// The archive's textures and which materials use them.
@@ -75,6 +97,7 @@ impl Textures {
                 metallic_roughness: slot(m, MaterialRecord::METALLIC_ROUGHNESS),
                 mask: (m.flags & MaterialRecord::ALPHA_MASK != 0).then_some(m.alpha_cutoff),
                 blend: m.flags & MaterialRecord::ALPHA_BLEND != 0,
+                normal: slot(m, MaterialRecord::NORMAL).map(|t| (t, m.normal_scale)),
             })
             .collect();
         Textures {
@@ -89,7 +112,11 @@ impl Textures {
     #[inline]
     pub fn varies(&self, m: u32) -> bool {
         self.bindings.get(m as usize).is_some_and(|b| {
-            b.base.is_some() || b.metallic_roughness.is_some() || b.mask.is_some() || b.blend
+            b.base.is_some()
+                || b.metallic_roughness.is_some()
+                || b.mask.is_some()
+                || b.blend
+                || b.normal.is_some()
         })
     }
 
@@ -105,8 +132,7 @@ impl Textures {
     }
 
     /// Material `index` as shaded at texture coordinates `uv` with filter width `width`
-    /// (texture space), and its opacity there: 0 or 1 under a mask, the texel's alpha
-    /// under blend, 1 otherwise.
+    /// (texture space).
     pub fn shade(
         &self,
         look: &mut Lookup,
@@ -114,8 +140,22 @@ impl Textures {
         index: u32,
         uv: [f32; 2],
         width: f32,
-    ) -> (Material, f32) {
-        self.apply(m, index, |t| look.trilinear(self, t, uv, width))
+    ) -> Shaded {
+        let mut texel = |t| look.trilinear(self, t, uv, width);
+        let (m, opacity) = self.apply(m, index, &mut texel);
+        // glTF 2.0 §3.9.3: n = normalize((2·texel − 1) · (scale, scale, 1)); filtered texels
+        // come out shorter than unit, hence the normalization.
+        let bump = self.bindings[index as usize].normal.and_then(|(t, scale)| {
+            let c = texel(t);
+            let n = V::new(
+                (2.0 * c[0] - 1.0) * scale,
+                (2.0 * c[1] - 1.0) * scale,
+                2.0 * c[2] - 1.0,
+            )
+            .normalize();
+            (n.is_finite() && n.z > 0.0).then_some(n)
+        });
+        Shaded { m, opacity, bump }
     }
 
     /// `m` with each of material `index`'s textures multiplying its factor (glTF 2.0
@@ -214,19 +254,13 @@ impl<'a> Lookup<'a> {
 /// (world units, across a ray of direction `d`) on the triangle's plane.
 pub fn footprint(p: [V; 3], uv: [[f32; 2]; 3], b: [f32; 3], d: V, spread: f32) -> ([f32; 2], f32) {
     let at = std::array::from_fn(|k| b[0] * uv[0][k] + b[1] * uv[1][k] + b[2] * uv[2][k]);
-    // pbrt-v4 Triangle::InteractionFromIntersection: ∂p/∂u, ∂p/∂v.
-    let (duv02, duv12) = (
-        [uv[0][0] - uv[2][0], uv[0][1] - uv[2][1]],
-        [uv[1][0] - uv[2][0], uv[1][1] - uv[2][1]],
-    );
-    let (dp02, dp12) = (p[0] - p[2], p[1] - p[2]);
-    let det = duv02[0] * duv12[1] - duv02[1] * duv12[0];
     let n = (p[1] - p[0]).cross(p[2] - p[0]);
-    if det.abs() < 1e-12 || n == V::ZERO || spread.is_nan() || spread <= 0.0 {
+    let Some((dpdu, dpdv)) = dp_duv(p, uv) else {
+        return (at, 0.0);
+    };
+    if n == V::ZERO || spread.is_nan() || spread <= 0.0 {
         return (at, 0.0);
     }
-    let dpdu = (duv12[1] * dp02 - duv02[1] * dp12) / det;
-    let dpdv = (duv02[0] * dp12 - duv12[0] * dp02) / det;
     let n = n.normalize();
     let d = d.normalize();
     // The footprint's two axes across the ray (the first in the plane of ray and normal,
@@ -261,6 +295,48 @@ pub fn footprint(p: [V; 3], uv: [[f32; 2]; 3], b: [f32; 3], d: V, spread: f32) -
     (at, 2.0 * width)
 }
 
+/// ∂p/∂u and ∂p/∂v of a triangle (pbrt-v4 `Triangle::InteractionFromIntersection`); None
+/// where its texture coordinates are degenerate.
+fn dp_duv(p: [V; 3], uv: [[f32; 2]; 3]) -> Option<(V, V)> {
+    let (duv02, duv12) = (
+        [uv[0][0] - uv[2][0], uv[0][1] - uv[2][1]],
+        [uv[1][0] - uv[2][0], uv[1][1] - uv[2][1]],
+    );
+    let (dp02, dp12) = (p[0] - p[2], p[1] - p[2]);
+    let det = duv02[0] * duv12[1] - duv02[1] * duv12[0];
+    if det.abs() < 1e-12 {
+        return None;
+    }
+    Some((
+        (duv12[1] * dp02 - duv02[1] * dp12) / det,
+        (duv02[0] * dp12 - duv12[0] * dp02) / det,
+    ))
+}
+
+/// The world-space shading normal that tangent-space normal `tn` makes on a triangle with
+/// positions `p`, texture coordinates `uv` and unit front normal `n`. The tangent runs along
+/// ∂p/∂u; the bitangent is n × t (glTF's convention, as Khronos' sample viewer and Mitsuba's
+/// `normalmap` build it), turned round where the texture is mirrored so that it always runs
+/// against ∂p/∂v: glTF's v runs down the image, a normal map's +y up it. `n` where the
+/// texture coordinates are degenerate.
+pub fn perturb(p: [V; 3], uv: [[f32; 2]; 3], n: V, tn: V) -> V {
+    let Some((dpdu, dpdv)) = dp_duv(p, uv) else {
+        return n;
+    };
+    let t = (dpdu - n * n.dot(dpdu)).normalize_or_zero();
+    if t == V::ZERO {
+        return n;
+    }
+    let b = n.cross(t);
+    let b = if b.dot(dpdv) > 0.0 { -b } else { b };
+    let s = (t * tn.x + b * tn.y + n * tn.z).normalize();
+    if s.is_finite() {
+        s
+    } else {
+        n
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -285,5 +361,36 @@ mod tests {
         let d = V::new(0.0, 3f32.sqrt() / 2.0, -0.5);
         let (_, w) = footprint(p, uv, [0.5, 0.25, 0.25], d, 0.01);
         assert!((w - 0.04).abs() < 1e-5, "width {w}");
+    }
+
+    #[test]
+    fn the_tangent_frame_follows_u_and_runs_against_v_also_when_mirrored() {
+        // The unit square in the xy plane, front +z. Per mapping: where tangent-space +x
+        // and +y land. +y runs up the image (against v), so a mirrored v turns it round.
+        let p = [
+            V::new(0.0, 0.0, 0.0),
+            V::new(1.0, 0.0, 0.0),
+            V::new(0.0, 1.0, 0.0),
+        ];
+        let n = V::Z;
+        for (uv, t, b) in [
+            ([[0.0, 1.0], [1.0, 1.0], [0.0, 0.0]], V::X, V::Y),
+            ([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]], V::X, -V::Y),
+            ([[0.0, 0.0], [0.0, 1.0], [1.0, 0.0]], V::Y, -V::X),
+        ] {
+            assert!(perturb(p, uv, n, V::Z).distance(n) < 1e-6);
+            let along_t = perturb(p, uv, n, V::new(0.6, 0.0, 0.8));
+            assert!(
+                along_t.distance(t * 0.6 + n * 0.8) < 1e-5,
+                "{uv:?}: {along_t}"
+            );
+            let along_b = perturb(p, uv, n, V::new(0.0, 0.6, 0.8));
+            assert!(
+                along_b.distance(b * 0.6 + n * 0.8) < 1e-5,
+                "{uv:?}: {along_b}"
+            );
+        }
+        // Degenerate coordinates leave the normal alone.
+        assert_eq!(perturb(p, [[0.5, 0.5]; 3], n, V::new(0.6, 0.0, 0.8)), n);
     }
 }

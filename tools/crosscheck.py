@@ -17,7 +17,12 @@ otherwise), emission
 and on Lambertian materials a baseColorTexture (TEXCOORD_0, repeat wrapping): the image is
 decoded to linear RGB, multiplied by baseColorFactor and given to a `bitmap` texture
 (bilinear, no MIP maps: what Canopy converges to as its filter narrows), with
-alphaMode MASK as Mitsuba's `mask` over the image's alpha cut at alphaCutoff.
+alphaMode MASK as Mitsuba's `mask` over the image's alpha cut at alphaCutoff; a
+normalTexture as Mitsuba's `normalmap` around the material (inside `twosided`), its
+image decoded to normals, scaled in x and y by the texture's scale, renormalized and
+re-encoded to a float image (Mitsuba's normalmap has no scale), bilinear, with its
+shadow-terminator term and normal flipping off. Mitsuba builds
+the tangent frame as glTF does (s = ∂p/∂u, t = n × s), so UV layouts must not be mirrored.
 Prints the render time and paths per second (spp × pixels / seconds) and writes a JSON
 beside the EXR, so `canopy render` can be timed against it on the same machine.
 """
@@ -104,6 +109,23 @@ def texture_of(mi, doc, scene_dir, tmp, info, factor, name):
 texture_of.made = {}
 
 
+def normalmap_of(mi, doc, scene_dir, tmp, info, name):
+    """A `bitmap` of normalTexture `info`'s normals with its scale applied (glTF 2.0
+    §3.9.3), re-encoded to [0, 1] in a float EXR under tmp."""
+    import os
+    image = doc["images"][doc["textures"][info["index"]]["source"]]
+    bmp = mi.Bitmap(os.path.join(scene_dir, image["uri"]))
+    # The bytes are the normal's code, not sRGB-encoded colour: no decoding curve.
+    bmp.set_srgb_gamma(False)
+    arr = np.array(bmp.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False))
+    n = arr * 2 - 1
+    n[:, :, :2] *= info.get("scale", 1.0)
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    path = f"{tmp}/{name}_normal.exr"
+    mi.Bitmap(np.ascontiguousarray((n + 1) / 2, dtype=np.float32)).write(path)
+    return {"type": "bitmap", "filename": path, "raw": True, "filter_type": "bilinear", "wrap_mode": "repeat"}
+
+
 def bsdf_of(mi, m, doc=None, scene_dir=None, tmp=None, name=""):
     import os
     pbr = m.get("pbrMetallicRoughness", {})
@@ -146,6 +168,12 @@ def bsdf_of(mi, m, doc=None, scene_dir=None, tmp=None, name=""):
             b["eta"] = ior
         else:
             b["specular"] = spec * 0.5
+    if "normalTexture" in m:
+        # Plain normal mapping, as glTF describes it: without Mitsuba's default shadow-
+        # terminator term and its mirroring of normals that face away from the viewer.
+        b = {"type": "normalmap", "bsdf": b, "use_shadowing_function": False,
+             "flip_invalid_normals": False,
+             "normalmap": normalmap_of(mi, doc, scene_dir, tmp, m["normalTexture"], name)}
     if m.get("doubleSided", False):
         b = {"type": "twosided", "material": b}
     if alpha is not None and m.get("alphaMode") == "MASK":

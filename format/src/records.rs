@@ -426,7 +426,9 @@ pub struct MaterialRecord {
     pub textures: [u16; 4],
     /// With `ALPHA_MASK`: texels whose alpha is below this are holes.
     pub alpha_cutoff: f32,
-    pub reserved: [u8; 4],
+    /// glTF normalTexture.scale on the tangent-space normal's x and y (with a normal
+    /// texture; 0 otherwise).
+    pub normal_scale: f32,
 }
 
 const _: () = assert!(std::mem::size_of::<MaterialRecord>() == 128);

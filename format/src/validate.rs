@@ -213,8 +213,12 @@ pub fn check_material(m: &MaterialRecord) -> Result<(), String> {
         return Err("both alpha mask and alpha blend".into());
     }
     first_bad(&[("alpha cutoff", in_unit(&[m.alpha_cutoff]))])?;
-    if !zeroed(&m.reserved) {
-        return Err("reserved bytes are not zero".into());
+    let normal = m.textures[MaterialRecord::NORMAL] != MaterialRecord::NO_TEXTURE;
+    if !(m.normal_scale.is_finite() && (normal || m.normal_scale == 0.0)) {
+        return Err(format!(
+            "normal scale {} (finite with a normal texture, 0 without)",
+            m.normal_scale
+        ));
     }
     Ok(())
 }

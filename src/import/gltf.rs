@@ -596,16 +596,42 @@ struct UvMap {
 
 impl UvMap {
     fn of(info: &gltf::texture::Info) -> UvMap {
-        let (set, m) = match info.texture_transform() {
-            Some(t) => {
-                let ([ox, oy], r, [sx, sy]) = (t.offset(), t.rotation(), t.scale());
-                let (s, c) = r.sin_cos();
-                let set = t.tex_coord().unwrap_or(info.tex_coord());
-                (set, [[c * sx, s * sy, ox], [-s * sx, c * sy, oy]])
+        match info.texture_transform() {
+            Some(t) => UvMap::new(
+                t.tex_coord().unwrap_or(info.tex_coord()),
+                t.offset(),
+                t.rotation(),
+                t.scale(),
+            ),
+            None => UvMap::new(info.tex_coord(), [0.0; 2], 0.0, [1.0; 2]),
+        }
+    }
+
+    /// The gltf crate gives a normal texture's KHR_texture_transform only as JSON.
+    fn of_normal(n: &gltf::material::NormalTexture) -> Result<UvMap> {
+        use gltf::json::extensions::texture::TextureTransform;
+        Ok(match n.extension_value("KHR_texture_transform") {
+            Some(v) => {
+                let t: TextureTransform = serde_json::from_value(v.clone())
+                    .context("normalTexture's KHR_texture_transform")?;
+                UvMap::new(
+                    t.tex_coord.unwrap_or(n.tex_coord()),
+                    t.offset.0,
+                    t.rotation.0,
+                    t.scale.0,
+                )
             }
-            None => (info.tex_coord(), [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]),
-        };
-        UvMap { set, m }
+            None => UvMap::new(n.tex_coord(), [0.0; 2], 0.0, [1.0; 2]),
+        })
+    }
+
+    /// KHR_texture_transform: translation · rotation · scale.
+    fn new(set: u32, [ox, oy]: [f32; 2], r: f32, [sx, sy]: [f32; 2]) -> UvMap {
+        let (s, c) = r.sin_cos();
+        UvMap {
+            set,
+            m: [[c * sx, s * sy, ox], [-s * sx, c * sy, oy]],
+        }
     }
 
     fn apply(&self, [u, v]: [f32; 2]) -> [f32; 2] {
@@ -644,23 +670,41 @@ fn material(
     }
     let mut textures = [MaterialRecord::NO_TEXTURE; 4];
     let mut uv: Option<UvMap> = None;
+    fn info(i: gltf::texture::Info<'_>) -> (Result<UvMap>, gltf::Texture<'_>) {
+        (Ok(UvMap::of(&i)), i.texture())
+    }
     let slots = [
-        (MaterialRecord::BASE_COLOR, pbr.base_color_texture(), true),
+        (
+            MaterialRecord::BASE_COLOR,
+            pbr.base_color_texture().map(info),
+            true,
+        ),
         (
             MaterialRecord::METALLIC_ROUGHNESS,
-            pbr.metallic_roughness_texture(),
+            pbr.metallic_roughness_texture().map(info),
             false,
         ),
-        (MaterialRecord::EMISSIVE, m.emissive_texture(), true),
+        (
+            MaterialRecord::EMISSIVE,
+            m.emissive_texture().map(info),
+            true,
+        ),
+        (
+            MaterialRecord::NORMAL,
+            normal.as_ref().map(|n| (UvMap::of_normal(n), n.texture())),
+            false,
+        ),
     ];
-    for (slot, info, srgb) in slots {
-        let Some(info) = info else { continue };
-        let map = UvMap::of(&info);
+    for (slot, found, srgb) in slots {
+        let Some((map, texture)) = found else {
+            continue;
+        };
+        let map = map?;
         if uv.is_some_and(|u| u != map) {
             bail!("its textures use different texture coordinates or transforms (Canopy stores one set per vertex)");
         }
         uv = Some(map);
-        textures[slot] = scene.add_texture(texture_source(&info.texture(), srgb, buffers, dir)?)?;
+        textures[slot] = scene.add_texture(texture_source(&texture, srgb, buffers, dir)?)?;
     }
     let rec = MaterialRecord {
         name: name_bytes(m.name().unwrap_or("")),
@@ -681,7 +725,7 @@ fn material(
         flags,
         textures,
         alpha_cutoff: m.alpha_cutoff().unwrap_or(0.5),
-        reserved: [0; 4],
+        normal_scale: normal.as_ref().map_or(0.0, |n| n.scale()),
     };
     Ok((rec, uv))
 }

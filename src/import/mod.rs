@@ -151,7 +151,7 @@ pub fn default_material(name: &str) -> MaterialRecord {
         flags: MaterialRecord::DOUBLE_SIDED,
         textures: [MaterialRecord::NO_TEXTURE; 4],
         alpha_cutoff: 0.5,
-        reserved: [0; 4],
+        normal_scale: 0.0,
     }
 }
 

@@ -13,7 +13,7 @@ use crate::light::Lights;
 use crate::material::{Bsdf, Frame, Material};
 use crate::paging::PageCache;
 use crate::sampler::PixelSampler;
-use crate::texture::{self, Lookup, Textures};
+use crate::texture::{self, Lookup, Shaded, Textures};
 use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer};
 use glam::Vec3A as V;
 use path::power_heuristic;
@@ -189,10 +189,10 @@ impl Scene {
         b: [f32; 3],
         d: V,
         spread: f32,
-    ) -> (Material, f32) {
+    ) -> Shaded {
         let m = &self.materials[index as usize];
         if !self.textures.varies(index) {
-            return (*m, 1.0);
+            return Shaded::plain(*m);
         }
         let (at, width) = texture::footprint(tri.map(V::from), uv, b, d, spread);
         self.textures
@@ -201,9 +201,9 @@ impl Scene {
 
     /// The material at a hit, with the path tracer's footprint: a pixel's spread at the
     /// hit's distance from the camera (pbrt-v4's `Approximate_dp_dxy`, used at every bounce).
-    pub fn material_at_hit(&self, hit: &Hit, d: V) -> (Material, f32) {
+    pub fn material_at_hit(&self, hit: &Hit, d: V) -> Shaded {
         if !self.textures.varies(hit.tri.material) {
-            return (self.materials[hit.tri.material as usize], 1.0);
+            return Shaded::plain(self.materials[hit.tri.material as usize]);
         }
         let pixel = 2.0 * self.camera.tan_half / self.camera.height.max(1) as f32;
         let spread = self.texture_scale * pixel * (hit.point().0 - self.camera.pos).length();
@@ -211,11 +211,10 @@ impl Scene {
     }
 
     /// The material at a cone's triangle hit: the cone's width there is the footprint.
-    pub fn material_at_cone(&self, hit: &Hit, ray: &Ray, cone: &Cone) -> Material {
+    pub fn material_at_cone(&self, hit: &Hit, ray: &Ray, cone: &Cone) -> Shaded {
         let spread = self.texture_scale * 2.0 * cone.radius(hit.t);
         let m = hit.tri.material;
         self.material_at(m, &hit.tri.p, hit.uv, hit.b, ray.d, spread)
-            .0
     }
 
     /// Material `index` with its textures' means (for values over a whole triangle).
@@ -289,13 +288,39 @@ impl NodeSet {
 }
 
 /// `f` for `sample_light` at a surface with this BSDF: (value · |cos θ|, pdf) for a
-/// direction, in the frame whose local outgoing direction is `wo_l`.
-pub fn bsdf_term(frame: Frame, bsdf: Bsdf, wo_l: V) -> impl Fn(V) -> (V, f32) {
+/// direction, in the frame whose local outgoing direction is `wo_l`; zero where the
+/// direction is not `on_side` of the geometric normal `n` (turned to the frame's side).
+pub fn bsdf_term(frame: Frame, n: V, bsdf: Bsdf, wo_l: V) -> impl Fn(V) -> (V, f32) {
     move |wi| {
+        if !on_side(&frame, n, wi) {
+            return (V::ZERO, 0.0);
+        }
         let wl = frame.to_local(wi);
         let (f, pdf) = bsdf.eval(wo_l, wl);
         (f * wl.z.abs(), pdf)
     }
+}
+
+/// Whether direction `w` lies on the same side of the shading frame's normal as of the
+/// geometric normal `n` (turned to the same side as the frame's): a normal map that tilts
+/// the frame must not let light through the surface or leak it from below (Mitsuba's
+/// `normalmap` makes the same test). Always so (but at exact grazing) when the frame is
+/// the geometric one.
+#[inline]
+pub fn on_side(frame: &Frame, n: V, w: V) -> bool {
+    frame.n.dot(w) * n.dot(w) > 0.0
+}
+
+/// The shading frame at a triangle hit with unit geometric normal `ng`, on the side
+/// `front` says: the normal texture's `bump` turned into world space (glTF's tangent frame,
+/// see `texture::perturb`), or the side's geometric normal. Seen from the back, the bumped
+/// frame is turned round whole, as a real bump seen from behind is a dent.
+pub fn shading_frame(hit: &Hit, ng: V, front: bool, bump: Option<V>) -> Frame {
+    let n = match bump {
+        Some(tn) => texture::perturb(hit.tri.p.map(V::from), hit.uv, ng, tn),
+        None => ng,
+    };
+    Frame::new(if front { n } else { -n })
 }
 
 /// Where a light sample is taken.
@@ -378,7 +403,7 @@ fn transmittance(scene: &Scene, tr: &mut Tracer, mut ray: Ray, cone: &Cone) -> f
         let Some(hit) = tr.closest_hit(&ray) else {
             return seen;
         };
-        let (_, opacity) = scene.material_at_hit(&hit, ray.d);
+        let opacity = scene.material_at_hit(&hit, ray.d).opacity;
         seen *= 1.0 - opacity;
         let n = hit.ng();
         if seen <= 0.0 || n == V::ZERO {

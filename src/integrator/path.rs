@@ -7,8 +7,10 @@
 //! seed. Emitters are one-sided unless their material is double-sided; a single-sided
 //! opaque surface hit from behind absorbs.
 
-use super::{bsdf_term, sample_light, Counters, Integrator, PixelSample, Receiver, Scene, Stats};
-use crate::material::Frame;
+use super::{
+    bsdf_term, on_side, sample_light, shading_frame, Counters, Integrator, PixelSample, Receiver,
+    Scene, Stats,
+};
 use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Cone, Ray, Tracer, NO_INSTANCE};
 use glam::Vec3A as V;
@@ -85,9 +87,9 @@ pub fn radiance(
             break;
         }
         let ng = ng_raw / (2.0 * area);
-        let (m, opacity) = scene.material_at_hit(&hit, ray.d);
-        let m = &m;
-        if passes < MAX_PASSES && passes_through(opacity, ud0, passes) {
+        let shaded = scene.material_at_hit(&hit, ray.d);
+        let m = &shaded.m;
+        if passes < MAX_PASSES && passes_through(shaded.opacity, ud0, passes) {
             // Unscattered, its depth unchanged.
             passes += 1;
             travelled += hit.t * ray.d.length();
@@ -118,7 +120,7 @@ pub fn radiance(
         }
         let (p, err) = hit.point();
         let n = if front { ng } else { -ng };
-        let frame = Frame::new(n);
+        let frame = shading_frame(&hit, ng, front, shaded.bump);
         let bsdf = m.bsdf(front);
         let wo_l = frame.to_local(wo);
 
@@ -131,7 +133,7 @@ pub fn radiance(
                     &Receiver::surface(p, err, ng),
                     &Cone::EXACT,
                     [u_pick, ul0, ul1],
-                    bsdf_term(frame, bsdf, wo_l),
+                    bsdf_term(frame, n, bsdf, wo_l),
                 );
         }
 
@@ -139,6 +141,10 @@ pub fn radiance(
         let Some(bs) = bsdf.sample(wo_l, u_lobe, [ud0, ud1]) else {
             break;
         };
+        let wi = frame.to_world(bs.wi).normalize();
+        if !on_side(&frame, n, wi) {
+            break;
+        }
         beta *= bs.weight;
         if !beta.is_finite() || beta.max_element() <= 0.0 {
             break;
@@ -147,7 +153,6 @@ pub fn radiance(
         prev_delta = bs.delta;
         prev = (p, ng);
         travelled = 0.0;
-        let wi = frame.to_world(bs.wi).normalize();
         ray = Ray {
             o: offset_origin(p, err, ng, wi),
             d: wi,

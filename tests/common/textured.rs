@@ -28,6 +28,16 @@ pub fn checker_png(path: &Path, size: u32, checks: u32, hole: impl Fn(u32, u32) 
     w.finish().unwrap();
 }
 
+/// A `size`² RGBA PNG of one colour.
+pub fn solid_png(path: &Path, size: u32, rgba: [u8; 4]) {
+    let f = std::io::BufWriter::new(std::fs::File::create(path).unwrap());
+    let mut enc = png::Encoder::new(f, size, size);
+    enc.set_color(png::ColorType::Rgba);
+    enc.set_depth(png::BitDepth::Eight);
+    let data: Vec<u8> = (0..size * size).flat_map(|_| rgba).collect();
+    enc.write_header().unwrap().write_image_data(&data).unwrap();
+}
+
 /// How the plane is seen and textured.
 pub struct Plane<'a> {
     /// The image file, relative to the glTF's directory.
@@ -43,6 +53,8 @@ pub struct Plane<'a> {
     pub floor_below: Option<f32>,
     /// Leave out the camera and the light (a scene file gives them).
     pub bare: bool,
+    /// A normal texture (image beside the glTF) and its scale, or None.
+    pub normal: Option<(&'a str, f32)>,
 }
 
 impl Default for Plane<'_> {
@@ -55,6 +67,7 @@ impl Default for Plane<'_> {
             alpha_mode: None,
             floor_below: None,
             bare: false,
+            normal: None,
         }
     }
 }
@@ -94,6 +107,13 @@ pub fn plane_gltf(dir: &Path, name: &str, p: &Plane) -> PathBuf {
     if let Some(mode) = p.alpha_mode {
         material["alphaMode"] = mode.into();
     }
+    let mut images = vec![serde_json::json!({"uri": p.image})];
+    let mut textures = vec![serde_json::json!({"source": 0, "sampler": 0})];
+    if let Some((image, scale)) = p.normal {
+        material["normalTexture"] = serde_json::json!({"index": 1, "scale": scale});
+        images.push(serde_json::json!({"uri": image}));
+        textures.push(serde_json::json!({"source": 1, "sampler": 0}));
+    }
     let mut primitives = vec![serde_json::json!({
         "attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "material": 0
     })];
@@ -128,9 +148,9 @@ pub fn plane_gltf(dir: &Path, name: &str, p: &Plane) -> PathBuf {
         "cameras": [{"type": "perspective", "perspective": {"yfov": 0.7, "znear": 0.01, "aspectRatio": 1.0}}],
         "meshes": [{"primitives": primitives}],
         "materials": [material, {"pbrMetallicRoughness": {"baseColorFactor": [0.5, 0.1, 0.1, 1.0], "metallicFactor": 0.0}}],
-        "textures": [{"source": 0, "sampler": 0}],
+        "textures": textures,
         "samplers": [{"wrapS": 10497, "wrapT": 10497}],
-        "images": [{"uri": p.image}],
+        "images": images,
         "buffers": [{
             "byteLength": bin.len(),
             "uri": format!("data:application/octet-stream;base64,{}", base64::engine::general_purpose::STANDARD.encode(&bin))

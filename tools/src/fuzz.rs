@@ -618,6 +618,7 @@ fn textured(json: &mut serde_json::Value, bin: &mut Vec<u8>) {
     json["materials"][1]["pbrMetallicRoughness"]["baseColorTexture"] =
         serde_json::json!({"index": 0});
     json["materials"][1]["alphaMode"] = "MASK".into();
+    json["materials"][1]["normalTexture"] = serde_json::json!({"index": 0, "scale": 0.7});
     for p in json["meshes"][0]["primitives"]
         .as_array_mut()
         .expect("primitives")

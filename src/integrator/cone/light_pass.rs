@@ -85,7 +85,7 @@ fn trace_photon(
         };
         let m = &scene
             .material_at(hit.tri.material, &hit.tri.p, hit.uv, hit.b, ray.d, 0.0)
-            .0;
+            .m;
         let ng = hit.ng().normalize_or_zero();
         let wo = -ray.d;
         let front = ng.dot(wo) > 0.0;

@@ -7,7 +7,9 @@ use super::cluster::{hit_emission, phong_lobe, reflect_lut, theta_norm};
 use super::optics::{bent_tan, jitter};
 use super::{ConeIntegrator, FRESH, STORE_TAN};
 use crate::integrator::path::{passes_through, power_heuristic, MAX_PASSES};
-use crate::integrator::{bsdf_term, sample_light, Counters, Receiver, Scene};
+use crate::integrator::{
+    bsdf_term, on_side, sample_light, shading_frame, Counters, Receiver, Scene,
+};
 use crate::material::{cosine_hemisphere, Frame};
 use crate::radiance::RadianceStore;
 use crate::sampler::PixelSampler;
@@ -266,8 +268,8 @@ fn through_hole(scene: &Scene, hit: &ConeHit, path: &Path, at: &Here, passes: u3
         return false;
     };
     let spread = scene.texture_scale * 2.0 * path.cone.radius(h.t);
-    let (_, opacity) = scene.material_at(h.tri.material, &h.tri.p, h.uv, h.b, path.ray.d, spread);
-    passes_through(opacity, at.dir[0], passes)
+    let shaded = scene.material_at(h.tri.material, &h.tri.p, h.uv, h.b, path.ray.d, spread);
+    passes_through(shaded.opacity, at.dir[0], passes)
 }
 
 impl ConeIntegrator {
@@ -364,14 +366,17 @@ impl ConeIntegrator {
         at: &Here,
         pend: &mut Pending,
     ) -> Event {
-        let m = &scene.material_at_cone(h, &path.ray, &path.cone);
+        let shaded = scene.material_at_cone(h, &path.ray, &path.cone);
+        let m = &shaded.m;
         if m.absorbs(at.front) {
             return Event::Stop;
         }
         let (ng, wo) = (at.ng, at.wo);
         let n = if at.front { ng } else { -ng };
         let bsdf = m.bsdf(at.front);
-        if m.is_pure_diffuse() {
+        // Stored light is kept per geometric normal: a normal-mapped surface takes the
+        // exact step below instead.
+        if m.is_pure_diffuse() && shaded.bump.is_none() {
             let cell = self.keys.cell_of(&h.tri, h.b);
             return Event::Diffuse(Diffuse {
                 frame: Frame::new(n),
@@ -382,7 +387,7 @@ impl ConeIntegrator {
                 side: self.keys.side(&h.tri),
             });
         }
-        let frame = Frame::new(n);
+        let frame = shading_frame(h, ng, at.front, shaded.bump);
         let wo_l = frame.to_local(wo);
         if !bsdf.has_smooth_only() {
             pend.direct += sample_light(
@@ -391,13 +396,16 @@ impl ConeIntegrator {
                 &Receiver::surface(at.p, at.err, ng),
                 &path.shadow_cone,
                 [at.pick, at.light[0], at.light[1]],
-                bsdf_term(frame, bsdf, wo_l),
+                bsdf_term(frame, n, bsdf, wo_l),
             );
         }
         let Some(bs) = bsdf.sample(wo_l, at.lobe, at.dir) else {
             return Event::Stop;
         };
         let wi = frame.to_world(bs.wi).normalize();
+        if !on_side(&frame, n, wi) {
+            return Event::Stop;
+        }
         pend.weight = bs.weight;
         // A smooth surface bends the cone by its curvature (eq. 4.21–4.22) and the
         // direction is resampled inside the incoming opening (eq. 4.14–4.16, Fig. 7). A

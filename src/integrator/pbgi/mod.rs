@@ -36,7 +36,10 @@ pub mod glossy;
 pub mod microbuffer;
 pub mod patch;
 
-use super::{bsdf_term, sample_light, Counters, Integrator, PixelSample, Receiver, Scene, Stats};
+use super::{
+    bsdf_term, on_side, sample_light, shading_frame, Counters, Integrator, PixelSample, Receiver,
+    Scene, Stats,
+};
 use crate::material::{Bsdf, Frame};
 use crate::paging::{NodeRef, Page, TNode};
 use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer, NO_INSTANCE};
@@ -195,8 +198,11 @@ impl PbgiIntegrator {
                 let Some(bs) = s.bsdf.sample(s.wo_l, u_lobe, [ud0, ud1]) else {
                     break;
                 };
-                beta *= bs.weight;
                 let wi = s.frame.to_world(bs.wi).normalize();
+                if !on_side(&s.frame, s.n, wi) {
+                    break;
+                }
+                beta *= bs.weight;
                 ray = Ray {
                     o: offset_origin(s.p, s.err, s.ng, wi),
                     d: wi,
@@ -256,6 +262,9 @@ impl PbgiIntegrator {
             return V::ZERO;
         }
         let w = s.frame.to_world(bs.wi).normalize();
+        if !on_side(&s.frame, s.n, w) {
+            return V::ZERO;
+        }
         let ray = Ray {
             o: offset_origin(s.p, s.err, s.ng, w),
             d: w,
@@ -784,7 +793,8 @@ struct Surface {
 
 impl Surface {
     fn at(scene: &Scene, hit: &Hit, d: V) -> Option<Surface> {
-        let m = &scene.material_at_hit(hit, d).0;
+        let shaded = scene.material_at_hit(hit, d);
+        let m = &shaded.m;
         let ng_raw = hit.ng();
         let len = ng_raw.length();
         if len.is_nan() || len <= 0.0 {
@@ -795,7 +805,7 @@ impl Surface {
         let front = ng.dot(wo) > 0.0;
         let (p, err) = hit.point();
         let n = if front { ng } else { -ng };
-        let frame = Frame::new(n);
+        let frame = shading_frame(hit, ng, front, shaded.bump);
         Some(Surface {
             p,
             err,
@@ -812,7 +822,7 @@ impl Surface {
     /// Reflected direct light toward `wo`: one light sample at full weight (the cloud
     /// holds no emission, so nothing else samples the emitters).
     fn direct(&self, scene: &Scene, tr: &mut Tracer, u: [f32; 3]) -> V {
-        let f = bsdf_term(self.frame, self.bsdf, self.wo_l);
+        let f = bsdf_term(self.frame, self.n, self.bsdf, self.wo_l);
         sample_light(
             scene,
             tr,
