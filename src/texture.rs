@@ -50,6 +50,7 @@ struct Binding {
     blend: bool,
     /// The normal texture and its scale.
     normal: Option<(u32, f32)>,
+    emissive: Option<u32>,
 }
 
 /// A material as shaded at one point of a surface.
@@ -98,6 +99,7 @@ impl Textures {
                 mask: (m.flags & MaterialRecord::ALPHA_MASK != 0).then_some(m.alpha_cutoff),
                 blend: m.flags & MaterialRecord::ALPHA_BLEND != 0,
                 normal: slot(m, MaterialRecord::NORMAL).map(|t| (t, m.normal_scale)),
+                emissive: slot(m, MaterialRecord::EMISSIVE),
             })
             .collect();
         Textures {
@@ -117,7 +119,33 @@ impl Textures {
                 || b.mask.is_some()
                 || b.blend
                 || b.normal.is_some()
+                || b.emissive.is_some()
         })
+    }
+
+    /// Whether material `m`'s emission comes from a texture.
+    pub fn emission_textured(&self, m: u32) -> bool {
+        self.bindings
+            .get(m as usize)
+            .is_some_and(|b| b.emissive.is_some())
+    }
+
+    /// Material `m`'s emission texel at `uv` over the texture's mean, per channel (0 where
+    /// the mean is 0): what turns a lamp's mean radiance, by which lights are chosen, into
+    /// its radiance at that point. Read at level 0 (a light sample is a point).
+    pub fn emission_ratio(&self, look: &mut Lookup, m: u32, uv: [f32; 2]) -> V {
+        let Some(t) = self.bindings.get(m as usize).and_then(|b| b.emissive) else {
+            return V::ONE;
+        };
+        let c = look.trilinear(self, t, uv, 0.0);
+        let mean = self.records[t as usize].mean;
+        V::from(std::array::from_fn::<f32, 3, _>(|k| {
+            if mean[k] > 0.0 {
+                c[k] / mean[k]
+            } else {
+                0.0
+            }
+        }))
     }
 
     /// Whether some material cuts holes (alpha mask or blend): rays must then test alpha.
@@ -159,8 +187,9 @@ impl Textures {
     }
 
     /// `m` with each of material `index`'s textures multiplying its factor (glTF 2.0
-    /// §3.9: base colour RGBA; roughness from G, metalness from B), `texel(t)` giving
-    /// texture t's linear RGBA; and the opacity its alpha mode makes of the alpha.
+    /// §3.9: base colour RGBA; roughness from G, metalness from B; emission RGB),
+    /// `texel(t)` giving texture t's linear RGBA; and the opacity its alpha mode makes of
+    /// the alpha.
     fn apply(
         &self,
         m: &Material,
@@ -182,6 +211,10 @@ impl Textures {
             out.metallic = (m.metallic * c[2]).clamp(0.0, 1.0);
             let r = (m.alpha.sqrt() * c[1]).clamp(0.0, 1.0);
             out.alpha = r * r;
+        }
+        if let Some(t) = b.emissive {
+            let c = texel(t);
+            out.emission = (m.emission * V::new(c[0], c[1], c[2])).max(V::ZERO);
         }
         let opacity = match (b.mask, b.blend) {
             (Some(cut), _) => (alpha >= cut) as u32 as f32,

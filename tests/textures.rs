@@ -2,7 +2,7 @@
 
 mod common;
 
-use common::textured::{checker_png, plane_gltf, solid_png, Plane};
+use common::textured::{checker_png, halves_png, lamp_gltf, plane_gltf, solid_png, Plane};
 use common::*;
 
 /// Writes the grazing checkerboard scene into `dir` and converts it.
@@ -509,6 +509,61 @@ fn the_normal_mapped_scene_agrees_with_mitsuba() {
         ];
         let (img, _) = render(&out, &exr, &args);
         assert_mean_within(&img, &reference, 0.005, &format!("bumps, {integrator}"));
+    }
+}
+
+#[test]
+fn a_lamp_emits_its_texels_not_its_mean() {
+    // A lamp whose emissive texture is white on its left half and black on its right
+    // must light the floor as a lamp of its left half alone, untextured: in light samples,
+    // in emission that bounce rays hit, and in the cone integrator's stored light.
+    let dir = tempfile::tempdir().unwrap();
+    halves_png(&dir.path().join("halves.png"), 64);
+    let textured = lamp_gltf(dir.path(), "t.gltf", (-1.0, 1.0), Some("halves.png"));
+    let half = lamp_gltf(dir.path(), "h.gltf", (-1.0, 0.0), None);
+    let (ta, ha) = (dir.path().join("t.canopy"), dir.path().join("h.canopy"));
+    convert(&textured, &ta, None);
+    convert(&half, &ha, None);
+    // Mean of each quarter of the image's columns.
+    let strips = |img: &canopy::image::Image| -> Vec<f64> {
+        (0..4)
+            .map(|k| {
+                let (x0, x1) = (k * img.width / 4, (k + 1) * img.width / 4);
+                let mut sum = 0.0;
+                for y in 0..img.height {
+                    for x in x0..x1 {
+                        sum += img.pixels[(y * img.width + x) as usize][0] as f64;
+                    }
+                }
+                sum / ((x1 - x0) * img.height) as f64
+            })
+            .collect()
+    };
+    for integrator in ["path", "cone"] {
+        let args = [
+            "--spp",
+            "64",
+            "--width",
+            "64",
+            "--height",
+            "64",
+            "--integrator",
+            integrator,
+        ];
+        let (a, _) = render(&ta, &dir.path().join(format!("t{integrator}.exr")), &args);
+        let (b, _) = render(&ha, &dir.path().join(format!("h{integrator}.exr")), &args);
+        assert_mean_within_noise(&a, &b, &format!("textured lamp, {integrator}"));
+        let (sa, sb) = (strips(&a), strips(&b));
+        assert!(
+            sb[0] > 1.5 * sb[3],
+            "the half lamp lights the left more: {sb:?}"
+        );
+        for k in 0..4 {
+            assert!(
+                (sa[k] / sb[k] - 1.0).abs() < 0.03,
+                "{integrator}: strip {k}: {sa:?} against {sb:?}"
+            );
+        }
     }
 }
 

@@ -384,7 +384,16 @@ pub fn sample_light(
     } else {
         1.0
     };
-    fv * ls.weight * w * clamp * seen
+    let le = match ls.texel {
+        Some((m, uv)) => {
+            ls.weight
+                * scene
+                    .textures
+                    .emission_ratio(&mut Lookup::new(&scene.cache), m, uv)
+        }
+        None => ls.weight,
+    };
+    fv * le * w * clamp * seen
 }
 
 /// The fraction of light a shadow ray carries: 0 or 1, or between under alpha blend. With

@@ -23,8 +23,11 @@ pub struct Emitter {
     pub area: f32,
     /// Unit geometric normal (front side).
     pub n: V,
+    /// Radiance; a textured lamp's mean over its texture.
     pub le: V,
     pub two_sided: bool,
+    /// A textured lamp's material and vertex texture coordinates.
+    pub texel: Option<(u32, [[f32; 2]; 3])>,
 }
 
 impl Emitter {
@@ -38,17 +41,25 @@ impl Emitter {
             n: c / (2.0 * area),
             le,
             two_sided,
+            texel: None,
         })
     }
 
-    /// A uniform point on the triangle and its error bound.
-    fn point(&self, u: [f32; 2]) -> (V, V) {
+    /// A uniform point on the triangle, its error bound, and where it falls in a textured
+    /// lamp's texture.
+    fn point(&self, u: [f32; 2]) -> (V, V, Option<(u32, [f32; 2])>) {
         let su = u[0].sqrt();
-        let (b0, b1) = (1.0 - su, u[1] * su);
-        let q = self.p[0] * b0 + self.p[1] * b1 + self.p[2] * (1.0 - b0 - b1);
+        let b = [1.0 - su, u[1] * su, 1.0 - (1.0 - su) - u[1] * su];
+        let q = self.p[0] * b[0] + self.p[1] * b[1] + self.p[2] * b[2];
         let err =
             self.p[0].abs().max(self.p[1].abs()).max(self.p[2].abs()) * crate::trace::gamma(7);
-        (q, err)
+        let texel = self.texel.map(|(m, uv)| {
+            (
+                m,
+                std::array::from_fn(|k| b[0] * uv[0][k] + b[1] * uv[1][k] + b[2] * uv[2][k]),
+            )
+        });
+        (q, err, texel)
     }
 }
 
@@ -78,6 +89,9 @@ pub struct LightSample {
     pub weight: V,
     /// Solid-angle pdf (area lights), 0 for delta lights.
     pub pdf: f32,
+    /// On a textured lamp, its material and the texture point sampled: `weight` holds the
+    /// lamp's mean radiance, which the texel there over the mean turns into the radiance.
+    pub texel: Option<(u32, [f32; 2])>,
 }
 
 impl LightSample {
@@ -123,6 +137,8 @@ pub struct Lights {
 pub struct Photon {
     pub ray: Ray,
     pub flux: V,
+    /// As `LightSample::texel`, for `flux`.
+    pub texel: Option<(u32, [f32; 2])>,
 }
 
 /// Power of an emitter as the light chooser weighs it.
@@ -131,7 +147,14 @@ fn emitter_power(le: V, area: f32, two_sided: bool) -> f32 {
 }
 
 impl Lights {
-    pub fn gather(archive: &Archive, materials: &[Material], scene_radius: f32) -> Result<Lights> {
+    /// The archive's lamps, with `materials`' emission (a texture's mean for those whose
+    /// emission is `textured`).
+    pub fn gather(
+        archive: &Archive,
+        materials: &[Material],
+        textured: impl Fn(u32) -> bool,
+        scene_radius: f32,
+    ) -> Result<Lights> {
         let mut emitters = Vec::new();
         let mut by_leaf = HashMap::new();
         let mut stack: Vec<(u32, u32)> = Vec::new();
@@ -160,7 +183,11 @@ impl Lights {
                             continue;
                         }
                         let e = Emitter::triangle(tri.p.map(V::from), m.emission, m.double_sided);
-                        if let Some(e) = e {
+                        if let Some(mut e) = e {
+                            if textured(tri.material) {
+                                let uv = page.uvs.get((first + slot) as usize).copied();
+                                e.texel = Some((tri.material, uv.unwrap_or_default()));
+                            }
                             by_leaf.insert((leaf, slot), emitters.len() as u32);
                             emitters.push(e);
                         }
@@ -316,7 +343,7 @@ impl Lights {
         }
         if let Some(e) = self.emitters.get(i) {
             // Uniform point on the triangle.
-            let (q, err) = e.point([u[0], u[1]]);
+            let (q, err, texel) = e.point([u[0], u[1]]);
             let d = q - p;
             let dist2 = d.length_squared();
             let dist = dist2.sqrt();
@@ -338,6 +365,7 @@ impl Lights {
                 point: Some((q, err, e.n)),
                 weight: e.le / pdf,
                 pdf,
+                texel,
             });
         }
         match &self.punctual[i - self.emitters.len()] {
@@ -365,6 +393,7 @@ impl Lights {
                     point: Some((*pos, V::ZERO, wi)),
                     weight: *intensity * (fall / dist2 / p_pick),
                     pdf: 0.0,
+                    texel: None,
                 })
             }
             Punctual::Directional { dir, irradiance } => Some(LightSample {
@@ -373,6 +402,7 @@ impl Lights {
                 point: None,
                 weight: *irradiance / p_pick,
                 pdf: 0.0,
+                texel: None,
             }),
         }
     }
@@ -388,8 +418,10 @@ impl Lights {
         if p_pick <= 0.0 {
             return None;
         }
+        let mut texel = None;
         let (o, err, n, d, flux) = if let Some(e) = self.emitters.get(i) {
-            let (q, err) = e.point([u[0], u[1]]);
+            let (q, err, at) = e.point([u[0], u[1]]);
+            texel = at;
             // Two-sided lamps pick a side with u[4]: half the pdf, twice the power.
             let (n, sides) = if e.two_sided && u[4] < 0.5 {
                 (-e.n, 2.0)
@@ -441,6 +473,7 @@ impl Lights {
                 t_max: f32::INFINITY,
             },
             flux,
+            texel,
         })
     }
 }
@@ -740,7 +773,7 @@ mod tests {
                     .position(|c| c > x)
                     .unwrap_or(emitters.len() - 1);
                 let e = &emitters[i];
-                let (q, _) = e.point([rng.f32(), rng.f32()]);
+                let (q, _, _) = e.point([rng.f32(), rng.f32()]);
                 let d = q - p;
                 let w = d.normalize();
                 let (cs, cl) = (n.dot(w).max(0.0), (-e.n.dot(w)).max(0.0));

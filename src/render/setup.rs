@@ -11,7 +11,7 @@ use crate::paging::PageCache;
 use crate::texture::Textures;
 use crate::trace::MAX_DEPTH;
 use anyhow::{bail, Context, Result};
-use canopy_format::{Archive, CameraRecord, MaterialRecord};
+use canopy_format::{Archive, CameraRecord};
 use glam::Vec3A as V;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -214,28 +214,27 @@ pub fn open_scene(
         None => None,
     };
     let cache = PageCache::new(Arc::clone(&archive), budget, threads)?;
-    // Emission textures enter as their mean (lights are sampled by their factor): see
-    // `Textures`.
     let materials: Vec<Material> = archive
         .materials
         .iter()
-        .map(|r| {
-            let mut m = Material::from_record(r);
-            if let Some(t) = archive
-                .textures
-                .get(r.textures[MaterialRecord::EMISSIVE] as usize)
-            {
-                m.emission *= V::new(t.mean[0], t.mean[1], t.mean[2]);
-            }
-            m
-        })
+        .map(Material::from_record)
         .collect();
     let textures = Textures::new(&archive.textures, &archive.materials);
     let (lo, hi) = (
         V::from(archive.header.bounds_min),
         V::from(archive.header.bounds_max),
     );
-    let lights = Lights::gather(&archive, &materials, 0.5 * (hi - lo).length())?;
+    // Lamps are chosen by their mean radiance; a textured one's sample then takes the texel
+    // at its point (`Textures::emission_ratio`).
+    let mean: Vec<Material> = (0..materials.len() as u32)
+        .map(|i| textures.mean_shade(&materials[i as usize], i))
+        .collect();
+    let lights = Lights::gather(
+        &archive,
+        &mean,
+        |m| textures.emission_textured(m),
+        0.5 * (hi - lo).length(),
+    )?;
     Ok(Scene {
         cache,
         materials,

@@ -165,3 +165,91 @@ pub fn plane_gltf(dir: &Path, name: &str, p: &Plane) -> PathBuf {
     std::fs::write(&path, serde_json::to_vec_pretty(&json).unwrap()).unwrap();
     path
 }
+
+/// A `size`² RGBA PNG whose left half (x < size/2) is white and right half black.
+pub fn halves_png(path: &Path, size: u32) {
+    let f = std::io::BufWriter::new(std::fs::File::create(path).unwrap());
+    let mut enc = png::Encoder::new(f, size, size);
+    enc.set_color(png::ColorType::Rgba);
+    enc.set_depth(png::BitDepth::Eight);
+    let data: Vec<u8> = (0..size * size)
+        .flat_map(|i| {
+            let v = if i % size < size / 2 { 255 } else { 0 };
+            [v, v, v, 255]
+        })
+        .collect();
+    enc.write_header().unwrap().write_image_data(&data).unwrap();
+}
+
+/// Writes `dir/name`: a white Lambertian floor (4 × 4 at y = 0) under a one-sided lamp
+/// facing down at y = 1.5 over x ∈ [x0, x1], z ∈ [−1, 1] (u along x from x0 to x1),
+/// radiance 5 times `image`'s texel (sRGB) when given; the camera looks down at the floor
+/// from below the lamp's height.
+pub fn lamp_gltf(dir: &Path, name: &str, (x0, x1): (f32, f32), image: Option<&str>) -> PathBuf {
+    let pos = [
+        -2.0, 0.0, 2.0, 2.0, 0.0, 2.0, 2.0, 0.0, -2.0, -2.0, 0.0, -2.0, // floor
+        x0, 1.5, -1.0, x1, 1.5, -1.0, x1, 1.5, 1.0, x0, 1.5, 1.0, // lamp
+    ];
+    let uv = [
+        0.0f32, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 1.0, 1.0, 0.0, 1.0,
+    ];
+    let idx: [u16; 12] = [0, 1, 2, 0, 2, 3, 4, 5, 6, 4, 6, 7];
+    let mut bin = le(&pos);
+    let uv_at = bin.len();
+    bin.extend(le(&uv));
+    let idx_at = bin.len();
+    bin.extend(idx.iter().flat_map(|i| i.to_le_bytes()));
+    let (ps, pc) = (-35f32.to_radians() / 2.0).sin_cos();
+    let mut lamp = serde_json::json!({
+        "pbrMetallicRoughness": {"baseColorFactor": [0.0, 0.0, 0.0, 1.0], "metallicFactor": 0.0},
+        "emissiveFactor": [1.0, 1.0, 1.0],
+        "extensions": {"KHR_materials_emissive_strength": {"emissiveStrength": 5.0}}
+    });
+    let mut json = serde_json::json!({
+        "asset": {"version": "2.0"},
+        "extensionsUsed": ["KHR_materials_specular", "KHR_materials_emissive_strength"],
+        "scene": 0,
+        "scenes": [{"nodes": [0, 1]}],
+        "nodes": [
+            {"mesh": 0},
+            {"camera": 0, "translation": [0.0, 1.2, 2.5], "rotation": [ps, 0.0, 0.0, pc]}
+        ],
+        "cameras": [{"type": "perspective", "perspective": {"yfov": 0.8, "znear": 0.01, "aspectRatio": 1.0}}],
+        "meshes": [{"primitives": [
+            {"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 2, "material": 0},
+            {"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "indices": 3, "material": 1}
+        ]}],
+        "materials": [
+            {"pbrMetallicRoughness": {"baseColorFactor": [0.8, 0.8, 0.8, 1.0], "metallicFactor": 0.0, "roughnessFactor": 1.0},
+             "extensions": {"KHR_materials_specular": {"specularFactor": 0.0}}},
+            lamp.clone()
+        ],
+        "buffers": [{
+            "byteLength": bin.len(),
+            "uri": format!("data:application/octet-stream;base64,{}", base64::engine::general_purpose::STANDARD.encode(&bin))
+        }],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": uv_at},
+            {"buffer": 0, "byteOffset": uv_at, "byteLength": idx_at - uv_at},
+            {"buffer": 0, "byteOffset": idx_at, "byteLength": 12},
+            {"buffer": 0, "byteOffset": idx_at + 12, "byteLength": 12}
+        ],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": 8, "type": "VEC3",
+             "min": [-2.0, 0.0, -2.0], "max": [2.0, 1.5, 2.0]},
+            {"bufferView": 1, "componentType": 5126, "count": 8, "type": "VEC2"},
+            {"bufferView": 2, "componentType": 5123, "count": 6, "type": "SCALAR"},
+            {"bufferView": 3, "componentType": 5123, "count": 6, "type": "SCALAR"}
+        ]
+    });
+    if let Some(image) = image {
+        lamp["emissiveTexture"] = serde_json::json!({"index": 0});
+        json["materials"][1] = lamp;
+        json["textures"] = serde_json::json!([{"source": 0, "sampler": 0}]);
+        json["samplers"] = serde_json::json!([{"wrapS": 33071, "wrapT": 33071}]);
+        json["images"] = serde_json::json!([{"uri": image}]);
+    }
+    let path = dir.join(name);
+    std::fs::write(&path, serde_json::to_vec_pretty(&json).unwrap()).unwrap();
+    path
+}

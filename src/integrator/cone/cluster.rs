@@ -3,7 +3,7 @@
 
 use crate::integrator::Scene;
 use crate::material::Frame;
-use crate::trace::ConeHit;
+use crate::trace::{Cone, ConeHit, Ray};
 use canopy_format::codec::{rgbe64_decode, snorm16_decode, unorm8_decode};
 use glam::Vec3A as V;
 
@@ -55,11 +55,16 @@ pub fn phong_lobe(n: V, len: f32, wo: V, roughness: u8, u: [f32; 2]) -> (V, f32)
     (wi, s)
 }
 
-/// Emission a cone's hit sends back along the cone: a lamp triangle's from its emitting
-/// side(s), a cluster's when its normal faces the cone (or it has none).
-pub fn hit_emission(scene: &Scene, hit: &ConeHit, wo: V) -> V {
+/// Emission a cone (`ray`, `cone`) hit sends back along it: a lamp triangle's from its
+/// emitting side(s) (its texel over the cone's footprint), a cluster's when its normal
+/// faces the cone (or it has none).
+pub fn hit_emission(scene: &Scene, hit: &ConeHit, ray: &Ray, cone: &Cone) -> V {
+    let wo = -ray.d;
     match hit {
-        ConeHit::Tri(h) => scene.materials[h.tri.material as usize].emitted(h.ng().dot(wo) > 0.0),
+        ConeHit::Tri(h) => scene
+            .material_at_cone(h, ray, cone)
+            .m
+            .emitted(h.ng().dot(wo) > 0.0),
         ConeHit::Node { record, .. } => {
             let nn = V::from(record.normal.map(snorm16_decode));
             if nn.dot(wo) > 0.0 || nn.length() <= 1e-6 {

@@ -16,6 +16,7 @@ use crate::integrator::Scene;
 use crate::material::{cosine_hemisphere, Frame};
 use crate::radiance::{Keys, RadianceStore, GRID};
 use crate::sampler::PixelSampler;
+use crate::texture::Lookup;
 use crate::trace::{offset_origin, Hit, Ray, Tracer};
 use glam::Vec3A as V;
 use rayon::prelude::*;
@@ -79,6 +80,11 @@ fn trace_photon(
         return false;
     };
     let (mut ray, mut flux) = (photon.ray, photon.flux);
+    if let Some((m, uv)) = photon.texel {
+        flux *= scene
+            .textures
+            .emission_ratio(&mut Lookup::new(&scene.cache), m, uv);
+    }
     for bounce in 0..MAX_BOUNCES {
         let Some(hit) = tr.closest_hit(&ray) else {
             return false;

@@ -157,8 +157,11 @@ impl Path {
     /// Emission the hit sends to the viewer, weighted as the estimator needs it.
     fn emission(&self, scene: &Scene, hit: &ConeHit, at: &Here) -> V {
         let le = match hit {
-            ConeHit::Tri(h) => scene.materials[h.tri.material as usize].emitted(at.front),
-            ConeHit::Node { .. } => hit_emission(scene, hit, at.wo),
+            ConeHit::Tri(h) => scene
+                .material_at_cone(h, &self.ray, &self.cone)
+                .m
+                .emitted(at.front),
+            ConeHit::Node { .. } => hit_emission(scene, hit, &self.ray, &self.cone),
         };
         if le == V::ZERO {
             return le;
@@ -623,5 +626,5 @@ pub fn seen_emission(
         ConeHit::Tri(h) => h.leaf,
         ConeHit::Node { node, .. } => *node,
     });
-    c.finite(hit_emission(scene, &hit, -ray.d))
+    c.finite(hit_emission(scene, &hit, ray, cone))
 }
