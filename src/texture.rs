@@ -156,7 +156,7 @@ impl Textures {
     /// Material `index` with its textures' means in place of texels: what a baked or
     /// clustered value over its whole surface sees.
     pub fn mean_shade(&self, m: &Material, index: u32) -> Material {
-        self.apply(m, index, |t| self.records[t as usize].mean).0
+        self.apply(m, index, |t| self.records[t as usize].mean)
     }
 
     /// Material `index` as shaded at texture coordinates `uv` with filter width `width`
@@ -170,7 +170,7 @@ impl Textures {
         width: f32,
     ) -> Shaded {
         let mut texel = |t| look.trilinear(self, t, uv, width);
-        let (m, opacity) = self.apply(m, index, &mut texel);
+        let shaded = self.apply(m, index, &mut texel);
         // glTF 2.0 §3.9.3: n = normalize((2·texel − 1) · (scale, scale, 1)); filtered texels
         // come out shorter than unit, hence the normalization.
         let bump = self.bindings[index as usize].normal.and_then(|(t, scale)| {
@@ -183,28 +183,24 @@ impl Textures {
             .normalize();
             (n.is_finite() && n.z > 0.0).then_some(n)
         });
-        Shaded { m, opacity, bump }
+        Shaded {
+            m: shaded,
+            opacity: self.opacity(look, m, index, uv),
+            bump,
+        }
     }
 
     /// `m` with each of material `index`'s textures multiplying its factor (glTF 2.0
-    /// §3.9: base colour RGBA; roughness from G, metalness from B; emission RGB),
-    /// `texel(t)` giving texture t's linear RGBA; and the opacity its alpha mode makes of
-    /// the alpha.
-    fn apply(
-        &self,
-        m: &Material,
-        index: u32,
-        mut texel: impl FnMut(u32) -> [f32; 4],
-    ) -> (Material, f32) {
+    /// §3.9: base colour RGB; roughness from G, metalness from B; emission RGB),
+    /// `texel(t)` giving texture t's linear RGBA.
+    fn apply(&self, m: &Material, index: u32, mut texel: impl FnMut(u32) -> [f32; 4]) -> Material {
         let mut out = *m;
         let Some(b) = self.bindings.get(index as usize) else {
-            return (out, 1.0);
+            return out;
         };
-        let mut alpha = m.opacity;
         if let Some(t) = b.base {
             let c = texel(t);
             out.base = (m.base * V::new(c[0], c[1], c[2])).clamp(V::ZERO, V::ONE);
-            alpha *= c[3];
         }
         if let Some(t) = b.metallic_roughness {
             let c = texel(t);
@@ -216,12 +212,26 @@ impl Textures {
             let c = texel(t);
             out.emission = (m.emission * V::new(c[0], c[1], c[2])).max(V::ZERO);
         }
-        let opacity = match (b.mask, b.blend) {
-            (Some(cut), _) => (alpha >= cut) as u32 as f32,
-            (None, true) => alpha.clamp(0.0, 1.0),
-            _ => 1.0,
+        out
+    }
+
+    /// Material `index`'s opacity at `uv`: 0 or 1 under a mask, alpha under blend (alpha
+    /// the factor's times the base-colour texel's), 1 otherwise. Alpha is read at the
+    /// point, unfiltered (level 0): a cut-out's coverage must not fade with the footprint,
+    /// as thresholding a filtered alpha thins distant chains and leaves, and differently for
+    /// each integrator's footprint.
+    fn opacity(&self, look: &mut Lookup, m: &Material, index: u32, uv: [f32; 2]) -> f32 {
+        let Some(b) = self.bindings.get(index as usize) else {
+            return 1.0;
         };
-        (out, opacity)
+        if b.mask.is_none() && !b.blend {
+            return 1.0;
+        }
+        let alpha = m.opacity * b.base.map_or(1.0, |t| look.trilinear(self, t, uv, 0.0)[3]);
+        match b.mask {
+            Some(cut) => (alpha >= cut) as u32 as f32,
+            None => alpha.clamp(0.0, 1.0),
+        }
     }
 }
 

@@ -667,7 +667,7 @@ double_sided = false
                 .cone_hit(&camera.ray(x as f32 + dx, y as f32 + dy), &exact)
             {
                 Some(ConeHit::Tri(h)) if h.point().0.y.abs() < 1e-3 => {
-                    Some(keys.tri(h.leaf, h.slot, keys.cell_of(&h.tri, h.b)))
+                    Some(keys.tri(h.leaf, h.slot, false, keys.cell_of(&h.tri, h.b)))
                 }
                 _ => None,
             };

@@ -568,6 +568,59 @@ fn a_lamp_emits_its_texels_not_its_mean() {
 }
 
 #[test]
+fn cut_outs_keep_their_coverage_when_their_texels_are_smaller_than_a_pixel() {
+    // Holes a quarter of the squares, squares far smaller than a pixel: a MIP-filtered
+    // alpha (0.75 everywhere) would pass the 0.5 cutoff and close every hole; alpha read at
+    // the point keeps a quarter of the plane open, whatever the filter and the integrator.
+    let dir = tempfile::tempdir().unwrap();
+    checker_png(&dir.path().join("checker.png"), 256, 32, |x, y| {
+        (x + 2 * y) % 4 == 0
+    });
+    let plane = Plane {
+        repeat: 4.0,
+        pitch: 50.0,
+        height: 2.0,
+        alpha_mode: Some("MASK"),
+        floor_below: Some(0.3),
+        ..Plane::default()
+    };
+    let gltf = plane_gltf(dir.path(), "p.gltf", &plane);
+    let out = dir.path().join("p.canopy");
+    convert(&gltf, &out, None);
+    let mut means = Vec::new();
+    for (filter, integrator) in [
+        ("point", "path"),
+        ("trilinear", "path"),
+        ("trilinear", "cone"),
+    ] {
+        let exr = dir.path().join(format!("{filter}{integrator}.exr"));
+        let args = [
+            "--spp",
+            "16",
+            "--width",
+            "64",
+            "--height",
+            "64",
+            "--max-depth",
+            "2",
+            "--texture-filter",
+            filter,
+            "--integrator",
+            integrator,
+        ];
+        let (img, _) = render(&out, &exr, &args);
+        // Red (the floor seen through holes) over green (the grey plane).
+        let m = img.mean();
+        means.push(m[0] / m[1]);
+    }
+    eprintln!("red/green (point, trilinear path, trilinear cone): {means:.4?}");
+    assert!(means[0] > 1.05, "the floor shows through: {means:?}");
+    for m in &means[1..] {
+        assert!((m / means[0] - 1.0).abs() < 0.02, "{means:?}");
+    }
+}
+
+#[test]
 fn a_corrupt_tile_fails_the_render_by_name() {
     let dir = tempfile::tempdir().unwrap();
     let archive = checker_archive(dir.path(), 256, 8, Plane::default());

@@ -47,8 +47,10 @@ impl MatSummary {
             mean(MaterialRecord::EMISSIVE),
         );
         let base = [0, 1, 2].map(|c| (m.base_color[c] * tex_base[c]).clamp(0.0, 1.0));
+        let coverage = coverage(m, tex_base[3]);
+        let hole = 1.0 - coverage;
         let mut m = *m;
-        m.emission = [0, 1, 2].map(|c| m.emission[c] * tex_emit[c]);
+        m.emission = [0, 1, 2].map(|c| m.emission[c] * tex_emit[c] * coverage);
         let m = &m;
         let metal = m.metallic.clamp(0.0, 1.0);
         let trans = m.transmission.clamp(0.0, 1.0) * (1.0 - metal);
@@ -59,8 +61,11 @@ impl MatSummary {
         let f0_max = f0[0].max(f0[1]).max(f0[2]);
         let f0d_max = f0_d[0].max(f0_d[1]).max(f0_d[2]);
         let bmax = base[0].max(base[1]).max(base[2]);
-        let reflect = REFLECT_COS
-            .map(|c| (1.0 - metal) * spec * schlick(f0d_max, c) + metal * schlick(bmax, c));
+        let reflect = REFLECT_COS.map(|c| {
+            coverage * ((1.0 - metal) * spec * schlick(f0d_max, c) + metal * schlick(bmax, c))
+        });
+        // What passes: light refracted by the material, and through alpha holes untinted.
+        let passing = hole + coverage * trans;
         let mut flags = 0;
         if m.emission.iter().any(|&e| e > 0.0) {
             flags |= NodeFlags::EMISSIVE;
@@ -68,13 +73,13 @@ impl MatSummary {
         if reflect.iter().any(|&r| r > 0.0) {
             flags |= NodeFlags::GLOSSY;
         }
-        if trans > 0.0 {
+        if passing > 0.0 {
             flags |= NodeFlags::TRANSMISSIVE;
         }
         Self {
-            diffuse: base.map(|c| c * (1.0 - metal) * (1.0 - trans)),
-            refractiveness: trans,
-            translucency: if trans > 0.0 { base } else { [0.0; 3] },
+            diffuse: base.map(|c| c * (1.0 - metal) * (1.0 - trans) * coverage),
+            refractiveness: passing,
+            translucency: base.map(|c| hole + coverage * trans * c),
             reflect,
             tint: if f0_max > 0.0 {
                 f0.map(|c| c / f0_max)
@@ -86,6 +91,24 @@ impl MatSummary {
             emission: m.emission.map(|e| e.max(0.0)),
             flags,
         }
+    }
+}
+
+/// The share of a material's surface that is there (glTF 2.0 §3.9.4 alpha as coverage),
+/// `tex_alpha` its base-colour texture's mean alpha (1 without one): under BLEND the mean
+/// alpha; under MASK the share of texels the cutoff keeps, which a texture's mean alpha
+/// stands for (exact for masks of 0 and 1); an untextured mask keeps all or nothing.
+fn coverage(m: &MaterialRecord, tex_alpha: f32) -> f32 {
+    let alpha = (m.base_color[3] * tex_alpha).clamp(0.0, 1.0);
+    let textured = m.textures[MaterialRecord::BASE_COLOR] != MaterialRecord::NO_TEXTURE;
+    if m.flags & MaterialRecord::ALPHA_BLEND != 0
+        || (m.flags & MaterialRecord::ALPHA_MASK != 0 && textured)
+    {
+        alpha
+    } else if m.flags & MaterialRecord::ALPHA_MASK != 0 {
+        (alpha >= m.alpha_cutoff) as u32 as f32
+    } else {
+        1.0
     }
 }
 
@@ -139,7 +162,13 @@ impl MatTable {
             };
             let c = self.coarse[m.textures[slot] as usize].mean_over(tex, &t.uv);
             match slot {
-                MaterialRecord::BASE_COLOR => (0..3).for_each(|k| rec.base_color[k] *= c[k]),
+                MaterialRecord::BASE_COLOR => {
+                    (0..4).for_each(|k| rec.base_color[k] *= c[k]);
+                    // The mean alpha is now a coverage, whichever the mode.
+                    if rec.flags & MaterialRecord::ALPHA_MASK != 0 {
+                        rec.flags ^= MaterialRecord::ALPHA_MASK | MaterialRecord::ALPHA_BLEND;
+                    }
+                }
                 MaterialRecord::EMISSIVE => (0..3).for_each(|k| rec.emission[k] *= c[k]),
                 _ => {
                     rec.metallic *= c[2];
@@ -148,7 +177,11 @@ impl MatTable {
             }
             rec.textures[slot] = MaterialRecord::NO_TEXTURE;
         }
-        MatSummary::of(&rec, &self.textures)
+        // The archive's features come from whole materials; a triangle keeps their
+        // aggregate flags so the root's flags and the features agree.
+        let mut s = MatSummary::of(&rec, &self.textures);
+        s.flags |= self.summaries[i].flags;
+        s
     }
 }
 
@@ -356,6 +389,50 @@ mod tests {
             m[3] = (rng.f64() - 0.5) * 100.0;
             m
         })
+    }
+
+    /// Alpha as coverage: holes pass light untinted, the rest keeps the material's terms.
+    #[test]
+    fn alpha_holes_pass_light_in_proportion_to_their_share() {
+        let mut m = crate::import::default_material("m");
+        m.base_color = [0.6, 0.6, 0.6, 1.0];
+        m.emission = [2.0; 3];
+        m.specular = 1.0;
+        let opaque = MatSummary::of(&m, &[]);
+        assert!(opaque.reflect[0] > 0.0);
+        let tex = TextureRecord {
+            mean: [1.0, 1.0, 1.0, 0.25],
+            ..bytemuck::Zeroable::zeroed()
+        };
+        let cases = [
+            (MaterialRecord::ALPHA_MASK, 1.0, Some(0), 0.25),
+            (MaterialRecord::ALPHA_BLEND, 0.4, None, 0.4),
+            (MaterialRecord::ALPHA_MASK, 0.4, None, 0.0),
+            (MaterialRecord::ALPHA_MASK, 0.6, None, 1.0),
+            (0, 0.4, Some(0), 1.0),
+        ];
+        for (mode, alpha, texture, a) in cases {
+            let mut r = m;
+            r.flags |= mode;
+            r.base_color[3] = alpha;
+            r.textures[MaterialRecord::BASE_COLOR] = texture.unwrap_or(MaterialRecord::NO_TEXTURE);
+            let s = MatSummary::of(&r, &[tex]);
+            let what = format!("mode {mode}, alpha {alpha}, texture {texture:?}");
+            assert!((s.refractiveness - (1.0 - a)).abs() < 1e-6, "{what}");
+            assert!(
+                (s.diffuse[0] - a * opaque.diffuse[0]).abs() < 1e-6,
+                "{what}"
+            );
+            assert!((s.translucency[1] - (1.0 - a)).abs() < 1e-6, "{what}");
+            assert!((s.emission[2] - a * 2.0).abs() < 1e-6, "{what}");
+            for k in 0..5 {
+                assert!(
+                    (s.reflect[k] - a * opaque.reflect[k]).abs() < 1e-6,
+                    "{what}"
+                );
+            }
+            assert_eq!(s.flags & NodeFlags::TRANSMISSIVE != 0, a < 1.0, "{what}");
+        }
     }
 
     /// A transformed cluster's sphere holds every mapped vertex (any affine map), and its

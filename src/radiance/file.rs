@@ -11,7 +11,7 @@ use canopy_format::Header;
 use std::path::Path;
 
 const MAGIC: [u8; 8] = *b"CNPYSTOR";
-const VERSION: u16 = 1;
+const VERSION: u16 = 2;
 
 /// The 128-byte header.
 #[repr(C)]

@@ -1,6 +1,7 @@
 //! Store keys: which node, triangle and light cell a stored value belongs to.
 //!
-//! A leaf keeps light per triangle (its triangles may face different ways) and, on large
+//! A leaf keeps light per triangle (its triangles may face different ways), per side (a
+//! thin two-sided surface, a leaf or a banner, takes different light on each) and, on large
 //! triangles, per cell of an n×n grid over the barycentrics, so a wall lit unevenly is not
 //! one average; the leaf's own key gets their area-weighted mean.
 
@@ -14,8 +15,8 @@ pub const CELLS: u64 = GRID * GRID;
 /// Target cell size as a fraction of the scene's bounding diagonal.
 pub const CELL_FRACTION: f32 = 1.0 / 128.0;
 
-/// The key layout of one archive: per node, its own key, then `CELLS` keys for each of a
-/// leaf's at most `max_leaf_triangles` triangles.
+/// The key layout of one archive: per node, its own key, then `CELLS` keys for each side
+/// of each of a leaf's at most `max_leaf_triangles` triangles.
 #[derive(Clone, Copy, Debug)]
 pub struct Keys {
     stride: u64,
@@ -26,7 +27,7 @@ pub struct Keys {
 impl Keys {
     pub fn new(h: &Header) -> Keys {
         Keys {
-            stride: (h.max_leaf_triangles as u64 + 1) * CELLS,
+            stride: (2 * h.max_leaf_triangles as u64 + 1) * CELLS,
             cell_size: (V::from(h.bounds_max) - V::from(h.bounds_min)).length() * CELL_FRACTION,
         }
     }
@@ -36,9 +37,9 @@ impl Keys {
         node * self.stride
     }
 
-    /// Key of a cell of the k-th triangle of a leaf.
-    pub fn tri(&self, leaf: u64, k: u32, cell: u64) -> u64 {
-        self.node(leaf) + (1 + k as u64) * CELLS + cell
+    /// Key of a cell of the k-th triangle of a leaf, on its front or `back` side.
+    pub fn tri(&self, leaf: u64, k: u32, back: bool, cell: u64) -> u64 {
+        self.node(leaf) + (1 + 2 * k as u64 + back as u64) * CELLS + cell
     }
 
     /// Side n of a triangle's n×n cell grid, from its longest edge.
@@ -115,7 +116,9 @@ mod tests {
             assert!(k.cells(&tri).any(|(x, _)| x == c), "({b1}, {b2}) -> {c}");
         }
         // The last cell of the last triangle of node n stays below node n + 1's key.
-        assert!(k.tri(3, 7, CELLS - 1) < k.node(4));
-        assert!(k.tri(3, 0, 0) > k.node(3));
+        assert!(k.tri(3, 7, true, CELLS - 1) < k.node(4));
+        assert!(k.tri(3, 0, false, 0) > k.node(3));
+        assert!(k.tri(3, 0, false, CELLS - 1) < k.tri(3, 0, true, 0));
+        assert!(k.tri(3, 0, true, CELLS - 1) < k.tri(3, 1, false, 0));
     }
 }

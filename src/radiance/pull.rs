@@ -37,8 +37,9 @@ struct Part {
     area: f32,
 }
 
-/// A leaf's triangle: diffuse, the lit cells' means weighted by their samples; caustic,
-/// all cells by area, an unlit cell counting as dark.
+/// A leaf's triangle: diffuse, the lit cells' means (of either side) weighted by their
+/// samples; caustic, all cells by area, an unlit cell counting as dark, each the sum of
+/// what arrived on its two sides.
 fn triangle_part(
     store: &RadianceStore,
     keys: Keys,
@@ -46,21 +47,24 @@ fn triangle_part(
     k: u32,
     t: &crate::paging::TriW,
 ) -> Part {
-    let cells: Vec<_> = keys
+    let sides: Vec<_> = keys
         .cells(t)
-        .map(|(cell, area)| (store.get(keys.tri(leaf, k, cell)), area))
+        .map(|(cell, area)| {
+            let [front, back] = [false, true].map(|b| store.get(keys.tri(leaf, k, b, cell)));
+            (front, back, area)
+        })
         .collect();
-    let lit: Vec<_> = cells
+    let lit: Vec<_> = sides
         .iter()
-        .filter_map(|(e, _)| e.and_then(|e| e.value()))
+        .flat_map(|(f, b, _)| [f, b])
+        .filter_map(|e| e.and_then(|e| e.value()))
         .collect();
     let diffuse = weighted_mean(lit.iter().map(|&(v, c)| (v, c as f32)))
         .zip(lit.iter().map(|&(_, c)| c).min());
-    let caustic = weighted_mean(
-        cells
-            .iter()
-            .map(|(e, area)| (e.map_or([0.0; 3], |e| e.caustic), *area)),
-    )
+    let caustic = weighted_mean(sides.iter().map(|(f, b, area)| {
+        let [cf, cb] = [f, b].map(|e| e.map_or([0.0; 3], |e| e.caustic));
+        ([0, 1, 2].map(|c| cf[c] + cb[c]), *area)
+    }))
     .unwrap_or_default();
     Part {
         diffuse,
@@ -205,7 +209,7 @@ mod tests {
                     let t = &page.tri(first + k).expect("a leaf's triangle");
                     let v = value(t).map(|x| x as f32);
                     for (cell, _) in keys.cells(t) {
-                        let key = keys.tri(page.first_node + i as u64, k, cell);
+                        let key = keys.tri(page.first_node + i as u64, k, false, cell);
                         store.add(key, v);
                         store.add_caustic(key, v);
                     }

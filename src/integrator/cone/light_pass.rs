@@ -155,7 +155,7 @@ fn deposit(
     flux: V,
 ) {
     let cell = keys.cell_of(&hit.tri, hit.b);
-    let key = keys.tri(hit.leaf, hit.slot, cell);
+    let key = keys.tri(hit.leaf, hit.slot, n.dot(hit.ng()) < 0.0, cell);
     let visible = match store.get(key).map(|e| e.visible) {
         Some(v) if v > 0.0 => v,
         _ => {

@@ -384,7 +384,7 @@ impl ConeIntegrator {
             return Event::Diffuse(Diffuse {
                 frame: Frame::new(n),
                 albedo: bsdf.diffuse,
-                key: self.keys.tri(h.leaf, h.slot, cell),
+                key: self.keys.tri(h.leaf, h.slot, !at.front, cell),
                 cluster_n: None,
                 min_dist: 0.0,
                 side: self.keys.side(&h.tri),
@@ -471,9 +471,11 @@ impl ConeIntegrator {
                     let tint = V::from(raw.specular_tint.map(unorm8_decode));
                     (wi, tint, s >= 1e3)
                 } else {
-                    // Through a transmissive cluster: straight on, tinted (its lensing is
-                    // below the level of detail the cone asked for).
-                    let tint = V::from(raw.translucency.map(unorm8_decode));
+                    // Through a transmissive cluster or its alpha holes: straight on,
+                    // tinted by the mean tint of what passes (its lensing is below the
+                    // level of detail the cone asked for).
+                    let passing = unorm8_decode(raw.refractiveness);
+                    let tint = V::from(raw.translucency.map(unorm8_decode)) / passing.max(1e-3);
                     (-wo, tint, true)
                 };
                 // A near-mirror or glass cluster keeps the cone and stands for a smooth
