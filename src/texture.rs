@@ -220,7 +220,7 @@ impl Textures {
     /// point, unfiltered (level 0): a cut-out's coverage must not fade with the footprint,
     /// as thresholding a filtered alpha thins distant chains and leaves, and differently for
     /// each integrator's footprint.
-    fn opacity(&self, look: &mut Lookup, m: &Material, index: u32, uv: [f32; 2]) -> f32 {
+    pub fn opacity(&self, look: &mut Lookup, m: &Material, index: u32, uv: [f32; 2]) -> f32 {
         let Some(b) = self.bindings.get(index as usize) else {
             return 1.0;
         };

@@ -217,6 +217,19 @@ impl Scene {
         self.material_at(m, &hit.tri.p, hit.uv, hit.b, ray.d, spread)
     }
 
+    /// A triangle hit's opacity alone (no colour lookups): see `Textures::opacity`.
+    pub fn opacity_at(&self, hit: &Hit) -> f32 {
+        let index = hit.tri.material;
+        if !self.textures.varies(index) {
+            return 1.0;
+        }
+        let (uv, b) = (hit.uv, hit.b);
+        let at = std::array::from_fn(|k| b[0] * uv[0][k] + b[1] * uv[1][k] + b[2] * uv[2][k]);
+        let m = &self.materials[index as usize];
+        self.textures
+            .opacity(&mut Lookup::new(&self.cache), m, index, at)
+    }
+
     /// Material `index` with its textures' means (for values over a whole triangle).
     pub fn mean_material(&self, index: u32) -> Material {
         self.textures
@@ -412,7 +425,7 @@ fn transmittance(scene: &Scene, tr: &mut Tracer, mut ray: Ray, cone: &Cone) -> f
         let Some(hit) = tr.closest_hit(&ray) else {
             return seen;
         };
-        let opacity = scene.material_at_hit(&hit, ray.d).opacity;
+        let opacity = scene.opacity_at(&hit);
         seen *= 1.0 - opacity;
         let n = hit.ng();
         if seen <= 0.0 || n == V::ZERO {

@@ -61,6 +61,8 @@ pub fn phong_lobe(n: V, len: f32, wo: V, roughness: u8, u: [f32; 2]) -> (V, f32)
 pub fn hit_emission(scene: &Scene, hit: &ConeHit, ray: &Ray, cone: &Cone) -> V {
     let wo = -ray.d;
     match hit {
+        // Most triangles emit nothing: look no texel up for them.
+        ConeHit::Tri(h) if !scene.materials[h.tri.material as usize].is_emissive() => V::ZERO,
         ConeHit::Tri(h) => scene
             .material_at_cone(h, ray, cone)
             .m

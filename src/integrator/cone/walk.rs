@@ -156,13 +156,7 @@ struct Path {
 impl Path {
     /// Emission the hit sends to the viewer, weighted as the estimator needs it.
     fn emission(&self, scene: &Scene, hit: &ConeHit, at: &Here) -> V {
-        let le = match hit {
-            ConeHit::Tri(h) => scene
-                .material_at_cone(h, &self.ray, &self.cone)
-                .m
-                .emitted(at.front),
-            ConeHit::Node { .. } => hit_emission(scene, hit, &self.ray, &self.cone),
-        };
+        let le = hit_emission(scene, hit, &self.ray, &self.cone);
         if le == V::ZERO {
             return le;
         }
@@ -266,13 +260,11 @@ fn widened(cone: &Cone) -> Cone {
 
 /// Whether a cone's triangle hit falls in an alpha hole (mask) or, under blend, is passed
 /// with probability 1 − alpha, as the path tracer does. Nodes are opaque.
-fn through_hole(scene: &Scene, hit: &ConeHit, path: &Path, at: &Here, passes: u32) -> bool {
+fn through_hole(scene: &Scene, hit: &ConeHit, at: &Here, passes: u32) -> bool {
     let ConeHit::Tri(h) = hit else {
         return false;
     };
-    let spread = scene.texture_scale * 2.0 * path.cone.radius(h.t);
-    let shaded = scene.material_at(h.tri.material, &h.tri.p, h.uv, h.b, path.ray.d, spread);
-    passes_through(shaded.opacity, at.dir[0], passes)
+    passes_through(scene.opacity_at(h), at.dir[0], passes)
 }
 
 impl ConeIntegrator {
@@ -307,7 +299,7 @@ impl ConeIntegrator {
             let Some(at) = Here::new(&hit, &path.ray, s, path.depth) else {
                 break;
             };
-            if alpha && passes < MAX_PASSES && through_hole(scene, &hit, &path, &at, passes) {
+            if alpha && passes < MAX_PASSES && through_hole(scene, &hit, &at, passes) {
                 // A cut-out: the cone goes on unchanged (its width kept) past the surface.
                 passes += 1;
                 path.cone.r0 = path.cone.radius(at.t);
