@@ -173,7 +173,8 @@ impl Textures {
         let shaded = self.apply(m, index, &mut texel);
         // glTF 2.0 §3.9.3: n = normalize((2·texel − 1) · (scale, scale, 1)); filtered texels
         // come out shorter than unit, hence the normalization.
-        let bump = self.bindings[index as usize].normal.and_then(|(t, scale)| {
+        let normal = self.bindings.get(index as usize).and_then(|b| b.normal);
+        let bump = normal.and_then(|(t, scale)| {
             let c = texel(t);
             let n = V::new(
                 (2.0 * c[0] - 1.0) * scale,
@@ -296,7 +297,7 @@ impl<'a> Lookup<'a> {
 /// coordinates `uv`, and the texture-space filter width of a footprint `spread` wide
 /// (world units, across a ray of direction `d`) on the triangle's plane.
 pub fn footprint(p: [V; 3], uv: [[f32; 2]; 3], b: [f32; 3], d: V, spread: f32) -> ([f32; 2], f32) {
-    let at = std::array::from_fn(|k| b[0] * uv[0][k] + b[1] * uv[1][k] + b[2] * uv[2][k]);
+    let at = uv_at(uv, b);
     let n = (p[1] - p[0]).cross(p[2] - p[0]);
     let Some((dpdu, dpdv)) = dp_duv(p, uv) else {
         return (at, 0.0);
@@ -336,6 +337,11 @@ pub fn footprint(p: [V; 3], uv: [[f32; 2]; 3], b: [f32; 3], d: V, spread: f32) -
         width = width.max(du.abs()).max(dv.abs());
     }
     (at, 2.0 * width)
+}
+
+/// Texture coordinates at barycentrics `b` of a triangle whose vertices have `uv`.
+pub fn uv_at(uv: [[f32; 2]; 3], b: [f32; 3]) -> [f32; 2] {
+    std::array::from_fn(|k| b[0] * uv[0][k] + b[1] * uv[1][k] + b[2] * uv[2][k])
 }
 
 /// ∂p/∂u and ∂p/∂v of a triangle (pbrt-v4 `Triangle::InteractionFromIntersection`); None

@@ -401,24 +401,8 @@ fn alpha_masks_cut_holes_for_camera_and_shadow_rays() {
             convert(&gltf, &out, None);
         }
         let exr = dir.path().join(format!("{mode}{integrator}.exr"));
-        let (img, _) = render(
-            &out,
-            &exr,
-            &[
-                "--spp",
-                "4",
-                "--width",
-                "64",
-                "--height",
-                "64",
-                "--max-depth",
-                "2",
-                "--texture-filter",
-                "point",
-                "--integrator",
-                integrator,
-            ],
-        );
+        let filter = ["--texture-filter", "point", "--integrator", integrator];
+        let (img, _) = render64(&out, &exr, 4, 0, &filter);
         // Lit red floor seen through a hole: red well above green.
         let red = img
             .pixels
@@ -594,21 +578,8 @@ fn cut_outs_keep_their_coverage_when_their_texels_are_smaller_than_a_pixel() {
         ("trilinear", "cone"),
     ] {
         let exr = dir.path().join(format!("{filter}{integrator}.exr"));
-        let args = [
-            "--spp",
-            "16",
-            "--width",
-            "64",
-            "--height",
-            "64",
-            "--max-depth",
-            "2",
-            "--texture-filter",
-            filter,
-            "--integrator",
-            integrator,
-        ];
-        let (img, _) = render(&out, &exr, &args);
+        let args = ["--texture-filter", filter, "--integrator", integrator];
+        let (img, _) = render64(&out, &exr, 16, 0, &args);
         // Red (the floor seen through holes) over green (the grey plane).
         let m = img.mean();
         means.push(m[0] / m[1]);

@@ -223,9 +223,8 @@ impl Scene {
         if !self.textures.varies(index) {
             return 1.0;
         }
-        let (uv, b) = (hit.uv, hit.b);
-        let at = std::array::from_fn(|k| b[0] * uv[0][k] + b[1] * uv[1][k] + b[2] * uv[2][k]);
         let m = &self.materials[index as usize];
+        let at = texture::uv_at(hit.uv, hit.b);
         self.textures
             .opacity(&mut Lookup::new(&self.cache), m, index, at)
     }
