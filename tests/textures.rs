@@ -333,6 +333,37 @@ fn bad_textures_are_refused_by_name_and_leave_no_archive() {
     refused("zero-sized", &["checker.png"]);
     png_header_only(&image, 65536, 32768);
     refused("absurd", &["checker.png", "65536×32768"]);
+    // A JPEG is decoded whole: a 16384² one (2 GiB decoded) exceeds the default budget's
+    // share. Headers only (tables, frame, scan), which is all the size check reads.
+    std::fs::write(&image, jpeg_header_only(16384, 16384)).unwrap();
+    refused(
+        "JPEG too large to decode whole",
+        &[
+            "checker.png",
+            "16384×16384",
+            "decoded whole",
+            "--mem-budget",
+        ],
+    );
+}
+
+/// A baseline JPEG's markers up to its scan header, declaring `w`×`h`, with no image data.
+fn jpeg_header_only(w: u16, h: u16) -> Vec<u8> {
+    let mut b = vec![0xFF, 0xD8];
+    b.extend([0xFF, 0xDB, 0, 67, 0]);
+    b.extend([1u8; 64]);
+    b.extend([0xFF, 0xC0, 0, 17, 8]);
+    b.extend(h.to_be_bytes());
+    b.extend(w.to_be_bytes());
+    b.extend([3, 1, 0x11, 0, 2, 0x11, 0, 3, 0x11, 0]);
+    for class in [0x00, 0x10] {
+        b.extend([0xFF, 0xC4, 0, 20, class, 1]);
+        b.extend([0u8; 16]);
+    }
+    b.extend([0xFF, 0xDA, 0, 12, 3, 1, 0, 2, 0, 3, 0, 0, 63, 0]);
+    b.extend([0u8; 16]);
+    b.extend([0xFF, 0xD9]);
+    b
 }
 
 #[test]

@@ -191,7 +191,10 @@ fn write_textures(
         if opts.progress {
             eprintln!("texture {}/{}: {}", i + 1, scene.textures.len(), src.name);
         }
-        let (rec, levels) = textures::write_texture(writer, src, opts.zstd_level)
+        // Textures are written before the geometry is built: an image decoded whole may
+        // use the budget beyond the fixed part.
+        let whole_limit = opts.mem_budget.saturating_sub(FIXED_BYTES);
+        let (rec, levels) = textures::write_texture(writer, src, opts.zstd_level, whole_limit)
             .with_context(|| format!("texture {}", src.describe()))?;
         index.push(records.len() as u16);
         records.push(rec);

@@ -162,7 +162,12 @@ fn seekable(src: &TextureSource) -> Result<Box<dyn ReadSeek>> {
 trait ReadSeek: BufRead + std::io::Seek + Send {}
 impl<T: BufRead + std::io::Seek + Send> ReadSeek for T {}
 
-fn open_rows(src: &TextureSource) -> Result<Box<dyn Rows>> {
+/// Bytes a whole-image decode takes per texel: the decoder's buffer and the RGBA copy.
+const WHOLE_BYTES_PER_TEXEL: u64 = 8;
+
+/// The image's rows: streamed for non-interlaced PNG; JPEG, TGA and interlaced PNG are
+/// decoded whole, refused when that would take more than `whole_limit` bytes.
+fn open_rows(src: &TextureSource, whole_limit: u64) -> Result<Box<dyn Rows>> {
     let mut magic = [0u8; 8];
     let got = open_source(src)?.read(&mut magic)?;
     if got == 8 && magic == *b"\x89PNG\r\n\x1a\n" {
@@ -191,12 +196,19 @@ fn open_rows(src: &TextureSource) -> Result<Box<dyn Rows>> {
         );
     }
     let mut limits = image::Limits::default();
-    limits.max_alloc = Some(MAX_TEXELS * 8);
+    limits.max_alloc = Some(whole_limit);
     r.limits(limits);
-    let format = r.format();
-    let (w, h) = image::ImageReader::with_format(seekable(src)?, format.expect("set above"))
-        .into_dimensions()?;
+    let format = r.format().expect("set above");
+    let (w, h) = image::ImageReader::with_format(seekable(src)?, format).into_dimensions()?;
     check_size(w, h)?;
+    let need = w as u64 * h as u64 * WHOLE_BYTES_PER_TEXEL;
+    if need > whole_limit {
+        bail!(
+            "the image is {w}×{h} texels and {format:?} is decoded whole: about {} MiB, more than the memory budget leaves ({} MiB); save it as a non-interlaced PNG, which streams, or raise --mem-budget",
+            need >> 20,
+            whole_limit >> 20
+        );
+    }
     let image = r.decode()?.to_rgba8();
     Ok(Box::new(WholeRows { image, next: 0 }))
 }
@@ -306,8 +318,9 @@ pub fn write_texture(
     writer: &mut ArchiveWriter,
     src: &TextureSource,
     zstd_level: i32,
+    whole_limit: u64,
 ) -> Result<(TextureRecord, Coarse)> {
-    let mut rows = open_rows(src)?;
+    let mut rows = open_rows(src, whole_limit)?;
     let (w, h) = rows.size();
     let mut rec = TextureRecord {
         name: name_bytes(&src.name),
