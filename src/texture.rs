@@ -169,13 +169,14 @@ impl Textures {
         uv: [f32; 2],
         width: f32,
     ) -> Shaded {
-        let mut texel = |t| look.trilinear(self, t, uv, width);
-        let shaded = self.apply(m, index, &mut texel);
-        // glTF 2.0 §3.9.3: n = normalize((2·texel − 1) · (scale, scale, 1)); filtered texels
-        // come out shorter than unit, hence the normalization.
+        let shaded = self.apply(m, index, |t| look.trilinear(self, t, uv, width));
+        // glTF 2.0 §3.9.3: n = normalize((2·texel − 1) · (scale, scale, 1)). Read at level 0,
+        // bilinear, as pbrt-v4's NormalMap reads the full-resolution image: shading is not
+        // linear in the normal, so a normal averaged over a footprint biases it (a cone's
+        // wide footprint after a bounce most).
         let normal = self.bindings.get(index as usize).and_then(|b| b.normal);
         let bump = normal.and_then(|(t, scale)| {
-            let c = texel(t);
+            let c = look.trilinear(self, t, uv, 0.0);
             let n = V::new(
                 (2.0 * c[0] - 1.0) * scale,
                 (2.0 * c[1] - 1.0) * scale,
