@@ -53,11 +53,9 @@ struct Binding {
     emissive: Option<u32>,
 }
 
-/// A material as shaded at one point of a surface.
+/// A material as shaded at one point of a surface (its opacity apart: `Textures::opacity`).
 pub struct Shaded {
     pub m: Material,
-    /// 0 or 1 under an alpha mask, the texel's alpha under blend, 1 otherwise.
-    pub opacity: f32,
     /// The normal texture's tangent-space normal there (unit; +z off the surface).
     pub bump: Option<V>,
 }
@@ -65,11 +63,7 @@ pub struct Shaded {
 impl Shaded {
     /// A material that does not vary over its surface.
     pub fn plain(m: Material) -> Shaded {
-        Shaded {
-            m,
-            opacity: 1.0,
-            bump: None,
-        }
+        Shaded { m, bump: None }
     }
 }
 
@@ -185,11 +179,7 @@ impl Textures {
             .normalize();
             (n.is_finite() && n.z > 0.0).then_some(n)
         });
-        Shaded {
-            m: shaded,
-            opacity: self.opacity(look, m, index, uv),
-            bump,
-        }
+        Shaded { m: shaded, bump }
     }
 
     /// `m` with each of material `index`'s textures multiplying its factor (glTF 2.0

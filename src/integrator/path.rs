@@ -87,9 +87,7 @@ pub fn radiance(
             break;
         }
         let ng = ng_raw / (2.0 * area);
-        let shaded = scene.material_at_hit(&hit, ray.d);
-        let m = &shaded.m;
-        if passes < MAX_PASSES && passes_through(shaded.opacity, ud0, passes) {
+        if passes < MAX_PASSES && passes_through(scene.opacity_at(&hit), ud0, passes) {
             // Unscattered, its depth unchanged.
             passes += 1;
             travelled += hit.t * ray.d.length();
@@ -97,6 +95,8 @@ pub fn radiance(
             ray.o = offset_origin(p, err, ng, ray.d);
             continue;
         }
+        let shaded = scene.material_at_hit(&hit, ray.d);
+        let m = &shaded.m;
         let wo = -ray.d.normalize();
         let front = ng.dot(wo) > 0.0;
         let le = m.emitted(front);
