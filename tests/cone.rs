@@ -650,7 +650,7 @@ double_sided = false
     // Each pixel's light cell: the store key its centre and corners hit (pixels on a
     // cell border are left out).
     let archive = Arc::new(Archive::open(&arc).unwrap());
-    let keys = canopy::radiance::Keys::new(&archive.header);
+    let keys = canopy::radiance::Keys::new(&archive.header).unwrap();
     let camera = canopy::camera::Camera::new(&archive.cameras[0], 128, 128);
     let cache = PageCache::new(Arc::clone(&archive), None, 1).unwrap();
     let mut tr = Tracer::new(&cache);
@@ -708,5 +708,132 @@ double_sided = false
         worst < 4.5 && chi < 1.6,
         "{} cells, image mean {floor:.3}: largest |mean error / its standard error| {worst:.2}, mean square {chi:.2}",
         z.len()
+    );
+}
+
+/// One node of a tree walked below page `pg`'s node `i`, as `instance` places it: leaves
+/// get `on_leaf(leaf's global number, slot, placed triangle)`, every node `on_node(its
+/// placed global number, Σ area·value, Σ area)` over the placed triangles below it.
+struct Visit<'a> {
+    cache: &'a PageCache,
+    value: &'a dyn Fn(&canopy::paging::TriW) -> [f64; 3],
+    on_leaf: &'a mut dyn FnMut(u64, u32, &canopy::paging::TriW, (u32, u32, u64)),
+    on_node: &'a mut dyn FnMut(u64, [f64; 3], f64),
+    keys: canopy::radiance::Keys,
+}
+
+impl Visit<'_> {
+    fn node(&mut self, pg: u32, i: u32, (inst, via): (u32, u64)) -> ([f64; 3], f64) {
+        use canopy::paging::NodeRef;
+        let page = self.cache.get(pg);
+        let add = |x: ([f64; 3], f64), y: ([f64; 3], f64)| {
+            ([0, 1, 2].map(|k| x.0[k] + y.0[k]), x.1 + y.1)
+        };
+        let here = page.first_node + i as u64;
+        let total = match page.bvh[i as usize].link() {
+            NodeRef::Inner(l, r) => {
+                add(self.node(pg, l, (inst, via)), self.node(pg, r, (inst, via)))
+            }
+            NodeRef::ChildPage(c) => {
+                add(self.node(c, 0, (inst, via)), self.node(c, 1, (inst, via)))
+            }
+            NodeRef::Instance(k) => {
+                let root = self.cache.instances[k as usize].page;
+                self.node(root, 0, (k, here))
+            }
+            NodeRef::Leaf { first, count } => {
+                let mut acc = ([0.0; 3], 0.0);
+                for k in 0..count {
+                    let t = page.tri(first + k).unwrap();
+                    let t = match self.cache.instances.get(inst as usize) {
+                        Some(p) => canopy::trace::placed_tri(p, &t),
+                        None => t,
+                    };
+                    (self.on_leaf)(here, k, &t, (inst, pg, via));
+                    let area = canopy::radiance::tri_area(&t) as f64;
+                    acc = add(acc, ((self.value)(&t).map(|x| x * area), area));
+                }
+                acc
+            }
+        };
+        (self.on_node)(self.keys.placed(inst, here), total.0, total.1);
+        total
+    }
+}
+
+/// The pull through instances: with every light cell of every placed triangle holding a
+/// value that depends on where its instance puts it, each node's pulled light must be the
+/// area-weighted mean of the placed triangles below it — a prototype's nodes and an
+/// instance leaf of their own copy only, the root of the whole scene; the same for the
+/// caustic light, which counts a triangle's cells by area. Copies sharing their keys
+/// would mix; triangles pulled unplaced would miss the cells their hits keyed.
+#[test]
+fn stored_light_pulls_through_each_instance_apart() {
+    use canopy::radiance::{pull, Keys, RadianceStore};
+    use canopy::trace::NO_INSTANCE;
+    let dir = tempfile::tempdir().unwrap();
+    let places = [[0.0; 3], [556.0, 0.0, 0.0], [180.0, 0.0, 60.0]];
+    // The small copy's triangles take fewer cells than the prototype's.
+    let scales = [[1.0; 3], [-1.0, 1.0, 1.0], [0.1; 3]];
+    let input = gpu_instanced(dir.path(), "boxes.glb", "smallbox", &places, &scales);
+    let arc = dir.path().join("i.canopy");
+    convert(&input, &arc, None);
+    let archive = Arc::new(Archive::open(&arc).unwrap());
+    assert_eq!(archive.header.instances.count, 3);
+    let cache = PageCache::new(Arc::clone(&archive), None, 1).unwrap();
+    let keys = Keys::new(&archive.header).unwrap();
+    let store = RadianceStore::new(1024, None, archive.page_count() as usize);
+    store.add_photons(1);
+    let value = |t: &canopy::paging::TriW| {
+        let c = (V::from(t.p[0]) + V::from(t.p[1]) + V::from(t.p[2])) / 3.0;
+        let x = ((c.x * 0.013 + c.y * 0.007 + c.z * 0.011) as f64).rem_euclid(1.0);
+        [x, 1.0 - x, 0.25 + x * x]
+    };
+    let root = archive.header.root_page;
+    let mut fill = |leaf: u64, k: u32, t: &canopy::paging::TriW, (inst, pg, via)| {
+        let v = value(t).map(|x| x as f32);
+        for (cell, _) in keys.cells(t) {
+            let key = keys.tri(keys.placed(inst, leaf), k, false, cell);
+            store.add(key, v);
+            store.add_caustic(key, v);
+        }
+        store.mark_dirty_in(inst, pg, via);
+    };
+    Visit {
+        cache: &cache,
+        value: &value,
+        on_leaf: &mut fill,
+        on_node: &mut |_, _, _| {},
+        keys,
+    }
+    .node(root, 0, (NO_INSTANCE, 0));
+    pull(&cache, &store, keys);
+    let mut checked = 0;
+    let mut check = |key: u64, sum: [f64; 3], area: f64| {
+        let want = sum.map(|s| s / area);
+        let e = store.get(keys.node(key)).expect("a pulled node");
+        let (diffuse, _) = e.value().unwrap();
+        for (what, got) in [("diffuse", diffuse), ("caustic", e.caustic)] {
+            for c in 0..3 {
+                assert!(
+                    (got[c] as f64 - want[c]).abs() < 1e-4 * want[c].abs().max(0.01),
+                    "node key {key}: {what} pulled {got:?}, area-weighted mean {want:?}"
+                );
+            }
+        }
+        checked += 1;
+    };
+    Visit {
+        cache: &cache,
+        value: &value,
+        on_leaf: &mut |_, _, _, _| {},
+        on_node: &mut check,
+        keys,
+    }
+    .node(root, 0, (NO_INSTANCE, 0));
+    // The scene's nodes once, the prototype's once per instance.
+    assert!(
+        checked as u64 > archive.header.nodes,
+        "{checked} nodes checked"
     );
 }

@@ -61,21 +61,23 @@ impl Settings {
         }
     }
 
-    /// Refuses an archive with instances for the integrators that store light per node:
-    /// two copies in different light would share it (they need `--flatten-instances`).
-    pub fn refuse_instances(&self, archive: &canopy_format::Archive) -> anyhow::Result<()> {
+    /// Refuses an archive the integrator cannot render: PBGI's baked light is per node, so
+    /// two instances in different light would share it (it needs `--flatten-instances`);
+    /// the cone integrator keys its stored light per instance, in 64 bits.
+    pub fn check_archive(&self, archive: &canopy_format::Archive) -> anyhow::Result<()> {
         match self {
             Settings::Path => Ok(()),
-            _ => refuse_instances(archive, &format!("the {:?} integrator", self.kind())),
+            Settings::Cone(_) => cone::keys(archive).map(|_| ()),
+            Settings::Pbgi(_) => refuse_instances(archive, "the pbgi integrator"),
         }
     }
 
-    pub fn build(&self, scene: &Scene, target: &Target) -> Box<dyn Integrator> {
-        match self {
+    pub fn build(&self, scene: &Scene, target: &Target) -> anyhow::Result<Box<dyn Integrator>> {
+        Ok(match self {
             Settings::Path => Box::new(path::PathIntegrator),
-            Settings::Cone(c) => Box::new(cone::ConeIntegrator::new(c, scene, target)),
+            Settings::Cone(c) => Box::new(cone::ConeIntegrator::new(c, scene, target)?),
             Settings::Pbgi(p) => Box::new(pbgi::PbgiIntegrator::new(p, target.seed)),
-        }
+        })
     }
 }
 
@@ -177,6 +179,14 @@ pub struct Scene {
 }
 
 impl Scene {
+    /// Counts a hit's leaf, and the instance leaf it came through, as touched.
+    pub fn touch(&self, hit: &Hit) {
+        self.touched.insert(hit.leaf);
+        if hit.instance != crate::trace::NO_INSTANCE {
+            self.touched.insert(hit.instance_leaf);
+        }
+    }
+
     /// Material `index` as shaded at a triangle point (barycentrics `b`, texture
     /// coordinates `uv`) met along direction `d` with a footprint `spread` wide there, and
     /// its opacity (see `Textures::shade`). Untextured materials are returned as they are.
@@ -441,7 +451,7 @@ fn transmittance(scene: &Scene, tr: &mut Tracer, mut ray: Ray, cone: &Cone) -> f
 pub fn refuse_instances(archive: &canopy_format::Archive, what: &str) -> anyhow::Result<()> {
     if archive.header.features & canopy_format::Features::INSTANCES != 0 {
         anyhow::bail!(
-            "{}: {what} does not support instanced archives yet (its stored light would be shared by every copy); convert with --flatten-instances, or render with --integrator path",
+            "{}: {what} does not support instanced archives yet (its baked light would be shared by every copy); convert with --flatten-instances, or render with --integrator path or cone",
             archive.path().display()
         );
     }

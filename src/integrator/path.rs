@@ -12,7 +12,7 @@ use super::{
     Scene, Stats,
 };
 use crate::sampler::PixelSampler;
-use crate::trace::{offset_origin, Cone, Ray, Tracer, NO_INSTANCE};
+use crate::trace::{offset_origin, Cone, Ray, Tracer};
 use glam::Vec3A as V;
 
 /// Veach's power heuristic (β = 2) for two sampling strategies' pdfs.
@@ -77,10 +77,7 @@ pub fn radiance(
         let Some(hit) = tr.closest_hit(&ray) else {
             break;
         };
-        scene.touched.insert(hit.leaf);
-        if hit.instance != NO_INSTANCE {
-            scene.touched.insert(hit.instance_leaf);
-        }
+        scene.touch(&hit);
         let ng_raw = hit.ng();
         let area = 0.5 * ng_raw.length();
         if area.is_nan() || area <= 0.0 {

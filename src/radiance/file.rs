@@ -78,6 +78,7 @@ pub fn save(store: &RadianceStore, a: &Header, path: &Path) -> Result<u64> {
     let mut h = StoreHeader {
         magic: MAGIC,
         version_major: VERSION,
+        version_minor: 1,
         header_size: 128,
         archive_checksum: a.header_checksum,
         archive_len: a.file_len,

@@ -6,6 +6,7 @@
 //! one average; the leaf's own key gets their area-weighted mean.
 
 use crate::paging::TriW;
+use crate::trace::NO_INSTANCE;
 use canopy_format::Header;
 use glam::Vec3A as V;
 
@@ -16,19 +17,37 @@ pub const CELLS: u64 = GRID * GRID;
 pub const CELL_FRACTION: f32 = 1.0 / 128.0;
 
 /// The key layout of one archive: per node, its own key, then `CELLS` keys for each side
-/// of each of a leaf's at most `max_leaf_triangles` triangles.
+/// of each of a leaf's at most `max_leaf_triangles` triangles. A prototype's nodes take
+/// one such range per instance (`placed`), so copies in different light keep their own.
 #[derive(Clone, Copy, Debug)]
 pub struct Keys {
     stride: u64,
+    /// The archive's node count: the distance between two instances' node numbers.
+    nodes: u64,
     /// Side of the light cells on large triangles: `CELL_FRACTION` of the scene's diagonal.
     pub cell_size: f32,
 }
 
 impl Keys {
-    pub fn new(h: &Header) -> Keys {
-        Keys {
-            stride: (2 * h.max_leaf_triangles as u64 + 1) * CELLS,
+    /// None when the keys of every node of every instance do not fit in a u64.
+    pub fn new(h: &Header) -> Option<Keys> {
+        let stride = (2 * h.max_leaf_triangles as u64 + 1) * CELLS;
+        (h.instances.count as u64 + 1)
+            .checked_mul(h.nodes)?
+            .checked_mul(stride)?;
+        Some(Keys {
+            stride,
+            nodes: h.nodes,
             cell_size: (V::from(h.bounds_max) - V::from(h.bounds_min)).length() * CELL_FRACTION,
+        })
+    }
+
+    /// The number node `node` is keyed by as placed by `instance` (`NO_INSTANCE`: outside
+    /// every instance, its own number): `node + (instance + 1) × nodes`.
+    pub fn placed(&self, instance: u32, node: u64) -> u64 {
+        match instance {
+            NO_INSTANCE => node,
+            i => node + (i as u64 + 1) * self.nodes,
         }
     }
 
@@ -95,7 +114,9 @@ mod tests {
         let mut h: Header = bytemuck::Zeroable::zeroed();
         h.bounds_max = [128.0, 0.0, 0.0];
         h.max_leaf_triangles = 8;
-        let k = Keys::new(&h);
+        h.nodes = 5;
+        h.instances.count = 2;
+        let k = Keys::new(&h).unwrap();
         let tri = TriW {
             p: [[0.0; 3], [5.5, 0.0, 0.0], [0.0, 3.0, 0.0]],
             material: 0,
@@ -120,5 +141,13 @@ mod tests {
         assert!(k.tri(3, 0, false, 0) > k.node(3));
         assert!(k.tri(3, 0, false, CELLS - 1) < k.tri(3, 0, true, 0));
         assert!(k.tri(3, 0, true, CELLS - 1) < k.tri(3, 1, false, 0));
+        // Each instance's nodes number after the scene's and the previous instance's.
+        assert_eq!(k.placed(NO_INSTANCE, 4), 4);
+        assert!(k.tri(k.placed(NO_INSTANCE, 4), 7, true, CELLS - 1) < k.node(k.placed(0, 0)));
+        assert!(k.tri(k.placed(0, 4), 7, true, CELLS - 1) < k.node(k.placed(1, 0)));
+        // Keys that would not fit in 64 bits are refused, not wrapped.
+        h.instances.count = u32::MAX;
+        h.nodes = 1 << 40;
+        assert!(Keys::new(&h).is_none());
     }
 }

@@ -64,6 +64,9 @@ pub struct RadianceStore {
     passes: AtomicU32,
     /// Per page: whether stored light under it changed since the last pull.
     dirty: Vec<AtomicBool>,
+    /// The same for the pages of prototypes, per instance: (instance, page) → the instance
+    /// leaf's global number.
+    placed_dirty: Mutex<HashMap<(u32, u32), u64>>,
 }
 
 /// Bytes an entry costs in the map: 8-byte key and 48-byte entry, hash-table overhead at
@@ -83,7 +86,32 @@ impl RadianceStore {
             photons: AtomicU64::new(0),
             passes: AtomicU32::new(0),
             dirty: (0..pages).map(|_| AtomicBool::new(false)).collect(),
+            placed_dirty: Mutex::new(HashMap::new()),
         }
+    }
+
+    /// Notes that stored light under `page` changed, there as placed by `instance` through
+    /// its leaf `via` (`NO_INSTANCE`: a page of the scene's own tree).
+    pub fn mark_dirty_in(&self, instance: u32, page: u32, via: u64) {
+        match instance {
+            crate::trace::NO_INSTANCE => self.mark_dirty(page),
+            i => {
+                self.placed_dirty
+                    .lock()
+                    .expect("dirty")
+                    .insert((i, page), via);
+            }
+        }
+    }
+
+    /// The prototype pages marked since the last call: (instance, page, instance leaf).
+    pub fn take_placed_dirty(&self) -> Vec<(u32, u32, u64)> {
+        let mut v: Vec<_> = std::mem::take(&mut *self.placed_dirty.lock().expect("dirty"))
+            .into_iter()
+            .map(|((i, p), via)| (i, p, via))
+            .collect();
+        v.sort_unstable();
+        v
     }
 
     /// Notes that stored light under `page` changed.

@@ -2,14 +2,41 @@
 //! their ancestor pages) gets the area-weighted mean of its children's stored light,
 //! deepest pages first so page roots are ready for their parents. Evicted pages are
 //! skipped, not reloaded: their nodes keep the values of the last pull (the store itself
-//! never loses samples).
+//! never loses samples). A prototype's pages are pulled once per instance that changed
+//! them, under that instance's keys, before the scene's tree, whose instance leaves take
+//! their prototype root's light as placed by them.
 
 use super::{weighted_mean, Keys, RadianceStore};
-use crate::paging::{deepest_first, NodeRef, Page, PageCache};
+use crate::paging::{deepest_first, NodeRef, Page, PageCache, TriW};
+use crate::trace::{placed_tri, NO_INSTANCE};
 use rayon::prelude::*;
 
 pub fn pull(cache: &PageCache, store: &RadianceStore, keys: Keys) {
-    let mut pages = store.take_dirty();
+    let placed = store.take_placed_dirty();
+    placed
+        .chunk_by(|a, b| a.0 == b.0)
+        .collect::<Vec<_>>()
+        .par_iter()
+        .for_each(|changed| {
+            let pages = changed.iter().map(|&(_, page, _)| page).collect();
+            pull_pages(cache, store, keys, pages, changed[0].0);
+        });
+    for &(_, _, via) in &placed {
+        if let Some(page) = page_of(cache, via) {
+            store.mark_dirty(page);
+        }
+    }
+    pull_pages(cache, store, keys, store.take_dirty(), NO_INSTANCE);
+}
+
+/// Pulls `pages` and their ancestors, as `instance` places them.
+fn pull_pages(
+    cache: &PageCache,
+    store: &RadianceStore,
+    keys: Keys,
+    mut pages: Vec<u32>,
+    instance: u32,
+) {
     // A changed page changes its parent page's cut node: pull the ancestors too.
     let mut seen: std::collections::HashSet<u32> = pages.iter().copied().collect();
     let mut i = 0;
@@ -23,10 +50,17 @@ pub fn pull(cache: &PageCache, store: &RadianceStore, keys: Keys) {
     for level in deepest_first(&cache.entries, pages) {
         level.par_iter().for_each(|&id| {
             if let Some(page) = cache.get_resident(id) {
-                pull_page(cache, store, keys, &page);
+                pull_page(cache, store, keys, &page, instance);
             }
         });
     }
+}
+
+/// The page holding global node `node` (pages number nodes consecutively in table order).
+fn page_of(cache: &PageCache, node: u64) -> Option<u32> {
+    let i = cache.entries.partition_point(|e| e.first_node <= node);
+    let e = cache.entries.get(i.checked_sub(1)?)?;
+    (node < e.first_node + e.node_count as u64).then_some(i as u32 - 1)
 }
 
 /// One part a node's light is the mean of: a triangle of a leaf or a child node.
@@ -40,13 +74,7 @@ struct Part {
 /// A leaf's triangle: diffuse, the lit cells' means (of either side) weighted by their
 /// samples; caustic, all cells by area, an unlit cell counting as dark, each the sum of
 /// what arrived on its two sides.
-fn triangle_part(
-    store: &RadianceStore,
-    keys: Keys,
-    leaf: u64,
-    k: u32,
-    t: &crate::paging::TriW,
-) -> Part {
+fn triangle_part(store: &RadianceStore, keys: Keys, leaf: u64, k: u32, t: &TriW) -> Part {
     let sides: Vec<_> = keys
         .cells(t)
         .map(|(cell, area)| {
@@ -73,8 +101,12 @@ fn triangle_part(
     }
 }
 
-fn pull_page(cache: &PageCache, store: &RadianceStore, keys: Keys, page: &Page) {
+/// Pulls the nodes of `page`, keyed as `instance` places them (`NO_INSTANCE`: the scene's
+/// own tree). Placed triangles are moved into the world, as hits carry them, so their
+/// light cells are the ones the hits keyed.
+fn pull_page(cache: &PageCache, store: &RadianceStore, keys: Keys, page: &Page, instance: u32) {
     let caustics = store.photons() > 0;
+    let placed_by = cache.instances.get(instance as usize);
     let node_part = |node: u64, area: f32| {
         let e = store.get(keys.node(node));
         Part {
@@ -83,20 +115,35 @@ fn pull_page(cache: &PageCache, store: &RadianceStore, keys: Keys, page: &Page) 
             area,
         }
     };
+    let at = |node: u64| keys.placed(instance, node);
     for (i, n) in page.bvh.iter().enumerate().rev() {
-        let here = page.first_node + i as u64;
+        let here = at(page.first_node + i as u64);
         let link = n.link();
         let parts: Vec<Part> = match link {
-            // The cone integrator refuses instanced archives (`integrator::refuse_instances`).
-            NodeRef::Instance(_) => continue,
+            // The prototype root's light as this instance placed it (prototypes hold no
+            // instances: one level).
+            NodeRef::Instance(k) => {
+                let root = cache
+                    .instances
+                    .get(k as usize)
+                    .and_then(|p| cache.entries.get(p.page as usize));
+                let Some(root) = root.filter(|_| instance == NO_INSTANCE) else {
+                    continue;
+                };
+                vec![node_part(
+                    keys.placed(k, root.first_node),
+                    page.nodes[i].area,
+                )]
+            }
             NodeRef::Leaf { first, count } => (0..count)
                 .filter_map(|k| {
                     let t = page.tri(first + k)?;
+                    let t = placed_by.map_or(t, |p| placed_tri(p, &t));
                     Some(triangle_part(store, keys, here, k, &t))
                 })
                 .collect(),
             NodeRef::Inner(l, r) => [l, r]
-                .map(|c| node_part(page.first_node + c as u64, page.nodes[c as usize].area))
+                .map(|c| node_part(at(page.first_node + c as u64), page.nodes[c as usize].area))
                 .into(),
             NodeRef::ChildPage(c) => {
                 let Some(child) = cache.get_resident(c) else {
@@ -106,14 +153,14 @@ fn pull_page(cache: &PageCache, store: &RadianceStore, keys: Keys, page: &Page) 
                     continue;
                 };
                 vec![
-                    node_part(child.first_node, l.area),
-                    node_part(child.first_node + 1, r.area),
+                    node_part(at(child.first_node), l.area),
+                    node_part(at(child.first_node + 1), r.area),
                 ]
             }
         };
         // A leaf takes the mean over its lit triangles; an inner node needs both children.
         let lit = parts.iter().filter(|p| p.diffuse.is_some());
-        let leaf = matches!(link, NodeRef::Leaf { .. });
+        let leaf = matches!(link, NodeRef::Leaf { .. } | NodeRef::Instance(_));
         let complete = leaf || parts.iter().all(|p| p.diffuse.is_some());
         if let (true, Some(samples)) = (
             complete,
@@ -195,7 +242,7 @@ mod tests {
                 ((t.p[0][0] + t.p[1][1] * 7.0 + t.p[2][2] * 13.0) * 97.0).rem_euclid(1.0) as f64;
             [x, 1.0 - x, 0.25 + x * x]
         };
-        let keys = Keys::new(&archive.header);
+        let keys = Keys::new(&archive.header).unwrap();
         let store = RadianceStore::new(1024, None, archive.page_count() as usize);
         store.add_photons(1);
         for pg in 0..archive.page_count() {

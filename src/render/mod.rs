@@ -87,7 +87,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         window: s.window,
         state_bytes: s.state_bytes,
     };
-    let mut integ = o.integrator.build(scene, &target);
+    let mut integ = o.integrator.build(scene, &target)?;
     let mut seconds = Seconds {
         setup: t0.elapsed().as_secs_f64(),
         ..Default::default()

@@ -135,7 +135,7 @@ impl Setup {
             bail!("--spp must be at least 1");
         }
         let archive = Arc::new(Archive::open(&o.archive)?);
-        o.integrator.refuse_instances(&archive)?;
+        o.integrator.check_archive(&archive)?;
         let cam = camera(o, &archive)?;
         let (width, height) = resolution(o, cam)?;
         let window = window(o, width, height)?;

@@ -57,6 +57,15 @@ pub struct Hit {
     pub uv: [[f32; 2]; 3],
 }
 
+/// A prototype's triangle as `inst` places it in the world, bit for bit as a hit on it
+/// carries it.
+pub fn placed_tri(inst: &Instance, t: &TriW) -> TriW {
+    TriW {
+        p: instance::to_world(inst, t.p).0,
+        ..*t
+    }
+}
+
 /// `Hit::instance` of a triangle outside every instance.
 pub const NO_INSTANCE: u32 = u32::MAX;
 
@@ -739,10 +748,11 @@ impl<'a> Tracer<'a> {
     /// skipped node would have: a skipped node's box holds its lanes' boxes, so the cone
     /// enters it no later, and (its radius growing along the ray) no wider, than it enters
     /// a lane, while the node is no smaller. A cone whose radius does not grow walks the
-    /// binary tree throughout. Instance leaves are skipped: the integrators that cast
-    /// cones refuse instanced archives (`Settings::refuse_instances`).
+    /// binary tree throughout. With `INSTANCED`, a cone that does not stop at an instance
+    /// leaf walks its prototype as an exact ray (`Walk::enter`): cones stop at an instance
+    /// as a whole or not at all.
     #[inline]
-    fn walk(
+    fn walk<const INSTANCED: bool>(
         &mut self,
         ray: &Ray,
         mut on_tri: impl FnMut(TriRef),
@@ -767,6 +777,7 @@ impl<'a> Tracer<'a> {
         stack.clear();
         let cache = self.cache;
         let held = &mut self.held;
+        let inner = &mut self.inner;
         held.check_epoch(cache);
         let mut page: &Page = held.get(cache, cache.root_page());
         // The entry of `page` to walk next, as `Wide::child` codes it, and its distance.
@@ -789,6 +800,17 @@ impl<'a> Tracer<'a> {
             };
             let index = r & !wide::KIND;
             match r & wide::KIND {
+                wide::LEAF if INSTANCED && index & wide::INSTANCE != 0 => {
+                    let pid = page.id;
+                    let exact = Walk { cache, ray, any };
+                    if exact.enter(held, Some(inner), pid, index, &mut t_max, &mut on_tri) {
+                        found = true;
+                        if any {
+                            break 'walk;
+                        }
+                    }
+                    page = held.get(cache, pid);
+                }
                 wide::LEAF => {
                     if lanes.leaf(page, index, &mut t_max, &mut on_tri, any) {
                         found = true;
@@ -820,9 +842,10 @@ impl<'a> Tracer<'a> {
                         NodeRef::Leaf { .. } => next = Some((wide::LEAF | node.tri4(), tn)),
                         NodeRef::Inner(l, r) => push_pair(prep, page, [l, r], t_max, &mut stack),
                         NodeRef::ChildPage(child) => next = Some((wide::PAGE | child, tn)),
-                        // Skipped, as the lanes' instance leaves are (`lanes.leaf` finds no
-                        // block): integrators that cast cones refuse instanced archives.
-                        NodeRef::Instance(_) => {}
+                        // Without `INSTANCED` skipped, as `lanes.leaf` skips a lane's.
+                        NodeRef::Instance(_) => {
+                            next = Some((wide::LEAF | wide::INSTANCE | index, tn));
+                        }
                     }
                 }
                 _ => {
@@ -939,7 +962,11 @@ impl<'a> Tracer<'a> {
         if cone.scale <= 0.0 {
             return self.occluded(ray);
         }
-        self.walk(ray, |_| {}, true, (cone, &mut |_, _, _| {}))
+        let mut ignore = |_: &Page, _, _| {};
+        match self.instanced {
+            false => self.walk::<false>(ray, |_| {}, true, (cone, &mut ignore)),
+            true => self.walk::<true>(ray, |_| {}, true, (cone, &mut ignore)),
+        }
     }
 
     /// Nearest hit of a cone: a leaf triangle, or the first node whose box the cone's
@@ -955,7 +982,11 @@ impl<'a> Tracer<'a> {
                 record: *record,
             })
         };
-        self.walk(ray, |r| tri_best = Some(r), false, (cone, &mut on_node));
+        let on_tri = |r| tri_best = Some(r);
+        match self.instanced {
+            false => self.walk::<false>(ray, on_tri, false, (cone, &mut on_node)),
+            true => self.walk::<true>(ray, on_tri, false, (cone, &mut on_node)),
+        };
         // Both callbacks close t_max, so whichever came last is the nearest.
         match (tri_best, node_best) {
             (Some(r), Some(ConeHit::Node { t, .. })) if r.t <= t => {

@@ -369,17 +369,16 @@ pub fn integrators() -> [Settings; 2] {
     [Settings::Path, Settings::Cone(cone)]
 }
 
-/// Open, verify every page, and render with both integrators (the path tracer alone on an
-/// instanced archive). Errors are fine; the caller
-/// catches panics.
+/// Open, verify every page, and render with every integrator that takes the archive (PBGI
+/// refuses an instanced one). Errors are fine; the caller catches panics.
 pub fn exercise_archive(path: &Path, dir: &Path) -> Result<()> {
     let a = canopy_format::Archive::open(path)?;
     let mut s = canopy::inspect::summarize(&a)?;
     let verified = canopy::inspect::verify(&a, &mut s, false);
-    // Integrators that refuse instanced archives are asked once, for their error.
+    // Integrators that refuse the archive are asked once, for their error.
     let usable: Vec<Settings> = integrators()
         .into_iter()
-        .filter(|i| i.refuse_instances(&a).is_ok())
+        .filter(|i| i.check_archive(&a).is_ok())
         .collect();
     drop(a);
     for integrator in usable {

@@ -52,7 +52,7 @@ fn first_error(path: &Path, dir: &Path) -> Option<String> {
         return Some(format!("{e:#}"));
     }
     let usable = fuzz::integrators().into_iter();
-    for i in usable.filter(|i| i.refuse_instances(&a).is_ok()) {
+    for i in usable.filter(|i| i.check_archive(&a).is_ok()) {
         if let Err(e) = render(&fuzz::tiny_render(path, dir, i)) {
             return Some(format!("{e:#}"));
         }

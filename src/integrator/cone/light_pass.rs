@@ -155,7 +155,7 @@ fn deposit(
     flux: V,
 ) {
     let cell = keys.cell_of(&hit.tri, hit.b);
-    let key = keys.tri(hit.leaf, hit.slot, n.dot(hit.ng()) < 0.0, cell);
+    let key = super::tri_key(keys, hit, n.dot(hit.ng()) < 0.0, cell);
     let visible = match store.get(key).map(|e| e.visible) {
         Some(v) if v > 0.0 => v,
         _ => {
@@ -171,8 +171,8 @@ fn deposit(
         * visible;
     if area > 0.0 {
         store.add_caustic(key, (flux / (PI * area)).to_array());
-        store.mark_dirty(hit.page);
-        scene.touched.insert(hit.leaf);
+        store.mark_dirty_in(hit.instance, hit.page, hit.instance_leaf);
+        scene.touch(hit);
     }
 }
 

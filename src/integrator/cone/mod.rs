@@ -16,7 +16,8 @@
 //! converged cell answers without recursing (§4.6.1). No pixel shows a cell's mean, so
 //! cells cannot show as patches on screen.
 //! After each pass the store is pulled up the tree (§4.8) so nodes first met by wide cones
-//! start from their children's light.
+//! start from their children's light. Only cones that stop at nodes read a node's pulled
+//! light: at `--cone-scale` 0 the pull runs once, for `--store-out`.
 //!
 //! Surfaces with specular or transmissive lobes are traced as the path tracer does (no
 //! storage); a smooth bounce bends the cone by the surface's curvature (`bent_tan`). Nodes
@@ -44,7 +45,8 @@ use super::{Counters, Integrator, PixelSample, Scene, Stats, Target};
 use crate::material::Material;
 use crate::radiance::{pull, Keys, RadianceStore};
 use crate::sampler::PixelSampler;
-use crate::trace::{Cone, Tracer};
+use crate::trace::{Cone, Hit, Tracer};
+use anyhow::Context;
 use glam::Vec3A as V;
 use std::sync::atomic::{AtomicU32, Ordering::Relaxed};
 use std::time::Instant;
@@ -178,7 +180,11 @@ pub struct ConeIntegrator {
 }
 
 impl ConeIntegrator {
-    pub fn new(settings: &ConeSettings, scene: &Scene, target: &Target) -> ConeIntegrator {
+    pub fn new(
+        settings: &ConeSettings,
+        scene: &Scene,
+        target: &Target,
+    ) -> anyhow::Result<ConeIntegrator> {
         let archive = &scene.cache.archive;
         let cam = &scene.camera;
         let window = target.window;
@@ -189,14 +195,14 @@ impl ConeIntegrator {
             (window[3] + 1).min(cam.height),
         ];
         let (w, h) = (apron[1] - apron[0], apron[3] - apron[2]);
-        ConeIntegrator {
+        Ok(ConeIntegrator {
             settings: settings.clone(),
             store: RadianceStore::new(
                 settings.samples,
                 target.state_bytes,
                 archive.page_count() as usize,
             ),
-            keys: Keys::new(&archive.header),
+            keys: keys(archive)?,
             primary: Cone {
                 r0: 0.0,
                 tan_a: 2.0 * cam.tan_half / cam.height as f32,
@@ -224,7 +230,7 @@ impl ConeIntegrator {
             edge: Vec::new(),
             pull_s: 0.0,
             light_s: 0.0,
-        }
+        })
     }
 
     /// Counts whether a primary sample of image pixel (x, y) saw emission.
@@ -277,6 +283,24 @@ impl ConeIntegrator {
     }
 }
 
+/// The archive's stored-light keys, or why they do not fit in 64 bits.
+pub fn keys(archive: &canopy_format::Archive) -> anyhow::Result<Keys> {
+    let h = &archive.header;
+    Keys::new(h).with_context(|| {
+        format!(
+            "{}: {} nodes placed by {} instances are more than the cone integrator's 64-bit stored-light keys can number; convert with --flatten-instances, or render with --integrator path",
+            archive.path().display(),
+            h.nodes,
+            h.instances.count
+        )
+    })
+}
+
+/// The key of the cell `cell` of a hit's triangle, on side `back`, as its instance places it.
+fn tri_key(keys: Keys, h: &Hit, back: bool, cell: u64) -> u64 {
+    keys.tri(keys.placed(h.instance, h.leaf), h.slot, back, cell)
+}
+
 /// Whether the caustic light pass runs: decided once, and the stats say why.
 fn light_pass(mode: LightPass, scene: &Scene) -> (bool, String) {
     let smooth = scene.materials.iter().any(Material::has_delta_lobe);
@@ -288,7 +312,7 @@ fn light_pass(mode: LightPass, scene: &Scene) -> (bool, String) {
             LightPass::Auto => smooth,
         };
     let why = if on {
-        "light pass: photons through smooth mirrors and glass leave caustics on diffuse surfaces (L S S* D); the eye pass masks those paths; pulled after each pass"
+        "light pass: photons through smooth mirrors and glass leave caustics on diffuse surfaces (L S S* D); the eye pass masks those paths"
     } else if mode == LightPass::Off {
         "light pass: off (--light-pass off); caustics come from the eye pass"
     } else if !smooth && mode == LightPass::Auto {
@@ -361,9 +385,11 @@ impl Integrator for ConeIntegrator {
     }
 
     /// Pull after passes 1, 2, 4, 8 and then every 8th: a pull walks every resident page,
-    /// which on a big scene costs more than a small pass.
+    /// which on a big scene costs more than a small pass. Exact cones (scale 0) meet only
+    /// triangles, whose cells are never pulled: no pull (on the 1 G-triangle forest it
+    /// took 26 of 28 seconds, each instance's prototype pulled apart).
     fn end_pass(&mut self, scene: &Scene, done: u32) {
-        if done.is_power_of_two() || done.is_multiple_of(8) {
+        if self.settings.scale > 0.0 && (done.is_power_of_two() || done.is_multiple_of(8)) {
             let t = Instant::now();
             pull(&scene.cache, &self.store, self.keys);
             self.pull_s += t.elapsed().as_secs_f64();
@@ -383,7 +409,11 @@ impl Integrator for ConeIntegrator {
         };
         vec![
             format!("cone: eye pass, cone scale {}, diffuse cones tan {}, diffuse light stored per node (converged at {} samples)", s.scale, s.diffuse_tan, s.samples),
-            "pull after every eye pass".into(),
+            if s.scale > 0.0 {
+                "pull after eye passes 1, 2, 4, 8 and every 8th".into()
+            } else {
+                "no pull: exact cones read no node's light".into()
+            },
             self.light_pass.1.clone(),
             edge,
         ]

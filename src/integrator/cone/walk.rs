@@ -13,7 +13,7 @@ use crate::integrator::{
 use crate::material::{cosine_hemisphere, Frame};
 use crate::radiance::RadianceStore;
 use crate::sampler::PixelSampler;
-use crate::trace::{gamma, offset_origin, Cone, ConeHit, Hit, Ray, Tracer};
+use crate::trace::{gamma, offset_origin, Cone, ConeHit, Hit, Ray, Tracer, NO_INSTANCE};
 use canopy_format::codec::{snorm16_decode, unorm8_decode};
 use canopy_format::{Node as NodeRecord, NodeFlags};
 use glam::Vec3A as V;
@@ -32,8 +32,8 @@ enum Keep {
 /// What one bounce needs to finish once the rest of the path is known.
 struct Pending {
     keep: Keep,
-    /// Page holding that node.
-    page: u32,
+    /// Page holding that node, the instance placing it and that instance's leaf.
+    page: (u32, u32, u64),
     /// Radiance gathered here independent of the continuation: emission and light samples.
     direct: V,
     emission: V,
@@ -231,11 +231,11 @@ impl Path {
                     Keep::Fresh => incoming,
                     Keep::Store(key) => {
                         store.add(key, incoming.to_array());
-                        store.mark_dirty(b.page);
+                        store.mark_dirty_in(b.page.1, b.page.0, b.page.2);
                         incoming
                     }
                     Keep::Answer(key) => {
-                        store.mark_dirty(b.page);
+                        store.mark_dirty_in(b.page.1, b.page.0, b.page.2);
                         V::from(store.add(key, incoming.to_array()).0)
                     }
                 };
@@ -306,11 +306,16 @@ impl ConeIntegrator {
                 path.ray.o = offset_origin(at.p, at.err, at.ng, path.ray.d);
                 continue;
             }
-            let (node, page) = match &hit {
-                ConeHit::Tri(h) => (h.leaf, h.page),
-                ConeHit::Node { node, page, .. } => (*node, *page),
+            let page = match &hit {
+                ConeHit::Tri(h) => {
+                    scene.touch(h);
+                    (h.page, h.instance, h.instance_leaf)
+                }
+                ConeHit::Node { node, page, .. } => {
+                    scene.touched.insert(*node);
+                    (*page, NO_INSTANCE, 0)
+                }
             };
-            scene.touched.insert(node);
             let mut pend = Pending {
                 keep: Keep::Fresh,
                 page,
@@ -376,7 +381,7 @@ impl ConeIntegrator {
             return Event::Diffuse(Diffuse {
                 frame: Frame::new(n),
                 albedo: bsdf.diffuse,
-                key: self.keys.tri(h.leaf, h.slot, !at.front, cell),
+                key: super::tri_key(self.keys, h, !at.front, cell),
                 cluster_n: None,
                 min_dist: 0.0,
                 side: self.keys.side(&h.tri),
@@ -616,9 +621,9 @@ pub fn seen_emission(
     let Some(hit) = tr.cone_hit(ray, cone) else {
         return V::ZERO;
     };
-    scene.touched.insert(match &hit {
-        ConeHit::Tri(h) => h.leaf,
-        ConeHit::Node { node, .. } => *node,
-    });
+    match &hit {
+        ConeHit::Tri(h) => scene.touch(h),
+        ConeHit::Node { node, .. } => scene.touched.insert(*node),
+    }
     c.finite(hit_emission(scene, &hit, ray, cone))
 }
