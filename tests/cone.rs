@@ -711,13 +711,17 @@ double_sided = false
     );
 }
 
+/// A placed leaf triangle: (leaf's global number, slot, triangle, (instance, page, the
+/// instance's leaf)).
+type OnLeaf<'a> = &'a mut dyn FnMut(u64, u32, &canopy::paging::TriW, (u32, u32, u64));
+
 /// One node of a tree walked below page `pg`'s node `i`, as `instance` places it: leaves
 /// get `on_leaf(leaf's global number, slot, placed triangle)`, every node `on_node(its
 /// placed global number, Σ area·value, Σ area)` over the placed triangles below it.
 struct Visit<'a> {
     cache: &'a PageCache,
     value: &'a dyn Fn(&canopy::paging::TriW) -> [f64; 3],
-    on_leaf: &'a mut dyn FnMut(u64, u32, &canopy::paging::TriW, (u32, u32, u64)),
+    on_leaf: OnLeaf<'a>,
     on_node: &'a mut dyn FnMut(u64, [f64; 3], f64),
     keys: canopy::radiance::Keys,
 }
