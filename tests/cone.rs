@@ -786,7 +786,7 @@ fn stored_light_pulls_through_each_instance_apart() {
     assert_eq!(archive.header.instances.count, 3);
     let cache = PageCache::new(Arc::clone(&archive), None, 1).unwrap();
     let keys = Keys::new(&archive.header).unwrap();
-    let store = RadianceStore::new(1024, None, archive.page_count() as usize);
+    let store = RadianceStore::new(1024, None, archive.page_count() as usize, keys.block());
     store.add_photons(1);
     let value = |t: &canopy::paging::TriW| {
         let c = (V::from(t.p[0]) + V::from(t.p[1]) + V::from(t.p[2])) / 3.0;

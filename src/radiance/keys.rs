@@ -51,6 +51,11 @@ impl Keys {
         }
     }
 
+    /// Keys per node: its own and its triangles' cells (a store's block).
+    pub fn block(&self) -> u64 {
+        self.stride
+    }
+
     /// Key of a node's own light.
     pub fn node(&self, node: u64) -> u64 {
         node * self.stride

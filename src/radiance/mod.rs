@@ -14,7 +14,7 @@ mod pull;
 pub use keys::{tri_area, Keys, CELLS, CELL_FRACTION, GRID};
 pub use pull::pull;
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering::Relaxed};
 use std::sync::Mutex;
 
@@ -48,9 +48,19 @@ impl Entry {
     }
 }
 
-/// Concurrent map from global node number to its entry (sharded mutexes).
+/// One shard of the store: its entries, and the blocks (a node's own key and its cells'
+/// keys) holding any of them.
+#[derive(Default)]
+struct Shard {
+    map: HashMap<u64, Entry>,
+    blocks: HashSet<u64>,
+}
+
+/// Concurrent map from key to entry (sharded mutexes; a block's keys share a shard).
 pub struct RadianceStore {
-    shards: Vec<Mutex<HashMap<u64, Entry>>>,
+    shards: Vec<Mutex<Shard>>,
+    /// Keys per block (`Keys::block`).
+    block: u64,
     /// Samples after which a node counts as converged (004 §4.6.1 used 65536).
     pub limit: u32,
     /// Most entries the memory budget allows; nodes met after that are not stored (their
@@ -70,15 +80,17 @@ pub struct RadianceStore {
 }
 
 /// Bytes an entry costs in the map: 8-byte key and 48-byte entry, hash-table overhead at
-/// its 7/8 load factor and one control byte.
-pub const ENTRY_BYTES: u64 = 65;
+/// its 7/8 load factor and one control byte; and at most one block marker (8-byte key, the
+/// same overhead).
+pub const ENTRY_BYTES: u64 = 75;
 
 impl RadianceStore {
     /// `max_bytes`: the store's share of the memory budget (None: unbounded); `pages`: the
-    /// archive's page count.
-    pub fn new(limit: u32, max_bytes: Option<u64>, pages: usize) -> RadianceStore {
+    /// archive's page count; `block`: keys per block (`Keys::block`).
+    pub fn new(limit: u32, max_bytes: Option<u64>, pages: usize, block: u64) -> RadianceStore {
         RadianceStore {
-            shards: (0..SHARDS).map(|_| Mutex::new(HashMap::new())).collect(),
+            shards: (0..SHARDS).map(|_| Mutex::default()).collect(),
+            block: block.max(1),
             limit: limit.max(1),
             max_entries: max_bytes.map_or(usize::MAX, |b| (b / ENTRY_BYTES) as usize),
             entries: AtomicUsize::new(0),
@@ -129,15 +141,23 @@ impl RadianceStore {
     }
 
     /// The entry for `node`, created if the budget has room.
-    fn entry<'m>(&self, m: &'m mut HashMap<u64, Entry>, node: u64) -> Option<&'m mut Entry> {
-        if !m.contains_key(&node) {
+    fn entry<'m>(&self, m: &'m mut Shard, node: u64) -> Option<&'m mut Entry> {
+        if !m.map.contains_key(&node) {
             if self.entries.load(Relaxed) >= self.max_entries {
                 self.refused.fetch_add(1, Relaxed);
                 return None;
             }
             self.entries.fetch_add(1, Relaxed);
+            m.blocks.insert(node / self.block);
         }
-        Some(m.entry(node).or_default())
+        Some(m.map.entry(node).or_default())
+    }
+
+    /// Whether any key of the block starting at `node` (a node's own key, `Keys::node`) has
+    /// an entry: a leaf whose triangles hold no light is skipped by the pull at one lookup.
+    pub fn lit(&self, node: u64) -> bool {
+        let b = node / self.block;
+        self.shard(node).lock().expect("store").blocks.contains(&b)
     }
 
     /// Samples not stored because the budget was full.
@@ -145,12 +165,18 @@ impl RadianceStore {
         self.refused.load(Relaxed)
     }
 
-    fn shard(&self, node: u64) -> &Mutex<HashMap<u64, Entry>> {
-        &self.shards[(node.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 58) as usize % SHARDS]
+    fn shard(&self, node: u64) -> &Mutex<Shard> {
+        let b = node / self.block;
+        &self.shards[(b.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 58) as usize % SHARDS]
     }
 
     pub fn get(&self, node: u64) -> Option<Entry> {
-        self.shard(node).lock().expect("store").get(&node).copied()
+        self.shard(node)
+            .lock()
+            .expect("store")
+            .map
+            .get(&node)
+            .copied()
     }
 
     /// Adds a sample (unless the node has converged) and returns the node's average after it
@@ -226,7 +252,7 @@ impl RadianceStore {
     pub fn len(&self) -> usize {
         self.shards
             .iter()
-            .map(|s| s.lock().expect("store").len())
+            .map(|s| s.lock().expect("store").map.len())
             .sum()
     }
 
@@ -245,7 +271,7 @@ impl RadianceStore {
             .iter()
             .flat_map(|s| {
                 let m = s.lock().expect("store");
-                m.iter().map(|(k, e)| (*k, *e)).collect::<Vec<_>>()
+                m.map.iter().map(|(k, e)| (*k, *e)).collect::<Vec<_>>()
             })
             .collect();
         all.sort_unstable_by_key(|(k, _)| *k);
@@ -259,7 +285,9 @@ impl RadianceStore {
             return None;
         }
         for (k, e) in entries {
-            if self.shard(k).lock().expect("store").insert(k, e).is_none() {
+            let mut m = self.shard(k).lock().expect("store");
+            m.blocks.insert(k / self.block);
+            if m.map.insert(k, e).is_none() {
                 self.entries.fetch_add(1, Relaxed);
             }
         }
@@ -279,6 +307,7 @@ impl RadianceStore {
             .map(|s| {
                 s.lock()
                     .expect("store")
+                    .map
                     .values()
                     .filter(|e| e.n >= self.limit)
                     .count()
@@ -319,7 +348,7 @@ mod tests {
 
     #[test]
     fn counter_saturates_and_stops_accumulating() {
-        let s = RadianceStore::new(4, None, 0);
+        let s = RadianceStore::new(4, None, 0, 1);
         for i in 0..10 {
             let (avg, conv) = s.add(7, [i as f32; 3]);
             assert_eq!(conv, i >= 3, "sample {i}");
@@ -337,7 +366,7 @@ mod tests {
 
     #[test]
     fn a_full_store_keeps_what_it_has_and_refuses_new_nodes() {
-        let s = RadianceStore::new(100, Some(2 * ENTRY_BYTES), 0);
+        let s = RadianceStore::new(100, Some(2 * ENTRY_BYTES), 0, 1);
         s.add(1, [1.0; 3]);
         s.add(2, [2.0; 3]);
         // A third node does not fit: its sample comes back unstored.

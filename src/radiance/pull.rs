@@ -135,6 +135,8 @@ fn pull_page(cache: &PageCache, store: &RadianceStore, keys: Keys, page: &Page, 
                     page.nodes[i].area,
                 )]
             }
+            // A leaf none of whose cells holds light has nothing to pull.
+            NodeRef::Leaf { .. } if !store.lit(keys.node(here)) => continue,
             NodeRef::Leaf { first, count } => (0..count)
                 .filter_map(|k| {
                     let t = page.tri(first + k)?;
@@ -243,7 +245,7 @@ mod tests {
             [x, 1.0 - x, 0.25 + x * x]
         };
         let keys = Keys::new(&archive.header).unwrap();
-        let store = RadianceStore::new(1024, None, archive.page_count() as usize);
+        let store = RadianceStore::new(1024, None, archive.page_count() as usize, keys.block());
         store.add_photons(1);
         for pg in 0..archive.page_count() {
             let page = cache.get(pg);

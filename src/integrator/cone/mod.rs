@@ -195,14 +195,16 @@ impl ConeIntegrator {
             (window[3] + 1).min(cam.height),
         ];
         let (w, h) = (apron[1] - apron[0], apron[3] - apron[2]);
+        let keys = keys(archive)?;
         Ok(ConeIntegrator {
             settings: settings.clone(),
             store: RadianceStore::new(
                 settings.samples,
                 target.state_bytes,
                 archive.page_count() as usize,
+                keys.block(),
             ),
-            keys: keys(archive)?,
+            keys,
             primary: Cone {
                 r0: 0.0,
                 tan_a: 2.0 * cam.tan_half / cam.height as f32,
