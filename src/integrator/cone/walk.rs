@@ -32,8 +32,8 @@ enum Keep {
 /// What one bounce needs to finish once the rest of the path is known.
 struct Pending {
     keep: Keep,
-    /// Page holding that node, the instance placing it and that instance's leaf.
-    page: (u32, u32, u64),
+    /// Where that node is: its page, as placed by an instance.
+    place: Place,
     /// Radiance gathered here independent of the continuation: emission and light samples.
     direct: V,
     emission: V,
@@ -43,6 +43,21 @@ struct Pending {
     /// Continuation weight (BSDF value · cos / pdf, roulette included).
     weight: V,
     diffuse: bool,
+}
+
+/// A node's page, the instance placing it (`NO_INSTANCE`: none) and that instance's leaf:
+/// what a change to its stored light marks for the pull.
+#[derive(Clone, Copy)]
+struct Place {
+    page: u32,
+    instance: u32,
+    via: u64,
+}
+
+impl Place {
+    fn mark(self, store: &RadianceStore) {
+        store.mark_dirty_in(self.instance, self.page, self.via);
+    }
 }
 
 /// A hit as shading sees it, with the bounce's sample numbers: sets 2k+1 (light choice,
@@ -231,11 +246,11 @@ impl Path {
                     Keep::Fresh => incoming,
                     Keep::Store(key) => {
                         store.add(key, incoming.to_array());
-                        store.mark_dirty_in(b.page.1, b.page.0, b.page.2);
+                        b.place.mark(store);
                         incoming
                     }
                     Keep::Answer(key) => {
-                        store.mark_dirty_in(b.page.1, b.page.0, b.page.2);
+                        b.place.mark(store);
                         V::from(store.add(key, incoming.to_array()).0)
                     }
                 };
@@ -306,19 +321,27 @@ impl ConeIntegrator {
                 path.ray.o = offset_origin(at.p, at.err, at.ng, path.ray.d);
                 continue;
             }
-            let page = match &hit {
+            let place = match &hit {
                 ConeHit::Tri(h) => {
                     scene.touch(h);
-                    (h.page, h.instance, h.instance_leaf)
+                    Place {
+                        page: h.page,
+                        instance: h.instance,
+                        via: h.instance_leaf,
+                    }
                 }
                 ConeHit::Node { node, page, .. } => {
                     scene.touched.insert(*node);
-                    (*page, NO_INSTANCE, 0)
+                    Place {
+                        page: *page,
+                        instance: NO_INSTANCE,
+                        via: 0,
+                    }
                 }
             };
             let mut pend = Pending {
                 keep: Keep::Fresh,
-                page,
+                place,
                 direct: V::ZERO,
                 emission: path.emission(scene, &hit, &at),
                 albedo: V::ZERO,
