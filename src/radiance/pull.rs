@@ -13,16 +13,14 @@ use rayon::prelude::*;
 
 pub fn pull(cache: &PageCache, store: &RadianceStore, keys: Keys) {
     let placed = store.take_placed_dirty();
-    placed
-        .chunk_by(|a, b| a.0 == b.0)
-        .collect::<Vec<_>>()
-        .par_iter()
-        .for_each(|changed| {
-            let pages = changed.iter().map(|&(_, page, _)| page).collect();
-            pull_pages(cache, store, keys, pages, changed[0].0);
-        });
-    for &(_, _, via) in &placed {
-        if let Some(page) = page_of(cache, via) {
+    let instances: Vec<_> = placed.chunk_by(|a, b| a.0 == b.0).collect();
+    instances.par_iter().for_each(|changed| {
+        let pages = changed.iter().map(|&(_, page, _)| page).collect();
+        pull_pages(cache, store, keys, pages, changed[0].0);
+    });
+    // Each instance's leaf, in the scene's tree, takes its prototype root's new light.
+    for changed in &instances {
+        if let Some(page) = page_of(cache, changed[0].2) {
             store.mark_dirty(page);
         }
     }
