@@ -19,11 +19,14 @@ fn cone(
 #[test]
 fn cone_scale_zero_agrees_with_the_reference() {
     let dir = tempfile::tempdir().unwrap();
+    // room_glass's light through rough glass is heavy-tailed: at 64 spp the path tracer's
+    // own image means ran −0.2 to −0.8% in five seeds of six and +4.4% in the sixth, so
+    // it takes 256 spp to hold 1%.
     for (name, spp) in [
         ("cbox", "128"),
         ("bunny_box", "64"),
         ("room_glossy", "64"),
-        ("room_glass", "64"),
+        ("room_glass", "256"),
     ] {
         let arc = dir.path().join(format!("{name}.canopy"));
         convert(&scene(&format!("{name}.glb")), &arc, None);
@@ -798,7 +801,7 @@ fn stored_light_pulls_through_each_instance_apart() {
         let v = value(t).map(|x| x as f32);
         for (cell, _) in keys.cells(t) {
             let key = keys.tri(keys.placed(inst, leaf), k, false, cell);
-            store.add(key, v);
+            store.add(key, v, 1.0);
             store.add_caustic(key, v);
         }
         store.mark_dirty_in(inst, pg, via);

@@ -11,7 +11,7 @@ use canopy_format::Header;
 use std::path::Path;
 
 const MAGIC: [u8; 8] = *b"CNPYSTOR";
-const VERSION: u16 = 2;
+const VERSION: u16 = 3;
 
 /// The 128-byte header.
 #[repr(C)]
@@ -38,20 +38,22 @@ struct StoreHeader {
 
 const _: () = assert!(std::mem::size_of::<StoreHeader>() == 128);
 
-/// One record of the body (56 bytes): the key and the entry's fields in order.
+/// One record of the body (64 bytes): the key and the entry's fields in order.
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
 struct Record {
     key: u64,
     sum: [f32; 3],
+    weight: f32,
     n: u32,
     pulled: [f32; 3],
     pulled_n: u32,
     caustic: [f32; 3],
     visible: f32,
+    reserved: u32,
 }
 
-const _: () = assert!(std::mem::size_of::<Record>() == 56);
+const _: () = assert!(std::mem::size_of::<Record>() == 64);
 
 fn checksum(h: &StoreHeader) -> u64 {
     let mut c = *h;
@@ -67,18 +69,20 @@ pub fn save(store: &RadianceStore, a: &Header, path: &Path) -> Result<u64> {
         .map(|(key, e)| Record {
             key,
             sum: e.sum,
+            weight: e.weight,
             n: e.n,
             pulled: e.pulled,
             pulled_n: e.pulled_n,
             caustic: e.caustic,
             visible: e.visible,
+            reserved: 0,
         })
         .collect();
     let body = zstd::bulk::compress(bytemuck::cast_slice(&records), 1)?;
     let mut h = StoreHeader {
         magic: MAGIC,
         version_major: VERSION,
-        version_minor: 1,
+        version_minor: 0,
         header_size: 128,
         archive_checksum: a.header_checksum,
         archive_len: a.file_len,
@@ -134,7 +138,7 @@ pub fn load(store: &RadianceStore, a: &Header, path: &Path) -> Result<u64> {
     }
     let want = h
         .entries
-        .checked_mul(56)
+        .checked_mul(size_of::<Record>() as u64)
         .filter(|&n| n <= 1 << 40)
         .with_context(|| format!("{name}: {} entries is absurd", h.entries))?;
     let raw = zstd::bulk::decompress(body, want as usize)
@@ -154,9 +158,11 @@ pub fn load(store: &RadianceStore, a: &Header, path: &Path) -> Result<u64> {
             .iter()
             .chain(&r.pulled)
             .chain(&r.caustic)
+            .chain([&r.weight])
             .all(|v| v.is_finite());
         let sorted = i == 0 || records[i - 1].key < r.key;
-        if !finite || !sorted || r.n > h.limit || !(0.0..=1.0).contains(&r.visible) {
+        let weighed = r.weight >= 0.0 && (r.n == 0 || r.weight > 0.0);
+        if !finite || !sorted || !weighed || r.n > h.limit || !(0.0..=1.0).contains(&r.visible) {
             bail!(
                 "{name}: entry {i} (key {}) is not a valid stored value",
                 r.key
@@ -164,6 +170,7 @@ pub fn load(store: &RadianceStore, a: &Header, path: &Path) -> Result<u64> {
         }
         let e = Entry {
             sum: r.sum,
+            weight: r.weight,
             n: r.n,
             pulled: r.pulled,
             pulled_n: r.pulled_n,

@@ -23,7 +23,10 @@ const SHARDS: usize = 64;
 /// One node's accumulated samples.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Entry {
+    /// Σ β·L: samples weighted by the throughput of the path that took them.
     pub sum: [f32; 3],
+    /// Σ β.
+    pub weight: f32,
     pub n: u32,
     /// Area-weighted average of the children (after a pull) and the samples behind it.
     pub pulled: [f32; 3],
@@ -40,8 +43,8 @@ impl Entry {
     pub fn value(&self) -> Option<([f32; 3], u32)> {
         if self.pulled_n > self.n {
             Some((self.pulled, self.pulled_n))
-        } else if self.n > 0 {
-            Some((self.sum.map(|v| v / self.n as f32), self.n))
+        } else if self.n > 0 && self.weight > 0.0 {
+            Some((self.sum.map(|v| v / self.weight), self.n))
         } else {
             None
         }
@@ -79,10 +82,10 @@ pub struct RadianceStore {
     placed_dirty: Mutex<HashMap<(u32, u32), u64>>,
 }
 
-/// Bytes an entry costs in the map: 8-byte key and 48-byte entry, hash-table overhead at
+/// Bytes an entry costs in the map: 8-byte key and 52-byte entry, hash-table overhead at
 /// its 7/8 load factor and one control byte; and at most one block marker (8-byte key, the
 /// same overhead).
-pub const ENTRY_BYTES: u64 = 75;
+pub const ENTRY_BYTES: u64 = 80;
 
 impl RadianceStore {
     /// `max_bytes`: the store's share of the memory budget (None: unbounded); `pages`: the
@@ -179,17 +182,27 @@ impl RadianceStore {
             .copied()
     }
 
-    /// Adds a sample (unless the node has converged) and returns the node's average after it
-    /// (004 eq. 4.24–4.25) and whether it has converged.
-    pub fn add(&self, node: u64, sample: [f32; 3]) -> ([f32; 3], bool) {
+    /// Adds a sample taken by a path of throughput `beta` (unless the node has converged)
+    /// and returns the node's mean after it (004 eq. 4.24–4.25) and whether it has
+    /// converged.
+    pub fn add(&self, node: u64, sample: [f32; 3], beta: f32) -> ([f32; 3], bool) {
         let mut m = self.shard(node).lock().expect("store");
         let Some(e) = self.entry(&mut m, node) else {
             return (sample, false);
         };
-        if sample.iter().all(|v| v.is_finite()) {
-            count_in(&mut e.sum, &mut e.n, sample, self.limit);
+        let usable = beta.is_finite() && beta > 0.0 && sample.iter().all(|v| v.is_finite());
+        if usable && e.n < self.limit {
+            for (s, x) in e.sum.iter_mut().zip(sample) {
+                *s += beta * x;
+            }
+            e.weight += beta;
+            e.n += 1;
         }
-        let avg = e.sum.map(|v| v / e.n.max(1) as f32);
+        let avg = if e.weight > 0.0 {
+            e.sum.map(|v| v / e.weight)
+        } else {
+            sample
+        };
         (avg, e.n >= self.limit)
     }
 
@@ -322,14 +335,6 @@ fn add_to(sum: &mut [f32; 3], v: [f32; 3]) {
     }
 }
 
-/// Adds a sample to a sum and its counter, unless the counter reached `cap`.
-fn count_in(sum: &mut [f32; 3], n: &mut u32, v: [f32; 3], cap: u32) {
-    if *n < cap {
-        add_to(sum, v);
-        *n += 1;
-    }
-}
-
 /// Mean of values under weights (areas, sample counts); None when the weights sum to zero.
 pub fn weighted_mean(items: impl IntoIterator<Item = ([f32; 3], f32)>) -> Option<[f32; 3]> {
     let (mut sum, mut total) = ([0f32; 3], 0f32);
@@ -350,7 +355,7 @@ mod tests {
     fn counter_saturates_and_stops_accumulating() {
         let s = RadianceStore::new(4, None, 0, 1);
         for i in 0..10 {
-            let (avg, conv) = s.add(7, [i as f32; 3]);
+            let (avg, conv) = s.add(7, [i as f32; 3], 1.0);
             assert_eq!(conv, i >= 3, "sample {i}");
             // Samples past the limit are ignored: the mean stays that of the first four.
             if i >= 3 {
@@ -360,21 +365,36 @@ mod tests {
         assert_eq!(s.get(7).unwrap().n, 4);
         assert_eq!(s.converged(), 1);
         // A non-finite sample is dropped rather than poisoning the node.
-        let (avg, _) = s.add(8, [f32::NAN, 1.0, 1.0]);
+        let (avg, _) = s.add(8, [f32::NAN, 1.0, 1.0], 1.0);
         assert!(avg.iter().all(|v| v.is_finite()));
+    }
+
+    #[test]
+    fn samples_count_by_their_paths_throughput() {
+        let s = RadianceStore::new(8, None, 0, 1);
+        s.add(1, [1.0; 3], 0.25);
+        // A sample whose path carries no throughput, or an unusable one, is not counted.
+        for beta in [0.0, -1.0, f32::NAN] {
+            s.add(1, [100.0; 3], beta);
+        }
+        let (avg, _) = s.add(1, [3.0; 3], 0.75);
+        assert_eq!(avg, [2.5; 3]);
+        let e = s.get(1).unwrap();
+        assert_eq!((e.n, e.weight), (2, 1.0));
+        assert_eq!(e.value(), Some(([2.5; 3], 2)));
     }
 
     #[test]
     fn a_full_store_keeps_what_it_has_and_refuses_new_nodes() {
         let s = RadianceStore::new(100, Some(2 * ENTRY_BYTES), 0, 1);
-        s.add(1, [1.0; 3]);
-        s.add(2, [2.0; 3]);
+        s.add(1, [1.0; 3], 1.0);
+        s.add(2, [2.0; 3], 1.0);
         // A third node does not fit: its sample comes back unstored.
-        assert_eq!(s.add(3, [5.0; 3]), ([5.0; 3], false));
+        assert_eq!(s.add(3, [5.0; 3], 1.0), ([5.0; 3], false));
         assert!(s.get(3).is_none());
         assert_eq!(s.refused(), 1);
         // Stored nodes keep accumulating.
-        assert_eq!(s.add(1, [3.0; 3]).0, [2.0; 3]);
+        assert_eq!(s.add(1, [3.0; 3], 1.0).0, [2.0; 3]);
         assert_eq!(s.len(), 2);
     }
 }

@@ -257,7 +257,7 @@ mod tests {
                     let v = value(t).map(|x| x as f32);
                     for (cell, _) in keys.cells(t) {
                         let key = keys.tri(page.first_node + i as u64, k, false, cell);
-                        store.add(key, v);
+                        store.add(key, v, 1.0);
                         store.add_caustic(key, v);
                     }
                 }

@@ -972,6 +972,9 @@ impl<'a> Tracer<'a> {
     /// Nearest hit of a cone: a leaf triangle, or the first node whose box the cone's
     /// radius outgrows (004 §4.5.1); `ray.d` must be unit length.
     pub fn cone_hit(&mut self, ray: &Ray, cone: &Cone) -> Option<ConeHit> {
+        if cone.scale <= 0.0 {
+            return self.closest_hit(ray).map(ConeHit::Tri);
+        }
         let mut tri_best: Option<TriRef> = None;
         let mut node_best: Option<ConeHit> = None;
         let mut on_node = |page: &Page, ni: u32, t: f32| {

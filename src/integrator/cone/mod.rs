@@ -52,13 +52,6 @@ use std::sync::atomic::{AtomicU32, Ordering::Relaxed};
 use std::time::Instant;
 use walk::seen_emission;
 
-/// Hits, counted from the eye, that take their own fresh sample; deeper hits may answer
-/// with their cell's stored mean. Deviation: the thesis answers from the first bounce on
-/// (1). Measured on `room` (docs/cone-room.md), answering there biased the image mean by
-/// −0.7% in red in one of two runs (−0.1% in the other) and left the error flat from 30
-/// to 60 s; from the second bounce on the mean stays within 0.13% and the error falls.
-pub const FRESH: u32 = 2;
-
 /// Tan of the footprint a diffuse bounce resolves stored light with: a cell answers a
 /// hit at distance t when its side is at most 2·t·STORE_TAN. 0.3 is the thesis's
 /// diffuse cone (004 eq. 4.20's d); geometry keeps `--diffuse-tan`'s finer cones.

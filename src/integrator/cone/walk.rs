@@ -5,7 +5,7 @@
 
 use super::cluster::{hit_emission, phong_lobe, reflect_lut, theta_norm};
 use super::optics::{bent_tan, jitter};
-use super::{ConeIntegrator, FRESH, STORE_TAN};
+use super::{ConeIntegrator, STORE_TAN};
 use crate::integrator::path::{passes_through, power_heuristic, MAX_PASSES};
 use crate::integrator::{
     bsdf_term, on_side, sample_light, shading_frame, Counters, Receiver, Scene,
@@ -166,6 +166,8 @@ struct Path {
     /// bounces only (D S* S L) is the light pass's caustic and masked here (004 §4.7).
     mask_caustics: bool,
     smooth_chain: bool,
+    /// Diffuse bounces taken so far.
+    diffuse_bounces: u32,
 }
 
 impl Path {
@@ -211,6 +213,7 @@ impl Path {
             self.prev = from;
         }
         self.smooth_chain = b.diffuse || (self.smooth_chain && b.smooth);
+        self.diffuse_bounces += b.diffuse as u32;
         self.ray = b.ray;
         self.cone = b.cone;
         self.depth += 1;
@@ -238,20 +241,28 @@ impl Path {
             .stack
             .first_mut()
             .map_or(V::ZERO, |b| std::mem::take(&mut b.emission));
+        // The throughput reaching each bounce: the store weights a cell's samples by it, so
+        // its mean is the image's average of the cell (a cell's light varies across it,
+        // and the paths arriving at each point carry different throughput).
+        let mut betas = Vec::with_capacity(self.stack.len());
+        self.stack.iter().fold(V::ONE, |beta, p| {
+            betas.push(beta.element_sum() / 3.0);
+            beta * p.weight * if p.diffuse { p.albedo } else { V::ONE }
+        });
         let mut tail = V::ZERO;
-        while let Some(b) = self.stack.pop() {
+        while let (Some(b), Some(beta)) = (self.stack.pop(), betas.pop()) {
             let incoming = b.direct + b.weight * tail;
             tail = if b.diffuse {
                 let scattered = match b.keep {
                     Keep::Fresh => incoming,
                     Keep::Store(key) => {
-                        store.add(key, incoming.to_array());
+                        store.add(key, incoming.to_array(), beta);
                         b.place.mark(store);
                         incoming
                     }
                     Keep::Answer(key) => {
                         b.place.mark(store);
-                        V::from(store.add(key, incoming.to_array()).0)
+                        V::from(store.add(key, incoming.to_array(), beta).0)
                     }
                 };
                 b.emission + b.albedo * (scattered + b.caustic)
@@ -307,6 +318,7 @@ impl ConeIntegrator {
             prev: (V::ZERO, V::ZERO),
             mask_caustics: self.store.photons() > 0,
             smooth_chain: false,
+            diffuse_bounces: 0,
         };
         let alpha = scene.textures.has_alpha();
         let mut passes = 0;
@@ -555,23 +567,24 @@ impl ConeIntegrator {
         let store = &self.store;
         pend.albedo = d.albedo;
         pend.diffuse = true;
+        // A path's first diffuse hit (seen from the eye, directly or through smooth and
+        // glossy bounces) takes its own sample and feeds the store; after a diffuse bounce
+        // a hit answers from the store (004 §4.6). It answers only where a diffuse
+        // bounce's footprint at its distance covers the cell (a node is covered: the cone
+        // stopped there), so a cell never stands in for light that varies inside it at the
+        // scale the bounce sees (a room's corners); only those hits add to it.
+        let resolved = d.side <= 2.0 * STORE_TAN * at.t;
+        pend.keep = match path.diffuse_bounces {
+            0 => Keep::Store(d.key),
+            _ if resolved => Keep::Answer(d.key),
+            _ => Keep::Fresh,
+        };
         let entry = store.get(d.key);
         if path.mask_caustics {
             pend.caustic = entry
                 .and_then(|e| store.caustic(&e))
                 .map_or(V::ZERO, V::from);
         }
-        // The first FRESH hits take their own sample; the primary hit's, spread over the
-        // screen, also feeds the store. A deeper hit answers from the store only where a
-        // diffuse bounce's footprint at its distance covers the cell (a node is covered:
-        // the cone stopped there), so a cell never stands in for light that varies inside
-        // it at the scale the bounce sees (a room's corners); only those hits add to it.
-        let resolved = d.side <= 2.0 * STORE_TAN * at.t;
-        pend.keep = match path.depth {
-            0 => Keep::Store(d.key),
-            depth if depth >= FRESH && resolved => Keep::Answer(d.key),
-            _ => Keep::Fresh,
-        };
         // A converged node answers from its store (§4.6.1) without recursing.
         if let (Keep::Answer(_), Some(e)) = (pend.keep, entry.filter(|e| e.n >= store.limit)) {
             let (v, _) = e.value().unwrap_or(([0.0; 3], 0));
