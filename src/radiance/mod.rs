@@ -198,10 +198,12 @@ impl RadianceStore {
             e.weight += beta;
             e.n += 1;
         }
+        // A node with nothing counted yet answers with the sample, as it would have
+        // without the store (a non-finite part as 0).
         let avg = if e.weight > 0.0 {
             e.sum.map(|v| v / e.weight)
         } else {
-            sample
+            sample.map(|v| if v.is_finite() { v } else { 0.0 })
         };
         (avg, e.n >= self.limit)
     }
