@@ -45,6 +45,13 @@ struct Pending {
     diffuse: bool,
 }
 
+impl Pending {
+    /// What this bounce multiplies the path's throughput by.
+    fn throughput(&self) -> V {
+        self.weight * if self.diffuse { self.albedo } else { V::ONE }
+    }
+}
+
 /// A node's page, the instance placing it (`NO_INSTANCE`: none) and that instance's leaf:
 /// what a change to its stored light marks for the pull.
 #[derive(Clone, Copy)]
@@ -220,9 +227,7 @@ impl Path {
         if self.depth <= 1 {
             return true;
         }
-        let beta = self.stack.iter().fold(V::ONE, |b, p| {
-            b * p.weight * if p.diffuse { p.albedo } else { V::ONE }
-        });
+        let beta = self.stack.iter().fold(V::ONE, |b, p| b * p.throughput());
         let q = beta.max_element().min(1.0);
         if q <= 0.0 || u_rr >= q {
             return false;
@@ -247,7 +252,7 @@ impl Path {
         let mut betas = Vec::with_capacity(self.stack.len());
         self.stack.iter().fold(V::ONE, |beta, p| {
             betas.push(beta.element_sum() / 3.0);
-            beta * p.weight * if p.diffuse { p.albedo } else { V::ONE }
+            beta * p.throughput()
         });
         let mut tail = V::ZERO;
         while let (Some(b), Some(beta)) = (self.stack.pop(), betas.pop()) {
