@@ -43,11 +43,16 @@ impl Entry {
     pub fn value(&self) -> Option<([f32; 3], u32)> {
         if self.pulled_n > self.n {
             Some((self.pulled, self.pulled_n))
-        } else if self.n > 0 && self.weight > 0.0 {
-            Some((self.sum.map(|v| v / self.weight), self.n))
+        } else if self.n > 0 {
+            self.mean().map(|m| (m, self.n))
         } else {
             None
         }
+    }
+
+    /// The throughput-weighted mean of the own samples.
+    fn mean(&self) -> Option<[f32; 3]> {
+        (self.weight > 0.0).then(|| self.sum.map(|v| v / self.weight))
     }
 }
 
@@ -192,19 +197,15 @@ impl RadianceStore {
         };
         let usable = beta.is_finite() && beta > 0.0 && sample.iter().all(|v| v.is_finite());
         if usable && e.n < self.limit {
-            for (s, x) in e.sum.iter_mut().zip(sample) {
-                *s += beta * x;
-            }
+            add_to(&mut e.sum, sample.map(|x| beta * x));
             e.weight += beta;
             e.n += 1;
         }
         // A node with nothing counted yet answers with the sample, as it would have
         // without the store (a non-finite part as 0).
-        let avg = if e.weight > 0.0 {
-            e.sum.map(|v| v / e.weight)
-        } else {
-            sample.map(|v| if v.is_finite() { v } else { 0.0 })
-        };
+        let avg = e
+            .mean()
+            .unwrap_or(sample.map(|v| if v.is_finite() { v } else { 0.0 }));
         (avg, e.n >= self.limit)
     }
 

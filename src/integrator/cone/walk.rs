@@ -43,6 +43,11 @@ struct Pending {
     /// Continuation weight (BSDF value · cos / pdf, roulette included).
     weight: V,
     diffuse: bool,
+    /// Mean of the RGB throughput reaching this bounce from the eye: the weight of the
+    /// sample it stores, so a cell's mean is the image's average of the cell (a cell's
+    /// light varies across it, and the paths reaching each point carry different
+    /// throughput).
+    beta: f32,
 }
 
 impl Pending {
@@ -175,6 +180,8 @@ struct Path {
     smooth_chain: bool,
     /// Diffuse bounces taken so far.
     diffuse_bounces: u32,
+    /// The product of the stacked bounces' throughput.
+    beta: V,
 }
 
 impl Path {
@@ -224,17 +231,17 @@ impl Path {
         self.ray = b.ray;
         self.cone = b.cone;
         self.depth += 1;
-        if self.depth <= 1 {
+        let Some(last) = self.stack.last_mut() else {
             return true;
-        }
-        let beta = self.stack.iter().fold(V::ONE, |b, p| b * p.throughput());
-        let q = beta.max_element().min(1.0);
-        if q <= 0.0 || u_rr >= q {
-            return false;
-        }
-        if let Some(last) = self.stack.last_mut() {
+        };
+        if self.depth > 1 {
+            let q = (self.beta * last.throughput()).max_element().min(1.0);
+            if q <= 0.0 || u_rr >= q {
+                return false;
+            }
             last.weight /= q;
         }
+        self.beta *= last.throughput();
         true
     }
 
@@ -246,28 +253,20 @@ impl Path {
             .stack
             .first_mut()
             .map_or(V::ZERO, |b| std::mem::take(&mut b.emission));
-        // The throughput reaching each bounce: the store weights a cell's samples by it, so
-        // its mean is the image's average of the cell (a cell's light varies across it,
-        // and the paths arriving at each point carry different throughput).
-        let mut betas = Vec::with_capacity(self.stack.len());
-        self.stack.iter().fold(V::ONE, |beta, p| {
-            betas.push(beta.element_sum() / 3.0);
-            beta * p.throughput()
-        });
         let mut tail = V::ZERO;
-        while let (Some(b), Some(beta)) = (self.stack.pop(), betas.pop()) {
+        while let Some(b) = self.stack.pop() {
             let incoming = b.direct + b.weight * tail;
             tail = if b.diffuse {
                 let scattered = match b.keep {
                     Keep::Fresh => incoming,
                     Keep::Store(key) => {
-                        store.add(key, incoming.to_array(), beta);
+                        store.add(key, incoming.to_array(), b.beta);
                         b.place.mark(store);
                         incoming
                     }
                     Keep::Answer(key) => {
                         b.place.mark(store);
-                        V::from(store.add(key, incoming.to_array(), beta).0)
+                        V::from(store.add(key, incoming.to_array(), b.beta).0)
                     }
                 };
                 b.emission + b.albedo * (scattered + b.caustic)
@@ -324,6 +323,7 @@ impl ConeIntegrator {
             mask_caustics: self.store.photons() > 0,
             smooth_chain: false,
             diffuse_bounces: 0,
+            beta: V::ONE,
         };
         let alpha = scene.textures.has_alpha();
         let mut passes = 0;
@@ -365,6 +365,7 @@ impl ConeIntegrator {
                 caustic: V::ZERO,
                 weight: V::ZERO,
                 diffuse: false,
+                beta: path.beta.element_sum() / 3.0,
             };
             // `--max-depth` counts segments as the path tracer does: a hit on the last one
             // keeps the emission it sees and scatters nothing.
