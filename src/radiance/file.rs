@@ -126,10 +126,14 @@ pub fn load(store: &RadianceStore, a: &Header, path: &Path) -> Result<u64> {
         bail!("{name}: the light store belongs to another archive (its checksum {:016x}, this archive's {:016x})", h.archive_checksum, a.header_checksum);
     }
     if h.limit != store.limit {
+        let flag = |n: u32| match n {
+            u32::MAX => "no --cone-samples".to_string(),
+            n => format!("--cone-samples {n}"),
+        };
         bail!(
-            "{name}: stored under --cone-samples {}, this render uses {}",
-            h.limit,
-            store.limit
+            "{name}: stored under {}, this render uses {}",
+            flag(h.limit),
+            flag(store.limit)
         );
     }
     let body = &bytes[128..];

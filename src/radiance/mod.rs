@@ -62,6 +62,9 @@ impl Entry {
 struct Shard {
     map: HashMap<u64, Entry>,
     blocks: HashSet<u64>,
+    /// Reads of a mean (`read`) and samples counted (`add`), for the reuse figure.
+    reads: u64,
+    adds: u64,
 }
 
 /// Concurrent map from key to entry (sharded mutexes; a block's keys share a shard).
@@ -178,6 +181,21 @@ impl RadianceStore {
         &self.shards[(b.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 58) as usize % SHARDS]
     }
 
+    /// The entry for `node`, counted as a read of its mean.
+    pub fn read(&self, node: u64) -> Option<Entry> {
+        let mut m = self.shard(node).lock().expect("store");
+        m.reads += 1;
+        m.map.get(&node).copied()
+    }
+
+    /// Reads of a mean and samples counted so far (the mean's reuse is their ratio).
+    pub fn reuse(&self) -> [u64; 2] {
+        self.shards.iter().fold([0, 0], |[r, a], s| {
+            let m = s.lock().expect("store");
+            [r + m.reads, a + m.adds]
+        })
+    }
+
     pub fn get(&self, node: u64) -> Option<Entry> {
         self.shard(node)
             .lock()
@@ -192,6 +210,7 @@ impl RadianceStore {
     /// converged.
     pub fn add(&self, node: u64, sample: [f32; 3], beta: f32) -> ([f32; 3], bool) {
         let mut m = self.shard(node).lock().expect("store");
+        let mut added = false;
         let Some(e) = self.entry(&mut m, node) else {
             return (sample, false);
         };
@@ -200,13 +219,16 @@ impl RadianceStore {
             add_to(&mut e.sum, sample.map(|x| beta * x));
             e.weight += beta;
             e.n += 1;
+            added = true;
         }
         // A node with nothing counted yet answers with the sample, as it would have
         // without the store (a non-finite part as 0).
         let avg = e
             .mean()
             .unwrap_or(sample.map(|v| if v.is_finite() { v } else { 0.0 }));
-        (avg, e.n >= self.limit)
+        let converged = e.n >= self.limit;
+        m.adds += u64::from(added);
+        (avg, converged)
     }
 
     /// Runs `f` on the node's entry, created if the budget has room.

@@ -361,7 +361,7 @@ pub fn tiny_render(archive: &Path, dir: &Path, integrator: Settings) -> RenderOp
 /// Both integrators, the cone one with small settings for tiny renders.
 pub fn integrators() -> [Settings; 2] {
     let cone = ConeSettings {
-        samples: 64,
+        samples: Some(64),
         photons: Some(64),
         edge_rays: 2,
         ..ConeSettings::default()

@@ -13,8 +13,9 @@
 //! deeper hit answers with its cell's mean (eq. 4.24–4.25) only where a diffuse bounce's
 //! footprint at that distance covers the cell (`STORE_TAN`; a node always, the cone
 //! stopped there), and only such hits add to it; elsewhere it takes its own sample. A
-//! converged cell answers without recursing (§4.6.1). No pixel shows a cell's mean, so
-//! cells cannot show as patches on screen.
+//! hit whose cell already holds enough samples answers without recursing and adds
+//! nothing (`--cone-reuse`, a soft form of §4.6.1's convergence). No pixel shows a cell's
+//! mean, so cells cannot show as patches on screen.
 //! After each pass the store is pulled up the tree (§4.8) so nodes first met by wide cones
 //! start from their children's light. Only cones that stop at nodes read a node's pulled
 //! light: at `--cone-scale` 0 the pull runs once, for `--store-out`.
@@ -90,10 +91,18 @@ pub struct ConeSettings {
     /// more bias from clusters standing in for their triangles.
     #[arg(long, default_value_t = DIFFUSE_TAN, value_parser = crate::units::parse_non_negative)]
     pub diffuse_tan: f32,
-    /// Samples after which a node's stored light is converged and its paths stop there
-    /// (004 §4.6.1 used 65536).
-    #[arg(long = "cone-samples", default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..))]
-    pub samples: u32,
+    /// Samples after which a node's stored light is converged: it takes no more, and every
+    /// path reading it stops there (004 §4.6.1 used 65536). Default: never. A converged
+    /// cell's first samples serve every later read, so one rare bright sample among them
+    /// shifts the whole image's mean (docs/cone-room.md); `--cone-reuse` bounds that.
+    #[arg(long = "cone-samples", value_parser = clap::value_parser!(u32).range(1..))]
+    pub samples: Option<u32>,
+    /// How many reads one stored sample serves at most, on average: a hit reading a cell
+    /// that holds n samples adds a fresh one with probability min(1, max(A/n, 1/A)), and
+    /// otherwise stops there with the cell's mean (first diffuse hits, which keep their
+    /// own sample, add to the cell with the same probability). 1 adds at every read.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=1024))]
+    pub cone_reuse: u32,
     /// The light pass that carries caustics (light through smooth mirrors and glass onto
     /// diffuse surfaces, 004 §4.7). `auto` runs it when the scene has both lights and
     /// smooth specular surfaces; `off` leaves caustics to the eye paths.
@@ -134,6 +143,10 @@ pub struct ConeStats {
     pub stored_nodes: u64,
     pub stored_bytes: u64,
     pub converged_nodes: u64,
+    /// Hits that read a stored mean, and samples added to the store: their ratio is how
+    /// many reads a stored sample serves (at most `--cone-reuse` unless cells converge).
+    pub store_reads: u64,
+    pub store_adds: u64,
     /// Samples of nodes the store had no room for (the budget's share was full).
     pub store_refused_samples: u64,
     /// Photons the light passes emitted, and how many left caustic light.
@@ -192,7 +205,7 @@ impl ConeIntegrator {
         Ok(ConeIntegrator {
             settings: settings.clone(),
             store: RadianceStore::new(
-                settings.samples,
+                settings.samples.unwrap_or(u32::MAX),
                 target.state_bytes,
                 archive.page_count() as usize,
                 keys.block(),
@@ -403,7 +416,13 @@ impl Integrator for ConeIntegrator {
             )
         };
         vec![
-            format!("cone: eye pass, cone scale {}, diffuse cones tan {}, diffuse light stored per node (converged at {} samples)", s.scale, s.diffuse_tan, s.samples),
+            format!(
+                "cone: eye pass, cone scale {}, diffuse cones tan {}, diffuse light stored per node ({}, each sample serving at most {} reads on average)",
+                s.scale,
+                s.diffuse_tan,
+                s.samples.map_or("never converged".into(), |n| format!("converged at {n} samples")),
+                s.cone_reuse
+            ),
             if s.scale > 0.0 {
                 "pull after eye passes 1, 2, 4, 8 and every 8th".into()
             } else {
@@ -420,6 +439,8 @@ impl Integrator for ConeIntegrator {
             stored_nodes: self.store.len() as u64,
             stored_bytes: self.store.bytes(),
             converged_nodes: self.store.converged() as u64,
+            store_reads: self.store.reuse()[0],
+            store_adds: self.store.reuse()[1],
             store_refused_samples: self.store.refused(),
             photons: self.store.photons(),
             caustic_deposits: self.deposits,

@@ -278,6 +278,17 @@ impl Path {
     }
 }
 
+/// The chance that a hit on a cell holding `n` samples adds one: 1 while n ≤ A (`reuse`),
+/// then A/n, never below 1/A: a stored sample serves n/A reads on average, never more than
+/// A, where a frozen cell's first samples serve every later read (one rare bright sample
+/// among them moved a whole image's mean by 2%, docs/cone-room.md). Which hits add is
+/// chosen before their sample is known, so the cell's mean stays that of the hits it
+/// stands for.
+fn feed_chance(n: u32, reuse: u32) -> f32 {
+    let a = reuse.max(1) as f32;
+    (a / n as f32).clamp(1.0 / a, 1.0)
+}
+
 /// A fresh cone of tan α = `spread` from the surface (r0 = 0: a frustum whose first disc is
 /// the incoming footprint would start rays beside walls and leak light).
 fn widened(cone: &Cone) -> Cone {
@@ -585,14 +596,27 @@ impl ConeIntegrator {
             _ if resolved => Keep::Answer(d.key),
             _ => Keep::Fresh,
         };
-        let entry = store.get(d.key);
+        let entry = match pend.keep {
+            Keep::Answer(_) => store.read(d.key),
+            _ => store.get(d.key),
+        };
+        // Reads past the reuse bound stop at the cell's mean; first hits past it keep their
+        // own sample without adding it, so a cell's samples keep the mix of first hits and
+        // reads that its mean stands for.
+        let n = entry.map_or(0, |e| e.n);
+        let thinned = at.jitter >= feed_chance(n, self.settings.cone_reuse);
+        if thinned && matches!(pend.keep, Keep::Store(_)) {
+            pend.keep = Keep::Fresh;
+        }
         if path.mask_caustics {
             pend.caustic = entry
                 .and_then(|e| store.caustic(&e))
                 .map_or(V::ZERO, V::from);
         }
-        // A converged node answers from its store (§4.6.1) without recursing.
-        if let (Keep::Answer(_), Some(e)) = (pend.keep, entry.filter(|e| e.n >= store.limit)) {
+        // A converged node (§4.6.1) or a thinned read answers from its store without
+        // recursing.
+        let stops = |e: &crate::radiance::Entry| e.n >= store.limit || thinned;
+        if let (Keep::Answer(_), Some(e)) = (pend.keep, entry.filter(stops)) {
             let (v, _) = e.value().unwrap_or(([0.0; 3], 0));
             pend.keep = Keep::Fresh;
             pend.direct = V::from(v);
