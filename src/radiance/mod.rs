@@ -183,9 +183,7 @@ impl RadianceStore {
 
     /// The entry for `node`, counted as a read of its mean.
     pub fn read(&self, node: u64) -> Option<Entry> {
-        let mut m = self.shard(node).lock().expect("store");
-        m.reads += 1;
-        m.map.get(&node).copied()
+        self.lookup(node, true)
     }
 
     /// Reads of a mean and samples counted so far (the mean's reuse is their ratio).
@@ -197,12 +195,13 @@ impl RadianceStore {
     }
 
     pub fn get(&self, node: u64) -> Option<Entry> {
-        self.shard(node)
-            .lock()
-            .expect("store")
-            .map
-            .get(&node)
-            .copied()
+        self.lookup(node, false)
+    }
+
+    fn lookup(&self, node: u64, read: bool) -> Option<Entry> {
+        let mut m = self.shard(node).lock().expect("store");
+        m.reads += u64::from(read);
+        m.map.get(&node).copied()
     }
 
     /// Adds a sample taken by a path of throughput `beta` (unless the node has converged)

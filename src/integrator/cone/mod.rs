@@ -434,13 +434,14 @@ impl Integrator for ConeIntegrator {
     }
 
     fn stats(&self) -> Stats {
+        let [store_reads, store_adds] = self.store.reuse();
         Stats::Cone(ConeStats {
             cone_scale: self.settings.scale,
             stored_nodes: self.store.len() as u64,
             stored_bytes: self.store.bytes(),
             converged_nodes: self.store.converged() as u64,
-            store_reads: self.store.reuse()[0],
-            store_adds: self.store.reuse()[1],
+            store_reads,
+            store_adds,
             store_refused_samples: self.store.refused(),
             photons: self.store.photons(),
             caustic_deposits: self.deposits,
