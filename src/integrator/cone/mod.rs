@@ -101,7 +101,7 @@ pub struct ConeSettings {
     /// that holds n samples adds a fresh one with probability min(1, max(A/n, 1/A)), and
     /// otherwise stops there with the cell's mean (first diffuse hits, which keep their
     /// own sample, add to the cell with the same probability). 1 adds at every read.
-    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=1024))]
+    #[arg(long, value_name = "A", default_value_t = 8, value_parser = clap::value_parser!(u32).range(1..=1024))]
     pub cone_reuse: u32,
     /// The light pass that carries caustics (light through smooth mirrors and glass onto
     /// diffuse surfaces, 004 §4.7). `auto` runs it when the scene has both lights and
