@@ -774,7 +774,7 @@ double_sided = false
         .iter()
         .map(|&(mean, t_var, own, _)| mean / ((own + shared) / r + t_var).sqrt())
         .collect();
-    let floor = (0..128 * 128).map(|i| grey(&truth, i)).sum::<f64>() / (128.0 * 128.0);
+    let floor = truth.mean().iter().sum::<f64>() / 3.0;
     let own = per_cell.iter().map(|c| c.2).sum::<f64>() / per_cell.len() as f64;
     let chi = z.iter().map(|v| v * v).sum::<f64>() / z.len() as f64;
     let worst = z.iter().fold(0.0f64, |m, v| m.max(v.abs()));

@@ -209,16 +209,15 @@ impl RadianceStore {
     /// converged.
     pub fn add(&self, node: u64, sample: [f32; 3], beta: f32) -> ([f32; 3], bool) {
         let mut m = self.shard(node).lock().expect("store");
-        let mut added = false;
         let Some(e) = self.entry(&mut m, node) else {
             return (sample, false);
         };
         let usable = beta.is_finite() && beta > 0.0 && sample.iter().all(|v| v.is_finite());
-        if usable && e.n < self.limit {
+        let counted = usable && e.n < self.limit;
+        if counted {
             add_to(&mut e.sum, sample.map(|x| beta * x));
             e.weight += beta;
             e.n += 1;
-            added = true;
         }
         // A node with nothing counted yet answers with the sample, as it would have
         // without the store (a non-finite part as 0).
@@ -226,7 +225,7 @@ impl RadianceStore {
             .mean()
             .unwrap_or(sample.map(|v| if v.is_finite() { v } else { 0.0 }));
         let converged = e.n >= self.limit;
-        m.adds += u64::from(added);
+        m.adds += u64::from(counted);
         (avg, converged)
     }
 
