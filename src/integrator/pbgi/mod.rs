@@ -52,6 +52,7 @@ use std::cell::RefCell;
 use std::f32::consts::PI;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Instant;
 
 /// Smooth bounces followed before giving up on a path.
@@ -86,6 +87,19 @@ pub struct PbgiSettings {
     /// the inverse, NOTES-002-003 B.2). Smaller shares less and errs less.
     #[arg(long = "cluster-far", default_value_t = 0.01, requires = "clusters", value_parser = crate::units::parse_non_negative)]
     pub far: f32,
+    /// Fill the micro-buffer by tracing every texel's ray exactly, its hit reading the
+    /// baked light, instead of from the cut (a final gather from the bake). On sponza at
+    /// 8² it gathered 3.6× faster and found 0.96 of the indirect light the path tracer
+    /// does, where the cut found 0.84 (docs/pbgi.md).
+    #[arg(long = "pbgi-rays", conflicts_with_all = ["angle", "clusters", "far", "wavelet", "wavelet_resolution", "wavelet_threshold"])]
+    pub rays: bool,
+    /// Samples per gather: a pixel gathers at every R-th sample (and while it holds none);
+    /// its other samples take the mean irradiance of its gathers on their surface (normal
+    /// within 14°, within a pixel's width of its plane), else of those whose normal is
+    /// closest (003 ch. 2 gathers once per micropolygon, not per pixel sample). 1 gathers
+    /// at every sample.
+    #[arg(long = "pbgi-reuse", value_name = "R", default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..))]
+    pub reuse: u32,
     /// Baked light from `canopy bake` (default: bake before the first pass, counted in the
     /// render time, into an unnamed scratch file).
     #[arg(long, value_name = "FILE", conflicts_with_all = ["bake_samples", "patch_size", "bounces"])]
@@ -115,14 +129,20 @@ pub struct PbgiStats {
     pub bake_samples: u64,
     /// Nodes splatted whole, and texels resolved by exact rays, over the render.
     pub splatted_nodes: u64,
-    /// Texels filled by rasterized near leaves, and of them those shaded by a light
-    /// sample rather than baked light.
+    /// Texels filled by rasterized near leaves (the nearest hit of each texel's ray), and
+    /// of them those shaded by a light sample rather than baked light.
     pub near_fragments: u64,
     pub exact_hits: u64,
     /// Exact rays where a rasterized leaf's cone found none of its triangles.
     pub gap_rays: u64,
     pub receiver_clusters: usize,
     pub clustered_receivers: u64,
+    pub pbgi_reuse: u32,
+    /// Receivers gathered at, and those that took their pixel's earlier gathers instead.
+    pub gathers: u64,
+    pub reused_gathers: u64,
+    /// Texel rays traced exactly under `--pbgi-rays`.
+    pub traced_texels: u64,
 }
 
 pub struct PbgiIntegrator {
@@ -138,7 +158,36 @@ pub struct PbgiIntegrator {
     gap_rays: AtomicU64,
     /// Receivers gathered through a cluster's field.
     clusters: AtomicU64,
+    /// Per pixel of the window: the irradiance gathered there, per surface.
+    gathered: Vec<Mutex<Vec<Gathered>>>,
+    gathers: AtomicU64,
+    reused: AtomicU64,
+    traced_texels: AtomicU64,
 }
+
+/// Irradiance gathers summed at one surface of a pixel.
+#[derive(Clone, Copy)]
+struct Gathered {
+    /// The first gather's point and shading normal.
+    p: V,
+    n: V,
+    sum: V,
+    count: u32,
+}
+
+impl Gathered {
+    /// Whether a receiver at `p` with normal `n` lies on this surface: normals within
+    /// 14° and `p` within `footprint` of its tangent plane.
+    fn holds(&self, p: V, n: V, footprint: f32) -> bool {
+        self.n.dot(n) >= SAME_NORMAL && (p - self.p).dot(self.n).abs() <= footprint
+    }
+}
+
+/// Surfaces a pixel keeps gathers for; samples on others gather without keeping them.
+const SURFACES_PER_PIXEL: usize = 8;
+
+/// Two hits share gathers only when their shading normals are this close (14°).
+const SAME_NORMAL: f32 = 0.97;
 
 /// Per-thread scratch reused across receivers.
 #[derive(Default)]
@@ -147,9 +196,10 @@ struct Scratch {
     /// This receiver's ray per texel above its horizon: texel and world direction,
     /// jittered inside the texel.
     rays: Vec<(u32, V)>,
-    /// Per ray: inside some rasterized leaf's cone, and met by one of its triangles.
+    /// Per ray: inside some rasterized leaf's cone, and the nearest of their triangles
+    /// it met (shaded once the cut is done, so hidden hits cost nothing).
     aimed: Vec<bool>,
-    met: Vec<bool>,
+    nearest: Vec<Option<Hit>>,
     stack: Vec<(u32, u32)>,
     /// The rays inside the cone of the leaf being rasterized.
     in_cone: Vec<u32>,
@@ -172,6 +222,10 @@ impl PbgiIntegrator {
             exact_hits: AtomicU64::new(0),
             gap_rays: AtomicU64::new(0),
             clusters: AtomicU64::new(0),
+            gathered: Vec::new(),
+            gathers: AtomicU64::new(0),
+            reused: AtomicU64::new(0),
+            traced_texels: AtomicU64::new(0),
         }
     }
 
@@ -215,33 +269,100 @@ impl PbgiIntegrator {
                 break;
             }
             let key = ((px.at as u64) << 20 ^ px.index as u64) ^ (self.seed as u64) << 52;
-            return (l, Some(Pending { s, beta, key }));
+            // A pixel's width at x, seen from the camera.
+            let footprint = (s.p - scene.camera.pos).length() * 2.0 * scene.camera.tan_half
+                / scene.camera.height as f32;
+            let at = Some((px.at, footprint));
+            let sample = px.index;
+            return (
+                l,
+                Some(Pending {
+                    s,
+                    beta,
+                    key,
+                    at,
+                    sample,
+                }),
+            );
         }
         (l, None)
     }
 
-    /// One bounce of indirect light at `s`: its diffuse lobe from the micro-buffer, its
-    /// rough specular lobes from one BSDF-sampled exact ray (a lobe narrower than a
-    /// micro-buffer texel would be convolved at a few texel centres only: with `--max-depth`
-    /// 3 on a rough silver plinth of α 0.04 that overstated its pixels by 8–11%).
-    fn gather(
-        &self,
-        scene: &Scene,
-        tr: &mut Tracer,
-        s: &Surface,
-        key: u64,
-        field: Option<&Field>,
-    ) -> V {
-        let mut rng = Hash::new(key ^ 0x6A09_E667_F3BC_C909);
+    /// One bounce of indirect light at the receiver: its diffuse lobe from the
+    /// micro-buffer, its rough specular lobes from one BSDF-sampled exact ray (a lobe
+    /// narrower than a micro-buffer texel would be convolved at a few texel centres only:
+    /// with `--max-depth` 3 on a rough silver plinth of α 0.04 that overstated its pixels
+    /// by 8–11%).
+    fn gather(&self, scene: &Scene, tr: &mut Tracer, q: &Pending, field: Option<&Field>) -> V {
+        let s = &q.s;
+        let mut rng = Hash::new(q.key ^ 0x6A09_E667_F3BC_C909);
         let glossy = Bsdf {
             diffuse: V::ZERO,
             ..s.bsdf
         };
         let mut l = self.glossy_ray(scene, tr, s, &glossy, &mut rng);
         if s.bsdf.diffuse.max_element() > 0.0 {
-            l += self.gather_diffuse(scene, tr, s, &glossy, key, field);
+            // The diffuse lobe is the same for every incident direction: irradiance × it.
+            let lobe = s.bsdf.eval(s.wo_l, V::Z).0 - glossy.eval(s.wo_l, V::Z).0;
+            let e = match self.reuse(q) {
+                Some(e) => {
+                    self.reused.fetch_add(1, Relaxed);
+                    e
+                }
+                None => {
+                    self.gathers.fetch_add(1, Relaxed);
+                    let e = self.gather_irradiance(scene, tr, s, q.key, field);
+                    self.keep(q, e);
+                    e
+                }
+            };
+            l += lobe * e;
         }
         l
+    }
+
+    /// Unless the receiver's sample is one that gathers (every `--pbgi-reuse`-th): the
+    /// mean irradiance of its pixel's gathers on its surface, else of those whose normal is
+    /// closest to its own.
+    fn reuse(&self, q: &Pending) -> Option<V> {
+        let (pixel, footprint) = q.at?;
+        if q.sample.is_multiple_of(self.settings.reuse) {
+            return None;
+        }
+        let slot = self.gathered.get(pixel)?;
+        let list = slot.lock().unwrap_or_else(PoisonError::into_inner);
+        let n = q.s.frame.n;
+        let g = list
+            .iter()
+            .find(|g| g.holds(q.s.p, n, footprint))
+            .or_else(|| list.iter().max_by(|a, b| a.n.dot(n).total_cmp(&b.n.dot(n))))?;
+        Some(g.sum / g.count as f32)
+    }
+
+    /// Adds a gather's irradiance `e` to its pixel's surface.
+    fn keep(&self, q: &Pending, e: V) {
+        let Some((pixel, footprint)) = q.at else {
+            return;
+        };
+        let Some(slot) = self.gathered.get(pixel) else {
+            return;
+        };
+        let mut list = slot.lock().unwrap_or_else(PoisonError::into_inner);
+        let (p, n) = (q.s.p, q.s.frame.n);
+        let full = list.len() >= SURFACES_PER_PIXEL;
+        match list.iter_mut().find(|g| g.holds(p, n, footprint)) {
+            Some(g) => {
+                g.sum += e;
+                g.count += 1;
+            }
+            None if !full => list.push(Gathered {
+                p,
+                n,
+                sum: e,
+                count: 1,
+            }),
+            None => {}
+        }
     }
 
     /// The rough specular lobes' bounce: one direction sampled from them, its hit shaded
@@ -279,16 +400,14 @@ impl PbgiIntegrator {
         bs.weight * hit_light(scene, tr, &page, &hit, w, rng).0
     }
 
-    /// The diffuse lobe's bounce from the cut, the near rays and the micro-buffer (`glossy`:
-    /// the other lobes, left out of the convolution). With a cluster's `field`, its far
-    /// splats are taken as they are and the cut starts from its near nodes instead of the
-    /// root.
-    fn gather_diffuse(
+    /// Irradiance at `s` from the cut, the near rays and the micro-buffer. With a
+    /// cluster's `field`, its far splats are taken as they are and the cut starts from its
+    /// near nodes instead of the root.
+    fn gather_irradiance(
         &self,
         scene: &Scene,
         tr: &mut Tracer,
         s: &Surface,
-        glossy: &Bsdf,
         key: u64,
         field: Option<&Field>,
     ) -> V {
@@ -305,45 +424,81 @@ impl PbgiIntegrator {
                 let w = s.frame.to_world(V::from(local.normalize())).normalize();
                 (w.dot(s.n) > 0.0).then_some((k, w))
             }));
-            sc.aimed.clear();
-            sc.aimed.resize(sc.rays.len(), false);
-            sc.met.clear();
-            sc.met.resize(sc.rays.len(), false);
-            sc.stack.clear();
-            match field {
-                Some(f) => {
-                    for far in &f.far {
-                        self.splat(s, far, &mut sc.mb);
-                    }
-                    sc.stack.extend_from_slice(&f.near);
-                }
-                None => {
-                    let root = tr.page_handle(scene.cache.root_page());
-                    sc.stack
-                        .extend((0..root.roots.min(root.bvh.len() as u32)).map(|r| (root.id, r)));
-                }
-            }
-            self.cut(scene, tr, s, sc, &mut rng);
-            let mut gaps = 0;
-            for j in 0..sc.rays.len() {
-                if sc.aimed[j] && !sc.met[j] {
-                    gaps += 1;
+            if self.settings.rays {
+                for j in 0..sc.rays.len() {
                     let (k, w) = sc.rays[j];
-                    self.gap_ray(scene, tr, s, k as usize, w, &mut rng, &mut sc.mb);
+                    self.texel_ray(scene, tr, s, k as usize, w, &mut rng, &mut sc.mb);
                 }
+                self.traced_texels.fetch_add(sc.rays.len() as u64, Relaxed);
+            } else {
+                self.fill_from_cut(scene, tr, s, field, sc, &mut rng);
             }
-            self.gap_rays.fetch_add(gaps, Relaxed);
             let incident = sc.mb.resolve(texels, |_| Vec3::ZERO);
-            let f = MicroBuffer::convolve(texels, &incident, |w| {
-                let w = V::from(w);
-                Vec3::from(s.bsdf.eval(s.wo_l, w).0 - glossy.eval(s.wo_l, w).0)
-            });
-            V::from(f)
+            V::from(MicroBuffer::convolve(texels, &incident, |_| Vec3::ONE))
         })
     }
 
-    /// Irradiance from the cloud at a bake point q of a front face with normal `ng`
-    /// (the next bounce of `bake`): π times what a white Lambertian surface there reflects.
+    /// Fills the micro-buffer from the cut: far nodes splatted, near leaves rasterized and
+    /// their nearest hit per texel ray shaded, exact rays where a leaf's cone found nothing.
+    fn fill_from_cut(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        s: &Surface,
+        field: Option<&Field>,
+        sc: &mut Scratch,
+        rng: &mut Hash,
+    ) {
+        sc.aimed.clear();
+        sc.aimed.resize(sc.rays.len(), false);
+        sc.nearest.clear();
+        sc.nearest.resize(sc.rays.len(), None);
+        sc.stack.clear();
+        match field {
+            Some(f) => {
+                for far in &f.far {
+                    self.splat(s, far, &mut sc.mb);
+                }
+                sc.stack.extend_from_slice(&f.near);
+            }
+            None => {
+                let root = tr.page_handle(scene.cache.root_page());
+                sc.stack
+                    .extend((0..root.roots.min(root.bvh.len() as u32)).map(|r| (root.id, r)));
+            }
+        }
+        self.cut(scene, tr, s, sc);
+        let (mut gaps, mut fragments, mut exact) = (0, 0, 0);
+        let mut page: Option<Arc<Page>> = None;
+        for j in 0..sc.rays.len() {
+            let (k, w) = sc.rays[j];
+            match sc.nearest[j] {
+                Some(hit) => {
+                    let p = match page.take() {
+                        Some(p) if p.id == hit.page => p,
+                        _ => tr.page_handle(hit.page),
+                    };
+                    let (sends, sampled) = hit_light(scene, tr, &p, &hit, w, rng);
+                    let id = (1 << 62) | (hit.leaf << 3) | hit.slot as u64;
+                    sc.mb.fill(k as usize, hit.t, id, Vec3::from(sends));
+                    page = Some(p);
+                    fragments += 1;
+                    exact += sampled as u64;
+                }
+                None if sc.aimed[j] => {
+                    gaps += 1;
+                    self.texel_ray(scene, tr, s, k as usize, w, rng, &mut sc.mb);
+                }
+                None => {}
+            }
+        }
+        self.gap_rays.fetch_add(gaps, Relaxed);
+        self.near_fragments.fetch_add(fragments, Relaxed);
+        self.exact_hits.fetch_add(exact, Relaxed);
+    }
+
+    /// Irradiance from the cloud at a bake point q of a front face with normal `ng` (the
+    /// next bounce of `bake`).
     pub fn irradiance(&self, scene: &Scene, tr: &mut Tracer, q: V, err: V, ng: V, key: u64) -> V {
         let frame = Frame::new(ng);
         let white = Bsdf {
@@ -366,12 +521,12 @@ impl PbgiIntegrator {
             emitted: V::ZERO,
             absorbs: false,
         };
-        PI * self.gather(scene, tr, &s, key, None)
+        self.gather_irradiance(scene, tr, &s, key, None)
     }
 
     /// Walks the hierarchy from the nodes on `sc.stack`: far nodes are splatted, near
     /// leaves rasterized.
-    fn cut(&self, scene: &Scene, tr: &mut Tracer, s: &Surface, sc: &mut Scratch, rng: &mut Hash) {
+    fn cut(&self, scene: &Scene, tr: &mut Tracer, s: &Surface, sc: &mut Scratch) {
         let Some(&(first, _)) = sc.stack.last() else {
             return;
         };
@@ -398,7 +553,7 @@ impl PbgiIntegrator {
             match node.link() {
                 NodeRef::Leaf { first, count } => {
                     let leaf = page.first_node + i as u64;
-                    self.raster_leaf(scene, tr, s, &page, leaf, first..first + count, sc, rng);
+                    self.raster_leaf(scene, s, &page, leaf, first..first + count, sc);
                 }
                 NodeRef::Inner(l, rr) => sc.stack.extend([(pid, l), (pid, rr)]),
                 NodeRef::ChildPage(cp) => sc.stack.extend([(cp, 0), (cp, 1)]),
@@ -518,19 +673,23 @@ impl PbgiIntegrator {
     ) -> Vec<V> {
         let firsts: Vec<(V, Option<Pending>)> =
             pxs.iter().map(|px| self.first_hit(scene, tr, px)).collect();
-        let at: Vec<usize> = (0..firsts.len())
-            .filter(|&i| firsts[i].1.is_some())
-            .collect();
+        let mut out: Vec<V> = firsts.iter().map(|f| f.0).collect();
+        let mut at = Vec::new();
+        for i in (0..firsts.len()).filter(|&i| firsts[i].1.is_some()) {
+            match firsts[i].1.as_ref().filter(|q| self.reuse(q).is_some()) {
+                Some(q) => out[i] += q.beta * self.gather(scene, tr, q, None),
+                None => at.push(i),
+            }
+        }
         let pending: Vec<&Pending> = at.iter().filter_map(|&i| firsts[i].1.as_ref()).collect();
         let p: Vec<V> = pending.iter().map(|q| q.s.p).collect();
         let n: Vec<V> = pending.iter().map(|q| q.s.n).collect();
-        let mut out: Vec<V> = firsts.iter().map(|f| f.0).collect();
         for cl in cluster::kmeans(&p, &n, self.settings.clusters) {
             let members: Vec<&Surface> = cl.members.iter().map(|&m| &pending[m].s).collect();
             let field = self.field(scene, tr, &members, &pending[cl.active].s);
             for &m in &cl.members {
                 let q = pending[m];
-                out[at[m]] += q.beta * self.gather(scene, tr, &q.s, q.key, Some(&field));
+                out[at[m]] += q.beta * self.gather(scene, tr, q, Some(&field));
             }
         }
         self.clusters.fetch_add(p.len() as u64, Relaxed);
@@ -542,11 +701,12 @@ impl PbgiIntegrator {
             .collect()
     }
 
-    /// The exact ray of texel k where a rasterized leaf's cone promised geometry its
-    /// triangles did not hold: without it that texel would show splats' partial coverage
-    /// and the black background through the gaps. Its hit is shaded as a raster hit.
+    /// Texel k's ray traced exactly, its hit shaded as a rasterized hit: every texel under
+    /// `--pbgi-rays`; otherwise where a rasterized leaf's cone promised geometry its
+    /// triangles did not hold (without it the texel would show splats' partial coverage
+    /// and the black background through the gaps).
     #[allow(clippy::too_many_arguments)]
-    fn gap_ray(
+    fn texel_ray(
         &self,
         scene: &Scene,
         tr: &mut Tracer,
@@ -571,20 +731,16 @@ impl PbgiIntegrator {
     }
 
     /// A leaf too near or too wide to splat, rasterized: each of x's texel rays that
-    /// meets one of its triangles leaves an opaque fragment at the hit's depth. A front
-    /// hit on a diffuse surface sends the baked light of the finest patch under it; other
-    /// hits take one light sample there, as the path tracer would.
-    #[allow(clippy::too_many_arguments)]
+    /// meets one of its triangles keeps the nearest hit, an opaque fragment once shaded
+    /// (`hit_light`).
     fn raster_leaf(
         &self,
         scene: &Scene,
-        tr: &mut Tracer,
         s: &Surface,
         page: &Page,
         leaf: u64,
         tris: std::ops::Range<u32>,
         sc: &mut Scratch,
-        rng: &mut Hash,
     ) {
         let Some(node) = page.bvh.get((leaf - page.first_node) as usize) else {
             return;
@@ -608,10 +764,10 @@ impl PbgiIntegrator {
         if sc.in_cone.is_empty() {
             return;
         }
-        let (mut fragments, mut exact) = (0, 0);
         // Rays leave from just above x, as exact rays do, so x's neighbours on its own
         // surface (coplanar up to rounding) do not block its horizon.
         let o = offset_origin(s.p, s.err, s.ng, s.n);
+        let mut met = false;
         for t in tris.clone() {
             let Some(tri) = page.tri(t) else {
                 continue;
@@ -628,12 +784,14 @@ impl PbgiIntegrator {
             }
             for &j in &sc.in_cone {
                 let j = j as usize;
-                let (k, w) = sc.rays[j];
-                let Some((depth, b)) = intersect(o, w, p) else {
+                let Some((depth, b)) = intersect(o, sc.rays[j].1, p) else {
                     continue;
                 };
-                sc.met[j] = true;
-                let hit = Hit {
+                met = true;
+                if sc.nearest[j].is_some_and(|h| h.t <= depth) {
+                    continue;
+                }
+                sc.nearest[j] = Some(Hit {
                     t: depth,
                     b,
                     tri,
@@ -645,19 +803,12 @@ impl PbgiIntegrator {
                     instance_leaf: 0,
                     transform_err: V::ZERO,
                     uv: page.uvs.get(t as usize).copied().unwrap_or_default(),
-                };
-                let (sends, sampled) = hit_light(scene, tr, page, &hit, w, rng);
-                exact += sampled as u64;
-                fragments += 1;
-                let id = (1 << 62) | (leaf << 3) | slot as u64;
-                sc.mb.fill(k as usize, depth, id, Vec3::from(sends));
+                });
             }
         }
-        if fragments > 0 {
+        if met {
             scene.touched.insert(leaf);
         }
-        self.near_fragments.fetch_add(fragments, Relaxed);
-        self.exact_hits.fetch_add(exact, Relaxed);
     }
 }
 
@@ -757,6 +908,10 @@ struct Pending {
     beta: V,
     /// Seed of its exact rays.
     key: u64,
+    /// Its pixel and the pixel's width at x, for sharing gathers; None in the bake.
+    at: Option<(usize, f32)>,
+    /// Its sample number in the pixel.
+    sample: u32,
 }
 
 /// A node splatted whole, as seen from the point its cut was walked for.
@@ -841,13 +996,21 @@ impl Integrator for PbgiIntegrator {
         if first > 0 {
             return Ok(0);
         }
+        if self.settings.reuse > 1 {
+            let pixels = scene.camera.width as usize * scene.camera.height as usize;
+            self.gathered = (0..pixels).map(|_| Mutex::default()).collect();
+        }
         let t = Instant::now();
         let archive = &scene.cache.archive;
         let file = match &self.settings.radiance {
             Some(path) => canopy_format::radiance::RadianceFile::open(path, archive)?,
             None => {
-                let (file, samples) =
-                    bake::bake_scratch(scene, &self.settings.bake.params(self.seed))?;
+                let mut params = self.settings.bake.params(self.seed);
+                if self.settings.rays {
+                    // Texel rays read only the patches' diffuse light.
+                    params.wavelet = glossy::WaveletMode::Off;
+                }
+                let (file, samples) = bake::bake_scratch(scene, &params)?;
                 self.bake_samples = samples;
                 file
             }
@@ -860,7 +1023,7 @@ impl Integrator for PbgiIntegrator {
     fn sample(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample, c: &mut Counters) -> V {
         let (mut l, pending) = self.first_hit(scene, tr, px);
         if let Some(q) = pending {
-            l += q.beta * self.gather(scene, tr, &q.s, q.key, None);
+            l += q.beta * self.gather(scene, tr, &q, None);
         }
         c.paths += 1;
         c.finite(l)
@@ -889,9 +1052,19 @@ impl Integrator for PbgiIntegrator {
                     s.bake.bounces, s.bake.bake_samples, self.bake_s
                 ),
             },
+            match s.rays {
+                true => format!(
+                    "pbgi: indirect light from a {}² hemicube micro-buffer for diffuse lobes, every texel's ray traced and reading the baked light (glossy lobes: one exact ray)",
+                    s.resolution
+                ),
+                false => format!(
+                    "pbgi: indirect light from a cut at {} texels' solid angle into a {}² hemicube micro-buffer for diffuse lobes (glossy lobes: one exact ray); near leaves rasterized with baked patch light",
+                    s.angle, s.resolution
+                ),
+            },
             format!(
-                "pbgi: indirect light from a cut at {} texels' solid angle into a {}² hemicube micro-buffer for diffuse lobes (glossy lobes: one exact ray); near leaves rasterized with baked patch light",
-                s.angle, s.resolution
+                "pbgi: a pixel gathers at every {}-th sample, the others reusing its gathers' irradiance",
+                s.reuse
             ),
         ]
     }
@@ -908,7 +1081,23 @@ impl Integrator for PbgiIntegrator {
             gap_rays: self.gap_rays.load(Relaxed),
             receiver_clusters: self.settings.clusters,
             clustered_receivers: self.clusters.load(Relaxed),
+            pbgi_reuse: self.settings.reuse,
+            gathers: self.gathers.load(Relaxed),
+            traced_texels: self.traced_texels.load(Relaxed),
+            reused_gathers: self.reused.load(Relaxed),
         })
+    }
+
+    /// The gathers kept per pixel.
+    fn state_bytes(&self) -> [u64; 2] {
+        let kept: usize = self
+            .gathered
+            .iter()
+            .map(|m| m.lock().unwrap_or_else(PoisonError::into_inner).capacity())
+            .sum();
+        let slots = self.gathered.len() * size_of::<Mutex<Vec<Gathered>>>();
+        let bytes = (slots + kept * size_of::<Gathered>()) as u64;
+        [bytes, bytes / self.gathered.len().max(1) as u64]
     }
 
     fn seconds(&self) -> Vec<(&'static str, f64)> {
