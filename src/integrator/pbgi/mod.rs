@@ -18,7 +18,11 @@
 //!   under it (`patch`: large triangles are baked as up to 4⁶ patches); other hits take
 //!   one light sample, as the path tracer would. A ray aimed at a leaf's sphere that meets
 //!   none of its triangles is traced exactly (what it finds could otherwise be missing);
-//! - `microbuffer` composites and convolves with x's diffuse lobe (003 eq. 2.1);
+//! - hits are shaded once the cut is done, only the nearest of each texel's ray;
+//! - `microbuffer` composites and convolves with x's diffuse lobe (003 eq. 2.1); the
+//!   lobe being constant, the gather is kept as irradiance, and a pixel gathers only at
+//!   every `--pbgi-reuse`-th sample, its other samples reusing its gathers' mean;
+//! - `--pbgi-rays` skips the cut: every texel's ray is traced and reads the bake;
 //! - x's rough specular lobes, mostly narrower than a texel, take one exact ray sampled
 //!   from them instead, its hit shaded as a rasterized hit is. (WPBGI's adaptive
 //!   micro-buffer and wavelet BRDF product, 000 §3.2 and 002 §4.2, would gather them from
