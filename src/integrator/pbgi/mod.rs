@@ -505,6 +505,7 @@ impl PbgiIntegrator {
     /// next bounce of `bake`).
     pub fn irradiance(&self, scene: &Scene, tr: &mut Tracer, q: V, err: V, ng: V, key: u64) -> V {
         let frame = Frame::new(ng);
+        // The gather reads only the point, its normals and frame; any BSDF will do.
         let white = Bsdf {
             diffuse: V::ONE,
             f0: V::ZERO,
