@@ -162,7 +162,8 @@ pub struct PbgiIntegrator {
     gap_rays: AtomicU64,
     /// Receivers gathered through a cluster's field.
     clusters: AtomicU64,
-    /// Per pixel of the window: the irradiance gathered there, per surface.
+    /// Per pixel of the window (by its index there; sized for the whole image, which a
+    /// window never exceeds): the irradiance gathered there, per surface.
     gathered: Vec<Mutex<Vec<Gathered>>>,
     gathers: AtomicU64,
     reused: AtomicU64,
