@@ -332,62 +332,6 @@ fn eval_writes_rows_plot_and_table() {
         .starts_with("<svg"));
 }
 
-/// A UV sphere with outward vertex normals, as OBJ text.
-fn sphere_obj(c: [f32; 3], r: f32) -> String {
-    let (nu, nv) = (32, 16);
-    let mut s = String::new();
-    let mut normals = Vec::new();
-    for j in 0..=nv {
-        let th = std::f32::consts::PI * j as f32 / nv as f32;
-        for i in 0..nu {
-            let ph = 2.0 * std::f32::consts::PI * i as f32 / nu as f32;
-            let n = [th.sin() * ph.cos(), th.cos(), th.sin() * ph.sin()];
-            s += &format!(
-                "v {} {} {}\n",
-                c[0] + r * n[0],
-                c[1] + r * n[1],
-                c[2] + r * n[2]
-            );
-            normals.push(n);
-        }
-    }
-    for n in normals {
-        s += &format!("vn {} {} {}\n", n[0], n[1], n[2]);
-    }
-    let idx = |i: usize, j: usize| j * nu + i % nu + 1;
-    for j in 0..nv {
-        for i in 0..nu {
-            let (a, b, c, d) = (idx(i, j), idx(i + 1, j), idx(i + 1, j + 1), idx(i, j + 1));
-            if j > 0 {
-                s += &format!("f {a}//{a} {b}//{b} {c}//{c}\n");
-            }
-            if j < nv - 1 {
-                s += &format!("f {a}//{a} {c}//{c} {d}//{d}\n");
-            }
-        }
-    }
-    s
-}
-
-/// Writes `files` into `dir` and converts their OBJ files, in order, with the
-/// `scene.toml` among them into the archive `name`.
-fn obj_scene(dir: &std::path::Path, files: &[(&str, String)], name: &str) -> std::path::PathBuf {
-    for (f, text) in files {
-        std::fs::write(dir.join(f), text).unwrap();
-    }
-    let p = |f: &str| dir.join(f).to_str().unwrap().to_string();
-    let mut args = vec!["--quiet".to_string(), "convert".into()];
-    args.extend(
-        files
-            .iter()
-            .filter(|(f, _)| f.ends_with(".obj"))
-            .map(|(f, _)| p(f)),
-    );
-    args.extend(["--scene".into(), p("scene.toml"), "-o".into(), p(name)]);
-    ok(&args.iter().map(String::as_str).collect::<Vec<_>>());
-    dir.join(name)
-}
-
 /// The window of scenes/caustics.glb's 96×96 image (x0, x1, y0, y1) holding the glass
 /// sphere's brightest caustic, more than twice the directly lit floor.
 const CAUSTIC: [usize; 4] = [14, 26, 54, 66];
@@ -506,60 +450,10 @@ fn normalized_cluster_theta_integrates_to_one_over_the_sphere() {
     assert!((theta_norm(0.5) - 0.78).abs() < 0.01);
 }
 
-/// A bright lamp sphere seen directly against a dark wall: the noise is mostly the lamp's
-/// coverage of its silhouette pixels. Edge rays must find those pixels, leave the image's
-/// mean where the path tracer puts it (they estimate the same pixel integral), and cut the
-/// error at equal samples.
+/// Edge rays on a lamp's silhouette: `common::edge_rays_case`.
 #[test]
 fn edge_rays_average_a_lamp_silhouette_without_bias() {
-    let dir = tempfile::tempdir().unwrap();
-    let files = [
-        ("lamp.obj", sphere_obj([0.0, 0.0, 0.0], 0.5)),
-        (
-            "wall.obj",
-            "v -4 -4 -1\nv 4 -4 -1\nv 4 4 -1\nv -4 4 -1\nf 1 2 3\nf 1 3 4\n".into(),
-        ),
-        (
-            "scene.toml",
-            r#"
-[[camera]]
-position = [0.0, 0.0, 3.0]
-look_at = [0.0, 0.0, 0.0]
-width = 32
-height = 32
-[[material]]
-name = "wall"
-base_color = [0.05, 0.05, 0.05]
-[[material]]
-name = "lamp"
-base_color = [0.0, 0.0, 0.0]
-emission = [20.0, 20.0, 20.0]
-[assign]
-"wall.obj" = "wall"
-"lamp.obj" = "lamp"
-"#
-            .into(),
-        ),
-    ];
-    let arc = obj_scene(dir.path(), &files, "l.canopy");
-    let (truth, _) = render(&arc, &dir.path().join("p.exr"), &["--spp", "2048"]);
-    let mut err = [0.0; 2];
-    for (i, k) in ["0", "8"].iter().enumerate() {
-        for seed in ["1", "2", "3"] {
-            let (img, stats) = cone(
-                &arc,
-                &dir.path().join(format!("c{k}_{seed}.exr")),
-                &["--spp", "32", "--edge-rays", k, "--seed", seed],
-            );
-            assert!(all_finite(&img));
-            assert_mean_within(&img, &truth, 0.01, &format!("edge rays {k}, seed {seed}"));
-            // The lamp's 14-pixel disc: a band about 3 pixels wide around its outline.
-            let edges = stats["edge_pixels"].as_u64().unwrap();
-            assert!((40..=300).contains(&edges), "{edges} edge pixels");
-            err[i] += rmse(&img, &truth).powi(2);
-        }
-    }
-    assert!(err[1] < 0.5 * err[0], "squared error {err:?}");
+    edge_rays_case("cone");
 }
 
 /// `--max-depth` counts segments in both integrators: 1 is the emitters seen directly, 2

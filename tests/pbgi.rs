@@ -164,6 +164,12 @@ fn pbgi_flags_are_refused_elsewhere_and_checked() {
     assert!(!out.exists());
 }
 
+/// Edge rays on a lamp's silhouette: `common::edge_rays_case`.
+#[test]
+fn edge_rays_average_a_lamp_silhouette_without_bias() {
+    edge_rays_case("pbgi");
+}
+
 /// room_glossy's 4 cm lamp has radiance 6000: rasterized hits on it next to a receiver,
 /// patches and splats of nodes it lights, and the Haar-coded glossy light of the metal
 /// bunnies it shines on (truncated, so ringing) must give no NaN, infinite or negative

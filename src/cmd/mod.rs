@@ -11,6 +11,7 @@ mod sweep;
 
 use anyhow::Result;
 use canopy::integrator::cone::ConeSettings;
+use canopy::integrator::edge::EdgeSettings;
 use canopy::integrator::pbgi::PbgiSettings;
 use canopy::integrator::{Kind, Settings};
 use canopy::texture::TextureFilter;
@@ -73,14 +74,30 @@ struct RenderSettings {
     cone: ConeSettings,
     #[command(flatten)]
     pbgi: PbgiSettings,
+    #[command(flatten)]
+    edge: EdgeSettings,
 }
 
 impl RenderSettings {
     fn settings(&self, kind: Kind) -> Settings {
         match kind {
             Kind::Path => Settings::Path,
-            Kind::Cone => Settings::Cone(self.cone.clone()),
-            Kind::Pbgi => Settings::Pbgi(self.pbgi.clone()),
+            Kind::Cone => Settings::Cone(self.cone()),
+            Kind::Pbgi => Settings::Pbgi(self.pbgi()),
+        }
+    }
+
+    fn cone(&self) -> ConeSettings {
+        ConeSettings {
+            edge_rays: self.edge.edge_rays,
+            ..self.cone.clone()
+        }
+    }
+
+    fn pbgi(&self) -> PbgiSettings {
+        PbgiSettings {
+            edge_rays: self.edge.edge_rays,
+            ..self.pbgi.clone()
         }
     }
 }
@@ -88,18 +105,22 @@ impl RenderSettings {
 /// pbrt-v4's `ReportUnused`: a flag of an integrator that will not run is an error (exit
 /// status 2) naming it, not silently ignored.
 fn reject_unused(name: &str, sub: &ArgMatches, kinds: &[Kind]) {
-    let flags: [(Kind, clap::Command); 2] = [
+    let flags: [(&[Kind], clap::Command); 3] = [
         (
-            Kind::Cone,
+            &[Kind::Cone],
             ConeSettings::augment_args(clap::Command::new("cone")),
         ),
         (
-            Kind::Pbgi,
+            &[Kind::Pbgi],
             PbgiSettings::augment_args(clap::Command::new("pbgi")),
         ),
+        (
+            &[Kind::Cone, Kind::Pbgi],
+            EdgeSettings::augment_args(clap::Command::new("edge")),
+        ),
     ];
-    for (kind, cmd) in flags {
-        if kinds.contains(&kind) {
+    for (applies, cmd) in flags {
+        if applies.iter().any(|k| kinds.contains(k)) {
             continue;
         }
         for arg in cmd.get_arguments() {
@@ -113,7 +134,11 @@ fn reject_unused(name: &str, sub: &ArgMatches, kinds: &[Kind]) {
                     name,
                     format!(
                         "--{flag} applies to --integrator {}, not {}",
-                        format!("{kind:?}").to_lowercase(),
+                        applies
+                            .iter()
+                            .map(|k| format!("{k:?}").to_lowercase())
+                            .collect::<Vec<_>>()
+                            .join(" or "),
                         chosen.join(", ")
                     ),
                 );

@@ -62,8 +62,8 @@ fn sweep_options(
     SweepOptions {
         out_dir: dir.to_path_buf(),
         base: s.options(archive, dir.join("x.exr"), spp, progress),
-        cone: s.cone.clone(),
-        pbgi: s.pbgi.clone(),
+        cone: s.cone(),
+        pbgi: s.pbgi(),
     }
 }
 

@@ -5,6 +5,7 @@
 //! `end_pass` — pbrt-v4's `ImageTileIntegrator::Render` → `EvaluatePixelSample` → `Li`.
 
 pub mod cone;
+pub mod edge;
 pub mod path;
 pub mod pbgi;
 
@@ -76,7 +77,7 @@ impl Settings {
         Ok(match self {
             Settings::Path => Box::new(path::PathIntegrator),
             Settings::Cone(c) => Box::new(cone::ConeIntegrator::new(c, scene, target)?),
-            Settings::Pbgi(p) => Box::new(pbgi::PbgiIntegrator::new(p, target.seed)),
+            Settings::Pbgi(p) => Box::new(pbgi::PbgiIntegrator::new(p, scene, target)),
         })
     }
 }

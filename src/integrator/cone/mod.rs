@@ -42,14 +42,13 @@ mod walk;
 
 pub use cluster::theta_norm;
 
+use super::edge::{EdgeRays, DEFAULT_EDGE_RAYS};
 use super::{Counters, Integrator, PixelSample, Scene, Stats, Target};
 use crate::material::Material;
 use crate::radiance::{pull, Keys, RadianceStore};
-use crate::sampler::PixelSampler;
-use crate::trace::{Cone, Hit, Tracer};
+use crate::trace::{Cone, Hit, Ray, Tracer};
 use anyhow::Context;
 use glam::Vec3A as V;
-use std::sync::atomic::{AtomicU32, Ordering::Relaxed};
 use std::time::Instant;
 use walk::seen_emission;
 
@@ -112,11 +111,8 @@ pub struct ConeSettings {
     /// full image has pixels, whatever --crop says).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     pub photons: Option<u32>,
-    /// On pixels where earlier samples, of the pixel or its 8 neighbours, both saw an
-    /// emitter and missed it (a lamp's silhouette), the emission seen directly is averaged
-    /// over this many primary cones per sample instead of the sample's own; they cost no
-    /// shading. 0 turns it off.
-    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u32).range(0..=256))]
+    /// `--edge-rays` (a flag of both cone and PBGI, set by the command line).
+    #[arg(skip = DEFAULT_EDGE_RAYS)]
     pub edge_rays: u32,
     /// Start from the stored light in this file (written by `--store-out` from the same
     /// archive and --cone-samples): tiles of one frame that start from one pre-pass's light
@@ -157,9 +153,6 @@ pub struct ConeStats {
     pub edge_pixels: u64,
 }
 
-/// Seed offset of the sequences that place a pixel's edge rays.
-const EDGE_SEED: u32 = 0x5bd1_e995;
-
 pub struct ConeIntegrator {
     settings: ConeSettings,
     store: RadianceStore,
@@ -171,16 +164,8 @@ pub struct ConeIntegrator {
     light_pass: (bool, String),
     photons: u32,
     deposits: u64,
-    /// Per pixel of the apron: primary samples that saw emission and that did not.
-    seen: Vec<[AtomicU32; 2]>,
-    /// The window rendered, and the apron: the window and the pixels around it, inside
-    /// the image (x0, x1, y0, y1). A tile's edge mask needs its neighbours' samples.
-    window: [u32; 4],
-    apron: [u32; 4],
-    /// The apron's pixels outside the window (none for a whole frame).
-    ring: Vec<[u32; 2]>,
-    /// Pixels taking edge rays this pass.
-    edge: Vec<bool>,
+    /// Edge rays at lamps' silhouettes.
+    edge: EdgeRays,
     pull_s: f64,
     light_s: f64,
 }
@@ -193,14 +178,6 @@ impl ConeIntegrator {
     ) -> anyhow::Result<ConeIntegrator> {
         let archive = &scene.cache.archive;
         let cam = &scene.camera;
-        let window = target.window;
-        let apron = [
-            window[0].saturating_sub(1),
-            (window[1] + 1).min(cam.width),
-            window[2].saturating_sub(1),
-            (window[3] + 1).min(cam.height),
-        ];
-        let (w, h) = (apron[1] - apron[0], apron[3] - apron[2]);
         let keys = keys(archive)?;
         Ok(ConeIntegrator {
             settings: settings.clone(),
@@ -224,70 +201,10 @@ impl ConeIntegrator {
                 .photons
                 .unwrap_or(target.pixels.clamp(1, u32::MAX as u64) as u32),
             deposits: 0,
-            seen: (0..w as usize * h as usize)
-                .map(|_| Default::default())
-                .collect(),
-            window,
-            apron,
-            ring: (apron[2]..apron[3])
-                .flat_map(|y| (apron[0]..apron[1]).map(move |x| [x, y]))
-                .filter(|&[x, y]| {
-                    !(window[0]..window[1]).contains(&x) || !(window[2]..window[3]).contains(&y)
-                })
-                .collect(),
-            edge: Vec::new(),
+            edge: EdgeRays::new(settings.edge_rays, scene, target),
             pull_s: 0.0,
             light_s: 0.0,
         })
-    }
-
-    /// Counts whether a primary sample of image pixel (x, y) saw emission.
-    fn tally(&self, x: u32, y: u32, v: V) {
-        let [x0, x1, y0, _] = self.apron;
-        let at = (y.wrapping_sub(y0) * (x1 - x0) + x.wrapping_sub(x0)) as usize;
-        if let Some(n) = self.seen.get(at) {
-            let n = &n[usize::from(v.max_element() <= 0.0)];
-            n.fetch_update(Relaxed, Relaxed, |x| Some(x.saturating_add(1)))
-                .ok();
-        }
-    }
-
-    fn edge_mask(&self) -> Vec<bool> {
-        let seen: Vec<[u32; 2]> = self
-            .seen
-            .iter()
-            .map(|s| s.each_ref().map(|n| n.load(Relaxed)))
-            .collect();
-        let [ax0, ax1, ay0, _] = self.apron;
-        let [x0, x1, y0, y1] = self.window;
-        let mask = edge_mask(&seen, ax1 - ax0);
-        (y0..y1)
-            .flat_map(|y| (x0..x1).map(move |x| ((y - ay0) * (ax1 - ax0) + x - ax0) as usize))
-            .map(|i| mask[i])
-            .collect()
-    }
-
-    /// The primary samples `first..first + count` of the ring's pixels, tallied as a
-    /// full-frame render tallies them (the same sample positions), so a tile's edge mask
-    /// at its border is the whole frame's there: without them a tile found other
-    /// silhouettes at its border rows, a seam (sponza, 8 tiles, 4 spp: the worst border
-    /// row's jump 17× the interior rows' mean).
-    fn tally_apron(&self, scene: &Scene, first: u32, count: u32) -> u64 {
-        if self.ring.is_empty() {
-            return 0;
-        }
-        let cam = &scene.camera;
-        let mut tr = Tracer::new(&scene.cache);
-        let mut c = Counters::default();
-        for &[x, y] in &self.ring {
-            for index in first..first + count {
-                let [jx, jy, ..] = PixelSampler::new(self.seed, y * cam.width + x, index).get4(0);
-                let r = cam.ray(x as f32 + jx, y as f32 + jy);
-                let v = seen_emission(scene, &mut tr, &r, &self.primary, &mut c);
-                self.tally(x, y, v);
-            }
-        }
-        tr.rays
     }
 }
 
@@ -357,31 +274,21 @@ impl Integrator for ConeIntegrator {
             self.deposits += lp.deposits;
             self.light_s += start.elapsed().as_secs_f64();
         }
-        if self.settings.edge_rays > 0 {
-            self.edge = self.edge_mask();
-            rays += self.tally_apron(scene, first, count);
-        }
+        let primary = self.primary;
+        let seen =
+            |tr: &mut Tracer, r: &Ray, c: &mut Counters| seen_emission(scene, tr, r, &primary, c);
+        rays += self.edge.begin_pass(scene, first, count, &seen);
         Ok(rays)
     }
 
     fn sample(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample, c: &mut Counters) -> V {
         let (rest, own) = self.radiance(scene, tr, px.ray, &px.sampler, c);
-        self.tally(px.x, px.y, own);
         // At an emitter's silhouette (found by earlier passes) the emission seen is
-        // averaged over `edge_rays` positions of a denser stratified sequence: an unbiased
-        // estimate of the same pixel integral, each ray a primary cone without shading.
-        let k = self.settings.edge_rays;
-        if k == 0 || self.edge.get(px.at) != Some(&true) {
-            return rest + own;
-        }
-        let pixel = px.y * scene.camera.width + px.x;
-        let sum = (0..k).fold(V::ZERO, |acc, j| {
-            let index = px.index.wrapping_mul(k).wrapping_add(j);
-            let [ex, ey, ..] = PixelSampler::new(self.seed ^ EDGE_SEED, pixel, index).get4(0);
-            let r = scene.camera.ray(px.x as f32 + ex, px.y as f32 + ey);
-            acc + seen_emission(scene, tr, &r, &self.primary, c)
-        });
-        rest + sum / k as f32
+        // averaged over `--edge-rays` primary cones of a denser stratified sequence.
+        let seen = |tr: &mut Tracer, r: &Ray, c: &mut Counters| {
+            seen_emission(scene, tr, r, &self.primary, c)
+        };
+        rest + self.edge.emission(scene, tr, px, own, c, &seen)
     }
 
     fn finish(&mut self, scene: &Scene) -> anyhow::Result<()> {
@@ -406,15 +313,6 @@ impl Integrator for ConeIntegrator {
 
     fn passes(&self) -> Vec<String> {
         let s = &self.settings;
-        let edge = if s.edge_rays == 0 {
-            "edge rays: off (--edge-rays 0)".into()
-        } else {
-            format!(
-                "edge rays: {} per sample average the emission seen on the {} pixels found at an emitter's silhouette",
-                s.edge_rays,
-                self.edge_pixels()
-            )
-        };
         vec![
             format!(
                 "cone: eye pass, cone scale {}, diffuse cones tan {}, diffuse light stored per node ({}, each sample serving at most {} reads on average)",
@@ -429,7 +327,7 @@ impl Integrator for ConeIntegrator {
                 "no pull: exact cones read no node's light".into()
             },
             self.light_pass.1.clone(),
-            edge,
+            self.edge.describe(),
         ]
     }
 
@@ -445,42 +343,16 @@ impl Integrator for ConeIntegrator {
             store_refused_samples: self.store.refused(),
             photons: self.store.photons(),
             caustic_deposits: self.deposits,
-            edge_pixels: self.edge_pixels(),
+            edge_pixels: self.edge.pixels(),
         })
     }
 
     /// The store, and per pixel the emission tallies and the edge mask.
     fn state_bytes(&self) -> [u64; 2] {
-        [self.store.bytes(), self.seen.len() as u64 * 9]
+        [self.store.bytes(), self.edge.bytes()]
     }
 
     fn seconds(&self) -> Vec<(&'static str, f64)> {
         vec![("pull", self.pull_s), ("light", self.light_s)]
     }
-}
-
-impl ConeIntegrator {
-    fn edge_pixels(&self) -> u64 {
-        self.edge_mask().iter().filter(|&&e| e).count() as u64
-    }
-}
-
-/// Pixels at an emitter's silhouette: among the pixel and its eight neighbours, earlier
-/// samples both saw emission and missed it. The neighbours catch a pixel the emitter
-/// barely covers before one of its own samples lands on it.
-fn edge_mask(seen: &[[u32; 2]], width: u32) -> Vec<bool> {
-    let (w, h) = (width as usize, seen.len() / width.max(1) as usize);
-    (0..seen.len())
-        .map(|i| {
-            let (x, y) = (i % w, i / w);
-            let mut any = [false; 2];
-            for ny in y.saturating_sub(1)..(y + 2).min(h) {
-                for nx in x.saturating_sub(1)..(x + 2).min(w) {
-                    let n = seen[ny * w + nx];
-                    any = [any[0] || n[0] > 0, any[1] || n[1] > 0];
-                }
-            }
-            any[0] && any[1]
-        })
-        .collect()
 }

@@ -222,8 +222,18 @@ fn bake_bounces(
     progress: &dyn Fn(u64),
 ) -> Result<u64> {
     let archive = &scene.cache.archive;
-    let gatherer = (p.bounces > 1)
-        .then(|| super::PbgiIntegrator::new(&super::PbgiSettings::default(), p.seed));
+    // A gatherer of no pixels: no window, no edge rays.
+    let target = crate::integrator::Target {
+        seed: p.seed,
+        pixels: 0,
+        window: [0; 4],
+        state_bytes: None,
+    };
+    let settings = super::PbgiSettings {
+        edge_rays: 0,
+        ..Default::default()
+    };
+    let gatherer = (p.bounces > 1).then(|| super::PbgiIntegrator::new(&settings, scene, &target));
     let mut samples = 0;
     for b in 1..=p.bounces {
         let gather = gatherer.as_ref().filter(|_| b > 1);

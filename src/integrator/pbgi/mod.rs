@@ -40,9 +40,10 @@ pub mod glossy;
 pub mod microbuffer;
 pub mod patch;
 
+use super::edge::{EdgeRays, DEFAULT_EDGE_RAYS};
 use super::{
     bsdf_term, on_side, sample_light, shading_frame, Counters, Integrator, PixelSample, Receiver,
-    Scene, Stats,
+    Scene, Stats, Target,
 };
 use crate::material::{Bsdf, Frame};
 use crate::paging::{NodeRef, Page, TNode};
@@ -78,6 +79,9 @@ pub struct PbgiSettings {
     /// Micro-buffer texels per cube-face side (even): the hemicube has 3·n² texels.
     #[arg(long = "pbgi-resolution", default_value_t = 8, value_parser = parse_resolution)]
     pub resolution: usize,
+    /// `--edge-rays` (a flag of both cone and PBGI, set by the command line).
+    #[arg(skip = DEFAULT_EDGE_RAYS)]
+    pub edge_rays: u32,
     #[command(flatten)]
     pub bake: bake::BakeSettings,
     /// FPBGI (003 ch. 3): receivers of each 16×16 tile grouped into at most this many
@@ -145,6 +149,8 @@ pub struct PbgiStats {
     /// Receivers gathered at, and those that took their pixel's earlier gathers instead.
     pub gathers: u64,
     pub reused_gathers: u64,
+    /// Pixels at an emitter's silhouette (these take `--edge-rays`).
+    pub edge_pixels: u64,
     /// Texel rays traced exactly under `--pbgi-rays`.
     pub traced_texels: u64,
 }
@@ -168,6 +174,8 @@ pub struct PbgiIntegrator {
     gathers: AtomicU64,
     reused: AtomicU64,
     traced_texels: AtomicU64,
+    /// Edge rays at lamps' silhouettes.
+    edge: EdgeRays,
 }
 
 /// Irradiance gathers summed at one surface of a pixel.
@@ -214,8 +222,18 @@ thread_local! {
     static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
 }
 
+/// The emission seen at a camera ray's first hit, for the edge rays.
+fn seen_emission(scene: &Scene, tr: &mut Tracer, r: &Ray, c: &mut Counters) -> V {
+    let Some(hit) = tr.closest_hit(r) else {
+        return V::ZERO;
+    };
+    scene.touched.insert(hit.leaf);
+    Surface::at(scene, &hit, r.d).map_or(V::ZERO, |s| c.finite(s.emitted))
+}
+
 impl PbgiIntegrator {
-    pub fn new(settings: &PbgiSettings, seed: u32) -> PbgiIntegrator {
+    pub fn new(settings: &PbgiSettings, scene: &Scene, target: &Target) -> PbgiIntegrator {
+        let seed = target.seed;
         PbgiIntegrator {
             settings: settings.clone(),
             texels: Texels::new(settings.resolution),
@@ -231,14 +249,37 @@ impl PbgiIntegrator {
             gathers: AtomicU64::new(0),
             reused: AtomicU64::new(0),
             traced_texels: AtomicU64::new(0),
+            edge: EdgeRays::new(settings.edge_rays, scene, target),
         }
     }
 
     /// Radiance along the camera ray up to the receiver x, the first non-specular hit:
     /// emission seen and direct light; and x with the path weight to it, when one bounce
-    /// of indirect light is still to be gathered there.
-    fn first_hit(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample) -> (V, Option<Pending>) {
-        let (mut ray, mut beta, mut l) = (px.ray, V::ONE, V::ZERO);
+    /// of indirect light is still to be gathered there. The emission seen at the primary
+    /// hit goes through the edge rays.
+    fn first_hit(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        px: &PixelSample,
+        c: &mut Counters,
+    ) -> (V, Option<Pending>) {
+        let (l, pending, own) = self.first_hit_own(scene, tr, px);
+        let seen = |tr: &mut Tracer, r: &Ray, c: &mut Counters| seen_emission(scene, tr, r, c);
+        (
+            l + self.edge.emission(scene, tr, px, own, c, &seen),
+            pending,
+        )
+    }
+
+    /// `first_hit` with the emission seen at the primary hit apart (the third value).
+    fn first_hit_own(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        px: &PixelSample,
+    ) -> (V, Option<Pending>, V) {
+        let (mut ray, mut beta, mut l, mut own) = (px.ray, V::ONE, V::ZERO, V::ZERO);
         for depth in 0..SMOOTH_DEPTH {
             let Some(hit) = tr.closest_hit(&ray) else {
                 break;
@@ -247,7 +288,10 @@ impl PbgiIntegrator {
             let Some(s) = Surface::at(scene, &hit, ray.d) else {
                 break;
             };
-            l += beta * s.emitted;
+            match depth {
+                0 => own = s.emitted,
+                _ => l += beta * s.emitted,
+            }
             if scene.last_segment(depth) || s.absorbs {
                 break;
             }
@@ -279,18 +323,16 @@ impl PbgiIntegrator {
                 / scene.camera.height as f32;
             let at = Some((px.at, footprint));
             let sample = px.index;
-            return (
-                l,
-                Some(Pending {
-                    s,
-                    beta,
-                    key,
-                    at,
-                    sample,
-                }),
-            );
+            let q = Pending {
+                s,
+                beta,
+                key,
+                at,
+                sample,
+            };
+            return (l, Some(q), own);
         }
-        (l, None)
+        (l, None, own)
     }
 
     /// One bounce of indirect light at the receiver: its diffuse lobe from the
@@ -677,8 +719,10 @@ impl PbgiIntegrator {
         pxs: &[PixelSample],
         c: &mut Counters,
     ) -> Vec<V> {
-        let firsts: Vec<(V, Option<Pending>)> =
-            pxs.iter().map(|px| self.first_hit(scene, tr, px)).collect();
+        let firsts: Vec<(V, Option<Pending>)> = pxs
+            .iter()
+            .map(|px| self.first_hit(scene, tr, px, c))
+            .collect();
         let mut out: Vec<V> = firsts.iter().map(|f| f.0).collect();
         let mut at = Vec::new();
         for i in (0..firsts.len()).filter(|&i| firsts[i].1.is_some()) {
@@ -998,9 +1042,20 @@ impl Surface {
 impl Integrator for PbgiIntegrator {
     /// The first pass bakes (or reads `--radiance`) and attaches the light to the pages,
     /// so time budgets count the bake.
-    fn begin_pass(&mut self, scene: &Scene, first: u32, _count: u32) -> Result<u64> {
+    /// One sample per pass when edge rays are on: a pass's edge mask comes from the
+    /// passes before it.
+    fn pass_samples(&self, spp: u32) -> u32 {
+        match self.settings.edge_rays {
+            0 => spp,
+            _ => 1,
+        }
+    }
+
+    fn begin_pass(&mut self, scene: &Scene, first: u32, count: u32) -> Result<u64> {
+        let seen = |tr: &mut Tracer, r: &Ray, c: &mut Counters| seen_emission(scene, tr, r, c);
+        let edge_rays = self.edge.begin_pass(scene, first, count, &seen);
         if first > 0 {
-            return Ok(0);
+            return Ok(edge_rays);
         }
         if self.settings.reuse > 1 {
             let pixels = scene.camera.width as usize * scene.camera.height as usize;
@@ -1023,11 +1078,11 @@ impl Integrator for PbgiIntegrator {
         };
         scene.cache.attach_radiance(file)?;
         self.bake_s = t.elapsed().as_secs_f64();
-        Ok(self.bake_samples)
+        Ok(self.bake_samples + edge_rays)
     }
 
     fn sample(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample, c: &mut Counters) -> V {
-        let (mut l, pending) = self.first_hit(scene, tr, px);
+        let (mut l, pending) = self.first_hit(scene, tr, px, c);
         if let Some(q) = pending {
             l += q.beta * self.gather(scene, tr, &q, None);
         }
@@ -1072,6 +1127,7 @@ impl Integrator for PbgiIntegrator {
                 "pbgi: a pixel gathers at every {}-th sample, the others reusing its gathers' irradiance",
                 s.reuse
             ),
+            self.edge.describe(),
         ]
     }
 
@@ -1091,6 +1147,7 @@ impl Integrator for PbgiIntegrator {
             gathers: self.gathers.load(Relaxed),
             traced_texels: self.traced_texels.load(Relaxed),
             reused_gathers: self.reused.load(Relaxed),
+            edge_pixels: self.edge.pixels(),
         })
     }
 
@@ -1103,7 +1160,11 @@ impl Integrator for PbgiIntegrator {
             .sum();
         let slots = self.gathered.len() * size_of::<Mutex<Vec<Gathered>>>();
         let bytes = (slots + kept * size_of::<Gathered>()) as u64;
-        [bytes, bytes / self.gathered.len().max(1) as u64]
+        let edge = self.edge.bytes();
+        [
+            bytes + edge,
+            bytes / self.gathered.len().max(1) as u64 + edge,
+        ]
     }
 
     fn seconds(&self) -> Vec<(&'static str, f64)> {
