@@ -101,7 +101,8 @@ pub struct PbgiSettings {
     /// does, where the cut found 0.84 (docs/pbgi.md).
     #[arg(long = "pbgi-rays", conflicts_with_all = ["angle", "clusters", "far", "wavelet", "wavelet_resolution", "wavelet_threshold"])]
     pub rays: bool,
-    /// Samples per gather: a pixel gathers at every R-th sample (and while it holds none);
+    /// Samples per gather: a pixel gathers at its first sample, then at every R-th (at a
+    /// phase of its own) and while it holds none;
     /// its other samples take the mean irradiance of its gathers on their surface (normal
     /// within 14°, within a pixel's width of its plane), else of those whose normal is
     /// closest (003 ch. 2 gathers once per micropolygon, not per pixel sample). 1 gathers
@@ -368,12 +369,17 @@ impl PbgiIntegrator {
         l
     }
 
-    /// Unless the receiver's sample is one that gathers (every `--pbgi-reuse`-th): the
+    /// Unless the receiver's sample is one that gathers (the first, then every
+    /// `--pbgi-reuse`-th at the pixel's phase): the
     /// mean irradiance of its pixel's gathers on its surface, else of those whose normal is
     /// closest to its own.
     fn reuse(&self, q: &Pending) -> Option<V> {
         let (pixel, footprint) = q.at?;
-        if q.sample.is_multiple_of(self.settings.reuse) {
+        // Each pixel's later gathers fall at its own phase of R, so a pass does about
+        // 1/R of the pixels' gathers instead of all of them every R-th pass.
+        let r = self.settings.reuse as u64;
+        let phase = Hash::new(pixel as u64 ^ (self.seed as u64) << 32).u64() % r;
+        if q.sample == 0 || (q.sample as u64 + phase).is_multiple_of(r) {
             return None;
         }
         let slot = self.gathered.get(pixel)?;
