@@ -14,7 +14,7 @@ fn one_bounce_mean_error(name: &str) -> f64 {
 /// PBGI with `extra` flags against the path tracer at `depth` in the same window, every
 /// sample gathering (what sharing gathers adds is measured on its own below).
 fn mean_error(name: &str, depth: u32, extra: &[&str]) -> f64 {
-    let extra = [extra, &["--pbgi-reuse", "1"]].concat();
+    let extra = [extra, &["--pbgi-reuse", "1", "--pbgi-cache", "0"]].concat();
     let (img, reference, stats) = pbgi_and_path(name, "0,32,8,32", depth, [8192, 16], &extra);
     assert!(stats["bake_samples"].as_u64().unwrap() > 0);
     let (a, b) = (img.mean(), reference.mean());
@@ -157,6 +157,14 @@ fn pbgi_flags_are_refused_elsewhere_and_checked() {
             &["--integrator", "pbgi", "--pbgi-reuse", "0"],
             "--pbgi-reuse",
         ),
+        (
+            &["--integrator", "pbgi", "--pbgi-cache", "NaN"],
+            "--pbgi-cache",
+        ),
+        (
+            &["--integrator", "path", "--pbgi-cache", "0.2"],
+            "--pbgi-cache applies to --integrator pbgi",
+        ),
     ] {
         let err = fails(&[&["render", s(&arc), "-o", s(&out)][..], flags].concat());
         assert!(err.contains(says), "{flags:?}: {err}");
@@ -233,6 +241,8 @@ fn a_pixel_gathers_at_every_rth_sample_and_shades_one_near_hit_per_texel() {
                 &spp,
                 "--pbgi-reuse",
                 &reuse,
+                "--pbgi-cache",
+                "0",
             ],
         );
         let count = |k: &str| stats[k].as_u64().unwrap();
@@ -267,6 +277,39 @@ fn a_pixel_gathers_at_every_rth_sample_and_shades_one_near_hit_per_texel() {
     }
 }
 
+/// The irradiance cache (`--pbgi-cache`): bunny_box's receivers read gathers placed
+/// coarse to fine over the pixels, so far fewer gathers are made than receivers are
+/// shaded, and the image mean stays with the path tracer's on the same light paths; the
+/// records are placed the same way whatever the thread count, so the image is too.
+#[test]
+fn the_irradiance_cache_shares_gathers_and_keeps_the_mean() {
+    let flags = ["--pbgi-rays", "--pbgi-cache", "0.3", "--threads", "2"];
+    let (img, reference, stats) = pbgi_and_path("bunny_box", "0,32,8,32", 3, [8192, 64], &flags);
+    let count = |k: &str| stats[k].as_u64().unwrap();
+    let receivers = count("cache_hits") + count("gathers") + count("reused_gathers");
+    let gathers = count("cache_records") + count("gathers");
+    assert!(
+        count("cache_hits") > 0 && 8 * gathers < receivers,
+        "{gathers} gathers for {receivers} receivers"
+    );
+    let (a, b) = (img.mean(), reference.mean());
+    for c in 0..3 {
+        assert!((a[c] / b[c] - 1.0).abs() < 0.01, "{a:?} against {b:?}");
+    }
+    let (one, _, _) = pbgi_and_path(
+        "bunny_box",
+        "0,32,8,32",
+        3,
+        [1, 64],
+        &[&flags[..3], &["--threads", "1"]].concat(),
+    );
+    assert_eq!(
+        rmse(&img, &one),
+        0.0,
+        "the image depends on the thread count"
+    );
+}
+
 /// FPBGI: a cluster of one receiver walks exactly PBGI's cut, so the image is identical;
 /// real clusters share far splats (fewer splats in all) and stay close to PBGI.
 #[test]
@@ -283,6 +326,8 @@ fn receiver_clusters_of_one_equal_pbgi_and_larger_ones_share_far_splats() {
         "48",
         "--spp",
         "2",
+        "--pbgi-cache",
+        "0",
     ];
     let render_with = |name: &str, extra: &[&str]| {
         render(&arc, &dir.path().join(name), &[&base[..], extra].concat())

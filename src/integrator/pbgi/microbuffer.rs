@@ -161,6 +161,22 @@ impl MicroBuffer {
         });
     }
 
+    /// The harmonic mean of the nearest fragment's depth over the upper texels, a texel
+    /// with none counting as infinitely far (the irradiance cache's R; call after
+    /// `resolve`, which sorts each texel's fragments by depth).
+    pub fn harmonic_distance(&self, texels: &Texels) -> f32 {
+        let inverse: f32 = texels
+            .upper
+            .iter()
+            .filter_map(|&t| {
+                let first = *self.start.get(t as usize)? as usize;
+                let end = *self.start.get(t as usize + 1)? as usize;
+                (first < end).then(|| 1.0 / self.sorted[first].depth.max(f32::MIN_POSITIVE))
+            })
+            .sum();
+        texels.upper.len() as f32 / inverse
+    }
+
     /// Incident radiance per cube texel: fragments composited front to back, the rest
     /// of each texel seeing `background(texel)`.
     pub fn resolve(&mut self, texels: &Texels, background: impl Fn(usize) -> Vec3) -> Vec<Vec3> {

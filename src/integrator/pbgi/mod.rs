@@ -35,6 +35,7 @@
 //! A smooth lobe layered over a diffuse one is not sampled (its delta part is lost).
 
 pub mod bake;
+pub mod cache;
 pub mod cluster;
 pub mod glossy;
 pub mod microbuffer;
@@ -47,12 +48,15 @@ use super::{
 };
 use crate::material::{Bsdf, Frame};
 use crate::paging::{NodeRef, Page, TNode};
+use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer, NO_INSTANCE};
 use crate::wavelet::cube;
 use anyhow::Result;
 use bake::{Directional, Hash};
+use cache::{IrradianceCache, Record};
 use glam::{Vec3, Vec3A as V};
 use microbuffer::{MicroBuffer, Texels};
+use rayon::prelude::*;
 use std::cell::RefCell;
 use std::f32::consts::PI;
 use std::path::PathBuf;
@@ -109,6 +113,14 @@ pub struct PbgiSettings {
     /// at every sample.
     #[arg(long = "pbgi-reuse", value_name = "R", default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..))]
     pub reuse: u32,
+    /// The irradiance cache's error bound a (0: off). Before the first pass, gathers are
+    /// placed coarse to fine over the pixels where earlier ones leave a pixel's first hit
+    /// uncovered; a receiver then reads every gather within
+    /// ε = |x − p|/R + √(1 − n·n') < a of it (R: the gather's harmonic mean distance, 1 to
+    /// 16 pixels over a), and gathers alone (`--pbgi-reuse`) only where none is.
+    /// Smaller is more exact and gathers more.
+    #[arg(long = "pbgi-cache", value_name = "A", default_value_t = 0.3, value_parser = parse_cache)]
+    pub cache: f32,
     /// Baked light from `canopy bake` (default: bake before the first pass, counted in the
     /// render time, into an unnamed scratch file).
     #[arg(long, value_name = "FILE", conflicts_with_all = ["bake_samples", "patch_size", "bounces"])]
@@ -119,6 +131,13 @@ fn parse_resolution(s: &str) -> Result<usize, String> {
     match s.parse::<usize>() {
         Ok(n) if (2..=64).contains(&n) && n.is_multiple_of(2) => Ok(n),
         _ => Err(format!("{s:?}: an even number from 2 to 64")),
+    }
+}
+
+fn parse_cache(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(a) if (0.0..=2.0).contains(&a) => Ok(a),
+        _ => Err(format!("{s:?}: a number from 0 (off) to 2")),
     }
 }
 
@@ -154,6 +173,10 @@ pub struct PbgiStats {
     pub edge_pixels: u64,
     /// Texel rays traced exactly under `--pbgi-rays`.
     pub traced_texels: u64,
+    /// `--pbgi-cache`, its records and the receivers that read them.
+    pub pbgi_cache: f32,
+    pub cache_records: u64,
+    pub cache_hits: u64,
 }
 
 pub struct PbgiIntegrator {
@@ -177,6 +200,11 @@ pub struct PbgiIntegrator {
     traced_texels: AtomicU64,
     /// Edge rays at lamps' silhouettes.
     edge: EdgeRays,
+    /// The window rendered (`Target::window`), where the cache's records are placed.
+    window: [u32; 4],
+    cache: Option<IrradianceCache>,
+    cache_hits: AtomicU64,
+    cache_s: f64,
 }
 
 /// Irradiance gathers summed at one surface of a pixel.
@@ -251,6 +279,10 @@ impl PbgiIntegrator {
             reused: AtomicU64::new(0),
             traced_texels: AtomicU64::new(0),
             edge: EdgeRays::new(settings.edge_rays, scene, target),
+            window: target.window,
+            cache: None,
+            cache_hits: AtomicU64::new(0),
+            cache_s: 0.0,
         }
     }
 
@@ -353,13 +385,17 @@ impl PbgiIntegrator {
             // The diffuse lobe is the same for every incident direction: irradiance × it.
             let lobe = s.bsdf.eval(s.wo_l, V::Z).0 - glossy.eval(s.wo_l, V::Z).0;
             let e = match self.reuse(q) {
-                Some(e) => {
-                    self.reused.fetch_add(1, Relaxed);
+                Some((e, cached)) => {
+                    match cached {
+                        true => &self.cache_hits,
+                        false => &self.reused,
+                    }
+                    .fetch_add(1, Relaxed);
                     e
                 }
                 None => {
                     self.gathers.fetch_add(1, Relaxed);
-                    let e = self.gather_irradiance(scene, tr, s, q.key, field);
+                    let e = self.gather_irradiance(scene, tr, s, q.key, field).0;
                     self.keep(q, e);
                     e
                 }
@@ -369,11 +405,18 @@ impl PbgiIntegrator {
         l
     }
 
-    /// Unless the receiver's sample is one that gathers (the first, then every
-    /// `--pbgi-reuse`-th at the pixel's phase): the
-    /// mean irradiance of its pixel's gathers on its surface, else of those whose normal is
-    /// closest to its own.
-    fn reuse(&self, q: &Pending) -> Option<V> {
+    /// The irradiance the cache holds at the receiver (flagged true); else, unless the
+    /// receiver's sample is one that gathers (the first, then every `--pbgi-reuse`-th at
+    /// the pixel's phase), the mean irradiance of its pixel's gathers on its surface, else
+    /// of those whose normal is closest to its own.
+    fn reuse(&self, q: &Pending) -> Option<(V, bool)> {
+        if let Some(e) = self
+            .cache
+            .as_ref()
+            .and_then(|c| c.lookup(q.s.p, q.s.frame.n))
+        {
+            return Some((e, true));
+        }
         let (pixel, footprint) = q.at?;
         // Each pixel's later gathers fall at its own phase of R, so a pass does about
         // 1/R of the pixels' gathers instead of all of them every R-th pass.
@@ -389,7 +432,74 @@ impl PbgiIntegrator {
             .iter()
             .find(|g| g.holds(q.s.p, n, footprint))
             .or_else(|| list.iter().max_by(|a, b| a.n.dot(n).total_cmp(&b.n.dot(n))))?;
-        Some(g.sum / g.count as f32)
+        Some((g.sum / g.count as f32, false))
+    }
+
+    /// The irradiance cache's records, placed coarse to fine: at every 16th pixel of the
+    /// window, then at the pixels of each finer grid whose first hit (through the pixel's
+    /// centre) the records so far leave uncovered. Returns the cache and the rays traced.
+    fn build_cache(&self, scene: &Scene, a: f32) -> (IrradianceCache, u64) {
+        let [x0, x1, y0, y1] = self.window;
+        let mut cache = IrradianceCache::new(a);
+        let mut rays = 0;
+        let mut step = 16;
+        while step >= 1 {
+            let on = |v: u32, s: u32| v.is_multiple_of(s);
+            let pixels: Vec<(u32, u32)> = (y0..y1)
+                .flat_map(|y| (x0..x1).map(move |x| (x, y)))
+                .filter(|&(x, y)| {
+                    let (dx, dy) = (x - x0, y - y0);
+                    on(dx, step)
+                        && on(dy, step)
+                        && (step == 16 || !(on(dx, 2 * step) && on(dy, 2 * step)))
+                })
+                .collect();
+            let found: Vec<(Option<Record>, u64)> = pixels
+                .par_iter()
+                .map_init(
+                    || Tracer::new(&scene.cache),
+                    |tr, &(x, y)| {
+                        let before = tr.rays;
+                        let rec = self.cache_record(scene, tr, &cache, x, y);
+                        (rec, tr.rays - before)
+                    },
+                )
+                .collect();
+            rays += found.iter().map(|f| f.1).sum::<u64>();
+            cache.extend(found.into_iter().filter_map(|f| f.0));
+            step /= 2;
+        }
+        (cache, rays)
+    }
+
+    /// A record gathered at pixel (x, y)'s first hit through its centre, unless the cache
+    /// covers it already or it has no diffuse lobe.
+    fn cache_record(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        cache: &IrradianceCache,
+        x: u32,
+        y: u32,
+    ) -> Option<Record> {
+        let cam = &scene.camera;
+        let [x0, x1, y0, _] = self.window;
+        let px = PixelSample {
+            x,
+            y,
+            at: ((y - y0) * (x1 - x0) + x - x0) as usize,
+            index: 0,
+            sampler: PixelSampler::new(self.seed, y * cam.width + x, 0),
+            ray: cam.ray(x as f32 + 0.5, y as f32 + 0.5),
+        };
+        let q = self.first_hit_own(scene, tr, &px).1?;
+        let (_, footprint) = q.at?;
+        let n = q.s.frame.n;
+        if q.s.bsdf.diffuse.max_element() <= 0.0 || cache.lookup(q.s.p, n).is_some() {
+            return None;
+        }
+        let (e, harmonic) = self.gather_irradiance(scene, tr, &q.s, q.key ^ 0xCAC4E, None);
+        Some(Record::new(q.s.p, n, e, harmonic, footprint, cache.a()))
     }
 
     /// Adds a gather's irradiance `e` to its pixel's surface.
@@ -453,9 +563,9 @@ impl PbgiIntegrator {
         bs.weight * hit_light(scene, tr, &page, &hit, w, rng).0
     }
 
-    /// Irradiance at `s` from the cut, the near rays and the micro-buffer. With a
-    /// cluster's `field`, its far splats are taken as they are and the cut starts from its
-    /// near nodes instead of the root.
+    /// Irradiance at `s` from the cut, the near rays and the micro-buffer, and the harmonic
+    /// mean distance of what it saw. With a cluster's `field`, its far splats are taken as
+    /// they are and the cut starts from its near nodes instead of the root.
     fn gather_irradiance(
         &self,
         scene: &Scene,
@@ -463,7 +573,7 @@ impl PbgiIntegrator {
         s: &Surface,
         key: u64,
         field: Option<&Field>,
-    ) -> V {
+    ) -> (V, f32) {
         SCRATCH.with_borrow_mut(|sc| {
             let texels = &self.texels;
             sc.mb.clear();
@@ -487,7 +597,8 @@ impl PbgiIntegrator {
                 self.fill_from_cut(scene, tr, s, field, sc, &mut rng);
             }
             let incident = sc.mb.resolve(texels, |_| Vec3::ZERO);
-            V::from(MicroBuffer::convolve(texels, &incident, |_| Vec3::ONE))
+            let e = MicroBuffer::convolve(texels, &incident, |_| Vec3::ONE);
+            (V::from(e), sc.mb.harmonic_distance(texels))
         })
     }
 
@@ -575,7 +686,7 @@ impl PbgiIntegrator {
             emitted: V::ZERO,
             absorbs: false,
         };
-        self.gather_irradiance(scene, tr, &s, key, None)
+        self.gather_irradiance(scene, tr, &s, key, None).0
     }
 
     /// Walks the hierarchy from the nodes on `sc.stack`: far nodes are splatted, near
@@ -1084,7 +1195,14 @@ impl Integrator for PbgiIntegrator {
         };
         scene.cache.attach_radiance(file)?;
         self.bake_s = t.elapsed().as_secs_f64();
-        Ok(self.bake_samples + edge_rays)
+        let mut cache_rays = 0;
+        if self.settings.cache > 0.0 {
+            let t = Instant::now();
+            let (cache, rays) = self.build_cache(scene, self.settings.cache);
+            (self.cache, cache_rays) = (Some(cache), rays);
+            self.cache_s = t.elapsed().as_secs_f64();
+        }
+        Ok(self.bake_samples + edge_rays + cache_rays)
     }
 
     fn sample(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample, c: &mut Counters) -> V {
@@ -1133,6 +1251,13 @@ impl Integrator for PbgiIntegrator {
                 "pbgi: a pixel gathers at every {}-th sample, the others reusing its gathers' irradiance",
                 s.reuse
             ),
+            match &self.cache {
+                Some(c) => format!(
+                    "pbgi: irradiance cache of error bound {}: {} gathers placed coarse to fine over the pixels ({:.2} s), read by the receivers they cover",
+                    s.cache, c.len(), self.cache_s
+                ),
+                None => "pbgi: no irradiance cache".into(),
+            },
             self.edge.describe(),
         ]
     }
@@ -1154,6 +1279,9 @@ impl Integrator for PbgiIntegrator {
             traced_texels: self.traced_texels.load(Relaxed),
             reused_gathers: self.reused.load(Relaxed),
             edge_pixels: self.edge.pixels(),
+            pbgi_cache: self.settings.cache,
+            cache_records: self.cache.as_ref().map_or(0, |c| c.len() as u64),
+            cache_hits: self.cache_hits.load(Relaxed),
         })
     }
 
@@ -1165,7 +1293,8 @@ impl Integrator for PbgiIntegrator {
             .map(|m| m.lock().unwrap_or_else(PoisonError::into_inner).capacity())
             .sum();
         let slots = self.gathered.len() * size_of::<Mutex<Vec<Gathered>>>();
-        let bytes = (slots + kept * size_of::<Gathered>()) as u64;
+        let cached = self.cache.as_ref().map_or(0, IrradianceCache::bytes);
+        let bytes = (slots + kept * size_of::<Gathered>()) as u64 + cached;
         let edge = self.edge.bytes();
         [
             bytes + edge,
@@ -1174,7 +1303,7 @@ impl Integrator for PbgiIntegrator {
     }
 
     fn seconds(&self) -> Vec<(&'static str, f64)> {
-        vec![("bake", self.bake_s)]
+        vec![("bake", self.bake_s), ("cache", self.cache_s)]
     }
 }
 
