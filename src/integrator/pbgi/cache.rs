@@ -247,7 +247,7 @@ mod tests {
     fn a_records_radius_is_clamped_to_its_pixel_footprints() {
         let r = |h: f32| Record::new(V::ZERO, V::Z, V::ONE, h, 0.01, 0.5).r;
         assert_eq!(r(1e-9), 0.02);
-        assert_eq!(r(0.1), 0.1);
+        assert_eq!(r(0.05), 0.05);
         assert_eq!(r(100.0), 0.02 * MAX_PIXELS);
         assert_eq!(r(f32::INFINITY), 0.02 * MAX_PIXELS);
     }
