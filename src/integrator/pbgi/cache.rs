@@ -97,8 +97,12 @@ impl IrradianceCache {
             if !(rec.p.is_finite() && rec.e.is_finite() && rec.r > 0.0 && rec.r.is_finite()) {
                 continue;
             }
-            let id = self.records.len() as u32;
             let reach = self.a * rec.r;
+            // A sphere too wide for f32 cells would span billions of them.
+            if !(2.0 * reach).is_finite() {
+                continue;
+            }
+            let id = self.records.len() as u32;
             let level = level_of(2.0 * reach);
             let size = cell_size(level);
             let lo = cell(rec.p - V::splat(reach), size);
@@ -159,7 +163,7 @@ fn cell_size(level: i8) -> f32 {
 
 /// The smallest level whose cells are at least `width` wide.
 fn level_of(width: f32) -> i8 {
-    width.max(1e-30).log2().ceil().clamp(-100.0, 100.0) as i8
+    width.max(1e-30).log2().ceil().clamp(-100.0, 127.0) as i8
 }
 
 fn cell(p: V, size: f32) -> [i32; 3] {
