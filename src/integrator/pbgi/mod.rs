@@ -117,7 +117,7 @@ pub struct PbgiSettings {
     /// placed coarse to fine over the pixels where earlier ones leave a pixel's first hit
     /// uncovered; a receiver then reads every gather within
     /// ε = |x − p|/R + √(1 − n·n') < a of it (R: the gather's harmonic mean distance, 1 to
-    /// 16 pixels over a), and gathers alone (`--pbgi-reuse`) only where none is.
+    /// 4 pixels over a), and gathers alone (`--pbgi-reuse`) only where none is.
     /// Smaller is more exact and gathers more.
     #[arg(long = "pbgi-cache", value_name = "A", default_value_t = 0.3, value_parser = parse_cache)]
     pub cache: f32,
