@@ -127,8 +127,15 @@ pub trait Integrator: Send + Sync {
     fn pass_samples(&self, spp: u32) -> u32 {
         spp
     }
-    /// Before the pass of samples `first..first + count`; returns the rays it traced.
-    fn begin_pass(&mut self, _scene: &Scene, _first: u32, _count: u32) -> anyhow::Result<u64> {
+    /// Before the pass of samples `first..first + count`, `rays` traced so far; returns
+    /// the rays it traces.
+    fn begin_pass(
+        &mut self,
+        _scene: &Scene,
+        _first: u32,
+        _count: u32,
+        _rays: u64,
+    ) -> anyhow::Result<u64> {
         Ok(0)
     }
     /// Radiance of one pixel sample.

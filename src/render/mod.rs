@@ -116,7 +116,8 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
                 .min(o.spp - done),
             (None, None) => integ.pass_samples(o.spp),
         };
-        let rays = pool.install(|| integ.begin_pass(scene, done, count))?;
+        let so_far = tally.rays.load(Relaxed);
+        let rays = pool.install(|| integ.begin_pass(scene, done, count, so_far))?;
         tally.rays.fetch_add(rays, Relaxed);
         // Timed after begin_pass: a bake there is paid once, not by every pass.
         let pass_start = Instant::now();

@@ -254,7 +254,13 @@ impl Integrator for ConeIntegrator {
         1
     }
 
-    fn begin_pass(&mut self, scene: &Scene, first: u32, count: u32) -> anyhow::Result<u64> {
+    fn begin_pass(
+        &mut self,
+        scene: &Scene,
+        first: u32,
+        count: u32,
+        _rays: u64,
+    ) -> anyhow::Result<u64> {
         if let (0, Some(path)) = (first, &self.settings.store_in) {
             crate::radiance::file::load(&self.store, &scene.cache.archive.header, path)?;
         }

@@ -18,22 +18,39 @@
 //! of the levels before it leave the pixel's first hit uncovered; a level's records are
 //! added once all of them are gathered, so the cache, like the image, does not depend on
 //! the thread count. Receivers the cache misses gather alone (`--pbgi-reuse`).
+//!
+//! A record's noise, unlike a pixel sample's, does not average away as the render goes
+//! on: every receiver around it reads the same error. So between passes the records
+//! take more gathers (at new rays) and keep their mean, those that gain most first: the
+//! variance of a record's mean, s²/k over its k gathers, falls by s²/(k(k+1)) with one
+//! more, spread over the pixels its sphere of influence spans.
 
+use crate::material::luminance;
 use glam::Vec3A as V;
 use std::collections::HashMap;
 
 /// Largest influence radius a·R of a record, in pixel footprints at its point.
 pub const MAX_PIXELS: f32 = 4.0;
 
-/// One gather kept.
+/// Most gathers a record averages.
+pub const MAX_GATHERS: u64 = 64;
+
+/// One gather kept, or the mean of several at one point.
 #[derive(Clone, Copy, Debug)]
 pub struct Record {
     pub p: V,
     pub n: V,
-    /// Irradiance.
+    /// Irradiance: the mean of the gathers.
     pub e: V,
     /// Harmonic mean distance, clamped (see the module doc).
     pub r: f32,
+    /// The gathers' luminances.
+    pub y: Moments,
+    /// Pixel footprints the record's sphere of influence spans, squared: how many pixels
+    /// its error reaches.
+    pub pixels: f32,
+    /// The pixel whose centre's first hit is p.
+    pub at: [u32; 2],
 }
 
 impl Record {
@@ -47,7 +64,62 @@ impl Record {
         } else {
             hi
         };
-        Record { p, n, e, r }
+        let mut y = Moments::default();
+        y.add(luminance(e));
+        Record {
+            p,
+            n,
+            e,
+            r,
+            y,
+            pixels: (r / lo).powi(2),
+            at: [0, 0],
+        }
+    }
+
+    /// Another gather's irradiance at p.
+    pub fn add(&mut self, e: V) {
+        self.y.add(luminance(e));
+        self.e += (e - self.e) / self.y.count as f32;
+    }
+
+    /// How much one more gather would lower the squared error the record spreads over
+    /// its pixels: the variance of its mean falls from s²/k to s²/(k+1). A record of one
+    /// gather, whose spread is unknown, comes first.
+    pub fn gain(&self) -> f64 {
+        let k = self.y.count as f64;
+        if self.y.count >= MAX_GATHERS {
+            return 0.0;
+        }
+        if self.y.count < 2 {
+            return f64::INFINITY;
+        }
+        self.y.variance() / (k * (k + 1.0)) * self.pixels as f64
+    }
+}
+
+/// Running mean and variance (Welford) of one record's gathered luminances.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Moments {
+    pub count: u64,
+    mean: f64,
+    m2: f64,
+}
+
+impl Moments {
+    pub fn add(&mut self, y: f32) {
+        self.count += 1;
+        let d = y as f64 - self.mean;
+        self.mean += d / self.count as f64;
+        self.m2 += d * (y as f64 - self.mean);
+    }
+
+    /// The sample variance (0 below two samples).
+    pub fn variance(&self) -> f64 {
+        match self.count {
+            0 | 1 => 0.0,
+            k => self.m2 / (k - 1) as f64,
+        }
     }
 }
 
@@ -83,6 +155,40 @@ impl IrradianceCache {
 
     pub fn is_empty(&self) -> bool {
         self.records.is_empty()
+    }
+
+    /// Gathers the records averaged.
+    pub fn gathers(&self) -> u64 {
+        self.records.iter().map(|r| r.y.count).sum()
+    }
+
+    pub fn records(&self) -> &[Record] {
+        &self.records
+    }
+
+    /// Another gather's irradiance for record `id`.
+    pub fn add(&mut self, id: usize, e: V) {
+        if e.is_finite() {
+            self.records[id].add(e);
+        }
+    }
+
+    /// Up to `count` records that one more gather each helps most, by [`Record::gain`],
+    /// ties to the lower index; none that has `MAX_GATHERS`.
+    pub fn most_uncertain(&self, count: usize) -> Vec<usize> {
+        let mut ids: Vec<usize> = (0..self.records.len())
+            .filter(|&i| self.records[i].gain() > 0.0)
+            .collect();
+        let order = |&a: &usize, &b: &usize| {
+            let (ga, gb) = (self.records[a].gain(), self.records[b].gain());
+            gb.total_cmp(&ga).then(a.cmp(&b))
+        };
+        if count < ids.len() {
+            ids.select_nth_unstable_by(count, order);
+            ids.truncate(count);
+        }
+        ids.sort_unstable();
+        ids
     }
 
     /// Bytes held (records and grid lists).
@@ -184,6 +290,9 @@ mod tests {
                 n: (v() * 0.4 + V::Z).normalize(),
                 e: v(),
                 r: 0.05 + v().x * 3.0,
+                y: Moments::default(),
+                pixels: 1.0,
+                at: [0, 0],
             })
             .collect();
         let mut cache = IrradianceCache::new(0.4);
@@ -230,6 +339,9 @@ mod tests {
             n: V::Z,
             e: V::new(1.0, 2.0, 3.0),
             r: 2.0,
+            y: Moments::default(),
+            pixels: 1.0,
+            at: [0, 0],
         };
         let mut cache = IrradianceCache::new(0.5);
         cache.extend([rec]);
@@ -243,6 +355,45 @@ mod tests {
         // x below the record's plane: the record, in front of it, sees more.
         assert!(cache.lookup(V::new(0.0, 0.0, -0.5), V::Z).is_none());
         assert!(cache.lookup(V::new(0.0, 0.0, 0.5), V::Z).is_some());
+    }
+
+    /// A record's irradiance is the mean of its gathers and its moments those of their
+    /// luminances; refinement goes first to records of one gather, then to those whose
+    /// gathers spread most over the most pixels, never to one at `MAX_GATHERS`.
+    #[test]
+    fn records_average_their_gathers_and_the_most_uncertain_are_refined_first() {
+        let mut rng = TestRng::new(9);
+        let gathers: Vec<V> = (0..9)
+            .map(|_| V::new(rng.f32(), rng.f32(), rng.f32()))
+            .collect();
+        let mut rec = Record::new(V::ZERO, V::Z, gathers[0], 1.0, 0.01, 0.3);
+        gathers[1..].iter().for_each(|&e| rec.add(e));
+        let mean = gathers.iter().sum::<V>() / 9.0;
+        assert!((rec.e - mean).abs().max_element() < 1e-6);
+        let y: Vec<f64> = gathers.iter().map(|&e| luminance(e) as f64).collect();
+        let my = y.iter().sum::<f64>() / 9.0;
+        let var = y.iter().map(|v| (v - my).powi(2)).sum::<f64>() / 8.0;
+        assert!((rec.y.variance() - var).abs() < 1e-9 * var.max(1.0));
+
+        let at = |i: f32| V::new(i * 100.0, 0.0, 0.0);
+        let make = |i: f32, es: &[f32], pixels: f32| {
+            let mut r = Record::new(at(i), V::Z, V::splat(es[0]), 1.0, 0.01, 0.3);
+            es[1..].iter().for_each(|&e| r.add(V::splat(e)));
+            Record { pixels, ..r }
+        };
+        let mut cache = IrradianceCache::new(0.3);
+        cache.extend([
+            make(0.0, &[1.0, 1.1], 4.0),
+            make(1.0, &[0.0, 2.0], 1.0),
+            make(2.0, &[0.5], 1.0),
+            make(3.0, &[0.0, 2.0].repeat(32), 16.0),
+            make(4.0, &[1.0, 1.1], 16.0),
+        ]);
+        assert_eq!(cache.most_uncertain(1), vec![2]);
+        assert_eq!(cache.most_uncertain(2), vec![1, 2]);
+        assert_eq!(cache.most_uncertain(3), vec![1, 2, 4]);
+        assert_eq!(cache.most_uncertain(10), vec![0, 1, 2, 4]);
+        assert_eq!(cache.gathers(), 2 + 2 + 1 + 64 + 2);
     }
 
     /// R is clamped to [1, MAX_PIXELS] pixel footprints over a, and a gather that saw

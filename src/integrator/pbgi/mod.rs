@@ -117,7 +117,8 @@ pub struct PbgiSettings {
     /// placed coarse to fine over the pixels where earlier ones leave a pixel's first hit
     /// uncovered; a receiver then reads every gather within
     /// ε = |x − p|/R + √(1 − n·n') < a of it (R: the gather's harmonic mean distance, 1 to
-    /// 4 pixels over a), and gathers alone (`--pbgi-reuse`) only where none is.
+    /// 4 pixels over a), and gathers alone (`--pbgi-reuse`) only where none is. Between
+    /// passes a tenth of the rays go to more gathers for the noisiest records.
     /// Smaller is more exact and gathers more.
     #[arg(long = "pbgi-cache", value_name = "A", default_value_t = 0.3, value_parser = parse_cache)]
     pub cache: f32,
@@ -173,9 +174,11 @@ pub struct PbgiStats {
     pub edge_pixels: u64,
     /// Texel rays traced exactly under `--pbgi-rays`.
     pub traced_texels: u64,
-    /// `--pbgi-cache`, its records and the receivers that read them.
+    /// `--pbgi-cache`, its records, the gathers they average and the receivers that
+    /// read them.
     pub pbgi_cache: f32,
     pub cache_records: u64,
+    pub cache_gathers: u64,
     pub cache_hits: u64,
 }
 
@@ -205,6 +208,9 @@ pub struct PbgiIntegrator {
     cache: Option<IrradianceCache>,
     cache_hits: AtomicU64,
     cache_s: f64,
+    /// Rays of the records' first gathers, and of their refinement since.
+    cache_rays: u64,
+    refine_rays: u64,
 }
 
 /// Irradiance gathers summed at one surface of a pixel.
@@ -230,6 +236,13 @@ const SURFACES_PER_PIXEL: usize = 8;
 
 /// Two hits share gathers only when their shading normals are this close (14°).
 const SAME_NORMAL: f32 = 0.97;
+
+/// Share of all rays spent between passes on more gathers for the cache's records: a
+/// record is read by every receiver around it, so its noise, unlike a sample's, does not
+/// average away as the render goes on (on showroom, records of one gather left blotches
+/// that doubled PBGI's RMSE); refined in step with the render, they stay as cheap
+/// against it as the render is long.
+const REFINE_SHARE: f64 = 0.1;
 
 /// Per-thread scratch reused across receivers.
 #[derive(Default)]
@@ -283,6 +296,8 @@ impl PbgiIntegrator {
             cache: None,
             cache_hits: AtomicU64::new(0),
             cache_s: 0.0,
+            cache_rays: 0,
+            refine_rays: 0,
         }
     }
 
@@ -482,24 +497,80 @@ impl PbgiIntegrator {
         x: u32,
         y: u32,
     ) -> Option<Record> {
-        let cam = &scene.camera;
-        let [x0, x1, y0, _] = self.window;
-        let px = PixelSample {
-            x,
-            y,
-            at: ((y - y0) * (x1 - x0) + x - x0) as usize,
-            index: 0,
-            sampler: PixelSampler::new(self.seed, y * cam.width + x, 0),
-            ray: cam.ray(x as f32 + 0.5, y as f32 + 0.5),
-        };
-        let q = self.first_hit_own(scene, tr, &px).1?;
+        let q = self
+            .first_hit_own(scene, tr, &self.centre_sample(scene, x, y))
+            .1?;
         let (_, footprint) = q.at?;
         let n = q.s.frame.n;
         if q.s.bsdf.diffuse.max_element() <= 0.0 || cache.lookup(q.s.p, n).is_some() {
             return None;
         }
         let (e, harmonic) = self.gather_irradiance(scene, tr, &q.s, q.key ^ 0xCAC4E, None);
-        Some(Record::new(q.s.p, n, e, harmonic, footprint, cache.a()))
+        let rec = Record::new(q.s.p, n, e, harmonic, footprint, cache.a());
+        Some(Record { at: [x, y], ..rec })
+    }
+
+    /// Another gather for record `rec`, at its pixel's first hit again (the `k`-th, so
+    /// its rays are new), or None when that hit is gone.
+    fn regather(&self, scene: &Scene, tr: &mut Tracer, rec: &Record) -> Option<V> {
+        let [x, y] = rec.at;
+        let q = self
+            .first_hit_own(scene, tr, &self.centre_sample(scene, x, y))
+            .1?;
+        let key = q.key ^ 0xCAC4E ^ (rec.y.count << 40);
+        Some(self.gather_irradiance(scene, tr, &q.s, key, None).0)
+    }
+
+    /// Pixel (x, y)'s sample through its centre.
+    fn centre_sample(&self, scene: &Scene, x: u32, y: u32) -> PixelSample {
+        let cam = &scene.camera;
+        let [x0, x1, y0, _] = self.window;
+        PixelSample {
+            x,
+            y,
+            at: ((y - y0) * (x1 - x0) + x - x0) as usize,
+            index: 0,
+            sampler: PixelSampler::new(self.seed, y * cam.width + x, 0),
+            ray: cam.ray(x as f32 + 0.5, y as f32 + 0.5),
+        }
+    }
+
+    /// Spends the rays the refinement is due (`REFINE_SHARE` of the rays traced so far
+    /// but the bake's, less what it spent) on one more gather each for the records that gain most.
+    fn refine_cache(&mut self, scene: &Scene, rays_so_far: u64) -> u64 {
+        let Some(cache) = self.cache.as_mut() else {
+            return 0;
+        };
+        // The bake's rays are left out: a render reading a baked file makes the same image.
+        let due = (REFINE_SHARE * rays_so_far.saturating_sub(self.bake_samples) as f64) as u64;
+        let per_gather = self.cache_rays / cache.len().max(1) as u64;
+        let count = due.saturating_sub(self.refine_rays) / per_gather.max(1);
+        if count == 0 {
+            return 0;
+        }
+        let ids = cache.most_uncertain(count as usize);
+        let this = &*self;
+        let cache = this.cache.as_ref().expect("checked above");
+        let found: Vec<(Option<V>, u64)> = ids
+            .par_iter()
+            .map_init(
+                || Tracer::new(&scene.cache),
+                |tr, &id| {
+                    let before = tr.rays;
+                    let e = this.regather(scene, tr, &cache.records()[id]);
+                    (e, tr.rays - before)
+                },
+            )
+            .collect();
+        let rays: u64 = found.iter().map(|f| f.1).sum();
+        let cache = self.cache.as_mut().expect("checked above");
+        for (&id, (e, _)) in ids.iter().zip(&found) {
+            if let Some(e) = e {
+                cache.add(id, *e);
+            }
+        }
+        self.refine_rays += rays;
+        rays
     }
 
     /// Adds a gather's irradiance `e` to its pixel's surface.
@@ -1162,17 +1233,21 @@ impl Integrator for PbgiIntegrator {
     /// One sample per pass when edge rays are on: a pass's edge mask comes from the
     /// passes before it.
     fn pass_samples(&self, spp: u32) -> u32 {
-        match self.settings.edge_rays {
-            0 => spp,
+        // Edge rays and the cache's refinement work between passes.
+        match (self.settings.edge_rays, self.settings.cache) {
+            (0, 0.0) => spp,
             _ => 1,
         }
     }
 
-    fn begin_pass(&mut self, scene: &Scene, first: u32, count: u32) -> Result<u64> {
+    fn begin_pass(&mut self, scene: &Scene, first: u32, count: u32, rays: u64) -> Result<u64> {
         let seen = |tr: &mut Tracer, r: &Ray, c: &mut Counters| seen_emission(scene, tr, r, c);
         let edge_rays = self.edge.begin_pass(scene, first, count, &seen);
         if first > 0 {
-            return Ok(edge_rays);
+            let t = Instant::now();
+            let refine_rays = self.refine_cache(scene, rays);
+            self.cache_s += t.elapsed().as_secs_f64();
+            return Ok(edge_rays + refine_rays);
         }
         if self.settings.reuse > 1 {
             let pixels = scene.camera.width as usize * scene.camera.height as usize;
@@ -1200,6 +1275,7 @@ impl Integrator for PbgiIntegrator {
             let t = Instant::now();
             let (cache, rays) = self.build_cache(scene, self.settings.cache);
             (self.cache, cache_rays) = (Some(cache), rays);
+            self.cache_rays = rays;
             self.cache_s = t.elapsed().as_secs_f64();
         }
         Ok(self.bake_samples + edge_rays + cache_rays)
@@ -1281,6 +1357,7 @@ impl Integrator for PbgiIntegrator {
             edge_pixels: self.edge.pixels(),
             pbgi_cache: self.settings.cache,
             cache_records: self.cache.as_ref().map_or(0, |c| c.len() as u64),
+            cache_gathers: self.cache.as_ref().map_or(0, |c| c.gathers()),
             cache_hits: self.cache_hits.load(Relaxed),
         })
     }
