@@ -228,9 +228,9 @@ impl IrradianceCache {
     }
 
     /// The weighted mean irradiance of the records that cover a receiver at `x` with
-    /// normal `m`, or None when none does.
-    pub fn lookup(&self, x: V, m: V) -> Option<V> {
-        let (mut sum, mut weight) = (V::ZERO, 0.0f32);
+    /// normal `m`, and the smallest reach a·R among them; None when none does.
+    pub fn lookup(&self, x: V, m: V) -> Option<(V, f32)> {
+        let (mut sum, mut weight, mut reach) = (V::ZERO, 0.0f32, f32::INFINITY);
         for &level in &self.levels {
             let Some(ids) = self.grid.get(&(level, cell(x, cell_size(level)))) else {
                 continue;
@@ -240,10 +240,11 @@ impl IrradianceCache {
                 if let Some(w) = self.weight(rec, x, m) {
                     sum += rec.e * w;
                     weight += w;
+                    reach = reach.min(self.a * rec.r);
                 }
             }
         }
-        (weight > 0.0).then(|| sum / weight)
+        (weight > 0.0).then(|| (sum / weight, reach))
     }
 
     /// Record `rec`'s weight at x with normal m, if it covers x.
@@ -319,7 +320,7 @@ mod tests {
             }
             let got = cache.lookup(x, m);
             match got {
-                Some(e) => {
+                Some((e, _)) => {
                     hits += 1;
                     let want = sum / weight;
                     assert!((e - want).abs().max_element() < 1e-4, "{e} against {want}");
@@ -345,7 +346,7 @@ mod tests {
         };
         let mut cache = IrradianceCache::new(0.5);
         cache.extend([rec]);
-        assert_eq!(cache.lookup(V::ZERO, V::Z), Some(rec.e));
+        assert_eq!(cache.lookup(V::ZERO, V::Z), Some((rec.e, 1.0)));
         assert!(cache.lookup(V::new(0.99, 0.0, 0.0), V::Z).is_some());
         assert!(cache.lookup(V::new(1.01, 0.0, 0.0), V::Z).is_none());
         let turned = |deg: f32| V::new(deg.to_radians().sin(), 0.0, deg.to_radians().cos());

@@ -60,7 +60,7 @@ use rayon::prelude::*;
 use std::cell::RefCell;
 use std::f32::consts::PI;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Instant;
 
@@ -118,7 +118,8 @@ pub struct PbgiSettings {
     /// uncovered; a receiver then reads every gather within
     /// ε = |x − p|/R + √(1 − n·n') < a of it (R: the gather's harmonic mean distance, 1 to
     /// 4 pixels over a), and gathers alone (`--pbgi-reuse`) only where none is. Between
-    /// passes a tenth of the rays go to more gathers for the noisiest records.
+    /// passes a tenth of the rays go to more gathers for the noisiest records; a receiver
+    /// with a surface over it nearer than the records' reach gathers alone.
     /// Smaller is more exact and gathers more.
     #[arg(long = "pbgi-cache", value_name = "A", default_value_t = 0.3, value_parser = parse_cache)]
     pub cache: f32,
@@ -180,6 +181,8 @@ pub struct PbgiStats {
     pub cache_records: u64,
     pub cache_gathers: u64,
     pub cache_hits: u64,
+    /// Receivers the cache covered but a surface nearer than its records' reach hid.
+    pub cache_rejects: u64,
 }
 
 pub struct PbgiIntegrator {
@@ -207,6 +210,9 @@ pub struct PbgiIntegrator {
     window: [u32; 4],
     cache: Option<IrradianceCache>,
     cache_hits: AtomicU64,
+    cache_rejects: AtomicU64,
+    /// Per pixel: a cached receiver of it had a surface over it (see `probes`).
+    crevices: Vec<AtomicBool>,
     cache_s: f64,
     /// Rays of the records' first gathers, and of their refinement since.
     cache_rays: u64,
@@ -230,6 +236,9 @@ impl Gathered {
         self.n.dot(n) >= SAME_NORMAL && (p - self.p).dot(self.n).abs() <= footprint
     }
 }
+
+/// Samples of each pixel whose cached receivers are checked for a surface over them.
+const PROBED_SAMPLES: u32 = 16;
 
 /// Surfaces a pixel keeps gathers for; samples on others gather without keeping them.
 const SURFACES_PER_PIXEL: usize = 8;
@@ -295,6 +304,8 @@ impl PbgiIntegrator {
             window: target.window,
             cache: None,
             cache_hits: AtomicU64::new(0),
+            cache_rejects: AtomicU64::new(0),
+            crevices: Vec::new(),
             cache_s: 0.0,
             cache_rays: 0,
             refine_rays: 0,
@@ -399,7 +410,7 @@ impl PbgiIntegrator {
         if s.bsdf.diffuse.max_element() > 0.0 {
             // The diffuse lobe is the same for every incident direction: irradiance × it.
             let lobe = s.bsdf.eval(s.wo_l, V::Z).0 - glossy.eval(s.wo_l, V::Z).0;
-            let e = match self.reuse(q) {
+            let e = match self.reuse(tr, q) {
                 Some((e, cached)) => {
                     match cached {
                         true => &self.cache_hits,
@@ -420,17 +431,34 @@ impl PbgiIntegrator {
         l
     }
 
-    /// The irradiance the cache holds at the receiver (flagged true); else, unless the
+    /// The irradiance the cache holds at the receiver (flagged true) when nothing is over
+    /// it within the records' reach; else, unless the
     /// receiver's sample is one that gathers (the first, then every `--pbgi-reuse`-th at
     /// the pixel's phase), the mean irradiance of its pixel's gathers on its surface, else
     /// of those whose normal is closest to its own.
-    fn reuse(&self, q: &Pending) -> Option<(V, bool)> {
-        if let Some(e) = self
+    fn reuse(&self, tr: &mut Tracer, q: &Pending) -> Option<(V, bool)> {
+        if let Some((e, reach)) = self
             .cache
             .as_ref()
             .and_then(|c| c.lookup(q.s.p, q.s.frame.n))
         {
-            return Some((e, true));
+            // A receiver with a surface over it nearer than the records' reach sits in a
+            // crevice they did not see (the gap between a ceiling and a lamp hung just
+            // below it, which the camera sees into at a grazing angle): it is left to
+            // gather for itself.
+            let n = q.s.frame.n;
+            let ray = Ray {
+                o: offset_origin(q.s.p, q.s.err, q.s.ng, n),
+                d: n,
+                t_max: reach,
+            };
+            if !self.probes(q) || !tr.occluded(&ray) {
+                return Some((e, true));
+            }
+            if let Some(f) = q.at.and_then(|(pixel, _)| self.crevices.get(pixel)) {
+                f.store(true, Relaxed);
+            }
+            self.cache_rejects.fetch_add(1, Relaxed);
         }
         let (pixel, footprint) = q.at?;
         // Each pixel's later gathers fall at its own phase of R, so a pass does about
@@ -519,6 +547,15 @@ impl PbgiIntegrator {
             .1?;
         let key = q.key ^ 0xCAC4E ^ (rec.y.count << 40);
         Some(self.gather_irradiance(scene, tr, &q.s, key, None).0)
+    }
+
+    /// Whether a cached receiver is to be checked for a surface over it: in its pixel's
+    /// first `PROBED_SAMPLES` samples, and in every later one where such a check found
+    /// one. A pixel's samples run one per pass, so the flag is the same whatever the
+    /// thread count.
+    fn probes(&self, q: &Pending) -> bool {
+        let flag = q.at.and_then(|(pixel, _)| self.crevices.get(pixel));
+        q.sample < PROBED_SAMPLES || flag.is_some_and(|f| f.load(Relaxed))
     }
 
     /// Pixel (x, y)'s sample through its centre.
@@ -914,7 +951,7 @@ impl PbgiIntegrator {
         let mut out: Vec<V> = firsts.iter().map(|f| f.0).collect();
         let mut at = Vec::new();
         for i in (0..firsts.len()).filter(|&i| firsts[i].1.is_some()) {
-            match firsts[i].1.as_ref().filter(|q| self.reuse(q).is_some()) {
+            match firsts[i].1.as_ref().filter(|q| self.reuse(tr, q).is_some()) {
                 Some(q) => out[i] += q.beta * self.gather(scene, tr, q, None),
                 None => at.push(i),
             }
@@ -1275,6 +1312,8 @@ impl Integrator for PbgiIntegrator {
             let t = Instant::now();
             let (cache, rays) = self.build_cache(scene, self.settings.cache);
             (self.cache, cache_rays) = (Some(cache), rays);
+            let pixels = scene.camera.width as usize * scene.camera.height as usize;
+            self.crevices = (0..pixels).map(|_| AtomicBool::new(false)).collect();
             self.cache_rays = rays;
             self.cache_s = t.elapsed().as_secs_f64();
         }
@@ -1359,6 +1398,7 @@ impl Integrator for PbgiIntegrator {
             cache_records: self.cache.as_ref().map_or(0, |c| c.len() as u64),
             cache_gathers: self.cache.as_ref().map_or(0, |c| c.gathers()),
             cache_hits: self.cache_hits.load(Relaxed),
+            cache_rejects: self.cache_rejects.load(Relaxed),
         })
     }
 
