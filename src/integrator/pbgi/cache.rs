@@ -176,17 +176,15 @@ impl IrradianceCache {
     /// Up to `count` records that one more gather each helps most, by [`Record::gain`],
     /// ties to the lower index; none that has `MAX_GATHERS`.
     pub fn most_uncertain(&self, count: usize) -> Vec<usize> {
-        let mut ids: Vec<usize> = (0..self.records.len())
-            .filter(|&i| self.records[i].gain() > 0.0)
+        let mut gains: Vec<(f64, usize)> = (self.records.iter().map(Record::gain).zip(0..))
+            .filter(|&(g, _)| g > 0.0)
             .collect();
-        let order = |&a: &usize, &b: &usize| {
-            let (ga, gb) = (self.records[a].gain(), self.records[b].gain());
-            gb.total_cmp(&ga).then(a.cmp(&b))
-        };
-        if count < ids.len() {
-            ids.select_nth_unstable_by(count, order);
-            ids.truncate(count);
+        let order = |a: &(f64, usize), b: &(f64, usize)| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1));
+        if count < gains.len() {
+            gains.select_nth_unstable_by(count, order);
+            gains.truncate(count);
         }
+        let mut ids: Vec<usize> = gains.into_iter().map(|(_, i)| i).collect();
         ids.sort_unstable();
         ids
     }

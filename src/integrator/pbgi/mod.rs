@@ -446,13 +446,7 @@ impl PbgiIntegrator {
             // crevice they did not see (the gap between a ceiling and a lamp hung just
             // below it, which the camera sees into at a grazing angle): it is left to
             // gather for itself.
-            let n = q.s.frame.n;
-            let ray = Ray {
-                o: offset_origin(q.s.p, q.s.err, q.s.ng, n),
-                d: n,
-                t_max: reach,
-            };
-            if !self.probes(q) || !tr.occluded(&ray) {
+            if !self.probes(q) || !covered_over(tr, &q.s, reach) {
                 return Some((e, true));
             }
             if let Some(f) = q.at.and_then(|(pixel, _)| self.crevices.get(pixel)) {
@@ -575,7 +569,7 @@ impl PbgiIntegrator {
     /// Spends the rays the refinement is due (`REFINE_SHARE` of the rays traced so far
     /// but the bake's, less what it spent) on one more gather each for the records that gain most.
     fn refine_cache(&mut self, scene: &Scene, rays_so_far: u64) -> u64 {
-        let Some(cache) = self.cache.as_mut() else {
+        let Some(cache) = self.cache.as_ref() else {
             return 0;
         };
         // The bake's rays are left out: a render reading a baked file makes the same image.
@@ -586,24 +580,23 @@ impl PbgiIntegrator {
             return 0;
         }
         let ids = cache.most_uncertain(count as usize);
-        let this = &*self;
-        let cache = this.cache.as_ref().expect("checked above");
         let found: Vec<(Option<V>, u64)> = ids
             .par_iter()
             .map_init(
                 || Tracer::new(&scene.cache),
                 |tr, &id| {
                     let before = tr.rays;
-                    let e = this.regather(scene, tr, &cache.records()[id]);
+                    let e = self.regather(scene, tr, &cache.records()[id]);
                     (e, tr.rays - before)
                 },
             )
             .collect();
         let rays: u64 = found.iter().map(|f| f.1).sum();
-        let cache = self.cache.as_mut().expect("checked above");
-        for (&id, (e, _)) in ids.iter().zip(&found) {
-            if let Some(e) = e {
-                cache.add(id, *e);
+        if let Some(cache) = self.cache.as_mut() {
+            for (&id, (e, _)) in ids.iter().zip(&found) {
+                if let Some(e) = e {
+                    cache.add(id, *e);
+                }
             }
         }
         self.refine_rays += rays;
@@ -1137,6 +1130,16 @@ fn hit_light(
         _ => V::ZERO,
     };
     (l, true)
+}
+
+/// Whether a surface lies over `s` within `reach` along its normal.
+fn covered_over(tr: &mut Tracer, s: &Surface, reach: f32) -> bool {
+    let n = s.frame.n;
+    tr.occluded(&Ray {
+        o: offset_origin(s.p, s.err, s.ng, n),
+        d: n,
+        t_max: reach,
+    })
 }
 
 /// The baked light of the finest patch at barycentrics `b` of triangle `t`, when the bake
