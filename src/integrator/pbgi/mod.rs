@@ -50,7 +50,6 @@ use crate::material::{Bsdf, Frame};
 use crate::paging::{NodeRef, Page, TNode};
 use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer, NO_INSTANCE};
-use crate::wavelet::cube;
 use anyhow::Result;
 use bake::{Directional, Hash};
 use cache::{IrradianceCache, Record};
@@ -259,7 +258,7 @@ struct Scratch {
     mb: MicroBuffer,
     /// This receiver's ray per texel above its horizon: texel and world direction,
     /// jittered inside the texel.
-    rays: Vec<(u32, V)>,
+    rays: Vec<(u32, V, f32)>,
     /// Per ray: inside some rasterized leaf's cone, and the nearest of their triangles
     /// it met (shaded once the cut is done, so hidden hits cost nothing).
     aimed: Vec<bool>,
@@ -681,17 +680,14 @@ impl PbgiIntegrator {
             let mut rng = Hash::new(key);
             sc.rays.clear();
             sc.rays.extend(texels.upper.iter().filter_map(|&k| {
-                let corners = cube::texel_corners(k as usize, texels.n);
-                let (a, b) = (rng.f32(), rng.f32());
-                let local =
-                    corners[0] + (corners[1] - corners[0]) * a + (corners[3] - corners[0]) * b;
-                let w = s.frame.to_world(V::from(local.normalize())).normalize();
-                (w.dot(s.n) > 0.0).then_some((k, w))
+                let (local, weight) = texels.ray(k as usize, rng.f32(), rng.f32());
+                let w = s.frame.to_world(V::from(local)).normalize();
+                (w.dot(s.n) > 0.0).then_some((k, w, weight))
             }));
             if self.settings.rays {
                 for j in 0..sc.rays.len() {
-                    let (k, w) = sc.rays[j];
-                    self.texel_ray(scene, tr, s, k as usize, w, &mut rng, &mut sc.mb);
+                    let (k, w, weight) = sc.rays[j];
+                    self.texel_ray(scene, tr, s, (k as usize, weight), w, &mut rng, &mut sc.mb);
                 }
                 self.traced_texels.fetch_add(sc.rays.len() as u64, Relaxed);
             } else {
@@ -736,7 +732,7 @@ impl PbgiIntegrator {
         let (mut gaps, mut fragments, mut exact) = (0, 0, 0);
         let mut page: Option<Arc<Page>> = None;
         for j in 0..sc.rays.len() {
-            let (k, w) = sc.rays[j];
+            let (k, w, weight) = sc.rays[j];
             match sc.nearest[j] {
                 Some(hit) => {
                     let p = match page.take() {
@@ -745,14 +741,15 @@ impl PbgiIntegrator {
                     };
                     let (sends, sampled) = hit_light(scene, tr, &p, &hit, w, rng);
                     let id = (1 << 62) | (hit.leaf << 3) | hit.slot as u64;
-                    sc.mb.fill(k as usize, hit.t, id, Vec3::from(sends));
+                    sc.mb
+                        .fill(k as usize, hit.t, id, Vec3::from(sends * weight));
                     page = Some(p);
                     fragments += 1;
                     exact += sampled as u64;
                 }
                 None if sc.aimed[j] => {
                     gaps += 1;
-                    self.texel_ray(scene, tr, s, k as usize, w, rng, &mut sc.mb);
+                    self.texel_ray(scene, tr, s, (k as usize, weight), w, rng, &mut sc.mb);
                 }
                 None => {}
             }
@@ -969,7 +966,8 @@ impl PbgiIntegrator {
             .collect()
     }
 
-    /// Texel k's ray traced exactly, its hit shaded as a rasterized hit: every texel under
+    /// Texel k's ray traced exactly, its hit shaded as a rasterized hit and weighted as the
+    /// ray's place in the texel asks ([`Texels::ray`]): every texel under
     /// `--pbgi-rays`; otherwise where a rasterized leaf's cone promised geometry its
     /// triangles did not hold (without it the texel would show splats' partial coverage
     /// and the black background through the gaps).
@@ -979,7 +977,7 @@ impl PbgiIntegrator {
         scene: &Scene,
         tr: &mut Tracer,
         s: &Surface,
-        k: usize,
+        (k, weight): (usize, f32),
         w: V,
         rng: &mut Hash,
         mb: &mut MicroBuffer,
@@ -995,7 +993,7 @@ impl PbgiIntegrator {
         scene.touched.insert(hit.leaf);
         let page = tr.page_handle(hit.page);
         let (sends, _) = hit_light(scene, tr, &page, &hit, w, rng);
-        mb.fill(k, hit.t, u64::MAX - k as u64, Vec3::from(sends));
+        mb.fill(k, hit.t, u64::MAX - k as u64, Vec3::from(sends * weight));
     }
 
     /// A leaf too near or too wide to splat, rasterized: each of x's texel rays that
@@ -1024,7 +1022,7 @@ impl PbgiIntegrator {
         };
         let axis = v / d.max(f32::MIN_POSITIVE);
         sc.in_cone.clear();
-        for (j, &(_, w)) in sc.rays.iter().enumerate() {
+        for (j, &(_, w, _)) in sc.rays.iter().enumerate() {
             if w.dot(axis) >= cos_cone {
                 sc.in_cone.push(j as u32);
             }
