@@ -68,9 +68,7 @@ impl Texels {
             min_solid_angle,
         }
     }
-}
 
-impl Texels {
     /// The direction through the point (a, b) ∈ [0, 1)² of texel k's square on the cube
     /// face, and the weight of the light seen along it. The point is uniform on the face,
     /// not in solid angle, so its light counts by cos θ · dω/dA there (dω/dA = 1/r³ on the

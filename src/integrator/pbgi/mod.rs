@@ -256,8 +256,8 @@ const REFINE_SHARE: f64 = 0.1;
 #[derive(Default)]
 struct Scratch {
     mb: MicroBuffer,
-    /// This receiver's ray per texel above its horizon: texel and world direction,
-    /// jittered inside the texel.
+    /// This receiver's ray per texel above its horizon: texel, world direction (jittered
+    /// inside the texel) and the weight of its light ([`Texels::ray`]).
     rays: Vec<(u32, V, f32)>,
     /// Per ray: inside some rasterized leaf's cone, and the nearest of their triangles
     /// it met (shaded once the cut is done, so hidden hits cost nothing).
@@ -397,8 +397,16 @@ impl PbgiIntegrator {
     /// micro-buffer, its rough specular lobes from one BSDF-sampled exact ray (a lobe
     /// narrower than a micro-buffer texel would be convolved at a few texel centres only:
     /// with `--max-depth` 3 on a rough silver plinth of α 0.04 that overstated its pixels
-    /// by 8–11%).
-    fn gather(&self, scene: &Scene, tr: &mut Tracer, q: &Pending, field: Option<&Field>) -> V {
+    /// by 8–11%). `known`: what `reuse` gave for the receiver, when the caller asked it
+    /// already.
+    fn gather(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        q: &Pending,
+        field: Option<&Field>,
+        known: Option<Option<(V, bool)>>,
+    ) -> V {
         let s = &q.s;
         let mut rng = Hash::new(q.key ^ 0x6A09_E667_F3BC_C909);
         let glossy = Bsdf {
@@ -409,7 +417,7 @@ impl PbgiIntegrator {
         if s.bsdf.diffuse.max_element() > 0.0 {
             // The diffuse lobe is the same for every incident direction: irradiance × it.
             let lobe = s.bsdf.eval(s.wo_l, V::Z).0 - glossy.eval(s.wo_l, V::Z).0;
-            let e = match self.reuse(tr, q) {
+            let e = match known.unwrap_or_else(|| self.reuse(tr, q)) {
                 Some((e, cached)) => {
                     match cached {
                         true => &self.cache_hits,
@@ -518,9 +526,7 @@ impl PbgiIntegrator {
         x: u32,
         y: u32,
     ) -> Option<Record> {
-        let q = self
-            .first_hit_own(scene, tr, &self.centre_sample(scene, x, y))
-            .1?;
+        let q = self.centre_hit(scene, tr, x, y)?;
         let (_, footprint) = q.at?;
         let n = q.s.frame.n;
         if q.s.bsdf.diffuse.max_element() <= 0.0 || cache.lookup(q.s.p, n).is_some() {
@@ -534,10 +540,7 @@ impl PbgiIntegrator {
     /// Another gather for record `rec`, at its pixel's first hit again (the `k`-th, so
     /// its rays are new), or None when that hit is gone.
     fn regather(&self, scene: &Scene, tr: &mut Tracer, rec: &Record) -> Option<V> {
-        let [x, y] = rec.at;
-        let q = self
-            .first_hit_own(scene, tr, &self.centre_sample(scene, x, y))
-            .1?;
+        let q = self.centre_hit(scene, tr, rec.at[0], rec.at[1])?;
         let key = q.key ^ 0xCAC4E ^ (rec.y.count << 40);
         Some(self.gather_irradiance(scene, tr, &q.s, key, None).0)
     }
@@ -551,22 +554,24 @@ impl PbgiIntegrator {
         q.sample < PROBED_SAMPLES || flag.is_some_and(|f| f.load(Relaxed))
     }
 
-    /// Pixel (x, y)'s sample through its centre.
-    fn centre_sample(&self, scene: &Scene, x: u32, y: u32) -> PixelSample {
+    /// The receiver at pixel (x, y)'s first hit through its centre, if there is one.
+    fn centre_hit(&self, scene: &Scene, tr: &mut Tracer, x: u32, y: u32) -> Option<Pending> {
         let cam = &scene.camera;
         let [x0, x1, y0, _] = self.window;
-        PixelSample {
+        let px = PixelSample {
             x,
             y,
             at: ((y - y0) * (x1 - x0) + x - x0) as usize,
             index: 0,
             sampler: PixelSampler::new(self.seed, y * cam.width + x, 0),
             ray: cam.ray(x as f32 + 0.5, y as f32 + 0.5),
-        }
+        };
+        self.first_hit_own(scene, tr, &px).1
     }
 
     /// Spends the rays the refinement is due (`REFINE_SHARE` of the rays traced so far
-    /// but the bake's, less what it spent) on one more gather each for the records that gain most.
+    /// but the bake's, less what it spent) on one more gather each for the records that
+    /// gain most.
     fn refine_cache(&mut self, scene: &Scene, rays_so_far: u64) -> u64 {
         let Some(cache) = self.cache.as_ref() else {
             return 0;
@@ -940,9 +945,12 @@ impl PbgiIntegrator {
             .collect();
         let mut out: Vec<V> = firsts.iter().map(|f| f.0).collect();
         let mut at = Vec::new();
-        for i in (0..firsts.len()).filter(|&i| firsts[i].1.is_some()) {
-            match firsts[i].1.as_ref().filter(|q| self.reuse(tr, q).is_some()) {
-                Some(q) => out[i] += q.beta * self.gather(scene, tr, q, None),
+        for (i, q) in firsts.iter().enumerate() {
+            let Some(q) = &q.1 else {
+                continue;
+            };
+            match self.reuse(tr, q) {
+                Some(r) => out[i] += q.beta * self.gather(scene, tr, q, None, Some(Some(r))),
                 None => at.push(i),
             }
         }
@@ -954,7 +962,7 @@ impl PbgiIntegrator {
             let field = self.field(scene, tr, &members, &pending[cl.active].s);
             for &m in &cl.members {
                 let q = pending[m];
-                out[at[m]] += q.beta * self.gather(scene, tr, q, Some(&field));
+                out[at[m]] += q.beta * self.gather(scene, tr, q, Some(&field), Some(None));
             }
         }
         self.clusters.fetch_add(p.len() as u64, Relaxed);
@@ -1268,8 +1276,8 @@ impl Surface {
 impl Integrator for PbgiIntegrator {
     /// The first pass bakes (or reads `--radiance`) and attaches the light to the pages,
     /// so time budgets count the bake.
-    /// One sample per pass when edge rays are on: a pass's edge mask comes from the
-    /// passes before it.
+    /// One sample per pass when edge rays or the cache are on: a pass's edge mask comes
+    /// from the passes before it, and the records are refined between passes.
     fn pass_samples(&self, spp: u32) -> u32 {
         // Edge rays and the cache's refinement work between passes.
         match (self.settings.edge_rays, self.settings.cache) {
@@ -1324,7 +1332,7 @@ impl Integrator for PbgiIntegrator {
     fn sample(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample, c: &mut Counters) -> V {
         let (mut l, pending) = self.first_hit(scene, tr, px, c);
         if let Some(q) = pending {
-            l += q.beta * self.gather(scene, tr, &q, None);
+            l += q.beta * self.gather(scene, tr, &q, None, None);
         }
         c.paths += 1;
         c.finite(l)
@@ -1369,8 +1377,8 @@ impl Integrator for PbgiIntegrator {
             ),
             match &self.cache {
                 Some(c) => format!(
-                    "pbgi: irradiance cache of error bound {}: {} gathers placed coarse to fine over the pixels ({:.2} s), read by the receivers they cover",
-                    s.cache, c.len(), self.cache_s
+                    "pbgi: irradiance cache of error bound {}: {} records placed coarse to fine over the pixels, averaging {} gathers ({:.2} s), read by the receivers they cover",
+                    s.cache, c.len(), c.gathers(), self.cache_s
                 ),
                 None => "pbgi: no irradiance cache".into(),
             },
