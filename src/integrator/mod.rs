@@ -395,10 +395,37 @@ pub fn sample_light(
     u: [f32; 3],
     f: impl Fn(V) -> (V, f32),
 ) -> V {
+    sample_light_weighted(scene, tr, at, shadow_cone, u, |wi, pdf_l| {
+        let (fv, pdf_b) = f(wi);
+        fv * mis_weight(pdf_l, pdf_b)
+    })
+}
+
+/// The power heuristic's weight of a light sample of solid-angle pdf `pdf_l` against a
+/// BSDF strategy of pdf `pdf_b`; 1 for a delta light (pdf 0), which no BSDF sample finds.
+pub fn mis_weight(pdf_l: f32, pdf_b: f32) -> f32 {
+    if pdf_l > 0.0 {
+        power_heuristic(pdf_l, pdf_b)
+    } else {
+        1.0
+    }
+}
+
+/// One light sample: `f(wi, pdf_l)` returns value · cos with its MIS weight applied, given
+/// the light sample's solid-angle pdf (0 for a delta light), so a caller may weigh lobes
+/// apart (PBGI samples only the glossy ones).
+pub fn sample_light_weighted(
+    scene: &Scene,
+    tr: &mut Tracer,
+    at: &Receiver,
+    shadow_cone: &Cone,
+    u: [f32; 3],
+    f: impl Fn(V, f32) -> V,
+) -> V {
     let Some(ls) = scene.lights.sample(at.p, at.facing, u[0], [u[1], u[2]]) else {
         return V::ZERO;
     };
-    let (fv, pdf_b) = f(ls.wi);
+    let fv = f(ls.wi, ls.pdf);
     if fv.max_element() <= 0.0 {
         return V::ZERO;
     }
@@ -407,11 +434,6 @@ pub fn sample_light(
     if seen <= 0.0 {
         return V::ZERO;
     }
-    let w = if ls.pdf > 0.0 {
-        power_heuristic(ls.pdf, pdf_b)
-    } else {
-        1.0
-    };
     let clamp = if ls.dist < at.min_dist {
         (ls.dist / at.min_dist).powi(2)
     } else {
@@ -426,7 +448,7 @@ pub fn sample_light(
         }
         None => ls.weight,
     };
-    fv * le * w * clamp * seen
+    fv * le * clamp * seen
 }
 
 /// The fraction of light a shadow ray carries: 0 or 1, or between under alpha blend. With

@@ -550,6 +550,11 @@ impl Hash {
         (self.u64() >> 40) as f32 / (1u64 << 24) as f32
     }
 
+    /// Six uniforms, as shading a hit takes them (a light sample, then a lobe ray).
+    pub fn u6(&mut self) -> [f32; 6] {
+        [(); 6].map(|_| self.f32())
+    }
+
     pub fn u64(&mut self) -> u64 {
         self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
         let mut z = self.0;

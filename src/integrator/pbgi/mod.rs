@@ -2,8 +2,9 @@
 //! (003 ch. 2; Christensen 2008 as cited there).
 //!
 //! The bake (`bake`) stores in every node the direct light it reflects diffusely. At the
-//! first non-specular hit x the renderer adds the emission seen, direct light with the path
-//! tracer's light sample, and one bounce of indirect light gathered from the hierarchy:
+//! first non-specular hit x the renderer adds the emission seen, direct light as the path
+//! tracer takes it (a light sample, weighed by MIS against the ray sampled from x's rough
+//! specular lobes), and one bounce of indirect light gathered from the hierarchy:
 //! - the cut: from the root, a node is splatted whole when x lies outside its bounding
 //!   sphere and the sphere's solid angle π r²/d² is at most `--pbgi-angle` times the
 //!   smallest micro-buffer texel's; otherwise its children are visited. Nodes wholly below
@@ -16,7 +17,7 @@
 //!   jittered inside it, and each ray meeting a leaf triangle leaves an opaque fragment at
 //!   its depth. A front hit on a diffuse surface sends the baked light of the finest patch
 //!   under it (`patch`: large triangles are baked as up to 4⁶ patches); other hits take
-//!   one light sample, as the path tracer would. A ray aimed at a leaf's sphere that meets
+//!   direct light as x does. A ray aimed at a leaf's sphere that meets
 //!   none of its triangles is traced exactly (what it finds could otherwise be missing);
 //! - hits are shaded once the cut is done, only the nearest of each texel's ray;
 //! - `microbuffer` composites and convolves with x's diffuse lobe (003 eq. 2.1); the
@@ -24,7 +25,8 @@
 //!   every `--pbgi-reuse`-th sample, its other samples reusing its gathers' mean;
 //! - `--pbgi-rays` skips the cut: every texel's ray is traced and reads the bake;
 //! - x's rough specular lobes, mostly narrower than a texel, take one exact ray sampled
-//!   from them instead, its hit shaded as a rasterized hit is. (WPBGI's adaptive
+//!   from them instead (with the pixel's own sample sequence, as the path tracer's next
+//!   bounce would), its hit shaded as a rasterized hit is. (WPBGI's adaptive
 //!   micro-buffer and wavelet BRDF product, 000 §3.2 and 002 §4.2, would gather them from
 //!   the cloud; not built.)
 //!
@@ -42,9 +44,10 @@ pub mod microbuffer;
 pub mod patch;
 
 use super::edge::{EdgeRays, DEFAULT_EDGE_RAYS};
+use super::path::power_heuristic;
 use super::{
-    bsdf_term, on_side, sample_light, shading_frame, Counters, Integrator, PixelSample, Receiver,
-    Scene, Stats, Target,
+    bsdf_term, mis_weight, on_side, sample_light_weighted, shading_frame, Counters, Integrator,
+    PixelSample, Receiver, Scene, Stats, Target,
 };
 use crate::material::{Bsdf, Frame};
 use crate::paging::{NodeRef, Page, TNode};
@@ -371,18 +374,25 @@ impl PbgiIntegrator {
                 };
                 continue;
             }
-            l += beta * s.direct(scene, tr, [u_pick, ul0, ul1]);
+            let key = ((px.at as u64) << 20 ^ px.index as u64) ^ (self.seed as u64) << 52;
+            // The pixel's own sequence, as the path tracer's next bounce would take it.
+            let [ud0, ud1, ..] = px.sampler.get4(2 * depth + 2);
+            let lobe = s.lobe_ray(scene, tr, [u_lobe, ud0, ud1]);
+            l += beta * s.direct(scene, tr, [u_pick, ul0, ul1], lobe.as_ref());
             if scene.last_segment(depth + 1) {
                 break;
             }
-            let key = ((px.at as u64) << 20 ^ px.index as u64) ^ (self.seed as u64) << 52;
             // A pixel's width at x, seen from the camera.
             let footprint = (s.p - scene.camera.pos).length() * 2.0 * scene.camera.tan_half
                 / scene.camera.height as f32;
             let at = Some((px.at, footprint));
             let sample = px.index;
+            let [a, b, c, d] = px.sampler.get4(2 * depth + 3);
+            let [e, f, ..] = px.sampler.get4(2 * depth + 4);
             let q = Pending {
                 s,
+                lobe,
+                shade: [a, b, c, d, e, f],
                 beta,
                 key,
                 at,
@@ -394,7 +404,8 @@ impl PbgiIntegrator {
     }
 
     /// One bounce of indirect light at the receiver: its diffuse lobe from the
-    /// micro-buffer, its rough specular lobes from one BSDF-sampled exact ray (a lobe
+    /// micro-buffer, its rough specular lobes from the exact ray sampled from them at the
+    /// first hit, which served direct light's MIS too (a lobe
     /// narrower than a micro-buffer texel would be convolved at a few texel centres only:
     /// with `--max-depth` 3 on a rough silver plinth of α 0.04 that overstated its pixels
     /// by 8–11%). `known`: what `reuse` gave for the receiver, when the caller asked it
@@ -408,15 +419,13 @@ impl PbgiIntegrator {
         known: Option<Option<(V, bool)>>,
     ) -> V {
         let s = &q.s;
-        let mut rng = Hash::new(q.key ^ 0x6A09_E667_F3BC_C909);
-        let glossy = Bsdf {
-            diffuse: V::ZERO,
-            ..s.bsdf
+        let mut l = match &q.lobe {
+            Some(r) => self.glossy_bounce(scene, tr, r, q.shade),
+            None => V::ZERO,
         };
-        let mut l = self.glossy_ray(scene, tr, s, &glossy, &mut rng);
         if s.bsdf.diffuse.max_element() > 0.0 {
             // The diffuse lobe is the same for every incident direction: irradiance × it.
-            let lobe = s.bsdf.eval(s.wo_l, V::Z).0 - glossy.eval(s.wo_l, V::Z).0;
+            let lobe = s.bsdf.eval(s.wo_l, V::Z).0 - s.glossy().eval(s.wo_l, V::Z).0;
             let e = match known.unwrap_or_else(|| self.reuse(tr, q)) {
                 Some((e, cached)) => {
                     match cached {
@@ -633,39 +642,15 @@ impl PbgiIntegrator {
         }
     }
 
-    /// The rough specular lobes' bounce: one direction sampled from them, its hit shaded
-    /// as a rasterized near hit is (baked light, else one light sample).
-    fn glossy_ray(
-        &self,
-        scene: &Scene,
-        tr: &mut Tracer,
-        s: &Surface,
-        glossy: &Bsdf,
-        rng: &mut Hash,
-    ) -> V {
-        let u = [rng.f32(), rng.f32(), rng.f32()];
-        let Some(bs) = glossy.sample(s.wo_l, u[0], [u[1], u[2]]) else {
+    /// The rough specular lobes' bounce: the hit of the direction sampled from them,
+    /// shaded as a rasterized near hit is (baked light, else direct light).
+    fn glossy_bounce(&self, scene: &Scene, tr: &mut Tracer, r: &LobeRay, u: [f32; 6]) -> V {
+        let Some(hit) = &r.hit else {
             return V::ZERO;
         };
-        if bs.delta {
-            return V::ZERO;
-        }
-        let w = s.frame.to_world(bs.wi).normalize();
-        if !on_side(&s.frame, s.n, w) {
-            return V::ZERO;
-        }
-        let ray = Ray {
-            o: offset_origin(s.p, s.err, s.ng, w),
-            d: w,
-            t_max: f32::INFINITY,
-        };
-        let Some(hit) = tr.closest_hit(&ray) else {
-            return V::ZERO;
-        };
-        scene.touched.insert(hit.leaf);
         self.exact_hits.fetch_add(1, Relaxed);
         let page = tr.page_handle(hit.page);
-        bs.weight * hit_light(scene, tr, &page, &hit, w, rng).0
+        r.weight * hit_light(scene, tr, &page, hit, r.w, u).0
     }
 
     /// Irradiance at `s` from the cut, the near rays and the micro-buffer, and the harmonic
@@ -744,7 +729,7 @@ impl PbgiIntegrator {
                         Some(p) if p.id == hit.page => p,
                         _ => tr.page_handle(hit.page),
                     };
-                    let (sends, sampled) = hit_light(scene, tr, &p, &hit, w, rng);
+                    let (sends, sampled) = hit_light(scene, tr, &p, &hit, w, rng.u6());
                     let id = (1 << 62) | (hit.leaf << 3) | hit.slot as u64;
                     sc.mb
                         .fill(k as usize, hit.t, id, Vec3::from(sends * weight));
@@ -1000,7 +985,7 @@ impl PbgiIntegrator {
         };
         scene.touched.insert(hit.leaf);
         let page = tr.page_handle(hit.page);
-        let (sends, _) = hit_light(scene, tr, &page, &hit, w, rng);
+        let (sends, _) = hit_light(scene, tr, &page, &hit, w, rng.u6());
         mb.fill(k, hit.t, u64::MAX - k as u64, Vec3::from(sends * weight));
     }
 
@@ -1108,15 +1093,15 @@ fn intersect(o: V, w: V, p: [V; 3]) -> Option<(f32, [f32; 3])> {
 }
 
 /// What a hit sends back along `w`: the baked light of the finest patch under it, or,
-/// where the bake holds nothing (back faces, non-diffuse surfaces), one light sample as
-/// the path tracer would take; the flag says it was sampled.
+/// where the bake holds nothing (back faces, non-diffuse surfaces), direct light as the
+/// path tracer would take it; the flag says it was sampled.
 fn hit_light(
     scene: &Scene,
     tr: &mut Tracer,
     page: &Page,
     hit: &Hit,
     w: V,
-    rng: &mut Hash,
+    u: [f32; 6],
 ) -> (V, bool) {
     let t = page
         .bvh
@@ -1131,7 +1116,8 @@ fn hit_light(
     }
     let l = match Surface::at(scene, hit, w) {
         Some(h) if !h.absorbs && !h.bsdf.has_smooth_only() => {
-            h.direct(scene, tr, [rng.f32(), rng.f32(), rng.f32()])
+            let lobe = h.lobe_ray(scene, tr, [u[3], u[4], u[5]]);
+            h.direct(scene, tr, [u[0], u[1], u[2]], lobe.as_ref())
         }
         _ => V::ZERO,
     };
@@ -1188,6 +1174,10 @@ fn node_sphere(node: &TNode) -> (V, f32) {
 /// A receiver whose indirect bounce is still to be gathered.
 struct Pending {
     s: Surface,
+    /// The ray sampled from x's rough specular lobes, if it has any.
+    lobe: Option<LobeRay>,
+    /// The pixel sequence's numbers for shading that ray's hit.
+    shade: [f32; 6],
     /// Path weight from the camera to x.
     beta: V,
     /// Seed of its exact rays.
@@ -1196,6 +1186,16 @@ struct Pending {
     at: Option<(usize, f32)>,
     /// Its sample number in the pixel.
     sample: u32,
+}
+
+/// A direction sampled from a surface's rough specular lobes, and what it hit: the BSDF
+/// strategy of the surface's direct light (MIS) and, at x, the glossy bounce's exact ray.
+struct LobeRay {
+    w: V,
+    /// f · cos / pdf.
+    weight: V,
+    pdf: f32,
+    hit: Option<Hit>,
 }
 
 /// A node splatted whole, as seen from the point its cut was walked for.
@@ -1258,18 +1258,80 @@ impl Surface {
         })
     }
 
-    /// Reflected direct light toward `wo`: one light sample at full weight (the cloud
-    /// holds no emission, so nothing else samples the emitters).
-    fn direct(&self, scene: &Scene, tr: &mut Tracer, u: [f32; 3]) -> V {
-        let f = bsdf_term(self.frame, self.n, self.bsdf, self.wo_l);
-        sample_light(
-            scene,
-            tr,
-            &Receiver::surface(self.p, self.err, self.ng),
-            &Cone::EXACT,
-            u,
-            |wi| (f(wi).0, 0.0),
-        )
+    /// The BSDF without its diffuse lobe.
+    fn glossy(&self) -> Bsdf {
+        Bsdf {
+            diffuse: V::ZERO,
+            ..self.bsdf
+        }
+    }
+
+    /// A direction sampled from the rough specular lobes with `u`, traced; None where
+    /// there are none (or the sample is a delta, or leaves below the surface).
+    fn lobe_ray(&self, scene: &Scene, tr: &mut Tracer, u: [f32; 3]) -> Option<LobeRay> {
+        let bs = self.glossy().sample(self.wo_l, u[0], [u[1], u[2]])?;
+        let w = self.frame.to_world(bs.wi).normalize();
+        if bs.delta || !on_side(&self.frame, self.n, w) {
+            return None;
+        }
+        let hit = tr.closest_hit(&Ray {
+            o: offset_origin(self.p, self.err, self.ng, w),
+            d: w,
+            t_max: f32::INFINITY,
+        });
+        if let Some(h) = &hit {
+            scene.touched.insert(h.leaf);
+        }
+        Some(LobeRay {
+            w,
+            weight: bs.weight,
+            pdf: bs.pdf,
+            hit,
+        })
+    }
+
+    /// Reflected direct light toward `wo` (the cloud holds no emission, so this is all of
+    /// it): one light sample, and the emission `lobe` found; the glossy lobes weigh the two
+    /// by the power heuristic, as the path tracer does, the diffuse lobe (which no lobe ray
+    /// samples) takes the light sample at full weight.
+    fn direct(&self, scene: &Scene, tr: &mut Tracer, u: [f32; 3], lobe: Option<&LobeRay>) -> V {
+        let all = bsdf_term(self.frame, self.n, self.bsdf, self.wo_l);
+        let glossy = bsdf_term(self.frame, self.n, self.glossy(), self.wo_l);
+        let at = Receiver::surface(self.p, self.err, self.ng);
+        let light = sample_light_weighted(scene, tr, &at, &Cone::EXACT, u, |wi, pdf_l| {
+            let f = all(wi).0;
+            match lobe {
+                Some(_) => {
+                    let (g, pdf_g) = glossy(wi);
+                    f - g + g * mis_weight(pdf_l, pdf_g)
+                }
+                None => f,
+            }
+        });
+        light + lobe.map_or(V::ZERO, |r| self.lobe_emission(scene, r))
+    }
+
+    /// The emission lobe ray `r` found, weighed against the light sample (power heuristic).
+    fn lobe_emission(&self, scene: &Scene, r: &LobeRay) -> V {
+        let Some(hit) = &r.hit else {
+            return V::ZERO;
+        };
+        let ng_raw = hit.ng();
+        let area = 0.5 * ng_raw.length();
+        if area.is_nan() || area <= 0.0 {
+            return V::ZERO;
+        }
+        let ng = ng_raw / (2.0 * area);
+        let le = scene.material_at_hit(hit, r.w).m.emitted(ng.dot(r.w) < 0.0);
+        if le == V::ZERO {
+            return V::ZERO;
+        }
+        let emitter = scene.lights.emitter_at(hit.leaf, hit.slot);
+        let cos_l = ng.dot(r.w).abs();
+        let pdf_l = scene
+            .lights
+            .pdf_li((self.p, self.ng), emitter, hit.t * hit.t, cos_l, area);
+        r.weight * le * power_heuristic(r.pdf, pdf_l)
     }
 }
 
