@@ -22,7 +22,8 @@
 //! L_o = Σ_k L_k · ρ(ω_k, ω_o) · ∫_texel cos θ dω.
 
 use crate::wavelet::cube;
-use glam::Vec3;
+use glam::{DVec3, Vec3};
+use std::collections::HashMap;
 
 /// Per-texel geometry of a hemicube of resolution n, computed once per resolution.
 pub struct Texels {
@@ -33,6 +34,10 @@ pub struct Texels {
     pub dir: Vec<Vec3>,
     pub solid_angle: Vec<f32>,
     pub cosine: Vec<f32>,
+    /// Per cube texel: ∫ω dω (its z is `cosine`), for the rotational gradient.
+    pub vector: Vec<Vec3>,
+    /// Borders between upper texels, for the translational gradient.
+    pub edges: Vec<Edge>,
     /// Solid angle of the smallest texel (at the cube's corners): the cut's yardstick.
     pub min_solid_angle: f32,
 }
@@ -51,10 +56,13 @@ impl Texels {
             .collect();
         let mut solid_angle = vec![0.0; count];
         let mut cosine = vec![0.0; count];
+        let mut vector = vec![Vec3::ZERO; count];
         for &i in &upper {
             solid_angle[i as usize] = cube::texel_solid_angle(i as usize, n);
-            cosine[i as usize] = cube::texel_vector_integral(i as usize, n).z;
+            vector[i as usize] = cube::texel_vector_integral(i as usize, n);
+            cosine[i as usize] = vector[i as usize].z;
         }
+        let edges = Edge::between(&upper, &dir, n);
         let min_solid_angle = upper
             .iter()
             .map(|&i| solid_angle[i as usize])
@@ -65,6 +73,8 @@ impl Texels {
             dir,
             solid_angle,
             cosine,
+            vector,
+            edges,
             min_solid_angle,
         }
     }
@@ -83,6 +93,95 @@ impl Texels {
         let r = local.length();
         let weight = local.z / r * u.cross(v).length() / r.powi(3) / self.cosine[k];
         (local / r, weight)
+    }
+}
+
+/// The border between upper texels `from` and `to`: `g` = ∫ cos θ ν dl along its great
+/// arc, ν the unit normal of the arc's plane turned toward `to` (the same all along the
+/// arc). Moving the receiver by δ moves what is seen at distance r along the border by
+/// −δ⊥/r, so `to`'s share of the projected solid angle grows by δ·g/r.
+#[derive(Clone, Copy, Debug)]
+pub struct Edge {
+    pub from: u32,
+    pub to: u32,
+    pub g: Vec3,
+}
+
+impl Edge {
+    /// Every border two upper texels share, across cube faces too (found by their shared
+    /// corners).
+    fn between(upper: &[u32], dir: &[Vec3], n: usize) -> Vec<Edge> {
+        let key = |p: Vec3| (p * (4 * n) as f32).round().as_ivec3().to_array();
+        let mut open: HashMap<([i32; 3], [i32; 3]), u32> = HashMap::new();
+        let mut edges = Vec::new();
+        for &t in upper {
+            let c = cube::texel_corners(t as usize, n);
+            for i in 0..4 {
+                let (a, b) = (c[i], c[(i + 1) % 4]);
+                let (ka, kb) = (key(a), key(b));
+                let k = if ka < kb { (ka, kb) } else { (kb, ka) };
+                match open.remove(&k) {
+                    Some(from) => edges.push(Edge::new(from, t, a, b, dir)),
+                    None => {
+                        open.insert(k, t);
+                    }
+                }
+            }
+        }
+        edges
+    }
+
+    fn new(from: u32, to: u32, a: Vec3, b: Vec3, dir: &[Vec3]) -> Edge {
+        let (a, b) = (a.as_dvec3().normalize(), b.as_dvec3().normalize());
+        let phi = a.dot(b).clamp(-1.0, 1.0).acos();
+        let mut nu = a.cross(b).normalize();
+        if nu.dot((dir[to as usize] - dir[from as usize]).as_dvec3()) < 0.0 {
+            nu = -nu;
+        }
+        // ω(s) = a cos s + e sin s along the arc: ∫ω ds = a sin φ + e (1 − cos φ).
+        let e = (b - a * a.dot(b)).normalize();
+        let along: DVec3 = a * phi.sin() + e * (1.0 - phi.cos());
+        Edge {
+            from,
+            to,
+            g: (nu * along.z.max(0.0)).as_vec3(),
+        }
+    }
+}
+
+/// Irradiance gradients of one gather (Ward and Heckbert 1992, with the micro-buffer's
+/// texel borders in place of the stratified hemisphere's cells), per channel, in the
+/// receiver's frame: E(x + δ, n') ≈ E + δ·t + (n × n')·r.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Gradients {
+    pub t: [Vec3; 3],
+    pub r: [Vec3; 3],
+}
+
+impl Gradients {
+    /// The gradients with every vector mapped by `f` (a frame's local-to-world turn).
+    pub fn map(&self, f: impl Fn(Vec3) -> Vec3) -> Gradients {
+        Gradients {
+            t: self.t.map(&f),
+            r: self.r.map(&f),
+        }
+    }
+
+    /// The change of E, per channel, for a step `d` and a normal turned by `turn` = n × n'.
+    pub fn change(&self, d: Vec3, turn: Vec3) -> Vec3 {
+        Vec3::from_array([0, 1, 2].map(|c| self.t[c].dot(d) + self.r[c].dot(turn)))
+    }
+
+    pub fn is_finite(&self) -> bool {
+        self.t.iter().chain(&self.r).all(|v| v.is_finite())
+    }
+
+    /// Moves the gradients toward `other` by `share` (a running mean's 1/k).
+    pub fn blend(&mut self, other: &Gradients, share: f32) {
+        for c in 0..3 {
+            self.t[c] += (other.t[c] - self.t[c]) * share;
+            self.r[c] += (other.r[c] - self.r[c]) * share;
+        }
     }
 }
 
@@ -105,11 +204,22 @@ pub struct MicroBuffer {
     sorted: Vec<Fragment>,
     start: Vec<u32>,
     cursor: Vec<u32>,
+    /// Per cube texel: whether its light is a sampled estimate (noisy), not baked.
+    sampled: Vec<bool>,
 }
 
 impl MicroBuffer {
     pub fn clear(&mut self) {
         self.frags.clear();
+        self.sampled.clear();
+    }
+
+    /// Notes that texel `texel`'s light was sampled rather than read from the bake.
+    pub fn mark_sampled(&mut self, texel: usize) {
+        if self.sampled.len() <= texel {
+            self.sampled.resize(texel + 1, false);
+        }
+        self.sampled[texel] = true;
     }
 
     /// Splats a node seen in local direction `dir` (unit) at `depth`, subtending
@@ -233,6 +343,42 @@ impl MicroBuffer {
         out
     }
 
+    /// The irradiance gradients, in the local frame, of `incident` (from `resolve`, which
+    /// sorted the fragments): translational from every border, its texels' difference over
+    /// the nearer of their nearest depths (the nearer surface moves the border, Ward and
+    /// Heckbert's min), rotational from n × Σ L_k ∫ω dω. Borders of a texel whose light
+    /// was sampled are left out: a glossy floor's light samples made the showroom's
+    /// gradients noise (its RMSE 2.5% higher with them than without; 0.3% lower now).
+    pub fn gradients(&self, texels: &Texels, incident: &[Vec3]) -> Gradients {
+        let depth = |t: u32| {
+            let (first, end) = (self.start[t as usize], self.start[t as usize + 1]);
+            match first < end {
+                true => self.sorted[first as usize].depth,
+                false => f32::INFINITY,
+            }
+        };
+        let sampled = |t: u32| self.sampled.get(t as usize).copied().unwrap_or(false);
+        let mut g = Gradients::default();
+        for e in &texels.edges {
+            if sampled(e.from) || sampled(e.to) {
+                continue;
+            }
+            let r = depth(e.from).min(depth(e.to)).max(f32::MIN_POSITIVE);
+            let d = (incident[e.to as usize] - incident[e.from as usize]) / r;
+            for c in 0..3 {
+                g.t[c] += e.g * d[c];
+            }
+        }
+        let mut s = [Vec3::ZERO; 3];
+        for &t in &texels.upper {
+            for (c, sc) in s.iter_mut().enumerate() {
+                *sc += texels.vector[t as usize] * incident[t as usize][c];
+            }
+        }
+        g.r = s.map(|v| Vec3::Z.cross(v));
+        g
+    }
+
     /// Reflected radiance: Σ L_k · brdf(ω_k) · ∫cos (003 eq. 2.1), brdf in the local frame.
     pub fn convolve(texels: &Texels, incident: &[Vec3], brdf: impl Fn(Vec3) -> Vec3) -> Vec3 {
         texels
@@ -271,6 +417,85 @@ mod tests {
             let mean = sum / (m * m) as f64;
             assert!((mean - 1.0).abs() < 2e-3, "texel {k}: mean weight {mean}");
         }
+    }
+
+    /// The micro-buffer of a receiver at `p` facing up,
+    /// under a ceiling at height 1 lit (radiance 1) where x > 0: each texel filled with
+    /// its mean radiance (over m² texel rays where the border crosses it) and the
+    /// ceiling's depth at its centre.
+    fn half_lit_ceiling(t: &Texels, p: Vec3, m: usize) -> (MicroBuffer, Vec<Vec3>) {
+        let lit = |d: Vec3| match d.z > 1e-6 {
+            true => p.x + d.x * (1.0 - p.z) / d.z > 0.0,
+            false => d.x > 0.0,
+        };
+        let mut mb = MicroBuffer::default();
+        for &k in &t.upper {
+            let k = k as usize;
+            // A border on the ceiling is a straight line on the cube face: a texel whose
+            // corners agree lies wholly on their side.
+            let corners = cube::texel_corners(k, t.n).map(&lit);
+            let mut sum = 0.0;
+            if corners.iter().all(|&c| c == corners[0]) {
+                let depth = (1.0 - p.z) / t.dir[k].z.max(1e-3);
+                let l = if corners[0] { 1.0 } else { 0.0 };
+                mb.fill(k, depth, k as u64, Vec3::splat(l));
+                continue;
+            }
+            for i in 0..m {
+                for j in 0..m {
+                    let (a, b) = ((i as f32 + 0.5) / m as f32, (j as f32 + 0.5) / m as f32);
+                    let (d, w) = t.ray(k, a, b);
+                    if lit(d) {
+                        sum += w;
+                    }
+                }
+            }
+            let depth = (1.0 - p.z) / t.dir[k].z.max(1e-3);
+            mb.fill(k, depth, k as u64, Vec3::splat(sum / (m * m) as f32));
+        }
+        let incident = mb.resolve(t, |_| Vec3::ZERO);
+        (mb, incident)
+    }
+
+    /// Under a ceiling at height 1 lit where x > 0, E = π/2 at the origin; a step δ
+    /// toward the lit side moves the border by −δ and adds ∫ dy / (1 + y²)² = π/2 per unit,
+    /// and tilting the normal toward it adds ∫ ω_x dω over the lit quarter sphere = π/2 per
+    /// radian. The gradients of one micro-buffer give both within 1% (measured 1.5676 and
+    /// 1.5708); its own E, recomputed a step away, moves within 3% of the first (1.540).
+    #[test]
+    fn gradients_match_the_derivatives_under_a_half_lit_ceiling() {
+        let t = Texels::new(16);
+        let m = 64;
+        let irradiance = |p: Vec3| {
+            let (_, inc) = half_lit_ceiling(&t, p, m);
+            MicroBuffer::convolve(&t, &inc, |_| Vec3::ONE).x
+        };
+        let (mb, inc) = half_lit_ceiling(&t, Vec3::ZERO, m);
+        let g = mb.gradients(&t, &inc);
+        let e0 = irradiance(Vec3::ZERO);
+        assert!((e0 - PI / 2.0).abs() < 2e-3, "E {e0}");
+        let h = 0.02;
+        let fd = (irradiance(Vec3::X * h) - irradiance(-Vec3::X * h)) / (2.0 * h);
+        assert!(
+            (fd - PI / 2.0).abs() < 0.03 * PI / 2.0,
+            "finite difference {fd}"
+        );
+        let (gt, gr) = (g.t[0], g.r[0]);
+        assert!(
+            (gt.x - PI / 2.0).abs() < 0.01 * PI / 2.0,
+            "translational {gt}"
+        );
+        assert!(gt.y.abs() < 1e-3, "translational {gt} has a y part");
+        // Turning the normal toward +x by α: n × n' = (0, sin α, 0).
+        assert!((gr.y - PI / 2.0).abs() < 0.01 * PI / 2.0, "rotational {gr}");
+        assert!(gr.x.abs() < 1e-3, "rotational {gr} has an x part");
+        assert_eq!(g.t[1], gt, "channels differ under white light");
+        // Borders of sampled (noisy) texels are left out; the rotational gradient stays.
+        let mut mb = mb;
+        t.upper.iter().for_each(|&k| mb.mark_sampled(k as usize));
+        let sampled = mb.gradients(&t, &inc);
+        assert_eq!(sampled.t, [Vec3::ZERO; 3]);
+        assert_eq!(sampled.r, g.r);
     }
 
     #[test]

@@ -57,7 +57,7 @@ use anyhow::Result;
 use bake::{Directional, Hash};
 use cache::{IrradianceCache, Record};
 use glam::{Vec3, Vec3A as V};
-use microbuffer::{MicroBuffer, Texels};
+use microbuffer::{Gradients, MicroBuffer, Texels};
 use rayon::prelude::*;
 use std::cell::RefCell;
 use std::f32::consts::PI;
@@ -541,17 +541,22 @@ impl PbgiIntegrator {
         if q.s.bsdf.diffuse.max_element() <= 0.0 || cache.lookup(q.s.p, n).is_some() {
             return None;
         }
-        let (e, harmonic) = self.gather_irradiance(scene, tr, &q.s, q.key ^ 0xCAC4E, None);
+        let (e, harmonic, g) = self.gather_irradiance(scene, tr, &q.s, q.key ^ 0xCAC4E, None);
         let rec = Record::new(q.s.p, n, e, harmonic, footprint, cache.a());
-        Some(Record { at: [x, y], ..rec })
+        Some(Record {
+            at: [x, y],
+            g,
+            ..rec
+        })
     }
 
     /// Another gather for record `rec`, at its pixel's first hit again (the `k`-th, so
-    /// its rays are new), or None when that hit is gone.
-    fn regather(&self, scene: &Scene, tr: &mut Tracer, rec: &Record) -> Option<V> {
+    /// its rays are new): its irradiance and gradients, or None when that hit is gone.
+    fn regather(&self, scene: &Scene, tr: &mut Tracer, rec: &Record) -> Option<(V, Gradients)> {
         let q = self.centre_hit(scene, tr, rec.at[0], rec.at[1])?;
         let key = q.key ^ 0xCAC4E ^ (rec.y.count << 40);
-        Some(self.gather_irradiance(scene, tr, &q.s, key, None).0)
+        let (e, _, g) = self.gather_irradiance(scene, tr, &q.s, key, None);
+        Some((e, g))
     }
 
     /// Whether a cached receiver is to be checked for a surface over it: in its pixel's
@@ -593,7 +598,7 @@ impl PbgiIntegrator {
             return 0;
         }
         let ids = cache.most_uncertain(count as usize);
-        let found: Vec<(Option<V>, u64)> = ids
+        let found: Vec<(Option<(V, Gradients)>, u64)> = ids
             .par_iter()
             .map_init(
                 || Tracer::new(&scene.cache),
@@ -607,8 +612,8 @@ impl PbgiIntegrator {
         let rays: u64 = found.iter().map(|f| f.1).sum();
         if let Some(cache) = self.cache.as_mut() {
             for (&id, (e, _)) in ids.iter().zip(&found) {
-                if let Some(e) = e {
-                    cache.add(id, *e);
+                if let Some((e, g)) = e {
+                    cache.add(id, *e, g);
                 }
             }
         }
@@ -653,9 +658,10 @@ impl PbgiIntegrator {
         r.weight * hit_light(scene, tr, &page, hit, r.w, u).0
     }
 
-    /// Irradiance at `s` from the cut, the near rays and the micro-buffer, and the harmonic
-    /// mean distance of what it saw. With a cluster's `field`, its far splats are taken as
-    /// they are and the cut starts from its near nodes instead of the root.
+    /// Irradiance at `s` from the cut, the near rays and the micro-buffer, the harmonic
+    /// mean distance of what it saw and the irradiance gradients (world space). With a
+    /// cluster's `field`, its far splats are taken as they are and the cut starts from its
+    /// near nodes instead of the root.
     fn gather_irradiance(
         &self,
         scene: &Scene,
@@ -663,7 +669,7 @@ impl PbgiIntegrator {
         s: &Surface,
         key: u64,
         field: Option<&Field>,
-    ) -> (V, f32) {
+    ) -> (V, f32, Gradients) {
         SCRATCH.with_borrow_mut(|sc| {
             let texels = &self.texels;
             sc.mb.clear();
@@ -685,7 +691,9 @@ impl PbgiIntegrator {
             }
             let incident = sc.mb.resolve(texels, |_| Vec3::ZERO);
             let e = MicroBuffer::convolve(texels, &incident, |_| Vec3::ONE);
-            (V::from(e), sc.mb.harmonic_distance(texels))
+            let g = sc.mb.gradients(texels, &incident);
+            let g = g.map(|v| s.frame.to_world(V::from(v)).into());
+            (V::from(e), sc.mb.harmonic_distance(texels), g)
         })
     }
 
@@ -733,6 +741,9 @@ impl PbgiIntegrator {
                     let id = (1 << 62) | (hit.leaf << 3) | hit.slot as u64;
                     sc.mb
                         .fill(k as usize, hit.t, id, Vec3::from(sends * weight));
+                    if sampled {
+                        sc.mb.mark_sampled(k as usize);
+                    }
                     page = Some(p);
                     fragments += 1;
                     exact += sampled as u64;
@@ -985,8 +996,11 @@ impl PbgiIntegrator {
         };
         scene.touched.insert(hit.leaf);
         let page = tr.page_handle(hit.page);
-        let (sends, _) = hit_light(scene, tr, &page, &hit, w, rng.u6());
+        let (sends, sampled) = hit_light(scene, tr, &page, &hit, w, rng.u6());
         mb.fill(k, hit.t, u64::MAX - k as u64, Vec3::from(sends * weight));
+        if sampled {
+            mb.mark_sampled(k);
+        }
     }
 
     /// A leaf too near or too wide to splat, rasterized: each of x's texel rays that
