@@ -32,7 +32,7 @@
 use super::microbuffer::Gradients;
 use crate::material::luminance;
 use glam::Vec3A as V;
-use std::collections::HashMap;
+use rustc_hash::FxHashMap;
 
 /// Largest influence radius a·R of a record, in pixel footprints at its point.
 pub const MAX_PIXELS: f32 = 4.0;
@@ -157,7 +157,7 @@ pub struct IrradianceCache {
     records: Vec<Record>,
     /// (level, cell) → records whose influence sphere overlaps the cell; a record sits at
     /// the level whose cells are at least as wide as its sphere.
-    grid: HashMap<(i8, [i32; 3]), Vec<u32>>,
+    grid: FxHashMap<(i8, [i32; 3]), Vec<u32>>,
     levels: Vec<i8>,
     /// Per record: its gradients as lookups apply them ([`Record::carry`]).
     carry: Vec<Gradients>,
@@ -169,7 +169,7 @@ impl IrradianceCache {
         IrradianceCache {
             a,
             records: Vec::new(),
-            grid: HashMap::new(),
+            grid: FxHashMap::default(),
             levels: Vec::new(),
             carry: Vec::new(),
         }
