@@ -215,7 +215,7 @@ impl MicroBuffer {
     }
 
     /// Notes that texel `texel`'s light was sampled rather than read from the bake.
-    pub fn mark_sampled(&mut self, texel: usize) {
+    fn mark_sampled(&mut self, texel: usize) {
         if self.sampled.len() <= texel {
             self.sampled.resize(texel + 1, false);
         }
@@ -276,8 +276,12 @@ impl MicroBuffer {
         }
     }
 
-    /// Fills cube texel `texel` whole with an opaque fragment (a rasterized hit).
-    pub fn fill(&mut self, texel: usize, depth: f32, id: u64, radiance: Vec3) {
+    /// Fills cube texel `texel` whole with an opaque fragment (a rasterized hit);
+    /// `sampled`: its radiance is a light-sampled estimate, not baked light.
+    pub fn fill(&mut self, texel: usize, depth: f32, id: u64, radiance: Vec3, sampled: bool) {
+        if sampled {
+            self.mark_sampled(texel);
+        }
         self.frags.push(Fragment {
             texel: texel as u32,
             depth,
@@ -438,7 +442,7 @@ mod tests {
             if corners.iter().all(|&c| c == corners[0]) {
                 let depth = (1.0 - p.z) / t.dir[k].z.max(1e-3);
                 let l = if corners[0] { 1.0 } else { 0.0 };
-                mb.fill(k, depth, k as u64, Vec3::splat(l));
+                mb.fill(k, depth, k as u64, Vec3::splat(l), false);
                 continue;
             }
             for i in 0..m {
@@ -451,7 +455,7 @@ mod tests {
                 }
             }
             let depth = (1.0 - p.z) / t.dir[k].z.max(1e-3);
-            mb.fill(k, depth, k as u64, Vec3::splat(sum / (m * m) as f32));
+            mb.fill(k, depth, k as u64, Vec3::splat(sum / (m * m) as f32), false);
         }
         let incident = mb.resolve(t, |_| Vec3::ZERO);
         (mb, incident)

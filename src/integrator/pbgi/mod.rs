@@ -739,11 +739,8 @@ impl PbgiIntegrator {
                     };
                     let (sends, sampled) = hit_light(scene, tr, &p, &hit, w, rng.u6());
                     let id = (1 << 62) | (hit.leaf << 3) | hit.slot as u64;
-                    sc.mb
-                        .fill(k as usize, hit.t, id, Vec3::from(sends * weight));
-                    if sampled {
-                        sc.mb.mark_sampled(k as usize);
-                    }
+                    let l = Vec3::from(sends * weight);
+                    sc.mb.fill(k as usize, hit.t, id, l, sampled);
                     page = Some(p);
                     fragments += 1;
                     exact += sampled as u64;
@@ -997,10 +994,13 @@ impl PbgiIntegrator {
         scene.touched.insert(hit.leaf);
         let page = tr.page_handle(hit.page);
         let (sends, sampled) = hit_light(scene, tr, &page, &hit, w, rng.u6());
-        mb.fill(k, hit.t, u64::MAX - k as u64, Vec3::from(sends * weight));
-        if sampled {
-            mb.mark_sampled(k);
-        }
+        mb.fill(
+            k,
+            hit.t,
+            u64::MAX - k as u64,
+            Vec3::from(sends * weight),
+            sampled,
+        );
     }
 
     /// A leaf too near or too wide to splat, rasterized: each of x's texel rays that
