@@ -121,21 +121,25 @@ pub enum Stats {
     Pbgi(pbgi::PbgiStats),
 }
 
+/// What the driver knows before a pass of samples `first..first + count`.
+pub struct Pass {
+    pub first: u32,
+    pub count: u32,
+    /// Rays traced so far.
+    pub rays: u64,
+    /// The mean over pixels of the variance of one sample's luminance, so far
+    /// (`Film::sample_variance`).
+    pub variance: f64,
+}
+
 pub trait Integrator: Send + Sync {
     /// Samples per pixel one pass takes when `spp` are asked for (the driver takes one per
     /// pass under a time limit).
     fn pass_samples(&self, spp: u32) -> u32 {
         spp
     }
-    /// Before the pass of samples `first..first + count`, `rays` traced so far; returns
-    /// the rays it traces.
-    fn begin_pass(
-        &mut self,
-        _scene: &Scene,
-        _first: u32,
-        _count: u32,
-        _rays: u64,
-    ) -> anyhow::Result<u64> {
+    /// Before a pass; returns the rays it traces.
+    fn begin_pass(&mut self, _scene: &Scene, _pass: &Pass) -> anyhow::Result<u64> {
         Ok(0)
     }
     /// Radiance of one pixel sample.

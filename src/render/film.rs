@@ -79,17 +79,34 @@ impl Film {
             return f64::INFINITY;
         }
         let n = samples as f64;
-        let (mut var, mut mean) = (0.0, 0.0);
-        for s in &self.sums {
-            let y = luminance([s[0], s[1], s[2]]) / n;
-            var += ((s[3] / n - y * y) * n / (n - 1.0)).max(0.0) / n;
-            mean += y;
-        }
+        let mean: f64 = self
+            .sums
+            .iter()
+            .map(|s| luminance([s[0], s[1], s[2]]) / n)
+            .sum();
         if mean <= 0.0 {
             return 0.0;
         }
         let count = self.sums.len() as f64;
-        (var / count).sqrt() / (mean / count)
+        (self.sample_variance(samples) / n).sqrt() / (mean / count)
+    }
+
+    /// The mean over pixels of the sample variance of one sample's luminance, after
+    /// `samples` samples per pixel (0 below two).
+    pub fn sample_variance(&self, samples: u32) -> f64 {
+        if samples < 2 || self.sums.is_empty() {
+            return 0.0;
+        }
+        let n = samples as f64;
+        let var: f64 = self
+            .sums
+            .iter()
+            .map(|s| {
+                let y = luminance([s[0], s[1], s[2]]) / n;
+                ((s[3] / n - y * y) * n / (n - 1.0)).max(0.0)
+            })
+            .sum();
+        var / self.sums.len() as f64
     }
 
     /// Bytes of the sums and of the image made from them.
@@ -118,6 +135,10 @@ mod tests {
         }
         assert!((film.noise(2) - 1.0).abs() < 1e-9, "{}", film.noise(2));
         assert_eq!(film.noise(1), f64::INFINITY);
+        // Samples 0 and 2 (luminance): the sample variance of one sample is 2.
+        let v = film.sample_variance(2);
+        assert!((v - 2.0).abs() < 1e-9, "{v}");
+        assert_eq!(film.sample_variance(1), 0.0);
         // Equal samples: no noise.
         let mut flat = Film::new([0, 4, 0, 2]);
         for tile in flat.tiles.clone() {

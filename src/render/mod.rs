@@ -18,7 +18,7 @@ use setup::Setup;
 use stats::ancestors_closure;
 
 use crate::image::{Frame, Image};
-use crate::integrator::{self, Counters, Integrator, PixelSample, Scene, Target};
+use crate::integrator::{self, Counters, Integrator, Pass, PixelSample, Scene, Target};
 use crate::progress;
 use crate::sampler::PixelSampler;
 use crate::trace::Tracer;
@@ -117,7 +117,13 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
             (None, None) => integ.pass_samples(o.spp),
         };
         let so_far = tally.rays.load(Relaxed);
-        let rays = pool.install(|| integ.begin_pass(scene, done, count, so_far))?;
+        let pass = Pass {
+            first: done,
+            count,
+            rays: so_far,
+            variance: film.sample_variance(done),
+        };
+        let rays = pool.install(|| integ.begin_pass(scene, &pass))?;
         tally.rays.fetch_add(rays, Relaxed);
         // Timed after begin_pass: a bake there is paid once, not by every pass.
         let pass_start = Instant::now();

@@ -43,7 +43,7 @@ mod walk;
 pub use cluster::theta_norm;
 
 use super::edge::{EdgeRays, DEFAULT_EDGE_RAYS};
-use super::{Counters, Integrator, PixelSample, Scene, Stats, Target};
+use super::{Counters, Integrator, Pass, PixelSample, Scene, Stats, Target};
 use crate::material::Material;
 use crate::radiance::{pull, Keys, RadianceStore};
 use crate::trace::{Cone, Hit, Ray, Tracer};
@@ -254,13 +254,8 @@ impl Integrator for ConeIntegrator {
         1
     }
 
-    fn begin_pass(
-        &mut self,
-        scene: &Scene,
-        first: u32,
-        count: u32,
-        _rays: u64,
-    ) -> anyhow::Result<u64> {
+    fn begin_pass(&mut self, scene: &Scene, pass: &Pass) -> anyhow::Result<u64> {
+        let (first, count) = (pass.first, pass.count);
         if let (0, Some(path)) = (first, &self.settings.store_in) {
             crate::radiance::file::load(&self.store, &scene.cache.archive.header, path)?;
         }

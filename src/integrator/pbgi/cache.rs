@@ -58,6 +58,8 @@ pub struct Record {
     pub pixels: f32,
     /// The pixel whose centre's first hit is p.
     pub at: [u32; 2],
+    /// The luminance of the receiver's diffuse lobe: what a pixel shows per unit of E.
+    pub lobe: f32,
 }
 
 impl Record {
@@ -82,6 +84,7 @@ impl Record {
             y,
             pixels: (r / lo).powi(2),
             at: [0, 0],
+            lobe: 1.0,
         }
     }
 
@@ -205,20 +208,14 @@ impl IrradianceCache {
         }
     }
 
-    /// Up to `count` records that one more gather each helps most, by [`Record::gain`],
-    /// ties to the lower index; none that has `MAX_GATHERS`.
-    pub fn most_uncertain(&self, count: usize) -> Vec<usize> {
-        let mut gains: Vec<(f64, usize)> = (self.records.iter().map(Record::gain).zip(0..))
-            .filter(|&(g, _)| g > 0.0)
-            .collect();
-        let order = |a: &(f64, usize), b: &(f64, usize)| b.0.total_cmp(&a.0).then(a.1.cmp(&b.1));
-        if count < gains.len() {
-            gains.select_nth_unstable_by(count, order);
-            gains.truncate(count);
-        }
-        let mut ids: Vec<usize> = gains.into_iter().map(|(_, i)| i).collect();
-        ids.sort_unstable();
-        ids
+    /// The records (in index order) whose next gather lowers the squared error they
+    /// spread over their pixels, [`Record::gain`] times their lobe squared, by more than
+    /// `threshold`: every record of one gather, none that has `MAX_GATHERS`.
+    pub fn worth_refining(&self, threshold: f64) -> Vec<usize> {
+        let worth = |r: &Record| r.gain() * (r.lobe as f64).powi(2) > threshold;
+        (0..self.records.len())
+            .filter(|&i| worth(&self.records[i]))
+            .collect()
     }
 
     /// Bytes held (records and grid lists).
@@ -332,6 +329,7 @@ mod tests {
                 y: Moments::default(),
                 pixels: 1.0,
                 at: [0, 0],
+                lobe: 1.0,
             })
             .collect();
         let mut cache = IrradianceCache::new(0.4);
@@ -388,6 +386,7 @@ mod tests {
             y: Moments::default(),
             pixels: 1.0,
             at: [0, 0],
+            lobe: 1.0,
         };
         let mut cache = IrradianceCache::new(0.5);
         cache.extend([rec]);
@@ -453,10 +452,11 @@ mod tests {
     }
 
     /// A record's irradiance is the mean of its gathers and its moments those of their
-    /// luminances; refinement goes first to records of one gather, then to those whose
-    /// gathers spread most over the most pixels, never to one at `MAX_GATHERS`.
+    /// luminances; refinement goes to records of one gather, and to those whose gathers
+    /// spread most over the most pixels (as their lobe shows them) past a threshold, never
+    /// to one at `MAX_GATHERS`.
     #[test]
-    fn records_average_their_gathers_and_the_most_uncertain_are_refined_first() {
+    fn records_average_their_gathers_and_the_uncertain_are_refined() {
         let mut rng = TestRng::new(9);
         let gathers: Vec<V> = (0..9)
             .map(|_| V::new(rng.f32(), rng.f32(), rng.f32()))
@@ -488,11 +488,19 @@ mod tests {
             make(3.0, &[0.0, 2.0].repeat(32), 16.0),
             make(4.0, &[1.0, 1.1], 16.0),
         ]);
-        assert_eq!(cache.most_uncertain(1), vec![2]);
-        assert_eq!(cache.most_uncertain(2), vec![1, 2]);
-        assert_eq!(cache.most_uncertain(3), vec![1, 2, 4]);
-        assert_eq!(cache.most_uncertain(10), vec![0, 1, 2, 4]);
+        // Gains: 0.005/6·4, 2/6, ∞ (one gather), 0 (64), 0.005/6·16.
+        assert_eq!(cache.worth_refining(1.0), vec![2]);
+        assert_eq!(cache.worth_refining(0.1), vec![1, 2]);
+        assert_eq!(cache.worth_refining(0.01), vec![1, 2, 4]);
+        assert_eq!(cache.worth_refining(0.0), vec![0, 1, 2, 4]);
         assert_eq!(cache.gathers(), 2 + 2 + 1 + 64 + 2);
+        // A dim lobe shows less of a record's error: at half, a quarter of the gain.
+        let mut dim = IrradianceCache::new(0.3);
+        dim.extend([Record {
+            lobe: 0.5,
+            ..make(4.0, &[1.0, 1.1], 16.0)
+        }]);
+        assert!(dim.worth_refining(0.003).len() == 1 && dim.worth_refining(0.004).is_empty());
     }
 
     /// R is clamped to [1, MAX_PIXELS] pixel footprints over a, and a gather that saw
