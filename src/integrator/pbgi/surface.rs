@@ -1,0 +1,208 @@
+//! Shading a hit for PBGI: the surface's frame and BSDF, its direct light (a light sample
+//! weighed by MIS against a ray sampled from its rough specular lobes, as the path tracer
+//! does), and what a hit the gather sees sends back (baked patch light, else direct light).
+
+use super::patch;
+use crate::integrator::path::power_heuristic;
+use crate::integrator::{
+    bsdf_term, mis_weight, on_side, sample_light_weighted, shading_frame, Receiver, Scene,
+};
+use crate::material::{Bsdf, Frame};
+use crate::paging::{NodeRef, Page};
+use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer};
+use glam::Vec3A as V;
+
+/// What a hit sends back along `w`: the baked light of the finest patch under it, or,
+/// where the bake holds nothing (back faces, non-diffuse surfaces), direct light as the
+/// path tracer would take it; the flag says it was sampled.
+pub(super) fn hit_light(
+    scene: &Scene,
+    tr: &mut Tracer,
+    page: &Page,
+    hit: &Hit,
+    w: V,
+    u: [f32; 6],
+) -> (V, bool) {
+    let t = page
+        .bvh
+        .get(hit.leaf.wrapping_sub(page.first_node) as usize)
+        .and_then(|n| match n.link() {
+            NodeRef::Leaf { first, .. } => Some((first + hit.slot) as usize),
+            _ => None,
+        });
+    let front = hit.ng().dot(w) < 0.0;
+    if let Some(l) = t.and_then(|t| baked_light(scene, page, t, hit.tri.material, front, hit.b)) {
+        return (l, false);
+    }
+    let l = match Surface::at(scene, hit, w) {
+        Some(h) if !h.absorbs && !h.bsdf.has_smooth_only() => {
+            let lobe = h.lobe_ray(scene, tr, [u[3], u[4], u[5]]);
+            h.direct(scene, tr, [u[0], u[1], u[2]], lobe.as_ref())
+        }
+        _ => V::ZERO,
+    };
+    (l, true)
+}
+
+/// The baked light of the finest patch at barycentrics `b` of triangle `t`, when the bake
+/// holds what x sees there: the front of a purely diffuse surface.
+fn baked_light(
+    scene: &Scene,
+    page: &Page,
+    t: usize,
+    material: u32,
+    front: bool,
+    b: [f32; 3],
+) -> Option<V> {
+    if !front || !scene.materials.get(material as usize)?.is_pure_diffuse() {
+        return None;
+    }
+    let (k, base) = page.baked.patches_of(t)?;
+    let (mut b, mut index) = (b, 0);
+    for _ in 0..k {
+        let (child, next) = patch::locate(b);
+        (b, index) = (next, 4 * index + child);
+    }
+    let at = base + patch::level_start(k) + index;
+    page.baked.patches.get(at).map(|&l| V::from(l))
+}
+
+/// A direction sampled from a surface's rough specular lobes, and what it hit: the BSDF
+/// strategy of the surface's direct light (MIS) and, at x, the glossy bounce's exact ray.
+pub(super) struct LobeRay {
+    pub(super) w: V,
+    /// f · cos / pdf.
+    pub(super) weight: V,
+    pdf: f32,
+    pub(super) hit: Option<Hit>,
+}
+
+/// A hit prepared for shading.
+pub(super) struct Surface {
+    pub(super) p: V,
+    pub(super) err: V,
+    /// Unit geometric normal (winding side) and the normal on the side of `wo`.
+    pub(super) ng: V,
+    pub(super) n: V,
+    pub(super) frame: Frame,
+    pub(super) bsdf: Bsdf,
+    pub(super) wo_l: V,
+    pub(super) emitted: V,
+    pub(super) absorbs: bool,
+}
+
+impl Surface {
+    pub(super) fn at(scene: &Scene, hit: &Hit, d: V) -> Option<Surface> {
+        let shaded = scene.material_at_hit(hit, d);
+        let m = &shaded.m;
+        let ng_raw = hit.ng();
+        let len = ng_raw.length();
+        if len.is_nan() || len <= 0.0 {
+            return None;
+        }
+        let ng = ng_raw / len;
+        let wo = -d.normalize();
+        let front = ng.dot(wo) > 0.0;
+        let (p, err) = hit.point();
+        let n = if front { ng } else { -ng };
+        let frame = shading_frame(hit, ng, front, shaded.bump);
+        Some(Surface {
+            p,
+            err,
+            ng,
+            n,
+            frame,
+            bsdf: m.bsdf(front),
+            wo_l: frame.to_local(wo),
+            emitted: m.emitted(front),
+            absorbs: m.absorbs(front),
+        })
+    }
+
+    /// The diffuse lobe's value (the same for every pair of directions).
+    pub(super) fn diffuse_lobe(&self) -> V {
+        self.bsdf.eval(self.wo_l, V::Z).0 - self.glossy().eval(self.wo_l, V::Z).0
+    }
+
+    /// The BSDF without its diffuse lobe.
+    pub(super) fn glossy(&self) -> Bsdf {
+        Bsdf {
+            diffuse: V::ZERO,
+            ..self.bsdf
+        }
+    }
+
+    /// A direction sampled from the rough specular lobes with `u`, traced; None where
+    /// there are none (or the sample is a delta, or leaves below the surface).
+    pub(super) fn lobe_ray(&self, scene: &Scene, tr: &mut Tracer, u: [f32; 3]) -> Option<LobeRay> {
+        let bs = self.glossy().sample(self.wo_l, u[0], [u[1], u[2]])?;
+        let w = self.frame.to_world(bs.wi).normalize();
+        if bs.delta || !on_side(&self.frame, self.n, w) {
+            return None;
+        }
+        let hit = tr.closest_hit(&Ray {
+            o: offset_origin(self.p, self.err, self.ng, w),
+            d: w,
+            t_max: f32::INFINITY,
+        });
+        if let Some(h) = &hit {
+            scene.touched.insert(h.leaf);
+        }
+        Some(LobeRay {
+            w,
+            weight: bs.weight,
+            pdf: bs.pdf,
+            hit,
+        })
+    }
+
+    /// Reflected direct light toward `wo` (the cloud holds no emission, so this is all of
+    /// it): one light sample, and the emission `lobe` found; the glossy lobes weigh the two
+    /// by the power heuristic, as the path tracer does, the diffuse lobe (which no lobe ray
+    /// samples) takes the light sample at full weight.
+    pub(super) fn direct(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        u: [f32; 3],
+        lobe: Option<&LobeRay>,
+    ) -> V {
+        let all = bsdf_term(self.frame, self.n, self.bsdf, self.wo_l);
+        let glossy = bsdf_term(self.frame, self.n, self.glossy(), self.wo_l);
+        let at = Receiver::surface(self.p, self.err, self.ng);
+        let light = sample_light_weighted(scene, tr, &at, &Cone::EXACT, u, |wi, pdf_l| {
+            let f = all(wi).0;
+            match lobe {
+                Some(_) => {
+                    let (g, pdf_g) = glossy(wi);
+                    f - g + g * mis_weight(pdf_l, pdf_g)
+                }
+                None => f,
+            }
+        });
+        light + lobe.map_or(V::ZERO, |r| self.lobe_emission(scene, r))
+    }
+
+    /// The emission lobe ray `r` found, weighed against the light sample (power heuristic).
+    fn lobe_emission(&self, scene: &Scene, r: &LobeRay) -> V {
+        let Some(hit) = &r.hit else {
+            return V::ZERO;
+        };
+        let ng_raw = hit.ng();
+        let area = 0.5 * ng_raw.length();
+        if area.is_nan() || area <= 0.0 {
+            return V::ZERO;
+        }
+        let ng = ng_raw / (2.0 * area);
+        let le = scene.material_at_hit(hit, r.w).m.emitted(ng.dot(r.w) < 0.0);
+        if le == V::ZERO {
+            return V::ZERO;
+        }
+        let emitter = scene.lights.emitter_at(hit.leaf, hit.slot);
+        let cos_l = ng.dot(r.w).abs();
+        let pdf_l = scene
+            .lights
+            .pdf_li((self.p, self.ng), emitter, hit.t * hit.t, cos_l, area);
+        r.weight * le * power_heuristic(r.pdf, pdf_l)
+    }
+}
