@@ -212,7 +212,8 @@ fn a_very_bright_small_lamp_gives_no_bad_pixel() {
 }
 
 /// `--pbgi-reuse R`: a pixel gathers at every R-th sample (and while it holds no gather)
-/// and its other receivers take those gathers' irradiance, so the gathers and the reuses
+/// and its other receivers take the mean of all its gathers once the render ends (the
+/// image mean stays that of a render that gathers at every sample), so the gathers and the reuses
 /// add up to the receivers of a render that gathers at every sample (`1`), whose first
 /// hits are the same. Near hits are shaded once the cut is done, the nearest per texel
 /// ray only: at most 192 fragments per gather at 8² (room's cut met 223 per gather when

@@ -158,6 +158,12 @@ pub trait Integrator: Send + Sync {
     /// After a pass, `done` samples per pixel in all.
     fn end_pass(&mut self, _scene: &Scene, _done: u32) {}
 
+    /// Light held back from the samples until the last pass, per window pixel (index as
+    /// in `Film::index`), summed over all its samples: PBGI gives the samples that reuse a
+    /// pixel's gathers their final mean.
+    fn held_back(&self) -> Vec<(usize, V)> {
+        Vec::new()
+    }
     /// After the last pass, before the image is written (the cone integrator saves its
     /// stored light here).
     fn finish(&mut self, _scene: &Scene) -> anyhow::Result<()> {

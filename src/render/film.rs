@@ -62,6 +62,16 @@ impl Film {
         }
     }
 
+    /// Adds light summed over a window pixel's samples that the integrator held back
+    /// (`Integrator::held_back`); it is not in the sample variance.
+    pub fn add_held_back(&mut self, at: usize, rgb: [f32; 3]) {
+        if let Some(s) = self.sums.get_mut(at) {
+            for (s, x) in s.iter_mut().zip(rgb) {
+                *s += x as f64;
+            }
+        }
+    }
+
     /// The mean of `samples` samples per pixel.
     pub fn image(&self, samples: u32) -> Image {
         let mut img = Image::new(self.width(), self.height());

@@ -173,6 +173,9 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         }
     }
     bar.finish_and_clear();
+    for (at, l) in integ.held_back() {
+        film.add_held_back(at, l.into());
+    }
     integ.finish(scene)?;
     seconds.render = t1.elapsed().as_secs_f64();
     seconds.parts.extend(integ.seconds());

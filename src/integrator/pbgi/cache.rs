@@ -3,8 +3,9 @@
 //! 003 ch. 2 gathers once per micropolygon, not per pixel sample; Canopy shares a gather
 //! with every receiver near it on the same surface, as irradiance caching does (Ward,
 //! Rubinstein and Clear 1988, and the splatting weight of 003 eq. 5.1). A record holds a
-//! gather's irradiance E at a point p with normal n and the harmonic mean distance R of
-//! what its micro-buffer saw. A receiver x with normal m reads the records with
+//! gather's irradiance E at a point p with normal n and the distance R over which it may
+//! be carried: the smaller of the harmonic mean distance of what its micro-buffer saw and
+//! a light-weighted inverse-square mean, so that bright light close by keeps it short. A receiver x with normal m reads the records with
 //!
 //!   ε = |x − p| / R + √(1 − m·n) < a        (a = `--pbgi-cache`)
 //!
@@ -63,13 +64,14 @@ pub struct Record {
 }
 
 impl Record {
-    /// A gather's record: `harmonic` the harmonic mean distance of its micro-buffer's
-    /// hits (infinite when it saw nothing), `footprint` a pixel's width at p.
-    pub fn new(p: V, n: V, e: V, harmonic: f32, footprint: f32, a: f32) -> Record {
+    /// A gather's record: `distance` how far its micro-buffer's light may be carried
+    /// ([`super::microbuffer::MicroBuffer::reach_distance`]; infinite when it saw nothing),
+    /// `footprint` a pixel's width at p.
+    pub fn new(p: V, n: V, e: V, distance: f32, footprint: f32, a: f32) -> Record {
         let lo = footprint / a;
         let hi = MAX_PIXELS * lo;
-        let r = if harmonic.is_finite() {
-            harmonic.clamp(lo, hi)
+        let r = if distance.is_finite() {
+            distance.clamp(lo, hi)
         } else {
             hi
         };

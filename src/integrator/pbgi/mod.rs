@@ -107,17 +107,17 @@ pub struct PbgiSettings {
     pub rays: bool,
     /// Samples per gather: a pixel gathers at its first sample, then at every R-th (at a
     /// phase of its own) and while it holds none;
-    /// its other samples take the mean irradiance of its gathers on their surface (normal
+    /// its samples take the mean irradiance of all its gathers on their surface (normal
     /// within 14°, within a pixel's width of its plane), else of those whose normal is
-    /// closest (003 ch. 2 gathers once per micropolygon, not per pixel sample). 1 gathers
-    /// at every sample.
+    /// closest, added once the render ends so that every gather weighs the same (003 ch. 2
+    /// gathers once per micropolygon, not per pixel sample). 1 gathers at every sample.
     #[arg(long = "pbgi-reuse", value_name = "R", default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..))]
     pub reuse: u32,
     /// The irradiance cache's error bound a (0: off). Before the first pass, gathers are
     /// placed coarse to fine over the pixels where earlier ones leave a pixel's first hit
     /// uncovered; a receiver then reads every gather within
-    /// ε = |x − p|/R + √(1 − n·n') < a of it (R: the gather's harmonic mean distance, 1 to
-    /// 4 pixels over a), and gathers alone (`--pbgi-reuse`) only where none is. Between
+    /// ε = |x − p|/R + √(1 − n·n') < a of it (R: the smaller of the gather's harmonic mean
+    /// distance and a light-weighted one, 1 to 4 pixels over a), and gathers alone (`--pbgi-reuse`) only where none is. Between
     /// passes the records whose next gather lowers the image's error more per ray than
     /// more samples would take one; a receiver with a surface over it nearer than the
     /// records' reach gathers alone.
@@ -228,6 +228,11 @@ struct Gathered {
     n: V,
     sum: V,
     count: u32,
+    /// Σ path weight × diffuse lobe of the samples that take this surface's irradiance:
+    /// they are given the mean of all its gathers once the render ends
+    /// ([`Integrator::held_back`]), not the mean of those made so far, which weighed a
+    /// pixel's first gathers most (on room at 8 gathers a pixel, as if it had 4.8).
+    weight: V,
 }
 
 impl Gathered {
@@ -408,7 +413,7 @@ impl PbgiIntegrator {
         tr: &mut Tracer,
         q: &Pending,
         field: Option<&Field>,
-        known: Option<Option<(V, bool)>>,
+        known: Option<Option<Reuse>>,
     ) -> V {
         let s = &q.s;
         let mut l = match &q.lobe {
@@ -418,33 +423,37 @@ impl PbgiIntegrator {
         if s.bsdf.diffuse.max_element() > 0.0 {
             // The diffuse lobe is the same for every incident direction: irradiance × it.
             let lobe = s.diffuse_lobe();
-            let e = match known.unwrap_or_else(|| self.reuse(tr, q)) {
-                Some((e, cached)) => {
-                    match cached {
-                        true => &self.cache_hits,
-                        false => &self.reused,
+            match known.unwrap_or_else(|| self.reuse(tr, q)) {
+                Some(Reuse::Cached(e)) => {
+                    self.cache_hits.fetch_add(1, Relaxed);
+                    l += lobe * e;
+                }
+                Some(Reuse::Pixel(pixel, at)) => {
+                    self.reused.fetch_add(1, Relaxed);
+                    if let Some(slot) = self.gathered.get(pixel) {
+                        let mut list = slot.lock().unwrap_or_else(PoisonError::into_inner);
+                        if let Some(g) = list.get_mut(at) {
+                            g.weight += q.beta * lobe;
+                        }
                     }
-                    .fetch_add(1, Relaxed);
-                    e
                 }
                 None => {
                     self.gathers.fetch_add(1, Relaxed);
                     let e = self.gather_irradiance(scene, tr, s, q.key, field).0;
-                    self.keep(q, e);
-                    e
+                    if !self.keep(q, e, q.beta * lobe) {
+                        l += lobe * e;
+                    }
                 }
-            };
-            l += lobe * e;
+            }
         }
         l
     }
 
-    /// The irradiance the cache holds at the receiver (flagged true) when nothing is over
-    /// it within the records' reach; else, unless the
-    /// receiver's sample is one that gathers (the first, then every `--pbgi-reuse`-th at
-    /// the pixel's phase), the mean irradiance of its pixel's gathers on its surface, else
-    /// of those whose normal is closest to its own.
-    fn reuse(&self, tr: &mut Tracer, q: &Pending) -> Option<(V, bool)> {
+    /// The irradiance the cache holds at the receiver when nothing is over it within the
+    /// records' reach; else, unless the receiver's sample is one that gathers (the first,
+    /// then every `--pbgi-reuse`-th at the pixel's phase), its pixel's gathers on its
+    /// surface, else those whose normal is closest to its own.
+    fn reuse(&self, tr: &mut Tracer, q: &Pending) -> Option<Reuse> {
         if let Some((e, reach)) = self
             .cache
             .as_ref()
@@ -455,7 +464,7 @@ impl PbgiIntegrator {
             // below it, which the camera sees into at a grazing angle): it is left to
             // gather for itself.
             if !self.probes(q) || !covered_over(tr, &q.s, reach) {
-                return Some((e, true));
+                return Some(Reuse::Cached(e));
             }
             if let Some(f) = q.at.and_then(|(pixel, _)| self.crevices.get(pixel)) {
                 f.store(true, Relaxed);
@@ -473,11 +482,10 @@ impl PbgiIntegrator {
         let slot = self.gathered.get(pixel)?;
         let list = slot.lock().unwrap_or_else(PoisonError::into_inner);
         let n = q.s.frame.n;
-        let g = list
-            .iter()
-            .find(|g| g.holds(q.s.p, n, footprint))
-            .or_else(|| list.iter().max_by(|a, b| a.n.dot(n).total_cmp(&b.n.dot(n))))?;
-        Some((g.sum / g.count as f32, false))
+        let on = list.iter().position(|g| g.holds(q.s.p, n, footprint));
+        let closest =
+            || (0..list.len()).max_by(|&a, &b| list[a].n.dot(n).total_cmp(&list[b].n.dot(n)));
+        Some(Reuse::Pixel(pixel, on.or_else(closest)?))
     }
 
     /// The irradiance cache's records, placed coarse to fine: at every 16th pixel of the
@@ -533,8 +541,8 @@ impl PbgiIntegrator {
         if q.s.bsdf.diffuse.max_element() <= 0.0 || cache.lookup(q.s.p, n).is_some() {
             return None;
         }
-        let (e, harmonic, g) = self.gather_irradiance(scene, tr, &q.s, q.key ^ 0xCAC4E, None);
-        let rec = Record::new(q.s.p, n, e, harmonic, footprint, cache.a());
+        let (e, distance, g) = self.gather_irradiance(scene, tr, &q.s, q.key ^ 0xCAC4E, None);
+        let rec = Record::new(q.s.p, n, e, distance, footprint, cache.a());
         Some(Record {
             at: [x, y],
             g,
@@ -628,13 +636,15 @@ impl PbgiIntegrator {
         rays
     }
 
-    /// Adds a gather's irradiance `e` to its pixel's surface.
-    fn keep(&self, q: &Pending, e: V) {
+    /// Adds a gather's irradiance `e` to its pixel's surface, with `weight` for the sample
+    /// that made it (see [`Gathered::weight`]); false when the pixel keeps no gathers or
+    /// none more, and the sample is to take `e` itself.
+    fn keep(&self, q: &Pending, e: V, weight: V) -> bool {
         let Some((pixel, footprint)) = q.at else {
-            return;
+            return false;
         };
         let Some(slot) = self.gathered.get(pixel) else {
-            return;
+            return false;
         };
         let mut list = slot.lock().unwrap_or_else(PoisonError::into_inner);
         let (p, n) = (q.s.p, q.s.frame.n);
@@ -643,15 +653,18 @@ impl PbgiIntegrator {
             Some(g) => {
                 g.sum += e;
                 g.count += 1;
+                g.weight += weight;
             }
             None if !full => list.push(Gathered {
                 p,
                 n,
                 sum: e,
                 count: 1,
+                weight,
             }),
-            None => {}
+            None => return false,
         }
+        true
     }
 
     /// The rough specular lobes' bounce: the hit of the direction sampled from them,
@@ -665,8 +678,8 @@ impl PbgiIntegrator {
         r.weight * hit_light(scene, tr, &page, hit, r.w, u).0
     }
 
-    /// Irradiance at `s` from the cut, the near rays and the micro-buffer, the harmonic
-    /// mean distance of what it saw and the irradiance gradients (world space). With a
+    /// Irradiance at `s` from the cut, the near rays and the micro-buffer, the distance
+    /// it may be carried ([`MicroBuffer::reach_distance`]) and the irradiance gradients (world space). With a
     /// cluster's `field`, its far splats are taken as they are and the cut starts from its
     /// near nodes instead of the root.
     fn gather_irradiance(
@@ -700,7 +713,7 @@ impl PbgiIntegrator {
             let e = MicroBuffer::convolve(texels, &incident, |_| Vec3::ONE);
             let g = sc.mb.gradients(texels, &incident);
             let g = g.map(|v| s.frame.to_world(V::from(v)).into());
-            (V::from(e), sc.mb.harmonic_distance(texels), g)
+            (V::from(e), sc.mb.reach_distance(texels, &incident), g)
         })
     }
 
@@ -1137,6 +1150,15 @@ fn node_sphere(node: &TNode) -> (V, f32) {
     ((lo + hi) * 0.5, (hi - lo).length() * 0.5)
 }
 
+/// Irradiance a receiver takes instead of gathering.
+enum Reuse {
+    /// The cache's, at the receiver.
+    Cached(V),
+    /// The mean of (window) pixel's gathers on one of its surfaces, by index: given once
+    /// the render ends.
+    Pixel(usize, usize),
+}
+
 /// A receiver whose indirect bounce is still to be gathered.
 struct Pending {
     s: Surface,
@@ -1311,6 +1333,16 @@ impl Integrator for PbgiIntegrator {
     }
 
     /// The gathers kept per pixel.
+    fn held_back(&self) -> Vec<(usize, V)> {
+        let mean = |g: &Gathered| g.weight * g.sum / g.count as f32;
+        let pixel = |list: &Vec<Gathered>| list.iter().map(mean).sum::<V>();
+        let lists = self
+            .gathered
+            .iter()
+            .map(|slot| pixel(&slot.lock().unwrap_or_else(PoisonError::into_inner)));
+        lists.enumerate().filter(|(_, l)| *l != V::ZERO).collect()
+    }
+
     fn state_bytes(&self) -> [u64; 2] {
         let kept: usize = self
             .gathered
