@@ -62,7 +62,9 @@ struct RenderSettings {
     /// Worker threads (default: all cores; at most 16 per core).
     #[arg(long, value_parser = units::parse_threads)]
     threads: Option<usize>,
-    /// Longest path in segments (1: only emitters seen directly); default unbounded.
+    /// Longest path in segments (1: only emitters seen directly); default unbounded. The
+    /// cone integrator neither stores nor reads light under it: stored light stands for
+    /// every bounce after its hit.
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     max_depth: Option<u32>,
     /// Texture filtering: `trilinear` MIP filtering over each sample's footprint (ray
