@@ -731,7 +731,6 @@ impl PbgiIntegrator {
         SCRATCH.with_borrow_mut(|sc| {
             let texels = &self.texels;
             sc.mb.clear();
-            let mut rng = strata.rng();
             sc.rays.clear();
             sc.rays.extend(texels.upper.iter().filter_map(|&k| {
                 let [a, b] = strata.jitter(k);
@@ -742,11 +741,11 @@ impl PbgiIntegrator {
             if self.settings.rays {
                 for j in 0..sc.rays.len() {
                     let (k, w, weight) = sc.rays[j];
-                    self.texel_ray(scene, tr, s, (k as usize, weight), w, &mut rng, &mut sc.mb);
+                    self.texel_ray(scene, tr, s, (k as usize, weight), w, strata, &mut sc.mb);
                 }
                 self.traced_texels.fetch_add(sc.rays.len() as u64, Relaxed);
             } else {
-                self.fill_from_cut(scene, tr, s, field, sc, &mut rng);
+                self.fill_from_cut(scene, tr, s, field, sc, strata);
             }
             let incident = sc.mb.resolve(texels, |_| Vec3::ZERO);
             let e = MicroBuffer::convolve(texels, &incident, |_| Vec3::ONE);
@@ -765,7 +764,7 @@ impl PbgiIntegrator {
         s: &Surface,
         field: Option<&Field>,
         sc: &mut Scratch,
-        rng: &mut Hash,
+        strata: Strata,
     ) {
         sc.aimed.clear();
         sc.aimed.resize(sc.rays.len(), false);
@@ -796,7 +795,7 @@ impl PbgiIntegrator {
                         Some(p) if p.id == hit.page => p,
                         _ => tr.page_handle(hit.page),
                     };
-                    let (sends, sampled) = hit_light(scene, tr, &p, &hit, w, rng.u6());
+                    let (sends, sampled) = hit_light(scene, tr, &p, &hit, w, strata.shading(k));
                     let id = (1 << 62) | (hit.leaf << 3) | hit.slot as u64;
                     let l = Vec3::from(sends * weight);
                     sc.mb.fill(k as usize, hit.t, id, l, sampled);
@@ -806,7 +805,7 @@ impl PbgiIntegrator {
                 }
                 None if sc.aimed[j] => {
                     gaps += 1;
-                    self.texel_ray(scene, tr, s, (k as usize, weight), w, rng, &mut sc.mb);
+                    self.texel_ray(scene, tr, s, (k as usize, weight), w, strata, &mut sc.mb);
                 }
                 None => {}
             }
@@ -1043,7 +1042,7 @@ impl PbgiIntegrator {
         s: &Surface,
         (k, weight): (usize, f32),
         w: V,
-        rng: &mut Hash,
+        strata: Strata,
         mb: &mut MicroBuffer,
     ) {
         let ray = Ray {
@@ -1056,7 +1055,7 @@ impl PbgiIntegrator {
         };
         scene.touched.insert(hit.leaf);
         let page = tr.page_handle(hit.page);
-        let (sends, sampled) = hit_light(scene, tr, &page, &hit, w, rng.u6());
+        let (sends, sampled) = hit_light(scene, tr, &page, &hit, w, strata.shading(k as u32));
         mb.fill(
             k,
             hit.t,
@@ -1207,14 +1206,21 @@ struct Strata {
 impl Strata {
     /// Texel k's jitter.
     fn jitter(&self, k: u32) -> [f32; 2] {
-        let scramble = Hash::new(self.seed ^ (k as u64) << 40).u64() as u32;
-        let [a, b, ..] = sobol_burley::sample_4d(self.index & 0xffff, 0, scramble);
+        let [a, b, ..] = sobol_burley::sample_4d(self.index & 0xffff, 0, self.scramble(k));
         [a, b]
     }
 
-    /// Numbers for the rest of the gather (shading its hits, the cut).
-    fn rng(&self) -> Hash {
-        Hash::new(self.seed ^ (self.index as u64).wrapping_mul(0xA24B_AED4_963E_E407))
+    /// Numbers for shading texel k's hit (a light sample, then a lobe ray), from the same
+    /// sequence's next dimensions.
+    fn shading(&self, k: u32) -> [f32; 6] {
+        let scramble = self.scramble(k);
+        let [a, b, c, d] = sobol_burley::sample_4d(self.index & 0xffff, 1, scramble);
+        let [e, f, ..] = sobol_burley::sample_4d(self.index & 0xffff, 2, scramble);
+        [a, b, c, d, e, f]
+    }
+
+    fn scramble(&self, k: u32) -> u32 {
+        Hash::new(self.seed ^ (k as u64) << 40).u64() as u32
     }
 }
 
