@@ -5,7 +5,8 @@
 //! Rubinstein and Clear 1988, and the splatting weight of 003 eq. 5.1). A record holds a
 //! gather's irradiance E at a point p with normal n and the distance R over which it may
 //! be carried: the smaller of the harmonic mean distance of what its micro-buffer saw and
-//! a light-weighted inverse-square mean, so that bright light close by keeps it short. A receiver x with normal m reads the records with
+//! a light-weighted inverse-square mean, so that bright light close by keeps it short. A
+//! receiver x with normal m reads the records with
 //!
 //!   ε = |x − p| / R + √(1 − m·n) < a        (a = `--pbgi-cache`)
 //!

@@ -117,7 +117,8 @@ pub struct PbgiSettings {
     /// placed coarse to fine over the pixels where earlier ones leave a pixel's first hit
     /// uncovered; a receiver then reads every gather within
     /// ε = |x − p|/R + √(1 − n·n') < a of it (R: the smaller of the gather's harmonic mean
-    /// distance and a light-weighted one, 1 to 4 pixels over a), and gathers alone (`--pbgi-reuse`) only where none is. Between
+    /// distance and a light-weighted one, 1 to 4 pixels over a), and gathers alone
+    /// (`--pbgi-reuse`) only where none is. Between
     /// passes the records whose next gather lowers the image's error more per ray than
     /// more samples would take one; a receiver with a surface over it nearer than the
     /// records' reach gathers alone.
@@ -717,9 +718,10 @@ impl PbgiIntegrator {
     }
 
     /// Irradiance at `s` from the cut, the near rays and the micro-buffer, the distance
-    /// it may be carried ([`MicroBuffer::reach_distance`]) and the irradiance gradients (world space). With a
-    /// cluster's `field`, its far splats are taken as they are and the cut starts from its
-    /// near nodes instead of the root.
+    /// it may be carried ([`MicroBuffer::reach_distance`]) and the irradiance gradients
+    /// (world space). `strata` places the gather in its pixel's or record's sequence. With
+    /// a cluster's `field`, its far splats are taken as they are and the cut starts from
+    /// its near nodes instead of the root.
     fn gather_irradiance(
         &self,
         scene: &Scene,
