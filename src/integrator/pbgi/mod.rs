@@ -1208,21 +1208,23 @@ struct Strata {
 impl Strata {
     /// Texel k's jitter.
     fn jitter(&self, k: u32) -> [f32; 2] {
-        let [a, b, ..] = sobol_burley::sample_4d(self.index & 0xffff, 0, self.scramble(k));
+        let [a, b, ..] = self.sampler(k).get4(0);
         [a, b]
     }
 
     /// Numbers for shading texel k's hit (a light sample, then a lobe ray), from the same
     /// sequence's next dimensions.
     fn shading(&self, k: u32) -> [f32; 6] {
-        let scramble = self.scramble(k);
-        let [a, b, c, d] = sobol_burley::sample_4d(self.index & 0xffff, 1, scramble);
-        let [e, f, ..] = sobol_burley::sample_4d(self.index & 0xffff, 2, scramble);
+        let sampler = self.sampler(k);
+        let [a, b, c, d] = sampler.get4(1);
+        let [e, f, ..] = sampler.get4(2);
         [a, b, c, d, e, f]
     }
 
-    fn scramble(&self, k: u32) -> u32 {
-        Hash::new(self.seed ^ (k as u64) << 40).u64() as u32
+    /// Texel k's sequence, at this gather's point: the pixel sampler's, with the texel
+    /// standing for the pixel (it starts a new sequence past 2¹⁶ points).
+    fn sampler(&self, k: u32) -> PixelSampler {
+        PixelSampler::new((self.seed ^ self.seed >> 32) as u32, k, self.index)
     }
 }
 
