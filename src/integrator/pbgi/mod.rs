@@ -21,8 +21,9 @@
 //!   none of its triangles is traced exactly (what it finds could otherwise be missing);
 //! - hits are shaded once the cut is done, only the nearest of each texel's ray;
 //! - `microbuffer` composites and convolves with x's diffuse lobe (003 eq. 2.1); the
-//!   lobe being constant, the gather is kept as irradiance, and a pixel gathers only at
-//!   every `--pbgi-reuse`-th sample, its other samples reusing its gathers' mean;
+//!   lobe being constant, the gather is kept as irradiance, and each surface of a pixel
+//!   gathers only at every `--pbgi-reuse`-th sample landing on it, its other samples
+//!   reusing its gathers' mean;
 //! - `--pbgi-rays` skips the cut: every texel's ray is traced and reads the bake;
 //! - x's rough specular lobes, mostly narrower than a texel, take one exact ray sampled
 //!   from them instead (with the pixel's own sample sequence, as the path tracer's next
@@ -105,11 +106,11 @@ pub struct PbgiSettings {
     /// does, where the cut found 0.84 (docs/pbgi.md).
     #[arg(long = "pbgi-rays", conflicts_with_all = ["angle", "clusters", "far", "wavelet", "wavelet_resolution", "wavelet_threshold"])]
     pub rays: bool,
-    /// Samples per gather: a pixel gathers at its first sample, then at every R-th (at a
-    /// phase of its own) and while it holds none;
-    /// its samples take the mean irradiance of all its gathers on their surface (normal
-    /// within 14°, within a pixel's width of its plane), else of those whose normal is
-    /// closest, added once the render ends so that every gather weighs the same (003 ch. 2
+    /// Samples per gather: each surface of a pixel (normal within 14°, within a pixel's
+    /// width of its plane; up to 8 a pixel) gathers at the first of the pixel's samples
+    /// that land on it, then at every R-th (at a phase of its own); its samples take the
+    /// mean irradiance of all its gathers (past 8 surfaces, those of the surface whose
+    /// normal is closest), added once the render ends so that every gather weighs the same (003 ch. 2
     /// gathers once per micropolygon, not per pixel sample). 1 gathers at every sample.
     #[arg(long = "pbgi-reuse", value_name = "R", default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..))]
     pub reuse: u32,
@@ -229,6 +230,10 @@ struct Gathered {
     n: V,
     sum: V,
     count: u32,
+    /// Samples that landed on it: it gathers at the first and then at every
+    /// `--pbgi-reuse`-th (at its pixel's phase), so a surface that covers a tenth of a
+    /// pixel's samples has gathers of its own, not the pixel's other surfaces'.
+    samples: u32,
     /// Σ path weight × diffuse lobe of the samples that take this surface's irradiance:
     /// they are given the mean of all its gathers once the render ends
     /// ([`Integrator::held_back`]), not the mean of those made so far, which weighed a
@@ -414,7 +419,7 @@ impl PbgiIntegrator {
         tr: &mut Tracer,
         q: &Pending,
         field: Option<&Field>,
-        known: Option<Option<Reuse>>,
+        known: Option<Reuse>,
     ) -> V {
         let s = &q.s;
         let mut l = match &q.lobe {
@@ -425,11 +430,11 @@ impl PbgiIntegrator {
             // The diffuse lobe is the same for every incident direction: irradiance × it.
             let lobe = s.diffuse_lobe();
             match known.unwrap_or_else(|| self.reuse(tr, q)) {
-                Some(Reuse::Cached(e)) => {
+                Reuse::Cached(e) => {
                     self.cache_hits.fetch_add(1, Relaxed);
                     l += lobe * e;
                 }
-                Some(Reuse::Pixel(pixel, at)) => {
+                Reuse::Pixel(pixel, at) => {
                     self.reused.fetch_add(1, Relaxed);
                     if let Some(slot) = self.gathered.get(pixel) {
                         let mut list = slot.lock().unwrap_or_else(PoisonError::into_inner);
@@ -438,11 +443,9 @@ impl PbgiIntegrator {
                         }
                     }
                 }
-                None => {
+                Reuse::Gather(strata) => {
                     self.gathers.fetch_add(1, Relaxed);
-                    let e = self
-                        .gather_irradiance(scene, tr, s, self.pixel_strata(q), field)
-                        .0;
+                    let e = self.gather_irradiance(scene, tr, s, strata, field).0;
                     if !self.keep(q, e, q.beta * lobe) {
                         l += lobe * e;
                     }
@@ -453,10 +456,11 @@ impl PbgiIntegrator {
     }
 
     /// The irradiance the cache holds at the receiver when nothing is over it within the
-    /// records' reach; else, unless the receiver's sample is one that gathers (the first,
-    /// then every `--pbgi-reuse`-th at the pixel's phase), its pixel's gathers on its
-    /// surface, else those whose normal is closest to its own.
-    fn reuse(&self, tr: &mut Tracer, q: &Pending) -> Option<Reuse> {
+    /// records' reach; else a gather of its own when its sample is the first on its
+    /// surface of its pixel or that surface's every `--pbgi-reuse`-th (at the pixel's
+    /// phase); else its surface's gathers, or, when the pixel keeps no more surfaces,
+    /// those of the one whose normal is closest to its own.
+    fn reuse(&self, tr: &mut Tracer, q: &Pending) -> Reuse {
         if let Some((e, reach)) = self
             .cache
             .as_ref()
@@ -467,27 +471,47 @@ impl PbgiIntegrator {
             // below it, which the camera sees into at a grazing angle): it is left to
             // gather for itself.
             if !self.probes(q) || !covered_over(tr, &q.s, reach) {
-                return Some(Reuse::Cached(e));
+                return Reuse::Cached(e);
             }
             if let Some(f) = q.at.and_then(|(pixel, _)| self.crevices.get(pixel)) {
                 f.store(true, Relaxed);
             }
             self.cache_rejects.fetch_add(1, Relaxed);
         }
-        let (pixel, footprint) = q.at?;
-        // Each pixel's later gathers fall at its own phase of R, so a pass does about
-        // 1/R of the pixels' gathers instead of all of them every R-th pass.
-        let r = self.settings.reuse as u64;
-        if q.sample == 0 || (q.sample as u64 + self.phase(pixel)).is_multiple_of(r) {
-            return None;
-        }
-        let slot = self.gathered.get(pixel)?;
-        let list = slot.lock().unwrap_or_else(PoisonError::into_inner);
+        let Some((pixel, footprint)) = q.at else {
+            return Reuse::Gather(Strata {
+                seed: q.key,
+                index: 0,
+            });
+        };
+        let Some(slot) = self.gathered.get(pixel) else {
+            // `--pbgi-reuse 1`: every sample gathers, the pixel's n-th sample its n-th.
+            return Reuse::Gather(self.pixel_strata(pixel, 0, q.sample));
+        };
+        let mut list = slot.lock().unwrap_or_else(PoisonError::into_inner);
         let n = q.s.frame.n;
-        let on = list.iter().position(|g| g.holds(q.s.p, n, footprint));
-        let closest =
-            || (0..list.len()).max_by(|&a, &b| list[a].n.dot(n).total_cmp(&list[b].n.dot(n)));
-        Some(Reuse::Pixel(pixel, on.or_else(closest)?))
+        match list.iter().position(|g| g.holds(q.s.p, n, footprint)) {
+            Some(i) => {
+                let g = &mut list[i];
+                let k = g.samples as u64;
+                g.samples += 1;
+                // Each pixel's later gathers fall at its own phase of R, so a pass does
+                // about 1/R of the pixels' gathers instead of all of them every R-th pass.
+                if (k + self.phase(pixel)).is_multiple_of(self.settings.reuse as u64) {
+                    return Reuse::Gather(self.pixel_strata(pixel, i, g.count));
+                }
+                Reuse::Pixel(pixel, i)
+            }
+            None if list.len() < SURFACES_PER_PIXEL => {
+                Reuse::Gather(self.pixel_strata(pixel, list.len(), 0))
+            }
+            None => {
+                let closest = (0..list.len())
+                    .max_by(|&a, &b| list[a].n.dot(n).total_cmp(&list[b].n.dot(n)))
+                    .unwrap_or(0);
+                Reuse::Pixel(pixel, closest)
+            }
+        }
     }
 
     /// The irradiance cache's records, placed coarse to fine: at every 16th pixel of the
@@ -572,23 +596,13 @@ impl PbgiIntegrator {
         }
     }
 
-    /// A receiver's gather as its pixel's n-th: its first sample's is the 0th, the one
-    /// at every `--pbgi-reuse`-th sample (at the pixel's phase) the next.
-    fn pixel_strata(&self, q: &Pending) -> Strata {
-        let Some((pixel, _)) = q.at else {
-            return Strata {
-                seed: q.key,
-                index: 0,
-            };
-        };
-        let r = self.settings.reuse as u64;
-        let index = match q.sample {
-            0 => 0,
-            s => (s as u64 + self.phase(pixel)) / r,
-        };
+    /// The `index`-th gather on the `surface`-th surface a pixel keeps gathers for: each
+    /// surface's gathers are a sequence of their own.
+    fn pixel_strata(&self, pixel: usize, surface: usize, index: u32) -> Strata {
+        let key = pixel as u64 ^ (self.seed as u64) << 32 ^ (surface as u64) << 56;
         Strata {
-            seed: Hash::new(pixel as u64 ^ (self.seed as u64) << 32 ^ 0x5EED).u64(),
-            index: index as u32,
+            seed: Hash::new(key ^ 0x5EED).u64(),
+            index,
         }
     }
 
@@ -699,6 +713,7 @@ impl PbgiIntegrator {
                 n,
                 sum: e,
                 count: 1,
+                samples: 1,
                 weight,
             }),
             None => return false,
@@ -1007,19 +1022,23 @@ impl PbgiIntegrator {
                 continue;
             };
             match self.reuse(tr, q) {
-                Some(r) => out[i] += q.beta * self.gather(scene, tr, q, None, Some(Some(r))),
-                None => at.push(i),
+                Reuse::Gather(strata) => at.push((i, strata)),
+                r => out[i] += q.beta * self.gather(scene, tr, q, None, Some(r)),
             }
         }
-        let pending: Vec<&Pending> = at.iter().filter_map(|&i| firsts[i].1.as_ref()).collect();
+        let pending: Vec<&Pending> = at
+            .iter()
+            .filter_map(|&(i, _)| firsts[i].1.as_ref())
+            .collect();
         let p: Vec<V> = pending.iter().map(|q| q.s.p).collect();
         let n: Vec<V> = pending.iter().map(|q| q.s.n).collect();
         for cl in cluster::kmeans(&p, &n, self.settings.clusters) {
             let members: Vec<&Surface> = cl.members.iter().map(|&m| &pending[m].s).collect();
             let field = self.field(scene, tr, &members, &pending[cl.active].s);
             for &m in &cl.members {
-                let q = pending[m];
-                out[at[m]] += q.beta * self.gather(scene, tr, q, Some(&field), Some(None));
+                let (q, (i, strata)) = (pending[m], at[m]);
+                let gathered = self.gather(scene, tr, q, Some(&field), Some(Reuse::Gather(strata)));
+                out[i] += q.beta * gathered;
             }
         }
         self.clusters.fetch_add(p.len() as u64, Relaxed);
@@ -1228,13 +1247,16 @@ impl Strata {
     }
 }
 
-/// Irradiance a receiver takes instead of gathering.
+/// Where a receiver's irradiance comes from.
+#[derive(Clone, Copy)]
 enum Reuse {
     /// The cache's, at the receiver.
     Cached(V),
     /// The mean of (window) pixel's gathers on one of its surfaces, by index: given once
     /// the render ends.
     Pixel(usize, usize),
+    /// A gather of its own, this point of its surface's sequence.
+    Gather(Strata),
 }
 
 /// A receiver whose indirect bounce is still to be gathered.
