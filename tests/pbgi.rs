@@ -286,8 +286,8 @@ fn a_pixel_gathers_at_every_rth_sample_and_shades_one_near_hit_per_texel() {
 /// The irradiance cache (`--pbgi-cache`): bunny_box's receivers read gathers placed
 /// coarse to fine over the pixels, so far fewer gathers are made than receivers are
 /// shaded, and the image mean stays with the path tracer's on the same light paths; the
-/// records are placed and refined between passes the same way whatever the thread
-/// count, so the image is too.
+/// records are placed, refined and probed between passes the same way whatever the
+/// thread count, so the image is too.
 #[test]
 fn the_irradiance_cache_shares_gathers_and_keeps_the_mean() {
     let flags = ["--pbgi-rays", "--pbgi-cache", "0.3", "--threads", "2"];
@@ -299,7 +299,8 @@ fn the_irradiance_cache_shares_gathers_and_keeps_the_mean() {
         count("cache_hits") > 0 && 8 * gathers < receivers,
         "{gathers} gathers for {receivers} receivers"
     );
-    // Between passes the records take more gathers.
+    // Between passes the records take more gathers, and probes test the cache.
+    assert!(count("cache_probes") > 0, "no probe");
     assert!(
         count("cache_gathers") > count("cache_records"),
         "{} gathers for {} records",

@@ -30,6 +30,13 @@
 //! take more gathers (at new rays) and keep their mean, those that gain most first: the
 //! variance of a record's mean, s²/k over its k gathers, falls by s²/(k(k+1)) with one
 //! more, spread over the pixels its sphere of influence spans.
+//!
+//! Refinement lowers the records' noise, not the interpolation's error where irradiance
+//! changes faster than a record's gradients say (room's corner under the ceiling's hot
+//! spot, a band narrower than a record's reach). So between passes a small share of the
+//! rays also probes: a gather at a covered pixel is compared with what the cache gives
+//! there and kept as a record when the two differ by more than two standard deviations
+//! of their difference (the covering records' spread of a gather and of their means).
 
 use super::microbuffer::Gradients;
 use crate::material::luminance;
@@ -266,22 +273,57 @@ impl IrradianceCache {
     /// normal `m`, and the smallest reach a·R among them; None when none does.
     pub fn lookup(&self, x: V, m: V) -> Option<(V, f32)> {
         let (mut sum, mut weight, mut reach) = (V::ZERO, 0.0f32, f32::INFINITY);
+        self.covering(x, m, |id, w| {
+            let rec = &self.records[id];
+            let moved = self.carry[id].change((x - rec.p).into(), rec.n.cross(m).into());
+            sum += (rec.e + V::from(moved)).max(V::ZERO) * w;
+            weight += w;
+            reach = reach.min(self.a * rec.r);
+        });
+        (weight > 0.0).then(|| (sum / weight, reach))
+    }
+
+    /// Whether a gather's irradiance `e` at `x` with normal `m` differs from what the
+    /// cache gives there by more than `sigmas` standard deviations of the difference, in
+    /// luminance (the cache's and the gather's variance from [`Self::spread`]). None where
+    /// the cache cannot tell: no record covers x, or none that does has two gathers.
+    pub fn disagrees(&self, x: V, m: V, e: V, sigmas: f64) -> Option<bool> {
+        let (of_cache, of_gather) = self.spread(x, m)?;
+        let (cached, _) = self.lookup(x, m)?;
+        let d = (luminance(e) - luminance(cached)) as f64;
+        Some(d * d > sigmas * sigmas * (of_cache + of_gather))
+    }
+
+    /// The variance of what the cache gives at `x` with normal `m` and of one gather
+    /// there, in luminance: the covering records' spread of a gather, s², weighted as
+    /// `lookup` weighs them, and that over their gathers, s²/k. None when no covering
+    /// record has two gathers yet.
+    pub fn spread(&self, x: V, m: V) -> Option<(f64, f64)> {
+        let (mut mean, mut gather, mut weight) = (0.0, 0.0, 0.0);
+        self.covering(x, m, |id, w| {
+            let y = &self.records[id].y;
+            if y.count >= 2 {
+                let (w, s2) = (w as f64, y.variance());
+                mean += w * s2 / y.count as f64;
+                gather += w * s2;
+                weight += w;
+            }
+        });
+        (weight > 0.0).then(|| (mean / weight, gather / weight))
+    }
+
+    /// Calls `f` with the index and weight of every record that covers x.
+    fn covering(&self, x: V, m: V, mut f: impl FnMut(usize, f32)) {
         for &level in &self.levels {
             let Some(ids) = self.grid.get(&(level, cell(x, cell_size(level)))) else {
                 continue;
             };
             for &id in ids {
-                let rec = &self.records[id as usize];
-                if let Some(w) = self.weight(rec, x, m) {
-                    let g = &self.carry[id as usize];
-                    let moved = g.change((x - rec.p).into(), rec.n.cross(m).into());
-                    sum += (rec.e + V::from(moved)).max(V::ZERO) * w;
-                    weight += w;
-                    reach = reach.min(self.a * rec.r);
+                if let Some(w) = self.weight(&self.records[id as usize], x, m) {
+                    f(id as usize, w);
                 }
             }
         }
-        (weight > 0.0).then(|| (sum / weight, reach))
     }
 
     /// Record `rec`'s weight at x with normal m, if it covers x.
@@ -319,6 +361,45 @@ fn cell(p: V, size: f32) -> [i32; 3] {
 mod tests {
     use super::*;
     use crate::test_rng::TestRng;
+
+    /// A gather beyond two standard deviations of the difference from the cache (the
+    /// records' spread of a gather plus that of their means) disagrees with it, one within
+    /// does not, and the cache cannot tell where its records have one gather each or where
+    /// none covers.
+    #[test]
+    fn a_gather_disagrees_beyond_the_records_spread() {
+        let mut cache = IrradianceCache::new(0.5);
+        let record = |p: V, gathers: &[f32]| {
+            let mut r = Record::new(p, V::Z, V::splat(gathers[0]), 1.0, 0.01, 0.5);
+            for &e in &gathers[1..] {
+                r.add(V::splat(e), &Gradients::default());
+            }
+            r
+        };
+        cache.extend([
+            record(V::ZERO, &[1.0, 1.2]),
+            record(V::X * 0.01, &[0.9, 1.1]),
+        ]);
+        let x = V::X * 0.005;
+        let (e, _) = cache.lookup(x, V::Z).unwrap();
+        assert!((luminance(e) - 1.05).abs() < 1e-4, "{e}");
+        // Both records: s² = 0.02 over 2 gathers; the difference's variance is 0.03.
+        let (of_cache, of_gather) = cache.spread(x, V::Z).unwrap();
+        assert!((of_cache - 0.01).abs() < 1e-6 && (of_gather - 0.02).abs() < 1e-6);
+        let sd = 0.03f32.sqrt();
+        for (e, far) in [
+            (1.05 + 2.1 * sd, true),
+            (1.05 - 2.1 * sd, true),
+            (1.05 + 1.9 * sd, false),
+        ] {
+            assert_eq!(cache.disagrees(x, V::Z, V::splat(e), 2.0), Some(far), "{e}");
+        }
+        assert_eq!(cache.disagrees(V::X * 5.0, V::Z, V::ONE, 2.0), None);
+        let mut young = IrradianceCache::new(0.5);
+        young.extend([record(V::ZERO, &[1.0])]);
+        assert!(young.lookup(x, V::Z).is_some());
+        assert_eq!(young.disagrees(x, V::Z, V::splat(9.0), 2.0), None);
+    }
 
     fn random_cache(rng: &mut TestRng, count: usize) -> (IrradianceCache, Vec<Record>) {
         let mut v = || V::new(rng.f32(), rng.f32(), rng.f32());

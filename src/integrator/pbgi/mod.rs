@@ -57,6 +57,7 @@ use cache::{IrradianceCache, Record};
 use glam::{Vec3, Vec3A as V};
 use microbuffer::{Gradients, MicroBuffer, Texels};
 use rayon::prelude::*;
+use rustc_hash::FxHashSet;
 use std::cell::RefCell;
 use std::f32::consts::PI;
 use std::path::PathBuf;
@@ -121,8 +122,9 @@ pub struct PbgiSettings {
     /// distance and a light-weighted one, 1 to 4 pixels over a), and gathers alone
     /// (`--pbgi-reuse`) only where none is. Between
     /// passes the records whose next gather lowers the image's error more per ray than
-    /// more samples would take one; a receiver with a surface over it nearer than the
-    /// records' reach gathers alone.
+    /// more samples would take one, and gathers at covered pixels (2% of the rays) become
+    /// records where they differ from the cache by more than two standard deviations; a
+    /// receiver with a surface over it nearer than the records' reach gathers alone.
     /// Smaller is more exact and gathers more.
     #[arg(long = "pbgi-cache", value_name = "A", default_value_t = 0.3, value_parser = parse_cache)]
     pub cache: f32,
@@ -186,6 +188,9 @@ pub struct PbgiStats {
     pub cache_hits: u64,
     /// Receivers the cache covered but a surface nearer than its records' reach hid.
     pub cache_rejects: u64,
+    /// Pixels probed for the cache's error, and the records added where it was found.
+    pub cache_probes: u64,
+    pub cache_probe_records: u64,
 }
 
 pub struct PbgiIntegrator {
@@ -220,6 +225,12 @@ pub struct PbgiIntegrator {
     /// Rays of the records' first gathers, and of their refinement since.
     cache_rays: u64,
     refine_rays: u64,
+    /// The window's pixels in the order the probes visit them, how many are visited, the
+    /// rays the probes traced and the records they added (see `probe_cache`).
+    probe_order: Vec<[u32; 2]>,
+    probed: usize,
+    probe_rays: u64,
+    probe_records: u64,
 }
 
 /// Irradiance gathers summed at one surface of a pixel.
@@ -248,6 +259,12 @@ impl Gathered {
         self.n.dot(n) >= SAME_NORMAL && (p - self.p).dot(self.n).abs() <= footprint
     }
 }
+
+/// The share of the samples' rays the cache's probes may take (`probe_cache`).
+const PROBE_SHARE: f64 = 0.02;
+
+/// How many standard deviations a probe's gather must be from the cache to be kept.
+const PROBE_SIGMAS: f64 = 2.0;
 
 /// Samples of each pixel whose cached receivers are checked for a surface over them.
 const PROBED_SAMPLES: u32 = 16;
@@ -314,6 +331,10 @@ impl PbgiIntegrator {
             cache_s: 0.0,
             cache_rays: 0,
             refine_rays: 0,
+            probe_order: Vec::new(),
+            probed: 0,
+            probe_rays: 0,
+            probe_records: 0,
         }
     }
 
@@ -562,20 +583,84 @@ impl PbgiIntegrator {
         y: u32,
     ) -> Option<Record> {
         let q = self.centre_hit(scene, tr, x, y)?;
-        let (_, footprint) = q.at?;
         let n = q.s.frame.n;
         if q.s.bsdf.diffuse.max_element() <= 0.0 || cache.lookup(q.s.p, n).is_some() {
             return None;
         }
         let strata = self.record_strata([x, y], 0);
-        let (e, distance, g) = self.gather_irradiance(scene, tr, &q.s, strata, None);
-        let rec = Record::new(q.s.p, n, e, distance, footprint, cache.a());
-        Some(Record {
-            at: [x, y],
-            g,
-            lobe: luminance(q.s.diffuse_lobe()),
-            ..rec
-        })
+        let found = self.gather_irradiance(scene, tr, &q.s, strata, None);
+        Some(new_record(&q, [x, y], found, cache.a()))
+    }
+
+    /// A gather at pixel (x, y)'s first hit through its centre, where the cache covers it,
+    /// kept as a record when it disagrees with what the cache gives there by more than
+    /// `PROBE_SIGMAS` standard deviations of the difference (the records' spread of a
+    /// gather and of their means). Irradiance that changes faster than the records'
+    /// gradients say (room's corner under the ceiling's hot spot, a band narrower than a
+    /// record) is found this way; the records' refinement lowers their noise, not this.
+    fn probe(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        cache: &IrradianceCache,
+        x: u32,
+        y: u32,
+    ) -> Option<Record> {
+        let q = self.centre_hit(scene, tr, x, y)?;
+        let n = q.s.frame.n;
+        if q.s.bsdf.diffuse.max_element() <= 0.0 {
+            return None;
+        }
+        // Nothing to compare with where no record covers it or none has a spread yet.
+        cache.spread(q.s.p, n)?;
+        let strata = self.record_strata([x, y], 0);
+        let found = self.gather_irradiance(scene, tr, &q.s, strata, None);
+        cache
+            .disagrees(q.s.p, n, found.0, PROBE_SIGMAS)?
+            .then(|| new_record(&q, [x, y], found, cache.a()))
+    }
+
+    /// Probes (`probe`) at pixels the cache covers, each pixel once, in a shuffled order,
+    /// with at most `PROBE_SHARE` of the samples' rays; the records they find are added.
+    /// Returns the rays traced.
+    fn probe_cache(&mut self, scene: &Scene, pass: &Pass) -> u64 {
+        let Some(cache) = self.cache.as_ref() else {
+            return 0;
+        };
+        // Every record has two gathers (its spread) after the second pass's refinement.
+        if pass.first < 3 || self.probed >= self.probe_order.len() {
+            return 0;
+        }
+        let spent = self.bake_samples + self.cache_rays + self.refine_rays + self.probe_rays;
+        let allowed = (PROBE_SHARE * pass.rays.saturating_sub(spent) as f64) as u64;
+        let Some(budget) = allowed.checked_sub(self.probe_rays).filter(|&b| b > 0) else {
+            return 0;
+        };
+        let per_gather = (self.cache_rays / cache.len().max(1) as u64).max(1);
+        let end = self
+            .probe_order
+            .len()
+            .min(self.probed + budget.div_ceil(per_gather) as usize);
+        let found: Vec<(Option<Record>, u64)> = self.probe_order[self.probed..end]
+            .par_iter()
+            .map_init(
+                || Tracer::new(&scene.cache),
+                |tr, &[x, y]| {
+                    let before = tr.rays;
+                    let rec = self.probe(scene, tr, cache, x, y);
+                    (rec, tr.rays - before)
+                },
+            )
+            .collect();
+        self.probed = end;
+        let rays: u64 = found.iter().map(|f| f.1).sum();
+        let records: Vec<Record> = found.into_iter().filter_map(|f| f.0).collect();
+        self.probe_records += records.len() as u64;
+        if let Some(cache) = self.cache.as_mut() {
+            cache.extend(records);
+        }
+        self.probe_rays += rays;
+        rays
     }
 
     /// Another gather for record `rec`, at its pixel's first hit again (the `k`-th, so
@@ -585,6 +670,24 @@ impl PbgiIntegrator {
         let strata = self.record_strata(rec.at, rec.y.count as u32);
         let (e, _, g) = self.gather_irradiance(scene, tr, &q.s, strata, None);
         Some((e, g))
+    }
+
+    /// The window's pixels that hold no record, shuffled: the order `probe_cache` visits
+    /// them in, so that its first probes spread over the whole image.
+    fn probe_order(&self) -> Vec<[u32; 2]> {
+        let [x0, x1, y0, y1] = self.window;
+        let held: FxHashSet<[u32; 2]> = self
+            .cache
+            .iter()
+            .flat_map(|c| c.records().iter().map(|r| r.at))
+            .collect();
+        let mut order: Vec<[u32; 2]> = (y0..y1)
+            .flat_map(|y| (x0..x1).map(move |x| [x, y]))
+            .filter(|at| !held.contains(at))
+            .collect();
+        let key = |&[x, y]: &[u32; 2]| Hash::new((y as u64) << 32 | x as u64 ^ 0x9B0B).u64();
+        order.sort_by_cached_key(key);
+        order
     }
 
     /// The `index`-th gather of the record at pixel `at`.
@@ -654,9 +757,9 @@ impl PbgiIntegrator {
             return 0;
         }
         // The bake's rays are left out: a render reading a baked file makes the same image.
-        let sampled = pass
-            .rays
-            .saturating_sub(self.bake_samples + self.cache_rays + self.refine_rays);
+        let sampled = pass.rays.saturating_sub(
+            self.bake_samples + self.cache_rays + self.refine_rays + self.probe_rays,
+        );
         let pass_rays = (sampled as f64 / n).max(1.0);
         let per_gather = (self.cache_rays / cache.len() as u64).max(1) as f64;
         let [x0, x1, y0, y1] = self.window;
@@ -1190,6 +1293,19 @@ fn intersect(o: V, w: V, p: [V; 3]) -> Option<(f32, [f32; 3])> {
 }
 
 /// Whether a surface lies over `s` within `reach` along its normal.
+/// The record of a gather (irradiance, reach distance, gradients) at receiver `q`, the
+/// first hit through pixel `at`'s centre.
+fn new_record(q: &Pending, at: [u32; 2], (e, distance, g): (V, f32, Gradients), a: f32) -> Record {
+    let footprint = q.at.map_or(0.0, |(_, f)| f);
+    let rec = Record::new(q.s.p, q.s.frame.n, e, distance, footprint, a);
+    Record {
+        at,
+        g,
+        lobe: luminance(q.s.diffuse_lobe()),
+        ..rec
+    }
+}
+
 fn covered_over(tr: &mut Tracer, s: &Surface, reach: f32) -> bool {
     let n = s.frame.n;
     tr.occluded(&Ray {
@@ -1313,8 +1429,9 @@ impl Integrator for PbgiIntegrator {
         if pass.first > 0 {
             let t = Instant::now();
             let refine_rays = self.refine_cache(scene, pass);
+            let probe_rays = self.probe_cache(scene, pass);
             self.cache_s += t.elapsed().as_secs_f64();
-            return Ok(edge_rays + refine_rays);
+            return Ok(edge_rays + refine_rays + probe_rays);
         }
         if self.settings.reuse > 1 {
             let pixels = scene.camera.width as usize * scene.camera.height as usize;
@@ -1346,6 +1463,7 @@ impl Integrator for PbgiIntegrator {
             self.crevices = (0..pixels).map(|_| AtomicBool::new(false)).collect();
             self.cache_rays = rays;
             self.cache_s = t.elapsed().as_secs_f64();
+            self.probe_order = self.probe_order();
         }
         Ok(self.bake_samples + edge_rays + cache_rays)
     }
@@ -1393,13 +1511,13 @@ impl Integrator for PbgiIntegrator {
                 ),
             },
             format!(
-                "pbgi: a pixel gathers at every {}-th sample, the others reusing its gathers' irradiance",
+                "pbgi: each surface of a pixel gathers at every {}-th sample landing on it, the others reusing its gathers' irradiance",
                 s.reuse
             ),
             match &self.cache {
                 Some(c) => format!(
-                    "pbgi: irradiance cache of error bound {}: {} records placed coarse to fine over the pixels, averaging {} gathers ({:.2} s), read by the receivers they cover",
-                    s.cache, c.len(), c.gathers(), self.cache_s
+                    "pbgi: irradiance cache of error bound {}: {} records placed coarse to fine over the pixels ({} of them where one of {} probes disagreed with the cache), averaging {} gathers ({:.2} s), read by the receivers they cover",
+                    s.cache, c.len(), self.probe_records, self.probed, c.gathers(), self.cache_s
                 ),
                 None => "pbgi: no irradiance cache".into(),
             },
@@ -1429,6 +1547,8 @@ impl Integrator for PbgiIntegrator {
             cache_gathers: self.cache.as_ref().map_or(0, |c| c.gathers()),
             cache_hits: self.cache_hits.load(Relaxed),
             cache_rejects: self.cache_rejects.load(Relaxed),
+            cache_probes: self.probed as u64,
+            cache_probe_records: self.probe_records,
         })
     }
 
