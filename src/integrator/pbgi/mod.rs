@@ -43,21 +43,20 @@ pub mod cluster;
 pub mod glossy;
 pub mod microbuffer;
 pub mod patch;
+mod records;
 mod surface;
 
 use super::edge::{EdgeRays, DEFAULT_EDGE_RAYS};
 use super::{on_side, Counters, Integrator, Pass, PixelSample, Scene, Stats, Target};
-use crate::material::{luminance, Bsdf, Frame};
+use crate::material::{Bsdf, Frame};
 use crate::paging::{NodeRef, Page, TNode};
 use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Hit, Ray, Tracer, NO_INSTANCE};
 use anyhow::Result;
 use bake::{Directional, Hash};
-use cache::{IrradianceCache, Record};
+use cache::IrradianceCache;
 use glam::{Vec3, Vec3A as V};
 use microbuffer::{Gradients, MicroBuffer, Texels};
-use rayon::prelude::*;
-use rustc_hash::FxHashSet;
 use std::cell::RefCell;
 use std::f32::consts::PI;
 use std::path::PathBuf;
@@ -259,12 +258,6 @@ impl Gathered {
         self.n.dot(n) >= SAME_NORMAL && (p - self.p).dot(self.n).abs() <= footprint
     }
 }
-
-/// The share of the samples' rays the cache's probes may take (`probe_cache`).
-const PROBE_SHARE: f64 = 0.02;
-
-/// How many standard deviations a probe's gather must be from the cache to be kept.
-const PROBE_SIGMAS: f64 = 2.0;
 
 /// Samples of each pixel whose cached receivers are checked for a surface over them.
 const PROBED_SAMPLES: u32 = 16;
@@ -535,170 +528,6 @@ impl PbgiIntegrator {
         }
     }
 
-    /// The irradiance cache's records, placed coarse to fine: at every 16th pixel of the
-    /// window, then at the pixels of each finer grid whose first hit (through the pixel's
-    /// centre) the records so far leave uncovered. Returns the cache and the rays traced.
-    fn build_cache(&self, scene: &Scene, a: f32) -> (IrradianceCache, u64) {
-        let [x0, x1, y0, y1] = self.window;
-        let mut cache = IrradianceCache::new(a);
-        let mut rays = 0;
-        let mut step = 16;
-        while step >= 1 {
-            let on = |v: u32, s: u32| v.is_multiple_of(s);
-            let pixels: Vec<(u32, u32)> = (y0..y1)
-                .flat_map(|y| (x0..x1).map(move |x| (x, y)))
-                .filter(|&(x, y)| {
-                    let (dx, dy) = (x - x0, y - y0);
-                    on(dx, step)
-                        && on(dy, step)
-                        && (step == 16 || !(on(dx, 2 * step) && on(dy, 2 * step)))
-                })
-                .collect();
-            let found: Vec<(Option<Record>, u64)> = pixels
-                .par_iter()
-                .map_init(
-                    || Tracer::new(&scene.cache),
-                    |tr, &(x, y)| {
-                        let before = tr.rays;
-                        let rec = self.cache_record(scene, tr, &cache, x, y);
-                        (rec, tr.rays - before)
-                    },
-                )
-                .collect();
-            rays += found.iter().map(|f| f.1).sum::<u64>();
-            cache.extend(found.into_iter().filter_map(|f| f.0));
-            step /= 2;
-        }
-        (cache, rays)
-    }
-
-    /// A record gathered at pixel (x, y)'s first hit through its centre, unless the cache
-    /// covers it already or it has no diffuse lobe.
-    fn cache_record(
-        &self,
-        scene: &Scene,
-        tr: &mut Tracer,
-        cache: &IrradianceCache,
-        x: u32,
-        y: u32,
-    ) -> Option<Record> {
-        let q = self.centre_hit(scene, tr, x, y)?;
-        let n = q.s.frame.n;
-        if q.s.bsdf.diffuse.max_element() <= 0.0 || cache.lookup(q.s.p, n).is_some() {
-            return None;
-        }
-        let strata = self.record_strata([x, y], 0);
-        let found = self.gather_irradiance(scene, tr, &q.s, strata, None);
-        Some(new_record(&q, [x, y], found, cache.a()))
-    }
-
-    /// A gather at pixel (x, y)'s first hit through its centre, where the cache covers it,
-    /// kept as a record when it disagrees with what the cache gives there by more than
-    /// `PROBE_SIGMAS` standard deviations of the difference (the records' spread of a
-    /// gather and of their means). Irradiance that changes faster than the records'
-    /// gradients say (room's corner under the ceiling's hot spot, a band narrower than a
-    /// record) is found this way; the records' refinement lowers their noise, not this.
-    fn probe(
-        &self,
-        scene: &Scene,
-        tr: &mut Tracer,
-        cache: &IrradianceCache,
-        x: u32,
-        y: u32,
-    ) -> Option<Record> {
-        let q = self.centre_hit(scene, tr, x, y)?;
-        let n = q.s.frame.n;
-        if q.s.bsdf.diffuse.max_element() <= 0.0 {
-            return None;
-        }
-        // Nothing to compare with where no record covers it or none has a spread yet.
-        cache.spread(q.s.p, n)?;
-        let strata = self.record_strata([x, y], 0);
-        let found = self.gather_irradiance(scene, tr, &q.s, strata, None);
-        cache
-            .disagrees(q.s.p, n, found.0, PROBE_SIGMAS)?
-            .then(|| new_record(&q, [x, y], found, cache.a()))
-    }
-
-    /// Probes (`probe`) at pixels the cache covers, each pixel once, in a shuffled order,
-    /// with at most `PROBE_SHARE` of the samples' rays; the records they find are added.
-    /// Returns the rays traced.
-    fn probe_cache(&mut self, scene: &Scene, pass: &Pass) -> u64 {
-        let Some(cache) = self.cache.as_ref() else {
-            return 0;
-        };
-        // Every record has two gathers (its spread) after the second pass's refinement.
-        if pass.first < 3 || self.probed >= self.probe_order.len() {
-            return 0;
-        }
-        let spent = self.bake_samples + self.cache_rays + self.refine_rays + self.probe_rays;
-        let allowed = (PROBE_SHARE * pass.rays.saturating_sub(spent) as f64) as u64;
-        let Some(budget) = allowed.checked_sub(self.probe_rays).filter(|&b| b > 0) else {
-            return 0;
-        };
-        let per_gather = (self.cache_rays / cache.len().max(1) as u64).max(1);
-        let end = self
-            .probe_order
-            .len()
-            .min(self.probed + budget.div_ceil(per_gather) as usize);
-        let found: Vec<(Option<Record>, u64)> = self.probe_order[self.probed..end]
-            .par_iter()
-            .map_init(
-                || Tracer::new(&scene.cache),
-                |tr, &[x, y]| {
-                    let before = tr.rays;
-                    let rec = self.probe(scene, tr, cache, x, y);
-                    (rec, tr.rays - before)
-                },
-            )
-            .collect();
-        self.probed = end;
-        let rays: u64 = found.iter().map(|f| f.1).sum();
-        let records: Vec<Record> = found.into_iter().filter_map(|f| f.0).collect();
-        self.probe_records += records.len() as u64;
-        if let Some(cache) = self.cache.as_mut() {
-            cache.extend(records);
-        }
-        self.probe_rays += rays;
-        rays
-    }
-
-    /// Another gather for record `rec`, at its pixel's first hit again (the `k`-th, so
-    /// its rays are new): its irradiance and gradients, or None when that hit is gone.
-    fn regather(&self, scene: &Scene, tr: &mut Tracer, rec: &Record) -> Option<(V, Gradients)> {
-        let q = self.centre_hit(scene, tr, rec.at[0], rec.at[1])?;
-        let strata = self.record_strata(rec.at, rec.y.count as u32);
-        let (e, _, g) = self.gather_irradiance(scene, tr, &q.s, strata, None);
-        Some((e, g))
-    }
-
-    /// The window's pixels that hold no record, shuffled: the order `probe_cache` visits
-    /// them in, so that its first probes spread over the whole image.
-    fn probe_order(&self) -> Vec<[u32; 2]> {
-        let [x0, x1, y0, y1] = self.window;
-        let held: FxHashSet<[u32; 2]> = self
-            .cache
-            .iter()
-            .flat_map(|c| c.records().iter().map(|r| r.at))
-            .collect();
-        let mut order: Vec<[u32; 2]> = (y0..y1)
-            .flat_map(|y| (x0..x1).map(move |x| [x, y]))
-            .filter(|at| !held.contains(at))
-            .collect();
-        let key = |&[x, y]: &[u32; 2]| Hash::new((y as u64) << 32 | x as u64 ^ 0x9B0B).u64();
-        order.sort_by_cached_key(key);
-        order
-    }
-
-    /// The `index`-th gather of the record at pixel `at`.
-    fn record_strata(&self, at: [u32; 2], index: u32) -> Strata {
-        let pixel = (at[1] as u64) << 32 | at[0] as u64;
-        Strata {
-            seed: Hash::new(pixel ^ (self.seed as u64) << 48 ^ 0xCAC4E).u64(),
-            index,
-        }
-    }
-
     /// The `index`-th gather on the `surface`-th surface a pixel keeps gathers for: each
     /// surface's gathers are a sequence of their own.
     fn pixel_strata(&self, pixel: usize, surface: usize, index: u32) -> Strata {
@@ -738,58 +567,6 @@ impl PbgiIntegrator {
             ray: cam.ray(x as f32 + 0.5, y as f32 + 0.5),
         };
         self.first_hit_own(scene, tr, &px).1
-    }
-
-    /// One more gather each for the records worth it: those whose gather lowers the
-    /// image's squared error more per ray than another pass of samples would. A pass of n
-    /// samples per pixel lowers it by V/(n(n+1)) (V: one sample's variance, from the film)
-    /// for the rays a pass has cost; a gather on a record by its [`Record::gain`] times
-    /// its lobe squared, over the pixels, for a gather's rays. So the records' share of
-    /// the rays follows how noisy they are against the pixels: on sponza a fixed tenth was
-    /// best and a fifth cost 8%; on the showroom, whose records see its steel floor through
-    /// light samples, a third was 1.5× better than a tenth.
-    fn refine_cache(&mut self, scene: &Scene, pass: &Pass) -> u64 {
-        let Some(cache) = self.cache.as_ref() else {
-            return 0;
-        };
-        let n = pass.first as f64;
-        if pass.first < 2 || cache.is_empty() {
-            return 0;
-        }
-        // The bake's rays are left out: a render reading a baked file makes the same image.
-        let sampled = pass.rays.saturating_sub(
-            self.bake_samples + self.cache_rays + self.refine_rays + self.probe_rays,
-        );
-        let pass_rays = (sampled as f64 / n).max(1.0);
-        let per_gather = (self.cache_rays / cache.len() as u64).max(1) as f64;
-        let [x0, x1, y0, y1] = self.window;
-        let pixels = ((x1 - x0) * (y1 - y0)) as f64;
-        let worth = pass.variance / (n * (n + 1.0)) / pass_rays * per_gather * pixels;
-        let ids = cache.worth_refining(worth);
-        if ids.is_empty() {
-            return 0;
-        }
-        let found: Vec<(Option<(V, Gradients)>, u64)> = ids
-            .par_iter()
-            .map_init(
-                || Tracer::new(&scene.cache),
-                |tr, &id| {
-                    let before = tr.rays;
-                    let e = self.regather(scene, tr, &cache.records()[id]);
-                    (e, tr.rays - before)
-                },
-            )
-            .collect();
-        let rays: u64 = found.iter().map(|f| f.1).sum();
-        if let Some(cache) = self.cache.as_mut() {
-            for (&id, (e, _)) in ids.iter().zip(&found) {
-                if let Some((e, g)) = e {
-                    cache.add(id, *e, g);
-                }
-            }
-        }
-        self.refine_rays += rays;
-        rays
     }
 
     /// Adds a gather's irradiance `e` to its pixel's surface, with `weight` for the sample
@@ -1293,19 +1070,6 @@ fn intersect(o: V, w: V, p: [V; 3]) -> Option<(f32, [f32; 3])> {
 }
 
 /// Whether a surface lies over `s` within `reach` along its normal.
-/// The record of a gather (irradiance, reach distance, gradients) at receiver `q`, the
-/// first hit through pixel `at`'s centre.
-fn new_record(q: &Pending, at: [u32; 2], (e, distance, g): (V, f32, Gradients), a: f32) -> Record {
-    let footprint = q.at.map_or(0.0, |(_, f)| f);
-    let rec = Record::new(q.s.p, q.s.frame.n, e, distance, footprint, a);
-    Record {
-        at,
-        g,
-        lobe: luminance(q.s.diffuse_lobe()),
-        ..rec
-    }
-}
-
 fn covered_over(tr: &mut Tracer, s: &Surface, reach: f32) -> bool {
     let n = s.frame.n;
     tr.occluded(&Ray {
