@@ -225,7 +225,8 @@ pub struct PbgiIntegrator {
     cache_rays: u64,
     refine_rays: u64,
     /// The window's pixels in the order the probes visit them, how many are visited, the
-    /// rays the probes traced and the records they added (see `probe_cache`).
+    /// rays the probes traced (each at least a ray per texel) and the records they added
+    /// (see `probe_cache`).
     probe_order: Vec<[u32; 2]>,
     probed: usize,
     probe_rays: u64,
