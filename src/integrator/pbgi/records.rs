@@ -90,8 +90,9 @@ impl PbgiIntegrator {
         Some(new_record(&q, [x, y], found, cache.a()))
     }
 
-    /// Probes (`centre_record`) at pixels the cache covers, each pixel once, in a shuffled order,
-    /// with at most `PROBE_SHARE` of the samples' rays; the records they find are added.
+    /// Probes (`centre_record`) at pixels the cache covers, each pixel once, in a shuffled
+    /// order, with at most `PROBE_SHARE` of the samples' rays; the records they find are
+    /// added.
     /// Returns the rays traced.
     pub(super) fn probe_cache(&mut self, scene: &Scene, pass: &Pass) -> u64 {
         let Some(cache) = self.cache.as_ref() else {
@@ -106,7 +107,11 @@ impl PbgiIntegrator {
         let Some(budget) = allowed.checked_sub(self.probe_rays).filter(|&b| b > 0) else {
             return 0;
         };
-        let per_gather = (self.cache_rays / cache.len().max(1) as u64).max(1);
+        // A probe counts as at least a ray per texel against its budget: under the cut its
+        // splats and rasterized leaves are not rays but cost as much (sponza with the cut:
+        // counted by the rays they traced, 16,852 probes took a quarter of a 60-s render).
+        let texels = self.texels.upper.len() as u64;
+        let per_gather = (self.cache_rays / cache.len().max(1) as u64).max(texels);
         let end = self
             .probe_order
             .len()
@@ -124,10 +129,6 @@ impl PbgiIntegrator {
             .collect();
         self.probed = end;
         let rays: u64 = found.iter().map(|f| f.1).sum();
-        // A probe counts as at least a ray per texel against its budget: under the cut its
-        // splats and rasterized leaves are not rays but cost as much (sponza with the cut:
-        // counted by the rays they traced, 16,852 probes took a quarter of a 60-s render).
-        let texels = self.texels.upper.len() as u64;
         let cost: u64 = found.iter().map(|f| f.1.max(texels)).sum();
         let records: Vec<Record> = found.into_iter().filter_map(|f| f.0).collect();
         self.probe_records += records.len() as u64;
