@@ -263,14 +263,21 @@ fn a_pixel_gathers_at_every_rth_sample_and_shades_one_near_hit_per_texel() {
         fragments <= 192 * receivers && fragments > 50 * receivers,
         "{fragments} near fragments for {receivers} gathers"
     );
-    for r in [3, 16] {
+    for r in [3, 16, 1024] {
         let (img, gathers, reused, _) = run(r);
         assert!(
             gathers <= (spp.div_ceil(r) + 1) * pixels,
             "R {r}: {gathers} gathers"
         );
+        // A pixel's later surfaces gather in proportion to their samples, at most 8 of
+        // them, not each at its first sample (1,404 gathers at R 1,024).
+        assert!(
+            gathers <= pixels + 8 * spp * pixels / r,
+            "R {r}: {gathers} gathers"
+        );
         assert_eq!(gathers + reused, receivers, "R {r}");
-        if r > spp {
+        // Past R's phase a pixel gathers again even when R exceeds the spp.
+        if r == 16 {
             assert!(gathers > pixels, "R {r}: {gathers} gathers");
         }
         let (a, b) = (img.mean(), every.mean());
