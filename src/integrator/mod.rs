@@ -20,6 +20,7 @@ use glam::Vec3A as V;
 use path::power_heuristic;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::Arc;
+use std::time::Duration;
 
 /// `--integrator`: which estimator renders.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize)]
@@ -122,6 +123,7 @@ pub enum Stats {
 }
 
 /// What the driver knows before a pass of samples `first..first + count`.
+#[derive(Clone, Copy)]
 pub struct Pass {
     pub first: u32,
     pub count: u32,
@@ -130,6 +132,9 @@ pub struct Pass {
     /// The mean over pixels of the variance of one sample's luminance, so far
     /// (`Film::sample_variance`).
     pub variance: f64,
+    /// The time left in `--time`'s budget, if there is one: work between passes that
+    /// outgrew it would overrun the budget, since the driver stops only after a pass.
+    pub left: Option<Duration>,
 }
 
 pub trait Integrator: Send + Sync {

@@ -122,6 +122,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
             count,
             rays: so_far,
             variance: film.sample_variance(done),
+            left: o.time.map(|limit| limit.saturating_sub(t1.elapsed())),
         };
         let rays = pool.install(|| integ.begin_pass(scene, &pass))?;
         tally.rays.fetch_add(rays, Relaxed);

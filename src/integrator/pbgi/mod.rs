@@ -1210,7 +1210,8 @@ impl Integrator for PbgiIntegrator {
         if pass.first > 0 {
             let t = Instant::now();
             let refine_rays = self.refine_cache(scene, pass);
-            let probe_rays = self.probe_cache(scene, pass);
+            let left = pass.left.map(|l| l.saturating_sub(t.elapsed()));
+            let probe_rays = self.probe_cache(scene, &Pass { left, ..*pass });
             self.cache_s += t.elapsed().as_secs_f64();
             return Ok(edge_rays + refine_rays + probe_rays);
         }

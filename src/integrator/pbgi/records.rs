@@ -19,6 +19,10 @@ const PROBE_SHARE: f64 = 0.02;
 /// How many standard deviations a probe's gather must be from the cache to be kept.
 const PROBE_SIGMAS: f64 = 2.0;
 
+/// The share of the time left in `--time`'s budget that the refinement, and then the
+/// probes, may take before a pass.
+const SHARE_OF_TIME_LEFT: f64 = 0.5;
+
 impl PbgiIntegrator {
     /// The irradiance cache's records, placed coarse to fine: at every 16th pixel of the
     /// window, then at the pixels of each finer grid whose first hit (through the pixel's
@@ -90,6 +94,29 @@ impl PbgiIntegrator {
         Some(new_record(&q, [x, y], found, cache.a()))
     }
 
+    /// What a record's gather costs, in rays: those its placement traced, and at least a
+    /// ray per texel, since under the cut its splats and rasterized leaves are not rays
+    /// but cost as much (sponza with the cut, counted by the rays they traced: 16,852
+    /// probes took a quarter of a 60-s render).
+    fn gather_cost(&self, cache: &IrradianceCache) -> u64 {
+        let texels = self.texels.upper.len() as u64;
+        (self.cache_rays / cache.len().max(1) as u64).max(texels)
+    }
+
+    /// How many of `wanted` gathers the cache may make before a pass: all of them without
+    /// a time budget, else those that fit in `SHARE_OF_TIME_LEFT` of the time left at
+    /// the wall time its gathers have taken so far. Under the cut on sponza, the first
+    /// refinement's second gather of each of 8,371 records overran a 30-s render by 12 s.
+    fn affordable(&self, pass: &Pass, cache: &IrradianceCache, wanted: usize) -> usize {
+        let Some(left) = pass.left else {
+            return wanted;
+        };
+        let gathers = cache.gathers() + self.probed as u64;
+        let per_gather = self.cache_s / gathers.max(1) as f64;
+        let fits = SHARE_OF_TIME_LEFT * left.as_secs_f64() / per_gather.max(f64::MIN_POSITIVE);
+        wanted.min(fits as usize)
+    }
+
     /// Probes (`centre_record`) at pixels the cache covers, each pixel once, in a shuffled
     /// order, with at most `PROBE_SHARE` of the samples' rays; the records they find are
     /// added.
@@ -107,15 +134,12 @@ impl PbgiIntegrator {
         let Some(budget) = allowed.checked_sub(self.probe_rays).filter(|&b| b > 0) else {
             return 0;
         };
-        // A probe counts as at least a ray per texel against its budget: under the cut its
-        // splats and rasterized leaves are not rays but cost as much (sponza with the cut:
-        // counted by the rays they traced, 16,852 probes took a quarter of a 60-s render).
-        let texels = self.texels.upper.len() as u64;
-        let per_gather = (self.cache_rays / cache.len().max(1) as u64).max(texels);
+        let per_gather = self.gather_cost(cache);
+        let wanted = budget.div_ceil(per_gather) as usize;
         let end = self
             .probe_order
             .len()
-            .min(self.probed + budget.div_ceil(per_gather) as usize);
+            .min(self.probed + self.affordable(pass, cache, wanted));
         let found: Vec<(Option<Record>, u64)> = self.probe_order[self.probed..end]
             .par_iter()
             .map_init(
@@ -128,6 +152,7 @@ impl PbgiIntegrator {
             )
             .collect();
         self.probed = end;
+        let texels = self.texels.upper.len() as u64;
         let rays: u64 = found.iter().map(|f| f.1).sum();
         let cost: u64 = found.iter().map(|f| f.1.max(texels)).sum();
         let records: Vec<Record> = found.into_iter().filter_map(|f| f.0).collect();
@@ -196,11 +221,12 @@ impl PbgiIntegrator {
             self.bake_samples + self.cache_rays + self.refine_rays + self.probe_rays,
         );
         let pass_rays = (sampled as f64 / n).max(1.0);
-        let per_gather = (self.cache_rays / cache.len() as u64).max(1) as f64;
+        let per_gather = self.gather_cost(cache) as f64;
         let [x0, x1, y0, y1] = self.window;
         let pixels = ((x1 - x0) * (y1 - y0)) as f64;
         let worth = pass.variance / (n * (n + 1.0)) / pass_rays * per_gather * pixels;
-        let ids = cache.worth_refining(worth);
+        let mut ids = cache.worth_refining(worth);
+        ids.truncate(self.affordable(pass, cache, ids.len()));
         if ids.is_empty() {
             return 0;
         }
@@ -215,7 +241,9 @@ impl PbgiIntegrator {
                 },
             )
             .collect();
+        let texels = self.texels.upper.len() as u64;
         let rays: u64 = found.iter().map(|f| f.1).sum();
+        let cost: u64 = found.iter().map(|f| f.1.max(texels)).sum();
         if let Some(cache) = self.cache.as_mut() {
             for (&id, (e, _)) in ids.iter().zip(&found) {
                 if let Some((e, g)) = e {
@@ -223,7 +251,7 @@ impl PbgiIntegrator {
                 }
             }
         }
-        self.refine_rays += rays;
+        self.refine_rays += cost;
         rays
     }
 }
