@@ -107,11 +107,12 @@ pub struct PbgiSettings {
     #[arg(long = "pbgi-rays", conflicts_with_all = ["angle", "clusters", "far", "wavelet", "wavelet_resolution", "wavelet_threshold"])]
     pub rays: bool,
     /// Samples per gather: each surface of a pixel (normal within 14°, within a pixel's
-    /// width of its plane; up to 8 a pixel) gathers at the first of the pixel's samples
-    /// that land on it, then at every R-th (at a phase of its own); its samples take the
-    /// mean irradiance of all its gathers (past 8 surfaces, those of the surface whose
-    /// normal is closest), added once the render ends so that every gather weighs the same (003 ch. 2
-    /// gathers once per micropolygon, not per pixel sample). 1 gathers at every sample.
+    /// width of its plane; up to 8 a pixel) gathers at every R-th sample landing on it
+    /// (at the pixel's phase), and the pixel's first surface also at its first sample;
+    /// its samples take the mean irradiance of all its gathers (of the surface whose
+    /// normal is closest while it has none, or past 8 surfaces), added once the render
+    /// ends so that every gather weighs the same (003 ch. 2 gathers once per
+    /// micropolygon, not per pixel sample). 1 gathers at every sample.
     #[arg(long = "pbgi-reuse", value_name = "R", default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..))]
     pub reuse: u32,
     /// The irradiance cache's error bound a (0: off). Before the first pass, gathers are
