@@ -418,6 +418,52 @@ fn direct_light_on_a_glossy_surface_is_weighed_against_its_lobe_ray() {
     );
 }
 
+/// The glossy bounce split (`--pbgi-glossy-rays`): on the showroom's gold bunny at
+/// `--max-depth 3`, four rays from its lobe instead of one keep the mean and lower the
+/// error (their light averaged, each shaded at its own hit).
+#[test]
+fn more_rays_from_a_glossy_lobe_keep_the_mean_and_lower_the_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("s.canopy");
+    convert(&scene("showroom.glb"), &arc, None);
+    let window = [
+        "--width",
+        "128",
+        "--height",
+        "96",
+        "--crop",
+        "32,48,32,48",
+        "--max-depth",
+        "3",
+    ];
+    let run = |name: &str, flags: &[&str]| {
+        render(&arc, &dir.path().join(name), &[&window[..], flags].concat())
+    };
+    let (reference, _) = run("ref.exr", &["--spp", "8192", "--seed", "3"]);
+    let pbgi = |k: &str| {
+        let flags = ["--integrator", "pbgi", "--spp", "64", "--seed", "1"];
+        run(
+            &format!("k{k}.exr"),
+            &[&flags[..], &["--pbgi-glossy-rays", k]].concat(),
+        )
+    };
+    let ((one, one_stats), (four, four_stats)) = (pbgi("1"), pbgi("4"));
+    assert!(all_finite(&four));
+    assert_mean_within_noise(&four, &reference, "gold bunny, four glossy rays");
+    let hits = |s: &serde_json::Value| s["exact_hits"].as_u64().unwrap();
+    assert!(
+        hits(&four_stats) > 3 * hits(&one_stats),
+        "{} glossy hits against {}",
+        hits(&four_stats),
+        hits(&one_stats)
+    );
+    let (e_four, e_one) = (rmse(&four, &reference), rmse(&one, &reference));
+    assert!(
+        e_four < 0.9 * e_one,
+        "RMSE {e_four:.3e} with four rays, {e_one:.3e} with one"
+    );
+}
+
 /// FPBGI: a cluster of one receiver walks exactly PBGI's cut, so the image is identical;
 /// real clusters share far splats (fewer splats in all) and stay close to PBGI.
 #[test]

@@ -106,6 +106,13 @@ pub struct PbgiSettings {
     /// does, where the cut found 0.84 (docs/pbgi.md).
     #[arg(long = "pbgi-rays", conflicts_with_all = ["angle", "clusters", "far", "wavelet", "wavelet_resolution", "wavelet_threshold"])]
     pub rays: bool,
+    /// Rays sampled from a receiver's rough specular lobes for its glossy bounce, their
+    /// light averaged (the first also serves direct light's MIS): the bounce split, since
+    /// the micro-buffer is too coarse to gather lobes of α 0.1. On the showroom at 1,024
+    /// spp, RMSE² × time 10% lower with 2 than with 1, 13% with 3 or 4 (docs/pbgi.md);
+    /// scenes without rough specular lobes trace none.
+    #[arg(long = "pbgi-glossy-rays", value_name = "K", default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=16))]
+    pub glossy_rays: u32,
     /// Samples per gather: each surface of a pixel (normal within 14°, within a pixel's
     /// width of its plane; up to 8 a pixel) gathers at every R-th sample landing on it
     /// (at the pixel's phase), and the pixel's first surface also at its first sample;
@@ -409,8 +416,21 @@ impl PbgiIntegrator {
             let sample = px.index;
             let [a, b, c, d] = px.sampler.get4(2 * depth + 3);
             let [e, f, ..] = px.sampler.get4(2 * depth + 4);
+            // The glossy bounce's other rays, each with three sets of the pixel's sequence
+            // past those of the first.
+            let extra = (1..self.settings.glossy_rays)
+                .filter_map(|k| {
+                    let set = 2 * depth + 5 + 3 * (k - 1);
+                    let [u0, u1, u2, _] = px.sampler.get4(set);
+                    let [a, b, c, d] = px.sampler.get4(set + 1);
+                    let [e, f, ..] = px.sampler.get4(set + 2);
+                    let r = s.lobe_ray(scene, tr, [u0, u1, u2])?;
+                    Some((r, [a, b, c, d, e, f]))
+                })
+                .collect();
             let q = Pending {
                 s,
+                extra,
                 lobe,
                 shade: [a, b, c, d, e, f],
                 beta,
@@ -439,10 +459,10 @@ impl PbgiIntegrator {
         known: Option<Reuse>,
     ) -> V {
         let s = &q.s;
-        let mut l = match &q.lobe {
-            Some(r) => self.glossy_bounce(scene, tr, r, q.shade),
-            None => V::ZERO,
-        };
+        let first = q.lobe.iter().map(|r| (r, q.shade));
+        let rays = first.chain(q.extra.iter().map(|(r, u)| (r, *u)));
+        let glossy: V = rays.map(|(r, u)| self.glossy_bounce(scene, tr, r, u)).sum();
+        let mut l = glossy / self.settings.glossy_rays as f32;
         if s.bsdf.diffuse.max_element() > 0.0 {
             // The diffuse lobe is the same for every incident direction: irradiance × it.
             let lobe = s.diffuse_lobe();
@@ -1162,6 +1182,9 @@ struct Pending {
     s: Surface,
     /// The ray sampled from x's rough specular lobes, if it has any.
     lobe: Option<LobeRay>,
+    /// `--pbgi-glossy-rays`' other rays from those lobes, each with the numbers for
+    /// shading its hit.
+    extra: Vec<(LobeRay, [f32; 6])>,
     /// The pixel sequence's numbers for shading that ray's hit.
     shade: [f32; 6],
     /// Path weight from the camera to x.
