@@ -165,6 +165,10 @@ fn pbgi_flags_are_refused_elsewhere_and_checked() {
             &["--integrator", "path", "--pbgi-cache", "0.2"],
             "--pbgi-cache applies to --integrator pbgi",
         ),
+        (
+            &["--integrator", "pbgi", "--pbgi-glossy-rays", "2"],
+            "no material of",
+        ),
     ] {
         let err = fails(&[&["render", s(&arc), "-o", s(&out)][..], flags].concat());
         assert!(err.contains(says), "{flags:?}: {err}");

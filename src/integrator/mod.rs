@@ -74,7 +74,23 @@ impl Settings {
         }
     }
 
+    /// Refuses settings the scene gives nothing to do: more than one ray from glossy
+    /// lobes where no material has rough specular lobes.
+    pub fn check_scene(&self, scene: &Scene) -> anyhow::Result<()> {
+        if let Settings::Pbgi(p) = self {
+            let glossy = scene.materials.iter().any(pbgi::glossy::stores_glossy);
+            if let Some(k) = p.glossy_rays.filter(|&k| k > 1 && !glossy) {
+                anyhow::bail!(
+                    "--pbgi-glossy-rays {k}: no material of {} is a rough metal or rough dielectric, so no receiver has a glossy lobe to sample",
+                    scene.cache.archive.path().display()
+                );
+            }
+        }
+        Ok(())
+    }
+
     pub fn build(&self, scene: &Scene, target: &Target) -> anyhow::Result<Box<dyn Integrator>> {
+        self.check_scene(scene)?;
         Ok(match self {
             Settings::Path => Box::new(path::PathIntegrator),
             Settings::Cone(c) => Box::new(cone::ConeIntegrator::new(c, scene, target)?),

@@ -110,9 +110,10 @@ pub struct PbgiSettings {
     /// light averaged (the first also serves direct light's MIS): the bounce split, since
     /// the micro-buffer is too coarse to gather lobes of α 0.1. On the showroom at 1,024
     /// spp, RMSE² × time 10% lower with 2 than with 1, 13% with 3 or 4 (docs/pbgi.md);
-    /// scenes without rough specular lobes trace none.
-    #[arg(long = "pbgi-glossy-rays", value_name = "K", default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=16))]
-    pub glossy_rays: u32,
+    /// K above 1 is an error on a scene with no rough metal or rough dielectric
+    /// [default: 2 where there is one]
+    #[arg(long = "pbgi-glossy-rays", value_name = "K", value_parser = clap::value_parser!(u32).range(1..=16))]
+    pub glossy_rays: Option<u32>,
     /// Samples per gather: each surface of a pixel (normal within 14°, within a pixel's
     /// width of its plane; up to 8 a pixel) gathers at every R-th sample landing on it
     /// (at the pixel's phase), and the pixel's first surface also at its first sample;
@@ -269,6 +270,9 @@ impl Gathered {
     }
 }
 
+/// Rays from a glossy receiver's lobes for its bounce, unless `--pbgi-glossy-rays` says.
+const GLOSSY_RAYS: u32 = 2;
+
 /// Samples of each pixel whose cached receivers are checked for a surface over them.
 const PROBED_SAMPLES: u32 = 16;
 
@@ -418,7 +422,7 @@ impl PbgiIntegrator {
             let [e, f, ..] = px.sampler.get4(2 * depth + 4);
             // The glossy bounce's other rays, each with three sets of the pixel's sequence
             // past those of the first.
-            let extra = (1..self.settings.glossy_rays)
+            let extra = (1..self.glossy_rays())
                 .filter_map(|k| {
                     let set = 2 * depth + 5 + 3 * (k - 1);
                     let [u0, u1, u2, _] = px.sampler.get4(set);
@@ -462,7 +466,7 @@ impl PbgiIntegrator {
         let first = q.lobe.iter().map(|r| (r, q.shade));
         let rays = first.chain(q.extra.iter().map(|(r, u)| (r, *u)));
         let glossy: V = rays.map(|(r, u)| self.glossy_bounce(scene, tr, r, u)).sum();
-        let mut l = glossy / self.settings.glossy_rays as f32;
+        let mut l = glossy / self.glossy_rays() as f32;
         if s.bsdf.diffuse.max_element() > 0.0 {
             // The diffuse lobe is the same for every incident direction: irradiance × it.
             let lobe = s.diffuse_lobe();
@@ -637,6 +641,11 @@ impl PbgiIntegrator {
             None => return false,
         }
         true
+    }
+
+    /// `--pbgi-glossy-rays`, or its default.
+    fn glossy_rays(&self) -> u32 {
+        self.settings.glossy_rays.unwrap_or(GLOSSY_RAYS)
     }
 
     /// The rough specular lobes' bounce: the hit of the direction sampled from them,
