@@ -384,6 +384,29 @@ fn receivers_in_a_gap_the_records_did_not_see_gather_for_themselves() {
     assert!(stats["cache_rejects"].as_u64().unwrap() > 0, "{stats}");
 }
 
+/// Renders of the showroom's rough gold bunny (a 16×16 crop of 128×96) at `--max-depth
+/// depth`, with the flags given, the scene converted into `dir` once.
+fn gold_bunny<'a>(
+    dir: &'a std::path::Path,
+    depth: &'a str,
+) -> impl Fn(&str, &[&str]) -> (Image, serde_json::Value) + 'a {
+    let arc = dir.join("s.canopy");
+    convert(&scene("showroom.glb"), &arc, None);
+    move |name, flags| {
+        let window = [
+            "--width",
+            "128",
+            "--height",
+            "96",
+            "--crop",
+            "32,48,32,48",
+            "--max-depth",
+            depth,
+        ];
+        render(&arc, &dir.join(name), &[&window[..], flags].concat())
+    }
+}
+
 /// Direct light on the showroom's rough gold bunny (GGX α 0.09) under a large panel: a
 /// light sample alone rarely falls in the narrow lobe, so PBGI weighs it against the ray
 /// it samples from the lobe anyway (MIS, as the path tracer does). At `--max-depth 2` its
@@ -392,21 +415,8 @@ fn receivers_in_a_gap_the_records_did_not_see_gather_for_themselves() {
 #[test]
 fn direct_light_on_a_glossy_surface_is_weighed_against_its_lobe_ray() {
     let dir = tempfile::tempdir().unwrap();
-    let arc = dir.path().join("s.canopy");
-    convert(&scene("showroom.glb"), &arc, None);
-    let window = [
-        "--width",
-        "128",
-        "--height",
-        "96",
-        "--crop",
-        "32,48,32,48",
-        "--max-depth",
-        "2",
-    ];
-    let run = |name: &str, flags: &[&str]| {
-        render(&arc, &dir.path().join(name), &[&window[..], flags].concat()).0
-    };
+    let bunny = gold_bunny(dir.path(), "2");
+    let run = |name: &str, flags: &[&str]| bunny(name, flags).0;
     let reference = run("ref.exr", &["--spp", "8192", "--seed", "3"]);
     let path = run("path.exr", &["--spp", "64", "--seed", "1"]);
     let pbgi = run(
@@ -428,21 +438,7 @@ fn direct_light_on_a_glossy_surface_is_weighed_against_its_lobe_ray() {
 #[test]
 fn more_rays_from_a_glossy_lobe_keep_the_mean_and_lower_the_error() {
     let dir = tempfile::tempdir().unwrap();
-    let arc = dir.path().join("s.canopy");
-    convert(&scene("showroom.glb"), &arc, None);
-    let window = [
-        "--width",
-        "128",
-        "--height",
-        "96",
-        "--crop",
-        "32,48,32,48",
-        "--max-depth",
-        "3",
-    ];
-    let run = |name: &str, flags: &[&str]| {
-        render(&arc, &dir.path().join(name), &[&window[..], flags].concat())
-    };
+    let run = gold_bunny(dir.path(), "3");
     let (reference, _) = run("ref.exr", &["--spp", "8192", "--seed", "3"]);
     let pbgi = |k: &str| {
         let flags = ["--integrator", "pbgi", "--spp", "64", "--seed", "1"];
