@@ -94,13 +94,17 @@ impl PbgiIntegrator {
         Some(new_record(&q, [x, y], found, cache.a()))
     }
 
-    /// What a record's gather costs, in rays: those its placement traced, and at least a
-    /// ray per texel, since under the cut its splats and rasterized leaves are not rays
-    /// but cost as much (sponza with the cut, counted by the rays they traced: 16,852
-    /// probes took a quarter of a 60-s render).
+    /// What a gather that traced `rays` is charged, in rays: at least a ray per texel,
+    /// since under the cut its splats and rasterized leaves are not rays but cost as much
+    /// (sponza with the cut, counted by the rays they traced: 16,852 probes took a
+    /// quarter of a 60-s render).
+    fn charged(&self, rays: u64) -> u64 {
+        rays.max(self.texels.upper.len() as u64)
+    }
+
+    /// What a record's gather costs, as its placement's gathers were charged on average.
     fn gather_cost(&self, cache: &IrradianceCache) -> u64 {
-        let texels = self.texels.upper.len() as u64;
-        (self.cache_rays / cache.len().max(1) as u64).max(texels)
+        self.charged(self.cache_rays / cache.len().max(1) as u64)
     }
 
     /// How many of `wanted` gathers the cache may make before a pass: all of them without
@@ -152,9 +156,8 @@ impl PbgiIntegrator {
             )
             .collect();
         self.probed = end;
-        let texels = self.texels.upper.len() as u64;
         let rays: u64 = found.iter().map(|f| f.1).sum();
-        let cost: u64 = found.iter().map(|f| f.1.max(texels)).sum();
+        let cost: u64 = found.iter().map(|f| self.charged(f.1)).sum();
         let records: Vec<Record> = found.into_iter().filter_map(|f| f.0).collect();
         self.probe_records += records.len() as u64;
         if let Some(cache) = self.cache.as_mut() {
@@ -241,9 +244,8 @@ impl PbgiIntegrator {
                 },
             )
             .collect();
-        let texels = self.texels.upper.len() as u64;
         let rays: u64 = found.iter().map(|f| f.1).sum();
-        let cost: u64 = found.iter().map(|f| f.1.max(texels)).sum();
+        let cost: u64 = found.iter().map(|f| self.charged(f.1)).sum();
         if let Some(cache) = self.cache.as_mut() {
             for (&id, (e, _)) in ids.iter().zip(&found) {
                 if let Some((e, g)) = e {
