@@ -240,6 +240,8 @@ pub struct PbgiIntegrator {
     probed: usize,
     probe_rays: u64,
     probe_records: u64,
+    /// `--pbgi-glossy-rays`, or its default for the scene.
+    glossy_rays: u32,
 }
 
 /// Irradiance gathers summed at one surface of a pixel.
@@ -270,7 +272,8 @@ impl Gathered {
     }
 }
 
-/// Rays from a glossy receiver's lobes for its bounce, unless `--pbgi-glossy-rays` says.
+/// Rays from a glossy receiver's lobes for its bounce, unless `--pbgi-glossy-rays` says,
+/// where some material has rough specular lobes.
 const GLOSSY_RAYS: u32 = 2;
 
 /// Samples of each pixel whose cached receivers are checked for a surface over them.
@@ -314,6 +317,13 @@ fn seen_emission(scene: &Scene, tr: &mut Tracer, r: &Ray, c: &mut Counters) -> V
 impl PbgiIntegrator {
     pub fn new(settings: &PbgiSettings, scene: &Scene, target: &Target) -> PbgiIntegrator {
         let seed = target.seed;
+        // Where no material has rough specular lobes, no receiver draws extra rays' numbers.
+        let glossy = scene.materials.iter().any(glossy::stores_glossy);
+        let glossy_rays = match settings.glossy_rays {
+            Some(k) => k,
+            None if glossy => GLOSSY_RAYS,
+            None => 1,
+        };
         PbgiIntegrator {
             settings: settings.clone(),
             texels: Texels::new(settings.resolution),
@@ -342,6 +352,7 @@ impl PbgiIntegrator {
             probed: 0,
             probe_rays: 0,
             probe_records: 0,
+            glossy_rays,
         }
     }
 
@@ -422,7 +433,7 @@ impl PbgiIntegrator {
             let [e, f, ..] = px.sampler.get4(2 * depth + 4);
             // The glossy bounce's other rays, each with three sets of the pixel's sequence
             // past those of the first.
-            let extra = (1..self.glossy_rays())
+            let extra = (1..self.glossy_rays)
                 .filter_map(|k| {
                     let set = 2 * depth + 5 + 3 * (k - 1);
                     let [u0, u1, u2, _] = px.sampler.get4(set);
@@ -466,7 +477,7 @@ impl PbgiIntegrator {
         let first = q.lobe.iter().map(|r| (r, q.shade));
         let rays = first.chain(q.extra.iter().map(|(r, u)| (r, *u)));
         let glossy: V = rays.map(|(r, u)| self.glossy_bounce(scene, tr, r, u)).sum();
-        let mut l = glossy / self.glossy_rays() as f32;
+        let mut l = glossy / self.glossy_rays as f32;
         if s.bsdf.diffuse.max_element() > 0.0 {
             // The diffuse lobe is the same for every incident direction: irradiance × it.
             let lobe = s.diffuse_lobe();
@@ -641,11 +652,6 @@ impl PbgiIntegrator {
             None => return false,
         }
         true
-    }
-
-    /// `--pbgi-glossy-rays`, or its default.
-    fn glossy_rays(&self) -> u32 {
-        self.settings.glossy_rays.unwrap_or(GLOSSY_RAYS)
     }
 
     /// The rough specular lobes' bounce: the hit of the direction sampled from them,

@@ -94,6 +94,13 @@ impl PbgiIntegrator {
         Some(new_record(&q, [x, y], found, cache.a()))
     }
 
+    /// The rays the passes' samples have traced: all so far but the cache's (as charged)
+    /// and the bake's, left out so that a render reading a baked file makes the same image.
+    fn sampled_rays(&self, pass: &Pass) -> u64 {
+        let cache = self.cache_rays + self.refine_rays + self.probe_rays;
+        pass.rays.saturating_sub(self.bake_samples + cache)
+    }
+
     /// What a gather that traced `rays` is charged, in rays: at least a ray per texel,
     /// since under the cut its splats and rasterized leaves are not rays but cost as much
     /// (sponza with the cut, counted by the rays they traced: 16,852 probes took a
@@ -133,8 +140,7 @@ impl PbgiIntegrator {
         if pass.first < 3 || self.probed >= self.probe_order.len() {
             return 0;
         }
-        let spent = self.bake_samples + self.cache_rays + self.refine_rays + self.probe_rays;
-        let allowed = (PROBE_SHARE * pass.rays.saturating_sub(spent) as f64) as u64;
+        let allowed = (PROBE_SHARE * self.sampled_rays(pass) as f64) as u64;
         let Some(budget) = allowed.checked_sub(self.probe_rays).filter(|&b| b > 0) else {
             return 0;
         };
@@ -219,10 +225,7 @@ impl PbgiIntegrator {
         if pass.first < 2 || cache.is_empty() {
             return 0;
         }
-        // The bake's rays are left out: a render reading a baked file makes the same image.
-        let sampled = pass.rays.saturating_sub(
-            self.bake_samples + self.cache_rays + self.refine_rays + self.probe_rays,
-        );
+        let sampled = self.sampled_rays(pass);
         let pass_rays = (sampled as f64 / n).max(1.0);
         let per_gather = self.gather_cost(cache) as f64;
         let [x0, x1, y0, y1] = self.window;
