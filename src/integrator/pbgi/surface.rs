@@ -132,6 +132,11 @@ impl Surface {
         }
     }
 
+    /// Whether the surface has rough specular lobes, which `lobe_ray` samples.
+    pub(super) fn has_rough_lobes(&self) -> bool {
+        !self.glossy().has_smooth_only()
+    }
+
     /// A direction sampled from the rough specular lobes with `u`, traced; None where
     /// there are none (or the sample is a delta, or leaves below the surface).
     pub(super) fn lobe_ray(&self, scene: &Scene, tr: &mut Tracer, u: [f32; 3]) -> Option<LobeRay> {
@@ -157,7 +162,8 @@ impl Surface {
     }
 
     /// Reflected direct light toward `wo` (the cloud holds no emission, so this is all of
-    /// it): one light sample, and the emission `lobe` found; the glossy lobes weigh the two
+    /// it): one light sample, and the emission `lobe` found (None where the lobes' sample
+    /// failed or there are no rough lobes); the glossy lobes weigh the two
     /// by the power heuristic, as the path tracer does, the diffuse lobe (which no lobe ray
     /// samples) takes the light sample at full weight.
     pub(super) fn direct(
@@ -170,14 +176,16 @@ impl Surface {
         let all = bsdf_term(self.frame, self.n, self.bsdf, self.wo_l);
         let glossy = bsdf_term(self.frame, self.n, self.glossy(), self.wo_l);
         let at = Receiver::surface(self.p, self.err, self.ng);
+        // The light sample's weight depends on the lobes, not on whether this sample's
+        // lobe ray left above the surface: full weight where one did not overstated it.
+        let rough = self.has_rough_lobes();
         let light = sample_light_weighted(scene, tr, &at, &Cone::EXACT, u, |wi, pdf_l| {
             let f = all(wi).0;
-            match lobe {
-                Some(_) => {
-                    let (g, pdf_g) = glossy(wi);
-                    f - g + g * mis_weight(pdf_l, pdf_g)
-                }
-                None => f,
+            if rough {
+                let (g, pdf_g) = glossy(wi);
+                f - g + g * mis_weight(pdf_l, pdf_g)
+            } else {
+                f
             }
         });
         light + lobe.map_or(V::ZERO, |r| self.lobe_emission(scene, r))
