@@ -1327,15 +1327,23 @@ impl Integrator for PbgiIntegrator {
                     s.bake.bounces, s.bake.bake_samples, self.bake_s
                 ),
             },
-            match s.rays {
-                true => format!(
-                    "pbgi: indirect light from a {}² hemicube micro-buffer for diffuse lobes, every texel's ray traced and reading the baked light (glossy lobes: one exact ray)",
-                    s.resolution
-                ),
-                false => format!(
-                    "pbgi: indirect light from a cut at {} texels' solid angle into a {}² hemicube micro-buffer for diffuse lobes (glossy lobes: one exact ray); near leaves rasterized with baked patch light",
-                    s.angle, s.resolution
-                ),
+            {
+                let glossy = match self.glossy_rays {
+                    1 => "glossy lobes: one exact ray".to_string(),
+                    k => format!(
+                        "glossy lobes: {k} exact rays, each paired with a light sample for direct light"
+                    ),
+                };
+                match s.rays {
+                    true => format!(
+                        "pbgi: indirect light from a {}² hemicube micro-buffer for diffuse lobes, every texel's ray traced and reading the baked light ({glossy})",
+                        s.resolution
+                    ),
+                    false => format!(
+                        "pbgi: indirect light from a cut at {} texels' solid angle into a {}² hemicube micro-buffer for diffuse lobes ({glossy}); near leaves rasterized with baked patch light",
+                        s.angle, s.resolution
+                    ),
+                }
             },
             format!(
                 "pbgi: each surface of a pixel gathers at every {}-th sample landing on it, the others reusing its gathers' irradiance",
