@@ -556,8 +556,6 @@ fn grid(n: usize, vertex: &dyn Fn(f32, f32) -> [f32; 3], flip: bool) -> String {
 fn gold_floor(dir: &std::path::Path) -> std::path::PathBuf {
     let floor = grid(32, &|u, v| [2.0 * u - 0.5, 0.0, v], false);
     let wall = grid(8, &|u, v| [2.0 * u - 0.5, 1.5 * v, 1.0], true);
-    std::fs::write(dir.join("floor.obj"), floor).unwrap();
-    std::fs::write(dir.join("wall.obj"), wall).unwrap();
     let toml = r#"
 [[camera]]
 name = "main"
@@ -580,15 +578,29 @@ type = "point"
 position = [0.5, 0.6, 0.3]
 intensity = 2.0
 "#;
+    two_obj_scene(dir, [("floor.obj", floor), ("wall.obj", wall)], toml)
+}
+
+/// Writes two OBJ files and a scene file into `dir` and converts them; returns the archive.
+fn two_obj_scene(
+    dir: &std::path::Path,
+    objs: [(&str, String); 2],
+    toml: &str,
+) -> std::path::PathBuf {
+    for (name, text) in &objs {
+        std::fs::write(dir.join(name), text).unwrap();
+    }
     std::fs::write(dir.join("scene.toml"), toml).unwrap();
-    let arc = dir.join("g.canopy");
+    let arc = dir.join("scene.canopy");
+    let [a, b] = objs.map(|(name, _)| dir.join(name));
+    let scene_file = dir.join("scene.toml");
     ok(&[
         "--quiet",
         "convert",
-        s(&dir.join("floor.obj")),
-        s(&dir.join("wall.obj")),
+        s(&a),
+        s(&b),
         "--scene",
-        s(&dir.join("scene.toml")),
+        s(&scene_file),
         "-o",
         s(&arc),
     ]);
@@ -603,16 +615,8 @@ intensity = 2.0
 fn a_lobe_ray_that_leaves_below_the_surface_keeps_the_light_samples_weight() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    std::fs::write(
-        d.join("floor.obj"),
-        grid(8, &|u, v| [4.0 * u - 2.0, 0.0, 4.0 * v], false),
-    )
-    .unwrap();
-    std::fs::write(
-        d.join("lamp.obj"),
-        grid(1, &|u, v| [6.0 * u - 3.0, 0.6, 6.0 * v], true),
-    )
-    .unwrap();
+    let floor = grid(8, &|u, v| [4.0 * u - 2.0, 0.0, 4.0 * v], false);
+    let lamp = grid(1, &|u, v| [6.0 * u - 3.0, 0.6, 6.0 * v], true);
     let toml = r#"
 [[camera]]
 name = "main"
@@ -632,23 +636,7 @@ emission = [5.0, 5.0, 5.0]
 "floor.obj" = "steel"
 "lamp.obj" = "lamp"
 "#;
-    std::fs::write(d.join("scene.toml"), toml).unwrap();
-    let arc = d.join("m.canopy");
-    let files = [
-        d.join("floor.obj"),
-        d.join("lamp.obj"),
-        d.join("scene.toml"),
-    ];
-    ok(&[
-        "--quiet",
-        "convert",
-        s(&files[0]),
-        s(&files[1]),
-        "--scene",
-        s(&files[2]),
-        "-o",
-        s(&arc),
-    ]);
+    let arc = two_obj_scene(d, [("floor.obj", floor), ("lamp.obj", lamp)], toml);
     let small = ["--width", "32", "--height", "24", "--max-depth", "2"];
     let run =
         |name: &str, flags: &[&str]| render(&arc, &d.join(name), &[&small[..], flags].concat()).0;

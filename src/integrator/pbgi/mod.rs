@@ -41,6 +41,7 @@
 pub mod bake;
 pub mod cache;
 pub mod cluster;
+mod cut;
 pub mod glossy;
 pub mod microbuffer;
 pub mod patch;
@@ -50,27 +51,23 @@ mod surface;
 use super::edge::{EdgeRays, DEFAULT_EDGE_RAYS};
 use super::{on_side, Counters, Integrator, Pass, PixelSample, Scene, Stats, Target};
 use crate::material::{Bsdf, Frame};
-use crate::paging::{NodeRef, Page, TNode};
 use crate::sampler::PixelSampler;
-use crate::trace::{offset_origin, Hit, Ray, Tracer, NO_INSTANCE};
+use crate::trace::{offset_origin, Hit, Ray, Tracer};
 use anyhow::Result;
-use bake::{Directional, Hash};
+use bake::Hash;
 use cache::IrradianceCache;
+use cut::Field;
 use glam::{Vec3, Vec3A as V};
 use microbuffer::{Gradients, MicroBuffer, Texels};
 use std::cell::RefCell;
-use std::f32::consts::PI;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Mutex, PoisonError};
 use std::time::Instant;
 use surface::{hit_light, LobeRay, Surface};
 
 /// Smooth bounces followed before giving up on a path.
 const SMOOTH_DEPTH: u32 = 8;
-
-/// A node is near (its children are visited) while x is within this many bounding radii.
-const NEAR: f32 = 1.5;
 
 /// PBGI's parameters (its command-line flags, refused under another integrator).
 #[derive(Clone, Debug, clap::Args)]
@@ -711,66 +708,6 @@ impl PbgiIntegrator {
         })
     }
 
-    /// Fills the micro-buffer from the cut: far nodes splatted, near leaves rasterized and
-    /// their nearest hit per texel ray shaded, exact rays where a leaf's cone found nothing.
-    fn fill_from_cut(
-        &self,
-        scene: &Scene,
-        tr: &mut Tracer,
-        s: &Surface,
-        field: Option<&Field>,
-        sc: &mut Scratch,
-        strata: Strata,
-    ) {
-        sc.aimed.clear();
-        sc.aimed.resize(sc.rays.len(), false);
-        sc.nearest.clear();
-        sc.nearest.resize(sc.rays.len(), None);
-        sc.stack.clear();
-        match field {
-            Some(f) => {
-                for far in &f.far {
-                    self.splat(s, far, &mut sc.mb);
-                }
-                sc.stack.extend_from_slice(&f.near);
-            }
-            None => {
-                let root = tr.page_handle(scene.cache.root_page());
-                sc.stack
-                    .extend((0..root.roots.min(root.bvh.len() as u32)).map(|r| (root.id, r)));
-            }
-        }
-        self.cut(scene, tr, s, sc);
-        let (mut gaps, mut fragments, mut exact) = (0, 0, 0);
-        let mut page: Option<Arc<Page>> = None;
-        for j in 0..sc.rays.len() {
-            let (k, w, weight) = sc.rays[j];
-            match sc.nearest[j] {
-                Some(hit) => {
-                    let p = match page.take() {
-                        Some(p) if p.id == hit.page => p,
-                        _ => tr.page_handle(hit.page),
-                    };
-                    let (sends, sampled) = hit_light(scene, tr, &p, &hit, w, strata.shading(k));
-                    let id = (1 << 62) | (hit.leaf << 3) | hit.slot as u64;
-                    let l = Vec3::from(sends * weight);
-                    sc.mb.fill(k as usize, hit.t, id, l, sampled);
-                    page = Some(p);
-                    fragments += 1;
-                    exact += sampled as u64;
-                }
-                None if sc.aimed[j] => {
-                    gaps += 1;
-                    self.texel_ray(scene, tr, s, (k as usize, weight), w, strata, &mut sc.mb);
-                }
-                None => {}
-            }
-        }
-        self.gap_rays.fetch_add(gaps, Relaxed);
-        self.near_fragments.fetch_add(fragments, Relaxed);
-        self.exact_hits.fetch_add(exact, Relaxed);
-    }
-
     /// Irradiance from the cloud at a bake point q of a front face with normal `ng` (the
     /// next bounce of `bake`).
     pub fn irradiance(&self, scene: &Scene, tr: &mut Tracer, q: V, err: V, ng: V, key: u64) -> V {
@@ -801,192 +738,6 @@ impl PbgiIntegrator {
             index: 0,
         };
         self.gather_irradiance(scene, tr, &s, strata, None).0
-    }
-
-    /// Walks the hierarchy from the nodes on `sc.stack`: far nodes are splatted, near
-    /// leaves rasterized.
-    fn cut(&self, scene: &Scene, tr: &mut Tracer, s: &Surface, sc: &mut Scratch) {
-        let Some(&(first, _)) = sc.stack.last() else {
-            return;
-        };
-        let mut page = tr.page_handle(first);
-        let mut splatted = 0;
-        while let Some((pid, i)) = sc.stack.pop() {
-            if page.id != pid {
-                page = tr.page_handle(pid);
-            }
-            let Some(node) = page.bvh.get(i as usize) else {
-                continue;
-            };
-            let (c, r) = node_sphere(node);
-            let v = c - s.p;
-            if v.dot(s.n) < -r {
-                continue;
-            }
-            if let Some(far) = self.far(&page, i, c, r, s.p) {
-                splatted += 1;
-                scene.touched.insert(far.id);
-                self.splat(s, &far, &mut sc.mb);
-                continue;
-            }
-            match node.link() {
-                NodeRef::Leaf { first, count } => {
-                    let leaf = page.first_node + i as u64;
-                    self.raster_leaf(scene, s, &page, leaf, first..first + count, sc);
-                }
-                NodeRef::Inner(l, rr) => sc.stack.extend([(pid, l), (pid, rr)]),
-                NodeRef::ChildPage(cp) => sc.stack.extend([(cp, 0), (cp, 1)]),
-                // PBGI refuses instanced archives (`integrator::refuse_instances`).
-                NodeRef::Instance(_) => {}
-            }
-        }
-        self.splatted.fetch_add(splatted, Relaxed);
-    }
-
-    /// Node i of `page` (bounding sphere c, r) as one splat seen from p, when its sphere
-    /// subtends at most `--pbgi-angle` smallest texels and p lies outside NEAR radii.
-    fn far(&self, page: &Page, i: u32, c: V, r: f32, p: V) -> Option<Far> {
-        let texels = &self.texels;
-        let omega_max = self.settings.angle * texels.min_solid_angle;
-        let node = page.bvh.get(i as usize)?;
-        // A leaf within one texel is splatted even when the cut asks for more.
-        let limit = if matches!(node.link(), NodeRef::Leaf { .. }) {
-            omega_max.max(texels.min_solid_angle)
-        } else {
-            omega_max
-        };
-        let v = c - p;
-        let d = v.length();
-        if !(d > NEAR * r && PI * r * r <= limit * d * d) {
-            return None;
-        }
-        let shown = page
-            .baked
-            .nodes
-            .get(i as usize)
-            .copied()
-            .unwrap_or_default();
-        // Seen from behind, a node still hides what lies beyond it.
-        let (front, mut power) = shown.toward(-v / d);
-        if let Some(g) = page.glossy.get(i as usize, Vec3::from(-v / d)) {
-            // Haar truncation can ring below zero; no direction sends negative light.
-            let w = crate::paging::coefs::weight(&shown);
-            power += V::from(g * w).max(V::ZERO);
-        }
-        let back = shown.toward(v / d).0;
-        let area = front.max(back);
-        let sends = if area > 0.0 { power / area } else { V::ZERO };
-        Some(Far {
-            w: v / d,
-            d,
-            omega: area / (d * d),
-            id: page.first_node + i as u64,
-            sends: Vec3::from(sends),
-        })
-    }
-
-    fn splat(&self, s: &Surface, f: &Far, mb: &mut MicroBuffer) {
-        let dir = Vec3::from(s.frame.to_local(f.w));
-        mb.splat(&self.texels, dir, f.d, f.omega, f.id, f.sends);
-    }
-
-    /// A cluster's shared part of the cut (003 §3), walked for its active receiver x_C:
-    /// a node is far for the whole cluster when its radius R ≤ ε·d (d from x_C to the
-    /// node's centre: sharing the splat errs by about R/d in direction); far nodes are
-    /// splatted from x_C when small enough, else visited further; near nodes are left for
-    /// each receiver to refine.
-    /// A node is dropped only when it lies below every member's tangent plane, so a
-    /// cluster of one makes exactly PBGI's cut.
-    fn field(&self, scene: &Scene, tr: &mut Tracer, members: &[&Surface], xc: &Surface) -> Field {
-        let radius = members
-            .iter()
-            .map(|m| (m.p - xc.p).length())
-            .fold(0.0, f32::max);
-        let mut field = Field::default();
-        let mut stack: Vec<(u32, u32)> = Vec::new();
-        let mut page = tr.page_handle(scene.cache.root_page());
-        stack.extend((0..page.roots.min(page.bvh.len() as u32)).map(|r| (page.id, r)));
-        while let Some((pid, i)) = stack.pop() {
-            if page.id != pid {
-                page = tr.page_handle(pid);
-            }
-            let Some(node) = page.bvh.get(i as usize) else {
-                continue;
-            };
-            let (c, r) = node_sphere(node);
-            if members.iter().all(|m| (c - m.p).dot(m.n) < -r) {
-                continue;
-            }
-            let d = (c - xc.p).length();
-            if radius > self.settings.far * d {
-                field.near.push((pid, i));
-                continue;
-            }
-            if let Some(far) = self
-                .far(&page, i, c, r, xc.p)
-                .filter(|_| all_outside(d, radius, r))
-            {
-                scene.touched.insert(far.id);
-                field.far.push(far);
-                continue;
-            }
-            match node.link() {
-                NodeRef::Leaf { .. } => field.near.push((pid, i)),
-                NodeRef::Inner(l, rr) => stack.extend([(pid, l), (pid, rr)]),
-                NodeRef::ChildPage(cp) => stack.extend([(cp, 0), (cp, 1)]),
-                NodeRef::Instance(_) => {}
-            }
-        }
-        self.splatted.fetch_add(field.far.len() as u64, Relaxed);
-        field
-    }
-
-    /// FPBGI over one batch: receivers clustered, one field per cluster, each receiver's
-    /// gather starting from its cluster's field.
-    fn sample_clustered(
-        &self,
-        scene: &Scene,
-        tr: &mut Tracer,
-        pxs: &[PixelSample],
-        c: &mut Counters,
-    ) -> Vec<V> {
-        let firsts: Vec<(V, Option<Pending>)> = pxs
-            .iter()
-            .map(|px| self.first_hit(scene, tr, px, c))
-            .collect();
-        let mut out: Vec<V> = firsts.iter().map(|f| f.0).collect();
-        let mut at = Vec::new();
-        for (i, q) in firsts.iter().enumerate() {
-            let Some(q) = &q.1 else {
-                continue;
-            };
-            match self.reuse(tr, q) {
-                Reuse::Gather(strata) => at.push((i, strata)),
-                r => out[i] += q.beta * self.gather(scene, tr, q, None, Some(r)),
-            }
-        }
-        let pending: Vec<&Pending> = at
-            .iter()
-            .filter_map(|&(i, _)| firsts[i].1.as_ref())
-            .collect();
-        let p: Vec<V> = pending.iter().map(|q| q.s.p).collect();
-        let n: Vec<V> = pending.iter().map(|q| q.s.n).collect();
-        for cl in cluster::kmeans(&p, &n, self.settings.clusters) {
-            let members: Vec<&Surface> = cl.members.iter().map(|&m| &pending[m].s).collect();
-            let field = self.field(scene, tr, &members, &pending[cl.active].s);
-            for &m in &cl.members {
-                let (q, (i, strata)) = (pending[m], at[m]);
-                let gathered = self.gather(scene, tr, q, Some(&field), Some(Reuse::Gather(strata)));
-                out[i] += q.beta * gathered;
-            }
-        }
-        self.clusters.fetch_add(p.len() as u64, Relaxed);
-        out.into_iter()
-            .map(|l| {
-                c.paths += 1;
-                c.finite(l)
-            })
-            .collect()
     }
 
     /// Texel k's ray traced exactly, its hit shaded as a rasterized hit and weighted as the
@@ -1024,108 +775,6 @@ impl PbgiIntegrator {
             sampled,
         );
     }
-
-    /// A leaf too near or too wide to splat, rasterized: each of x's texel rays that
-    /// meets one of its triangles keeps the nearest hit, an opaque fragment once shaded
-    /// (`hit_light`).
-    fn raster_leaf(
-        &self,
-        scene: &Scene,
-        s: &Surface,
-        page: &Page,
-        leaf: u64,
-        tris: std::ops::Range<u32>,
-        sc: &mut Scratch,
-    ) {
-        let Some(node) = page.bvh.get((leaf - page.first_node) as usize) else {
-            return;
-        };
-        let (c, r) = node_sphere(node);
-        let v = c - s.p;
-        let d = v.length();
-        // Rays outside the cone around the leaf's sphere miss it.
-        let cos_cone = if d > r {
-            (1.0 - (r / d).powi(2)).sqrt()
-        } else {
-            -1.0
-        };
-        let axis = v / d.max(f32::MIN_POSITIVE);
-        sc.in_cone.clear();
-        for (j, &(_, w, _)) in sc.rays.iter().enumerate() {
-            if w.dot(axis) >= cos_cone {
-                sc.in_cone.push(j as u32);
-            }
-        }
-        if sc.in_cone.is_empty() {
-            return;
-        }
-        // Rays leave from just above x, as exact rays do, so x's neighbours on its own
-        // surface (coplanar up to rounding) do not block its horizon.
-        let o = offset_origin(s.p, s.err, s.ng, s.n);
-        let mut met = false;
-        for t in tris.clone() {
-            let Some(tri) = page.tri(t) else {
-                continue;
-            };
-            let p = tri.p.map(V::from);
-            let ng = (p[1] - p[0]).cross(p[2] - p[0]);
-            // A triangle in x's own plane is seen edge-on: it neither sends nor hides.
-            if ng.dot(s.p - p[0]).abs() <= 1e-6 * ng.length() * (r + d) {
-                continue;
-            }
-            let slot = t - tris.start;
-            for &j in &sc.in_cone {
-                sc.aimed[j as usize] = true;
-            }
-            for &j in &sc.in_cone {
-                let j = j as usize;
-                let Some((depth, b)) = intersect(o, sc.rays[j].1, p) else {
-                    continue;
-                };
-                met = true;
-                if sc.nearest[j].is_some_and(|h| h.t <= depth) {
-                    continue;
-                }
-                sc.nearest[j] = Some(Hit {
-                    t: depth,
-                    b,
-                    tri,
-                    page: page.id,
-                    leaf,
-                    slot,
-                    curvature: 0.0,
-                    instance: NO_INSTANCE,
-                    instance_leaf: 0,
-                    transform_err: V::ZERO,
-                    uv: page.uvs.get(t as usize).copied().unwrap_or_default(),
-                });
-            }
-        }
-        if met {
-            scene.touched.insert(leaf);
-        }
-    }
-}
-
-/// Möller–Trumbore: distance along unit `w` from `o` to triangle `p` and the hit's
-/// barycentrics, if it is ahead.
-fn intersect(o: V, w: V, p: [V; 3]) -> Option<(f32, [f32; 3])> {
-    let (e1, e2) = (p[1] - p[0], p[2] - p[0]);
-    let q = w.cross(e2);
-    let det = e1.dot(q);
-    if det == 0.0 || !det.is_finite() {
-        return None;
-    }
-    let inv = 1.0 / det;
-    let sv = o - p[0];
-    let u = sv.dot(q) * inv;
-    let rv = sv.cross(e1);
-    let v = w.dot(rv) * inv;
-    if u < 0.0 || v < 0.0 || u + v > 1.0 {
-        return None;
-    }
-    let t = e2.dot(rv) * inv;
-    (t > 0.0).then_some((t, [1.0 - u - v, u, v]))
 }
 
 /// Whether a surface lies over `s` within `reach` along its normal.
@@ -1136,20 +785,6 @@ fn covered_over(tr: &mut Tracer, s: &Surface, reach: f32) -> bool {
         d: n,
         t_max: reach,
     })
-}
-
-/// Whether every member of a cluster (within `radius` of its active receiver) lies
-/// outside NEAR bounding radii r of a node at distance d from that receiver: only then
-/// may the cluster share the node's splat, so no member inside the node's box does,
-/// whatever `--cluster-far` is (003 §3's test R ≤ ε·d alone allows it when ε is large).
-fn all_outside(d: f32, radius: f32, r: f32) -> bool {
-    d - radius > NEAR * r
-}
-
-/// The bounding sphere of a node's decoded box.
-fn node_sphere(node: &TNode) -> (V, f32) {
-    let (lo, hi) = (V::from(node.lo), V::from(node.hi));
-    ((lo + hi) * 0.5, (hi - lo).length() * 0.5)
 }
 
 /// A gather's place in a sequence of gathers at one pixel or record: texel k's ray is
@@ -1216,24 +851,6 @@ struct Pending {
     at: Option<(usize, f32)>,
     /// Its sample number in the pixel.
     sample: u32,
-}
-
-/// A node splatted whole, as seen from the point its cut was walked for.
-#[derive(Clone, Copy, Debug)]
-struct Far {
-    /// Unit world direction to the node's centre, and the distance.
-    w: V,
-    d: f32,
-    omega: f32,
-    id: u64,
-    sends: Vec3,
-}
-
-/// What a cluster's receivers share: far splats and the near nodes to refine.
-#[derive(Default)]
-struct Field {
-    far: Vec<Far>,
-    near: Vec<(u32, u32)>,
 }
 
 impl Integrator for PbgiIntegrator {
@@ -1429,22 +1046,6 @@ impl Integrator for PbgiIntegrator {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::test_rng::TestRng;
-
-    /// A cluster with a member inside a node's box never shares that node's splat.
-    #[test]
-    fn a_receiver_inside_a_nodes_box_keeps_the_node_near() {
-        let mut rng = TestRng::new(11);
-        let mut v = || V::new(rng.f32(), rng.f32(), rng.f32());
-        for _ in 0..2000 {
-            let (lo, size) = (v() * 4.0 - 2.0, v() + V::splat(0.01));
-            let (c, r) = ((lo + lo + size) * 0.5, size.length() * 0.5);
-            let inside = lo + size * v();
-            let xc = v() * 20.0 - 10.0;
-            let radius = (inside - xc).length() * (1.0 + v().x);
-            assert!(!all_outside((c - xc).length(), radius, r));
-        }
-    }
 
     /// A pixel's or record's successive gathers stratify each texel between them: the
     /// first 16 jitters of a texel fall one in each cell of a 4×4 grid and one in each of
