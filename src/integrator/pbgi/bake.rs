@@ -16,6 +16,7 @@ use super::glossy::{self, GlossyMaps, WaveletMode};
 use super::patch;
 use crate::integrator::{sample_light, Receiver, Scene};
 use crate::paging::{deepest_first, NodeRef, Page};
+use crate::texture;
 use crate::trace::{gamma, Cone, Tracer};
 use crate::wavelet::tree::SparseVec;
 use anyhow::{bail, Result};
@@ -370,10 +371,11 @@ impl PageJob<'_, '_> {
                         let Some(tri) = page.tri(k) else {
                             continue;
                         };
+                        let uv = page.uvs.get(k as usize).copied().unwrap_or_default();
                         let t = triangle(
                             self.scene,
                             self.tr,
-                            &tri,
+                            (&tri, uv),
                             self.p,
                             self.a_max,
                             key,
@@ -453,7 +455,7 @@ struct BakedTriangle {
 fn triangle(
     scene: &Scene,
     tr: &mut Tracer,
-    t: &crate::paging::TriW,
+    (t, uv): (&crate::paging::TriW, [[f32; 2]; 3]),
     p: &BakeParams,
     a_max: f32,
     key: u64,
@@ -479,20 +481,38 @@ fn triangle(
     }
     let err = (v[0].abs() + v[1].abs() + v[2].abs()) * gamma(7);
     let seeded = |key: u64| Hash::new(p.seed as u64 ^ key.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    let textured = scene.textures.varies(t.material);
     let mut direct = |tri: [V; 3], key: u64| {
         let mut rng = seeded(key);
         let mut sum = V::ZERO;
+        let side = (tri[1] - tri[0]).length().max((tri[2] - tri[0]).length());
         for _ in 0..p.samples {
             let q = uniform_point(tri, &mut rng);
+            // The albedo and normal map at q, as the path tracer shades there (the albedo
+            // filtered over the patch's side, normal maps read at level 0 as always); the
+            // triangle's mean albedo and geometric normal left the bumps scene 3% bright.
+            let (rho, n) = match textured {
+                true => {
+                    let b = barycentrics(v, q);
+                    let shaded = scene.material_at(t.material, &t.p, uv, b, -ng, side);
+                    let n = shaded.bump.map_or(ng, |tn| texture::perturb(v, uv, ng, tn));
+                    (shaded.m.bsdf(true).diffuse, n)
+                }
+                false => (rho, ng),
+            };
             // Light sampling alone (BSDF pdf 0 gives it full weight): nothing else samples
-            // the emitters here.
+            // the emitters here. A tilted normal takes no light from below the surface,
+            // as `on_side` has it.
             sum += sample_light(
                 scene,
                 tr,
                 &Receiver::surface(q, err, ng),
                 &Cone::EXACT,
                 [rng.f32(), rng.f32(), rng.f32()],
-                |wi| (rho * (FRAC_1_PI * ng.dot(wi).max(0.0)), 0.0),
+                |wi| match ng.dot(wi) > 0.0 {
+                    true => (rho * (FRAC_1_PI * n.dot(wi).max(0.0)), 0.0),
+                    false => (V::ZERO, 0.0),
+                },
             );
         }
         sum / p.samples as f32
@@ -527,6 +547,15 @@ fn triangle(
         samples: p.samples as u64 * finest.len() as u64,
         pyramid: patch::pyramid(&finest, k),
     }
+}
+
+/// The barycentrics (weights of vertices 0, 1, 2) of a point `q` in triangle `v`'s plane.
+fn barycentrics(v: [V; 3], q: V) -> [f32; 3] {
+    let (e1, e2, d) = (v[1] - v[0], v[2] - v[0], q - v[0]);
+    let c = e1.cross(e2);
+    let inv = 1.0 / c.length_squared();
+    let (b1, b2) = (d.cross(e2).dot(c) * inv, e1.cross(d).dot(c) * inv);
+    [1.0 - b1 - b2, b1, b2]
 }
 
 /// A uniform point of triangle `tri` (the unit square folded onto it).
