@@ -78,7 +78,7 @@ impl Settings {
     /// lobes where no material has rough specular lobes.
     pub fn check_scene(&self, scene: &Scene) -> anyhow::Result<()> {
         if let Settings::Pbgi(p) = self {
-            let glossy = scene.materials.iter().any(pbgi::glossy::stores_glossy);
+            let glossy = pbgi::glossy::any_glossy(scene);
             if let Some(k) = p.glossy_rays.filter(|&k| k > 1 && !glossy) {
                 anyhow::bail!(
                     "--pbgi-glossy-rays {k}: no material of {} is a rough metal or rough dielectric, so no receiver has a glossy lobe to sample",

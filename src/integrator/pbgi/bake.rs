@@ -170,7 +170,7 @@ impl BakeParams {
 
     /// The glossy maps this scene gets under `--wavelet`.
     fn maps(&self, scene: &Scene) -> Result<Option<GlossyMaps>> {
-        let glossy = scene.materials.iter().any(glossy::stores_glossy);
+        let glossy = glossy::any_glossy(scene);
         let on = match self.wavelet {
             WaveletMode::Off => false,
             WaveletMode::Auto => glossy,

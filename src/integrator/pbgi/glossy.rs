@@ -37,6 +37,11 @@ pub fn stores_glossy(m: &Material) -> bool {
     !m.is_pure_diffuse() && !m.has_delta_lobe()
 }
 
+/// Whether some material of the scene has rough specular lobes.
+pub fn any_glossy(scene: &Scene) -> bool {
+    scene.materials.iter().any(stores_glossy)
+}
+
 /// How a bake tabulates glossy light: texel centres of the n×n cube map and the relative
 /// truncation threshold.
 pub struct GlossyMaps {

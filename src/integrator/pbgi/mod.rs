@@ -316,7 +316,7 @@ impl PbgiIntegrator {
     pub fn new(settings: &PbgiSettings, scene: &Scene, target: &Target) -> PbgiIntegrator {
         let seed = target.seed;
         // Where no material has rough specular lobes, no receiver draws extra rays' numbers.
-        let glossy = scene.materials.iter().any(glossy::stores_glossy);
+        let glossy = glossy::any_glossy(scene);
         let glossy_rays = match settings.glossy_rays {
             Some(k) => k,
             None if glossy => GLOSSY_RAYS,
@@ -419,10 +419,13 @@ impl PbgiIntegrator {
             let [ud0, ud1, ..] = px.sampler.get4(2 * depth + 2);
             let lobe = s.lobe_ray(scene, tr, [u_lobe, ud0, ud1]);
             let mut direct = s.direct(scene, tr, [u_pick, ul0, ul1], lobe.as_ref());
+            // Each lobe ray is kept with the numbers for shading its hit: the first's from
+            // the pixel's next two sets.
+            let [a, b, c, d] = px.sampler.get4(2 * depth + 3);
+            let [e, f, ..] = px.sampler.get4(2 * depth + 4);
+            let mut rays: Vec<_> = lobe.into_iter().map(|r| (r, [a, b, c, d, e, f])).collect();
             // A glossy receiver's other K − 1 lobe rays, each paired with a light sample
-            // for direct light and kept with the numbers for shading its hit: three sets
-            // of the pixel's sequence past those of the first.
-            let mut extra = Vec::new();
+            // for direct light: three sets of the pixel's sequence past those of the first.
             if s.has_rough_lobes() && self.glossy_rays > 1 {
                 for k in 1..self.glossy_rays {
                     let set = 2 * depth + 5 + 3 * (k - 1);
@@ -431,7 +434,7 @@ impl PbgiIntegrator {
                     let [e, f, p1, p2] = px.sampler.get4(set + 2);
                     let r = s.lobe_ray(scene, tr, [u0, u1, u2]);
                     direct += s.direct(scene, tr, [p0, p1, p2], r.as_ref());
-                    extra.extend(r.map(|r| (r, [a, b, c, d, e, f])));
+                    rays.extend(r.map(|r| (r, [a, b, c, d, e, f])));
                 }
                 direct /= self.glossy_rays as f32;
             }
@@ -444,13 +447,9 @@ impl PbgiIntegrator {
                 / scene.camera.height as f32;
             let at = Some((px.at, footprint));
             let sample = px.index;
-            let [a, b, c, d] = px.sampler.get4(2 * depth + 3);
-            let [e, f, ..] = px.sampler.get4(2 * depth + 4);
             let q = Pending {
                 s,
-                extra,
-                lobe,
-                shade: [a, b, c, d, e, f],
+                rays,
                 beta,
                 key,
                 at,
@@ -477,9 +476,9 @@ impl PbgiIntegrator {
         known: Option<Reuse>,
     ) -> V {
         let s = &q.s;
-        let first = q.lobe.iter().map(|r| (r, q.shade));
-        let rays = first.chain(q.extra.iter().map(|(r, u)| (r, *u)));
-        let glossy: V = rays.map(|(r, u)| self.glossy_bounce(scene, tr, r, u)).sum();
+        let glossy: V = (q.rays.iter())
+            .map(|(r, u)| self.glossy_bounce(scene, tr, r, *u))
+            .sum();
         let mut l = glossy / self.glossy_rays as f32;
         if s.bsdf.diffuse.max_element() > 0.0 {
             // The diffuse lobe is the same for every incident direction: irradiance × it.
@@ -836,13 +835,10 @@ enum Reuse {
 /// A receiver whose indirect bounce is still to be gathered.
 struct Pending {
     s: Surface,
-    /// The ray sampled from x's rough specular lobes, if it has any.
-    lobe: Option<LobeRay>,
-    /// `--pbgi-glossy-rays`' other rays from those lobes, each with the numbers for
-    /// shading its hit.
-    extra: Vec<(LobeRay, [f32; 6])>,
-    /// The pixel sequence's numbers for shading that ray's hit.
-    shade: [f32; 6],
+    /// The rays sampled from x's rough specular lobes (`--pbgi-glossy-rays`; none where it
+    /// has none, or where a sample left below the surface), each with the pixel
+    /// sequence's numbers for shading its hit.
+    rays: Vec<(LobeRay, [f32; 6])>,
     /// Path weight from the camera to x.
     beta: V,
     /// Seed of its exact rays.
