@@ -75,14 +75,25 @@ impl Settings {
     }
 
     /// Refuses settings the scene gives nothing to do: more than one ray from glossy
-    /// lobes where no material has rough specular lobes.
+    /// lobes, or splitting them, where no material has rough specular lobes; splitting
+    /// with one ray, which shows no spread.
     pub fn check_scene(&self, scene: &Scene) -> anyhow::Result<()> {
         if let Settings::Pbgi(p) = self {
             let glossy = pbgi::glossy::any_glossy(scene);
+            let path = scene.cache.archive.path().display();
             if let Some(k) = p.glossy_rays.filter(|&k| k > 1 && !glossy) {
                 anyhow::bail!(
-                    "--pbgi-glossy-rays {k}: no material of {} is a rough metal or rough dielectric, so no receiver has a glossy lobe to sample",
-                    scene.cache.archive.path().display()
+                    "--pbgi-glossy-rays {k}: no material of {path} is a rough metal or rough dielectric, so no receiver has a glossy lobe to sample"
+                );
+            }
+            if let Some(n) = p.split.filter(|&n| n > 1 && !glossy) {
+                anyhow::bail!(
+                    "--pbgi-split {n}: no material of {path} is a rough metal or rough dielectric, so no receiver has a glossy lobe to split"
+                );
+            }
+            if let (Some(n), Some(1)) = (p.split.filter(|&n| n > 1), p.glossy_rays) {
+                anyhow::bail!(
+                    "--pbgi-split {n} needs --pbgi-glossy-rays of 2 or more: a receiver's spread is measured between its first two pairs"
                 );
             }
         }
