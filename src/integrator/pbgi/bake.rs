@@ -538,12 +538,14 @@ fn triangle(
         }
     };
     let mut patches = level(k);
+    let mut baked = patches.len();
     // A shadow's edge across the patches: bake them REFINE levels finer, so that a
     // contact's shadow is not averaged with the light beside it (on the showroom the gold
     // bunny's base, whose glossy bounce sees its plinth's top, was 1.6% dark).
     if k > 0 && k < MAX_PATCH_DEPTH && disagree(&patches) {
         k = (k + REFINE).min(MAX_PATCH_DEPTH);
         patches = level(k);
+        baked += patches.len();
     }
     let mut finest: Vec<V> = patches.iter().map(|p| p.l).collect();
     if let Some(g) = gather {
@@ -564,7 +566,7 @@ fn triangle(
     BakedTriangle {
         node: BakedNode::patch(area, ng, mean),
         depth: k,
-        samples: p.samples as u64 * finest.len() as u64,
+        samples: p.samples as u64 * baked as u64,
         pyramid: patch::pyramid(&finest, k),
     }
 }
