@@ -407,6 +407,25 @@ fn gold_bunny<'a>(
     }
 }
 
+/// PBGI on the gold bunny (`gold_bunny`'s renderer) at 64 spp, seed 1, with `flag value`.
+fn bunny_pbgi(
+    run: &dyn Fn(&str, &[&str]) -> (Image, serde_json::Value),
+    flag: &str,
+    value: &str,
+) -> (Image, serde_json::Value) {
+    let flags = [
+        "--integrator",
+        "pbgi",
+        "--spp",
+        "64",
+        "--seed",
+        "1",
+        flag,
+        value,
+    ];
+    run(&format!("pbgi{value}.exr"), &flags)
+}
+
 /// Direct light on the showroom's rough gold bunny (GGX α 0.09) under a large panel: a
 /// light sample alone rarely falls in the narrow lobe, so PBGI weighs it against the ray
 /// it samples from the lobe anyway (MIS, as the path tracer does). At `--max-depth 2`, with
@@ -454,10 +473,7 @@ fn splitting_a_glossy_receivers_pairs_by_its_pixels_spread_keeps_the_mean_and_lo
     let dir = tempfile::tempdir().unwrap();
     let bunny = gold_bunny(dir.path(), "3");
     let (reference, _) = bunny("ref.exr", &["--spp", "8192", "--seed", "3"]);
-    let pbgi = |split: &str| {
-        let flags = ["--integrator", "pbgi", "--spp", "64", "--seed", "1"];
-        bunny("pbgi.exr", &[&flags[..], &["--pbgi-split", split]].concat())
-    };
+    let pbgi = |n| bunny_pbgi(&bunny, "--pbgi-split", n);
     let ((two, two_stats), (split, stats)) = (pbgi("2"), pbgi("32"));
     assert!(all_finite(&split));
     assert_mean_within_noise(&split, &reference, "gold bunny, split");
@@ -481,13 +497,7 @@ fn more_rays_from_a_glossy_lobe_keep_the_mean_and_lower_the_error() {
     let dir = tempfile::tempdir().unwrap();
     let run = gold_bunny(dir.path(), "3");
     let (reference, _) = run("ref.exr", &["--spp", "8192", "--seed", "3"]);
-    let pbgi = |k: &str| {
-        let flags = ["--integrator", "pbgi", "--spp", "64", "--seed", "1"];
-        run(
-            &format!("k{k}.exr"),
-            &[&flags[..], &["--pbgi-glossy-rays", k]].concat(),
-        )
-    };
+    let pbgi = |k| bunny_pbgi(&run, "--pbgi-glossy-rays", k);
     let ((one, one_stats), (four, four_stats)) = (pbgi("1"), pbgi("4"));
     assert!(all_finite(&four));
     assert_mean_within_noise(&four, &reference, "gold bunny, four glossy rays");
