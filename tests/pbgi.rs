@@ -389,7 +389,7 @@ fn receivers_in_a_gap_the_records_did_not_see_gather_for_themselves() {
 fn gold_bunny<'a>(
     dir: &'a std::path::Path,
     depth: &'a str,
-) -> impl Fn(&str, &[&str]) -> (Image, serde_json::Value) + 'a {
+) -> impl Fn(&str, &[&str]) -> Rendered + 'a {
     let arc = dir.join("s.canopy");
     convert(&scene("showroom.glb"), &arc, None);
     move |name, flags| {
@@ -407,12 +407,11 @@ fn gold_bunny<'a>(
     }
 }
 
+/// A render's image and stats.
+type Rendered = (Image, serde_json::Value);
+
 /// PBGI on the gold bunny (`gold_bunny`'s renderer) at 64 spp, seed 1, with `flag value`.
-fn bunny_pbgi(
-    run: &dyn Fn(&str, &[&str]) -> (Image, serde_json::Value),
-    flag: &str,
-    value: &str,
-) -> (Image, serde_json::Value) {
+fn bunny_pbgi(run: &dyn Fn(&str, &[&str]) -> Rendered, flag: &str, value: &str) -> Rendered {
     let flags = [
         "--integrator",
         "pbgi",
