@@ -293,7 +293,7 @@ impl Gathered {
 const GLOSSY_RAYS: u32 = 2;
 
 /// Most pairs and bounce rays per glossy receiver, unless `--pbgi-split` says, where
-/// some material has rough specular lobes and K is 2 or more.
+/// some material has rough specular lobes (`Split::new` splits only where K is 2 or more).
 const SPLIT: u32 = 32;
 
 /// Samples of each pixel whose cached receivers are checked for a surface over them.
@@ -346,7 +346,7 @@ impl PbgiIntegrator {
         };
         let split = match settings.split {
             Some(n) => n,
-            None if glossy && glossy_rays > 1 => SPLIT,
+            None if glossy => SPLIT,
             None => 1,
         };
         let pixels = scene.camera.width as usize * scene.camera.height as usize;
@@ -460,10 +460,7 @@ impl PbgiIntegrator {
             // The first `bounce` carry the bounce, the first `direct` direct light.
             let split::Counts { direct: n, bounce } = match s.has_rough_lobes() {
                 true => self.split.counts(px.at, self.glossy_rays),
-                false => split::Counts {
-                    direct: 1,
-                    bounce: 1,
-                },
+                false => split::Counts::both(1),
             };
             let (mut sum, mut second) = (direct, V::ZERO);
             for k in 1..n.max(bounce) {
@@ -474,7 +471,10 @@ impl PbgiIntegrator {
                 let r = s.lobe_ray(scene, tr, [u0, u1, u2]);
                 if k < n {
                     let pair = s.direct(scene, tr, [p0, p1, p2], r.as_ref());
-                    (sum, second) = (sum + pair, if k == 1 { pair } else { second });
+                    if k == 1 {
+                        second = pair;
+                    }
+                    sum += pair;
                 }
                 if k < bounce {
                     rays.push((r, [a, b, c, d, e, f]));

@@ -62,6 +62,16 @@ pub(super) struct Counts {
     pub(super) bounce: u32,
 }
 
+impl Counts {
+    /// `k` of each.
+    pub(super) fn both(k: u32) -> Counts {
+        Counts {
+            direct: k,
+            bounce: k,
+        }
+    }
+}
+
 impl Split {
     /// Splits up to `most` over `pixels` pixels, for receivers that take `k` of each; none
     /// unless `most` exceeds `k` and `k` is 2 or more (two estimates give a spread).
@@ -93,10 +103,7 @@ impl Split {
     /// The counts for a receiver of pixel `at` that takes `k` of each at least.
     pub(super) fn counts(&self, at: usize, k: u32) -> Counts {
         let Some(slot) = self.pixels.get(at) else {
-            return Counts {
-                direct: k,
-                bounce: k,
-            };
+            return Counts::both(k);
         };
         let px = slot.lock().unwrap_or_else(PoisonError::into_inner);
         let n = |s: Spread| {
@@ -162,25 +169,13 @@ mod tests {
         // √(8 · 0.5 / 0.01) = 20.
         assert_eq!(c.direct, 20);
         assert_eq!(c.bounce, k, "the bounce has no samples of its own");
-        assert_eq!(
-            split.counts(1, k),
-            Counts {
-                direct: k,
-                bounce: k
-            }
-        );
+        assert_eq!(split.counts(1, k), Counts::both(k));
         split.begin_pass(0.0001);
         assert_eq!(split.counts(0, k).direct, 32, "capped at --pbgi-split");
         assert_eq!(split.counts(7, k).direct, k, "outside the window");
         assert!(split.bytes()[0] > 0);
         for off in [Split::new(2, 2, 2), Split::new(32, 1, 2)] {
-            assert_eq!(
-                off.counts(0, 2),
-                Counts {
-                    direct: 2,
-                    bounce: 2
-                }
-            );
+            assert_eq!(off.counts(0, 2), Counts::both(2));
             assert_eq!(off.bytes(), [0, 0]);
         }
     }
