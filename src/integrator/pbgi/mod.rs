@@ -22,8 +22,8 @@
 //! - hits are shaded once the cut is done, only the nearest of each texel's ray;
 //! - `microbuffer` composites and convolves with x's diffuse lobe (003 eq. 2.1); the
 //!   lobe being constant, the gather is kept as irradiance, and each surface of a pixel
-//!   gathers at most at every `--pbgi-reuse`-th sample landing on it (more often where
-//!   its gathers scatter), its other samples reusing its gathers' mean;
+//!   gathers only at every `--pbgi-reuse`-th sample landing on it, its other samples
+//!   reusing its gathers' mean;
 //! - `--pbgi-rays` skips the cut: every texel's ray is traced and reads the bake;
 //! - x's rough specular lobes, mostly narrower than a texel, take exact rays sampled
 //!   from them instead (`--pbgi-glossy-rays`; the first with the pixel's own sample
@@ -122,11 +122,9 @@ pub struct PbgiSettings {
     /// [default: 32 where there is one]
     #[arg(long = "pbgi-split", value_name = "N", value_parser = clap::value_parser!(u32).range(1..=32))]
     pub split: Option<u32>,
-    /// Most samples per gather: each surface of a pixel (normal within 14°, within a
-    /// pixel's width of its plane; up to 8 a pixel) gathers at every R-th sample landing
-    /// on it (at the pixel's phase), or more often where its first gathers scatter (a
-    /// period of √(v̄ c_g / (s² c_s)) samples, v̄ and c_s a sample's variance and cost, s²
-    /// and c_g a gather's), and the pixel's first surface also at its first sample;
+    /// Samples per gather: each surface of a pixel (normal within 14°, within a pixel's
+    /// width of its plane; up to 8 a pixel) gathers at every R-th sample landing on it
+    /// (at the pixel's phase), and the pixel's first surface also at its first sample;
     /// its samples take the mean irradiance of all its gathers (of the surface whose
     /// normal is closest while it has none, or past 8 surfaces), added once the render
     /// ends so that every gather weighs the same (003 ch. 2 gathers once per
