@@ -448,17 +448,22 @@ impl PbgiIntegrator {
             let key = ((px.at as u64) << 20 ^ px.index as u64) ^ (self.seed as u64) << 52;
             // The pixel's own sequence, as the path tracer's next bounce would take it.
             let [ud0, ud1, ..] = px.sampler.get4(2 * depth + 2);
+            let rough = s.has_rough_lobes();
             let lobe = s.lobe_ray(scene, tr, [u_lobe, ud0, ud1]);
             let mut direct = s.direct(scene, tr, [u_pick, ul0, ul1], lobe.as_ref());
             // Each lobe ray is kept with the numbers for shading its hit: the first's from
-            // the pixel's next two sets.
-            let [a, b, c, d] = px.sampler.get4(2 * depth + 3);
-            let [e, f, ..] = px.sampler.get4(2 * depth + 4);
-            let mut rays = vec![(lobe, [a, b, c, d, e, f])];
+            // the pixel's next two sets. A receiver without rough lobes has none (and no
+            // glossy bounce), so it draws no numbers for one.
+            let mut rays = Vec::new();
+            if rough {
+                let [a, b, c, d] = px.sampler.get4(2 * depth + 3);
+                let [e, f, ..] = px.sampler.get4(2 * depth + 4);
+                rays.push((lobe, [a, b, c, d, e, f]));
+            }
             // A glossy receiver's other lobe rays, each paired with a light sample for
             // direct light: three sets of the pixel's sequence past those of the first.
             // The first `bounce` carry the bounce, the first `direct` direct light.
-            let split::Counts { direct: n, bounce } = match s.has_rough_lobes() {
+            let split::Counts { direct: n, bounce } = match rough {
                 true => self.split.counts(px.at, self.glossy_rays),
                 false => split::Counts::both(1),
             };
