@@ -111,7 +111,7 @@ impl PbgiIntegrator {
                         Some(p) if p.id == hit.page => p,
                         _ => tr.page_handle(hit.page),
                     };
-                    let (sends, sampled) = hit_light(scene, tr, &p, &hit, w, strata.shading(k));
+                    let (sends, sampled) = hit_light(scene, tr, &p, &hit, w, || strata.shading(k));
                     let id = (1 << 62) | (hit.leaf << 3) | hit.slot as u64;
                     let l = Vec3::from(sends * weight);
                     sc.mb.fill(k as usize, hit.t, id, l, sampled);

@@ -730,7 +730,7 @@ impl PbgiIntegrator {
         };
         self.exact_hits.fetch_add(1, Relaxed);
         let page = tr.page_handle(hit.page);
-        r.weight * hit_light(scene, tr, &page, hit, r.w, u).0
+        r.weight * hit_light(scene, tr, &page, hit, r.w, || u).0
     }
 
     /// Irradiance at `s` from the cut, the near rays and the micro-buffer, the distance
@@ -831,7 +831,7 @@ impl PbgiIntegrator {
         };
         scene.touched.insert(hit.leaf);
         let page = tr.page_handle(hit.page);
-        let (sends, sampled) = hit_light(scene, tr, &page, &hit, w, strata.shading(k as u32));
+        let (sends, sampled) = hit_light(scene, tr, &page, &hit, w, || strata.shading(k as u32));
         mb.fill(
             k,
             hit.t,

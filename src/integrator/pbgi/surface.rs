@@ -14,14 +14,15 @@ use glam::Vec3A as V;
 
 /// What a hit sends back along `w`: the baked light of the finest patch under it, or,
 /// where the bake holds nothing (back faces, non-diffuse surfaces), direct light as the
-/// path tracer would take it; the flag says it was sampled.
+/// path tracer would take it, with the numbers `u` gives (drawn only then: most hits read
+/// the bake); the flag says it was sampled.
 pub(super) fn hit_light(
     scene: &Scene,
     tr: &mut Tracer,
     page: &Page,
     hit: &Hit,
     w: V,
-    u: [f32; 6],
+    u: impl FnOnce() -> [f32; 6],
 ) -> (V, bool) {
     let t = page
         .bvh
@@ -36,6 +37,7 @@ pub(super) fn hit_light(
     }
     let l = match Surface::at(scene, hit, w) {
         Some(h) if !h.absorbs && !h.bsdf.has_smooth_only() => {
+            let u = u();
             let lobe = h.lobe_ray(scene, tr, [u[3], u[4], u[5]]);
             h.direct(scene, tr, [u[0], u[1], u[2]], lobe.as_ref())
         }
