@@ -449,7 +449,10 @@ impl PbgiIntegrator {
             // The pixel's own sequence, as the path tracer's next bounce would take it.
             let [ud0, ud1, ..] = px.sampler.get4(2 * depth + 2);
             let rough = s.has_rough_lobes();
-            let lobe = s.lobe_ray(scene, tr, [u_lobe, ud0, ud1]);
+            let lobe = match rough {
+                true => s.lobe_ray(scene, tr, [u_lobe, ud0, ud1]),
+                false => None,
+            };
             let mut direct = s.direct(scene, tr, [u_pick, ul0, ul1], lobe.as_ref());
             // Each lobe ray is kept with the numbers for shading its hit: the first's from
             // the pixel's next two sets. A receiver without rough lobes has none (and no
