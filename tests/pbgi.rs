@@ -250,6 +250,9 @@ fn a_pixel_gathers_at_every_rth_sample_and_shades_one_near_hit_per_texel() {
                 &reuse,
                 "--pbgi-cache",
                 "0",
+                // Every render's receivers are then the same first hits.
+                "--pbgi-pixel-split",
+                "1",
             ],
         );
         let count = |k: &str| stats[k].as_u64().unwrap();
@@ -410,19 +413,13 @@ fn gold_bunny<'a>(
 /// A render's image and stats.
 type Rendered = (Image, serde_json::Value);
 
-/// PBGI on the gold bunny (`gold_bunny`'s renderer) at 64 spp, seed 1, with `flag value`.
-fn bunny_pbgi(run: &dyn Fn(&str, &[&str]) -> Rendered, flag: &str, value: &str) -> Rendered {
-    let flags = [
-        "--integrator",
-        "pbgi",
-        "--spp",
-        "64",
-        "--seed",
-        "1",
-        flag,
-        value,
-    ];
-    run(&format!("pbgi{value}.exr"), &flags)
+/// PBGI on the gold bunny (`gold_bunny`'s renderer) at 64 spp, seed 1, with `flags`.
+fn bunny_pbgi(run: &dyn Fn(&str, &[&str]) -> Rendered, flags: &[&str]) -> Rendered {
+    let base = ["--integrator", "pbgi", "--spp", "64", "--seed", "1"];
+    run(
+        &format!("pbgi{}.exr", flags.join("_")),
+        &[&base[..], flags].concat(),
+    )
 }
 
 /// Direct light on the showroom's rough gold bunny (GGX α 0.09) under a large panel: a
@@ -466,13 +463,14 @@ fn direct_light_on_a_glossy_surface_is_weighed_against_its_lobe_ray() {
 /// `--pbgi-split` (the default on glossy scenes): pixels whose earlier samples' pairs
 /// (rays) disagreed take more of them. On the gold bunny at `--max-depth 3`, at equal
 /// samples, the mean stays and the error falls below the two pairs' (measured 0.75×;
-/// 0.76× for direct light alone at depth 2), and the stats count what was split.
+/// 0.76× for direct light alone at depth 2), and the stats count what was split. Without
+/// `--pbgi-pixel-split`, under which direct light's pairs do not split.
 #[test]
 fn splitting_a_glossy_receivers_pairs_by_its_pixels_spread_keeps_the_mean_and_lowers_the_error() {
     let dir = tempfile::tempdir().unwrap();
     let bunny = gold_bunny(dir.path(), "3");
     let (reference, _) = bunny("ref.exr", &["--spp", "8192", "--seed", "3"]);
-    let pbgi = |n| bunny_pbgi(&bunny, "--pbgi-split", n);
+    let pbgi = |n| bunny_pbgi(&bunny, &["--pbgi-split", n, "--pbgi-pixel-split", "1"]);
     let ((two, two_stats), (split, stats)) = (pbgi("2"), pbgi("32"));
     assert!(all_finite(&split));
     assert_mean_within_noise(&split, &reference, "gold bunny, split");
@@ -488,6 +486,43 @@ fn splitting_a_glossy_receivers_pairs_by_its_pixels_spread_keeps_the_mean_and_lo
     }
 }
 
+/// `--pbgi-pixel-split` (the default): pixels whose earlier samples scattered take more
+/// camera rays a pass. At a lamp's silhouette (edge rays off, which would lower the same
+/// noise) the mean stays, the further samples go to a few pixels (4,287 over 32 passes of
+/// 1,024), and the squared error × rays traced falls below that of one camera ray a pixel
+/// and pass (measured 0.52×).
+#[test]
+fn more_first_hits_where_a_pixel_scatters_keep_the_mean_and_lower_the_error_per_ray() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = lamp_scene(dir.path());
+    let (truth, _) = render(&arc, &dir.path().join("p.exr"), &["--spp", "2048"]);
+    let run = |m: &str| {
+        let flags = ["--integrator", "pbgi", "--spp", "32", "--edge-rays", "0"];
+        let extra = ["--pbgi-pixel-split", m];
+        render(
+            &arc,
+            &dir.path().join(format!("m{m}.exr")),
+            &[&flags[..], &extra].concat(),
+        )
+    };
+    let ((one, one_stats), (split, stats)) = (run("1"), run("32"));
+    assert!(all_finite(&split));
+    assert_mean_within(&split, &truth, 0.01, "pixel split");
+    let count = |s: &serde_json::Value, k: &str| s[k].as_u64().unwrap() as f64;
+    assert_eq!(count(&one_stats, "further_samples"), 0.0);
+    let further = count(&stats, "further_samples");
+    assert!(
+        further > 0.0 && further < 32.0 * 32.0 * 32.0,
+        "{further} further samples"
+    );
+    let per_ray = |img: &Image, s: &serde_json::Value| rmse(img, &truth).powi(2) * count(s, "rays");
+    let (e_split, e_one) = (per_ray(&split, &stats), per_ray(&one, &one_stats));
+    assert!(
+        e_split < 0.7 * e_one,
+        "squared error × rays {e_split:.3e} split, {e_one:.3e} with one camera ray"
+    );
+}
+
 /// The glossy bounce split (`--pbgi-glossy-rays`): on the showroom's gold bunny at
 /// `--max-depth 3`, four rays from its lobe instead of one keep the mean and lower the
 /// error (their light averaged, each shaded at its own hit).
@@ -496,7 +531,7 @@ fn more_rays_from_a_glossy_lobe_keep_the_mean_and_lower_the_error() {
     let dir = tempfile::tempdir().unwrap();
     let run = gold_bunny(dir.path(), "3");
     let (reference, _) = run("ref.exr", &["--spp", "8192", "--seed", "3"]);
-    let pbgi = |k| bunny_pbgi(&run, "--pbgi-glossy-rays", k);
+    let pbgi = |k| bunny_pbgi(&run, &["--pbgi-glossy-rays", k]);
     let ((one, one_stats), (four, four_stats)) = (pbgi("1"), pbgi("4"));
     assert!(all_finite(&four));
     assert_mean_within_noise(&four, &reference, "gold bunny, four glossy rays");

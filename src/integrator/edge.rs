@@ -117,7 +117,7 @@ impl EdgeRays {
     ) -> V {
         self.tally(px.x, px.y, own);
         let k = self.rays;
-        if k == 0 || self.mask.get(px.at) != Some(&true) {
+        if !self.masked(px.at) {
             return own;
         }
         let pixel = px.y * scene.camera.width + px.x;
@@ -128,6 +128,11 @@ impl EdgeRays {
             acc + seen(tr, &r, c)
         });
         sum / k as f32
+    }
+
+    /// Whether the pixel at `at` of the window takes edge rays this pass.
+    pub fn masked(&self, at: usize) -> bool {
+        self.rays > 0 && self.mask.get(at) == Some(&true)
     }
 
     /// Pixels of the window at an emitter's silhouette, as the samples so far find them

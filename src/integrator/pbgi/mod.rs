@@ -45,6 +45,7 @@ mod cut;
 pub mod glossy;
 pub mod microbuffer;
 pub mod patch;
+mod pixel_split;
 mod records;
 mod split;
 mod surface;
@@ -117,11 +118,20 @@ pub struct PbgiSettings {
     /// bounce, one glossy receiver takes: each pixel's count grows with the root of the
     /// spread its earlier samples' first two pairs (rays) showed, relative to the image's
     /// noise (`split.rs`), so the edges of highlights take many and the rest K. On the
-    /// showroom at 60 s it lowered RMSE² × time by a third (docs/pbgi.md). K turns it off;
+    /// showroom at 60 s it lowered RMSE² × time by a third (docs/pbgi.md). Under
+    /// `--pbgi-pixel-split` above 1 (the default) only the bounce's rays split. K turns it off;
     /// above K it needs K of at least 2, and a rough metal or rough dielectric
     /// [default: 32 where there is one]
     #[arg(long = "pbgi-split", value_name = "N", value_parser = clap::value_parser!(u32).range(1..=32))]
     pub split: Option<u32>,
+    /// Most camera rays one pass's sample of a pixel takes: each pixel's count grows with
+    /// the root of its earlier samples' variance relative to the image's mean
+    /// (`pixel_split.rs`), so pixels whose light changes within them (a highlight on a
+    /// curved metal, a textured edge) take more first hits. 1 turns it off. Not with
+    /// --receiver-clusters, whose receivers are grouped per tile [default: 16, 1 with
+    /// --receiver-clusters]
+    #[arg(long = "pbgi-pixel-split", value_name = "M", conflicts_with = "clusters", value_parser = clap::value_parser!(u32).range(1..=64))]
+    pub pixel_split: Option<u32>,
     /// Samples per gather: each surface of a pixel (normal within 14°, within a pixel's
     /// width of its plane; up to 8 a pixel) gathers at every R-th sample landing on it
     /// (at the pixel's phase), and the pixel's first surface also at its first sample;
@@ -188,6 +198,8 @@ pub struct PbgiStats {
     /// beyond `--pbgi-glossy-rays` (`--pbgi-split`).
     pub split_pairs: u64,
     pub split_rays: u64,
+    /// Samples pixels took beyond one per pass (`--pbgi-pixel-split`).
+    pub further_samples: u64,
     /// Exact rays where a rasterized leaf's cone found none of its triangles.
     pub gap_rays: u64,
     pub receiver_clusters: usize,
@@ -258,6 +270,9 @@ pub struct PbgiIntegrator {
     glossy_rays: u32,
     /// Pairs and bounce rays per glossy receiver, per pixel (`--pbgi-split`).
     split: split::Split,
+    /// Camera rays per pixel and pass (`--pbgi-pixel-split`), and the further ones taken.
+    pixel_split: pixel_split::PixelSplit,
+    further_samples: AtomicU64,
 }
 
 /// Irradiance gathers summed at one surface of a pixel.
@@ -295,6 +310,9 @@ const GLOSSY_RAYS: u32 = 2;
 /// Most pairs and bounce rays per glossy receiver, unless `--pbgi-split` says, where
 /// some material has rough specular lobes (`Split::new` splits only where K is 2 or more).
 const SPLIT: u32 = 32;
+
+/// Most camera rays per pixel and pass, unless `--pbgi-pixel-split` says.
+const PIXEL_SPLIT: u32 = 16;
 
 /// Samples of each pixel whose cached receivers are checked for a surface over them.
 const PROBED_SAMPLES: u32 = 16;
@@ -350,6 +368,11 @@ impl PbgiIntegrator {
             None => 1,
         };
         let pixels = scene.camera.width as usize * scene.camera.height as usize;
+        let pixel_split = match (settings.pixel_split, settings.clusters) {
+            (Some(m), _) => m,
+            (None, 0) => PIXEL_SPLIT,
+            (None, _) => 1,
+        };
         PbgiIntegrator {
             settings: settings.clone(),
             texels: Texels::new(settings.resolution),
@@ -381,7 +404,10 @@ impl PbgiIntegrator {
             probe_rays: 0,
             probe_records: 0,
             glossy_rays,
-            split: split::Split::new(split, glossy_rays, pixels),
+            // With more first hits per pixel only the bounce splits (`Split::new`).
+            split: split::Split::new(split, glossy_rays, pixels, pixel_split == 1),
+            pixel_split: pixel_split::PixelSplit::new(pixel_split, seed, pixels),
+            further_samples: AtomicU64::new(0),
         }
     }
 
@@ -396,7 +422,7 @@ impl PbgiIntegrator {
         px: &PixelSample,
         c: &mut Counters,
     ) -> (V, Option<Pending>) {
-        let (l, pending, own) = self.first_hit_own(scene, tr, px);
+        let (l, pending, own) = self.first_hit_own(scene, tr, px, 0);
         let seen = |tr: &mut Tracer, r: &Ray, c: &mut Counters| seen_emission(scene, tr, r, c);
         (
             l + self.edge.emission(scene, tr, px, own, c, &seen),
@@ -404,12 +430,15 @@ impl PbgiIntegrator {
         )
     }
 
-    /// `first_hit` with the emission seen at the primary hit apart (the third value).
+    /// `first_hit` with the emission seen at the primary hit apart (the third value);
+    /// `salt` sets a further sample's exact rays apart from its pixel sample's (0 for
+    /// the pixel sample's own).
     fn first_hit_own(
         &self,
         scene: &Scene,
         tr: &mut Tracer,
         px: &PixelSample,
+        salt: u64,
     ) -> (V, Option<Pending>, V) {
         let (mut ray, mut beta, mut l, mut own) = (px.ray, V::ONE, V::ZERO, V::ZERO);
         for depth in 0..SMOOTH_DEPTH {
@@ -445,7 +474,7 @@ impl PbgiIntegrator {
                 };
                 continue;
             }
-            let key = ((px.at as u64) << 20 ^ px.index as u64) ^ (self.seed as u64) << 52;
+            let key = ((px.at as u64) << 20 ^ px.index as u64) ^ (self.seed as u64) << 52 ^ salt;
             // The pixel's own sequence, as the path tracer's next bounce would take it.
             let [ud0, ud1, ..] = px.sampler.get4(2 * depth + 2);
             let rough = s.has_rough_lobes();
@@ -690,7 +719,7 @@ impl PbgiIntegrator {
             sampler: PixelSampler::new(self.seed, y * cam.width + x, 0),
             ray: cam.ray(x as f32 + 0.5, y as f32 + 0.5),
         };
-        self.first_hit_own(scene, tr, &px).1
+        self.first_hit_own(scene, tr, &px, 0).1
     }
 
     /// Adds a gather's irradiance `e` to its pixel's surface, with `weight` for the sample
@@ -918,6 +947,39 @@ struct Pending {
     sample: u32,
 }
 
+/// Sets a pixel's further samples' exact rays apart (`PbgiIntegrator::sample`).
+const FURTHER_SALT: u64 = 0x6a09_e667_f3bc_c908;
+
+impl PbgiIntegrator {
+    /// One sample's light, `l` up to its receiver and `pending`'s gather, noted for the
+    /// pixel's spread and weighted by its `share` of the pass's samples of the pixel
+    /// (its gather's held-back weight too).
+    #[allow(clippy::too_many_arguments)]
+    fn finish(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        at: usize,
+        mut l: V,
+        pending: Option<Pending>,
+        share: f32,
+        rays_before: u64,
+        c: &mut Counters,
+    ) -> V {
+        if let Some(mut q) = pending {
+            let beta = q.beta;
+            q.beta *= share;
+            l += beta * self.gather(scene, tr, &q, None, None);
+        }
+        c.paths += 1;
+        let l = c.finite(l);
+        let rays = tr.rays - rays_before;
+        self.pixel_split
+            .note(at, crate::material::luminance(l), rays);
+        l * share
+    }
+}
+
 impl Integrator for PbgiIntegrator {
     /// The first pass bakes (or reads `--radiance`) and attaches the light to the pages,
     /// so time budgets count the bake.
@@ -934,7 +996,10 @@ impl Integrator for PbgiIntegrator {
     fn begin_pass(&mut self, scene: &Scene, pass: &Pass) -> Result<u64> {
         let seen = |tr: &mut Tracer, r: &Ray, c: &mut Counters| seen_emission(scene, tr, r, c);
         let edge_rays = self.edge.begin_pass(scene, pass.first, pass.count, &seen);
-        self.split.begin_pass(pass.variance);
+        // The pairs' split weighs a pair's spread against one sample's variance, which
+        // the film's, of a pass's mean of a pixel's samples, understates where they split.
+        let variance = self.pixel_split.begin_pass().unwrap_or(pass.variance);
+        self.split.begin_pass(variance);
         if pass.first > 0 {
             let t = Instant::now();
             let refine_rays = self.refine_cache(scene, pass);
@@ -978,13 +1043,41 @@ impl Integrator for PbgiIntegrator {
         Ok(self.bake_samples + edge_rays + cache_rays)
     }
 
+    /// The mean of the pixel's sample and, where `--pbgi-pixel-split` asks, further
+    /// samples of it from its own sequence.
     fn sample(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample, c: &mut Counters) -> V {
-        let (mut l, pending) = self.first_hit(scene, tr, px, c);
-        if let Some(q) = pending {
-            l += q.beta * self.gather(scene, tr, &q, None, None);
+        let m = self.pixel_split.count(px.at);
+        let share = 1.0 / m as f32;
+        let rays = tr.rays;
+        let (l, pending, own) = self.first_hit_own(scene, tr, px, 0);
+        let seen = |tr: &mut Tracer, r: &Ray, c: &mut Counters| seen_emission(scene, tr, r, c);
+        let edge = self.edge.emission(scene, tr, px, own, c, &seen);
+        let mut sum = self.finish(scene, tr, px.at, l + edge, pending, share, rays, c);
+        // On a silhouette pixel the edge rays' mean stands for every sample's emission.
+        let masked = self.edge.masked(px.at);
+        let cam = &scene.camera;
+        let further = self
+            .pixel_split
+            .further(px.at, px.y * cam.width + px.x, m - 1);
+        self.further_samples
+            .fetch_add(further.len() as u64, Relaxed);
+        for (i, sampler) in further {
+            let [jx, jy, ..] = sampler.get4(0);
+            let sub = PixelSample {
+                ray: cam.ray(px.x as f32 + jx, px.y as f32 + jy),
+                sampler,
+                x: px.x,
+                y: px.y,
+                at: px.at,
+                index: px.index,
+            };
+            let salt = Hash::new(i as u64 ^ FURTHER_SALT).u64();
+            let rays = tr.rays;
+            let (l, pending, own) = self.first_hit_own(scene, tr, &sub, salt);
+            let own = if masked { edge } else { own };
+            sum += self.finish(scene, tr, px.at, l + own, pending, share, rays, c);
         }
-        c.paths += 1;
-        c.finite(l)
+        sum
     }
 
     fn sample_tile(
@@ -1014,7 +1107,11 @@ impl Integrator for PbgiIntegrator {
                 let glossy = match (self.glossy_rays, self.split.most()) {
                     (1, _) => "glossy lobes: one exact ray".to_string(),
                     (k, n) if n > k => format!(
-                        "glossy lobes: {k} exact rays, each paired with a light sample for direct light, split up to {n} per pixel by the spread of its earlier samples"
+                        "glossy lobes: {k} exact rays, each paired with a light sample for direct light, {} split up to {n} per pixel by the spread of its earlier samples",
+                        match self.split.splits_direct() {
+                            true => "pairs and bounce rays",
+                            false => "bounce rays",
+                        }
                     ),
                     (k, _) => format!(
                         "glossy lobes: {k} exact rays, each paired with a light sample for direct light"
@@ -1030,6 +1127,13 @@ impl Integrator for PbgiIntegrator {
                         s.angle, s.resolution
                     ),
                 }
+            },
+            match self.pixel_split.most() {
+                1 => "pixel split: off (one camera ray per pixel and pass)".into(),
+                m => format!(
+                    "pixel split: up to {m} camera rays per pixel and pass where its earlier samples scatter ({} further samples)",
+                    self.further_samples.load(Relaxed)
+                ),
             },
             format!(
                 "pbgi: each surface of a pixel gathers at every {}-th sample landing on it, the others reusing its gathers' irradiance",
@@ -1057,6 +1161,7 @@ impl Integrator for PbgiIntegrator {
             exact_hits: self.exact_hits.load(Relaxed),
             split_pairs: self.split_pairs.load(Relaxed),
             split_rays: self.split_rays.load(Relaxed),
+            further_samples: self.further_samples.load(Relaxed),
             gap_rays: self.gap_rays.load(Relaxed),
             receiver_clusters: self.settings.clusters,
             clustered_receivers: self.clusters.load(Relaxed),
@@ -1104,9 +1209,10 @@ impl Integrator for PbgiIntegrator {
         let bytes = (slots + kept * size_of::<Gathered>()) as u64 + cached;
         let edge = self.edge.bytes();
         let [split, split_per_pixel] = self.split.bytes();
+        let [further, further_per_pixel] = self.pixel_split.bytes();
         [
-            bytes + edge + split,
-            bytes / self.gathered.len().max(1) as u64 + edge + split_per_pixel,
+            bytes + edge + split + further,
+            bytes / self.gathered.len().max(1) as u64 + edge + split_per_pixel + further_per_pixel,
         ]
     }
 
