@@ -387,6 +387,54 @@ fn receivers_in_a_gap_the_records_did_not_see_gather_for_themselves() {
     assert!(stats["cache_rejects"].as_u64().unwrap() > 0, "{stats}");
 }
 
+/// The plinth's top under the showroom's gold bunny is a crevice the cache leaves to the
+/// pixels (the bunny is over it within the records' reach), and its gathers scatter: the
+/// bunny's glossy reflection of the panel falls in a few texels. Those pixels gather far
+/// more often than every `--pbgi-reuse`-th sample (a fixed period of 256 would give at
+/// most two gathers per surface in 256 samples), and the crop's mean stays with that of
+/// every sample gathering.
+#[test]
+fn pixels_left_to_themselves_gather_more_often_where_their_gathers_scatter() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("s.canopy");
+    convert(&scene("showroom.glb"), &arc, None);
+    let run = |reuse: &str| {
+        let flags = [
+            "--integrator",
+            "pbgi",
+            "--pbgi-rays",
+            "--pbgi-reuse",
+            reuse,
+            "--width",
+            "128",
+            "--height",
+            "96",
+            "--crop",
+            "32,56,50,62",
+            "--max-depth",
+            "3",
+            "--spp",
+            "256",
+            "--seed",
+            "1",
+        ];
+        render(&arc, &dir.path().join(format!("r{reuse}.exr")), &flags)
+    };
+    let (shared, stats) = run("256");
+    let (every, _) = run("1");
+    let count = |k: &str| stats[k].as_u64().unwrap();
+    let (gathers, reused) = (count("gathers"), count("reused_gathers"));
+    let per_gather = (gathers + reused) as f64 / gathers as f64;
+    assert!(
+        gathers > 0 && per_gather < 32.0,
+        "{gathers} gathers, {reused} reused"
+    );
+    let (a, b) = (shared.mean(), every.mean());
+    for c in 0..3 {
+        assert!((a[c] / b[c] - 1.0).abs() < 0.01, "{a:?} against {b:?}");
+    }
+}
+
 /// Renders of the showroom's rough gold bunny (a 16×16 crop of 128×96) at `--max-depth
 /// depth`, with the flags given, the scene converted into `dir` once.
 fn gold_bunny<'a>(

@@ -22,8 +22,8 @@
 //! - hits are shaded once the cut is done, only the nearest of each texel's ray;
 //! - `microbuffer` composites and convolves with x's diffuse lobe (003 eq. 2.1); the
 //!   lobe being constant, the gather is kept as irradiance, and each surface of a pixel
-//!   gathers only at every `--pbgi-reuse`-th sample landing on it, its other samples
-//!   reusing its gathers' mean;
+//!   gathers at most at every `--pbgi-reuse`-th sample landing on it (more often where
+//!   its gathers scatter), its other samples reusing its gathers' mean;
 //! - `--pbgi-rays` skips the cut: every texel's ray is traced and reads the bake;
 //! - x's rough specular lobes, mostly narrower than a texel, take exact rays sampled
 //!   from them instead (`--pbgi-glossy-rays`; the first with the pixel's own sample
@@ -52,7 +52,7 @@ mod surface;
 
 use super::edge::{EdgeRays, DEFAULT_EDGE_RAYS};
 use super::{on_side, Counters, Integrator, Pass, PixelSample, Scene, Stats, Target};
-use crate::material::{Bsdf, Frame};
+use crate::material::{luminance, Bsdf, Frame};
 use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Hit, Ray, Tracer};
 use anyhow::Result;
@@ -132,9 +132,11 @@ pub struct PbgiSettings {
     /// --receiver-clusters]
     #[arg(long = "pbgi-pixel-split", value_name = "M", conflicts_with = "clusters", value_parser = clap::value_parser!(u32).range(1..=64))]
     pub pixel_split: Option<u32>,
-    /// Samples per gather: each surface of a pixel (normal within 14°, within a pixel's
-    /// width of its plane; up to 8 a pixel) gathers at every R-th sample landing on it
-    /// (at the pixel's phase), and the pixel's first surface also at its first sample;
+    /// Most samples per gather: each surface of a pixel (normal within 14°, within a
+    /// pixel's width of its plane; up to 8 a pixel) gathers at every R-th sample landing
+    /// on it (at the pixel's phase), or more often where its first gathers scatter (a
+    /// period of √(v̄ c_g / (s² c_s)) samples, v̄ and c_s a sample's variance and cost, s²
+    /// and c_g a gather's), and the pixel's first surface also at its first sample;
     /// its samples take the mean irradiance of all its gathers (of the surface whose
     /// normal is closest while it has none, or past 8 surfaces), added once the render
     /// ends so that every gather weighs the same (003 ch. 2 gathers once per
@@ -273,6 +275,8 @@ pub struct PbgiIntegrator {
     /// Camera rays per pixel and pass (`--pbgi-pixel-split`), and the further ones taken.
     pixel_split: pixel_split::PixelSplit,
     further_samples: AtomicU64,
+    /// v̄ · c_g / c_s for the pixels' gather periods, at the pass's start (see `period`).
+    reuse_target: f32,
 }
 
 /// Irradiance gathers summed at one surface of a pixel.
@@ -282,8 +286,10 @@ struct Gathered {
     p: V,
     n: V,
     sum: V,
+    /// Σ of the gathers' squared luminance: their spread sets the surface's period.
+    sq: f32,
     count: u32,
-    /// Samples that landed on it: it gathers at every `--pbgi-reuse`-th (at its pixel's
+    /// Samples that landed on it: it gathers at every `period`-th (at its pixel's
     /// phase), and the pixel's first surface also at its first, so a surface's gathers
     /// are in proportion to its share of the pixel's samples. One that has none yet
     /// takes those of the surface whose normal is closest ([`Integrator::held_back`]).
@@ -301,7 +307,48 @@ impl Gathered {
     fn holds(&self, p: V, n: V, footprint: f32) -> bool {
         self.n.dot(n) >= SAME_NORMAL && (p - self.p).dot(self.n).abs() <= footprint
     }
+
+    /// The variance a gather adds to one sample that takes it, in luminance: the
+    /// gathers' spread times the samples' mean weight, squared; None before two gathers.
+    fn spread(&self) -> Option<f32> {
+        if self.count < 2 {
+            return None;
+        }
+        let n = self.count as f32;
+        let mean = luminance(self.sum) / n;
+        let var = ((self.sq - n * mean * mean) / (n - 1.0)).max(0.0);
+        let w = luminance(self.weight) / self.samples.max(1) as f32;
+        Some(w * w * var)
+    }
+
+    /// How often this surface gathers: every `most`-th sample (`--pbgi-reuse` R) until
+    /// its first gather, and until `PILOT_PERIOD` samples have landed on it; then every
+    /// `PILOT_PERIOD`-th until its second gather (a surface few samples hit is not worth
+    /// two), then at splitting's
+    /// optimum: a sample of variance v̄ and cost c_s, a gather of variance s²
+    /// (`spread`) and cost c_g shared by P samples, have variance × cost
+    /// (v̄ + s² P)(c_s + c_g / P), least at P = √(v̄ c_g / (s² c_s)) (`target` is
+    /// v̄ c_g / c_s), taken down to a power of two so that a longer period's samples are
+    /// a shorter one's, and at most R.
+    fn period(&self, most: u64, target: f32) -> u64 {
+        let optimum = match (self.count, self.spread()) {
+            (0, _) => return most,
+            (_, None) if (self.samples as u64) < PILOT_PERIOD => return most,
+            (_, None) => return most.min(PILOT_PERIOD),
+            (_, Some(s2)) => (target / s2).sqrt(),
+        };
+        // No v̄ yet (a zero target) or a zero spread (an infinite optimum): R.
+        if !(optimum < most as f32 && target > 0.0) {
+            return most;
+        }
+        1 << (optimum.max(1.0) as u64).ilog2()
+    }
 }
+
+/// A surface's gather period between its first and second gathers, once this many
+/// samples landed on it, when `--pbgi-reuse` is longer: the two give the spread that sets
+/// the period after them.
+const PILOT_PERIOD: u64 = 8;
 
 /// Rays from a glossy receiver's lobes for its bounce, unless `--pbgi-glossy-rays` says,
 /// where some material has rough specular lobes.
@@ -408,6 +455,7 @@ impl PbgiIntegrator {
             split: split::Split::new(split, glossy_rays, pixels, pixel_split == 1),
             pixel_split: pixel_split::PixelSplit::new(pixel_split, seed, pixels),
             further_samples: AtomicU64::new(0),
+            reuse_target: 0.0,
         }
     }
 
@@ -609,11 +657,16 @@ impl PbgiIntegrator {
 
     /// The irradiance the cache holds at the receiver when nothing is over it within the
     /// records' reach; else a gather of its own when its sample is its pixel's first or
-    /// its surface's every `--pbgi-reuse`-th (at the pixel's phase); else its surface's
-    /// gathers, or, when the pixel keeps no more surfaces, those of the one whose normal
-    /// is closest to its own. A later surface's first gather waits for its phase like the
-    /// others: gathering at first sight doubled the gathers of a 60-s render of sponza
-    /// under the cut, whose gathers cost 1.6 ms each, for surfaces a few samples hit.
+    /// falls at its surface's period (at the pixel's phase; [`Gathered::period`]); else
+    /// its surface's gathers, or, when the pixel keeps no more surfaces, those of the one
+    /// whose normal is closest to its own. A later surface's first gather waits for its
+    /// phase like the others: gathering at first sight doubled the gathers of a 60-s
+    /// render of sponza under the cut, whose gathers cost 1.6 ms each, for surfaces a few
+    /// samples hit. The period falls below `--pbgi-reuse` where a surface's gathers
+    /// scatter: the pixels the cache leaves to themselves on the showroom (the plinth's
+    /// top under the gold bunny, which sees the bunny's glossy reflection of the panel)
+    /// need a gather every few samples, not every 256th. It depends on earlier gathers
+    /// only; that they also enter the mean leaves a bias of order 1 / gathers.
     fn reuse(&self, tr: &mut Tracer, q: &Pending) -> Reuse {
         if let Some((e, reach)) = self
             .cache
@@ -647,11 +700,13 @@ impl PbgiIntegrator {
         match list.iter().position(|g| g.holds(q.s.p, n, footprint)) {
             Some(i) => {
                 let g = &mut list[i];
+                let period = g.period(self.settings.reuse as u64, self.reuse_target);
                 let k = g.samples as u64;
                 g.samples += 1;
-                // Each pixel's later gathers fall at its own phase of R, so a pass does
-                // about 1/R of the pixels' gathers instead of all of them every R-th pass.
-                if (k + self.phase(pixel)).is_multiple_of(self.settings.reuse as u64) {
+                // Each pixel's later gathers fall at its own phase of the period, so a pass
+                // does about 1/period of the pixels' gathers instead of all of them every
+                // period-th pass.
+                if (k + self.phase(pixel)).is_multiple_of(period) {
                     return Reuse::Gather(self.pixel_strata(pixel, i, g.count));
                 }
                 Reuse::Pixel(pixel, i)
@@ -662,6 +717,7 @@ impl PbgiIntegrator {
                     p: q.s.p,
                     n,
                     sum: V::ZERO,
+                    sq: 0.0,
                     count: 0,
                     samples: 1,
                     weight: V::ZERO,
@@ -692,7 +748,8 @@ impl PbgiIntegrator {
     }
 
     /// Pixel `pixel`'s phase in `--pbgi-reuse`'s period: its gathers after the first fall
-    /// at the samples s with s + phase a multiple of R.
+    /// at the samples s with s + phase a multiple of the surface's period
+    /// ([`Gathered::period`]).
     fn phase(&self, pixel: usize) -> u64 {
         let r = self.settings.reuse as u64;
         Hash::new(pixel as u64 ^ (self.seed as u64) << 32).u64() % r
@@ -738,6 +795,7 @@ impl PbgiIntegrator {
         match list.iter_mut().find(|g| g.holds(p, n, footprint)) {
             Some(g) => {
                 g.sum += e;
+                g.sq += luminance(e).powi(2);
                 g.count += 1;
                 g.weight += weight;
             }
@@ -745,6 +803,7 @@ impl PbgiIntegrator {
                 p,
                 n,
                 sum: e,
+                sq: luminance(e).powi(2),
                 count: 1,
                 samples: 1,
                 weight,
@@ -1000,6 +1059,7 @@ impl Integrator for PbgiIntegrator {
         // the film's, of a pass's mean of a pixel's samples, understates where they split.
         let variance = self.pixel_split.begin_pass().unwrap_or(pass.variance);
         self.split.begin_pass(variance);
+        self.reuse_target = self.reuse_target(pass, variance);
         if pass.first > 0 {
             let t = Instant::now();
             let refine_rays = self.refine_cache(scene, pass);
@@ -1249,5 +1309,54 @@ mod tests {
         }
         assert_ne!(strata(0).jitter(0), strata(0).jitter(1));
         assert_ne!(Strata { seed: 78, index: 0 }.jitter(0), strata(0).jitter(0));
+    }
+}
+
+#[cfg(test)]
+mod period_tests {
+    use super::*;
+
+    /// A surface with `gathers` of luminance-grey irradiance `values`, hit by `samples`
+    /// samples of weight one each.
+    fn surface(values: &[f32], samples: u32) -> Gathered {
+        Gathered {
+            p: V::ZERO,
+            n: V::Z,
+            sum: values.iter().map(|&v| V::splat(v)).sum(),
+            sq: values.iter().map(|v| v * v).sum(),
+            count: values.len() as u32,
+            samples,
+            weight: V::splat(samples as f32),
+        }
+    }
+
+    /// The period is R until a surface's first gather and until `PILOT_PERIOD` samples
+    /// landed on it, `PILOT_PERIOD` until its second, then √(target / s²) taken down to a
+    /// power of two: shorter as the gathers scatter more, R where they agree or no
+    /// sample variance is known yet, never above R nor below 1.
+    #[test]
+    fn a_surfaces_gather_period_shortens_as_its_gathers_scatter() {
+        let r = 256;
+        assert_eq!(surface(&[], 40).period(r, 1.0), r);
+        assert_eq!(surface(&[1.0], 3).period(r, 1.0), r);
+        assert_eq!(surface(&[1.0], 9).period(r, 1.0), PILOT_PERIOD);
+        assert_eq!(surface(&[1.0], 9).period(4, 1.0), 4);
+        assert_eq!(surface(&[1.0, 1.0, 1.0], 40).period(r, 1.0), r);
+        assert_eq!(surface(&[1.0, 3.0], 40).period(r, 0.0), r);
+        // Spread s² = 2 (values 1 and 3): √(target / 2).
+        assert_eq!(surface(&[1.0, 3.0], 40).period(r, 2.0 * 100.0), 8);
+        assert_eq!(surface(&[1.0, 3.0], 40).period(r, 2.0 * 0.25), 1);
+        assert_eq!(surface(&[1.0, 3.0], 40).period(r, 2.0 * 1e9), r);
+        let mut last = r;
+        for spread in [0.01f32, 0.1, 1.0, 10.0, 100.0] {
+            let g = surface(&[1.0, 1.0 + spread, 1.0 - spread], 40);
+            let p = g.period(r, 50.0);
+            assert!(
+                p.is_power_of_two() && p <= last,
+                "{spread}: {p} after {last}"
+            );
+            last = p;
+        }
+        assert_eq!(last, 1);
     }
 }

@@ -101,6 +101,24 @@ impl PbgiIntegrator {
         pass.rays.saturating_sub(self.bake_samples + cache)
     }
 
+    /// v̄ · c_g / c_s of a pixel surface's gather period (`Gathered::period`): `variance`,
+    /// the image's mean variance of one sample, times a gather's cost over a sample's (the
+    /// records' first gathers as charged, else a ray a texel; the passes' rays over their
+    /// samples, the pixels' further ones counted).
+    pub(super) fn reuse_target(&self, pass: &Pass, variance: f64) -> f32 {
+        let [x0, x1, y0, y1] = self.window;
+        let further = self
+            .further_samples
+            .load(std::sync::atomic::Ordering::Relaxed);
+        let samples = pass.first as f64 * ((x1 - x0) * (y1 - y0)) as f64 + further as f64;
+        let per_sample = self.sampled_rays(pass) as f64 / samples.max(1.0);
+        let per_gather = match &self.cache {
+            Some(cache) => self.gather_cost(cache),
+            None => self.texels.upper.len() as u64,
+        };
+        (variance * per_gather as f64 / per_sample.max(1.0)) as f32
+    }
+
     /// What a gather that traced `rays` is charged, in rays: at least a ray per texel,
     /// since under the cut its splats and rasterized leaves are not rays but cost as much
     /// (sponza with the cut, counted by the rays they traced: 16,852 probes took a
