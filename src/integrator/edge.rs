@@ -3,7 +3,10 @@
 //! tracer. On pixels where earlier samples, of the pixel or its 8 neighbours, both saw an
 //! emitter and missed it, the emission seen at the primary hit is averaged over more
 //! positions of a denser Owen-scrambled Sobol sequence than the sample's own. Which pixels
-//! take them is decided by earlier passes only, so it estimates the same pixel integral.
+//! take them is decided by earlier passes only, so it estimates the same pixel integral;
+//! in the first pass, before any sample found a silhouette, every pixel takes them (on the
+//! showroom at 20 s, about 490 passes, that one sample of the panel's silhouette seen
+//! without them held a quarter of PBGI's squared error there: RMSE 2.59e-3 → 2.48e-3).
 //! The cone and PBGI integrators use it; the path tracer, being the reference, does not.
 
 use super::{Counters, PixelSample, Scene, Target};
@@ -89,7 +92,11 @@ impl EdgeRays {
         if self.rays == 0 {
             return 0;
         }
-        self.mask = self.window_mask();
+        // Before any sample no silhouette is known: the first pass takes them everywhere.
+        self.mask = match first {
+            0 => vec![true; self.window_pixels()],
+            _ => self.window_mask(),
+        };
         self.tally_apron(scene, first, count, seen)
     }
 
@@ -156,6 +163,11 @@ impl EdgeRays {
             self.rays,
             self.pixels()
         )
+    }
+
+    fn window_pixels(&self) -> usize {
+        let [x0, x1, y0, y1] = self.window;
+        (x1 - x0) as usize * (y1 - y0) as usize
     }
 
     fn window_mask(&self) -> Vec<bool> {

@@ -324,10 +324,6 @@ pub fn obj_scene(
     dir.join(name)
 }
 
-/// A bright lamp sphere seen directly against a dark wall: the noise is mostly the lamp's
-/// coverage of its silhouette pixels. Edge rays must find those pixels, leave the image's
-/// mean where the path tracer puts it (they estimate the same pixel integral), and cut the
-/// error at equal samples, under `integrator` (cone or pbgi).
 /// A lamp (a sphere of radius 0.5 and radiance 20) before a dark wall, seen by a 32×32
 /// camera: its silhouette is where a pixel's samples scatter most.
 pub fn lamp_scene(dir: &Path) -> PathBuf {
@@ -362,6 +358,11 @@ emission = [20.0, 20.0, 20.0]
     obj_scene(dir, &files, "l.canopy")
 }
 
+/// A bright lamp sphere seen directly against a dark wall: the noise is mostly the lamp's
+/// coverage of its silhouette pixels. Edge rays must find those pixels, leave the image's
+/// mean where the path tracer puts it (they estimate the same pixel integral), and cut the
+/// error at equal samples, under `integrator` (cone or pbgi); in the first
+/// pass, before any sample found a silhouette, every pixel takes them.
 pub fn edge_rays_case(integrator: &str) {
     let dir = tempfile::tempdir().unwrap();
     let arc = lamp_scene(dir.path());
@@ -408,4 +409,16 @@ pub fn edge_rays_case(integrator: &str) {
         }
     }
     assert!(err[1] < 0.5 * err[0], "squared error {err:?}");
+    let first: Vec<f64> = ["0", "8"]
+        .iter()
+        .map(|k| {
+            let flags = ["--integrator", integrator, "--spp", "1", "--edge-rays", k];
+            let (img, _) = render(&arc, &dir.path().join(format!("f{k}.exr")), &flags);
+            rmse(&img, &truth).powi(2)
+        })
+        .collect();
+    assert!(
+        first[1] < 0.5 * first[0],
+        "first pass, squared error {first:?}"
+    );
 }
