@@ -1006,6 +1006,15 @@ struct Pending {
     sample: u32,
 }
 
+/// Bytes of a per-pixel table, in all and per pixel (none when it is empty: off).
+fn per_pixel_bytes<T>(pixels: &[Mutex<T>]) -> [u64; 2] {
+    let per_pixel = match pixels.is_empty() {
+        true => 0,
+        false => size_of::<Mutex<T>>() as u64,
+    };
+    [per_pixel * pixels.len() as u64, per_pixel]
+}
+
 /// Sets a pixel's further samples' exact rays apart (`PbgiIntegrator::sample`).
 const FURTHER_SALT: u64 = 0x6a09_e667_f3bc_c908;
 

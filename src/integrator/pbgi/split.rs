@@ -155,11 +155,7 @@ impl Split {
 
     /// Bytes held, in all and per pixel.
     pub(super) fn bytes(&self) -> [u64; 2] {
-        let per_pixel = match self.pixels.is_empty() {
-            true => 0,
-            false => size_of::<Mutex<Pixel>>() as u64,
-        };
-        [per_pixel * self.pixels.len() as u64, per_pixel]
+        super::per_pixel_bytes(&self.pixels)
     }
 }
 
