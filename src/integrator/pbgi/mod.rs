@@ -32,6 +32,10 @@
 //!   micro-buffer and wavelet BRDF product, 000 §3.2 and 002 §4.2, would gather them from
 //!   the cloud; not built.)
 //!
+//! A pixel whose earlier samples scattered takes more camera rays a pass (`pixel_split`,
+//! not in the seeds): half of the showroom's noise was the sample's position in the
+//! pixel, which nothing at one first hit lowers.
+//!
 //! Smooth mirrors and glass are followed exactly (one sampled bounce each, up to
 //! `SMOOTH_DEPTH`), so a perfectly specular surface degrades to the exact estimator
 //! (000 §A.8). The cloud holds `--bounces N` bounces (1: direct light reflected once):
@@ -125,8 +129,8 @@ pub struct PbgiSettings {
     #[arg(long = "pbgi-split", value_name = "N", value_parser = clap::value_parser!(u32).range(1..=32))]
     pub split: Option<u32>,
     /// Most camera rays one pass's sample of a pixel takes: each pixel's count grows with
-    /// the root of its earlier samples' variance relative to the image's mean
-    /// (`pixel_split.rs`), so pixels whose light changes within them (a highlight on a
+    /// the root of its earlier samples' variance over their rays, relative to the image's
+    /// mean (`pixel_split.rs`), so pixels whose light changes within them (a highlight on a
     /// curved metal, a textured edge) take more first hits. 1 turns it off. Not with
     /// --receiver-clusters, whose receivers are grouped per tile [default: 16, 1 with
     /// --receiver-clusters]
@@ -1042,8 +1046,7 @@ impl PbgiIntegrator {
         c.paths += 1;
         let l = c.finite(l);
         let rays = tr.rays - rays_before;
-        self.pixel_split
-            .note(at, crate::material::luminance(l), rays);
+        self.pixel_split.note(at, luminance(l), rays);
         l * share
     }
 }
