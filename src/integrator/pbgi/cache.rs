@@ -142,7 +142,7 @@ impl Record {
     }
 }
 
-/// Running mean and variance (Welford) of one record's gathered luminances.
+/// Running mean and variance (Welford) of luminances: a record's gathers, a pixel's samples.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Moments {
     pub count: u64,

@@ -13,6 +13,7 @@
 //! never from the ones it is spent on, so every pass's mean stays unbiased. The path
 //! tracer, being the reference, does not take it; docs/pbgi.md gives what it would gain.
 
+use super::cache::Moments;
 use crate::sampler::PixelSampler;
 use std::sync::{Mutex, PoisonError};
 
@@ -28,28 +29,23 @@ const AFTER: u32 = 2;
 /// Seed offset of the pixels' own sequences of further samples.
 const SEED: u32 = 0x2c1b_3c6d;
 
-/// One pixel's samples so far: their luminances' count, sum and sum of squares, and the
-/// further samples it took (where its own sequence is).
+/// One pixel's samples so far: their luminances and rays, and the further samples it
+/// took (where its own sequence is).
 #[derive(Default, Clone, Copy)]
 struct Pixel {
-    count: u32,
-    sum: f64,
-    squares: f64,
+    y: Moments,
     rays: u64,
     further: u32,
 }
 
 impl Pixel {
     fn variance(&self) -> Option<f64> {
-        (self.count >= AFTER).then(|| {
-            let n = self.count as f64;
-            ((self.squares - self.sum * self.sum / n) / (n - 1.0)).max(0.0)
-        })
+        (self.y.count >= AFTER as u64).then(|| self.y.variance())
     }
 
     /// Rays per sample (at least one).
     fn cost(&self) -> f64 {
-        (self.rays as f64 / self.count.max(1) as f64).max(1.0)
+        (self.rays as f64 / self.y.count.max(1) as f64).max(1.0)
     }
 }
 
@@ -153,9 +149,7 @@ impl PixelSplit {
             return;
         }
         let mut px = slot.lock().unwrap_or_else(PoisonError::into_inner);
-        px.count += 1;
-        px.sum += y as f64;
-        px.squares += (y as f64).powi(2);
+        px.y.add(y);
         px.rays += rays;
     }
 
