@@ -50,6 +50,14 @@ pub const MAX_PIXELS: f32 = 4.0;
 /// Most gathers a record averages.
 pub const MAX_GATHERS: u64 = 64;
 
+/// A record's spread, for its refinement, counts the records' mean spread as this many
+/// gathers beside its own (shrinkage toward a prior). From its own gathers alone, a record
+/// whose first two happened to agree stopped there, its spread understated and its mean
+/// biased: gathers skewed by a hot spot in a few texels agree where they are low (the
+/// showroom's ceiling and walls were 0.5–1% dark). At 20 s on the showroom, seeds 1–4,
+/// the mean squared error fell by 11% (1 gather: by 10%); sponza at 60 s, −2%.
+const PRIOR_GATHERS: f64 = 4.0;
+
 /// One gather kept, or the mean of several at one point.
 #[derive(Clone, Copy, Debug)]
 pub struct Record {
@@ -128,9 +136,9 @@ impl Record {
     }
 
     /// How much one more gather would lower the squared error the record spreads over
-    /// its pixels: the variance of its mean falls from s²/k to s²/(k+1). A record of one
-    /// gather, whose spread is unknown, comes first.
-    pub fn gain(&self) -> f64 {
+    /// its pixels: the variance of its mean falls from s²/k to s²/(k+1), s² its gathers'
+    /// spread shrunk toward `prior` (`PRIOR_GATHERS`). A record of one gather comes first.
+    pub fn gain(&self, prior: f64) -> f64 {
         let k = self.y.count as f64;
         if self.y.count >= MAX_GATHERS {
             return 0.0;
@@ -138,7 +146,9 @@ impl Record {
         if self.y.count < 2 {
             return f64::INFINITY;
         }
-        self.y.variance() / (k * (k + 1.0)) * self.pixels as f64
+        let (own, prior_weight) = (k - 1.0, PRIOR_GATHERS);
+        let s2 = (self.y.variance() * own + prior * prior_weight) / (own + prior_weight);
+        s2 / (k * (k + 1.0)) * self.pixels as f64
     }
 }
 
@@ -223,9 +233,13 @@ impl IrradianceCache {
 
     /// The records (in index order) whose next gather lowers the squared error they
     /// spread over their pixels, [`Record::gain`] times their lobe squared, by more than
-    /// `threshold`: every record of one gather, none that has `MAX_GATHERS`.
+    /// `threshold`: every record of one gather, none that has `MAX_GATHERS`. The prior
+    /// spread is the mean of the records' of two gathers or more.
     pub fn worth_refining(&self, threshold: f64) -> Vec<usize> {
-        let worth = |r: &Record| r.gain() * (r.lobe as f64).powi(2) > threshold;
+        let known = self.records.iter().filter(|r| r.y.count >= 2);
+        let (sum, n) = known.fold((0.0, 0.0), |(s, n), r| (s + r.y.variance(), n + 1.0));
+        let prior = if n > 0.0 { sum / n } else { 0.0 };
+        let worth = |r: &Record| r.gain(prior) * (r.lobe as f64).powi(2) > threshold;
         (0..self.records.len())
             .filter(|&i| worth(&self.records[i]))
             .collect()
@@ -538,10 +552,43 @@ mod tests {
         assert!((e - V::splat(0.98)).abs().max_element() < 1e-6, "{e}");
     }
 
+    /// Records whose gathers are skewed (0.5 plus an exponential of mean 0.5, as when a
+    /// few texels see a hot spot), refined a gather a round while their gain is worth it:
+    /// their mean (1) reads 3% low, where refined by their own spread alone it read 8% low
+    /// (a shrunk spread lessens the bias of stopping where the first gathers agree; it
+    /// does not remove it).
+    #[test]
+    fn refined_records_keep_a_skewed_mean() {
+        let mut rng = TestRng::new(5);
+        let mut draw = || V::splat(0.5 - 0.5 * (1.0 - rng.f32()).ln());
+        let (trials, records) = (200, 50);
+        let (mut sum, mut gathers) = (0.0f64, 0u64);
+        for _ in 0..trials {
+            let mut cache = IrradianceCache::new(0.3);
+            cache.extend((0..records).map(|_| Record::new(V::ZERO, V::Z, draw(), 1.0, 0.01, 0.3)));
+            loop {
+                let ids = cache.worth_refining(0.2);
+                if ids.is_empty() {
+                    break;
+                }
+                ids.into_iter()
+                    .for_each(|i| cache.add(i, draw(), &Gradients::default()));
+            }
+            sum += cache.records().iter().map(|r| r.e.x as f64).sum::<f64>();
+            gathers += cache.gathers();
+        }
+        let n = (trials * records) as f64;
+        let (mean, gathers) = (sum / n, gathers as f64 / n);
+        assert!(
+            (mean - 1.0).abs() < 0.04,
+            "mean {mean} over {gathers} gathers"
+        );
+    }
+
     /// A record's irradiance is the mean of its gathers and its moments those of their
     /// luminances; refinement goes to records of one gather, and to those whose gathers
-    /// spread most over the most pixels (as their lobe shows them) past a threshold, never
-    /// to one at `MAX_GATHERS`.
+    /// spread most (shrunk toward the records' mean spread) over the most pixels (as their
+    /// lobe shows them) past a threshold, never to one at `MAX_GATHERS`.
     #[test]
     fn records_average_their_gathers_and_the_uncertain_are_refined() {
         let mut rng = TestRng::new(9);
@@ -575,13 +622,16 @@ mod tests {
             make(3.0, &[0.0, 2.0].repeat(32), 16.0),
             make(4.0, &[1.0, 1.1], 16.0),
         ]);
-        // Gains: 0.005/6·4, 2/6, ∞ (one gather), 0 (64), 0.005/6·16.
-        assert_eq!(cache.worth_refining(1.0), vec![2]);
-        assert_eq!(cache.worth_refining(0.1), vec![1, 2]);
-        assert_eq!(cache.worth_refining(0.01), vec![1, 2, 4]);
+        // Spreads 0.005, 2, -, 64/63, 0.005: prior p = (0.01 + 2 + 64/63) / 4; each of
+        // two gathers shrunk to (s² + 4p) / 5, gains (0.005 + 4p)/5/6·4 = 0.404, 1.005/6 =
+        // 0.168, ∞ (one gather), 0 (64), 0.404·4 = 1.616.
+        assert_eq!(cache.worth_refining(1.0), vec![2, 4]);
+        assert_eq!(cache.worth_refining(0.3), vec![0, 2, 4]);
+        assert_eq!(cache.worth_refining(0.1), vec![0, 1, 2, 4]);
         assert_eq!(cache.worth_refining(0.0), vec![0, 1, 2, 4]);
         assert_eq!(cache.gathers(), 2 + 2 + 1 + 64 + 2);
-        // A dim lobe shows less of a record's error: at half, a quarter of the gain.
+        // A dim lobe shows less of a record's error: at half, a quarter of the gain (alone,
+        // its spread is the prior's: 0.005/6·16/4).
         let mut dim = IrradianceCache::new(0.3);
         dim.extend([Record {
             lobe: 0.5,
