@@ -11,7 +11,7 @@ mod sweep;
 
 use anyhow::Result;
 use canopy::integrator::cone::ConeSettings;
-use canopy::integrator::edge::EdgeSettings;
+use canopy::integrator::edge::{EdgeSettings, DEFAULT_EDGE_RAYS, PBGI_EDGE_RAYS};
 use canopy::integrator::pbgi::PbgiSettings;
 use canopy::integrator::{Kind, Settings};
 use canopy::texture::TextureFilter;
@@ -91,14 +91,14 @@ impl RenderSettings {
 
     fn cone(&self) -> ConeSettings {
         ConeSettings {
-            edge_rays: self.edge.edge_rays,
+            edge_rays: self.edge.edge_rays.unwrap_or(DEFAULT_EDGE_RAYS),
             ..self.cone.clone()
         }
     }
 
     fn pbgi(&self) -> PbgiSettings {
         PbgiSettings {
-            edge_rays: self.edge.edge_rays,
+            edge_rays: self.edge.edge_rays.unwrap_or(PBGI_EDGE_RAYS),
             ..self.pbgi.clone()
         }
     }

@@ -54,7 +54,7 @@ mod records;
 mod split;
 mod surface;
 
-use super::edge::{EdgeRays, DEFAULT_EDGE_RAYS};
+use super::edge::{EdgeRays, PBGI_EDGE_RAYS};
 use super::{on_side, Counters, Integrator, Pass, PixelSample, Scene, Stats, Target};
 use crate::material::{luminance, Bsdf, Frame};
 use crate::sampler::PixelSampler;
@@ -89,7 +89,7 @@ pub struct PbgiSettings {
     #[arg(long = "pbgi-resolution", default_value_t = 8, value_parser = parse_resolution)]
     pub resolution: usize,
     /// `--edge-rays` (a flag of both cone and PBGI, set by the command line).
-    #[arg(skip = DEFAULT_EDGE_RAYS)]
+    #[arg(skip = PBGI_EDGE_RAYS)]
     pub edge_rays: u32,
     #[command(flatten)]
     pub bake: bake::BakeSettings,
