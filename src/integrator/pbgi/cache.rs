@@ -95,8 +95,7 @@ impl Record {
         } else {
             hi
         };
-        let mut y = Moments::default();
-        y.add(luminance(e));
+        let y = Moments::of([luminance(e)]);
         Record {
             p,
             n,
@@ -162,6 +161,13 @@ pub struct Moments {
 }
 
 impl Moments {
+    /// The moments of `ys`.
+    pub fn of(ys: impl IntoIterator<Item = f32>) -> Moments {
+        let mut m = Moments::default();
+        ys.into_iter().for_each(|y| m.add(y));
+        m
+    }
+
     pub fn add(&mut self, y: f32) {
         self.count += 1;
         let d = y as f64 - self.mean;

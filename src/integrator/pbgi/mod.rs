@@ -61,7 +61,7 @@ use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Hit, Ray, Tracer};
 use anyhow::Result;
 use bake::Hash;
-use cache::IrradianceCache;
+use cache::{IrradianceCache, Moments};
 use cut::Field;
 use glam::{Vec3, Vec3A as V};
 use microbuffer::{Gradients, MicroBuffer, Texels};
@@ -290,9 +290,9 @@ struct Gathered {
     p: V,
     n: V,
     sum: V,
-    /// Σ of the gathers' squared luminance: their spread sets the surface's period.
-    sq: f32,
-    count: u32,
+    /// The gathers' luminances (their count is the gathers'): their spread sets the
+    /// surface's period.
+    y: Moments,
     /// Samples that landed on it: it gathers at every `period`-th (at its pixel's
     /// phase), and the pixel's first surface also at its first, so a surface's gathers
     /// are in proportion to its share of the pixel's samples. One that has none yet
@@ -315,12 +315,10 @@ impl Gathered {
     /// The variance a gather adds to one sample that takes it, in luminance: the
     /// gathers' spread times the samples' mean weight, squared; None before two gathers.
     fn spread(&self) -> Option<f32> {
-        if self.count < 2 {
+        if self.y.count < 2 {
             return None;
         }
-        let n = self.count as f32;
-        let mean = luminance(self.sum) / n;
-        let var = ((self.sq - n * mean * mean) / (n - 1.0)).max(0.0);
+        let var = self.y.variance() as f32;
         let w = luminance(self.weight) / self.samples.max(1) as f32;
         Some(w * w * var)
     }
@@ -335,7 +333,7 @@ impl Gathered {
     /// v̄ c_g / c_s), taken down to a power of two so that a longer period's samples are
     /// a shorter one's, and at most R.
     fn period(&self, most: u64, target: f32) -> u64 {
-        let optimum = match (self.count, self.spread()) {
+        let optimum = match (self.y.count, self.spread()) {
             (0, _) => return most,
             (_, None) if (self.samples as u64) < PILOT_PERIOD => return most,
             (_, None) => return most.min(PILOT_PERIOD),
@@ -711,7 +709,7 @@ impl PbgiIntegrator {
                 // does about 1/period of the pixels' gathers instead of all of them every
                 // period-th pass.
                 if (k + self.phase(pixel)).is_multiple_of(period) {
-                    return Reuse::Gather(self.pixel_strata(pixel, i, g.count));
+                    return Reuse::Gather(self.pixel_strata(pixel, i, g.y.count as u32));
                 }
                 Reuse::Pixel(pixel, i)
             }
@@ -721,8 +719,7 @@ impl PbgiIntegrator {
                     p: q.s.p,
                     n,
                     sum: V::ZERO,
-                    sq: 0.0,
-                    count: 0,
+                    y: Moments::default(),
                     samples: 1,
                     weight: V::ZERO,
                 });
@@ -799,16 +796,14 @@ impl PbgiIntegrator {
         match list.iter_mut().find(|g| g.holds(p, n, footprint)) {
             Some(g) => {
                 g.sum += e;
-                g.sq += luminance(e).powi(2);
-                g.count += 1;
+                g.y.add(luminance(e));
                 g.weight += weight;
             }
             None if !full => list.push(Gathered {
                 p,
                 n,
                 sum: e,
-                sq: luminance(e).powi(2),
-                count: 1,
+                y: Moments::of([luminance(e)]),
                 samples: 1,
                 weight,
             }),
@@ -1256,10 +1251,10 @@ impl Integrator for PbgiIntegrator {
     fn held_back(&self) -> Vec<(usize, V)> {
         let pixel = |list: &Vec<Gathered>| {
             let mean = |g: &Gathered| {
-                let gathered = list.iter().filter(|o| o.count > 0);
+                let gathered = list.iter().filter(|o| o.y.count > 0);
                 let closest = gathered.max_by(|a, b| a.n.dot(g.n).total_cmp(&b.n.dot(g.n)));
-                let from = if g.count > 0 { Some(g) } else { closest };
-                from.map_or(V::ZERO, |o| g.weight * o.sum / o.count as f32)
+                let from = if g.y.count > 0 { Some(g) } else { closest };
+                from.map_or(V::ZERO, |o| g.weight * o.sum / o.y.count as f32)
             };
             list.iter().map(mean).sum::<V>()
         };
@@ -1335,8 +1330,7 @@ mod period_tests {
             p: V::ZERO,
             n: V::Z,
             sum: values.iter().map(|&v| V::splat(v)).sum(),
-            sq: values.iter().map(|v| v * v).sum(),
-            count: values.len() as u32,
+            y: Moments::of(values.iter().copied()),
             samples,
             weight: V::splat(samples as f32),
         }
