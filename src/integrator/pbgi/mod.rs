@@ -417,6 +417,8 @@ impl PbgiIntegrator {
             None => 1,
         };
         let pixels = scene.camera.width as usize * scene.camera.height as usize;
+        let [x0, x1, y0, y1] = target.window;
+        let window = [(x1 - x0) as usize, (y1 - y0) as usize];
         let pixel_split = match (settings.pixel_split, settings.clusters) {
             (Some(m), _) => m,
             (None, 0) => PIXEL_SPLIT,
@@ -454,7 +456,7 @@ impl PbgiIntegrator {
             probe_records: 0,
             glossy_rays,
             // With more first hits per pixel only the bounce splits (`Split::new`).
-            split: split::Split::new(split, glossy_rays, pixels, pixel_split == 1),
+            split: split::Split::new(split, glossy_rays, window, pixel_split == 1),
             pixel_split: pixel_split::PixelSplit::new(pixel_split, seed, pixels),
             further_samples: AtomicU64::new(0),
             reuse_target: 0.0,

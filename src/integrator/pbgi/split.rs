@@ -8,8 +8,12 @@
 //! least at n = √((v / c) / (v_r / c_r)). Here v is the half squared difference of a
 //! receiver's first two estimates, v_r the image's mean variance of one sample (a
 //! pixel's rest is not measured apart from its direct light), and c_r / c a constant,
-//! `GAIN`. A pixel's counts come only from its earlier samples, never from the sample
-//! they are spent on, so each estimate stays unbiased.
+//! `GAIN`. v is pooled over the pixel and its eight neighbours: the bounce's light is
+//! heavy-tailed where it meets a small bright thing (the floor's reflection of the gold
+//! bunny's highlights), and one pixel's few samples seldom see the rare large values that
+//! make its variance, where its neighbours' together do. A pixel's counts come only from
+//! earlier samples, never from the sample they are spent on, so each estimate stays
+//! unbiased.
 
 use crate::material::luminance;
 use glam::Vec3A as V;
@@ -19,7 +23,8 @@ use std::sync::{Mutex, PoisonError};
 /// c = RMSE·√s of 1.27e-2, 1.23e-2 and 1.28e-2 (docs/pbgi.md).
 const GAIN: f32 = 8.0;
 
-/// Samples of a pixel's glossy receivers before their spread decides anything.
+/// Samples of a pixel's and its neighbours' glossy receivers, together, before their
+/// spread decides anything.
 const AFTER: u32 = 4;
 
 /// Σ over a pixel's samples of the half squared difference of two estimates, and their
@@ -30,10 +35,17 @@ struct Spread {
     count: u32,
 }
 
-#[derive(Default)]
+#[derive(Default, Clone, Copy)]
 struct Pixel {
     direct: Spread,
     bounce: Spread,
+}
+
+impl Spread {
+    fn add(&mut self, o: Spread) {
+        self.sum += o.sum;
+        self.count += o.count;
+    }
 }
 
 /// Which of a glossy receiver's estimates.
@@ -52,7 +64,11 @@ pub(super) struct Split {
     most: u32,
     /// Whether direct light's pairs split too, not only the bounce's rays.
     direct: bool,
+    /// The window's width: pixel `at` is at (at mod width, at / width).
+    width: usize,
     pixels: Vec<Mutex<Pixel>>,
+    /// Per pixel, its spreads and its eight neighbours' summed, at the pass's start.
+    pooled: Vec<Pixel>,
     /// The mean over pixels of one sample's luminance variance, at the pass's start.
     mean_variance: f32,
 }
@@ -75,20 +91,23 @@ impl Counts {
 }
 
 impl Split {
-    /// Splits up to `most` over `pixels` pixels, for receivers that take `k` of each; none
-    /// unless `most` exceeds `k` and `k` is 2 or more (two estimates give a spread).
+    /// Splits up to `most` over a window of `width` × `height` pixels, for receivers that
+    /// take `k` of each; none unless `most` exceeds `k` and `k` is 2 or more (two
+    /// estimates give a spread).
     /// `direct`: direct light's pairs split as well as the bounce's rays. Where a pixel
     /// takes more first hits (`pixel_split.rs`) they do not: on the showroom at 20 s,
     /// seeds 1 and 2, splitting them too raised the RMSE by 4–7% at every κ tried.
-    pub(super) fn new(most: u32, k: u32, pixels: usize, direct: bool) -> Split {
+    pub(super) fn new(most: u32, k: u32, [width, height]: [usize; 2], direct: bool) -> Split {
         let pixels = match most > k && k > 1 {
-            true => (0..pixels).map(|_| Mutex::default()).collect(),
+            true => (0..width * height).map(|_| Mutex::default()).collect(),
             false => Vec::new(),
         };
         Split {
             most,
             direct,
+            width,
             pixels,
+            pooled: Vec::new(),
             mean_variance: 0.0,
         }
     }
@@ -106,17 +125,41 @@ impl Split {
         self.direct
     }
 
-    /// Before a pass: the image's mean variance of one sample so far.
+    /// Before a pass: the image's mean variance of one sample so far; the pixels' spreads
+    /// are pooled with their neighbours' for the pass.
     pub(super) fn begin_pass(&mut self, mean_variance: f64) {
         self.mean_variance = mean_variance as f32;
+        if self.pixels.is_empty() {
+            return;
+        }
+        let own: Vec<Pixel> = self
+            .pixels
+            .iter()
+            .map(|p| *p.lock().unwrap_or_else(PoisonError::into_inner))
+            .collect();
+        let (w, h) = (self.width, own.len() / self.width);
+        self.pooled = (0..own.len())
+            .map(|at| {
+                let (x, y) = (at % w, at / w);
+                let mut sum = Pixel::default();
+                for yy in y.saturating_sub(1)..(y + 2).min(h) {
+                    for xx in x.saturating_sub(1)..(x + 2).min(w) {
+                        let o = own[yy * w + xx];
+                        sum.direct.add(o.direct);
+                        sum.bounce.add(o.bounce);
+                    }
+                }
+                sum
+            })
+            .collect();
     }
 
-    /// The counts for a receiver of pixel `at` that takes `k` of each at least.
+    /// The counts for a receiver of pixel `at` that takes `k` of each at least, from the
+    /// spreads pooled at the pass's start.
     pub(super) fn counts(&self, at: usize, k: u32) -> Counts {
-        let Some(slot) = self.pixels.get(at) else {
+        let Some(px) = self.pooled.get(at) else {
             return Counts::both(k);
         };
-        let px = slot.lock().unwrap_or_else(PoisonError::into_inner);
         let n = |s: Spread| {
             if s.count < AFTER || self.mean_variance <= 0.0 {
                 return k;
@@ -155,7 +198,12 @@ impl Split {
 
     /// Bytes held, in all and per pixel.
     pub(super) fn bytes(&self) -> [u64; 2] {
-        super::per_pixel_bytes(&self.pixels)
+        let [all, per_pixel] = super::per_pixel_bytes(&self.pixels);
+        let pooled = match self.pixels.is_empty() {
+            true => 0,
+            false => size_of::<Pixel>() as u64,
+        };
+        [all + pooled * self.pixels.len() as u64, per_pixel + pooled]
     }
 }
 
@@ -165,39 +213,74 @@ mod tests {
 
     #[test]
     fn a_pixel_splits_in_proportion_to_the_root_of_its_spread_and_only_after_its_first_samples() {
-        let mut split = Split::new(32, 2, 2, true);
-        split.begin_pass(0.01);
+        // A row of four pixels: 0 and 3 are not neighbours.
+        let mut split = Split::new(32, 2, [4, 1], true);
         let k = 2;
-        // Pixel 0: estimates 0 and 1 apart in luminance (spread 0.5); pixel 1 agrees.
+        // Pixel 0: estimates 0 and 1 apart in luminance (spread 0.5); pixel 3 agrees.
         for i in 0..AFTER {
+            split.begin_pass(0.01);
             assert_eq!(split.counts(0, k).direct, k, "after {i} samples");
             split.note(0, Part::Direct, V::ZERO, V::ONE);
-            split.note(1, Part::Direct, V::ONE, V::ONE);
-            split.note(1, Part::Bounce, V::ONE, V::ONE);
+            split.note(3, Part::Direct, V::ONE, V::ONE);
+            split.note(3, Part::Bounce, V::ONE, V::ONE);
         }
+        assert_eq!(split.counts(0, k).direct, k, "until the next pass starts");
+        split.begin_pass(0.01);
         let c = split.counts(0, k);
         // √(8 · 0.5 / 0.01) = 20.
         assert_eq!(c.direct, 20);
         assert_eq!(c.bounce, k, "the bounce has no samples of its own");
-        assert_eq!(split.counts(1, k), Counts::both(k));
+        assert_eq!(split.counts(3, k), Counts::both(k));
         split.begin_pass(0.0001);
         assert_eq!(split.counts(0, k).direct, 32, "capped at --pbgi-split");
         assert_eq!(split.counts(7, k).direct, k, "outside the window");
         assert!(split.bytes()[0] > 0);
-        for off in [Split::new(2, 2, 2, true), Split::new(32, 1, 2, true)] {
+        for mut off in [
+            Split::new(2, 2, [2, 1], true),
+            Split::new(32, 1, [2, 1], true),
+        ] {
+            off.begin_pass(0.01);
             assert_eq!(off.counts(0, 2), Counts::both(2));
             assert_eq!(off.bytes(), [0, 0]);
         }
     }
 
     #[test]
-    fn without_direct_splitting_only_the_bounce_splits() {
-        let mut split = Split::new(32, 2, 1, false);
+    fn a_pixel_takes_its_neighbours_spread_and_not_a_farther_pixels() {
+        // A 5 × 5 window whose centre's bounce once scattered (spread 0.5 in one of 9
+        // notes); every other pixel agrees at each of its samples.
+        let mut split = Split::new(32, 2, [5, 5], false);
+        let centre = 12;
+        for at in 0..25 {
+            for i in 0..9 {
+                let b = if at == centre && i == 0 {
+                    V::ONE
+                } else {
+                    V::ZERO
+                };
+                split.note(at, Part::Bounce, V::ZERO, b);
+            }
+        }
         split.begin_pass(0.01);
+        // A neighbour of the centre (pixel 6, up and left) pools 81 notes with one spread
+        // of 0.5: √(8 · (0.5 / 81) / 0.01) = 2.2, so 3. So does the centre itself.
+        for at in [6, 7, 11, 13, centre, 18] {
+            assert_eq!(split.counts(at, 2).bounce, 3, "pixel {at}");
+        }
+        // Two pixels away from it, none of the spread reaches.
+        for at in [0, 2, 10, 14, 24] {
+            assert_eq!(split.counts(at, 2).bounce, 2, "pixel {at}");
+        }
+    }
+
+    #[test]
+    fn without_direct_splitting_only_the_bounce_splits() {
+        let mut split = Split::new(32, 2, [1, 1], false);
         for _ in 0..AFTER {
             split.note(0, Part::Direct, V::ZERO, V::ONE);
             split.note(0, Part::Bounce, V::ZERO, V::ONE);
         }
+        split.begin_pass(0.01);
         let c = split.counts(0, 2);
         assert_eq!(c.direct, 2, "direct light keeps K pairs");
         assert_eq!(c.bounce, 20, "√(8 · 0.5 / 0.01)");
