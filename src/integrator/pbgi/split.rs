@@ -35,17 +35,17 @@ struct Spread {
     count: u32,
 }
 
-#[derive(Default, Clone, Copy)]
-struct Pixel {
-    direct: Spread,
-    bounce: Spread,
-}
-
 impl Spread {
     fn add(&mut self, o: Spread) {
         self.sum += o.sum;
         self.count += o.count;
     }
+}
+
+#[derive(Default, Clone, Copy)]
+struct Pixel {
+    direct: Spread,
+    bounce: Spread,
 }
 
 /// Which of a glossy receiver's estimates.
