@@ -417,6 +417,9 @@ fn pixels_left_to_themselves_gather_more_often_where_their_gathers_scatter() {
             "256",
             "--seed",
             "1",
+            // One camera ray a pixel and pass: the gather period alone is under test.
+            "--pbgi-pixel-split",
+            "1",
         ];
         render(&arc, &dir.path().join(format!("r{reuse}.exr")), &flags)
     };
