@@ -246,8 +246,8 @@ pub struct PbgiIntegrator {
     gap_rays: AtomicU64,
     /// Receivers gathered through a cluster's field.
     clusters: AtomicU64,
-    /// Per pixel of the window (by its index there; sized for the whole image, which a
-    /// window never exceeds): the irradiance gathered there, per surface.
+    /// Per pixel of the window (by its index there): the irradiance gathered there, per
+    /// surface.
     gathered: Vec<Mutex<Vec<Gathered>>>,
     gathers: AtomicU64,
     reused: AtomicU64,
@@ -418,7 +418,6 @@ impl PbgiIntegrator {
             None if glossy => SPLIT,
             None => 1,
         };
-        let pixels = scene.camera.width as usize * scene.camera.height as usize;
         let [x0, x1, y0, y1] = target.window;
         let window = [(x1 - x0) as usize, (y1 - y0) as usize];
         let pixel_split = match (settings.pixel_split, settings.clusters) {
@@ -459,10 +458,17 @@ impl PbgiIntegrator {
             glossy_rays,
             // With more first hits per pixel only the bounce splits (`Split::new`).
             split: split::Split::new(split, glossy_rays, window, pixel_split == 1),
-            pixel_split: pixel_split::PixelSplit::new(pixel_split, seed, pixels),
+            pixel_split: pixel_split::PixelSplit::new(pixel_split, seed, window[0] * window[1]),
             further_samples: AtomicU64::new(0),
             reuse_target: 0.0,
         }
+    }
+
+    /// Pixels in the window rendered: the size of every per-pixel table, which
+    /// `PixelSample::at` indexes.
+    fn window_pixels(&self) -> usize {
+        let [x0, x1, y0, y1] = self.window;
+        ((x1 - x0) * (y1 - y0)) as usize
     }
 
     /// Radiance along the camera ray up to the receiver x, the first non-specular hit:
@@ -1080,8 +1086,9 @@ impl Integrator for PbgiIntegrator {
             return Ok(edge_rays + refine_rays + probe_rays);
         }
         if self.settings.reuse > 1 {
-            let pixels = scene.camera.width as usize * scene.camera.height as usize;
-            self.gathered = (0..pixels).map(|_| Mutex::default()).collect();
+            self.gathered = (0..self.window_pixels())
+                .map(|_| Mutex::default())
+                .collect();
         }
         let t = Instant::now();
         let archive = &scene.cache.archive;
@@ -1105,8 +1112,9 @@ impl Integrator for PbgiIntegrator {
             let t = Instant::now();
             let (cache, rays) = self.build_cache(scene, self.settings.cache);
             (self.cache, cache_rays) = (Some(cache), rays);
-            let pixels = scene.camera.width as usize * scene.camera.height as usize;
-            self.crevices = (0..pixels).map(|_| AtomicBool::new(false)).collect();
+            self.crevices = (0..self.window_pixels())
+                .map(|_| AtomicBool::new(false))
+                .collect();
             self.cache_rays = rays;
             self.cache_s = t.elapsed().as_secs_f64();
             self.probe_order = self.probe_order();

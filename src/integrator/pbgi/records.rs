@@ -106,11 +106,10 @@ impl PbgiIntegrator {
     /// records' first gathers as charged, else a ray a texel; the passes' rays over their
     /// samples, the pixels' further ones counted).
     pub(super) fn reuse_target(&self, pass: &Pass, variance: f64) -> f32 {
-        let [x0, x1, y0, y1] = self.window;
         let further = self
             .further_samples
             .load(std::sync::atomic::Ordering::Relaxed);
-        let samples = pass.first as f64 * ((x1 - x0) * (y1 - y0)) as f64 + further as f64;
+        let samples = pass.first as f64 * self.window_pixels() as f64 + further as f64;
         let per_sample = self.sampled_rays(pass) as f64 / samples.max(1.0);
         let per_gather = match &self.cache {
             Some(cache) => self.gather_cost(cache),
@@ -246,8 +245,7 @@ impl PbgiIntegrator {
         let sampled = self.sampled_rays(pass);
         let pass_rays = (sampled as f64 / n).max(1.0);
         let per_gather = self.gather_cost(cache) as f64;
-        let [x0, x1, y0, y1] = self.window;
-        let pixels = ((x1 - x0) * (y1 - y0)) as f64;
+        let pixels = self.window_pixels() as f64;
         let worth = pass.variance / (n * (n + 1.0)) / pass_rays * per_gather * pixels;
         let mut ids = cache.worth_refining(worth);
         ids.truncate(self.affordable(pass, cache, ids.len()));
