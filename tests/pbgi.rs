@@ -169,6 +169,14 @@ fn pbgi_flags_are_refused_elsewhere_and_checked() {
             &["--integrator", "pbgi", "--pbgi-glossy-rays", "2"],
             "no material of",
         ),
+        (
+            &["--integrator", "pbgi", "--pbgi-glossy-bounce", "wavelet"],
+            "--pbgi-glossy-bounce wavelet: no material of",
+        ),
+        (
+            &["--integrator", "path", "--pbgi-glossy-bounce", "wavelet"],
+            "--pbgi-glossy-bounce applies to --integrator pbgi",
+        ),
     ] {
         let err = fails(&[&["render", s(&arc), "-o", s(&out)][..], flags].concat());
         assert!(err.contains(says), "{flags:?}: {err}");
@@ -680,14 +688,18 @@ fn grid(n: usize, vertex: &dyn Fn(f32, f32) -> [f32; 3], flip: bool) -> String {
 /// the camera that sees only the wall: its indirect light is the lamp's reflection off the
 /// floor, mostly from splatted floor nodes. Returns the archive.
 fn gold_floor(dir: &std::path::Path) -> std::path::PathBuf {
+    gold_floor_from(dir, "[0.5, 0.7, -0.6]", "[0.5, 0.7, 1.0]")
+}
+
+/// The gold floor and its wall, seen from `position` toward `look_at`.
+fn gold_floor_from(dir: &std::path::Path, position: &str, look_at: &str) -> std::path::PathBuf {
     let floor = grid(32, &|u, v| [2.0 * u - 0.5, 0.0, v], false);
     let wall = grid(8, &|u, v| [2.0 * u - 0.5, 1.5 * v, 1.0], true);
-    let toml = r#"
-[[camera]]
-name = "main"
-position = [0.5, 0.7, -0.6]
-look_at = [0.5, 0.7, 1.0]
-yfov_degrees = 30.0
+    let camera = format!(
+        "[[camera]]\nname = \"main\"\nposition = {position}\nlook_at = {look_at}\nyfov_degrees = 30.0\n"
+    );
+    let toml = camera
+        + r#"
 [[material]]
 name = "gold"
 base_color = [0.95, 0.75, 0.4]
@@ -704,7 +716,7 @@ type = "point"
 position = [0.5, 0.6, 0.3]
 intensity = 2.0
 "#;
-    two_obj_scene(dir, [("floor.obj", floor), ("wall.obj", wall)], toml)
+    two_obj_scene(dir, [("floor.obj", floor), ("wall.obj", wall)], &toml)
 }
 
 /// Writes two OBJ files and a scene file into `dir` and converts them; returns the archive.
@@ -864,4 +876,49 @@ fn a_rough_metal_floor_sends_its_glossy_light_to_a_diffuse_wall() {
         "without wavelets red is only {:.2}% short",
         100.0 * off
     );
+}
+
+/// WPBGI (`--pbgi-glossy-bounce wavelet`): the gold floor seen from above, reflecting the
+/// lit wall, so its glossy bounce comes from the adaptive micro-buffer and the wavelet
+/// BRDF product. The bounce brings 77% of the red the path tracer finds on the same light
+/// paths; WPBGI at 16 spp was measured 0.9% short of it, with the leaves' rays traced and
+/// with the cut.
+#[test]
+fn wavelet_pbgi_gathers_a_rough_metal_floors_reflection() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = gold_floor_from(dir.path(), "[0.5, 1.0, -0.5]", "[0.5, 0.1, 0.7]");
+    let small = ["--width", "32", "--height", "32", "--crop", "0,32,16,32"];
+    let render_at = |depth: &str, extra: &[&str]| {
+        let flags = [&small[..], &["--max-depth", depth], extra].concat();
+        render(&arc, &dir.path().join("img.exr"), &flags)
+    };
+    let (reference, _) = render_at("3", &["--spp", "4096", "--seed", "3"]);
+    let (direct, _) = render_at("2", &["--spp", "4096", "--seed", "3"]);
+    let red = |img: &Image| img.mean()[0] / reference.mean()[0] - 1.0;
+    let bounce = -red(&direct);
+    assert!(
+        bounce > 0.05,
+        "the bounce brings only {:.1}%",
+        100.0 * bounce
+    );
+    let wavelet = [
+        "--integrator",
+        "pbgi",
+        "--spp",
+        "16",
+        "--pbgi-glossy-bounce",
+        "wavelet",
+    ];
+    for extra in [&["--pbgi-rays"][..], &[]] {
+        let (img, stats) = render_at("3", &[&wavelet[..], extra].concat());
+        assert!(all_finite(&img));
+        assert!(stats["wavelet_gathers"].as_u64().unwrap() > 0);
+        assert!(stats["brdf_coefficients"].as_u64().unwrap() > 0);
+        let off = red(&img);
+        assert!(
+            off.abs() < 0.025,
+            "{extra:?}: red off by {:.2}%",
+            100.0 * off
+        );
+    }
 }

@@ -91,6 +91,11 @@ impl Settings {
                     "--pbgi-split {n}: no material of {path} is a rough metal or rough dielectric, so no receiver has a glossy lobe to split"
                 );
             }
+            if p.glossy_bounce == pbgi::wpbgi::GlossyBounce::Wavelet && !glossy {
+                anyhow::bail!(
+                    "--pbgi-glossy-bounce wavelet: no material of {path} is a rough metal or rough dielectric, so no receiver has a glossy bounce to gather"
+                );
+            }
             if let (Some(n), Some(1)) = (p.split.filter(|&n| n > 1), p.glossy_rays) {
                 anyhow::bail!(
                     "--pbgi-split {n} needs --pbgi-glossy-rays of 2 or more: a receiver's spread is measured between its first two pairs"

@@ -70,9 +70,29 @@ pub(super) struct Field {
     near: Vec<(u32, u32)>,
 }
 
+/// Which micro-buffer a cut fills: the uniform hemicube (`sc.mb`, texels indexed as
+/// cube texels) or WPBGI's adaptive one (`sc.amb`, by leaf), whose leaf under a node
+/// sets the node's solid-angle threshold.
+#[derive(Clone, Copy, PartialEq)]
+pub(super) enum Fill {
+    Hemicube,
+    Adaptive,
+}
+
+impl Scratch {
+    /// Fills texel (or leaf) k whole with a hit's light.
+    fn put(&mut self, target: Fill, k: u32, depth: f32, id: u64, l: Vec3, sampled: bool) {
+        match target {
+            Fill::Hemicube => self.mb.fill(k as usize, depth, id, l, sampled),
+            Fill::Adaptive => self.amb.fill(k, depth, id, l),
+        }
+    }
+}
+
 impl PbgiIntegrator {
     /// Fills the micro-buffer from the cut: far nodes splatted, near leaves rasterized and
     /// their nearest hit per texel ray shaded, exact rays where a leaf's cone found nothing.
+    #[allow(clippy::too_many_arguments)]
     pub(super) fn fill_from_cut(
         &self,
         scene: &Scene,
@@ -81,6 +101,7 @@ impl PbgiIntegrator {
         field: Option<&Field>,
         sc: &mut Scratch,
         strata: Strata,
+        target: Fill,
     ) {
         sc.aimed.clear();
         sc.aimed.resize(sc.rays.len(), false);
@@ -100,7 +121,7 @@ impl PbgiIntegrator {
                     .extend((0..root.roots.min(root.bvh.len() as u32)).map(|r| (root.id, r)));
             }
         }
-        self.cut(scene, tr, s, sc);
+        self.cut(scene, tr, s, sc, target);
         let (mut gaps, mut fragments, mut exact) = (0, 0, 0);
         let mut page: Option<Arc<Page>> = None;
         for j in 0..sc.rays.len() {
@@ -114,14 +135,18 @@ impl PbgiIntegrator {
                     let (sends, sampled) = hit_light(scene, tr, &p, &hit, w, || strata.shading(k));
                     let id = (1 << 62) | (hit.leaf << 3) | hit.slot as u64;
                     let l = Vec3::from(sends * weight);
-                    sc.mb.fill(k as usize, hit.t, id, l, sampled);
+                    sc.put(target, k, hit.t, id, l, sampled);
                     page = Some(p);
                     fragments += 1;
                     exact += sampled as u64;
                 }
                 None if sc.aimed[j] => {
                     gaps += 1;
-                    self.texel_ray(scene, tr, s, (k as usize, weight), w, strata, &mut sc.mb);
+                    if let Some((t, id, l, sampled)) =
+                        self.texel_ray(scene, tr, s, (k, weight), w, strata)
+                    {
+                        sc.put(target, k, t, id, l, sampled);
+                    }
                 }
                 None => {}
             }
@@ -133,7 +158,7 @@ impl PbgiIntegrator {
 
     /// Walks the hierarchy from the nodes on `sc.stack`: far nodes are splatted, near
     /// leaves rasterized.
-    fn cut(&self, scene: &Scene, tr: &mut Tracer, s: &Surface, sc: &mut Scratch) {
+    fn cut(&self, scene: &Scene, tr: &mut Tracer, s: &Surface, sc: &mut Scratch, target: Fill) {
         let Some(&(first, _)) = sc.stack.last() else {
             return;
         };
@@ -151,10 +176,24 @@ impl PbgiIntegrator {
             if v.dot(s.n) < -r {
                 continue;
             }
-            if let Some(far) = self.far(&page, i, c, r, s.p) {
+            let base = match target {
+                Fill::Hemicube => Some(self.texels.min_solid_angle),
+                // A centre below the horizon is dropped by the splat, as the hemicube's is.
+                Fill::Adaptive => sc
+                    .amb
+                    .solid_angle_toward(s.frame.to_local(v).normalize().into())
+                    .or(Some(self.texels.min_solid_angle)),
+            };
+            if let Some(far) = base.and_then(|b| self.far(&page, i, c, r, s.p, b)) {
                 splatted += 1;
                 scene.touched.insert(far.id);
-                self.splat(s, &far, &mut sc.mb);
+                match target {
+                    Fill::Hemicube => self.splat(s, &far, &mut sc.mb),
+                    Fill::Adaptive => {
+                        let dir = Vec3::from(s.frame.to_local(far.w));
+                        sc.amb.splat(dir, far.d, far.omega, far.id, far.sends);
+                    }
+                }
                 continue;
             }
             match node.link() {
@@ -172,14 +211,14 @@ impl PbgiIntegrator {
     }
 
     /// Node i of `page` (bounding sphere c, r) as one splat seen from p, when its sphere
-    /// subtends at most `--pbgi-angle` smallest texels and p lies outside NEAR radii.
-    fn far(&self, page: &Page, i: u32, c: V, r: f32, p: V) -> Option<Far> {
-        let texels = &self.texels;
-        let omega_max = self.settings.angle * texels.min_solid_angle;
+    /// subtends at most `--pbgi-angle` texels of solid angle `texel` (the hemicube's
+    /// smallest, or the adaptive leaf under it) and p lies outside NEAR radii.
+    fn far(&self, page: &Page, i: u32, c: V, r: f32, p: V, texel: f32) -> Option<Far> {
+        let omega_max = self.settings.angle * texel;
         let node = page.bvh.get(i as usize)?;
         // A leaf within one texel is splatted even when the cut asks for more.
         let limit = if matches!(node.link(), NodeRef::Leaf { .. }) {
-            omega_max.max(texels.min_solid_angle)
+            omega_max.max(texel)
         } else {
             omega_max
         };
@@ -251,7 +290,7 @@ impl PbgiIntegrator {
                 continue;
             }
             if let Some(far) = self
-                .far(&page, i, c, r, xc.p)
+                .far(&page, i, c, r, xc.p, self.texels.min_solid_angle)
                 .filter(|_| all_outside(d, radius, r))
             {
                 scene.touched.insert(far.id);

@@ -1,0 +1,112 @@
+//! WPBGI's glossy gather (000 §3.2–3.3) for receivers whose specular lobes only reflect
+//! (rough metals, glossy coats): the cut into the adaptive micro-buffer in a frame turned
+//! so that ω_o lies in its xz-plane, far nodes sending their wavelet radiance
+//! (`glossy.rs`), then the wavelet BRDF × radiance product with the BRDF's table.
+//! Receivers with a transmitting lobe keep their exact lobe rays: the point cloud holds no
+//! light inside a glass.
+
+use super::brdf_table::{BrdfTable, THRESHOLD};
+use super::cut::Fill;
+use super::surface::Surface;
+use super::{PbgiIntegrator, Strata, SCRATCH};
+use crate::integrator::Scene;
+use crate::material::{Bsdf, Frame};
+use crate::trace::Tracer;
+use glam::Vec3A as V;
+use std::sync::atomic::Ordering::Relaxed;
+use std::sync::{Arc, Mutex, PoisonError};
+
+/// How a glossy receiver takes its indirect glossy light (`--pbgi-glossy-bounce`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum GlossyBounce {
+    /// Exact rays sampled from its lobes.
+    Rays,
+    /// WPBGI: the cut into the adaptive micro-buffer and the wavelet BRDF product, where
+    /// the lobes only reflect.
+    Wavelet,
+}
+
+/// BRDF tables built on first use, one per distinct reflecting lobe.
+#[derive(Default)]
+pub struct Tables(Mutex<Vec<([u32; 7], Arc<BrdfTable>)>>);
+
+impl Tables {
+    fn get(&self, g: &Bsdf) -> Arc<BrdfTable> {
+        let key = [g.f0.x, g.f0.y, g.f0.z, g.f90.x, g.f90.y, g.f90.z, g.alpha].map(f32::to_bits);
+        let mut list = self.0.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some((_, t)) = list.iter().find(|(k, _)| *k == key) {
+            return t.clone();
+        }
+        let t = Arc::new(BrdfTable::new(g, THRESHOLD));
+        list.push((key, t.clone()));
+        t
+    }
+
+    /// Tables built and their kept coefficients.
+    pub fn sizes(&self) -> (usize, usize) {
+        let list = self.0.lock().unwrap_or_else(PoisonError::into_inner);
+        (list.len(), list.iter().map(|(_, t)| t.coefficients()).sum())
+    }
+}
+
+/// Whether WPBGI gathers this receiver's glossy light: rough lobes that only reflect.
+pub(super) fn gathers_wavelets(s: &Surface) -> bool {
+    s.has_rough_lobes() && s.bsdf.trans == 0.0
+}
+
+impl PbgiIntegrator {
+    /// The receiver's indirect light through its rough specular lobes, by WPBGI.
+    pub(super) fn gather_wavelet(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        s: &Surface,
+        strata: Strata,
+    ) -> V {
+        let g = s.glossy();
+        let table = self.tables.get(&g);
+        let wo = s.frame.to_world(s.wo_l);
+        let theta_o = s.wo_l.z.clamp(-1.0, 1.0).acos();
+        let tangent = wo - s.n * wo.dot(s.n);
+        let t = if tangent.length_squared() > 1e-12 {
+            tangent.normalize()
+        } else {
+            s.frame.t
+        };
+        let frame = Frame {
+            t,
+            b: s.n.cross(t),
+            n: s.n,
+        };
+        let turned = Surface { frame, ..*s };
+        SCRATCH.with_borrow_mut(|sc| {
+            sc.amb.init(self.settings.resolution, |f, r, x, y| {
+                table.varies(theta_o, f, r, x, y)
+            });
+            sc.rays.clear();
+            let rays = sc.amb.rays(|k| strata.jitter(k));
+            sc.rays.extend(rays.filter_map(|(k, local, weight)| {
+                let w = frame.to_world(V::from(local)).normalize();
+                (w.dot(s.n) > 0.0).then_some((k, w, weight))
+            }));
+            self.amb_leaves
+                .fetch_add(sc.amb.leaf_count() as u64, Relaxed);
+            self.wavelet_gathers.fetch_add(1, Relaxed);
+            if self.settings.rays {
+                for j in 0..sc.rays.len() {
+                    let (k, w, weight) = sc.rays[j];
+                    if let Some((t, id, l, _)) =
+                        self.texel_ray(scene, tr, s, (k, weight), w, strata)
+                    {
+                        sc.amb.fill(k, t, id, l);
+                    }
+                }
+                self.traced_texels.fetch_add(sc.rays.len() as u64, Relaxed);
+            } else {
+                self.fill_from_cut(scene, tr, &turned, None, sc, strata, Fill::Adaptive);
+            }
+            let incident = sc.amb.resolve();
+            V::from(sc.amb.reflect(&incident, &table, theta_o))
+        })
+    }
+}
