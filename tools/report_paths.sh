@@ -2,7 +2,8 @@
 # Speed against error on the same light paths (camera → x → y → light, `--max-depth 3`):
 # path, cone, PBGI with texel rays and the cache (`--pbgi-rays --pbgi-reuse 256`), and
 # PBGI with the cut (wavelet cube maps where the scene has glossy materials; on showroom
-# also without them) on sponza, bunny_box and showroom, against the path tracer's own
+# also without them, and WPBGI, `--pbgi-glossy-bounce wavelet`) on sponza, bunny_box and
+# showroom, against the path tracer's own
 # depth-3 references (Mitsuba's are full GI, which one-bounce PBGI cannot reach). Each
 # `canopy eval` runs on one thread, two at a time. References are rendered once into
 # REFS (8–10 minutes each on two cores) and reused. Results go to docs/report/paths/<scene>/.
@@ -49,6 +50,8 @@ BB="--pbgi-resolution 16 --pbgi-cache 0.15"
     run bunny_box cut --integrators pbgi --pbgi-reuse 256 $BB &
     run showroom cut --integrators pbgi --pbgi-reuse 256
     wait
-    run showroom cut_flat --integrators pbgi --pbgi-reuse 256 --wavelet off
+    run showroom cut_flat --integrators pbgi --pbgi-reuse 256 --wavelet off &
+    run showroom wpbgi --integrators path,pbgi --pbgi-rays --pbgi-reuse 256 --pbgi-glossy-bounce wavelet
+    wait
 }
 echo "report in $OUT"

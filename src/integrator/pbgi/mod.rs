@@ -126,10 +126,10 @@ pub struct PbgiSettings {
     /// the cut into a micro-buffer refined where the BRDF varies (down to 64² a face) and
     /// the product of its Haar coefficients with the BRDF's, tabulated per outgoing
     /// direction (002 §4.2). Under --pbgi-rays each leaf's ray is traced instead of the
-    /// cut. A pixel's surface gathers at every 8th sample (at most --pbgi-reuse), its
-    /// samples taking the mean of its gathers. It bakes the glossy wavelet maps under
-    /// --pbgi-rays too. On the showroom it is 12-20x the squared error of `rays` at 20 s
-    /// (docs/pbgi.md).
+    /// cut (their hits read the diffuse bake, as texel rays do, so no glossy maps are
+    /// baked). A pixel's surface gathers at every 8th sample (at most --pbgi-reuse), its
+    /// samples taking the mean of its gathers. On the showroom it is about 10x the squared
+    /// error of `rays` at 20 s (docs/pbgi.md).
     /// `wavelet` is an error on a scene with no rough metal or rough dielectric
     #[arg(
         long = "pbgi-glossy-bounce",
@@ -502,13 +502,9 @@ impl PbgiIntegrator {
         }
     }
 
-    fn wavelet_bounce(&self) -> bool {
-        self.settings.glossy_bounce == wpbgi::GlossyBounce::Wavelet
-    }
-
     /// Whether WPBGI gathers this receiver's glossy bounce.
     fn gathers_wavelets(&self, s: &Surface) -> bool {
-        self.wavelet_bounce() && wpbgi::gathers_wavelets(s)
+        self.settings.glossy_bounce == wpbgi::GlossyBounce::Wavelet && wpbgi::gathers_wavelets(s)
     }
 
     /// Pixels in the window rendered: the size of every per-pixel table, which
@@ -1207,8 +1203,9 @@ impl Integrator for PbgiIntegrator {
             Some(path) => canopy_format::radiance::RadianceFile::open(path, archive)?,
             None => {
                 let mut params = self.settings.bake.params(self.seed);
-                if self.settings.rays && !self.wavelet_bounce() {
-                    // Texel rays read only the patches' diffuse light.
+                if self.settings.rays {
+                    // Texel rays, and WPBGI's leaf rays, read only the patches' diffuse
+                    // light.
                     params.wavelet = glossy::WaveletMode::Off;
                 }
                 let (file, samples) = bake::bake_scratch(scene, &params)?;
