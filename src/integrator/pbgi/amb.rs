@@ -15,6 +15,7 @@
 //! leaf's ray is traced instead ([`Amb::rays`]).
 
 use super::brdf_table::{BrdfTable, RES};
+use super::microbuffer::square;
 use crate::wavelet::{cube, haar};
 use glam::Vec3;
 
@@ -174,41 +175,22 @@ impl Amb {
         let level = self.cells[under].level;
         let (m, k) = self.texel(&self.cells[under]);
         let (face, s, t) = cube::face_st(dir);
-        let h = 2.0 / m as f32;
-        let side = (h * (solid_angle / cube::texel_solid_angle(k, m)).sqrt()).min(2.0);
-        let span = |c: f32| {
-            let lo = (c - 0.5 * side).clamp(-1.0, 1.0 - side);
-            let first = (((lo + 1.0) / h) as usize).min(m - 1);
-            let last = ((((lo + side + 1.0) / h).ceil() as usize).max(first + 1)).min(m);
-            (lo, first..last)
-        };
-        let overlap = |lo: f32, i: usize| {
-            let a = -1.0 + i as f32 * h;
-            ((lo + side).min(a + h) - lo.max(a)).max(0.0) / h
-        };
-        let ((s0, xs), (t0, ys)) = (span(s), span(t));
-        for y in ys {
-            let cy = overlap(t0, y);
-            for x in xs.clone() {
-                let coverage = (cy * overlap(s0, x)).min(1.0);
-                if coverage <= 0.0 {
-                    continue;
-                }
-                let Some(at) = self.descend(face, level, x, y) else {
-                    continue;
-                };
-                self.cover(
-                    at,
-                    level,
-                    Fragment {
-                        leaf: 0,
-                        depth,
-                        id,
-                        coverage,
-                        radiance,
-                    },
-                );
-            }
+        let texels = solid_angle / cube::texel_solid_angle(k, m);
+        for (x, y, coverage) in square(s, t, m, texels) {
+            let Some(at) = self.descend(face, level, x, y) else {
+                continue;
+            };
+            self.cover(
+                at,
+                level,
+                Fragment {
+                    leaf: 0,
+                    depth,
+                    id,
+                    coverage,
+                    radiance,
+                },
+            );
         }
     }
 

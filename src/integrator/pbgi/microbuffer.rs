@@ -186,6 +186,38 @@ impl Gradients {
     }
 }
 
+/// The texels (x, y) of an n×n face that a square centred on (s, t) covers, with the
+/// fraction of each it covers: the square is `texels` texels of the face's grid in area
+/// (sized by the texel under its centre, so a node of that texel's solid angle aimed at
+/// its centre fills it exactly), moved inside the face where it would cross an edge.
+pub(super) fn square(
+    s: f32,
+    t: f32,
+    n: usize,
+    texels: f32,
+) -> impl Iterator<Item = (usize, usize, f32)> {
+    let h = 2.0 / n as f32;
+    let side = (h * texels.sqrt()).min(2.0);
+    let span = move |c: f32| {
+        let lo = (c - 0.5 * side).clamp(-1.0, 1.0 - side);
+        let first = (((lo + 1.0) / h) as usize).min(n - 1);
+        let last = ((((lo + side + 1.0) / h).ceil() as usize).max(first + 1)).min(n);
+        (lo, first..last)
+    };
+    // The fraction of texel i the square covers along one side.
+    let overlap = move |lo: f32, i: usize| {
+        let a = -1.0 + i as f32 * h;
+        ((lo + side).min(a + h) - lo.max(a)).max(0.0) / h
+    };
+    let ((s0, xs), (t0, ys)) = (span(s), span(t));
+    ys.flat_map(move |y| {
+        let cy = overlap(t0, y);
+        xs.clone()
+            .map(move |x| (x, y, (cy * overlap(s0, x)).min(1.0)))
+    })
+    .filter(|&(_, _, c)| c > 0.0)
+}
+
 /// One node seen from the receiver.
 #[derive(Clone, Copy, Debug, Default)]
 struct Fragment {
@@ -242,37 +274,17 @@ impl MicroBuffer {
         }
         let n = texels.n;
         let (face, s, t) = cube::face_st(dir);
-        let h = 2.0 / n as f32;
-        // Sized in texels of the one under its centre, so a node of a texel's solid
-        // angle aimed at its centre fills that texel exactly.
         let centre = texels.solid_angle[cube::texel_at(face, s, t, n)];
-        let side = (h * (solid_angle / centre).sqrt()).min(2.0);
-        let span = |c: f32| {
-            let lo = (c - 0.5 * side).clamp(-1.0, 1.0 - side);
-            let first = (((lo + 1.0) / h) as usize).min(n - 1);
-            let last = ((((lo + side + 1.0) / h).ceil() as usize).max(first + 1)).min(n);
-            (lo, first..last)
-        };
-        // The fraction of texel i the square covers along one side.
-        let overlap = |lo: f32, i: usize| {
-            let a = -1.0 + i as f32 * h;
-            ((lo + side).min(a + h) - lo.max(a)).max(0.0) / h
-        };
-        let ((s0, xs), (t0, ys)) = (span(s), span(t));
-        for y in ys {
-            let cy = overlap(t0, y);
-            for x in xs.clone() {
-                let texel = face * n * n + y * n + x;
-                let coverage = (cy * overlap(s0, x)).min(1.0);
-                if coverage > 0.0 && texels.solid_angle[texel] > 0.0 {
-                    self.frags.push(Fragment {
-                        texel: texel as u32,
-                        depth,
-                        id,
-                        coverage,
-                        radiance,
-                    });
-                }
+        for (x, y, coverage) in square(s, t, n, solid_angle / centre) {
+            let texel = face * n * n + y * n + x;
+            if texels.solid_angle[texel] > 0.0 {
+                self.frags.push(Fragment {
+                    texel: texel as u32,
+                    depth,
+                    id,
+                    coverage,
+                    radiance,
+                });
             }
         }
     }
