@@ -176,15 +176,15 @@ impl PbgiIntegrator {
             if v.dot(s.n) < -r {
                 continue;
             }
-            let base = match target {
-                Fill::Hemicube => Some(self.texels.min_solid_angle),
+            let texel = match target {
+                Fill::Hemicube => self.texels.min_solid_angle,
                 // A centre below the horizon is dropped by the splat, as the hemicube's is.
                 Fill::Adaptive => sc
                     .amb
                     .solid_angle_toward(s.frame.to_local(v).normalize().into())
-                    .or(Some(self.texels.min_solid_angle)),
+                    .unwrap_or(self.texels.min_solid_angle),
             };
-            if let Some(far) = base.and_then(|b| self.far(&page, i, c, r, s.p, b)) {
+            if let Some(far) = self.far(&page, i, c, r, s.p, texel) {
                 splatted += 1;
                 scene.touched.insert(far.id);
                 match target {

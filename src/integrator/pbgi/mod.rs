@@ -121,16 +121,16 @@ pub struct PbgiSettings {
     /// rough metal or rough dielectric [default: 2 where there is one]
     #[arg(long = "pbgi-glossy-rays", value_name = "K", value_parser = clap::value_parser!(u32).range(1..=16))]
     pub glossy_rays: Option<u32>,
-    /// How receivers whose rough specular lobes only reflect (rough metals) take their
-    /// glossy bounce: `rays`, the exact lobe rays above; `wavelet`, WPBGI (000 §3.2-3.3):
+    /// How receivers whose rough specular lobes only reflect (rough metals, glossy coats)
+    /// take their glossy bounce: `rays`, the exact lobe rays above; `wavelet`, WPBGI (000 §3.2-3.3):
     /// the cut into a micro-buffer refined where the BRDF varies (down to 64² a face) and
     /// the product of its Haar coefficients with the BRDF's, tabulated per outgoing
     /// direction (002 §4.2). Under --pbgi-rays each leaf's ray is traced instead of the
     /// cut (their hits read the diffuse bake, as texel rays do, so no glossy maps are
     /// baked). A pixel's surface gathers at every 8th sample (at most --pbgi-reuse), its
-    /// samples taking the mean of its gathers. On the showroom it is about 10x the squared
-    /// error of `rays` at 20 s (docs/pbgi.md).
-    /// `wavelet` is an error on a scene with no rough metal or rough dielectric
+    /// samples taking the mean of its gathers. On the showroom it has 7.6x the squared
+    /// error of `rays` at 20 s (docs/pbgi.md). Not with --receiver-clusters; `wavelet` is
+    /// an error on a scene with no rough metal or rough dielectric
     #[arg(
         long = "pbgi-glossy-bounce",
         value_name = "HOW",
@@ -676,8 +676,9 @@ impl PbgiIntegrator {
     }
 
     /// One bounce of indirect light at the receiver: its diffuse lobe from the
-    /// micro-buffer, its rough specular lobes from the exact ray sampled from them at the
-    /// first hit, which served direct light's MIS too (a lobe
+    /// micro-buffer; its rough specular lobes by WPBGI where `--pbgi-glossy-bounce
+    /// wavelet` asks and they only reflect, else from the exact ray sampled from them at
+    /// the first hit, which served direct light's MIS too (a lobe
     /// narrower than a micro-buffer texel would be convolved at a few texel centres only:
     /// with `--max-depth` 3 on a rough silver plinth of α 0.04 that overstated its pixels
     /// by 8–11%). `known`: what `reuse` gave for the receiver, when the caller asked it
@@ -1303,6 +1304,18 @@ impl Integrator for PbgiIntegrator {
                     (k, _) => format!(
                         "glossy lobes: {k} exact rays, each paired with a light sample for direct light"
                     ),
+                };
+                let glossy = match s.glossy_bounce {
+                    wpbgi::GlossyBounce::Wavelet => {
+                        let (tables, coefs) = self.tables.sizes();
+                        format!(
+                            "{glossy}; lobes that only reflect by WPBGI: {} gathers into adaptive micro-buffers of {:.0} leaves on average, the product with {tables} BRDF table(s) of {coefs} Haar coefficients",
+                            self.wavelet_gathers.load(Relaxed),
+                            self.amb_leaves.load(Relaxed) as f64
+                                / self.wavelet_gathers.load(Relaxed).max(1) as f64
+                        )
+                    }
+                    wpbgi::GlossyBounce::Rays => glossy,
                 };
                 match s.rays {
                     true => format!(
