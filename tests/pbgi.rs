@@ -177,6 +177,10 @@ fn pbgi_flags_are_refused_elsewhere_and_checked() {
             &["--integrator", "path", "--pbgi-glossy-bounce", "wavelet"],
             "--pbgi-glossy-bounce applies to --integrator pbgi",
         ),
+        (
+            &["--integrator", "pbgi", "--pbgi-brdf-threshold", "0.1"],
+            "--pbgi-brdf-threshold 0.1 applies to --pbgi-glossy-bounce wavelet",
+        ),
     ] {
         let err = fails(&[&["render", s(&arc), "-o", s(&out)][..], flags].concat());
         assert!(err.contains(says), "{flags:?}: {err}");

@@ -91,6 +91,12 @@ impl Settings {
                     "--pbgi-split {n}: no material of {path} is a rough metal or rough dielectric, so no receiver has a glossy lobe to split"
                 );
             }
+            if let (Some(t), pbgi::wpbgi::GlossyBounce::Rays) = (p.brdf_threshold, p.glossy_bounce)
+            {
+                anyhow::bail!(
+                    "--pbgi-brdf-threshold {t} applies to --pbgi-glossy-bounce wavelet, whose BRDF tables it truncates"
+                );
+            }
             if p.glossy_bounce == pbgi::wpbgi::GlossyBounce::Wavelet && !glossy {
                 anyhow::bail!(
                     "--pbgi-glossy-bounce wavelet: no material of {path} is a rough metal or rough dielectric, so no receiver has a glossy bounce to gather"

@@ -138,6 +138,13 @@ pub struct PbgiSettings {
         conflicts_with = "clusters"
     )]
     pub glossy_bounce: wpbgi::GlossyBounce,
+    /// WPBGI's BRDF tables drop Haar coefficients below this fraction of an entry's L²
+    /// norm; the adaptive micro-buffer splits a texel while the table keeps one inside it.
+    /// Smaller is more exact and gathers more leaves; at 0 every texel where the BRDF
+    /// varies at all is split down to 64² [default: 0.01; only with
+    /// --pbgi-glossy-bounce wavelet]
+    #[arg(long = "pbgi-brdf-threshold", value_name = "T", value_parser = crate::units::parse_non_negative)]
+    pub brdf_threshold: Option<f32>,
     /// Most (light sample, lobe ray) pairs for direct light, and most rays for the glossy
     /// bounce, one glossy receiver takes: each pixel's count grows with the root of the
     /// spread its earlier samples' first two pairs (rays) showed, relative to the image's

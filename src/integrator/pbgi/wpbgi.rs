@@ -31,13 +31,13 @@ pub enum GlossyBounce {
 pub struct Tables(Mutex<Vec<([u32; 7], Arc<BrdfTable>)>>);
 
 impl Tables {
-    fn get(&self, g: &Bsdf) -> Arc<BrdfTable> {
+    fn get(&self, g: &Bsdf, threshold: f32) -> Arc<BrdfTable> {
         let key = [g.f0.x, g.f0.y, g.f0.z, g.f90.x, g.f90.y, g.f90.z, g.alpha].map(f32::to_bits);
         let mut list = self.0.lock().unwrap_or_else(PoisonError::into_inner);
         if let Some((_, t)) = list.iter().find(|(k, _)| *k == key) {
             return t.clone();
         }
-        let t = Arc::new(BrdfTable::new(g, THRESHOLD));
+        let t = Arc::new(BrdfTable::new(g, threshold));
         list.push((key, t.clone()));
         t
     }
@@ -64,7 +64,8 @@ impl PbgiIntegrator {
         strata: Strata,
     ) -> V {
         let g = s.glossy();
-        let table = self.tables.get(&g);
+        let threshold = self.settings.brdf_threshold.unwrap_or(THRESHOLD);
+        let table = self.tables.get(&g, threshold);
         let wo = s.frame.to_world(s.wo_l);
         let theta_o = s.wo_l.z.clamp(-1.0, 1.0).acos();
         let tangent = wo - s.n * wo.dot(s.n);
