@@ -53,11 +53,12 @@ pub mod microbuffer;
 pub mod patch;
 mod pixel_split;
 mod records;
+mod settings;
 mod split;
 mod surface;
 pub mod wpbgi;
 
-use super::edge::{EdgeRays, PBGI_EDGE_RAYS};
+use super::edge::EdgeRays;
 use super::{on_side, Counters, Integrator, Pass, PixelSample, Scene, Stats, Target};
 use crate::material::{luminance, Bsdf, Frame};
 use crate::sampler::PixelSampler;
@@ -68,8 +69,8 @@ use cache::{IrradianceCache, Moments};
 use cut::{Field, Fill};
 use glam::{Vec3, Vec3A as V};
 use microbuffer::{Gradients, MicroBuffer, Texels};
+pub use settings::PbgiSettings;
 use std::cell::RefCell;
-use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
 use std::sync::{Mutex, PoisonError};
 use std::time::Instant;
@@ -77,142 +78,6 @@ use surface::{hit_light, LobeRay, Surface};
 
 /// Smooth bounces followed before giving up on a path.
 const SMOOTH_DEPTH: u32 = 8;
-
-/// PBGI's parameters (its command-line flags, refused under another integrator).
-#[derive(Clone, Debug, clap::Args)]
-#[command(next_help_heading = "Point-based GI (--integrator pbgi)")]
-pub struct PbgiSettings {
-    /// The cut's threshold: a node is splatted whole when its bounding sphere subtends at
-    /// most this many of the micro-buffer's smallest texels. Smaller is more exact and
-    /// slower; at 0 the cut reaches every leaf, and leaves wider than a texel (or near
-    /// the receiver) are rasterized.
-    #[arg(long = "pbgi-angle", default_value_t = 1.0, value_parser = crate::units::parse_non_negative)]
-    pub angle: f32,
-    /// Micro-buffer texels per cube-face side (even): the hemicube has 3·n² texels.
-    #[arg(long = "pbgi-resolution", default_value_t = 8, value_parser = parse_resolution)]
-    pub resolution: usize,
-    /// `--edge-rays` (a flag of both cone and PBGI, set by the command line).
-    #[arg(skip = PBGI_EDGE_RAYS)]
-    pub edge_rays: u32,
-    #[command(flatten)]
-    pub bake: bake::BakeSettings,
-    /// FPBGI (003 ch. 3): receivers of each 16×16 tile grouped into at most this many
-    /// clusters (k-means on position and normal), each sharing one cut and its far splats;
-    /// 0 gathers every receiver alone (plain PBGI). The thesis's 100 per 32×32 tile is 25
-    /// here.
-    #[arg(long = "receiver-clusters", default_value_t = 0)]
-    pub clusters: usize,
-    /// FPBGI's near/far test: a node is far for a whole cluster when the cluster's radius
-    /// is at most this fraction of the distance to the node (r/d ≤ ε; the thesis prints
-    /// the inverse, NOTES-002-003 B.2). Smaller shares less and errs less.
-    #[arg(long = "cluster-far", default_value_t = 0.01, requires = "clusters", value_parser = crate::units::parse_non_negative)]
-    pub far: f32,
-    /// Fill the micro-buffer by tracing every texel's ray exactly, its hit reading the
-    /// baked light, instead of from the cut (a final gather from the bake). On sponza at
-    /// 8² it gathered 3.6× faster and found 0.96 of the indirect light the path tracer
-    /// does, where the cut found 0.84 (docs/pbgi.md).
-    #[arg(long = "pbgi-rays", conflicts_with_all = ["angle", "clusters", "far", "wavelet", "wavelet_resolution", "wavelet_threshold"])]
-    pub rays: bool,
-    /// Rays sampled from a receiver's rough specular lobes for its glossy bounce, their
-    /// light averaged, each paired with a light sample for its direct light (MIS): the
-    /// bounce split, since the micro-buffer is too coarse to gather lobes of α 0.1. On the
-    /// showroom at 1,024 spp, RMSE² × time 18% lower with 2 than with 1, 28% with 3 or 4;
-    /// at 60 s 2 and 3 are even (docs/pbgi.md). K above 1 is an error on a scene with no
-    /// rough metal or rough dielectric [default: 2 where there is one]
-    #[arg(long = "pbgi-glossy-rays", value_name = "K", value_parser = clap::value_parser!(u32).range(1..=16))]
-    pub glossy_rays: Option<u32>,
-    /// How receivers whose rough specular lobes only reflect (rough metals, glossy coats)
-    /// take their glossy bounce: `rays`, the exact lobe rays above; `wavelet`, WPBGI (000 §3.2-3.3):
-    /// the cut into a micro-buffer refined where the BRDF varies (down to 64² a face) and
-    /// the product of its Haar coefficients with the BRDF's, tabulated per outgoing
-    /// direction (002 §4.2). Under --pbgi-rays each leaf's ray is traced instead of the
-    /// cut (their hits read the diffuse bake, as texel rays do, so no glossy maps are
-    /// baked). A pixel's surface gathers at every 8th sample (at most --pbgi-reuse), its
-    /// samples taking the mean of its gathers. On the showroom it has 7.6x the squared
-    /// error of `rays` at 20 s (docs/pbgi.md). Not with --receiver-clusters; `wavelet` is
-    /// an error on a scene with no rough metal or rough dielectric
-    #[arg(
-        long = "pbgi-glossy-bounce",
-        value_name = "HOW",
-        default_value = "rays",
-        conflicts_with = "clusters"
-    )]
-    pub glossy_bounce: wpbgi::GlossyBounce,
-    /// WPBGI's BRDF tables drop Haar coefficients below this fraction of an entry's L²
-    /// norm; the adaptive micro-buffer splits a texel while the table keeps one inside it.
-    /// Smaller is more exact and gathers more leaves; at 0 every texel where the BRDF
-    /// varies at all is split down to 64² [default: 0.01; only with
-    /// --pbgi-glossy-bounce wavelet]
-    #[arg(long = "pbgi-brdf-threshold", value_name = "T", value_parser = crate::units::parse_non_negative)]
-    pub brdf_threshold: Option<f32>,
-    /// Most (light sample, lobe ray) pairs for direct light, and most rays for the glossy
-    /// bounce, one glossy receiver takes: each pixel's count grows with the root of the
-    /// spread its earlier samples' first two pairs (rays) showed, relative to the image's
-    /// noise (`split.rs`), so the edges of highlights take many and the rest K. On the
-    /// showroom at 60 s it lowered RMSE² × time by a third (docs/pbgi.md). Under
-    /// `--pbgi-pixel-split` above 1 (the default) only the bounce's rays split. K turns it off;
-    /// above K it needs K of at least 2, and a rough metal or rough dielectric
-    /// [default: 32 where there is one]
-    #[arg(long = "pbgi-split", value_name = "N", value_parser = clap::value_parser!(u32).range(1..=32))]
-    pub split: Option<u32>,
-    /// Most camera rays one pass's sample of a pixel takes: each pixel's count grows with
-    /// the root of its earlier samples' variance over their rays, relative to the image's
-    /// mean (`pixel_split.rs`), so pixels whose light changes within them (a highlight on a
-    /// curved metal, a textured edge) take more first hits. 1 turns it off. Not with
-    /// --receiver-clusters, whose receivers are grouped per tile [default: 32, 1 with
-    /// --receiver-clusters]
-    #[arg(long = "pbgi-pixel-split", value_name = "M", conflicts_with = "clusters", value_parser = clap::value_parser!(u32).range(1..=64))]
-    pub pixel_split: Option<u32>,
-    /// Most samples per gather: each surface of a pixel (normal within 14°, within a
-    /// pixel's width of its plane; up to 8 a pixel) gathers at every R-th sample landing
-    /// on it (at the pixel's phase), or more often where its first gathers scatter (a
-    /// period of √(v̄ c_g / (s² c_s)) samples, v̄ and c_s a sample's variance and cost, s²
-    /// and c_g a gather's), and the pixel's first surface also at its first sample;
-    /// its samples take the mean irradiance of all its gathers (of the surface whose
-    /// normal is closest while it has none, or past 8 surfaces), added once the render
-    /// ends so that every gather weighs the same (003 ch. 2 gathers once per
-    /// micropolygon, not per pixel sample). 1 gathers at every sample.
-    #[arg(long = "pbgi-reuse", value_name = "R", default_value_t = 64, value_parser = clap::value_parser!(u32).range(1..))]
-    pub reuse: u32,
-    /// The irradiance cache's error bound a (0: off). Before the first pass, gathers are
-    /// placed coarse to fine over the pixels where earlier ones leave a pixel's first hit
-    /// uncovered; a receiver then reads every gather within
-    /// ε = |x − p|/R + √(1 − n·n') < a of it (R: the smaller of the gather's harmonic mean
-    /// distance and a light-weighted one, 1 to 4 pixels over a), and gathers alone
-    /// (`--pbgi-reuse`) only where none is. Between
-    /// passes the records whose next gather lowers the image's error more per ray than
-    /// more samples would take one, and gathers at covered pixels (2% of the rays) become
-    /// records where they differ from the cache by more than two standard deviations; a
-    /// receiver with a surface over it nearer than the records' reach gathers alone.
-    /// Smaller is more exact and gathers more.
-    #[arg(long = "pbgi-cache", value_name = "A", default_value_t = 0.3, value_parser = parse_cache)]
-    pub cache: f32,
-    /// Baked light from `canopy bake` (default: bake before the first pass, counted in the
-    /// render time, into an unnamed scratch file).
-    #[arg(long, value_name = "FILE", conflicts_with_all = ["bake_samples", "patch_size", "bounces"])]
-    pub radiance: Option<PathBuf>,
-}
-
-fn parse_resolution(s: &str) -> Result<usize, String> {
-    match s.parse::<usize>() {
-        Ok(n) if (2..=64).contains(&n) && n.is_multiple_of(2) => Ok(n),
-        _ => Err(format!("{s:?}: an even number from 2 to 64")),
-    }
-}
-
-fn parse_cache(s: &str) -> Result<f32, String> {
-    match s.parse::<f32>() {
-        Ok(a) if (0.0..=2.0).contains(&a) => Ok(a),
-        _ => Err(format!("{s:?}: a number from 0 (off) to 2")),
-    }
-}
-
-impl Default for PbgiSettings {
-    /// The command line's defaults.
-    fn default() -> PbgiSettings {
-        super::flag_defaults()
-    }
-}
 
 /// What PBGI adds to the render's statistics.
 #[derive(Clone, Debug, serde::Serialize)]
