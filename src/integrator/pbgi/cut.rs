@@ -90,10 +90,36 @@ impl Scratch {
 }
 
 impl PbgiIntegrator {
+    /// Fills the micro-buffer `target`: under `--pbgi-rays` every texel's (or leaf's) ray
+    /// in `sc.rays` traced exactly, else from the cut.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn fill_texels(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        s: &Surface,
+        field: Option<&Field>,
+        sc: &mut Scratch,
+        strata: Strata,
+        target: Fill,
+    ) {
+        if !self.settings.rays {
+            return self.fill_from_cut(scene, tr, s, field, sc, strata, target);
+        }
+        for j in 0..sc.rays.len() {
+            let (k, w, weight) = sc.rays[j];
+            if let Some((t, id, l, sampled)) = self.texel_ray(scene, tr, s, (k, weight), w, strata)
+            {
+                sc.put(target, k, t, id, l, sampled);
+            }
+        }
+        self.traced_texels.fetch_add(sc.rays.len() as u64, Relaxed);
+    }
+
     /// Fills the micro-buffer from the cut: far nodes splatted, near leaves rasterized and
     /// their nearest hit per texel ray shaded, exact rays where a leaf's cone found nothing.
     #[allow(clippy::too_many_arguments)]
-    pub(super) fn fill_from_cut(
+    fn fill_from_cut(
         &self,
         scene: &Scene,
         tr: &mut Tracer,

@@ -824,19 +824,7 @@ impl PbgiIntegrator {
                 let w = s.frame.to_world(V::from(local)).normalize();
                 (w.dot(s.n) > 0.0).then_some((k, w, weight))
             }));
-            if self.settings.rays {
-                for j in 0..sc.rays.len() {
-                    let (k, w, weight) = sc.rays[j];
-                    if let Some((t, id, l, sampled)) =
-                        self.texel_ray(scene, tr, s, (k, weight), w, strata)
-                    {
-                        sc.mb.fill(k as usize, t, id, l, sampled);
-                    }
-                }
-                self.traced_texels.fetch_add(sc.rays.len() as u64, Relaxed);
-            } else {
-                self.fill_from_cut(scene, tr, s, field, sc, strata, Fill::Hemicube);
-            }
+            self.fill_texels(scene, tr, s, field, sc, strata, Fill::Hemicube);
             let incident = sc.mb.resolve(texels, |_| Vec3::ZERO);
             let e = MicroBuffer::convolve(texels, &incident, |_| Vec3::ONE);
             let g = sc.mb.gradients(texels, &incident);
@@ -1223,6 +1211,7 @@ impl Integrator for PbgiIntegrator {
     }
 
     fn stats(&self) -> Stats {
+        let (brdf_tables, brdf_coefficients) = self.tables.sizes();
         Stats::Pbgi(PbgiStats {
             pbgi_angle: self.settings.angle,
             pbgi_resolution: self.settings.resolution,
@@ -1251,8 +1240,8 @@ impl Integrator for PbgiIntegrator {
             cache_probe_records: self.probe_records,
             wavelet_gathers: self.wavelet_gathers.load(Relaxed),
             amb_leaves: self.amb_leaves.load(Relaxed),
-            brdf_tables: self.tables.sizes().0,
-            brdf_coefficients: self.tables.sizes().1,
+            brdf_tables,
+            brdf_coefficients,
         })
     }
 

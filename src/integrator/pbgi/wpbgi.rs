@@ -93,19 +93,7 @@ impl PbgiIntegrator {
             self.amb_leaves
                 .fetch_add(sc.amb.leaf_count() as u64, Relaxed);
             self.wavelet_gathers.fetch_add(1, Relaxed);
-            if self.settings.rays {
-                for j in 0..sc.rays.len() {
-                    let (k, w, weight) = sc.rays[j];
-                    if let Some((t, id, l, _)) =
-                        self.texel_ray(scene, tr, s, (k, weight), w, strata)
-                    {
-                        sc.amb.fill(k, t, id, l);
-                    }
-                }
-                self.traced_texels.fetch_add(sc.rays.len() as u64, Relaxed);
-            } else {
-                self.fill_from_cut(scene, tr, &turned, None, sc, strata, Fill::Adaptive);
-            }
+            self.fill_texels(scene, tr, &turned, None, sc, strata, Fill::Adaptive);
             let incident = sc.amb.resolve();
             V::from(sc.amb.reflect(&incident, &table, theta_o))
         })
