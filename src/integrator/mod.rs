@@ -97,6 +97,11 @@ impl Settings {
                     "--pbgi-brdf-threshold {t} applies to --pbgi-glossy-bounce wavelet, whose BRDF tables it truncates"
                 );
             }
+            if let (Some(g), pbgi::wpbgi::GlossyBounce::Rays) = (p.light_gamma, p.glossy_bounce) {
+                anyhow::bail!(
+                    "--pbgi-light-importance {g} applies to --pbgi-glossy-bounce wavelet, whose adaptive micro-buffer it refines"
+                );
+            }
             if p.glossy_bounce == pbgi::wpbgi::GlossyBounce::Wavelet && !glossy {
                 anyhow::bail!(
                     "--pbgi-glossy-bounce wavelet: no material of {path} is a rough metal or rough dielectric, so no receiver has a glossy bounce to gather"

@@ -106,6 +106,19 @@ impl PbgiIntegrator {
         if !self.settings.rays {
             return self.fill_from_cut(scene, tr, s, field, sc, strata, target);
         }
+        self.trace_texels(scene, tr, s, sc, strata, target);
+    }
+
+    /// Every ray in `sc.rays` traced exactly, its hit reading the bake.
+    fn trace_texels(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        s: &Surface,
+        sc: &mut Scratch,
+        strata: Strata,
+        target: Fill,
+    ) {
         for j in 0..sc.rays.len() {
             let (k, w, weight) = sc.rays[j];
             if let Some((t, id, l, sampled)) = self.texel_ray(scene, tr, s, (k, weight), w, strata)
@@ -114,6 +127,43 @@ impl PbgiIntegrator {
             }
         }
         self.traced_texels.fetch_add(sc.rays.len() as u64, Relaxed);
+    }
+
+    /// Fills the adaptive micro-buffer's new leaves, whose rays are in `sc.rays`, after a
+    /// split (000 §3.2): traced, or from the cut: the `nodes` its split leaves recorded
+    /// traversed again (splatted onto the new leaves or refined), and the near leaves
+    /// rasterized so far tested against the new rays.
+    pub(super) fn refill_leaves(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        s: &Surface,
+        sc: &mut Scratch,
+        strata: Strata,
+        nodes: &[u64],
+    ) {
+        if self.settings.rays {
+            return self.trace_texels(scene, tr, s, sc, strata, Fill::Adaptive);
+        }
+        sc.aimed.clear();
+        sc.aimed.resize(sc.rays.len(), false);
+        sc.nearest.clear();
+        sc.nearest.resize(sc.rays.len(), None);
+        sc.stack.clear();
+        sc.stack
+            .extend(nodes.iter().map(|&n| ((n >> 32) as u32, n as u32)));
+        let rasterized = sc.near.len();
+        self.cut(scene, tr, s, sc, Fill::Adaptive);
+        for j in 0..rasterized {
+            let (pid, i) = sc.near[j];
+            let page = tr.page_handle(pid);
+            if let Some(NodeRef::Leaf { first, count }) = page.bvh.get(i as usize).map(TNode::link)
+            {
+                let leaf = page.first_node + i as u64;
+                self.raster_leaf(scene, s, &page, leaf, first..first + count, sc);
+            }
+        }
+        self.shade_nearest(scene, tr, s, sc, strata, Fill::Adaptive);
     }
 
     /// Fills the micro-buffer from the cut: far nodes splatted, near leaves rasterized and
@@ -134,6 +184,7 @@ impl PbgiIntegrator {
         sc.nearest.clear();
         sc.nearest.resize(sc.rays.len(), None);
         sc.stack.clear();
+        sc.near.clear();
         match field {
             Some(f) => {
                 for far in &f.far {
@@ -148,6 +199,20 @@ impl PbgiIntegrator {
             }
         }
         self.cut(scene, tr, s, sc, target);
+        self.shade_nearest(scene, tr, s, sc, strata, target);
+    }
+
+    /// Shades each ray's nearest rasterized hit, or traces it exactly where a leaf's cone
+    /// held it but no triangle met it.
+    fn shade_nearest(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        s: &Surface,
+        sc: &mut Scratch,
+        strata: Strata,
+        target: Fill,
+    ) {
         let (mut gaps, mut fragments, mut exact) = (0, 0, 0);
         let mut page: Option<Arc<Page>> = None;
         for j in 0..sc.rays.len() {
@@ -217,7 +282,9 @@ impl PbgiIntegrator {
                     Fill::Hemicube => self.splat(s, &far, &mut sc.mb),
                     Fill::Adaptive => {
                         let dir = Vec3::from(s.frame.to_local(far.w));
-                        sc.amb.splat(dir, far.d, far.omega, far.id, far.sends);
+                        let node = (pid as u64) << 32 | i as u64;
+                        sc.amb
+                            .splat(dir, far.d, far.omega, (far.id, node), far.sends);
                     }
                 }
                 continue;
@@ -226,6 +293,7 @@ impl PbgiIntegrator {
                 NodeRef::Leaf { first, count } => {
                     let leaf = page.first_node + i as u64;
                     self.raster_leaf(scene, s, &page, leaf, first..first + count, sc);
+                    sc.near.push((pid, i));
                 }
                 NodeRef::Inner(l, rr) => sc.stack.extend([(pid, l), (pid, rr)]),
                 NodeRef::ChildPage(cp) => sc.stack.extend([(cp, 0), (cp, 1)]),

@@ -122,9 +122,11 @@ pub struct PbgiStats {
     pub cache_probes: u64,
     pub cache_probe_records: u64,
     /// WPBGI's glossy gathers (`--pbgi-glossy-bounce wavelet`), the adaptive micro-buffer's
-    /// leaves over them, the BRDF tables built and their kept Haar coefficients.
+    /// leaves over them (and the leaves the light importance split), the BRDF tables built
+    /// and their kept Haar coefficients.
     pub wavelet_gathers: u64,
     pub amb_leaves: u64,
+    pub amb_light_splits: u64,
     pub brdf_tables: usize,
     pub brdf_coefficients: usize,
 }
@@ -183,6 +185,7 @@ pub struct PbgiIntegrator {
     tables: wpbgi::Tables,
     wavelet_gathers: AtomicU64,
     amb_leaves: AtomicU64,
+    light_splits: AtomicU64,
 }
 
 /// Irradiance gathers summed at one surface of a pixel.
@@ -293,6 +296,8 @@ struct Scratch {
     aimed: Vec<bool>,
     nearest: Vec<Option<Hit>>,
     stack: Vec<(u32, u32)>,
+    /// The near leaves this receiver's cut rasterized (page, node).
+    near: Vec<(u32, u32)>,
     /// The rays inside the cone of the leaf being rasterized.
     in_cone: Vec<u32>,
 }
@@ -371,6 +376,7 @@ impl PbgiIntegrator {
             tables: wpbgi::Tables::default(),
             wavelet_gathers: AtomicU64::new(0),
             amb_leaves: AtomicU64::new(0),
+            light_splits: AtomicU64::new(0),
         }
     }
 
@@ -1169,9 +1175,11 @@ impl Integrator for PbgiIntegrator {
                     wpbgi::GlossyBounce::Wavelet => {
                         let (tables, coefs) = self.tables.sizes();
                         format!(
-                            "{glossy}; lobes that only reflect by WPBGI: {} gathers into adaptive micro-buffers of {:.0} leaves on average, the product with {tables} BRDF table(s) of {coefs} Haar coefficients",
+                            "{glossy}; lobes that only reflect by WPBGI: {} gathers into adaptive micro-buffers of {:.0} leaves on average ({:.1} split by the light), the product with {tables} BRDF table(s) of {coefs} Haar coefficients",
                             self.wavelet_gathers.load(Relaxed),
                             self.amb_leaves.load(Relaxed) as f64
+                                / self.wavelet_gathers.load(Relaxed).max(1) as f64,
+                            self.light_splits.load(Relaxed) as f64
                                 / self.wavelet_gathers.load(Relaxed).max(1) as f64
                         )
                     }
@@ -1240,6 +1248,7 @@ impl Integrator for PbgiIntegrator {
             cache_probe_records: self.probe_records,
             wavelet_gathers: self.wavelet_gathers.load(Relaxed),
             amb_leaves: self.amb_leaves.load(Relaxed),
+            amb_light_splits: self.light_splits.load(Relaxed),
             brdf_tables,
             brdf_coefficients,
         })
