@@ -80,6 +80,15 @@ pub(super) enum Fill {
 }
 
 impl Scratch {
+    /// No ray aimed at or met yet, and no node to visit.
+    fn start_cut(&mut self) {
+        self.aimed.clear();
+        self.aimed.resize(self.rays.len(), false);
+        self.nearest.clear();
+        self.nearest.resize(self.rays.len(), None);
+        self.stack.clear();
+    }
+
     /// Fills texel (or leaf) k whole with a hit's light.
     fn put(&mut self, target: Fill, k: u32, depth: f32, id: u64, l: Vec3, sampled: bool) {
         match target {
@@ -145,11 +154,7 @@ impl PbgiIntegrator {
         if self.settings.rays {
             return self.trace_texels(scene, tr, s, sc, strata, Fill::Adaptive);
         }
-        sc.aimed.clear();
-        sc.aimed.resize(sc.rays.len(), false);
-        sc.nearest.clear();
-        sc.nearest.resize(sc.rays.len(), None);
-        sc.stack.clear();
+        sc.start_cut();
         sc.stack
             .extend(nodes.iter().map(|&n| ((n >> 32) as u32, n as u32)));
         let rasterized = sc.near.len();
@@ -179,11 +184,7 @@ impl PbgiIntegrator {
         strata: Strata,
         target: Fill,
     ) {
-        sc.aimed.clear();
-        sc.aimed.resize(sc.rays.len(), false);
-        sc.nearest.clear();
-        sc.nearest.resize(sc.rays.len(), None);
-        sc.stack.clear();
+        sc.start_cut();
         sc.near.clear();
         match field {
             Some(f) => {
