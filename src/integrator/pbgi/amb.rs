@@ -10,9 +10,9 @@
 //! leaf composites its fragments front to back as the uniform micro-buffer does.
 //!
 //! With the light importance on (`--pbgi-light-importance γ` above 0), the BRDF alone
-//! refines it to 2n² a face ([`BRDF_LEVELS`]); below that a leaf splits only where F_l
+//! refines it to 2n² a face ([`BRDF_LEVELS`]); past that a leaf splits only where F_l
 //! also holds, L(q)/2^Δq > γ·L̄ ([`Amb::refine`]): its incident luminance, halved per
-//! level Δq below n², above γ times the hemisphere's mean luminance L̄. 000 compares
+//! level Δq past n², above γ times the hemisphere's mean luminance L̄. 000 compares
 //! L(q)/2^Δq with γ in absolute radiance; relative to L̄ the knob does not depend on the
 //! scene's exposure. Each fragment keeps the node that made it (the per-texel node list),
 //! so a leaf that splits hands its nodes back to be traversed again and splatted onto its
@@ -26,7 +26,7 @@ use crate::material::luminance;
 use crate::wavelet::{cube, haar};
 use glam::{Vec3, Vec3A};
 
-/// Levels below the base n² that the BRDF importance F_ρ alone refines; deeper splits
+/// Levels past the base n² that the BRDF importance F_ρ alone refines; deeper splits
 /// also need the light importance F_l (000 §3.2 starts from 16² refined by the BRDF).
 pub const BRDF_LEVELS: u8 = 1;
 

@@ -76,9 +76,9 @@ pub struct PbgiSettings {
     /// while its incident luminance, halved per level past 8², exceeds γ times the
     /// hemisphere's mean, and the new leaves are filled by traversing again the nodes the
     /// split one held (or by their own rays). 0 turns it off: the BRDF refines to 64² at
-    /// once. On the showroom at 20 s, γ = 1 (000's "typically") had 1.5× the squared
-    /// error of 0, and 0.3 1.1× (docs/pbgi.md) [default: 0; only with
-    /// --pbgi-glossy-bounce wavelet]
+    /// once. At 20 s, γ = 1 (000's "typically") had 1.40× the squared error of 0 on the
+    /// showroom and 1.37× on room_glossy, 0.3 1.07× and 1.35× (docs/pbgi.md)
+    /// [default: 0; only with --pbgi-glossy-bounce wavelet]
     #[arg(long = "pbgi-light-importance", value_name = "GAMMA", value_parser = crate::units::parse_non_negative)]
     pub light_gamma: Option<f32>,
     /// Most (light sample, lobe ray) pairs for direct light, and most rays for the glossy
