@@ -182,6 +182,17 @@ fn pbgi_flags_are_refused_elsewhere_and_checked() {
             "--pbgi-brdf-threshold 0.1 applies to --pbgi-glossy-bounce wavelet",
         ),
         (
+            &[
+                "--integrator",
+                "pbgi",
+                "--pbgi-glossy-bounce",
+                "wavelet",
+                "--pbgi-resolution",
+                "6",
+            ],
+            "--pbgi-resolution 6: --pbgi-glossy-bounce wavelet splits",
+        ),
+        (
             &["--integrator", "pbgi", "--pbgi-light-importance", "1"],
             "--pbgi-light-importance 1 applies to --pbgi-glossy-bounce wavelet",
         ),

@@ -102,7 +102,14 @@ impl Settings {
                     "--pbgi-light-importance {g} applies to --pbgi-glossy-bounce wavelet, whose adaptive micro-buffer it refines"
                 );
             }
-            if p.glossy_bounce == pbgi::wpbgi::GlossyBounce::Wavelet && !glossy {
+            let wavelet = p.glossy_bounce == pbgi::wpbgi::GlossyBounce::Wavelet;
+            if wavelet && !p.resolution.is_power_of_two() {
+                anyhow::bail!(
+                    "--pbgi-resolution {}: --pbgi-glossy-bounce wavelet splits its micro-buffer's texels in halves down to its BRDF tables' 64², so the resolution must be a power of two (2 to 64)",
+                    p.resolution
+                );
+            }
+            if wavelet && !glossy {
                 anyhow::bail!(
                     "--pbgi-glossy-bounce wavelet: no material of {path} is a rough metal or rough dielectric, so no receiver has a glossy bounce to gather"
                 );

@@ -14,7 +14,8 @@ pub struct PbgiSettings {
     /// the receiver) are rasterized.
     #[arg(long = "pbgi-angle", default_value_t = 1.0, value_parser = crate::units::parse_non_negative)]
     pub angle: f32,
-    /// Micro-buffer texels per cube-face side (even): the hemicube has 3·n² texels.
+    /// Micro-buffer texels per cube-face side (even; a power of two with
+    /// --pbgi-glossy-bounce wavelet): the hemicube has 3·n² texels.
     #[arg(long = "pbgi-resolution", default_value_t = 8, value_parser = parse_resolution)]
     pub resolution: usize,
     /// `--edge-rays` (a flag of both cone and PBGI, set by the command line).
