@@ -158,8 +158,7 @@ impl Amb {
         if self.round == 0 {
             let (mut sum, mut area) = (0.0f64, 0.0f64);
             for j in self.live() {
-                let (res, k) = self.texel(&self.cells[self.leaves[j] as usize]);
-                let omega = cube::texel_solid_angle(k, res) as f64;
+                let omega = self.solid_angle(j) as f64;
                 sum += lum(j) as f64 * omega;
                 area += omega;
             }
@@ -212,6 +211,12 @@ impl Amb {
         nodes.dedup();
         self.frags.retain(|f| cells[f.cell as usize].child == 0);
         Some((first, nodes))
+    }
+
+    /// Solid angle of leaf j.
+    fn solid_angle(&self, j: usize) -> f32 {
+        let (res, k) = self.texel(&self.cells[self.leaves[j] as usize]);
+        cube::texel_solid_angle(k, res)
     }
 
     /// Resolution and cube texel index of a cell.
@@ -451,13 +456,8 @@ mod tests {
         let theta = 0.6f32;
         let mut amb = Amb::default();
         amb.init(8, |f, r, x, y| table.varies(theta, f, r, x, y));
-        let total: f64 = amb
-            .leaves
-            .iter()
-            .map(|&c| {
-                let (res, k) = amb.texel(&amb.cells[c as usize]);
-                cube::texel_solid_angle(k, res) as f64
-            })
+        let total: f64 = (0..amb.leaves.len())
+            .map(|j| amb.solid_angle(j) as f64)
             .sum();
         assert!((total - 2.0 * std::f64::consts::PI).abs() < 1e-4, "{total}");
         let mirror = Vec3::new(-theta.sin(), 0.0, theta.cos());
@@ -533,9 +533,8 @@ mod tests {
         let incident = amb.resolve();
         let before = live_leaves(&amb);
         let (mut sum, mut area) = (0.0f64, 0.0f64);
-        for &((_, res, _, _), j) in &before {
-            let (_, k) = amb.texel(&amb.cells[amb.leaves[j] as usize]);
-            let omega = cube::texel_solid_angle(k, res) as f64;
+        for &(_, j) in &before {
+            let omega = amb.solid_angle(j) as f64;
             sum += luminance(Vec3A::from(incident[j])) as f64 * omega;
             area += omega;
         }
@@ -576,10 +575,7 @@ mod tests {
         assert_eq!(amb.light_splits, split);
         let total: f64 = live_leaves(&amb)
             .iter()
-            .map(|&(_, j)| {
-                let (res, k) = amb.texel(&amb.cells[amb.leaves[j] as usize]);
-                cube::texel_solid_angle(k, res) as f64
-            })
+            .map(|&(_, j)| amb.solid_angle(j) as f64)
             .sum();
         assert!((total - 2.0 * std::f64::consts::PI).abs() < 1e-4, "{total}");
         // The split leaves' traced hits are gone: the new leaves are open.
@@ -632,8 +628,7 @@ mod tests {
         assert_eq!(leaves.len(), progressive.len());
         let (mut worst, mut energy) = (0.0f32, [0.0f64; 2]);
         for (key, j) in leaves {
-            let (res, k) = direct.texel(&direct.cells[direct.leaves[j] as usize]);
-            let omega = cube::texel_solid_angle(k, res) as f64;
+            let omega = direct.solid_angle(j) as f64;
             let p = incident[progressive[&key]];
             worst = worst.max((p - flat[j]).abs().max_element());
             energy[0] += (p.x + p.y + p.z) as f64 * omega;

@@ -294,7 +294,10 @@ impl PbgiIntegrator {
                 NodeRef::Leaf { first, count } => {
                     let leaf = page.first_node + i as u64;
                     self.raster_leaf(scene, s, &page, leaf, first..first + count, sc);
-                    sc.near.push((pid, i));
+                    // Only the adaptive micro-buffer splits leaves and tests them again.
+                    if target == Fill::Adaptive {
+                        sc.near.push((pid, i));
+                    }
                 }
                 NodeRef::Inner(l, rr) => sc.stack.extend([(pid, l), (pid, rr)]),
                 NodeRef::ChildPage(cp) => sc.stack.extend([(cp, 0), (cp, 1)]),
