@@ -204,6 +204,21 @@ fn pbgi_flags_are_refused_elsewhere_and_checked() {
             &["--integrator", "pbgi", "--pbgi-light-importance=-1"],
             "--pbgi-light-importance",
         ),
+        (
+            &["--integrator", "pbgi", "--pbgi-glossy-bounce", "cache"],
+            "--pbgi-glossy-bounce cache: no material of",
+        ),
+        (
+            &[
+                "--integrator",
+                "pbgi",
+                "--pbgi-glossy-bounce",
+                "cache",
+                "--pbgi-cache",
+                "0",
+            ],
+            "--pbgi-glossy-bounce cache keeps its records as the irradiance cache does",
+        ),
     ] {
         let err = fails(&[&["render", s(&arc), "-o", s(&out)][..], flags].concat());
         assert!(err.contains(says), "{flags:?}: {err}");
@@ -908,10 +923,10 @@ fn a_rough_metal_floor_sends_its_glossy_light_to_a_diffuse_wall() {
 /// WPBGI (`--pbgi-glossy-bounce wavelet`): the gold floor seen from above, reflecting the
 /// lit wall, so its glossy bounce comes from the adaptive micro-buffer and the wavelet
 /// BRDF product; with the light importance on, its leaves split past 16² where the light
-/// is bright (traced again, or the nodes they held traversed again). The bounce brings
-/// 77% of the red the path tracer finds on the same light paths; WPBGI at 16 spp was
-/// measured 0.9% short of it with the leaves' rays traced and with the cut, 1.0% with the
-/// light importance at 0.5.
+/// is bright (traced again, or the nodes they held traversed again); with `cache`, from
+/// radiance records shared between pixels. The bounce brings 77% of the red the path
+/// tracer finds on the same light paths; WPBGI at 16 spp was measured 0.9% short of it
+/// with the leaves' rays traced and with the cut, 1.0% with the light importance at 0.5.
 #[test]
 fn wavelet_pbgi_gathers_a_rough_metal_floors_reflection() {
     let dir = tempfile::tempdir().unwrap();
@@ -930,31 +945,43 @@ fn wavelet_pbgi_gathers_a_rough_metal_floors_reflection() {
         "the bounce brings only {:.1}%",
         100.0 * bounce
     );
-    let wavelet = [
+    let pbgi = [
         "--integrator",
         "pbgi",
         "--spp",
         "16",
         "--pbgi-glossy-bounce",
-        "wavelet",
     ];
     let light = ["--pbgi-light-importance", "0.5"];
-    for extra in [
-        &["--pbgi-rays"][..],
-        &[],
-        &[&["--pbgi-rays"][..], &light].concat(),
-        &light,
+    for (how, extra) in [
+        ("wavelet", &["--pbgi-rays"][..]),
+        ("wavelet", &[]),
+        ("wavelet", &[&["--pbgi-rays"][..], &light].concat()),
+        ("wavelet", &light),
+        ("cache", &["--pbgi-rays"]),
+        ("cache", &[]),
     ] {
-        let (img, stats) = render_at("3", &[&wavelet[..], extra].concat());
+        let (img, stats) = render_at("3", &[&pbgi[..], &[how], extra].concat());
         assert!(all_finite(&img));
         assert!(stats["wavelet_gathers"].as_u64().unwrap() > 0);
         assert!(stats["brdf_coefficients"].as_u64().unwrap() > 0);
         let splits = stats["amb_light_splits"].as_u64().unwrap();
         assert_eq!(splits > 0, extra.contains(&"0.5"), "{extra:?}: {splits}");
+        // The records cover most of the flat floor's first hits (32 × 16 pixels, 16
+        // samples each); those at the crop's edge may fall outside them.
+        let hits = stats["radiance_hits"].as_u64().unwrap();
+        let records = stats["radiance_records"].as_u64().unwrap();
+        match how {
+            "cache" => assert!(
+                records > 0 && hits > 512 * 16 / 2,
+                "{records} records, {hits} hits"
+            ),
+            _ => assert_eq!((records, hits), (0, 0)),
+        }
         let off = red(&img);
         assert!(
             off.abs() < 0.025,
-            "{extra:?}: red off by {:.2}%",
+            "{how} {extra:?}: red off by {:.2}%",
             100.0 * off
         );
     }

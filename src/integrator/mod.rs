@@ -94,24 +94,33 @@ impl Settings {
             if let (Some(t), pbgi::wpbgi::GlossyBounce::Rays) = (p.brdf_threshold, p.glossy_bounce)
             {
                 anyhow::bail!(
-                    "--pbgi-brdf-threshold {t} applies to --pbgi-glossy-bounce wavelet, whose BRDF tables it truncates"
+                    "--pbgi-brdf-threshold {t} applies to --pbgi-glossy-bounce wavelet or cache, whose BRDF tables it truncates"
                 );
             }
             if let (Some(g), pbgi::wpbgi::GlossyBounce::Rays) = (p.light_gamma, p.glossy_bounce) {
                 anyhow::bail!(
-                    "--pbgi-light-importance {g} applies to --pbgi-glossy-bounce wavelet, whose adaptive micro-buffer it refines"
+                    "--pbgi-light-importance {g} applies to --pbgi-glossy-bounce wavelet or cache, whose adaptive micro-buffer it refines"
                 );
             }
-            let wavelet = p.glossy_bounce == pbgi::wpbgi::GlossyBounce::Wavelet;
+            let wavelet = p.glossy_bounce != pbgi::wpbgi::GlossyBounce::Rays;
+            let how = match p.glossy_bounce {
+                pbgi::wpbgi::GlossyBounce::Cache => "cache",
+                _ => "wavelet",
+            };
             if wavelet && !p.resolution.is_power_of_two() {
                 anyhow::bail!(
-                    "--pbgi-resolution {}: --pbgi-glossy-bounce wavelet splits its micro-buffer's texels in halves down to its BRDF tables' 64², so the resolution must be a power of two (2 to 64)",
+                    "--pbgi-resolution {}: --pbgi-glossy-bounce {how} splits its micro-buffer's texels in halves down to its BRDF tables' 64², so the resolution must be a power of two (2 to 64)",
                     p.resolution
+                );
+            }
+            if p.glossy_bounce == pbgi::wpbgi::GlossyBounce::Cache && p.cache == 0.0 {
+                anyhow::bail!(
+                    "--pbgi-glossy-bounce cache keeps its records as the irradiance cache does, which --pbgi-cache 0 turns off"
                 );
             }
             if wavelet && !glossy {
                 anyhow::bail!(
-                    "--pbgi-glossy-bounce wavelet: no material of {path} is a rough metal or rough dielectric, so no receiver has a glossy bounce to gather"
+                    "--pbgi-glossy-bounce {how}: no material of {path} is a rough metal or rough dielectric, so no receiver has a glossy bounce to gather"
                 );
             }
             if let (Some(n), Some(1)) = (p.split.filter(|&n| n > 1), p.glossy_rays) {

@@ -20,7 +20,7 @@
 //! traced ray is handed to the child it passes through. Under `--pbgi-rays` each leaf's
 //! ray is traced instead of the cut ([`Amb::rays`]).
 
-use super::brdf_table::{BrdfTable, RES};
+use super::brdf_table::RES;
 use super::microbuffer::square;
 use crate::material::luminance;
 use crate::wavelet::{cube, haar};
@@ -408,10 +408,10 @@ impl Amb {
         out
     }
 
-    /// The reflected radiance: the leaves' light spread over the table's RES² texels a
-    /// face, Haar-transformed, and multiplied with the BRDF's kept coefficients (000 §3.3's
+    /// The leaves' light spread over RES² texels a face and Haar-transformed, for the
+    /// product with the BRDF's kept coefficients ([`BrdfTable::product`]: 000 §3.3's
     /// D = UW, taken as the inner product that gives one ω_o's outgoing radiance).
-    pub fn reflect(&self, incident: &[Vec3], table: &BrdfTable, theta_o: f32) -> Vec3 {
+    pub fn faces(&self, incident: &[Vec3]) -> Vec<Vec<Vec3>> {
         let mut faces = vec![vec![Vec3::ZERO; RES * RES]; 5];
         for j in self.live() {
             let c = self.cells[self.leaves[j] as usize];
@@ -425,12 +425,30 @@ impl Amb {
         for f in &mut faces {
             haar::forward(f, RES);
         }
-        table.product(theta_o, &faces)
+        faces
+    }
+
+    /// The harmonic mean over the leaves of the distance to their nearest hit (leaves
+    /// that met nothing count as infinitely far; infinite when none met anything). Every
+    /// leaf counts once, so the lobe, where the leaves are finest, weighs most.
+    pub fn harmonic_depth(&self) -> f32 {
+        let mut nearest = vec![f32::INFINITY; self.cells.len()];
+        for f in &self.frags {
+            let d = &mut nearest[f.cell as usize];
+            *d = d.min(f.depth);
+        }
+        let leaves = self.live().count();
+        let inverse: f32 = self
+            .live()
+            .map(|j| 1.0 / nearest[self.leaves[j] as usize].max(1e-6))
+            .sum();
+        leaves as f32 / inverse
     }
 }
 
 #[cfg(test)]
 mod tests {
+    use super::super::brdf_table::BrdfTable;
     use super::*;
     use crate::material::Bsdf;
     use glam::Vec3A as V;
@@ -493,13 +511,13 @@ mod tests {
                 amb.splat(d, 1.0, o, (i as u64, i as u64), Vec3::ONE);
             }
             let incident = amb.resolve();
-            results.push(amb.reflect(&incident, &table, theta));
+            results.push(table.product(theta, &amb.faces(&incident)));
         }
         assert_eq!(results[0], results[1]);
         let mut ones = Amb::default();
         ones.init(8, |_, _, _, _| false);
         let flat: Vec<Vec3> = vec![Vec3::ONE; ones.leaf_count()];
-        let albedo = ones.reflect(&flat, &table, theta);
+        let albedo = table.product(theta, &ones.faces(&flat));
         let rel = ((results[0] - albedo) / albedo).abs().max_element();
         assert!(rel < 0.02, "{} against {albedo}", results[0]);
     }

@@ -39,23 +39,69 @@ const FACES: usize = 5;
 /// coefficient in their subtree: where the BRDF varies inside a cell.
 struct Entry {
     faces: Vec<Sparse<Vec3>>,
+    /// The kept coefficients again, by their slot in the table's [`Support`].
+    slots: Vec<(u32, Vec3)>,
     /// Per face, per level h = 1, 2, …, RES/2 (cells of RES/h texels): h² flags.
     varies: Vec<Vec<Vec<bool>>>,
 }
 
 pub struct BrdfTable {
     entries: Vec<Entry>,
+    support: Support,
+}
+
+/// The coefficients some entry keeps, over all elevations: the only ones of an incident
+/// light its products read, so a radiance record keeps these alone.
+struct Support {
+    /// Per coefficient of the FACES·RES² (face-major): its slot, or `u32::MAX`.
+    slot: Vec<u32>,
+    len: usize,
 }
 
 impl BrdfTable {
     /// Tabulates the BRDF `bsdf` (its lobes as `Bsdf::eval` gives them), truncating with
     /// `threshold` relative to each entry's L² norm.
     pub fn new(bsdf: &Bsdf, threshold: f32) -> BrdfTable {
-        let entries = (0..THETAS)
+        let mut entries: Vec<Entry> = (0..THETAS)
             .into_par_iter()
             .map(|i| Entry::new(bsdf, theta(i), threshold))
             .collect();
-        BrdfTable { entries }
+        let mut slot = vec![u32::MAX; FACES * RES * RES];
+        let mut len = 0;
+        for e in &mut entries {
+            for (f, s) in e.faces.iter().enumerate() {
+                for &(k, c) in &s.coefs {
+                    let at = &mut slot[f * RES * RES + k as usize];
+                    if *at == u32::MAX {
+                        *at = len as u32;
+                        len += 1;
+                    }
+                    e.slots.push((*at, c));
+                }
+            }
+        }
+        BrdfTable {
+            entries,
+            support: Support { slot, len },
+        }
+    }
+
+    /// Incident radiance `faces` (as [`Self::product`] takes them) on the table's support.
+    pub fn on_support(&self, faces: &[Vec<Vec3>]) -> Vec<Vec3> {
+        let mut out = vec![Vec3::ZERO; self.support.len];
+        for (k, &at) in self.support.slot.iter().enumerate() {
+            if at != u32::MAX {
+                out[at as usize] = faces[k / (RES * RES)][k % (RES * RES)];
+            }
+        }
+        out
+    }
+
+    /// [`Self::product`] with incident radiance on the table's support.
+    pub fn product_on(&self, theta_o: f32, coefs: &[Vec3]) -> Vec3 {
+        let (a, b, t) = self.around(theta_o);
+        let dot = |e: &Entry| -> Vec3 { e.slots.iter().map(|&(k, c)| c * coefs[k as usize]).sum() };
+        dot(&self.entries[a]) * (1.0 - t) + dot(&self.entries[b]) * t
     }
 
     /// The two entries around elevation `theta_o` and the second's weight.
@@ -131,7 +177,11 @@ impl Entry {
             .map(|d| Sparse::truncate(d, RES, cut))
             .collect();
         let varies = faces.iter().map(varies_of).collect();
-        Entry { faces, varies }
+        Entry {
+            faces,
+            slots: Vec::new(),
+            varies,
+        }
     }
 }
 
@@ -192,10 +242,10 @@ fn varies_of(s: &Sparse<Vec3>) -> Vec<Vec<bool>> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
 
-    fn gold(alpha: f32) -> Bsdf {
+    pub(in super::super) fn gold(alpha: f32) -> Bsdf {
         Bsdf {
             diffuse: V::ZERO,
             f0: V::new(1.0, 0.78, 0.34),
@@ -271,6 +321,36 @@ mod tests {
                     }
                 }
             }
+        }
+    }
+
+    /// Random incident light on the hemicube's faces, Haar-transformed.
+    pub(in super::super) fn random_faces(seed: u64) -> Vec<Vec<Vec3>> {
+        let mut rng = crate::test_rng::TestRng::new(seed);
+        (0..FACES)
+            .map(|_| {
+                let mut f: Vec<Vec3> = (0..RES * RES).map(|_| rng.v(1.0).into()).collect();
+                haar::forward(&mut f, RES);
+                f
+            })
+            .collect()
+    }
+
+    /// The support holds every coefficient a product reads: the product with the light
+    /// kept on it is the product with the whole light, at every elevation.
+    #[test]
+    fn the_product_on_the_support_is_the_whole_product() {
+        let table = BrdfTable::new(&gold(0.09), THRESHOLD);
+        let faces = random_faces(7);
+        let kept = table.on_support(&faces);
+        assert!(kept.len() < FACES * RES * RES / 4, "{}", kept.len());
+        for i in 0..4 * THETAS {
+            let th = THETA_MAX * i as f32 / (4 * THETAS) as f32;
+            let (whole, on) = (table.product(th, &faces), table.product_on(th, &kept));
+            assert!(
+                (whole - on).abs().max_element() <= 1e-5 * whole.abs().max_element(),
+                "θ {th}: {whole} against {on}"
+            );
         }
     }
 }

@@ -81,6 +81,12 @@ pub struct Record {
     pub at: [u32; 2],
     /// The luminance of the receiver's diffuse lobe: what a pixel shows per unit of E.
     pub lobe: f32,
+    /// How far a receiver's normal may turn, as 1 − cos, before the record stops covering
+    /// it: 1 for irradiance; a glossy lobe's width for radiance records.
+    pub turn: f32,
+    /// A radiance record's outgoing direction, which a receiver's must match as its normal
+    /// does (zero for irradiance).
+    pub wo: V,
 }
 
 impl Record {
@@ -106,6 +112,8 @@ impl Record {
             pixels: PI * (r / lo).powi(2),
             at: [0, 0],
             lobe: 1.0,
+            turn: 1.0,
+            wo: V::ZERO,
         }
     }
 
@@ -294,7 +302,7 @@ impl IrradianceCache {
     /// normal `m`, and the smallest reach a·R among them; None when none does.
     pub fn lookup(&self, x: V, m: V) -> Option<(V, f32)> {
         let (mut sum, mut weight, mut reach) = (V::ZERO, 0.0f32, f32::INFINITY);
-        self.covering(x, m, |id, w| {
+        self.covering(x, m, V::ZERO, |id, w| {
             let rec = &self.records[id];
             let moved = self.carry[id].change((x - rec.p).into(), rec.n.cross(m).into());
             sum += (rec.e + V::from(moved)).max(V::ZERO) * w;
@@ -321,7 +329,7 @@ impl IrradianceCache {
     /// record has two gathers yet.
     pub fn spread(&self, x: V, m: V) -> Option<(f64, f64)> {
         let (mut mean, mut gather, mut weight) = (0.0, 0.0, 0.0);
-        self.covering(x, m, |id, w| {
+        self.covering(x, m, V::ZERO, |id, w| {
             let y = &self.records[id].y;
             if y.count >= 2 {
                 let (w, s2) = (w as f64, y.variance());
@@ -333,34 +341,45 @@ impl IrradianceCache {
         (weight > 0.0).then(|| (mean / weight, gather / weight))
     }
 
-    /// Calls `f` with the index and weight of every record that covers x.
-    fn covering(&self, x: V, m: V, mut f: impl FnMut(usize, f32)) {
+    /// Calls `f` with the index and weight of every record that covers x with normal m
+    /// and outgoing direction `wo` (read by radiance records only).
+    pub fn covering(&self, x: V, m: V, wo: V, mut f: impl FnMut(usize, f32)) {
         for &level in &self.levels {
             let Some(ids) = self.grid.get(&(level, cell(x, cell_size(level)))) else {
                 continue;
             };
             for &id in ids {
-                if let Some(w) = self.weight(&self.records[id as usize], x, m) {
+                if let Some(w) = self.weight(&self.records[id as usize], x, m, wo) {
                     f(id as usize, w);
                 }
             }
         }
     }
 
-    /// Record `rec`'s weight at x with normal m, if it covers x.
-    fn weight(&self, rec: &Record, x: V, m: V) -> Option<f32> {
-        let cos = rec.n.dot(m);
-        if cos <= 0.0 {
-            return None;
-        }
-        let d = x - rec.p;
-        // A record in front of x sees what x's hemisphere cannot.
-        if d.dot(rec.n + m) < -0.1 * self.a * rec.r {
-            return None;
-        }
-        let eps = d.length() / rec.r + (1.0 - cos).max(0.0).sqrt();
-        (eps < self.a).then(|| 1.0 / eps.max(1e-6 * self.a) - 1.0 / self.a)
+    /// Record `rec`'s weight at x with normal m and outgoing direction wo, if it covers x.
+    fn weight(&self, rec: &Record, x: V, m: V, wo: V) -> Option<f32> {
+        weight(rec, self.a, x, m, wo)
     }
+}
+
+/// Record `rec`'s weight at x with normal m and outgoing direction wo in a cache of error
+/// bound `a`, if it covers x.
+pub fn weight(rec: &Record, a: f32, x: V, m: V, wo: V) -> Option<f32> {
+    let cos = rec.n.dot(m);
+    if cos <= 0.0 {
+        return None;
+    }
+    let d = x - rec.p;
+    // A record in front of x sees what x's hemisphere cannot.
+    if d.dot(rec.n + m) < -0.1 * a * rec.r {
+        return None;
+    }
+    let mut bend = 1.0 - cos;
+    if rec.wo != V::ZERO {
+        bend = bend.max(1.0 - rec.wo.dot(wo));
+    }
+    let eps = d.length() / rec.r + (bend / rec.turn).max(0.0).sqrt();
+    (eps < a).then(|| 1.0 / eps.max(1e-6 * a) - 1.0 / a)
 }
 
 /// Cells of level L are 2^L wide (scene units).
@@ -438,6 +457,8 @@ mod tests {
                 pixels: 1.0,
                 at: [0, 0],
                 lobe: 1.0,
+                turn: 1.0,
+                wo: V::ZERO,
             })
             .collect();
         let mut cache = IrradianceCache::new(0.4);
@@ -457,7 +478,7 @@ mod tests {
             let m = (V::new(rng.f32(), rng.f32(), rng.f32()) * 0.4 + V::Z).normalize();
             let (mut sum, mut weight) = (V::ZERO, 0.0);
             for r in &recs {
-                if let Some(w) = cache.weight(r, x, m) {
+                if let Some(w) = cache.weight(r, x, m, V::ZERO) {
                     let d = x - r.p;
                     let turn = r.n.cross(m);
                     let g = r.carry(cache.a());
@@ -495,6 +516,8 @@ mod tests {
             pixels: 1.0,
             at: [0, 0],
             lobe: 1.0,
+            turn: 1.0,
+            wo: V::ZERO,
         };
         let mut cache = IrradianceCache::new(0.5);
         cache.extend([rec]);

@@ -28,9 +28,11 @@
 //! - x's rough specular lobes, mostly narrower than a texel, take exact rays sampled
 //!   from them instead (`--pbgi-glossy-rays`; the first with the pixel's own sample
 //!   sequence, as the path tracer's next bounce would), their hits shaded as a rasterized
-//!   hit is; each ray also serves a light sample's MIS for x's direct light. (WPBGI's adaptive
-//!   micro-buffer and wavelet BRDF product, 000 §3.2 and 002 §4.2, would gather them from
-//!   the cloud; not built.)
+//!   hit is; each ray also serves a light sample's MIS for x's direct light;
+//! - or, with `--pbgi-glossy-bounce wavelet`, WPBGI gathers them from the cloud (`wpbgi`:
+//!   the adaptive micro-buffer and the wavelet BRDF product, 000 §3.2 and 002 §4.2), and
+//!   with `cache` those gathers are kept as radiance records shared between pixels
+//!   (`radiance_cache`, 002 §4.3), receivers no record covers taking the exact rays.
 //!
 //! A pixel whose earlier samples scattered takes more camera rays a pass (`pixel_split`,
 //! not in the seeds): half of the showroom's noise was the sample's position in the
@@ -52,6 +54,7 @@ pub mod glossy;
 pub mod microbuffer;
 pub mod patch;
 mod pixel_split;
+mod radiance_cache;
 mod records;
 mod settings;
 mod split;
@@ -129,6 +132,11 @@ pub struct PbgiStats {
     pub amb_light_splits: u64,
     pub brdf_tables: usize,
     pub brdf_coefficients: usize,
+    /// The radiance cache's records (`--pbgi-glossy-bounce cache`), the gathers they
+    /// average and the receivers that read their glossy bounce from them.
+    pub radiance_records: u64,
+    pub radiance_gathers: u64,
+    pub radiance_hits: u64,
 }
 
 pub struct PbgiIntegrator {
@@ -157,6 +165,12 @@ pub struct PbgiIntegrator {
     /// The window rendered (`Target::window`), where the cache's records are placed.
     window: [u32; 4],
     cache: Option<IrradianceCache>,
+    /// WPBGI's radiance records (`--pbgi-glossy-bounce cache`), and the receivers they gave.
+    radiance: Option<radiance_cache::RadianceCache>,
+    radiance_hits: AtomicU64,
+    /// Rays and seconds of the radiance records' gathers.
+    radiance_rays: u64,
+    radiance_s: f64,
     cache_hits: AtomicU64,
     cache_rejects: AtomicU64,
     /// Per pixel: a cached receiver of it had a surface over it (see `probes`).
@@ -357,6 +371,10 @@ impl PbgiIntegrator {
             edge: EdgeRays::new(settings.edge_rays, scene, target),
             window: target.window,
             cache: None,
+            radiance: None,
+            radiance_hits: AtomicU64::new(0),
+            radiance_rays: 0,
+            radiance_s: 0.0,
             cache_hits: AtomicU64::new(0),
             cache_rejects: AtomicU64::new(0),
             crevices: Vec::new(),
@@ -480,8 +498,10 @@ impl PbgiIntegrator {
                 true => self.split.counts(px.at, self.glossy_rays),
                 false => split::Counts::both(1),
             };
-            // WPBGI gathers the bounce: its lobe rays would go unused.
-            let bounce = match self.gathers_wavelets(&s) {
+            // WPBGI gathers the bounce, or the radiance cache holds it: its lobe rays
+            // would go unused.
+            let cached = self.radiance_lookup(&s);
+            let bounce = match self.gathers_wavelets(&s) || cached.is_some() {
                 true => 1,
                 false => bounce,
             };
@@ -528,10 +548,21 @@ impl PbgiIntegrator {
                 key,
                 at,
                 sample,
+                cached,
             };
             return (l, Some(q), own);
         }
         (l, None, own)
+    }
+
+    /// The glossy bounce the radiance cache's records give the receiver, if they cover it.
+    fn radiance_lookup(&self, s: &Surface) -> Option<V> {
+        let cache = self.radiance.as_ref()?;
+        if !wpbgi::gathers_wavelets(s) {
+            return None;
+        }
+        let wo = s.frame.to_world(s.wo_l);
+        cache.lookup(s.p, s.frame.n, wo, &self.table_of(s))
     }
 
     /// The glossy bounce from the exact rays sampled from the receiver's lobes: their mean,
@@ -570,8 +601,12 @@ impl PbgiIntegrator {
         known: Option<Reuse>,
     ) -> V {
         let s = &q.s;
-        let mut l = match self.gathers_wavelets(s) {
-            true => match self.reuse_in_pixel(q, true) {
+        let mut l = match (q.cached, self.gathers_wavelets(s)) {
+            (Some(v), _) => {
+                self.radiance_hits.fetch_add(1, Relaxed);
+                v
+            }
+            (None, true) => match self.reuse_in_pixel(q, true) {
                 InPixel::Lend(pixel, at) => {
                     self.lend(pixel, at, q.beta);
                     V::ZERO
@@ -584,7 +619,7 @@ impl PbgiIntegrator {
                     }
                 }
             },
-            false => self.lobe_bounce(scene, tr, q),
+            (None, false) => self.lobe_bounce(scene, tr, q),
         };
         if s.bsdf.diffuse.max_element() > 0.0 {
             // The diffuse lobe is the same for every incident direction: irradiance × it.
@@ -987,6 +1022,8 @@ struct Pending {
     at: Option<(usize, f32)>,
     /// Its sample number in the pixel.
     sample: u32,
+    /// Its glossy bounce from the radiance cache's records, where they cover it.
+    cached: Option<V>,
 }
 
 /// Bytes of a per-pixel table, in all and per pixel (none when it is empty: off).
@@ -1054,10 +1091,25 @@ impl Integrator for PbgiIntegrator {
         if pass.first > 0 {
             let t = Instant::now();
             let refine_rays = self.refine_cache(scene, pass);
-            let left = pass.left.map(|l| l.saturating_sub(t.elapsed()));
-            let probe_rays = self.probe_cache(scene, &Pass { left, ..*pass });
+            let left = |pass: &Pass| pass.left.map(|l| l.saturating_sub(t.elapsed()));
+            let probe_rays = self.probe_cache(
+                scene,
+                &Pass {
+                    left: left(pass),
+                    ..*pass
+                },
+            );
             self.cache_s += t.elapsed().as_secs_f64();
-            return Ok(edge_rays + refine_rays + probe_rays);
+            let r = Instant::now();
+            let radiance_rays = self.refine_radiance(
+                scene,
+                &Pass {
+                    left: left(pass),
+                    ..*pass
+                },
+            );
+            self.radiance_s += r.elapsed().as_secs_f64();
+            return Ok(edge_rays + refine_rays + probe_rays + radiance_rays);
         }
         if self.settings.reuse > 1 {
             self.gathered = (0..self.window_pixels())
@@ -1093,6 +1145,14 @@ impl Integrator for PbgiIntegrator {
             self.cache_rays = rays;
             self.cache_s = t.elapsed().as_secs_f64();
             self.probe_order = self.probe_order();
+        }
+        if self.settings.glossy_bounce == wpbgi::GlossyBounce::Cache {
+            let t = Instant::now();
+            let (cache, rays) = self.build_radiance_cache(scene, self.settings.cache);
+            self.radiance = Some(cache);
+            cache_rays += rays;
+            self.radiance_rays = rays;
+            self.radiance_s = t.elapsed().as_secs_f64();
         }
         Ok(self.bake_samples + edge_rays + cache_rays)
     }
@@ -1172,7 +1232,7 @@ impl Integrator for PbgiIntegrator {
                     ),
                 };
                 let glossy = match s.glossy_bounce {
-                    wpbgi::GlossyBounce::Wavelet => {
+                    wpbgi::GlossyBounce::Wavelet | wpbgi::GlossyBounce::Cache => {
                         let (tables, coefs) = self.tables.sizes();
                         format!(
                             "{glossy}; lobes that only reflect by WPBGI: {} gathers into adaptive micro-buffers of {:.0} leaves on average ({:.1} split by the light), the product with {tables} BRDF table(s) of {coefs} Haar coefficients",
@@ -1214,6 +1274,17 @@ impl Integrator for PbgiIntegrator {
                 ),
                 None => "pbgi: no irradiance cache".into(),
             },
+            match &self.radiance {
+                Some(c) => format!(
+                    "pbgi: radiance cache: {} records placed coarse to fine where one would cover its 8 neighbouring pixels, holding {} gathers of {} Haar coefficients each ({:.2} s), the glossy bounce of {} receivers; the others' from exact lobe rays",
+                    c.records.len(),
+                    c.records.gathers(),
+                    c.coefficients(),
+                    self.radiance_s,
+                    self.radiance_hits.load(Relaxed)
+                ),
+                None => "pbgi: no radiance cache".into(),
+            },
             self.edge.describe(),
         ]
     }
@@ -1251,6 +1322,9 @@ impl Integrator for PbgiIntegrator {
             amb_light_splits: self.light_splits.load(Relaxed),
             brdf_tables,
             brdf_coefficients,
+            radiance_records: self.radiance.as_ref().map_or(0, |c| c.records.len() as u64),
+            radiance_gathers: self.radiance.as_ref().map_or(0, |c| c.records.gathers()),
+            radiance_hits: self.radiance_hits.load(Relaxed),
         })
     }
 
@@ -1281,7 +1355,11 @@ impl Integrator for PbgiIntegrator {
             .map(|m| m.lock().unwrap_or_else(PoisonError::into_inner).capacity())
             .sum();
         let slots = self.gathered.len() * size_of::<Mutex<Vec<Gathered>>>();
-        let cached = self.cache.as_ref().map_or(0, IrradianceCache::bytes);
+        let cached = self.cache.as_ref().map_or(0, IrradianceCache::bytes)
+            + self
+                .radiance
+                .as_ref()
+                .map_or(0, radiance_cache::RadianceCache::bytes);
         let bytes = (slots + kept * size_of::<Gathered>()) as u64 + cached;
         let edge = self.edge.bytes();
         let [split, split_per_pixel] = self.split.bytes();
@@ -1293,7 +1371,11 @@ impl Integrator for PbgiIntegrator {
     }
 
     fn seconds(&self) -> Vec<(&'static str, f64)> {
-        vec![("bake", self.bake_s), ("cache", self.cache_s)]
+        vec![
+            ("bake", self.bake_s),
+            ("cache", self.cache_s),
+            ("radiance cache", self.radiance_s),
+        ]
     }
 }
 

@@ -26,6 +26,21 @@ pub enum GlossyBounce {
     /// WPBGI: the cut into the adaptive micro-buffer and the wavelet BRDF product, where
     /// the lobes only reflect.
     Wavelet,
+    /// WPBGI's gathers kept as radiance records shared between pixels (002 §4.3), each
+    /// sample taking its own BRDF product with them; a receiver no record covers gathers
+    /// as `wavelet` does.
+    Cache,
+}
+
+/// One WPBGI gather's incident light, in the frame turned so that ω_o lies in its
+/// xz-plane.
+pub(super) struct Incident {
+    pub table: Arc<BrdfTable>,
+    /// Haar-transformed faces ([`super::amb::Amb::faces`]).
+    pub faces: Vec<Vec<glam::Vec3>>,
+    pub theta_o: f32,
+    /// The leaves' harmonic mean distance to what they saw.
+    pub depth: f32,
 }
 
 /// BRDF tables built on first use, one per distinct reflecting lobe.
@@ -70,22 +85,27 @@ impl PbgiIntegrator {
         s: &Surface,
         strata: Strata,
     ) -> V {
-        let g = s.glossy();
+        let i = self.gather_incident(scene, tr, s, strata);
+        V::from(i.table.product(i.theta_o, &i.faces))
+    }
+
+    /// The table of the receiver's reflecting lobe.
+    pub(super) fn table_of(&self, s: &Surface) -> Arc<BrdfTable> {
         let threshold = self.settings.brdf_threshold.unwrap_or(THRESHOLD);
-        let table = self.tables.get(&g, threshold);
-        let wo = s.frame.to_world(s.wo_l);
+        self.tables.get(&s.glossy(), threshold)
+    }
+
+    /// The incident light of one WPBGI gather at the receiver.
+    pub(super) fn gather_incident(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        s: &Surface,
+        strata: Strata,
+    ) -> Incident {
+        let table = self.table_of(s);
         let theta_o = s.wo_l.z.clamp(-1.0, 1.0).acos();
-        let tangent = wo - s.n * wo.dot(s.n);
-        let t = if tangent.length_squared() > 1e-12 {
-            tangent.normalize()
-        } else {
-            s.frame.t
-        };
-        let frame = Frame {
-            t,
-            b: s.n.cross(t),
-            n: s.n,
-        };
+        let frame = turned_frame(s);
         let turned = Surface { frame, ..*s };
         let gamma = self.settings.light_gamma.unwrap_or(LIGHT_GAMMA);
         let base = self.settings.resolution;
@@ -116,7 +136,12 @@ impl PbgiIntegrator {
                 .fetch_add(sc.amb.leaf_count() as u64, Relaxed);
             self.light_splits.fetch_add(sc.amb.light_splits, Relaxed);
             self.wavelet_gathers.fetch_add(1, Relaxed);
-            V::from(sc.amb.reflect(&incident, &table, theta_o))
+            Incident {
+                faces: sc.amb.faces(&incident),
+                depth: sc.amb.harmonic_depth(),
+                table: table.clone(),
+                theta_o,
+            }
         })
     }
 
@@ -137,5 +162,21 @@ impl PbgiIntegrator {
                 let w = frame.to_world(V::from(local)).normalize();
                 (w.dot(s.n) > 0.0).then_some((k, w, weight))
             }));
+    }
+}
+
+/// The receiver's frame turned about its normal so that ω_o lies in the xz-plane.
+pub(super) fn turned_frame(s: &Surface) -> Frame {
+    let wo = s.frame.to_world(s.wo_l);
+    let tangent = wo - s.n * wo.dot(s.n);
+    let t = if tangent.length_squared() > 1e-12 {
+        tangent.normalize()
+    } else {
+        s.frame.t
+    };
+    Frame {
+        t,
+        b: s.n.cross(t),
+        n: s.n,
     }
 }
