@@ -735,18 +735,27 @@ fn gold_floor(dir: &std::path::Path) -> std::path::PathBuf {
 
 /// The gold floor and its wall, seen from `position` toward `look_at`.
 fn gold_floor_from(dir: &std::path::Path, position: &str, look_at: &str) -> std::path::PathBuf {
-    let floor = grid(32, &|u, v| [2.0 * u - 0.5, 0.0, v], false);
+    floor_scene(dir, position, look_at, GOLD)
+}
+
+/// The floor's material in `gold_floor_from`.
+const GOLD: &str = "base_color = [0.95, 0.75, 0.4]\nmetallic = 1.0\nroughness = 0.4";
+
+/// A floor of material `floor` (scene-file keys) before a lit white wall, seen from the
+/// camera at `position` looking at `look_at`.
+fn floor_scene(
+    dir: &std::path::Path,
+    position: &str,
+    look_at: &str,
+    floor: &str,
+) -> std::path::PathBuf {
+    let floor_obj = grid(32, &|u, v| [2.0 * u - 0.5, 0.0, v], false);
     let wall = grid(8, &|u, v| [2.0 * u - 0.5, 1.5 * v, 1.0], true);
     let camera = format!(
-        "[[camera]]\nname = \"main\"\nposition = {position}\nlook_at = {look_at}\nyfov_degrees = 30.0\n"
+        "[[camera]]\nname = \"main\"\nposition = {position}\nlook_at = {look_at}\nyfov_degrees = 30.0\n[[material]]\nname = \"gold\"\n{floor}\n"
     );
     let toml = camera
         + r#"
-[[material]]
-name = "gold"
-base_color = [0.95, 0.75, 0.4]
-metallic = 1.0
-roughness = 0.4
 [[material]]
 name = "wall"
 base_color = [0.8, 0.8, 0.8]
@@ -758,7 +767,7 @@ type = "point"
 position = [0.5, 0.6, 0.3]
 intensity = 2.0
 "#;
-    two_obj_scene(dir, [("floor.obj", floor), ("wall.obj", wall)], &toml)
+    two_obj_scene(dir, [("floor.obj", floor_obj), ("wall.obj", wall)], &toml)
 }
 
 /// Writes two OBJ files and a scene file into `dir` and converts them; returns the archive.
@@ -785,6 +794,51 @@ fn two_obj_scene(
         s(&arc),
     ]);
     arc
+}
+
+/// WPBGI on a rough glass floor (GGX roughness 0.3, ior 1.5) seen at a grazing angle: it
+/// gathers what the interface reflects (the lit wall), the transmission keeping its lobe
+/// rays (which find nothing below the floor). The reflected bounce is 96% of the red the
+/// path tracer finds on the same light paths; WPBGI at 64 spp was measured 0.9% short of
+/// it per pixel and 0.6% with the radiance cache (whose records reach as far as a pixel
+/// is long on the floor, so that they cover their neighbours at this angle).
+#[test]
+fn wavelet_pbgi_gathers_a_rough_glass_floors_reflection() {
+    let dir = tempfile::tempdir().unwrap();
+    let glass = "base_color = [1.0, 1.0, 1.0]\ntransmission = 1.0\nroughness = 0.3\nior = 1.5";
+    let arc = floor_scene(dir.path(), "[0.5, 0.3, -0.8]", "[0.5, 0.0, 0.6]", glass);
+    let small = ["--width", "32", "--height", "32", "--crop", "0,32,16,32"];
+    let render_at = |depth: &str, extra: &[&str]| {
+        let flags = [&small[..], &["--max-depth", depth], extra].concat();
+        render(&arc, &dir.path().join("img.exr"), &flags)
+    };
+    let (reference, _) = render_at("3", &["--spp", "4096", "--seed", "3"]);
+    let (direct, _) = render_at("2", &["--spp", "4096", "--seed", "3"]);
+    let red = |img: &Image| img.mean()[0] / reference.mean()[0] - 1.0;
+    let bounce = -red(&direct);
+    assert!(
+        bounce > 0.5,
+        "the reflection brings only {:.1}%",
+        100.0 * bounce
+    );
+    for how in ["wavelet", "cache"] {
+        let flags = [
+            "--integrator",
+            "pbgi",
+            "--pbgi-rays",
+            "--spp",
+            "64",
+            "--pbgi-glossy-bounce",
+            how,
+        ];
+        let (img, stats) = render_at("3", &flags);
+        assert!(all_finite(&img));
+        assert!(stats["wavelet_gathers"].as_u64().unwrap() > 0, "{how}");
+        let records = stats["radiance_records"].as_u64().unwrap();
+        assert_eq!(records > 0, how == "cache", "{how}: {records} records");
+        let off = red(&img);
+        assert!(off.abs() < 0.025, "{how}: red off by {:.2}%", 100.0 * off);
+    }
 }
 
 /// Direct light on a very rough metal floor (GGX α 1) seen at grazing angles under a

@@ -2,7 +2,7 @@
 # Speed against error on the same light paths (camera → x → y → light, `--max-depth 3`):
 # path, cone, PBGI with texel rays and the cache (`--pbgi-rays --pbgi-reuse 256`), and
 # PBGI with the cut (wavelet cube maps where the scene has glossy materials; on showroom
-# also without them, and WPBGI, `--pbgi-glossy-bounce wavelet`) on sponza, bunny_box and
+# also without them, and WPBGI, `--pbgi-glossy-bounce wavelet` and `cache`) on sponza, bunny_box and
 # showroom, against the path tracer's own
 # depth-3 references (Mitsuba's are full GI, which one-bounce PBGI cannot reach). Each
 # `canopy eval` runs on one thread, two at a time. References are rendered once into
@@ -53,5 +53,7 @@ BB="--pbgi-resolution 16 --pbgi-cache 0.15"
     run showroom cut_flat --integrators pbgi --pbgi-reuse 256 --wavelet off &
     run showroom wpbgi --integrators path,pbgi --pbgi-rays --pbgi-reuse 256 --pbgi-glossy-bounce wavelet
     wait
+    run showroom wpbgi_cache --integrators path,pbgi --pbgi-rays --pbgi-reuse 256 --pbgi-glossy-bounce cache
+
 }
 echo "report in $OUT"

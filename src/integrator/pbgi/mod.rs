@@ -498,10 +498,11 @@ impl PbgiIntegrator {
                 true => self.split.counts(px.at, self.glossy_rays),
                 false => split::Counts::both(1),
             };
-            // WPBGI gathers the bounce, or the radiance cache holds it: its lobe rays
-            // would go unused.
+            // WPBGI gathers the reflected bounce, or the radiance cache holds it: lobe
+            // rays would serve only a rough dielectric's transmission.
             let cached = self.radiance_lookup(&s);
-            let bounce = match self.gathers_wavelets(&s) || cached.is_some() {
+            let reflects = s.bsdf.trans == 0.0;
+            let bounce = match (self.gathers_wavelets(&s) || cached.is_some()) && reflects {
                 true => 1,
                 false => bounce,
             };
@@ -567,11 +568,21 @@ impl PbgiIntegrator {
 
     /// The glossy bounce from the exact rays sampled from the receiver's lobes: their mean,
     /// the spread of the first two noted for the split.
-    fn lobe_bounce(&self, scene: &Scene, tr: &mut Tracer, q: &Pending) -> V {
+    /// With `transmitted_only`, the rays that left into the surface alone count (WPBGI
+    /// gathers the reflection).
+    fn lobe_bounce(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        q: &Pending,
+        transmitted_only: bool,
+    ) -> V {
         let (mut glossy, mut first) = (V::ZERO, [V::ZERO; 2]);
         for (k, (r, u)) in q.rays.iter().enumerate() {
+            let counts = |r: &&LobeRay| !transmitted_only || r.w.dot(q.s.frame.n) < 0.0;
             let b = r
                 .as_ref()
+                .filter(counts)
                 .map_or(V::ZERO, |r| self.glossy_bounce(scene, tr, r, *u));
             if let Some(f) = first.get_mut(k) {
                 *f = b;
@@ -585,8 +596,9 @@ impl PbgiIntegrator {
     }
 
     /// One bounce of indirect light at the receiver: its diffuse lobe from the
-    /// micro-buffer; its rough specular lobes by WPBGI where `--pbgi-glossy-bounce
-    /// wavelet` asks and they only reflect, else from the exact ray sampled from them at
+    /// micro-buffer; its rough specular lobes' reflection by WPBGI where
+    /// `--pbgi-glossy-bounce wavelet` or `cache` asks (a dielectric's transmission by the
+    /// lobe rays that left into it), else from the exact ray sampled from them at
     /// the first hit, which served direct light's MIS too (a lobe
     /// narrower than a micro-buffer texel would be convolved at a few texel centres only:
     /// with `--max-depth` 3 on a rough silver plinth of α 0.04 that overstated its pixels
@@ -601,26 +613,34 @@ impl PbgiIntegrator {
         known: Option<Reuse>,
     ) -> V {
         let s = &q.s;
-        let mut l = match (q.cached, self.gathers_wavelets(s)) {
-            (Some(v), _) => {
-                self.radiance_hits.fetch_add(1, Relaxed);
-                v
-            }
-            (None, true) => match self.reuse_in_pixel(q, true) {
-                InPixel::Lend(pixel, at) => {
-                    self.lend(pixel, at, q.beta);
-                    V::ZERO
-                }
-                InPixel::Gather(strata) => {
-                    let e = self.gather_wavelet(scene, tr, s, strata);
-                    match self.keep(q, e, q.beta, true) {
-                        true => V::ZERO,
-                        false => e,
-                    }
-                }
-            },
-            (None, false) => self.lobe_bounce(scene, tr, q),
+        // A rough dielectric's transmission keeps its lobe rays: the cloud holds no light
+        // inside it.
+        let wavelets = q.cached.is_some() || self.gathers_wavelets(s);
+        let transmitted = match wavelets && s.bsdf.trans > 0.0 {
+            true => self.lobe_bounce(scene, tr, q, true),
+            false => V::ZERO,
         };
+        let mut l = transmitted
+            + match (q.cached, self.gathers_wavelets(s)) {
+                (Some(v), _) => {
+                    self.radiance_hits.fetch_add(1, Relaxed);
+                    v
+                }
+                (None, true) => match self.reuse_in_pixel(q, true) {
+                    InPixel::Lend(pixel, at) => {
+                        self.lend(pixel, at, q.beta);
+                        V::ZERO
+                    }
+                    InPixel::Gather(strata) => {
+                        let e = self.gather_wavelet(scene, tr, s, strata);
+                        match self.keep(q, e, q.beta, true) {
+                            true => V::ZERO,
+                            false => e,
+                        }
+                    }
+                },
+                (None, false) => self.lobe_bounce(scene, tr, q, false),
+            };
         if s.bsdf.diffuse.max_element() > 0.0 {
             // The diffuse lobe is the same for every incident direction: irradiance × it.
             let lobe = s.diffuse_lobe();
@@ -1235,7 +1255,7 @@ impl Integrator for PbgiIntegrator {
                     wpbgi::GlossyBounce::Wavelet | wpbgi::GlossyBounce::Cache => {
                         let (tables, coefs) = self.tables.sizes();
                         format!(
-                            "{glossy}; lobes that only reflect by WPBGI: {} gathers into adaptive micro-buffers of {:.0} leaves on average ({:.1} split by the light), the product with {tables} BRDF table(s) of {coefs} Haar coefficients",
+                            "{glossy}; the rough lobes' reflection by WPBGI (a dielectric's transmission by its lobe rays): {} gathers into adaptive micro-buffers of {:.0} leaves on average ({:.1} split by the light), the product with {tables} BRDF table(s) of {coefs} Haar coefficients",
                             self.wavelet_gathers.load(Relaxed),
                             self.amb_leaves.load(Relaxed) as f64
                                 / self.wavelet_gathers.load(Relaxed).max(1) as f64,

@@ -10,7 +10,7 @@
 //!   direction and normal are within the lobe's width of its own (`Record::turn`, `wo`);
 //!   a receiver takes the product at its own elevation of ω_o, in the record's frame;
 //! - a record's reach is the harmonic mean distance its leaves saw times the lobe's width,
-//!   as a move of d shifts what lies at distance D by d/D; 002 picks the nearest point.
+//!   as a move of d shifts what lies at distance D by d/D; 002 reads the best single point.
 
 use super::brdf_table::BrdfTable;
 use super::cache::{IrradianceCache, Record};
@@ -18,6 +18,9 @@ use super::microbuffer::Gradients;
 use super::wpbgi::Incident;
 use glam::{Vec3, Vec3A as V};
 use std::sync::Arc;
+
+/// The smallest cos θ_o a pixel's length on the surface is taken at.
+const MIN_COS: f32 = 0.2;
 
 /// A record's light: the mean of its gathers on its table's support.
 #[derive(Default)]
@@ -28,9 +31,14 @@ pub struct Light {
 }
 
 impl Light {
-    /// Takes another gather into the mean; returns its reflected radiance at its own ω_o.
-    pub fn add(&mut self, inc: &Incident) -> V {
+    /// Takes another gather into the mean and returns its reflected radiance at its own
+    /// ω_o; None, and the gather left out, when it is not finite.
+    pub fn add(&mut self, inc: &Incident) -> Option<V> {
+        let e = V::from(inc.table.product(inc.theta_o, &inc.faces));
         let coefs = inc.table.on_support(&inc.faces);
+        if !(e.is_finite() && coefs.iter().all(|c| c.is_finite())) {
+            return None;
+        }
         self.gathers += 1;
         let share = 1.0 / self.gathers as f32;
         self.coefs.resize(coefs.len(), Vec3::ZERO);
@@ -38,7 +46,7 @@ impl Light {
             *m += (c - *m) * share;
         }
         self.table = Some(inc.table.clone());
-        V::from(inc.table.product(inc.theta_o, &inc.faces))
+        Some(e)
     }
 }
 
@@ -57,7 +65,9 @@ impl RadianceCache {
 
     /// A record at receiver point `p`, normal `n`, outgoing direction `wo` (world space)
     /// of a gather reflecting `e` there whose leaves saw things at harmonic mean distance
-    /// `depth`, the lobe's α; `footprint` a pixel's width at p.
+    /// `depth`, the lobe's α; `footprint` a pixel's width at p across the view. Its reach
+    /// is clamped by the pixel's length on the surface, footprint / cos θ_o (up to 5×):
+    /// seen at a grazing angle, the next pixel's hit lies that far away.
     #[allow(clippy::too_many_arguments)]
     pub fn record(
         p: V,
@@ -70,7 +80,8 @@ impl RadianceCache {
         a: f32,
     ) -> Record {
         let width = 2.0 * alpha;
-        let rec = Record::new(p, n, e, depth * width, footprint, a);
+        let along = footprint / wo.dot(n).max(MIN_COS);
+        let rec = Record::new(p, n, e, depth * width, along, a);
         Record {
             turn: width * width,
             wo,
@@ -91,8 +102,9 @@ impl RadianceCache {
 
     /// Another gather for record `id`.
     pub fn add(&mut self, id: usize, inc: &Incident) {
-        let e = self.light[id].add(inc);
-        self.records.add(id, e, &Gradients::default());
+        if let Some(e) = self.light[id].add(inc) {
+            self.records.add(id, e, &Gradients::default());
+        }
     }
 
     /// The reflected radiance at a receiver at `x` with normal `m`, outgoing direction
@@ -155,7 +167,7 @@ mod tests {
     fn cache_of(gathers: &[Incident]) -> RadianceCache {
         let mut cache = RadianceCache::new(A);
         let mut light = Light::default();
-        let e = light.add(&gathers[0]);
+        let e = light.add(&gathers[0]).unwrap();
         let rec = RadianceCache::record(V::ZERO, V::Z, wo_at(THETA), e, 2.0, ALPHA, 0.1, A);
         cache.extend([(rec, light)]);
         for g in &gathers[1..] {

@@ -1,6 +1,7 @@
-//! Where the irradiance cache's records go: placed coarse to fine before the first pass,
-//! refined where another gather lowers the image's error most, and added where a probe
-//! finds the cache's interpolation wrong (see `cache` for the records themselves).
+//! Where the caches' records go: placed coarse to fine before the first pass, refined
+//! where another gather lowers the image's error most, and, for the irradiance cache,
+//! added where a probe finds its interpolation wrong (see `cache` and `radiance_cache` for
+//! the records themselves).
 
 use super::bake::Hash;
 use super::cache;
@@ -163,7 +164,9 @@ impl PbgiIntegrator {
         for k in 0..GLOSSY_GATHERS {
             let strata = self.radiance_strata([x, y], k);
             let inc = self.gather_incident(scene, tr, &q.s, strata);
-            let e = light.add(&inc);
+            let Some(e) = light.add(&inc) else {
+                continue;
+            };
             match &mut rec {
                 None => {
                     rec = Some(RadianceCache::record(

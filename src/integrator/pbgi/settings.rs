@@ -48,16 +48,23 @@ pub struct PbgiSettings {
     /// rough metal or rough dielectric [default: 2 where there is one]
     #[arg(long = "pbgi-glossy-rays", value_name = "K", value_parser = clap::value_parser!(u32).range(1..=16))]
     pub glossy_rays: Option<u32>,
-    /// How receivers whose rough specular lobes only reflect (rough metals, glossy coats)
-    /// take their glossy bounce: `rays`, the exact lobe rays above; `wavelet`, WPBGI (000 §3.2-3.3):
+    /// How receivers with rough specular lobes (rough metals, glossy coats, rough
+    /// dielectrics) take their reflected glossy bounce (a dielectric's transmission keeps
+    /// its lobe rays): `rays`, the exact lobe rays above; `wavelet`, WPBGI (000 §3.2-3.3):
     /// the cut into a micro-buffer refined where the BRDF varies (down to 64² a face) and
     /// the product of its Haar coefficients with the BRDF's, tabulated per outgoing
     /// direction (002 §4.2). Under --pbgi-rays each leaf's ray is traced instead of the
     /// cut (their hits read the diffuse bake, as texel rays do, so no glossy maps are
     /// baked). A pixel's surface gathers at every 8th sample (at most --pbgi-reuse), its
     /// samples taking the mean of its gathers. On the showroom it has 7.6x the squared
-    /// error of `rays` at 20 s (docs/pbgi.md). Not with --receiver-clusters; `wavelet` is
-    /// an error on a scene with no rough metal or rough dielectric
+    /// error of `rays` at 20 s. `cache`: WPBGI's gathers kept as radiance records shared
+    /// between pixels (002 §4.3; needs --pbgi-cache), placed where a record covers its 8
+    /// neighbouring pixels and refined between passes, each sample taking its own BRDF
+    /// product with them; receivers no record covers take the exact lobe rays. On the
+    /// showroom 0.91x the squared error of `rays` at 20 s, 3.6x the path tracer as the
+    /// issue's bar words it; on room_glossy 1.03x (docs/pbgi.md). Not with
+    /// --receiver-clusters; `wavelet` and `cache` are errors on a scene with no rough
+    /// metal or rough dielectric
     #[arg(
         long = "pbgi-glossy-bounce",
         value_name = "HOW",
@@ -69,7 +76,7 @@ pub struct PbgiSettings {
     /// norm; the adaptive micro-buffer splits a texel while the table keeps one inside it.
     /// Smaller is more exact and gathers more leaves; at 0 every texel where the BRDF
     /// varies at all is split down to 64² [default: 0.01; only with
-    /// --pbgi-glossy-bounce wavelet]
+    /// --pbgi-glossy-bounce wavelet or cache]
     #[arg(long = "pbgi-brdf-threshold", value_name = "T", value_parser = crate::units::parse_non_negative)]
     pub brdf_threshold: Option<f32>,
     /// WPBGI's light importance F_l (000 §3.2): the BRDF alone refines the adaptive
@@ -79,7 +86,7 @@ pub struct PbgiSettings {
     /// split one held (or by their own rays). 0 turns it off: the BRDF refines to 64² at
     /// once. At 20 s, γ = 1 (000's "typically") had 1.40× the squared error of 0 on the
     /// showroom and 1.37× on room_glossy, 0.3 1.07× and 1.35× (docs/pbgi.md)
-    /// [default: 0; only with --pbgi-glossy-bounce wavelet]
+    /// [default: 0; only with --pbgi-glossy-bounce wavelet or cache]
     #[arg(long = "pbgi-light-importance", value_name = "GAMMA", value_parser = crate::units::parse_non_negative)]
     pub light_gamma: Option<f32>,
     /// Most (light sample, lobe ray) pairs for direct light, and most rays for the glossy

@@ -1,10 +1,10 @@
-//! WPBGI's glossy gather (000 §3.2–3.3) for receivers whose specular lobes only reflect
-//! (rough metals, glossy coats): the cut into the adaptive micro-buffer (refined in
-//! rounds by the light importance when it is on) in a frame turned so that ω_o lies in
-//! its xz-plane, far nodes sending their wavelet radiance (`glossy.rs`), then the
-//! wavelet BRDF × radiance product with the BRDF's table.
-//! Receivers with a transmitting lobe keep their exact lobe rays: the point cloud holds no
-//! light inside a glass.
+//! WPBGI's glossy gather (000 §3.2–3.3) for what rough specular lobes reflect (rough
+//! metals, glossy coats, rough dielectrics): the cut into the adaptive micro-buffer
+//! (refined in rounds by the light importance when it is on) in a frame turned so that
+//! ω_o lies in its xz-plane, far nodes sending their wavelet radiance (`glossy.rs`), then
+//! the wavelet BRDF × radiance product with the BRDF's table, which holds the upper
+//! hemisphere only. A rough dielectric's transmission keeps its exact lobe rays: the
+//! point cloud holds no light inside a glass.
 
 use super::amb::BRDF_LEVELS;
 use super::brdf_table::{BrdfTable, RES, THRESHOLD};
@@ -23,8 +23,8 @@ use std::sync::{Arc, Mutex, PoisonError};
 pub enum GlossyBounce {
     /// Exact rays sampled from its lobes.
     Rays,
-    /// WPBGI: the cut into the adaptive micro-buffer and the wavelet BRDF product, where
-    /// the lobes only reflect.
+    /// WPBGI: the cut into the adaptive micro-buffer and the wavelet BRDF product, for
+    /// the reflected light (a dielectric's transmission keeps its rays).
     Wavelet,
     /// WPBGI's gathers kept as radiance records shared between pixels (002 §4.3), each
     /// sample taking its own BRDF product with them; a receiver no record covers gathers
@@ -45,11 +45,14 @@ pub(super) struct Incident {
 
 /// BRDF tables built on first use, one per distinct reflecting lobe.
 #[derive(Default)]
-pub struct Tables(Mutex<Vec<([u32; 7], Arc<BrdfTable>)>>);
+pub struct Tables(Mutex<Vec<([u32; 9], Arc<BrdfTable>)>>);
 
 impl Tables {
     fn get(&self, g: &Bsdf, threshold: f32) -> Arc<BrdfTable> {
-        let key = [g.f0.x, g.f0.y, g.f0.z, g.f90.x, g.f90.y, g.f90.z, g.alpha].map(f32::to_bits);
+        let key = [
+            g.f0.x, g.f0.y, g.f0.z, g.f90.x, g.f90.y, g.f90.z, g.alpha, g.trans, g.eta,
+        ]
+        .map(f32::to_bits);
         let mut list = self.0.lock().unwrap_or_else(PoisonError::into_inner);
         if let Some((_, t)) = list.iter().find(|(k, _)| *k == key) {
             return t.clone();
@@ -71,9 +74,10 @@ impl Tables {
 /// 1.07×, and splitting wherever any light arrived 1.15× (docs/pbgi.md).
 pub const LIGHT_GAMMA: f32 = 0.0;
 
-/// Whether WPBGI gathers this receiver's glossy light: rough lobes that only reflect.
+/// Whether WPBGI gathers this receiver's reflected glossy light: it has rough lobes (a
+/// rough dielectric's transmission keeps its lobe rays).
 pub(super) fn gathers_wavelets(s: &Surface) -> bool {
-    s.has_rough_lobes() && s.bsdf.trans == 0.0
+    s.has_rough_lobes()
 }
 
 impl PbgiIntegrator {
