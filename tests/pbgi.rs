@@ -796,6 +796,44 @@ fn two_obj_scene(
     arc
 }
 
+/// A floor scene's bottom half at 32 × 16 pixels against the path tracer's at 4,096 spp
+/// (`--max-depth` 3), and what its bounce brings (1 − depth 2 / depth 3, in red).
+struct FloorCase<'a> {
+    dir: &'a std::path::Path,
+    arc: &'a std::path::Path,
+    reference: Image,
+    direct: Image,
+}
+
+impl<'a> FloorCase<'a> {
+    fn new(dir: &'a std::path::Path, arc: &'a std::path::Path) -> FloorCase<'a> {
+        let mut case = FloorCase {
+            dir,
+            arc,
+            reference: Image::new(1, 1),
+            direct: Image::new(1, 1),
+        };
+        case.reference = case.render("3", &["--spp", "4096", "--seed", "3"]).0;
+        case.direct = case.render("2", &["--spp", "4096", "--seed", "3"]).0;
+        case
+    }
+
+    fn render(&self, depth: &str, extra: &[&str]) -> (Image, serde_json::Value) {
+        let small = ["--width", "32", "--height", "32", "--crop", "0,32,16,32"];
+        let flags = [&small[..], &["--max-depth", depth], extra].concat();
+        render(self.arc, &self.dir.join("img.exr"), &flags)
+    }
+
+    /// The red of `img` against the reference's, relative.
+    fn red(&self, img: &Image) -> f64 {
+        img.mean()[0] / self.reference.mean()[0] - 1.0
+    }
+
+    fn bounce(&self) -> f64 {
+        -self.red(&self.direct)
+    }
+}
+
 /// WPBGI on a rough glass floor (GGX roughness 0.3, ior 1.5) seen at a grazing angle: it
 /// gathers what the interface reflects (the lit wall), the transmission keeping its lobe
 /// rays (which find nothing below the floor). The reflected bounce is 96% of the red the
@@ -807,15 +845,10 @@ fn wavelet_pbgi_gathers_a_rough_glass_floors_reflection() {
     let dir = tempfile::tempdir().unwrap();
     let glass = "base_color = [1.0, 1.0, 1.0]\ntransmission = 1.0\nroughness = 0.3\nior = 1.5";
     let arc = floor_scene(dir.path(), "[0.5, 0.3, -0.8]", "[0.5, 0.0, 0.6]", glass);
-    let small = ["--width", "32", "--height", "32", "--crop", "0,32,16,32"];
-    let render_at = |depth: &str, extra: &[&str]| {
-        let flags = [&small[..], &["--max-depth", depth], extra].concat();
-        render(&arc, &dir.path().join("img.exr"), &flags)
-    };
-    let (reference, _) = render_at("3", &["--spp", "4096", "--seed", "3"]);
-    let (direct, _) = render_at("2", &["--spp", "4096", "--seed", "3"]);
-    let red = |img: &Image| img.mean()[0] / reference.mean()[0] - 1.0;
-    let bounce = -red(&direct);
+    let case = FloorCase::new(dir.path(), &arc);
+    let render_at = |depth: &str, extra: &[&str]| case.render(depth, extra);
+    let red = |img: &Image| case.red(img);
+    let bounce = case.bounce();
     assert!(
         bounce > 0.5,
         "the reflection brings only {:.1}%",
@@ -985,15 +1018,10 @@ fn a_rough_metal_floor_sends_its_glossy_light_to_a_diffuse_wall() {
 fn wavelet_pbgi_gathers_a_rough_metal_floors_reflection() {
     let dir = tempfile::tempdir().unwrap();
     let arc = gold_floor_from(dir.path(), "[0.5, 1.0, -0.5]", "[0.5, 0.1, 0.7]");
-    let small = ["--width", "32", "--height", "32", "--crop", "0,32,16,32"];
-    let render_at = |depth: &str, extra: &[&str]| {
-        let flags = [&small[..], &["--max-depth", depth], extra].concat();
-        render(&arc, &dir.path().join("img.exr"), &flags)
-    };
-    let (reference, _) = render_at("3", &["--spp", "4096", "--seed", "3"]);
-    let (direct, _) = render_at("2", &["--spp", "4096", "--seed", "3"]);
-    let red = |img: &Image| img.mean()[0] / reference.mean()[0] - 1.0;
-    let bounce = -red(&direct);
+    let case = FloorCase::new(dir.path(), &arc);
+    let render_at = |depth: &str, extra: &[&str]| case.render(depth, extra);
+    let red = |img: &Image| case.red(img);
+    let bounce = case.bounce();
     assert!(
         bounce > 0.05,
         "the bounce brings only {:.1}%",

@@ -61,7 +61,7 @@ pub struct PbgiSettings {
     /// between pixels (002 §4.3; needs --pbgi-cache), placed where a record covers its 8
     /// neighbouring pixels and refined between passes, each sample taking its own BRDF
     /// product with them; receivers no record covers take the exact lobe rays. On the
-    /// showroom 0.91x the squared error of `rays` at 20 s, 3.6x the path tracer as the
+    /// showroom 0.91x the squared error of `rays` at 20 s, 3.2-3.6x the path tracer as the
     /// issue's bar words it; on room_glossy 1.03x (docs/pbgi.md). Not with
     /// --receiver-clusters; `wavelet` and `cache` are errors on a scene with no rough
     /// metal or rough dielectric
