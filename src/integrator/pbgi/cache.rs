@@ -10,7 +10,8 @@
 //!
 //!   ε = |x − p| / R + √(1 − m·n) < a        (a = `--pbgi-cache`)
 //!
-//! weighted by 1/ε − 1/a (which falls to zero at the edge, so no record's border shows)
+//! weighted by 1/ε − 1/a (which falls to zero at the edge, so no record's border shows;
+//! a radiance record takes √(max(1 − m·n, 1 − ω·ω_o) / turn) for the second term)
 //! and skips records in front of it (their hemisphere sees what x's cannot). Each record
 //! is carried to x by its irradiance gradients (Ward and Heckbert 1992, from the
 //! micro-buffer's texel borders: [`Gradients`]): E + (x − p)·∇t + (n × m)·∇r, at least
@@ -81,8 +82,9 @@ pub struct Record {
     pub at: [u32; 2],
     /// The luminance of the receiver's diffuse lobe: what a pixel shows per unit of E.
     pub lobe: f32,
-    /// How far a receiver's normal may turn, as 1 − cos, before the record stops covering
-    /// it: 1 for irradiance; a glossy lobe's width for radiance records.
+    /// What 1 − cos of a receiver's turn away from the record is measured against in ε
+    /// (see the module doc): 1 for irradiance; the lobe's width squared, (2α)², for
+    /// radiance records (`radiance_cache`).
     pub turn: f32,
     /// A radiance record's outgoing direction, which a receiver's must match as its normal
     /// does (zero for irradiance).
