@@ -83,9 +83,7 @@ impl Image {
     /// An OpenEXR image with where it lies in its display window and its text attributes.
     pub fn read_exr_framed(path: &Path) -> Result<(Self, Frame)> {
         use exr::prelude::*;
-        if !path.exists() {
-            bail!("{}: no such file", path.display());
-        }
+        crate::exr_header::check(path)?;
         let bad = |e: exr::error::Error| {
             anyhow::anyhow!("{}: not a readable OpenEXR image: {e}", path.display())
         };

@@ -66,12 +66,32 @@ pub struct RadianceSummary {
     pub wavelet_threshold: f32,
 }
 
-/// What a radiance file holds; with `verify`, every block is decoded and its values checked.
-pub fn radiance(r: &RadianceFile, verify: bool) -> Result<RadianceSummary> {
+/// What a radiance file holds; with `verify`, every block is decoded with its page and
+/// checked as a render checks it (values, pyramids, coefficients and the kinds the tree
+/// allows). With `budget`, a page and its block that one worker cannot hold within its
+/// share of it are refused before they are read.
+pub fn radiance(
+    a: &Archive,
+    r: &RadianceFile,
+    verify: bool,
+    budget: Option<u64>,
+) -> Result<RadianceSummary> {
     if verify {
+        let entries = a.entries()?;
+        let share = budget.map(|b| b / rayon::current_num_threads() as u64);
         (0..r.blocks.len() as u32)
             .into_par_iter()
-            .try_for_each(|p| r.read_block(p).map(drop))?;
+            .try_for_each(|p| -> Result<()> {
+                let bytes = crate::paging::decoded_size(a, &entries[p as usize])
+                    + r.blocks[p as usize].raw_len as u64;
+                if let Some(share) = share.filter(|&s| bytes > s) {
+                    anyhow::bail!(
+                        "{}: block {p} with its page takes {bytes} bytes decoded, more than a worker's share of --mem-budget ({share} bytes)",
+                        r.path().display()
+                    );
+                }
+                crate::paging::Page::decode(a, p)?.with_baked(r).map(drop)
+            })?;
     }
     let h = &r.header;
     let nodes = h.nodes.max(1) as f64;

@@ -4,6 +4,7 @@
 
 pub mod camera;
 pub mod convert;
+pub mod exr_header;
 pub mod image;
 pub mod import;
 pub mod inspect;

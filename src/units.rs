@@ -33,6 +33,16 @@ pub fn parse_size(s: &str) -> Result<u64> {
     Ok(bytes as u64)
 }
 
+/// A size as a person writes it: whole MiB or GiB where exact (`64MiB`), else bytes.
+pub fn format_size(bytes: u64) -> String {
+    const MIB: u64 = 1 << 20;
+    match bytes {
+        b if b >= 1 << 30 && b.is_multiple_of(1 << 30) => format!("{}GiB", b >> 30),
+        b if b >= MIB && b.is_multiple_of(MIB) => format!("{}MiB", b / MIB),
+        b => format!("{b} bytes"),
+    }
+}
+
 /// Seconds from a duration with a unit (ms, s, m, h); a bare number is seconds.
 pub fn parse_duration(s: &str) -> Result<std::time::Duration> {
     let t = s.trim();

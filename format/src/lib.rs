@@ -11,6 +11,7 @@ pub mod codec;
 pub mod error;
 pub mod node;
 pub mod radiance;
+pub mod radiance_parts;
 pub mod reader;
 pub mod records;
 pub mod validate;

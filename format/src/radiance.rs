@@ -30,6 +30,10 @@ const _: () = assert!(std::mem::size_of::<BakedNode>() == 96);
 /// Deepest subdivision of a triangle into patches (4^6 = 4096 at the finest level).
 pub const MAX_PATCH_DEPTH: u32 = 6;
 
+/// Largest cube-face side of the glossy maps a file may declare (what `canopy bake` writes
+/// at most).
+pub const MAX_WAVELET_N: u32 = 32;
+
 /// Values in a pyramid of depth k: levels 0..=k, 4^j at level j (level 0: the triangle).
 pub fn pyramid_len(k: u32) -> u32 {
     ((1u32 << (2 * k + 2)) - 1) / 3
@@ -397,7 +401,7 @@ impl RadianceFile {
         let mut packed = Vec::new();
         let mut coef_bytes = 0;
         for (i, (b, p)) in blocks.iter().zip(&entries).enumerate() {
-            coef_bytes += check_block(b, h.blocks_offset, p, h.wavelet_n > 0)
+            coef_bytes += check_block(b, h.blocks_offset, p, h.wavelet_n)
                 .map_err(|what| bad(format!("block {i}: {what}")))?;
             packed.resize(b.compressed_len as usize, 0);
             if read_at(&file, &mut packed, b.offset, len) < packed.len()
@@ -446,30 +450,80 @@ impl RadianceFile {
         if xxhash_rust::xxh3::xxh3_64(&packed) != b.checksum {
             return Err(bad("checksum mismatch".into()));
         }
-        let mut raw = vec![0u8; b.raw_len as usize];
-        match zstd::bulk::decompress_to_buffer(&packed, &mut raw) {
-            Ok(n) if n == raw.len() => {}
-            Ok(n) => {
+        match zstd::zstd_safe::get_frame_content_size(&packed) {
+            Ok(Some(n)) if n != b.raw_len as u64 => {
                 return Err(bad(format!(
-                    "{n} bytes after decompression, not {}",
+                    "raw_len {} declared, its frame holds {n} bytes",
                     b.raw_len
                 )))
             }
-            Err(e) => return Err(bad(format!("does not decompress: {e}"))),
+            _ => {}
         }
-        let (nodes, rest) = raw.split_at(b.node_count as usize * 96);
-        let (patch_of, rest) = rest.split_at(tris * 4);
-        let (patches, coefs) = rest.split_at(b.patch_count as usize * 12);
-        let block = BakedBlock {
-            nodes: bytemuck::pod_collect_to_vec(nodes),
-            patch_of: bytemuck::pod_collect_to_vec(patch_of),
-            patches: bytemuck::pod_collect_to_vec(patches),
-            coefs: read_coefs(coefs).map_err(&bad)?,
-        };
+        let block = decode_block(&packed, b, tris).map_err(&bad)?;
         check_values(&block).map_err(&bad)?;
         check_coefs(&block, self.header.wavelet_n).map_err(bad)?;
         Ok(block)
     }
+}
+
+/// A block inflated section by section, each into a buffer of the size the archive's page
+/// and the sections before it allow: nodes and `patch_of` first, then exactly the patches
+/// the triangles' pyramids need, then the coefficient section; nothing past `raw_len`.
+fn decode_block(
+    packed: &[u8],
+    b: &BlockEntry,
+    tris: usize,
+) -> std::result::Result<BakedBlock, String> {
+    let broken = |e: std::io::Error| match e.kind() {
+        std::io::ErrorKind::UnexpectedEof => {
+            format!("the frame ends before raw_len {} bytes", b.raw_len)
+        }
+        _ => format!("does not decompress: {e}"),
+    };
+    let mut z = zstd::stream::read::Decoder::new(packed)
+        .map_err(broken)?
+        .single_frame();
+    let nodes: Vec<BakedNode> = read_pod(&mut z, b.node_count as usize).map_err(broken)?;
+    let patch_of: Vec<u32> = read_pod(&mut z, tris).map_err(broken)?;
+    let mut need = 0u64;
+    for (t, &v) in patch_of.iter().enumerate() {
+        let (k, off) = (v >> 28, (v & 0x0FFF_FFFF) as u64);
+        if k > MAX_PATCH_DEPTH {
+            return Err(format!(
+                "triangle {t}: patch depth {k} (at most {MAX_PATCH_DEPTH})"
+            ));
+        }
+        need = need.max(off + pyramid_len(k) as u64);
+    }
+    if tris > 0 && need != b.patch_count as u64 {
+        return Err(format!(
+            "patch_count {}, the triangles' pyramids end at {need}",
+            b.patch_count
+        ));
+    }
+    let patches: Vec<[f32; 3]> = read_pod(&mut z, b.patch_count as usize).map_err(broken)?;
+    let fixed = b.node_count as u64 * 96 + tris as u64 * 4 + b.patch_count as u64 * 12;
+    let section: Vec<u8> = read_pod(&mut z, (b.raw_len as u64 - fixed) as usize).map_err(broken)?;
+    let mut more = [0u8; 1];
+    if std::io::Read::read(&mut z, &mut more).map_err(broken)? > 0 {
+        return Err(format!(
+            "more than raw_len {} bytes after decompression",
+            b.raw_len
+        ));
+    }
+    Ok(BakedBlock {
+        nodes,
+        patch_of,
+        patches,
+        coefs: read_coefs(&section)?,
+    })
+}
+
+/// `count` values read whole from `r`; an error if it ends first.
+fn read_pod<T: Pod>(r: &mut impl std::io::Read, count: usize) -> std::io::Result<Vec<T>> {
+    let mut v = vec![T::zeroed(); count];
+    r.read_exact(bytemuck::cast_slice_mut(&mut v))?;
+    Ok(v)
 }
 
 /// Every value finite and ≥ 0; every pyramid of a known depth and inside the patch list.
@@ -562,6 +616,12 @@ fn check_coefs(b: &BakedBlock, n: u32) -> std::result::Result<(), String> {
     Ok(())
 }
 
+/// Most bytes a block's coefficient section can take: its two counts, a record per node and
+/// every texel of each node's vector.
+pub fn coef_section_bound(nodes: u32, wavelet_n: u32) -> u64 {
+    8 + 16 * nodes as u64 * (1 + 6 * wavelet_n as u64 * wavelet_n as u64)
+}
+
 /// Reads up to `buf.len()` bytes at `offset` of a file `len` long; returns how many.
 fn read_at(file: &File, buf: &mut [u8], offset: u64, len: u64) -> usize {
     use std::os::unix::fs::FileExt;
@@ -589,9 +649,9 @@ fn check_header(h: &RadianceHeader) -> std::result::Result<(), String> {
     if h.wavelet_n == 0 && (h.coef_bytes != 0 || h.wavelet_threshold != 0.0) {
         return Err("coefficients without a cube-map resolution".into());
     }
-    if h.wavelet_n != 0 && !(h.wavelet_n.is_power_of_two() && h.wavelet_n <= 64) {
+    if h.wavelet_n != 0 && !(h.wavelet_n.is_power_of_two() && h.wavelet_n <= MAX_WAVELET_N) {
         return Err(format!(
-            "cube-map resolution {}, not a power of two up to 64",
+            "wavelet_n {}, not a power of two up to {MAX_WAVELET_N}",
             h.wavelet_n
         ));
     }
@@ -624,15 +684,23 @@ fn check_block(
     b: &BlockEntry,
     end: u64,
     page: &PageEntry,
-    coefs: bool,
+    wavelet_n: u32,
 ) -> std::result::Result<u64, String> {
     let nodes = page.node_count;
     if b.node_count != nodes {
         return Err(format!(
-            "{} nodes, the archive's page has {nodes}",
+            "node_count {}, the archive's page has {nodes}",
             b.node_count
         ));
     }
+    let most = page.tri_count as u64 * pyramid_len(MAX_PATCH_DEPTH) as u64;
+    if b.patch_count as u64 > most {
+        return Err(format!(
+            "patch_count {} for {} triangles (at most {most}: depth {MAX_PATCH_DEPTH} each)",
+            b.patch_count, page.tri_count
+        ));
+    }
+    let coefs = wavelet_n > 0;
     let fixed = nodes as u64 * 96 + page.tri_count as u64 * 4 + b.patch_count as u64 * 12;
     let extra = (b.raw_len as u64).wrapping_sub(fixed);
     let fits = match coefs {
@@ -641,8 +709,15 @@ fn check_block(
     };
     if !fits {
         return Err(format!(
-            "raw length {} for {nodes} nodes, {} triangles and {} patches",
+            "raw_len {} for {nodes} nodes, {} triangles and {} patches",
             b.raw_len, page.tri_count, b.patch_count
+        ));
+    }
+    let coef_most = coef_section_bound(nodes, wavelet_n);
+    if coefs && extra > coef_most {
+        return Err(format!(
+            "raw_len {} leaves {extra} coefficient bytes for {nodes} nodes (at most {coef_most} at wavelet_n {wavelet_n})",
+            b.raw_len
         ));
     }
     if b.offset < 128 || b.offset + b.compressed_len as u64 > end {

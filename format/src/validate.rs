@@ -333,10 +333,11 @@ pub fn check_light(l: &LightRecord) -> Result<(), String> {
             l.kind == LightRecord::POINT || (len2 - 1.0).abs() < 1e-3,
         ),
         (
-            "the cone angles (0 ≤ inner ≤ outer ≤ π/2)",
+            "the cone angles (0 ≤ inner ≤ outer ≤ π/2, a spot's outer > 0)",
             0.0 <= l.inner_cone
                 && l.inner_cone <= l.outer_cone
-                && l.outer_cone <= std::f32::consts::FRAC_PI_2 + 1e-6,
+                && l.outer_cone <= std::f32::consts::FRAC_PI_2 + 1e-6
+                && (l.kind != LightRecord::SPOT || l.outer_cone > 0.0),
         ),
     ])?;
     if !zeroed(&l.reserved) {

@@ -16,10 +16,14 @@ pub struct AssembleArgs {
     /// The whole frame (EXR). It appears only once complete.
     #[arg(short, long)]
     output: PathBuf,
+    /// Memory for the frame and one tile, e.g. 1GiB (default: unlimited); a frame that
+    /// does not fit is refused before any tile is decoded.
+    #[arg(long, value_parser = canopy::units::parse_size)]
+    mem_budget: Option<u64>,
 }
 
 pub fn run(a: AssembleArgs) -> Result<()> {
-    let r = assemble(&a.tiles, &a.output)?;
+    let r = assemble(&a.tiles, &a.output, a.mem_budget)?;
     println!("{}: {r}", a.output.display());
     Ok(())
 }

@@ -14,6 +14,10 @@ pub struct CompareArgs {
     /// Write a false-colour |luminance difference| PNG (black none, red the 99th percentile).
     #[arg(long)]
     diff: Option<PathBuf>,
+    /// Memory for the two images decoded, e.g. 1GiB (default: unlimited); images that do
+    /// not fit are refused before they are decoded.
+    #[arg(long, value_parser = canopy::units::parse_size)]
+    mem_budget: Option<u64>,
     /// Print JSON.
     #[arg(long)]
     json: bool,
@@ -27,6 +31,9 @@ pub fn run(a: CompareArgs) -> Result<()> {
     {
         bail!("{}: --diff would overwrite an input image", d.display());
     }
+    let sizes = canopy::exr_header::check(&a.test)?.data_bytes()
+        + canopy::exr_header::check(&a.reference)?.data_bytes();
+    canopy::exr_header::fits_budget(a.mem_budget, sizes, "the two images")?;
     let t = Image::read_exr(&a.test)?;
     let r = Image::read_exr(&a.reference)?;
     let c = Comparison::new(&t, &r, a.metric, a.diff.as_deref())?;

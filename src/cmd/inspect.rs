@@ -15,6 +15,10 @@ pub struct InspectArgs {
     /// with --verify every block is decoded.
     #[arg(long, value_name = "FILE")]
     radiance: Option<std::path::PathBuf>,
+    /// With --verify --radiance: memory for a page and its block per worker, e.g. 256MiB
+    /// (default: unlimited); a block that does not fit is an error.
+    #[arg(long, value_parser = canopy::units::parse_size, requires = "radiance")]
+    mem_budget: Option<u64>,
     /// Print JSON instead of text.
     #[arg(long)]
     json: bool,
@@ -28,7 +32,7 @@ pub fn run(a: InspectArgs, progress: bool) -> Result<()> {
     }
     if let Some(path) = &a.radiance {
         let r = canopy_format::radiance::RadianceFile::open(path, &archive)?;
-        s.radiance = Some(inspect::radiance(&r, a.verify)?);
+        s.radiance = Some(inspect::radiance(&archive, &r, a.verify, a.mem_budget)?);
     }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&s)?);

@@ -152,16 +152,92 @@ impl SceneFile {
                 bail!("{}: [assign] gives '{input}' the material '{m}', which no [[material]] defines", path.display());
             }
         }
-        for l in &file.light {
-            if !["point", "spot", "directional"].contains(&l.kind.as_str()) {
+        file.check()
+            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        Ok(file)
+    }
+
+    /// Every value a camera, material or light takes is one it can have: finite, in its
+    /// range, with directions that are directions.
+    fn check(&self) -> Result<()> {
+        for (i, c) in self.camera.iter().enumerate() {
+            let what = format!("camera {}", c.name.as_deref().unwrap_or(&i.to_string()));
+            let (eye, at, up) = (
+                Vec3::from(c.position),
+                Vec3::from(c.look_at),
+                Vec3::from(c.up),
+            );
+            if !(eye.is_finite() && at.is_finite() && up.is_finite()) {
+                bail!("{what}: position, look_at and up must be finite");
+            }
+            let view = at - eye;
+            if view.length() <= 0.0 {
+                bail!("{what}: look_at is the position (no direction to look in)");
+            }
+            if up.cross(view).length() <= 1e-6 * up.length() * view.length() {
+                bail!("{what}: up {:?} is zero or along the view direction", c.up);
+            }
+            if !(c.yfov_degrees > 0.0 && c.yfov_degrees < 180.0) {
                 bail!(
-                    "{}: light type '{}' (expected point, spot or directional)",
-                    path.display(),
-                    l.kind
+                    "{what}: yfov_degrees {} (must be in (0, 180))",
+                    c.yfov_degrees
+                );
+            }
+            if !(1..=65_536).contains(&c.width) || !(1..=65_536).contains(&c.height) {
+                bail!(
+                    "{what}: {}x{} pixels (each side 1 to 65536)",
+                    c.width,
+                    c.height
                 );
             }
         }
-        Ok(file)
+        for m in &self.material {
+            let what = format!("material '{}'", m.name);
+            let unit = [m.metallic, m.roughness, m.transmission, m.specular];
+            if !m
+                .base_color
+                .iter()
+                .chain(&unit)
+                .all(|v| (0.0..=1.0).contains(v))
+            {
+                bail!("{what}: base_color, metallic, roughness, transmission and specular must be in [0, 1]");
+            }
+            if !m.emission.iter().all(|v| v.is_finite() && *v >= 0.0) {
+                bail!("{what}: emission must be finite and ≥ 0");
+            }
+            if !(m.ior.is_finite() && m.ior >= 1.0) {
+                bail!("{what}: ior {} (must be finite and ≥ 1)", m.ior);
+            }
+        }
+        for (i, l) in self.light.iter().enumerate() {
+            let what = format!("light {}", l.name.as_deref().unwrap_or(&i.to_string()));
+            if !["point", "spot", "directional"].contains(&l.kind.as_str()) {
+                bail!(
+                    "{what}: type '{}' (expected point, spot or directional)",
+                    l.kind
+                );
+            }
+            let finite = Vec3::from(l.position).is_finite()
+                && l.intensity.is_finite()
+                && l.intensity >= 0.0
+                && l.color.iter().all(|v| v.is_finite() && *v >= 0.0);
+            if !finite {
+                bail!(
+                    "{what}: position, color and intensity must be finite, color and intensity ≥ 0"
+                );
+            }
+            let dir = Vec3::from(l.direction);
+            if l.kind != "point" && !(dir.is_finite() && dir.length() > 0.0) {
+                bail!("{what}: direction {:?} is not a direction", l.direction);
+            }
+            if l.kind == "spot" {
+                let (inner, outer) = (l.inner_cone_degrees, l.outer_cone_degrees);
+                if !(outer > 0.0 && outer <= 90.0 && inner >= 0.0 && inner <= outer) {
+                    bail!("{what}: cones inner {inner}° and outer {outer}° (need 0 ≤ inner ≤ outer, 0 < outer ≤ 90)");
+                }
+            }
+        }
+        Ok(())
     }
 
     /// The material a raw mesh gets: its `[assign]` entry, else the one named "default".

@@ -343,6 +343,8 @@ pub struct PageCache {
     tile_resident: AtomicU64,
     tile_resident_peak: AtomicU64,
     budget: u64,
+    /// Worker threads the minimum budget was computed for.
+    threads: usize,
     resident: AtomicU64,
     resident_peak: AtomicU64,
     pinned_bytes: u64,
@@ -441,6 +443,7 @@ impl PageCache {
                 .collect(),
             slots,
             budget: budget.unwrap_or(u64::MAX),
+            threads,
             resident: AtomicU64::new(0),
             resident_peak: AtomicU64::new(0),
             pinned_bytes: pinned,
@@ -534,8 +537,32 @@ impl PageCache {
     }
 
     /// Attaches baked light: every resident page is dropped (pinned pages are loaded again)
-    /// so each page holds its block from now on. Call it while no traversal runs.
+    /// so each page holds its block from now on. Call it while no traversal runs. A budget
+    /// that cannot hold the pinned pages with their blocks and a working set of the largest
+    /// page with its block is an error naming the minimum, before any block is read.
     pub fn attach_radiance(&self, r: RadianceFile) -> Result<()> {
+        if self.budget != u64::MAX {
+            let with_block = |i: usize| {
+                decoded_size(&self.archive, &self.entries[i]) + r.blocks[i].raw_len as u64
+            };
+            let pinned: u64 = (0..self.entries.len())
+                .filter(|&i| self.slots[i].pinned)
+                .map(with_block)
+                .sum();
+            let largest = (0..self.entries.len()).map(with_block).max().unwrap_or(0);
+            let minimum = Self::minimum(pinned, largest, self.threads);
+            if self.budget < minimum {
+                bail!(
+                    "--mem-budget {} is too small for {} with its baked light {}: the pinned top pages and their blocks take {:.1} MiB and the largest page with its block {:.1} MiB; the minimum is {:.1} MiB",
+                    crate::units::format_size(self.budget),
+                    self.archive.path().display(),
+                    r.path().display(),
+                    pinned as f64 / 1048576.0,
+                    largest as f64 / 1048576.0,
+                    minimum as f64 / 1048576.0,
+                );
+            }
+        }
         *self.sidecar.write().expect("sidecar") = Some(Arc::new(r));
         self.sidecar_gen.fetch_add(1, Relaxed);
         for slot in &self.slots {

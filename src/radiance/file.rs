@@ -3,11 +3,13 @@
 //! so tiles start from the same light instead of learning it apart (which shows as seams).
 //! Specified in `format/FORMAT.md` ("The light store file"); paired with one archive.
 
+use super::keys::Keys;
 use super::{Entry, RadianceStore};
 use anyhow::{bail, Context, Result};
 use bytemuck::{Pod, Zeroable};
 use canopy_format::atomic::AtomicFile;
 use canopy_format::Header;
+use std::io::Read;
 use std::path::Path;
 
 const MAGIC: [u8; 8] = *b"CNPYSTOR";
@@ -16,7 +18,7 @@ const VERSION: u16 = 3;
 /// The 128-byte header.
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
-struct StoreHeader {
+pub struct StoreHeader {
     magic: [u8; 8],
     version_major: u16,
     version_minor: u16,
@@ -25,7 +27,7 @@ struct StoreHeader {
     archive_checksum: u64,
     archive_len: u64,
     archive_nodes: u64,
-    entries: u64,
+    pub entries: u64,
     photons: u64,
     /// The sample limit (`--cone-samples`) the entries were counted under.
     limit: u32,
@@ -55,10 +57,41 @@ struct Record {
 
 const _: () = assert!(std::mem::size_of::<Record>() == 64);
 
-fn checksum(h: &StoreHeader) -> u64 {
-    let mut c = *h;
-    c.header_checksum = 0;
-    xxhash_rust::xxh3::xxh3_64(bytemuck::bytes_of(&c))
+impl StoreHeader {
+    fn checksum(&self) -> u64 {
+        let mut c = *self;
+        c.header_checksum = 0;
+        xxhash_rust::xxh3::xxh3_64(bytemuck::bytes_of(&c))
+    }
+
+    /// Sets the body's length and checksum, then the header's own checksum.
+    fn seal(&mut self, body: &[u8]) {
+        self.body_len = body.len() as u64;
+        self.body_checksum = xxhash_rust::xxh3::xxh3_64(body);
+        self.header_checksum = self.checksum();
+    }
+}
+
+/// Recomputes a store file's body length and both checksums in place, so that only what
+/// was edited is wrong (for tools that craft damaged stores: the fuzz harness, tests).
+pub fn reseal(file: &mut [u8]) {
+    if file.len() < 128 {
+        return;
+    }
+    let (head, body) = file.split_at_mut(128);
+    let mut h: StoreHeader = bytemuck::pod_read_unaligned(head);
+    h.seal(body);
+    head.copy_from_slice(bytemuck::bytes_of(&h));
+}
+
+/// Reads a store file's header (at least 128 bytes), for tools that edit it.
+pub fn header_of(file: &[u8]) -> Option<StoreHeader> {
+    file.get(..128).map(bytemuck::pod_read_unaligned)
+}
+
+/// Writes a header back into a store file's first 128 bytes.
+pub fn set_header(file: &mut [u8], h: &StoreHeader) {
+    file[..128].copy_from_slice(bytemuck::bytes_of(h));
 }
 
 /// Writes `store` for the archive of header `a` to `path`: the file appears only complete.
@@ -90,11 +123,9 @@ pub fn save(store: &RadianceStore, a: &Header, path: &Path) -> Result<u64> {
         entries: records.len() as u64,
         photons: store.photons(),
         limit: store.limit,
-        body_len: body.len() as u64,
-        body_checksum: xxhash_rust::xxh3::xxh3_64(&body),
         ..Zeroable::zeroed()
     };
-    h.header_checksum = checksum(&h);
+    h.seal(&body);
     // The archive writer's atomic file: the header goes in last, the name only once whole.
     let mut out = AtomicFile::create(path, 128)?;
     out.write_all(&body)?;
@@ -103,27 +134,66 @@ pub fn save(store: &RadianceStore, a: &Header, path: &Path) -> Result<u64> {
 }
 
 /// Fills `store` from `path`, which must belong to the archive of header `a` and have been
-/// counted under the same sample limit; every value is checked before any is used.
+/// counted under the same sample limit. Every declared size is checked before anything is
+/// allocated or inflated: the entry count against the key space and the budget's share of
+/// the store, the body's length against what that many entries can compress to; the body
+/// is inflated one record at a time, and every value is checked before any is used.
 pub fn load(store: &RadianceStore, a: &Header, path: &Path) -> Result<u64> {
     let name = path.display();
-    let bytes = crate::import::read_regular(path, u64::MAX, "light store")?;
-    if bytes.len() < 128 || bytes[..8] != MAGIC {
+    crate::import::check_regular(path, u64::MAX, "light store")?;
+    let mut file = std::fs::File::open(path).with_context(|| format!("{name}: cannot open"))?;
+    let len = file
+        .metadata()
+        .with_context(|| format!("{name}: cannot stat"))?
+        .len();
+    let mut head = [0u8; 128];
+    if len < 128 || file.read_exact(&mut head).is_err() || head[..8] != MAGIC {
         bail!("{name}: not a canopy light store (bad magic or shorter than its header)");
     }
-    let h: StoreHeader = bytemuck::pod_read_unaligned(&bytes[..128]);
-    if checksum(&h) != h.header_checksum {
-        bail!("{name}: the light store's header is corrupt (checksum mismatch)");
+    let h: StoreHeader = bytemuck::pod_read_unaligned(&head);
+    check_header(&h, a, store, len).map_err(|e| anyhow::anyhow!("{name}: {e}"))?;
+    let mut body = Vec::new();
+    file.take(h.body_len)
+        .read_to_end(&mut body)
+        .with_context(|| format!("{name}: cannot read the body"))?;
+    if body.len() as u64 != h.body_len || xxhash_rust::xxh3::xxh3_64(&body) != h.body_checksum {
+        bail!("{name}: the light store's body is truncated or corrupt (checksum mismatch)");
     }
-    if h.version_major != VERSION || h.header_size != 128 {
+    let keys = Keys::new(a).map_or(0, |k| k.count());
+    let entries = read_records(&body, &h, keys).map_err(|e| anyhow::anyhow!("{name}: {e}"))?;
+    let n = entries.len() as u64;
+    if store.restore(entries, h.photons).is_none() {
         bail!(
-            "{name}: light store version {} (this canopy reads {VERSION})",
-            h.version_major
+            "{name}: {n} entries, more than the memory budget's share holds ({})",
+            store.capacity()
         );
+    }
+    Ok(n)
+}
+
+/// The header's own checks, its identity against the archive, and its sizes against the
+/// archive's key space, the budget's share of the store and the file's length.
+fn check_header(h: &StoreHeader, a: &Header, store: &RadianceStore, len: u64) -> Result<()> {
+    if h.checksum() != h.header_checksum {
+        bail!("the light store's header is corrupt (checksum mismatch)");
+    }
+    if h.version_major != VERSION {
+        bail!(
+            "light store version {}.{} (this canopy reads {VERSION}.x)",
+            h.version_major,
+            h.version_minor
+        );
+    }
+    if h.header_size != 128 {
+        bail!("header_size {}, not 128", h.header_size);
+    }
+    if h.reserved0 != 0 || h.reserved != [0; 40] {
+        bail!("reserved header bytes are not zero");
     }
     if (h.archive_checksum, h.archive_len, h.archive_nodes)
         != (a.header_checksum, a.file_len, a.nodes)
     {
-        bail!("{name}: the light store belongs to another archive (its checksum {:016x}, this archive's {:016x})", h.archive_checksum, a.header_checksum);
+        bail!("the light store belongs to another archive (its checksum {:016x}, this archive's {:016x})", h.archive_checksum, a.header_checksum);
     }
     if h.limit != store.limit {
         let flag = |n: u32| match n {
@@ -131,47 +201,74 @@ pub fn load(store: &RadianceStore, a: &Header, path: &Path) -> Result<u64> {
             n => format!("--cone-samples {n}"),
         };
         bail!(
-            "{name}: stored under {}, this render uses {}",
+            "stored under {}, this render uses {}",
             flag(h.limit),
             flag(store.limit)
         );
     }
-    let body = &bytes[128..];
-    if body.len() as u64 != h.body_len || xxhash_rust::xxh3::xxh3_64(body) != h.body_checksum {
-        bail!("{name}: the light store is truncated or corrupt ({} body bytes, {} expected, or a checksum mismatch)", body.len(), h.body_len);
-    }
-    let want = h
-        .entries
-        .checked_mul(size_of::<Record>() as u64)
-        .filter(|&n| n <= 1 << 40)
-        .with_context(|| format!("{name}: {} entries is absurd", h.entries))?;
-    let raw = zstd::bulk::decompress(body, want as usize)
-        .with_context(|| format!("{name}: the light store's body does not decompress"))?;
-    if raw.len() as u64 != want {
+    let keys = Keys::new(a).map_or(0, |k| k.count());
+    if h.entries > keys {
         bail!(
-            "{name}: {} entries declared, {} bytes of them stored",
-            h.entries,
-            raw.len()
+            "entries {} is more than the archive has keys ({keys})",
+            h.entries
         );
     }
-    let records: Vec<Record> = bytemuck::pod_collect_to_vec(&raw);
-    let mut entries = Vec::with_capacity(records.len());
-    for (i, r) in records.iter().enumerate() {
-        let finite = r
-            .sum
-            .iter()
-            .chain(&r.pulled)
-            .chain(&r.caustic)
-            .chain([&r.weight])
-            .all(|v| v.is_finite());
-        let sorted = i == 0 || records[i - 1].key < r.key;
-        let weighed = r.weight >= 0.0 && (r.n == 0 || r.weight > 0.0);
-        if !finite || !sorted || !weighed || r.n > h.limit || !(0.0..=1.0).contains(&r.visible) {
+    if h.entries > store.capacity() as u64 {
+        bail!(
+            "entries {}, more than the memory budget's share of the store holds ({})",
+            h.entries,
+            store.capacity()
+        );
+    }
+    let most = zstd::zstd_safe::compress_bound(
+        h.entries.saturating_mul(RECORD).min(usize::MAX as u64 / 2) as usize,
+    ) as u64;
+    if h.body_len > most {
+        bail!(
+            "body_len {} for {} entries (at most {most} bytes)",
+            h.body_len,
+            h.entries
+        );
+    }
+    if len != 128 + h.body_len {
+        bail!(
+            "the file has {len} bytes, its header says {} (128 + body_len)",
+            128 + h.body_len
+        );
+    }
+    Ok(())
+}
+
+/// Bytes of one record.
+const RECORD: u64 = size_of::<Record>() as u64;
+
+/// The body's records, inflated one at a time and each checked: exactly `entries` of them,
+/// keys increasing below `keys`, values finite, counts within the limit.
+fn read_records(body: &[u8], h: &StoreHeader, keys: u64) -> Result<Vec<(u64, Entry)>> {
+    let want = h.entries.saturating_mul(RECORD);
+    if let Ok(Some(size)) = zstd::zstd_safe::get_frame_content_size(body) {
+        if size != want {
             bail!(
-                "{name}: entry {i} (key {}) is not a valid stored value",
-                r.key
+                "entries {} declared ({want} bytes), the body's frame holds {size} bytes",
+                h.entries
             );
         }
+    }
+    let mut z = zstd::stream::read::Decoder::new(body)
+        .context("the light store's body does not decompress")?
+        .single_frame();
+    let mut entries = Vec::with_capacity(h.entries.min(1 << 16) as usize);
+    let mut last = None;
+    for i in 0..h.entries {
+        let mut r: Record = Zeroable::zeroed();
+        let got = read_full(&mut z, bytemuck::bytes_of_mut(&mut r))
+            .context("the light store's body does not decompress")?;
+        if got < RECORD as usize {
+            bail!("entries {} declared, {i} stored", h.entries);
+        }
+        check_record(&r, h.limit, keys, last)
+            .map_err(|e| anyhow::anyhow!("entry {i} (key {}): {e}", r.key))?;
+        last = Some(r.key);
         let e = Entry {
             sum: r.sum,
             weight: r.weight,
@@ -183,12 +280,57 @@ pub fn load(store: &RadianceStore, a: &Header, path: &Path) -> Result<u64> {
         };
         entries.push((r.key, e));
     }
-    let n = entries.len() as u64;
-    if store.restore(entries, h.photons).is_none() {
+    let mut more = [0u8; 1];
+    if read_full(&mut z, &mut more).context("the light store's body does not decompress")? > 0 {
         bail!(
-            "{name}: {n} entries, more than the memory budget's share holds ({})",
-            store.capacity()
+            "the body holds more than the {} entries declared",
+            h.entries
         );
     }
-    Ok(n)
+    Ok(entries)
+}
+
+/// Reads until `buf` is full or the stream ends; returns the bytes read.
+fn read_full(r: &mut impl Read, buf: &mut [u8]) -> std::io::Result<usize> {
+    let mut at = 0;
+    while at < buf.len() {
+        match r.read(&mut buf[at..])? {
+            0 => break,
+            n => at += n,
+        }
+    }
+    Ok(at)
+}
+
+/// One record against FORMAT.md's rules; `last` is the previous record's key.
+fn check_record(r: &Record, limit: u32, keys: u64, last: Option<u64>) -> Result<()> {
+    let finite = r
+        .sum
+        .iter()
+        .chain(&r.pulled)
+        .chain(&r.caustic)
+        .chain([&r.weight])
+        .all(|v| v.is_finite());
+    if !finite {
+        bail!("a non-finite value");
+    }
+    if last.is_some_and(|l| l >= r.key) {
+        bail!("keys not increasing");
+    }
+    if r.key >= keys {
+        bail!("key outside the archive's {keys} keys");
+    }
+    if r.weight < 0.0 || (r.n > 0 && r.weight <= 0.0) {
+        bail!("weight {} for n {}", r.weight, r.n);
+    }
+    if r.n > limit {
+        bail!("n {} over the limit {limit}", r.n);
+    }
+    if !(0.0..=1.0).contains(&r.visible) {
+        bail!("visible {} outside [0, 1]", r.visible);
+    }
+    if r.reserved != 0 {
+        bail!("reserved bytes are not zero");
+    }
+    Ok(())
 }

@@ -22,6 +22,8 @@ pub const CELL_FRACTION: f32 = 1.0 / 128.0;
 #[derive(Clone, Copy, Debug)]
 pub struct Keys {
     stride: u64,
+    /// Keys of every node of every placement.
+    total: u64,
     /// The archive's node count: the distance between two instances' node numbers.
     nodes: u64,
     /// Side of the light cells on large triangles: `CELL_FRACTION` of the scene's diagonal.
@@ -32,11 +34,12 @@ impl Keys {
     /// None when the keys of every node of every instance do not fit in a u64.
     pub fn new(h: &Header) -> Option<Keys> {
         let stride = (2 * h.max_leaf_triangles as u64 + 1) * CELLS;
-        (h.instances.count as u64 + 1)
+        let total = (h.instances.count as u64 + 1)
             .checked_mul(h.nodes)?
             .checked_mul(stride)?;
         Some(Keys {
             stride,
+            total,
             nodes: h.nodes,
             cell_size: (V::from(h.bounds_max) - V::from(h.bounds_min)).length() * CELL_FRACTION,
         })
@@ -49,6 +52,11 @@ impl Keys {
             NO_INSTANCE => node,
             i => node + (i as u64 + 1) * self.nodes,
         }
+    }
+
+    /// Keys in all: every node of the archive and of every instance's placement.
+    pub fn count(&self) -> u64 {
+        self.total
     }
 
     /// Keys per node: its own and its triangles' cells (a store's block).

@@ -33,8 +33,10 @@ impl std::fmt::Display for Assembled {
 }
 
 /// Joins `tiles` into one image written to `out`; any disagreement, overlap or gap is an
-/// error naming the tiles, and then nothing is written.
-pub fn assemble(tiles: &[PathBuf], out: &Path) -> Result<Assembled> {
+/// error naming the tiles, and then nothing is written. Every tile's header is checked
+/// first: the frame (RGB and the owner of each pixel) and the largest tile must fit in
+/// `budget` (`--mem-budget`) before anything is decoded.
+pub fn assemble(tiles: &[PathBuf], out: &Path, budget: Option<u64>) -> Result<Assembled> {
     let Some(first_path) = tiles.first() else {
         bail!("no tiles given");
     };
@@ -51,6 +53,17 @@ pub fn assemble(tiles: &[PathBuf], out: &Path) -> Result<Assembled> {
         }
     }
     check_writable(out)?;
+    let windows = tiles
+        .iter()
+        .map(|t| crate::exr_header::check(t))
+        .collect::<Result<Vec<_>>>()?;
+    let [fw, fh] = windows[0].display;
+    let largest = windows.iter().map(|w| w.data_bytes()).max().unwrap_or(0);
+    crate::exr_header::fits_budget(
+        budget,
+        fw * fh * (crate::exr_header::PIXEL_BYTES + 4) + largest,
+        &format!("the {fw}x{fh} frame and its largest tile"),
+    )?;
     let (_, first) = Image::read_exr_framed(first_path)?;
     for (key, _) in SHARED {
         if first.tag(key).is_none() {

@@ -217,6 +217,15 @@ pub enum Kept {
     Detail,
 }
 
+/// What a node kept, or may keep, in FORMAT.md's words.
+fn kept_name(k: Option<Kept>) -> &'static str {
+    match k {
+        Some(Kept::Average) => "an average G (kind 0)",
+        Some(Kept::Detail) => "a detail D (kind 1)",
+        None => "nothing",
+    }
+}
+
 /// Every node's vector, parents before children, from what each node kept
 /// ([`Coded::stored`]): the reader's side of [`encode`], with the same bootstrap level m.
 /// Fails when a node kept something its place in the tree rules out.
@@ -231,7 +240,9 @@ pub fn decode_all<T: Coef>(
         None => Ok(SparseVec(Vec::new())),
         Some((k, v)) if Some(k) == want => Ok(v),
         Some((k, _)) => Err(format!(
-            "node {node} keeps {k:?} where it may keep {want:?}"
+            "node {node} keeps {} where its place in the tree allows {}",
+            kept_name(Some(k)),
+            kept_name(want)
         )),
     };
     g[shape.root] = expect(shape.root, Some(Kept::Average))?;
