@@ -19,10 +19,12 @@ const SLACK: u64 = 64 << 20;
 /// The child is forked, not spawned with vfork: a vfork child's peak RSS would start from
 /// this test process's own peak (they share the address space until exec). A forked
 /// child starts from this process's current RSS, which the tests here keep small (their
-/// zstd bombs are made by streaming).
+/// zstd bombs are made by streaming). `CANOPY_BIN` runs another build instead (to show
+/// these cases fail on a build without the checks).
 #[allow(clippy::zombie_processes)] // reaped by wait4, which also gives its rusage
 fn measured(args: &[&str]) -> (Option<i32>, String, u64) {
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_canopy"));
+    let bin = std::env::var_os("CANOPY_BIN").unwrap_or(env!("CARGO_BIN_EXE_canopy").into());
+    let mut cmd = Command::new(bin);
     // SAFETY: the hook does nothing; its presence makes std fork and exec.
     unsafe {
         std::os::unix::process::CommandExt::pre_exec(&mut cmd, || Ok(()));
@@ -456,4 +458,20 @@ fn scene_files_with_degenerate_directions_or_cones_are_refused() {
     ]);
     assert!(err.contains("outer 0°"), "{err}");
     assert!(!d.join("x.canopy").exists());
+}
+
+/// The background page loader holds the cache only while its guard lives, so a render
+/// that fails half-way (a side file refused after the loader started) leaves no thread
+/// and no cache behind; the fuzz harness met thousands of such threads before.
+#[test]
+fn the_page_loader_lets_go_of_the_cache_when_its_guard_drops() {
+    use std::sync::Arc;
+    let dir = tempfile::tempdir().unwrap();
+    let a = archive(dir.path());
+    let archive = Arc::new(canopy_format::Archive::open(&a).unwrap());
+    let cache = canopy::paging::PageCache::new(archive, Some(64 << 20), 1).unwrap();
+    let loader = cache.start_prefetch();
+    assert!(Arc::strong_count(&cache) > 1, "the loader shares the cache");
+    drop(loader);
+    assert_eq!(Arc::strong_count(&cache), 1, "nothing else holds the cache");
 }

@@ -7,7 +7,8 @@ use std::path::PathBuf;
 ///
 /// Every tile must come from the same archive, settings and seed (their EXR attributes say
 /// so) and the tiles must cover the frame exactly once; otherwise nothing is written and
-/// the error names the tiles.
+/// the error names the tiles. Frames and tiles up to 65,536 pixels a side and 2^27 pixels
+/// in all; every tile's header is checked before any pixel is decoded.
 #[derive(Args)]
 pub struct AssembleArgs {
     /// Tile images (EXR), in any order.

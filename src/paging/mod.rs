@@ -285,6 +285,22 @@ impl Page {
     }
 }
 
+/// The background loader of [`PageCache::start_prefetch`]: dropping it ends the loader
+/// (its queue is closed and drained) and waits for its thread.
+pub struct Prefetcher {
+    cache: Arc<PageCache>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Drop for Prefetcher {
+    fn drop(&mut self) {
+        self.cache.prefetch_tx.lock().expect("prefetch lock").take();
+        if let Some(t) = self.thread.take() {
+            t.join().ok();
+        }
+    }
+}
+
 #[derive(Default)]
 struct Slot {
     page: RwLock<Option<Arc<Page>>>,
@@ -478,23 +494,25 @@ impl PageCache {
         pinned + threads as u64 * 16 * largest
     }
 
-    /// Starts the background loader; `prefetch` is a no-op until this is called.
-    pub fn start_prefetch(self: &Arc<Self>) -> std::thread::JoinHandle<()> {
+    /// Starts the background loader; `prefetch` is a no-op until this is called. The
+    /// loader runs until the returned guard is dropped (on every path out of a render,
+    /// errors included: the loader holds the cache, so a loader left running would keep
+    /// it, and its thread, alive).
+    pub fn start_prefetch(self: &Arc<Self>) -> Prefetcher {
         let (tx, rx): (Sender<u32>, Receiver<u32>) = crossbeam_channel::bounded(256);
         *self.prefetch_tx.lock().expect("prefetch lock") = Some(tx);
         let me = Arc::clone(self);
-        std::thread::spawn(move || {
+        let thread = std::thread::spawn(move || {
             for id in rx {
                 if me.slots[id as usize].page.read().expect("slot").is_none() {
                     me.load(id);
                 }
             }
-        })
-    }
-
-    /// Ends the background loader (drops the sender; the thread exits when drained).
-    pub fn stop_prefetch(&self) {
-        self.prefetch_tx.lock().expect("prefetch lock").take();
+        });
+        Prefetcher {
+            cache: Arc::clone(self),
+            thread: Some(thread),
+        }
     }
 
     /// Queues a page for the background loader unless it is resident or the queue is full.
@@ -538,8 +556,8 @@ impl PageCache {
 
     /// Attaches baked light: every resident page is dropped (pinned pages are loaded again)
     /// so each page holds its block from now on. Call it while no traversal runs. A budget
-    /// that cannot hold the pinned pages with their blocks and a working set of the largest
-    /// page with its block is an error naming the minimum, before any block is read.
+    /// that cannot hold the pinned pages with their blocks and, per worker, the largest page
+    /// with its block is an error naming the minimum, before any block is read.
     pub fn attach_radiance(&self, r: RadianceFile) -> Result<()> {
         if self.budget != u64::MAX {
             let with_block = |i: usize| {
@@ -550,7 +568,9 @@ impl PageCache {
                 .map(with_block)
                 .sum();
             let largest = (0..self.entries.len()).map(with_block).max().unwrap_or(0);
-            let minimum = Self::minimum(pinned, largest, self.threads);
+            // Each worker holds at least one page with its block; the path of pages that
+            // `minimum` reserves per worker was already checked without the blocks.
+            let minimum = pinned + self.threads as u64 * largest;
             if self.budget < minimum {
                 bail!(
                     "--mem-budget {} is too small for {} with its baked light {}: the pinned top pages and their blocks take {:.1} MiB and the largest page with its block {:.1} MiB; the minimum is {:.1} MiB",

@@ -232,7 +232,7 @@ fn check_header(h: &StoreHeader, a: &Header, store: &RadianceStore, len: u64) ->
     }
     if len != 128 + h.body_len {
         bail!(
-            "the file has {len} bytes, its header says {} (128 + body_len)",
+            "the light store is truncated or corrupt: the file has {len} bytes, its header says {} (128 + body_len)",
             128 + h.body_len
         );
     }

@@ -180,8 +180,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     integ.finish(scene)?;
     seconds.render = t1.elapsed().as_secs_f64();
     seconds.parts.extend(integ.seconds());
-    scene.cache.stop_prefetch();
-    prefetcher.join().ok();
+    drop(prefetcher);
 
     let img = film.image(done);
     let t2 = Instant::now();

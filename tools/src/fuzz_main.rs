@@ -44,6 +44,9 @@ struct Args {
         default_value = "archives,inputs,side"
     )]
     targets: Vec<Target>,
+    /// Print each case's description before it runs.
+    #[arg(long)]
+    trace: bool,
     /// Where to put the cases' files (default: the system's temporary directory).
     #[arg(long)]
     dir: Option<PathBuf>,
@@ -65,6 +68,7 @@ fn main() -> Result<()> {
         hang: a.hang,
         ceiling: a.mem_ceiling,
         targets: a.targets,
+        trace: a.trace,
     };
     let t = fuzz::run(&config, dir.path(), |t, i| {
         if last.elapsed() > Duration::from_secs(30) {

@@ -17,6 +17,7 @@ fn config(seed: u64, iterations: u64, targets: Vec<Target>) -> Config {
         hang: Duration::from_secs(120),
         ceiling: 512 << 20,
         targets,
+        trace: false,
     }
 }
 

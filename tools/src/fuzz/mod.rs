@@ -82,6 +82,9 @@ pub struct Config {
     pub ceiling: u64,
     /// Cases take these in turn.
     pub targets: Vec<Target>,
+    /// Print each case's description to stderr before it runs (to find a case that ends
+    /// the process).
+    pub trace: bool,
 }
 
 #[derive(Default)]
@@ -195,6 +198,9 @@ pub fn run(c: &Config, dir: &Path, mut log: impl FnMut(&Tally, u64)) -> Result<T
         std::fs::create_dir_all(&case_dir)?;
         let before = PANICS.load(Relaxed);
         let start = |what: &str| {
+            if c.trace {
+                eprintln!("case {what}");
+            }
             *current.lock().expect("watchdog") = (what.to_string(), Instant::now());
             *mem::CASE.lock().expect("case") = what.to_string();
             mem::begin_case(c.ceiling);
