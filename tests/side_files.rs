@@ -319,10 +319,12 @@ fn bakes_that_lie_about_their_sizes_or_kinds_are_refused() {
     let mut p = parts.clone();
     let e = &mut p.entries[big];
     let fixed = e.raw_len as u64 - e.patch_count as u64 * 12;
-    e.patch_count = 357_913_760;
-    e.raw_len = (fixed + 12 * 357_913_760).min(u32::MAX as u64) as u32;
+    // As many as a u32 raw_len can declare, every size consistent with it.
+    let patches = 357_913_760.min((u32::MAX as u64 - fixed) / 12);
+    e.patch_count = patches as u32;
+    e.raw_len = (fixed + 12 * patches) as u32;
     p.blocks[big] = vec![0; 1 << 20];
-    refused_bake(&a, d, &p.write(), "patch_count 357913760");
+    refused_bake(&a, d, &p.write(), &format!("patch_count {patches}"));
     // The same count behind a block whose frame holds just what it declares: the
     // triangles' pyramids, read first, name the lie before the patches are inflated.
     let mut p = parts.clone();
@@ -366,18 +368,59 @@ fn coef_record(p: &RadianceParts, a: &Path) -> (usize, usize) {
     panic!("no block holds a coefficient record");
 }
 
-/// A one-pixel EXR with its data or display window's box at `field` rewritten.
+/// A one-pixel tile as `render --crop` writes it (with the attributes `assemble` wants),
+/// its data or display window's box at `field` rewritten.
 fn exr_with(dir: &Path, name: &str, field: &[u8], b: [i32; 4]) -> PathBuf {
     let p = dir.join(name);
-    canopy::image::Image::new(1, 1).write_exr(&p).unwrap();
-    let mut bytes = std::fs::read(&p).unwrap();
-    let mut key = field.to_vec();
-    key.extend(b"\0box2i\0");
+    let tags = ["canopy.archive", "canopy.settings", "canopy.seed"]
+        .map(|k| (k.to_string(), "x".to_string()))
+        .to_vec();
+    let frame = canopy::image::Frame {
+        display: [1, 1],
+        origin: [0, 0],
+        tags,
+    };
+    canopy::image::Image::new(1, 1)
+        .write_exr_framed(&p, &frame)
+        .unwrap();
+    patch(&p, field, b"box2i", &b.map(i32::to_le_bytes).concat());
+    p
+}
+
+/// Rewrites attribute `field` (of type `kind`) of an EXR's header with `value`.
+fn patch(p: &Path, field: &[u8], kind: &[u8], value: &[u8]) {
+    let mut bytes = std::fs::read(p).unwrap();
+    let key = [field, b"\0", kind, b"\0"].concat();
     let at = bytes.windows(key.len()).position(|w| w == key).unwrap() + key.len() + 4;
-    for (k, v) in b.iter().enumerate() {
-        bytes[at + 4 * k..at + 4 * k + 4].copy_from_slice(&v.to_le_bytes());
-    }
-    std::fs::write(&p, bytes).unwrap();
+    bytes[at..at + value.len()].copy_from_slice(value);
+    std::fs::write(p, bytes).unwrap();
+}
+
+/// A tiled EXR of one 1×1 tile, then made to declare a `side`² data window in one tile of
+/// that size: a consistent file of a few hundred bytes whose one chunk would decode to
+/// `side`² pixels.
+fn huge_tiled(dir: &Path, side: i32) -> PathBuf {
+    use exr::prelude::*;
+    let p = dir.join("huge.exr");
+    let encoding = Encoding {
+        compression: Compression::Uncompressed,
+        blocks: Blocks::Tiles(Vec2(1, 1)),
+        line_order: LineOrder::Increasing,
+    };
+    let pixels = SpecificChannels::rgb(|_: Vec2<usize>| (0f32, 0f32, 0f32));
+    let layer = Layer::new((1, 1), LayerAttributes::default(), encoding, pixels);
+    exr::image::Image::from_layer(layer)
+        .write()
+        .to_file(&p)
+        .unwrap();
+    patch(
+        &p,
+        b"dataWindow",
+        b"box2i",
+        &[0, 0, side - 1, side - 1].map(i32::to_le_bytes).concat(),
+    );
+    let tile = [(side as u32).to_le_bytes(), (side as u32).to_le_bytes()].concat();
+    patch(&p, b"tiles", b"tiledesc", &tile);
     p
 }
 
@@ -388,7 +431,8 @@ fn exr_images_that_declare_huge_or_inverted_windows_are_refused() {
     let good = d.join("good.exr");
     canopy::image::Image::new(1, 1).write_exr(&good).unwrap();
     let out = d.join("out.exr");
-    let huge = exr_with(d, "huge.exr", b"dataWindow", [0, 0, 99_999, 99_999]);
+    let huge = huge_tiled(d, 100_000);
+    assert!(std::fs::metadata(&huge).unwrap().len() < 1000);
     refused(
         &["compare", s(&huge), s(&good)],
         "100000x100000 data window",
