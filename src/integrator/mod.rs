@@ -5,19 +5,25 @@
 //! `end_pass` — pbrt-v4's `ImageTileIntegrator::Render` → `EvaluatePixelSample` → `Li`.
 
 pub mod cone;
+pub mod direct;
 pub mod edge;
 pub mod path;
 pub mod pbgi;
+pub mod surface;
+
+pub use direct::{
+    bsdf_term, mis_weight, power_heuristic, sample_light, sample_light_weighted, Receiver,
+};
+pub use surface::{on_side, shading_frame, ShadingPoint};
 
 use crate::camera::Camera;
 use crate::light::Lights;
-use crate::material::{Bsdf, Frame, Material};
+use crate::material::Material;
 use crate::paging::PageCache;
 use crate::sampler::PixelSampler;
 use crate::texture::{self, Lookup, Shaded, Textures};
-use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer};
+use crate::trace::{Cone, Hit, Ray, Tracer};
 use glam::Vec3A as V;
-use path::power_heuristic;
 use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
 use std::sync::Arc;
 use std::time::Duration;
@@ -392,166 +398,6 @@ impl NodeSet {
             .map(|w| w.load(Relaxed).count_ones() as u64)
             .sum()
     }
-}
-
-/// `f` for `sample_light` at a surface with this BSDF: (value · |cos θ|, pdf) for a
-/// direction, in the frame whose local outgoing direction is `wo_l`; zero where the
-/// direction is not `on_side` of the geometric normal `n` (turned to the frame's side).
-pub fn bsdf_term(frame: Frame, n: V, bsdf: Bsdf, wo_l: V) -> impl Fn(V) -> (V, f32) {
-    move |wi| {
-        if !on_side(&frame, n, wi) {
-            return (V::ZERO, 0.0);
-        }
-        let wl = frame.to_local(wi);
-        let (f, pdf) = bsdf.eval(wo_l, wl);
-        (f * wl.z.abs(), pdf)
-    }
-}
-
-/// Whether direction `w` lies on the same side of the shading frame's normal as of the
-/// geometric normal `n` (turned to the same side as the frame's): a normal map that tilts
-/// the frame must not let light through the surface or leak it from below (Mitsuba's
-/// `normalmap` makes the same test). Always so (but at exact grazing) when the frame is
-/// the geometric one.
-#[inline]
-pub fn on_side(frame: &Frame, n: V, w: V) -> bool {
-    frame.n.dot(w) * n.dot(w) > 0.0
-}
-
-/// The shading frame at a triangle hit with unit geometric normal `ng`, on the side
-/// `front` says: the normal texture's `bump` turned into world space (glTF's tangent frame,
-/// see `texture::perturb`), or the side's geometric normal. Seen from the back, the bumped
-/// frame is turned round whole, as a real bump seen from behind is a dent.
-pub fn shading_frame(hit: &Hit, ng: V, front: bool, bump: Option<V>) -> Frame {
-    let n = match bump {
-        Some(tn) => texture::perturb(hit.tri.p.map(V::from), hit.uv, ng, tn),
-        None => ng,
-    };
-    Frame::new(if front { n } else { -n })
-}
-
-/// Where a light sample is taken.
-pub struct Receiver {
-    pub p: V,
-    /// The error bound of `p`.
-    pub err: V,
-    /// Unit geometric normal, for the shadow ray's offset.
-    pub n: V,
-    /// The normal the light chooser may weigh by |cos θ| (zero when the surface takes light
-    /// from below its normal too, as a cluster's Θ does).
-    pub facing: V,
-    /// Light nearer than this counts as if at this distance (1/d² clamped).
-    pub min_dist: f32,
-}
-
-impl Receiver {
-    /// A triangle's point with its exact normal.
-    pub fn surface(p: V, err: V, n: V) -> Receiver {
-        Receiver {
-            p,
-            err,
-            n,
-            facing: n,
-            min_dist: 0.0,
-        }
-    }
-}
-
-/// One light sample with MIS against the BSDF: `f(wi)` returns (value · cos, BSDF pdf).
-/// Visibility is tested with `shadow_cone` (scale 0: an exact ray; the cone integrator uses
-/// the pixel's opening, so distant occluders are tested at a coarse level and far pages
-/// need not load).
-pub fn sample_light(
-    scene: &Scene,
-    tr: &mut Tracer,
-    at: &Receiver,
-    shadow_cone: &Cone,
-    u: [f32; 3],
-    f: impl Fn(V) -> (V, f32),
-) -> V {
-    sample_light_weighted(scene, tr, at, shadow_cone, u, |wi, pdf_l| {
-        let (fv, pdf_b) = f(wi);
-        fv * mis_weight(pdf_l, pdf_b)
-    })
-}
-
-/// The power heuristic's weight of a light sample of solid-angle pdf `pdf_l` against a
-/// BSDF strategy of pdf `pdf_b`; 1 for a delta light (pdf 0), which no BSDF sample finds.
-pub fn mis_weight(pdf_l: f32, pdf_b: f32) -> f32 {
-    if pdf_l > 0.0 {
-        power_heuristic(pdf_l, pdf_b)
-    } else {
-        1.0
-    }
-}
-
-/// One light sample: `f(wi, pdf_l)` returns value · cos with its MIS weight applied, given
-/// the light sample's solid-angle pdf (0 for a delta light), so a caller may weigh lobes
-/// apart (PBGI samples only the glossy ones).
-pub fn sample_light_weighted(
-    scene: &Scene,
-    tr: &mut Tracer,
-    at: &Receiver,
-    shadow_cone: &Cone,
-    u: [f32; 3],
-    f: impl Fn(V, f32) -> V,
-) -> V {
-    let Some(ls) = scene.lights.sample(at.p, at.facing, u[0], [u[1], u[2]]) else {
-        return V::ZERO;
-    };
-    let fv = f(ls.wi, ls.pdf);
-    if fv.max_element() <= 0.0 {
-        return V::ZERO;
-    }
-    let from = offset_origin(at.p, at.err, at.n, ls.wi);
-    let seen = transmittance(scene, tr, ls.shadow_ray(from), shadow_cone);
-    if seen <= 0.0 {
-        return V::ZERO;
-    }
-    let clamp = if ls.dist < at.min_dist {
-        (ls.dist / at.min_dist).powi(2)
-    } else {
-        1.0
-    };
-    let le = match ls.texel {
-        Some((m, uv)) => {
-            ls.weight
-                * scene
-                    .textures
-                    .emission_ratio(&mut Lookup::new(&scene.cache), m, uv)
-        }
-        None => ls.weight,
-    };
-    fv * le * clamp * seen
-}
-
-/// The fraction of light a shadow ray carries: 0 or 1, or between under alpha blend. With
-/// alpha materials an exact ray looks through holes, up to `MAX_PASSES` of them (a shadow
-/// cone treats every surface as opaque).
-fn transmittance(scene: &Scene, tr: &mut Tracer, mut ray: Ray, cone: &Cone) -> f32 {
-    if cone.scale > 0.0 || !scene.textures.has_alpha() {
-        return if tr.cone_occluded(&ray, cone) {
-            0.0
-        } else {
-            1.0
-        };
-    }
-    let mut seen = 1.0f32;
-    for _ in 0..path::MAX_PASSES {
-        let Some(hit) = tr.closest_hit(&ray) else {
-            return seen;
-        };
-        let opacity = scene.opacity_at(&hit);
-        seen *= 1.0 - opacity;
-        let n = hit.ng();
-        if seen <= 0.0 || n == V::ZERO {
-            return 0.0;
-        }
-        let (p, err) = hit.point();
-        ray.o = offset_origin(p, err, n.normalize(), ray.d);
-        ray.t_max -= hit.t;
-    }
-    0.0
 }
 
 /// An error for `what` on an archive with instances, naming the fix.

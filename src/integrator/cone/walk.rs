@@ -6,9 +6,10 @@
 use super::cluster::{hit_emission, phong_lobe, reflect_lut, theta_norm};
 use super::optics::{bent_tan, jitter};
 use super::{ConeIntegrator, STORE_TAN};
-use crate::integrator::path::{passes_through, power_heuristic, MAX_PASSES};
+use crate::integrator::direct::emission_weight;
+use crate::integrator::surface::{passes_through, MAX_PASSES};
 use crate::integrator::{
-    bsdf_term, on_side, sample_light, shading_frame, Counters, Receiver, Scene,
+    bsdf_term, on_side, sample_light, Counters, Receiver, Scene, ShadingPoint,
 };
 use crate::material::{cosine_hemisphere, Frame};
 use crate::radiance::RadianceStore;
@@ -207,11 +208,8 @@ impl Path {
             // emitters only at the LOD `--cone-scale` asks for, and stays masked.
             ConeHit::Tri(h) => {
                 let area = 0.5 * h.ng().length();
-                let cos_l = at.ng.dot(at.wo).abs();
-                let lights = &scene.lights;
-                let emitter = lights.emitter_at(h.leaf, h.slot);
-                let lp = lights.pdf_li(self.prev, emitter, h.t * h.t, cos_l, area);
-                le * power_heuristic(self.prev_pdf, lp)
+                let (from, pdf) = (self.prev, self.prev_pdf);
+                le * emission_weight(scene, h, (at.ng, area), at.wo, from, pdf, h.t * h.t)
             }
             _ => V::ZERO,
         }
@@ -419,16 +417,22 @@ impl ConeIntegrator {
         pend: &mut Pending,
     ) -> Event {
         let shaded = scene.material_at_cone(h, &path.ray, &path.cone);
-        let m = &shaded.m;
-        if m.absorbs(at.front) {
+        let sp = ShadingPoint::new(h, at.ng, at.wo, &shaded);
+        if sp.absorbs {
             return Event::Stop;
         }
-        let (ng, wo) = (at.ng, at.wo);
-        let n = if at.front { ng } else { -ng };
-        let bsdf = m.bsdf(at.front);
+        let ShadingPoint {
+            ng,
+            n,
+            frame,
+            bsdf,
+            wo_l,
+            ..
+        } = sp;
+        let wo = at.wo;
         // Stored light is kept per geometric normal: a normal-mapped surface takes the
         // exact step below instead.
-        if m.is_pure_diffuse() && shaded.bump.is_none() {
+        if shaded.m.is_pure_diffuse() && shaded.bump.is_none() {
             let cell = self.keys.cell_of(&h.tri, h.b);
             return Event::Diffuse(Diffuse {
                 frame: Frame::new(n),
@@ -439,8 +443,6 @@ impl ConeIntegrator {
                 side: self.keys.side(&h.tri),
             });
         }
-        let frame = shading_frame(h, ng, at.front, shaded.bump);
-        let wo_l = frame.to_local(wo);
         if !bsdf.has_smooth_only() {
             pend.direct += sample_light(
                 scene,

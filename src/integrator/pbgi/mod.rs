@@ -918,6 +918,7 @@ impl PbgiIntegrator {
             wo_l: V::Z,
             emitted: V::ZERO,
             absorbs: false,
+            front: true,
         };
         let strata = Strata {
             seed: key,

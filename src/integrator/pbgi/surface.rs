@@ -3,11 +3,11 @@
 //! does), and what a hit the gather sees sends back (baked patch light, else direct light).
 
 use super::patch;
-use crate::integrator::path::power_heuristic;
+use crate::integrator::direct::emission_weight;
 use crate::integrator::{
-    bsdf_term, mis_weight, on_side, sample_light_weighted, shading_frame, Receiver, Scene,
+    bsdf_term, mis_weight, on_side, sample_light_weighted, Receiver, Scene, ShadingPoint,
 };
-use crate::material::{Bsdf, Frame};
+use crate::material::Bsdf;
 use crate::paging::{NodeRef, Page};
 use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer};
 use glam::Vec3A as V;
@@ -79,46 +79,25 @@ pub(super) struct LobeRay {
     pub(super) hit: Option<Hit>,
 }
 
-/// A hit prepared for shading.
-pub(super) struct Surface {
-    pub(super) p: V,
-    pub(super) err: V,
-    /// Unit geometric normal (winding side) and the normal on the side of `wo`.
-    pub(super) ng: V,
-    pub(super) n: V,
-    pub(super) frame: Frame,
-    pub(super) bsdf: Bsdf,
-    pub(super) wo_l: V,
-    pub(super) emitted: V,
-    pub(super) absorbs: bool,
-}
+/// A hit prepared for shading: the shading layer's point.
+pub(super) type Surface = ShadingPoint;
 
 impl Surface {
+    /// The hit seen along `d`, its material looked up at the camera's footprint; None on a
+    /// degenerate triangle.
     pub(super) fn at(scene: &Scene, hit: &Hit, d: V) -> Option<Surface> {
-        let shaded = scene.material_at_hit(hit, d);
-        let m = &shaded.m;
         let ng_raw = hit.ng();
         let len = ng_raw.length();
         if len.is_nan() || len <= 0.0 {
             return None;
         }
-        let ng = ng_raw / len;
-        let wo = -d.normalize();
-        let front = ng.dot(wo) > 0.0;
-        let (p, err) = hit.point();
-        let n = if front { ng } else { -ng };
-        let frame = shading_frame(hit, ng, front, shaded.bump);
-        Some(Surface {
-            p,
-            err,
-            ng,
-            n,
-            frame,
-            bsdf: m.bsdf(front),
-            wo_l: frame.to_local(wo),
-            emitted: m.emitted(front),
-            absorbs: m.absorbs(front),
-        })
+        let shaded = scene.material_at_hit(hit, d);
+        Some(ShadingPoint::new(
+            hit,
+            ng_raw / len,
+            -d.normalize(),
+            &shaded,
+        ))
     }
 
     /// The diffuse lobe's value (the same for every pair of directions).
@@ -208,11 +187,8 @@ impl Surface {
         if le == V::ZERO {
             return V::ZERO;
         }
-        let emitter = scene.lights.emitter_at(hit.leaf, hit.slot);
-        let cos_l = ng.dot(r.w).abs();
-        let pdf_l = scene
-            .lights
-            .pdf_li((self.p, self.ng), emitter, hit.t * hit.t, cos_l, area);
-        r.weight * le * power_heuristic(r.pdf, pdf_l)
+        let from = (self.p, self.ng);
+        let dist2 = hit.t * hit.t;
+        r.weight * le * emission_weight(scene, hit, (ng, area), r.w, from, r.pdf, dist2)
     }
 }

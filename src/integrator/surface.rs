@@ -1,0 +1,122 @@
+//! Where a ray scatters, once for every integrator: the first surface it does not pass
+//! through (alpha holes, stochastically), and that hit prepared for shading (its side,
+//! frame, BSDF and emission).
+
+use super::Scene;
+use crate::material::{Bsdf, Frame};
+use crate::texture::{self, Shaded};
+use crate::trace::{offset_origin, Hit, Ray, Tracer};
+use glam::Vec3A as V;
+
+/// Most alpha holes one path segment or shadow ray passes through.
+pub const MAX_PASSES: u32 = 64;
+
+/// Stochastic opacity: whether a ray goes on through a surface of `opacity` (a hole under
+/// an alpha mask; with probability 1 − alpha under blend), from the sample number `u` moved
+/// along a golden-ratio sequence for the `passes` already made on this segment.
+pub fn passes_through(opacity: f32, u: f32, passes: u32) -> bool {
+    opacity < 1.0 && (u + passes as f32 * 0.618_034).fract() >= opacity
+}
+
+/// A surface a ray scatters at: the hit, its unit geometric normal and area, and the
+/// distance the ray travelled through holes before it.
+pub struct Scatter {
+    pub hit: Hit,
+    pub ng: V,
+    pub area: f32,
+    pub travelled: f32,
+}
+
+/// The first surface `ray` scatters at: holes (alpha below the cutoff, or a blend's
+/// transparency) are passed by `passes_through` with the sample number `u`, counting in
+/// `passes` (at most `MAX_PASSES` on a path), each moving `ray`'s origin past the hole.
+/// None when the ray leaves the scene or meets a degenerate triangle. Every hit met is
+/// touched (`Scene::touch`).
+pub fn scattering_hit(
+    scene: &Scene,
+    tr: &mut Tracer,
+    ray: &mut Ray,
+    u: f32,
+    passes: &mut u32,
+) -> Option<Scatter> {
+    let mut travelled = 0.0f32;
+    loop {
+        let hit = tr.closest_hit(ray)?;
+        scene.touch(&hit);
+        let ng_raw = hit.ng();
+        let area = 0.5 * ng_raw.length();
+        if area.is_nan() || area <= 0.0 {
+            return None;
+        }
+        let ng = ng_raw / (2.0 * area);
+        if *passes < MAX_PASSES && passes_through(scene.opacity_at(&hit), u, *passes) {
+            *passes += 1;
+            travelled += hit.t * ray.d.length();
+            let (p, err) = hit.point();
+            ray.o = offset_origin(p, err, ng, ray.d);
+            continue;
+        }
+        return Some(Scatter {
+            hit,
+            ng,
+            area,
+            travelled,
+        });
+    }
+}
+
+/// A hit prepared for shading, seen from `wo` (unit, toward the viewer): the side it is
+/// seen from, the shading frame (normal maps applied), the BSDF of that side and `wo` in
+/// its frame.
+#[derive(Clone, Copy)]
+pub struct ShadingPoint {
+    pub p: V,
+    pub err: V,
+    /// Unit geometric normal (winding side), and turned to the side seen.
+    pub ng: V,
+    pub n: V,
+    pub front: bool,
+    pub frame: Frame,
+    pub bsdf: Bsdf,
+    pub wo_l: V,
+    pub emitted: V,
+    pub absorbs: bool,
+}
+
+impl ShadingPoint {
+    /// `shaded`: the hit's material as looked up (its texture footprint is the caller's).
+    pub fn new(hit: &Hit, ng: V, wo: V, shaded: &Shaded) -> ShadingPoint {
+        let m = &shaded.m;
+        let front = ng.dot(wo) > 0.0;
+        let (p, err) = hit.point();
+        let frame = shading_frame(hit, ng, front, shaded.bump);
+        ShadingPoint {
+            p,
+            err,
+            ng,
+            n: if front { ng } else { -ng },
+            front,
+            frame,
+            bsdf: m.bsdf(front),
+            wo_l: frame.to_local(wo),
+            emitted: m.emitted(front),
+            absorbs: m.absorbs(front),
+        }
+    }
+}
+
+pub fn on_side(frame: &Frame, n: V, w: V) -> bool {
+    frame.n.dot(w) * n.dot(w) > 0.0
+}
+
+/// The shading frame at a triangle hit with unit geometric normal `ng`, on the side
+/// `front` says: the normal texture's `bump` turned into world space (glTF's tangent frame,
+/// see `texture::perturb`), or the side's geometric normal. Seen from the back, the bumped
+/// frame is turned round whole, as a real bump seen from behind is a dent.
+pub fn shading_frame(hit: &Hit, ng: V, front: bool, bump: Option<V>) -> Frame {
+    let n = match bump {
+        Some(tn) => texture::perturb(hit.tri.p.map(V::from), hit.uv, ng, tn),
+        None => ng,
+    };
+    Frame::new(if front { n } else { -n })
+}
