@@ -18,6 +18,17 @@ pub fn passes_through(opacity: f32, u: f32, passes: u32) -> bool {
     opacity < 1.0 && (u + passes as f32 * 0.618_034).fract() >= opacity
 }
 
+/// A number in [0, 1) for `passes_through` on a ray that draws no sample of its own for
+/// it (PBGI's gather, lobe and edge rays): its direction's bits hashed, so rays apart
+/// decide apart.
+pub fn hole_number(d: V) -> f32 {
+    let [x, y, z] = d.to_array().map(f32::to_bits);
+    let mut h = (x as u64) << 32 ^ (y as u64) << 16 ^ z as u64 ^ 0x9E37_79B9_7F4A_7C15;
+    h = (h ^ (h >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    h = (h ^ (h >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    (h >> 40) as f32 / (1u64 << 24) as f32
+}
+
 /// A surface a ray scatters at: the hit, its unit geometric normal and area, and the
 /// distance the ray travelled through holes before it.
 pub struct Scatter {

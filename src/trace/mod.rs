@@ -8,6 +8,9 @@
 //! magnitude instead of being a fixed epsilon.
 
 mod instance;
+mod triangle;
+
+pub use triangle::Watertight;
 
 use crate::paging::instance::Instance;
 use crate::paging::wide::{self, Tri4, Wide};
@@ -1006,66 +1009,6 @@ mod tests {
     use super::*;
     use crate::test_rng::TestRng;
 
-    /// The watertight test one triangle at a time, as pbrt-v4's `Triangle::Intersect`
-    /// writes it: the reference the four-lane test must match bit for bit.
-    fn tri_hit(p: &Prep4, tri: &TriW, t_max: f32) -> Option<(f32, [f32; 3])> {
-        let [kx, ky, kz] = p.k;
-        let [sx, sy, sz] = p.s.map(|v| v.x);
-        let o = p.o.map(|v| v.x);
-        let tr = |p: &[f32; 3]| {
-            let z = p[kz] - o[kz];
-            ((p[kx] - o[kx] + sx * z, p[ky] - o[ky] + sy * z), z)
-        };
-        let (xy0, z0) = tr(&tri.p[0]);
-        let (xy1, z1) = tr(&tri.p[1]);
-        let (xy2, z2) = tr(&tri.p[2]);
-        let xy = [xy0, xy1, xy2];
-        let edge = |a: (f32, f32), b: (f32, f32)| {
-            let e = a.0 * b.1 - a.1 * b.0;
-            if e == 0.0 {
-                // Exactly on an edge in f32: decide in f64 so neighbours agree.
-                (a.0 as f64 * b.1 as f64 - a.1 as f64 * b.0 as f64) as f32
-            } else {
-                e
-            }
-        };
-        let e0 = edge(xy[1], xy[2]);
-        let e1 = edge(xy[2], xy[0]);
-        let e2 = edge(xy[0], xy[1]);
-        if (e0 < 0.0 || e1 < 0.0 || e2 < 0.0) && (e0 > 0.0 || e1 > 0.0 || e2 > 0.0) {
-            return None;
-        }
-        let det = e0 + e1 + e2;
-        if det == 0.0 {
-            return None;
-        }
-        let z = [z0 * sz, z1 * sz, z2 * sz];
-        let ts = e0 * z[0] + e1 * z[1] + e2 * z[2];
-        if det < 0.0 && (ts >= 0.0 || ts < t_max * det) {
-            return None;
-        }
-        if det > 0.0 && (ts <= 0.0 || ts > t_max * det) {
-            return None;
-        }
-        let inv = 1.0 / det;
-        let tt = ts * inv;
-        // pbrt-v4: reject hits closer than the error bound of t (behind the origin).
-        let max_z = z[0].abs().max(z[1].abs()).max(z[2].abs());
-        let delta_z = gamma(3) * max_z;
-        let max_x = xy[0].0.abs().max(xy[1].0.abs()).max(xy[2].0.abs());
-        let max_y = xy[0].1.abs().max(xy[1].1.abs()).max(xy[2].1.abs());
-        let delta_x = gamma(5) * (max_x + max_z);
-        let delta_y = gamma(5) * (max_y + max_z);
-        let delta_e = 2.0 * (gamma(2) * max_x * max_y + delta_y * max_x + delta_x * max_y);
-        let max_e = e0.abs().max(e1.abs()).max(e2.abs());
-        let delta_t =
-            3.0 * (gamma(3) * max_e * max_z + delta_e * max_z + delta_z * max_e) * inv.abs();
-        if tt <= delta_t {
-            return None;
-        }
-        Some((tt, [e0 * inv, e1 * inv, e2 * inv]))
-    }
-
     /// Four-lane results of `tri` (lanes 0..4) closed against `t_max` as `Prep4::leaf`
     /// does, each lane on its own.
     fn lanes(p: &Prep4, tris: &[TriW; 4], t_max: f32) -> [Option<(f32, [f32; 3])>; 4] {
@@ -1114,7 +1057,7 @@ mod tests {
             let t_max = [f32::INFINITY, 1.0, 0.5][i % 3];
             let four = lanes(&p, &tris, t_max);
             for (lane, t) in tris.iter().enumerate() {
-                let one = tri_hit(&p, t, t_max);
+                let one = Watertight::new(&ray).hit(t, t_max);
                 hits += one.is_some() as u32;
                 assert_eq!(bits(four[lane]), bits(one), "ray {i}, lane {lane}");
             }

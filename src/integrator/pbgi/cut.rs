@@ -6,9 +6,10 @@ use super::bake::Directional;
 use super::microbuffer::MicroBuffer;
 use super::surface::{hit_light, Surface};
 use super::{cluster, PbgiIntegrator, Pending, Reuse, Scratch, Strata};
+use crate::integrator::surface::{hole_number, passes_through};
 use crate::integrator::{Counters, PixelSample, Scene};
 use crate::paging::{NodeRef, Page, TNode};
-use crate::trace::{offset_origin, Hit, Tracer, NO_INSTANCE};
+use crate::trace::{offset_origin, Hit, Ray, Tracer, Watertight, NO_INSTANCE};
 use glam::{Vec3, Vec3A as V};
 use std::f32::consts::PI;
 use std::sync::atomic::Ordering::Relaxed;
@@ -16,27 +17,6 @@ use std::sync::Arc;
 
 /// A node is near (its children are visited) while x is within this many bounding radii.
 const NEAR: f32 = 1.5;
-
-/// Möller–Trumbore: distance along unit `w` from `o` to triangle `p` and the hit's
-/// barycentrics, if it is ahead.
-fn intersect(o: V, w: V, p: [V; 3]) -> Option<(f32, [f32; 3])> {
-    let (e1, e2) = (p[1] - p[0], p[2] - p[0]);
-    let q = w.cross(e2);
-    let det = e1.dot(q);
-    if det == 0.0 || !det.is_finite() {
-        return None;
-    }
-    let inv = 1.0 / det;
-    let sv = o - p[0];
-    let u = sv.dot(q) * inv;
-    let rv = sv.cross(e1);
-    let v = w.dot(rv) * inv;
-    if u < 0.0 || v < 0.0 || u + v > 1.0 {
-        return None;
-    }
-    let t = e2.dot(rv) * inv;
-    (t > 0.0).then_some((t, [1.0 - u - v, u, v]))
-}
 
 /// Whether every member of a cluster (within `radius` of its active receiver) lies
 /// outside NEAR bounding radii r of a node at distance d from that receiver: only then
@@ -491,6 +471,7 @@ impl PbgiIntegrator {
         // Rays leave from just above x, as exact rays do, so x's neighbours on its own
         // surface (coplanar up to rounding) do not block its horizon.
         let o = offset_origin(s.p, s.err, s.ng, s.n);
+        let alpha = scene.textures.has_alpha();
         let mut met = false;
         for t in tris.clone() {
             let Some(tri) = page.tri(t) else {
@@ -508,14 +489,20 @@ impl PbgiIntegrator {
             }
             for &j in &sc.in_cone {
                 let j = j as usize;
-                let Some((depth, b)) = intersect(o, sc.rays[j].1, p) else {
+                let w = sc.rays[j].1;
+                let ray = Ray {
+                    o,
+                    d: w,
+                    t_max: f32::INFINITY,
+                };
+                let Some((depth, b)) = Watertight::new(&ray).hit(&tri, f32::INFINITY) else {
                     continue;
                 };
                 met = true;
                 if sc.nearest[j].is_some_and(|h| h.t <= depth) {
                     continue;
                 }
-                sc.nearest[j] = Some(Hit {
+                let hit = Hit {
                     t: depth,
                     b,
                     tri,
@@ -527,7 +514,12 @@ impl PbgiIntegrator {
                     instance_leaf: 0,
                     transform_err: V::ZERO,
                     uv: page.uvs.get(t as usize).copied().unwrap_or_default(),
-                });
+                };
+                // An alpha hole hides nothing: the ray goes on to what lies behind it.
+                if alpha && passes_through(scene.opacity_at(&hit), hole_number(w), 0) {
+                    continue;
+                }
+                sc.nearest[j] = Some(hit);
             }
         }
         if met {

@@ -62,6 +62,7 @@ mod surface;
 pub mod wpbgi;
 
 use super::edge::EdgeRays;
+use super::surface::{hole_number, scattering_hit, Scatter};
 use super::{on_side, Counters, Integrator, Pass, PixelSample, Scene, Stats, Target};
 use crate::material::{luminance, Bsdf, Frame};
 use crate::sampler::PixelSampler;
@@ -322,11 +323,11 @@ thread_local! {
 
 /// The emission seen at a camera ray's first hit, for the edge rays.
 fn seen_emission(scene: &Scene, tr: &mut Tracer, r: &Ray, c: &mut Counters) -> V {
-    let Some(hit) = tr.closest_hit(r) else {
+    let mut ray = *r;
+    let Some(hit) = scattering_hit(scene, tr, &mut ray, hole_number(r.d), &mut 0) else {
         return V::ZERO;
     };
-    scene.touched.insert(hit.leaf);
-    Surface::at(scene, &hit, r.d).map_or(V::ZERO, |s| c.finite(s.emitted))
+    Surface::at(scene, &hit.hit, r.d).map_or(V::ZERO, |s| c.finite(s.emitted))
 }
 
 impl PbgiIntegrator {
@@ -440,11 +441,15 @@ impl PbgiIntegrator {
         salt: u64,
     ) -> (V, Option<Pending>, V) {
         let (mut ray, mut beta, mut l, mut own) = (px.ray, V::ONE, V::ZERO, V::ZERO);
+        // Alpha holes pass as the path tracer passes them, with its numbers.
+        let mut passes = 0;
         for depth in 0..SMOOTH_DEPTH {
-            let Some(hit) = tr.closest_hit(&ray) else {
+            let u_hole = px.sampler.get4(2 * depth + 2)[0];
+            let Some(Scatter { hit, .. }) =
+                scattering_hit(scene, tr, &mut ray, u_hole, &mut passes)
+            else {
                 break;
             };
-            scene.touched.insert(hit.leaf);
             let Some(s) = Surface::at(scene, &hit, ray.d) else {
                 break;
             };
@@ -947,8 +952,8 @@ impl PbgiIntegrator {
             d: w,
             t_max: f32::INFINITY,
         };
-        let hit = tr.closest_hit(&ray)?;
-        scene.touched.insert(hit.leaf);
+        let mut ray = ray;
+        let hit = scattering_hit(scene, tr, &mut ray, hole_number(w), &mut 0)?.hit;
         let page = tr.page_handle(hit.page);
         let (sends, sampled) = hit_light(scene, tr, &page, &hit, w, || strata.shading(k));
         let l = Vec3::from(sends * weight);

@@ -4,6 +4,7 @@
 
 use super::patch;
 use crate::integrator::direct::emission_weight;
+use crate::integrator::surface::{hole_number, scattering_hit};
 use crate::integrator::{
     bsdf_term, mis_weight, on_side, sample_light_weighted, Receiver, Scene, ShadingPoint,
 };
@@ -126,14 +127,12 @@ impl Surface {
         if bs.delta || !on_side(&self.frame, self.n, w) {
             return None;
         }
-        let hit = tr.closest_hit(&Ray {
+        let mut ray = Ray {
             o: offset_origin(self.p, self.err, self.ng, w),
             d: w,
             t_max: f32::INFINITY,
-        });
-        if let Some(h) = &hit {
-            scene.touched.insert(h.leaf);
-        }
+        };
+        let hit = scattering_hit(scene, tr, &mut ray, hole_number(w), &mut 0).map(|s| s.hit);
         Some(LobeRay {
             w,
             weight: bs.weight,
