@@ -12,6 +12,7 @@ pub mod integrator;
 pub mod light;
 pub mod material;
 pub mod metrics;
+pub mod moments;
 pub mod paging;
 pub mod progress;
 pub mod radiance;

@@ -39,6 +39,33 @@ impl PixelSampler {
     }
 }
 
+/// SplitMix64: independent uniforms from a seed alone, without a shared generator (a
+/// triangle's bake samples, a record's gathers).
+pub struct Hash(u64);
+
+impl Hash {
+    pub fn new(seed: u64) -> Hash {
+        Hash(seed)
+    }
+
+    pub fn f32(&mut self) -> f32 {
+        (self.u64() >> 40) as f32 / (1u64 << 24) as f32
+    }
+
+    /// Six uniforms, as shading a hit takes them (a light sample, then a lobe ray).
+    pub fn u6(&mut self) -> [f32; 6] {
+        [(); 6].map(|_| self.f32())
+    }
+
+    pub fn u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

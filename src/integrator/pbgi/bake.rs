@@ -17,6 +17,7 @@ use super::patch;
 use crate::integrator::{sample_light, Receiver, Scene};
 use crate::material::luminance;
 use crate::paging::{deepest_first, NodeRef, Page};
+use crate::sampler::Hash;
 use crate::texture;
 use crate::trace::{gamma, Cone, Tracer};
 use crate::wavelet::tree::SparseVec;
@@ -642,32 +643,6 @@ pub fn uniform_point(tri: [V; 3], rng: &mut Hash) -> V {
         (a, b) = (1.0 - a, 1.0 - b);
     }
     tri[0] + (tri[1] - tri[0]) * a + (tri[2] - tri[0]) * b
-}
-
-/// SplitMix64: independent uniforms per triangle without a shared generator.
-pub struct Hash(u64);
-
-impl Hash {
-    pub fn new(seed: u64) -> Hash {
-        Hash(seed)
-    }
-
-    pub fn f32(&mut self) -> f32 {
-        (self.u64() >> 40) as f32 / (1u64 << 24) as f32
-    }
-
-    /// Six uniforms, as shading a hit takes them (a light sample, then a lobe ray).
-    pub fn u6(&mut self) -> [f32; 6] {
-        [(); 6].map(|_| self.f32())
-    }
-
-    pub fn u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
 }
 
 #[cfg(test)]

@@ -41,6 +41,7 @@
 
 use super::microbuffer::Gradients;
 use crate::material::luminance;
+use crate::moments::Moments;
 use glam::Vec3A as V;
 use rustc_hash::FxHashMap;
 use std::f32::consts::PI;
@@ -159,38 +160,6 @@ impl Record {
         let own = k - 1.0;
         let s2 = (self.y.variance() * own + prior * PRIOR_GATHERS) / (own + PRIOR_GATHERS);
         s2 / (k * (k + 1.0)) * self.pixels as f64
-    }
-}
-
-/// Running mean and variance (Welford) of luminances: a record's gathers, a pixel's samples.
-#[derive(Clone, Copy, Debug, Default)]
-pub struct Moments {
-    pub count: u64,
-    mean: f64,
-    m2: f64,
-}
-
-impl Moments {
-    /// The moments of `ys`.
-    pub fn of(ys: impl IntoIterator<Item = f32>) -> Moments {
-        let mut m = Moments::default();
-        ys.into_iter().for_each(|y| m.add(y));
-        m
-    }
-
-    pub fn add(&mut self, y: f32) {
-        self.count += 1;
-        let d = y as f64 - self.mean;
-        self.mean += d / self.count as f64;
-        self.m2 += d * (y as f64 - self.mean);
-    }
-
-    /// The sample variance (0 below two samples).
-    pub fn variance(&self) -> f64 {
-        match self.count {
-            0 | 1 => 0.0,
-            k => self.m2 / (k - 1) as f64,
-        }
     }
 }
 

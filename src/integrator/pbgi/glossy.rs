@@ -10,11 +10,12 @@
 //! light samples at area-weighted points of their glossy triangles, one sample serving
 //! every texel. Perfect mirrors and glass are left out: the renderer follows them exactly.
 
-use super::bake::{uniform_point, Hash};
+use super::bake::uniform_point;
 use crate::integrator::{sample_light, Receiver, Scene};
 use crate::material::{Bsdf, Frame, Material};
 use crate::paging::coefs::{weight, PageShape, BOOTSTRAP};
 use crate::paging::{NodeRef, Page};
+use crate::sampler::Hash;
 use crate::trace::{gamma, Cone, Tracer};
 use crate::wavelet::tree::{encode, SparseVec};
 use crate::wavelet::{cube, haar};

@@ -13,7 +13,7 @@
 //! never from the ones it is spent on, so every pass's mean stays unbiased. The path
 //! tracer, being the reference, does not take it; docs/pbgi.md gives what it would gain.
 
-use super::cache::Moments;
+use crate::moments::Moments;
 use crate::sampler::PixelSampler;
 use std::sync::{Mutex, PoisonError};
 

@@ -3,7 +3,6 @@
 //! added where a probe finds its interpolation wrong (see `cache` and `radiance_cache` for
 //! the records themselves).
 
-use super::bake::Hash;
 use super::cache;
 use super::cache::{IrradianceCache, Record};
 use super::microbuffer::Gradients;
@@ -12,6 +11,7 @@ use super::wpbgi::{self, Incident};
 use super::{PbgiIntegrator, Pending, Strata};
 use crate::integrator::{Pass, Scene};
 use crate::material::luminance;
+use crate::sampler::Hash;
 use crate::trace::Tracer;
 use glam::Vec3A as V;
 use rayon::prelude::*;
