@@ -90,13 +90,40 @@ fn counters_saturate_and_paths_stop_there() {
     let dir = tempfile::tempdir().unwrap();
     let arc = dir.path().join("c.canopy");
     convert(&scene("cbox.glb"), &arc, None);
+    let store = dir.path().join("c.store");
     let (img, stats) = cone(
         &arc,
         &dir.path().join("c.exr"),
-        &["--spp", "16", "--cone-samples", "4"],
+        &[
+            "--spp",
+            "16",
+            "--cone-samples",
+            "4",
+            "--store-out",
+            s(&store),
+        ],
     );
     assert!(all_finite(&img));
-    assert!(stats["converged_nodes"].as_u64().unwrap() > 0, "{stats}");
+    // Every stored count stops at the limit, and many reach it (FORMAT.md: records of 64
+    // bytes, `n u32` at 24, after the 128-byte header).
+    let bytes = std::fs::read(&store).unwrap();
+    let records = zstd::decode_all(&bytes[128..]).unwrap();
+    let counts: Vec<u32> = records
+        .chunks_exact(64)
+        .map(|r| u32::from_le_bytes(r[24..28].try_into().unwrap()))
+        .collect();
+    assert!(counts.iter().all(|&n| n <= 4), "a count past the limit");
+    let full = counts.iter().filter(|&&n| n == 4).count();
+    assert!(
+        full * 4 > counts.len(),
+        "{full} of {} at the limit",
+        counts.len()
+    );
+    assert_eq!(
+        stats["converged_nodes"].as_u64().unwrap(),
+        full as u64,
+        "{stats}"
+    );
     // Converged nodes end paths early: fewer rays per path than without a limit.
     let (_, free) = cone(
         &arc,

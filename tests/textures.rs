@@ -19,15 +19,6 @@ fn checker_archive(
     out
 }
 
-/// For looking at by hand: `CANOPY_TEXSCENE=DIR cargo test --test textures -- --ignored`.
-#[test]
-#[ignore]
-fn write_the_checker_scene() {
-    let dir = std::path::PathBuf::from(std::env::var("CANOPY_TEXSCENE").unwrap());
-    std::fs::create_dir_all(&dir).unwrap();
-    checker_archive(&dir, 1024, 16, Plane::default());
-}
-
 /// Renders `archive` at 64×64 with direct light only; returns the image and stats.
 fn render64(
     archive: &std::path::Path,

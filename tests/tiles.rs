@@ -153,11 +153,33 @@ fn light_stores_carry_over_and_bad_ones_are_refused() {
         "{}",
         String::from_utf8_lossy(&run.stderr)
     );
-    let entries = |p: &Path| {
+    // Every key of the first store is in the second, with at least its count: the second
+    // render started from the first's light (FORMAT.md: 64-byte records after the 128-byte
+    // header, `key u64` at 0 and `n u32` at 24). Started afresh, some counts would fall.
+    let counts = |p: &Path| {
         let b = std::fs::read(p).unwrap();
-        u64::from_le_bytes(b[40..48].try_into().unwrap())
+        let raw = zstd::decode_all(&b[128..]).unwrap();
+        raw.chunks_exact(64)
+            .map(|r| {
+                let key = u64::from_le_bytes(r[..8].try_into().unwrap());
+                (key, u32::from_le_bytes(r[24..28].try_into().unwrap()))
+            })
+            .collect::<std::collections::HashMap<u64, u32>>()
     };
-    assert!(entries(&first) > 0 && entries(&second) >= entries(&first));
+    let (a, b) = (counts(&first), counts(&second));
+    assert!(!a.is_empty() && b.len() >= a.len());
+    for (key, n) in &a {
+        assert!(
+            b.get(key).is_some_and(|m| m >= n),
+            "key {key}: {n} then {:?}",
+            b.get(key)
+        );
+    }
+    let (sa, sb): (u64, u64) = (
+        a.values().map(|&n| n as u64).sum(),
+        b.values().map(|&n| n as u64).sum(),
+    );
+    assert!(sb > sa, "the second render added samples: {sa} then {sb}");
     let cut = d.join("cut.store");
     let bytes = std::fs::read(&first).unwrap();
     std::fs::write(&cut, &bytes[..bytes.len() - 9]).unwrap();
