@@ -348,6 +348,43 @@ fn eval_writes_rows_plot_and_table() {
     ]);
     let csv = std::fs::read_to_string(out.join("eval.csv")).unwrap();
     assert_eq!(csv.lines().count(), 5, "{csv}");
+    // Each path-tracer row is the render of its spp (the path tracer's image depends on
+    // the spp and seed alone), measured against the reference as `compare` measures it;
+    // and the error falls as the time grows.
+    let rows: Vec<Vec<String>> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').map(str::to_string).collect())
+        .collect();
+    for (k, row) in rows.iter().filter(|r| r[0] == "Path").enumerate() {
+        let img = dir.path().join(format!("p{k}.exr"));
+        ok(&[
+            "--quiet",
+            "render",
+            s(&arc),
+            "-o",
+            s(&img),
+            "--spp",
+            &row[3],
+            "--seed",
+            "0",
+        ]);
+        let cmp = ok(&["compare", s(&img), s(&scene("refs/cbox.exr")), "--json"]);
+        let v: serde_json::Value = serde_json::from_str(&cmp).unwrap();
+        let (mine, theirs) = (v["error"].as_f64().unwrap(), row[4].parse::<f64>().unwrap());
+        assert!(
+            (mine - theirs).abs() < 1e-6 * theirs,
+            "{row:?}: compare says {mine}"
+        );
+    }
+    for name in ["Path", "Cone"] {
+        let r: Vec<f64> = rows
+            .iter()
+            .filter(|r| r[0] == name)
+            .map(|r| r[4].parse().unwrap())
+            .collect();
+        assert!(r[1] < r[0], "{name}: RMSE {r:?} should fall with time");
+    }
     let md = std::fs::read_to_string(out.join("eval.md")).unwrap();
     assert!(
         md.contains("| Path |") && md.contains("| Cone |") && md.contains("faster"),
