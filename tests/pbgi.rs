@@ -263,6 +263,19 @@ fn a_very_bright_small_lamp_gives_no_bad_pixel() {
         stats["near_fragments"].as_u64().unwrap() > 0
             && stats["splatted_nodes"].as_u64().unwrap() > 0
     );
+    // The lamp's light, glossy reflections included, is neither lost nor inflated: the
+    // image agrees with the path tracer at the bake's depth within noise (measured
+    // −0.6%, 1.9 standard errors, at 16 spp).
+    let size = ["--width", "32", "--height", "24", "--max-depth", "3"];
+    let pbgi_args = [
+        &size[..],
+        &["--integrator", "pbgi", "--spp", "16", "--seed", "2"],
+    ]
+    .concat();
+    let (pbgi, _) = render(&arc, &dir.path().join("g.exr"), &pbgi_args);
+    let path_args = [&size[..], &["--spp", "4096", "--seed", "1"]].concat();
+    let (path, _) = render(&arc, &dir.path().join("p.exr"), &path_args);
+    assert_mean_within_noise(&pbgi, &path, "room_glossy's bright lamp, pbgi against path");
 }
 
 /// `--pbgi-reuse R`: each surface of a pixel gathers at the first of the pixel's samples
