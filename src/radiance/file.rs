@@ -152,15 +152,17 @@ pub fn load(store: &RadianceStore, a: &Header, path: &Path) -> Result<u64> {
     }
     let h: StoreHeader = bytemuck::pod_read_unaligned(&head);
     check_header(&h, a, store, len).map_err(|e| anyhow::anyhow!("{name}: {e}"))?;
-    let mut body = Vec::new();
-    file.take(h.body_len)
-        .read_to_end(&mut body)
+    // The body streams through its checksum and the decoder: no buffer of its size.
+    let mut body = std::io::BufReader::new(Hashed::new(file.take(h.body_len)));
+    let keys = Keys::new(a).map_or(0, |k| k.count());
+    let entries = read_records(&mut body, &h, keys).map_err(|e| anyhow::anyhow!("{name}: {e}"));
+    std::io::copy(&mut body, &mut std::io::sink())
         .with_context(|| format!("{name}: cannot read the body"))?;
-    if body.len() as u64 != h.body_len || xxhash_rust::xxh3::xxh3_64(&body) != h.body_checksum {
+    let hashed = body.into_inner();
+    if hashed.len != h.body_len || hashed.digest() != h.body_checksum {
         bail!("{name}: the light store's body is truncated or corrupt (checksum mismatch)");
     }
-    let keys = Keys::new(a).map_or(0, |k| k.count());
-    let entries = read_records(&body, &h, keys).map_err(|e| anyhow::anyhow!("{name}: {e}"))?;
+    let entries = entries?;
     let n = entries.len() as u64;
     if store.restore(entries, h.photons).is_none() {
         bail!(
@@ -244,9 +246,14 @@ const RECORD: u64 = size_of::<Record>() as u64;
 
 /// The body's records, inflated one at a time and each checked: exactly `entries` of them,
 /// keys increasing below `keys`, values finite, counts within the limit.
-fn read_records(body: &[u8], h: &StoreHeader, keys: u64) -> Result<Vec<(u64, Entry)>> {
+fn read_records(
+    body: &mut impl std::io::BufRead,
+    h: &StoreHeader,
+    keys: u64,
+) -> Result<Vec<(u64, Entry)>> {
     let want = h.entries.saturating_mul(RECORD);
-    if let Ok(Some(size)) = zstd::zstd_safe::get_frame_content_size(body) {
+    let head = body.fill_buf().context("cannot read the body")?;
+    if let Ok(Some(size)) = zstd::zstd_safe::get_frame_content_size(head) {
         if size != want {
             bail!(
                 "entries {} declared ({want} bytes), the body's frame holds {size} bytes",
@@ -254,7 +261,7 @@ fn read_records(body: &[u8], h: &StoreHeader, keys: u64) -> Result<Vec<(u64, Ent
             );
         }
     }
-    let mut z = zstd::stream::read::Decoder::new(body)
+    let mut z = zstd::stream::read::Decoder::with_buffer(body)
         .context("the light store's body does not decompress")?
         .single_frame();
     let mut entries = Vec::with_capacity(h.entries.min(1 << 16) as usize);
@@ -288,6 +295,36 @@ fn read_records(body: &[u8], h: &StoreHeader, keys: u64) -> Result<Vec<(u64, Ent
         );
     }
     Ok(entries)
+}
+
+/// A reader that hashes (xxh3-64) and counts what passes through it.
+struct Hashed<R> {
+    inner: R,
+    hash: xxhash_rust::xxh3::Xxh3,
+    len: u64,
+}
+
+impl<R> Hashed<R> {
+    fn new(inner: R) -> Hashed<R> {
+        Hashed {
+            inner,
+            hash: xxhash_rust::xxh3::Xxh3::new(),
+            len: 0,
+        }
+    }
+
+    fn digest(&self) -> u64 {
+        self.hash.digest()
+    }
+}
+
+impl<R: Read> Read for Hashed<R> {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        let n = self.inner.read(buf)?;
+        self.hash.update(&buf[..n]);
+        self.len += n as u64;
+        Ok(n)
+    }
 }
 
 /// Reads until `buf` is full or the stream ends; returns the bytes read.
