@@ -55,7 +55,12 @@ impl Coarse {
         let texels = &self.levels[(l - self.first) as usize];
         let mid = |a: usize, b: usize| [0, 1].map(|k| 0.5 * (uv[a][k] + uv[b][k]));
         let (ab, bc, ca) = (mid(0, 1), mid(1, 2), mid(2, 0));
-        let quarters = [[uv[0], ab, ca], [ab, uv[1], bc], [ca, bc, uv[2]], [ab, bc, ca]];
+        let quarters = [
+            [uv[0], ab, ca],
+            [ab, uv[1], bc],
+            [ca, bc, uv[2]],
+            [ab, bc, ca],
+        ];
         let mut sum = [0.0f32; 4];
         for q in quarters {
             let c = [0, 1].map(|k| (q[0][k] + q[1][k] + q[2][k]) / 3.0);

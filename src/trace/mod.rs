@@ -204,28 +204,15 @@ struct Tri4Hits {
 
 impl Prep4 {
     fn new(r: &Ray) -> Prep4 {
-        let a = r.d.abs();
-        let kz = if a.x > a.y {
-            if a.x > a.z {
-                0
-            } else {
-                2
-            }
-        } else if a.y > a.z {
-            1
-        } else {
-            2
-        };
-        let kx = (kz + 1) % 3;
-        let ky = (kx + 1) % 3;
-        let d = r.d.to_array();
+        // The one-triangle test's shear, four lanes wide.
+        let w = Watertight::new(r);
         let inv = V::ONE / r.d;
         Prep4 {
             one: Prep { o: r.o, inv },
             o: [0, 1, 2].map(|k| Vec4::splat(r.o[k])),
             inv: [0, 1, 2].map(|k| Vec4::splat(inv[k])),
-            k: [kx, ky, kz],
-            s: [-d[kx] / d[kz], -d[ky] / d[kz], 1.0 / d[kz]].map(Vec4::splat),
+            k: w.k,
+            s: w.s.map(Vec4::splat),
         }
     }
 

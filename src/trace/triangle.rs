@@ -10,9 +10,9 @@ use crate::paging::TriW;
 pub struct Watertight {
     o: [f32; 3],
     /// The axes permuted so z is the direction's largest component.
-    k: [usize; 3],
+    pub(super) k: [usize; 3],
     /// Shear x, y and scale z.
-    s: [f32; 3],
+    pub(super) s: [f32; 3],
 }
 
 impl Watertight {

@@ -22,18 +22,14 @@ pub mod side;
 pub use archive::*;
 pub use input::*;
 
-/// SplitMix64.
-pub struct Rng(u64);
+/// The mutation sequence: the renderer's SplitMix64, seeded apart.
+pub struct Rng(canopy::sampler::Hash);
 impl Rng {
     pub fn new(seed: u64) -> Rng {
-        Rng(seed ^ 0x5EED_F022)
+        Rng(canopy::sampler::Hash::new(seed ^ 0x5EED_F022))
     }
     pub fn u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
+        self.0.u64()
     }
     pub fn below(&mut self, n: usize) -> usize {
         (self.u64() % n.max(1) as u64) as usize
