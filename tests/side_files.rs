@@ -81,25 +81,36 @@ fn archive(dir: &Path) -> PathBuf {
     out
 }
 
-fn store(dir: &Path, a: &Path) -> Vec<u8> {
-    let path = dir.join("l.store");
-    ok(&[
+/// A 16×16, 1-spp cone render of `a` into `out`, with `extra` flags.
+fn cone_args(a: &Path, out: &Path, extra: &[&str]) -> Vec<String> {
+    let base = [
         "--quiet",
         "render",
         s(a),
         "-o",
-        s(&dir.join("l.exr")),
+        s(out),
         "--integrator",
         "cone",
-        "--spp",
-        "1",
-        "--width",
-        "16",
-        "--height",
-        "16",
-        "--store-out",
-        s(&path),
-    ]);
+    ];
+    let size = ["--spp", "1", "--width", "16", "--height", "16"];
+    [&base[..], &size, extra]
+        .concat()
+        .into_iter()
+        .map(str::to_string)
+        .collect()
+}
+
+fn strs(v: &[String]) -> Vec<&str> {
+    v.iter().map(String::as_str).collect()
+}
+
+fn store(dir: &Path, a: &Path) -> Vec<u8> {
+    let path = dir.join("l.store");
+    ok(&strs(&cone_args(
+        a,
+        &dir.join("l.exr"),
+        &["--store-out", s(&path)],
+    )));
     std::fs::read(path).unwrap()
 }
 
@@ -110,33 +121,13 @@ fn write(dir: &Path, name: &str, bytes: &[u8]) -> PathBuf {
 }
 
 fn render_with_store(a: &Path, dir: &Path, store: &Path) -> Vec<String> {
-    [
-        "--quiet",
-        "render",
-        s(a),
-        "-o",
-        s(&dir.join("r.exr")),
-        "--integrator",
-        "cone",
-        "--spp",
-        "1",
-        "--width",
-        "16",
-        "--height",
-        "16",
-        "--mem-budget",
-        BUDGET,
-        "--store-in",
-        s(store),
-    ]
-    .map(str::to_string)
-    .to_vec()
+    let extra = ["--mem-budget", BUDGET, "--store-in", s(store)];
+    cone_args(a, &dir.join("r.exr"), &extra)
 }
 
 fn refused_store(a: &Path, dir: &Path, bytes: &[u8], expect: &str) {
     let path = write(dir, "m.store", bytes);
-    let args = render_with_store(a, dir, &path);
-    refused(&args.iter().map(String::as_str).collect::<Vec<_>>(), expect);
+    refused(&strs(&render_with_store(a, dir, &path)), expect);
 }
 
 /// A header field at `at` set to `v`, the checksums recomputed.
@@ -177,8 +168,7 @@ fn light_stores_that_lie_about_their_sizes_or_keys_are_refused() {
     assert!(entries > 1, "the seed store holds light");
     // The seed itself is read.
     let path = write(d, "seed.store", &seed);
-    let args = render_with_store(&a, d, &path);
-    ok(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    ok(&strs(&render_with_store(&a, d, &path)));
     // 2^32 entries in a 6 KB file: the key space and the budget both refuse it.
     refused_store(&a, d, &with_u64(&seed, 40, 1 << 32), "entries 4294967296");
     // A valid frame of 1 GiB of zeros behind a header declaring 2^24 entries.
