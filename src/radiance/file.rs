@@ -151,10 +151,10 @@ pub fn load(store: &RadianceStore, a: &Header, path: &Path) -> Result<u64> {
         bail!("{name}: not a canopy light store (bad magic or shorter than its header)");
     }
     let h: StoreHeader = bytemuck::pod_read_unaligned(&head);
-    check_header(&h, a, store, len).map_err(|e| anyhow::anyhow!("{name}: {e}"))?;
+    let keys = Keys::new(a).map_or(0, |k| k.count());
+    check_header(&h, a, store, (keys, len)).map_err(|e| anyhow::anyhow!("{name}: {e}"))?;
     // The body streams through its checksum and the decoder: no buffer of its size.
     let mut body = std::io::BufReader::new(Hashed::new(file.take(h.body_len)));
-    let keys = Keys::new(a).map_or(0, |k| k.count());
     let entries = read_records(&mut body, &h, keys).map_err(|e| anyhow::anyhow!("{name}: {e}"));
     std::io::copy(&mut body, &mut std::io::sink())
         .with_context(|| format!("{name}: cannot read the body"))?;
@@ -174,8 +174,13 @@ pub fn load(store: &RadianceStore, a: &Header, path: &Path) -> Result<u64> {
 }
 
 /// The header's own checks, its identity against the archive, and its sizes against the
-/// archive's key space, the budget's share of the store and the file's length.
-fn check_header(h: &StoreHeader, a: &Header, store: &RadianceStore, len: u64) -> Result<()> {
+/// archive's `keys`, the budget's share of the store and the file's length `len`.
+fn check_header(
+    h: &StoreHeader,
+    a: &Header,
+    store: &RadianceStore,
+    (keys, len): (u64, u64),
+) -> Result<()> {
     if h.checksum() != h.header_checksum {
         bail!("the light store's header is corrupt (checksum mismatch)");
     }
@@ -208,7 +213,6 @@ fn check_header(h: &StoreHeader, a: &Header, store: &RadianceStore, len: u64) ->
             flag(store.limit)
         );
     }
-    let keys = Keys::new(a).map_or(0, |k| k.count());
     if h.entries > keys {
         bail!(
             "entries {} is more than the archive has keys ({keys})",

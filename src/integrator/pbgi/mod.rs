@@ -445,9 +445,9 @@ impl PbgiIntegrator {
         // Alpha holes pass as the path tracer passes them, with its numbers.
         let mut passes = 0;
         for depth in 0..SMOOTH_DEPTH {
-            let u_hole = px.sampler.get4(2 * depth + 2)[0];
-            let Some(Scatter { hit, .. }) =
-                scattering_hit(scene, tr, &mut ray, u_hole, &mut passes)
+            // The next bounce's set: its first number also decides alpha holes.
+            let [ud0, ud1, ..] = px.sampler.get4(2 * depth + 2);
+            let Some(Scatter { hit, .. }) = scattering_hit(scene, tr, &mut ray, ud0, &mut passes)
             else {
                 break;
             };
@@ -463,7 +463,6 @@ impl PbgiIntegrator {
             }
             let [u_pick, ul0, ul1, u_lobe] = px.sampler.get4(2 * depth + 1);
             if s.bsdf.has_smooth_only() {
-                let [ud0, ud1, ..] = px.sampler.get4(2 * depth + 2);
                 let Some(bs) = s.bsdf.sample(s.wo_l, u_lobe, [ud0, ud1]) else {
                     break;
                 };
@@ -480,8 +479,8 @@ impl PbgiIntegrator {
                 continue;
             }
             let key = ((px.at as u64) << 20 ^ px.index as u64) ^ (self.seed as u64) << 52 ^ salt;
-            // The pixel's own sequence, as the path tracer's next bounce would take it.
-            let [ud0, ud1, ..] = px.sampler.get4(2 * depth + 2);
+            // The pixel's own sequence (`ud0`, `ud1`), as the path tracer's next bounce
+            // would take it.
             let rough = s.has_rough_lobes();
             let lobe = match rough {
                 true => s.lobe_ray(scene, tr, [u_lobe, ud0, ud1]),
