@@ -467,29 +467,18 @@ fn scene_files_with_degenerate_directions_or_cones_are_refused() {
         ("yfov_degrees = 0.0", "yfov_degrees 0"),
     ];
     let bunny = scene("bunny.ply");
+    let out = d.join("x.canopy");
+    let refused = |toml: &str| {
+        let path = write(d, "s.toml", toml.as_bytes());
+        fails(&["convert", s(&bunny), "-o", s(&out), "--scene", s(&path)])
+    };
     let base = "[[camera]]\nposition = [0.0, 0.0, 4.0]\nlook_at = [0.0, 0.0, 0.0]\n";
     for (line, expect) in cases {
-        let toml = write(d, "s.toml", format!("{base}{line}\n").as_bytes());
-        let err = fails(&[
-            "convert",
-            s(&bunny),
-            "-o",
-            s(&d.join("x.canopy")),
-            "--scene",
-            s(&toml),
-        ]);
+        let err = refused(&format!("{base}{line}\n"));
         assert!(err.contains(expect), "{line}: {err}");
     }
     let spot = "[[light]]\ntype = \"spot\"\nposition = [0.0, 1.0, 0.0]\nouter_cone_degrees = 0.0\n";
-    let toml = write(d, "s.toml", spot.as_bytes());
-    let err = fails(&[
-        "convert",
-        s(&bunny),
-        "-o",
-        s(&d.join("x.canopy")),
-        "--scene",
-        s(&toml),
-    ]);
+    let err = refused(spot);
     assert!(err.contains("outer 0°"), "{err}");
     assert!(!d.join("x.canopy").exists());
 }
