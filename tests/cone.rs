@@ -572,6 +572,80 @@ fn max_depth_counts_segments_as_the_path_tracer_does() {
 #[test]
 fn a_flat_floor_under_uniform_light_shows_no_cell_pattern() {
     let dir = tempfile::tempdir().unwrap();
+    let arc = obj_scene(dir.path(), &lamp_ceiling_box(), "f.canopy");
+    let (truth, _) = render(
+        &arc,
+        &dir.path().join("p.exr"),
+        &["--spp", "256", "--seed", "3"],
+    );
+    let runs: Vec<_> = (4..8)
+        .map(|seed| {
+            let out = dir.path().join(format!("c{seed}.exr"));
+            cone(&arc, &out, &["--spp", "64", "--seed", &seed.to_string()]).0
+        })
+        .collect();
+    let cells = floor_cells(&arc);
+    let grey = |img: &canopy::image::Image, i: usize| {
+        (0..3).map(|c| img.pixels[i][c] as f64).sum::<f64>() / 3.0
+    };
+    // Mean and variance of the mean of an image's pixels over one cell.
+    let stats = |img: &canopy::image::Image, px: &[usize]| {
+        let n = px.len() as f64;
+        let mean = px.iter().map(|&i| grey(img, i)).sum::<f64>() / n;
+        let var = px
+            .iter()
+            .map(|&i| (grey(img, i) - mean).powi(2))
+            .sum::<f64>()
+            / (n - 1.0);
+        (mean, var / n)
+    };
+    let r = runs.len() as f64;
+    let per_cell: Vec<_> = cells
+        .values()
+        .filter(|px| px.len() >= 16)
+        .map(|px| {
+            let (t, t_var) = stats(&truth, px);
+            let (d, c_var): (Vec<f64>, Vec<f64>) = runs
+                .iter()
+                .map(|img| stats(img, px))
+                .map(|(m, v)| (m - t, v))
+                .unzip();
+            let mean = d.iter().sum::<f64>() / r;
+            let between = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (r - 1.0);
+            // Its pixels' own noise, and how far the renders' spread exceeds it.
+            let own = c_var.iter().sum::<f64>() / r;
+            (mean, t_var, own, between - own)
+        })
+        .collect();
+    assert!(
+        per_cell.len() >= 100,
+        "{} whole cells on screen",
+        per_cell.len()
+    );
+    // The shared part, pooled over cells (the light is nearly uniform).
+    let shared = (per_cell.iter().map(|c| c.3).sum::<f64>() / per_cell.len() as f64).max(0.0);
+    let z: Vec<f64> = per_cell
+        .iter()
+        .map(|&(mean, t_var, own, _)| mean / ((own + shared) / r + t_var).sqrt())
+        .collect();
+    let floor = truth.mean().iter().sum::<f64>() / 3.0;
+    let own = per_cell.iter().map(|c| c.2).sum::<f64>() / per_cell.len() as f64;
+    let chi = z.iter().map(|v| v * v).sum::<f64>() / z.len() as f64;
+    let worst = z.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    // Under no cell pattern each z is about a unit normal: over ~200 cells the largest
+    // |z| stays under 4.5 and their mean square near 1.
+    assert!(
+        worst < 4.5 && chi < 1.6,
+        "{} cells, image mean {floor:.3}, a cell's mean error's standard deviation {:.2e} from its pixels and {:.2e} shared: largest |mean error / its standard error| {worst:.2}, mean square {chi:.2}",
+        z.len(),
+        own.sqrt(),
+        shared.sqrt()
+    );
+}
+
+/// The files of a 4 m box of white walls with a grey floor under a ceiling that is all
+/// lamp, seen from under the lamp looking down.
+fn lamp_ceiling_box() -> [(&'static str, String); 4] {
     let quad = |v: [[f32; 3]; 4]| {
         let vs: String = v
             .iter()
@@ -585,7 +659,7 @@ fn a_flat_floor_under_uniform_light_shows_no_cell_pattern() {
         [[-2., 0., -2.], [-2., 0., 2.], [-2., 2., 2.], [-2., 2., -2.]],
         [[2., 0., -2.], [2., 0., 2.], [2., 2., 2.], [2., 2., -2.]],
     ];
-    let files = [
+    [
         (
             "floor.obj",
             quad([[-2., 0., -2.], [-2., 0., 2.], [2., 0., 2.], [2., 0., -2.]]),
@@ -646,22 +720,13 @@ double_sided = false
 "#
             .into(),
         ),
-    ];
-    let arc = obj_scene(dir.path(), &files, "f.canopy");
-    let (truth, _) = render(
-        &arc,
-        &dir.path().join("p.exr"),
-        &["--spp", "256", "--seed", "3"],
-    );
-    let runs: Vec<_> = (4..8)
-        .map(|seed| {
-            let out = dir.path().join(format!("c{seed}.exr"));
-            cone(&arc, &out, &["--spp", "64", "--seed", &seed.to_string()]).0
-        })
-        .collect();
-    // Each pixel's light cell: the store key its centre and corners hit (pixels on a
-    // cell border are left out).
-    let archive = Arc::new(Archive::open(&arc).unwrap());
+    ]
+}
+
+/// Each floor pixel's light cell: the store key its centre and corners hit (pixels on a
+/// cell border are left out).
+fn floor_cells(arc: &std::path::Path) -> std::collections::HashMap<u64, Vec<usize>> {
+    let archive = Arc::new(Archive::open(arc).unwrap());
     let keys = canopy::radiance::Keys::new(&archive.header).unwrap();
     let camera = canopy::camera::Camera::new(&archive.cameras[0], 128, 128);
     let cache = PageCache::new(Arc::clone(&archive), None, 1).unwrap();
@@ -692,62 +757,7 @@ double_sided = false
             }
         }
     }
-    let grey = |img: &canopy::image::Image, i: usize| {
-        (0..3).map(|c| img.pixels[i][c] as f64).sum::<f64>() / 3.0
-    };
-    // Mean and variance of the mean of an image's pixels over one cell.
-    let stats = |img: &canopy::image::Image, px: &[usize]| {
-        let n = px.len() as f64;
-        let mean = px.iter().map(|&i| grey(img, i)).sum::<f64>() / n;
-        let var = px
-            .iter()
-            .map(|&i| (grey(img, i) - mean).powi(2))
-            .sum::<f64>()
-            / (n - 1.0);
-        (mean, var / n)
-    };
-    let r = runs.len() as f64;
-    let per_cell: Vec<_> = cells
-        .values()
-        .filter(|px| px.len() >= 16)
-        .map(|px| {
-            let (t, t_var) = stats(&truth, px);
-            let (d, c_var): (Vec<f64>, Vec<f64>) = runs
-                .iter()
-                .map(|img| stats(img, px))
-                .map(|(m, v)| (m - t, v))
-                .unzip();
-            let mean = d.iter().sum::<f64>() / r;
-            let between = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (r - 1.0);
-            // Its pixels' own noise, and how far the renders' spread exceeds it.
-            let own = c_var.iter().sum::<f64>() / r;
-            (mean, t_var, own, between - own)
-        })
-        .collect();
-    assert!(
-        per_cell.len() >= 100,
-        "{} whole cells on screen",
-        per_cell.len()
-    );
-    // The shared part, pooled over cells (the light is nearly uniform).
-    let shared = (per_cell.iter().map(|c| c.3).sum::<f64>() / per_cell.len() as f64).max(0.0);
-    let z: Vec<f64> = per_cell
-        .iter()
-        .map(|&(mean, t_var, own, _)| mean / ((own + shared) / r + t_var).sqrt())
-        .collect();
-    let floor = truth.mean().iter().sum::<f64>() / 3.0;
-    let own = per_cell.iter().map(|c| c.2).sum::<f64>() / per_cell.len() as f64;
-    let chi = z.iter().map(|v| v * v).sum::<f64>() / z.len() as f64;
-    let worst = z.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-    // Under no cell pattern each z is about a unit normal: over ~200 cells the largest
-    // |z| stays under 4.5 and their mean square near 1.
-    assert!(
-        worst < 4.5 && chi < 1.6,
-        "{} cells, image mean {floor:.3}, a cell's mean error's standard deviation {:.2e} from its pixels and {:.2e} shared: largest |mean error / its standard error| {worst:.2}, mean square {chi:.2}",
-        z.len(),
-        own.sqrt(),
-        shared.sqrt()
-    );
+    cells
 }
 
 /// A placed leaf triangle: (leaf's global number, slot, triangle, (instance, page, the

@@ -115,7 +115,9 @@ impl PbgiIntegrator {
                 sc.put(target, k, t, id, l, sampled);
             }
         }
-        self.traced_texels.fetch_add(sc.rays.len() as u64, Relaxed);
+        self.tally
+            .traced_texels
+            .fetch_add(sc.rays.len() as u64, Relaxed);
     }
 
     /// Fills the adaptive micro-buffer's new leaves, whose rays are in `sc.rays`, after a
@@ -223,9 +225,9 @@ impl PbgiIntegrator {
                 None => {}
             }
         }
-        self.gap_rays.fetch_add(gaps, Relaxed);
-        self.near_fragments.fetch_add(fragments, Relaxed);
-        self.exact_hits.fetch_add(exact, Relaxed);
+        self.tally.gap_rays.fetch_add(gaps, Relaxed);
+        self.tally.near_fragments.fetch_add(fragments, Relaxed);
+        self.tally.exact_hits.fetch_add(exact, Relaxed);
     }
 
     /// Walks the hierarchy from the nodes on `sc.stack`: far nodes are splatted, near
@@ -285,7 +287,7 @@ impl PbgiIntegrator {
                 NodeRef::Instance(_) => {}
             }
         }
-        self.splatted.fetch_add(splatted, Relaxed);
+        self.tally.splatted.fetch_add(splatted, Relaxed);
     }
 
     /// Node i of `page` (bounding sphere c, r) as one splat seen from p, when its sphere
@@ -382,7 +384,9 @@ impl PbgiIntegrator {
                 NodeRef::Instance(_) => {}
             }
         }
-        self.splatted.fetch_add(field.far.len() as u64, Relaxed);
+        self.tally
+            .splatted
+            .fetch_add(field.far.len() as u64, Relaxed);
         field
     }
 
@@ -425,7 +429,7 @@ impl PbgiIntegrator {
                 out[i] += q.beta * gathered;
             }
         }
-        self.clusters.fetch_add(p.len() as u64, Relaxed);
+        self.tally.clusters.fetch_add(p.len() as u64, Relaxed);
         out.into_iter()
             .map(|l| {
                 c.paths += 1;

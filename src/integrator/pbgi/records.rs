@@ -225,6 +225,7 @@ impl PbgiIntegrator {
     /// samples, the pixels' further ones counted).
     pub(super) fn reuse_target(&self, pass: &Pass, variance: f64) -> f32 {
         let further = self
+            .tally
             .further_samples
             .load(std::sync::atomic::Ordering::Relaxed);
         let samples = pass.first as f64 * self.window_pixels() as f64 + further as f64;

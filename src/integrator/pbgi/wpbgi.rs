@@ -136,10 +136,13 @@ impl PbgiIntegrator {
                 self.refill_leaves(scene, tr, &turned, sc, strata, &nodes);
                 incident = sc.amb.resolve();
             }
-            self.amb_leaves
+            self.tally
+                .amb_leaves
                 .fetch_add(sc.amb.leaf_count() as u64, Relaxed);
-            self.light_splits.fetch_add(sc.amb.light_splits, Relaxed);
-            self.wavelet_gathers.fetch_add(1, Relaxed);
+            self.tally
+                .light_splits
+                .fetch_add(sc.amb.light_splits, Relaxed);
+            self.tally.wavelet_gathers.fetch_add(1, Relaxed);
             Incident {
                 faces: sc.amb.faces(&incident),
                 depth: sc.amb.harmonic_depth(),

@@ -1,0 +1,201 @@
+//! Reading a glTF file: the JSON or GLB container, its buffers (embedded, data URIs or
+//! side files, each bounded) and the checks on images, primitives and accessors.
+
+use anyhow::{anyhow, bail, Context, Result};
+use std::path::Path;
+
+/// Largest external buffer or `.gltf` JSON read.
+const MAX_SIDE_FILE: u64 = 16 << 30;
+
+/// Parses the document (the gltf crate's validation runs after our own index checks, as
+/// one of its hooks indexes accessors unchecked) and loads its buffers, each checked
+/// against its declared length. Images are never read: textures are not stored.
+pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Vec<u8>>)> {
+    let bytes = crate::import::read_regular(path, u64::MAX, "glTF file")?;
+    let bad = |e: &dyn std::fmt::Display| anyhow!("{}: not a valid glTF file: {e}", path.display());
+    let g = gltf::Gltf::from_slice_without_validation(&bytes).map_err(|e| bad(&e))?;
+    let blob = g.blob;
+    let json = g.document.into_json();
+    for (mi, m) in json.meshes.iter().enumerate() {
+        for (pi, p) in m.primitives.iter().enumerate() {
+            let refs = p.attributes.values().chain(p.indices.as_ref());
+            if let Some(a) = refs.map(|a| a.value()).find(|&a| a >= json.accessors.len()) {
+                bail!(
+                    "{}: mesh {mi} primitive {pi} names accessor {a} of {}",
+                    path.display(),
+                    json.accessors.len()
+                );
+            }
+        }
+    }
+    check_images(&json).map_err(|e| anyhow!("{}: {e}", path.display()))?;
+    let doc = gltf::Document::from_json(json).map_err(|e| bad(&e))?;
+    let dir = path.parent().unwrap_or(Path::new("."));
+    let buffers = doc
+        .buffers()
+        .map(|b| load_buffer(&b, blob.as_deref(), dir))
+        .collect::<Result<Vec<_>>>()
+        .with_context(|| path.display().to_string())?;
+    Ok((doc, buffers))
+}
+
+/// Every texture's image and sampler exist, and every image names a buffer view in range
+/// with its MIME type, or a URI (the gltf crate's accessors unwrap these).
+fn check_images(json: &gltf::json::Root) -> Result<()> {
+    for (i, t) in json.textures.iter().enumerate() {
+        if t.source.value() >= json.images.len() {
+            bail!(
+                "texture {i} names image {} of {}",
+                t.source.value(),
+                json.images.len()
+            );
+        }
+        if let Some(s) = t.sampler.filter(|s| s.value() >= json.samplers.len()) {
+            bail!(
+                "texture {i} names sampler {} of {}",
+                s.value(),
+                json.samplers.len()
+            );
+        }
+    }
+    for (i, im) in json.images.iter().enumerate() {
+        match (&im.buffer_view, &im.mime_type, &im.uri) {
+            (Some(v), Some(_), _) if v.value() < json.buffer_views.len() => {}
+            (Some(v), _, _) => bail!(
+                "image {i}: buffer view {} of {} (with a MIME type) required",
+                v.value(),
+                json.buffer_views.len()
+            ),
+            (None, _, Some(_)) => {}
+            (None, _, None) => bail!("image {i} has neither a URI nor a buffer view"),
+        }
+    }
+    Ok(())
+}
+
+/// The bytes of a base64 `data:` URI.
+pub(super) fn data_uri(uri: &str) -> Result<Vec<u8>> {
+    use base64::Engine;
+    let (_, payload) = uri
+        .split_once(";base64,")
+        .ok_or_else(|| anyhow!("a data URI that is not base64"))?;
+    base64::engine::general_purpose::STANDARD
+        .decode(payload)
+        .map_err(|e| anyhow!("bad base64 data: {e}"))
+}
+
+/// The file name a URI gives, percent-decoded; refused unless relative (no scheme).
+pub(super) fn relative_file(uri: &str) -> Result<String> {
+    let name = urlencoding::decode(uri).map_err(|_| anyhow!("URI {uri:?} is not UTF-8"))?;
+    if name.contains(':') {
+        bail!("URI {uri:?} is not a relative file name");
+    }
+    Ok(name.into_owned())
+}
+
+/// One buffer's bytes: the GLB BIN chunk (its length the declared one, padded by at most 3
+/// bytes, as the GLB spec writes it), a base64 data URI, or a regular file beside the glTF.
+fn load_buffer(b: &gltf::Buffer, blob: Option<&[u8]>, dir: &Path) -> Result<Vec<u8>> {
+    let want = b.length();
+    let i = b.index();
+    let mut data = match b.source() {
+        gltf::buffer::Source::Bin => {
+            let bin = blob.ok_or_else(|| anyhow!("buffer {i} refers to a missing BIN chunk"))?;
+            if bin.len() < want || bin.len() > want + 3 {
+                bail!(
+                    "buffer {i} declares {want} bytes, the BIN chunk holds {}",
+                    bin.len()
+                );
+            }
+            bin.to_vec()
+        }
+        gltf::buffer::Source::Uri(uri) if uri.starts_with("data:") => {
+            data_uri(uri).map_err(|e| anyhow!("buffer {i}: {e}"))?
+        }
+        gltf::buffer::Source::Uri(uri) => {
+            let name = relative_file(uri).map_err(|e| anyhow!("buffer {i}: {e}"))?;
+            crate::import::read_regular(&dir.join(&name), MAX_SIDE_FILE, "glTF buffer")?
+        }
+    };
+    if data.len() < want {
+        bail!("buffer {i} declares {want} bytes but holds {}", data.len());
+    }
+    data.truncate(want);
+    Ok(data)
+}
+
+/// The accessors a primitive's triangles are read from, checked before the gltf crate reads
+/// them (`check_accessor`).
+pub(super) fn check_primitive(prim: &gltf::Primitive) -> Result<()> {
+    use gltf::accessor::{DataType, Dimensions};
+    use gltf::Semantic;
+    let mut wanted: Vec<(gltf::Accessor, &str, &[DataType], Dimensions)> = Vec::new();
+    for (sem, a) in prim.attributes() {
+        match sem {
+            Semantic::Positions => wanted.push((a, "POSITION", &[DataType::F32], Dimensions::Vec3)),
+            Semantic::Normals => wanted.push((a, "NORMAL", &[DataType::F32], Dimensions::Vec3)),
+            _ => {}
+        }
+    }
+    if let Some(a) = prim.indices() {
+        let ints: &[DataType] = &[DataType::U8, DataType::U16, DataType::U32];
+        wanted.push((a, "indices", ints, Dimensions::Scalar));
+    }
+    for (a, name, types, dims) in wanted {
+        check_accessor(&a, &format!("{name} accessor {}", a.index()), types, dims)?;
+    }
+    Ok(())
+}
+
+/// An accessor checked before the gltf crate reads it: a type the spec allows, no sparse
+/// storage, every element inside its buffer view and the view inside its buffer.
+pub(super) fn check_accessor(
+    a: &gltf::Accessor,
+    what: &str,
+    types: &[gltf::accessor::DataType],
+    dims: gltf::accessor::Dimensions,
+) -> Result<()> {
+    if !types.contains(&a.data_type()) || a.dimensions() != dims || a.normalized() {
+        bail!(
+            "{what} is {:?} {:?}{}, the spec requires {dims:?} of {types:?}",
+            a.dimensions(),
+            a.data_type(),
+            if a.normalized() { " normalized" } else { "" }
+        );
+    }
+    if a.sparse().is_some() {
+        bail!("{what} is sparse, which Canopy does not read");
+    }
+    let Some(view) = a.view() else {
+        bail!("{what} has no buffer view");
+    };
+    let elem = a.size();
+    let stride = view.stride().unwrap_or(elem);
+    if stride < elem || stride % a.data_type().size() != 0 {
+        bail!(
+            "{what}: buffer view {} stride {stride} for {elem}-byte elements",
+            view.index()
+        );
+    }
+    let need = match a.count() {
+        0 => 0,
+        n => a.offset() as u128 + stride as u128 * (n as u128 - 1) + elem as u128,
+    };
+    if need > view.length() as u128 {
+        bail!(
+            "{what}: {} elements need {need} bytes of buffer view {}, which has {}",
+            a.count(),
+            view.index(),
+            view.length()
+        );
+    }
+    if view.offset() as u128 + view.length() as u128 > view.buffer().length() as u128 {
+        bail!(
+            "buffer view {} ends past buffer {}'s {} bytes",
+            view.index(),
+            view.buffer().index(),
+            view.buffer().length()
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,206 @@
+//! glTF materials: metallic-roughness with the KHR extensions Canopy models, their
+//! texture sources and UV transforms.
+
+use super::files::{data_uri, relative_file};
+use crate::import::{SceneDesc, TextureSource};
+use anyhow::{anyhow, bail, Context, Result};
+use canopy_format::{name_bytes, MaterialRecord, TextureRecord};
+use std::path::Path;
+
+/// How a material's texture coordinates are read: the set, then KHR_texture_transform's
+/// matrix (translation · rotation · scale, rows of a 2×3 affine map).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct UvMap {
+    pub(super) set: u32,
+    pub(super) m: [[f32; 3]; 2],
+}
+
+/// The material record, its textures added to `scene`, and how its texture coordinates are
+/// read. All textures of a material share one coordinate set and transform (the archive
+/// stores one set per vertex); a material that mixes them is refused.
+pub(super) fn material(
+    m: &gltf::Material,
+    scene: &mut SceneDesc,
+    buffers: &[Vec<u8>],
+    dir: &Path,
+) -> Result<(MaterialRecord, Option<UvMap>)> {
+    let pbr = m.pbr_metallic_roughness();
+    let strength = m.emissive_strength().unwrap_or(1.0);
+    let spec = m.specular();
+    let normal = m.normal_texture();
+    let textured = pbr.base_color_texture().is_some()
+        || pbr.metallic_roughness_texture().is_some()
+        || m.emissive_texture().is_some()
+        || normal.is_some();
+    let mut flags = 0;
+    if m.double_sided() {
+        flags |= MaterialRecord::DOUBLE_SIDED;
+    }
+    if textured {
+        flags |= MaterialRecord::TEXTURED;
+    }
+    match m.alpha_mode() {
+        gltf::material::AlphaMode::Mask => flags |= MaterialRecord::ALPHA_MASK,
+        gltf::material::AlphaMode::Blend => flags |= MaterialRecord::ALPHA_BLEND,
+        gltf::material::AlphaMode::Opaque => {}
+    }
+    let mut textures = [MaterialRecord::NO_TEXTURE; 4];
+    let mut uv: Option<UvMap> = None;
+    pub(super) fn info(i: gltf::texture::Info<'_>) -> (Result<UvMap>, gltf::Texture<'_>) {
+        (Ok(UvMap::of(&i)), i.texture())
+    }
+    let slots = [
+        (
+            MaterialRecord::BASE_COLOR,
+            pbr.base_color_texture().map(info),
+            true,
+        ),
+        (
+            MaterialRecord::METALLIC_ROUGHNESS,
+            pbr.metallic_roughness_texture().map(info),
+            false,
+        ),
+        (
+            MaterialRecord::EMISSIVE,
+            m.emissive_texture().map(info),
+            true,
+        ),
+        (
+            MaterialRecord::NORMAL,
+            normal.as_ref().map(|n| (UvMap::of_normal(n), n.texture())),
+            false,
+        ),
+    ];
+    for (slot, found, srgb) in slots {
+        let Some((map, texture)) = found else {
+            continue;
+        };
+        let map = map?;
+        if uv.is_some_and(|u| u != map) {
+            bail!("its textures use different texture coordinates or transforms (Canopy stores one set per vertex)");
+        }
+        uv = Some(map);
+        textures[slot] = scene.add_texture(texture_source(&texture, srgb, buffers, dir)?)?;
+    }
+    let rec = MaterialRecord {
+        name: name_bytes(m.name().unwrap_or("")),
+        base_color: pbr.base_color_factor(),
+        emission: m.emissive_factor().map(|e| e * strength),
+        metallic: pbr.metallic_factor(),
+        roughness: pbr.roughness_factor(),
+        ior: m.ior().unwrap_or(1.5),
+        transmission: m
+            .transmission()
+            .map(|t| t.transmission_factor())
+            .unwrap_or(0.0),
+        specular: spec.as_ref().map(|s| s.specular_factor()).unwrap_or(1.0),
+        specular_color: spec
+            .as_ref()
+            .map(|s| s.specular_color_factor())
+            .unwrap_or([1.0; 3]),
+        flags,
+        textures,
+        alpha_cutoff: m.alpha_cutoff().unwrap_or(0.5),
+        normal_scale: normal.as_ref().map_or(0.0, |n| n.scale()),
+    };
+    Ok((rec, uv))
+}
+
+/// Where a glTF texture's image is: a buffer view, a data URI or a file beside the glTF.
+pub(super) fn texture_source(
+    t: &gltf::Texture,
+    srgb: bool,
+    buffers: &[Vec<u8>],
+    dir: &Path,
+) -> Result<TextureSource> {
+    use gltf::texture::WrappingMode;
+    let wrap = |w: WrappingMode| match w {
+        WrappingMode::Repeat => TextureRecord::WRAP_REPEAT,
+        WrappingMode::ClampToEdge => TextureRecord::WRAP_CLAMP,
+        WrappingMode::MirroredRepeat => TextureRecord::WRAP_MIRROR,
+    };
+    let sampler = t.sampler();
+    let image = t.source();
+    let mut src = TextureSource {
+        file: None,
+        bytes: None,
+        name: image.name().unwrap_or("").to_string(),
+        srgb,
+        wrap: [wrap(sampler.wrap_s()), wrap(sampler.wrap_t())],
+    };
+    match image.source() {
+        gltf::image::Source::View { view, .. } => {
+            let data = buffers
+                .get(view.buffer().index())
+                .and_then(|b| b.get(view.offset()..view.offset().checked_add(view.length())?))
+                .ok_or_else(|| {
+                    anyhow!(
+                        "image {}: its buffer view lies outside its buffer",
+                        image.index()
+                    )
+                })?;
+            src.bytes = Some(std::sync::Arc::new(data.to_vec()));
+            if src.name.is_empty() {
+                src.name = format!("image {}", image.index());
+            }
+        }
+        gltf::image::Source::Uri { uri, .. } if uri.starts_with("data:") => {
+            let data = data_uri(uri).map_err(|e| anyhow!("image {}: {e}", image.index()))?;
+            src.bytes = Some(std::sync::Arc::new(data));
+            if src.name.is_empty() {
+                src.name = format!("image {}", image.index());
+            }
+        }
+        gltf::image::Source::Uri { uri, .. } => {
+            let name = relative_file(uri).map_err(|e| anyhow!("image {}: {e}", image.index()))?;
+            src.name = name.rsplit('/').next().unwrap_or(&name).to_string();
+            src.file = Some(dir.join(&name));
+        }
+    }
+    Ok(src)
+}
+
+impl UvMap {
+    pub(super) fn of(info: &gltf::texture::Info) -> UvMap {
+        match info.texture_transform() {
+            Some(t) => UvMap::new(
+                t.tex_coord().unwrap_or(info.tex_coord()),
+                t.offset(),
+                t.rotation(),
+                t.scale(),
+            ),
+            None => UvMap::new(info.tex_coord(), [0.0; 2], 0.0, [1.0; 2]),
+        }
+    }
+
+    /// The gltf crate gives a normal texture's KHR_texture_transform only as JSON.
+    pub(super) fn of_normal(n: &gltf::material::NormalTexture) -> Result<UvMap> {
+        use gltf::json::extensions::texture::TextureTransform;
+        Ok(match n.extension_value("KHR_texture_transform") {
+            Some(v) => {
+                let t: TextureTransform = serde_json::from_value(v.clone())
+                    .context("normalTexture's KHR_texture_transform")?;
+                UvMap::new(
+                    t.tex_coord.unwrap_or(n.tex_coord()),
+                    t.offset.0,
+                    t.rotation.0,
+                    t.scale.0,
+                )
+            }
+            None => UvMap::new(n.tex_coord(), [0.0; 2], 0.0, [1.0; 2]),
+        })
+    }
+
+    /// KHR_texture_transform: translation · rotation · scale.
+    pub(super) fn new(set: u32, [ox, oy]: [f32; 2], r: f32, [sx, sy]: [f32; 2]) -> UvMap {
+        let (s, c) = r.sin_cos();
+        UvMap {
+            set,
+            m: [[c * sx, s * sy, ox], [-s * sx, c * sy, oy]],
+        }
+    }
+
+    pub(super) fn apply(&self, [u, v]: [f32; 2]) -> [f32; 2] {
+        self.m.map(|r| r[0] * u + r[1] * v + r[2])
+    }
+}

@@ -1,0 +1,381 @@
+//! glTF 2.0 (.gltf/.glb): mesh primitives under the default scene with node transforms
+//! applied, meshes placed more than once stored once with their instances (unless the sink
+//! flattens), perspective cameras, metallic-roughness materials with the
+//! KHR extensions Canopy models, and KHR_lights_punctual.
+
+use super::{make_tri, SceneDesc, TriangleSink};
+use anyhow::{anyhow, bail, Result};
+use canopy_format::MaterialRecord;
+use glam::{Mat3, Mat4, Vec3};
+use gltf::mesh::Mode;
+use std::path::Path;
+
+mod files;
+mod material;
+mod view;
+use files::{check_accessor, check_primitive, load};
+use material::{material, UvMap};
+use view::{camera, punctual, render_size};
+
+pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -> Result<u64> {
+    let (doc, buffers) = load(path)?;
+    let (width, height) = render_size(&doc);
+    let base = scene.materials.len() as u32;
+    let dir = path.parent().unwrap_or(Path::new("."));
+    let mut uv_maps = Vec::new();
+    for m in doc.materials() {
+        let named = |e: anyhow::Error| {
+            anyhow!(
+                "{}: material '{}': {e}",
+                path.display(),
+                m.name().unwrap_or("?")
+            )
+        };
+        let (rec, uv) = material(&m, scene, &buffers, dir).map_err(named)?;
+        if rec.flags & MaterialRecord::TEXTURED != 0 {
+            scene.textured = true;
+        }
+        scene.add_material(rec)?;
+        uv_maps.push(uv);
+    }
+    let mut default_mat = None;
+    let gscene = doc
+        .default_scene()
+        .or_else(|| doc.scenes().next())
+        .ok_or_else(|| anyhow!("{}: no scene", path.display()))?;
+    check_forest(&doc).map_err(|e| anyhow!("{}: {e}", path.display()))?;
+    let shared = shared_meshes(&doc, &buffers, scene, base, sink.shares_meshes());
+    let mut prototypes: Vec<Option<(u32, u64)>> = vec![None; doc.meshes().len()];
+    let mut count = 0u64;
+    // Depth-first pre-order, roots and children in the order the file lists them: cameras,
+    // lights and triangles keep the file's order (FORMAT.md states it).
+    let mut stack: Vec<(gltf::Node, Mat4)> = gscene.nodes().map(|n| (n, Mat4::IDENTITY)).collect();
+    stack.reverse();
+    let mut seen = vec![false; doc.nodes().len()];
+    while let Some((node, parent)) = stack.pop() {
+        if std::mem::replace(&mut seen[node.index()], true) {
+            bail!(
+                "{}: node {} is reached twice from the scene (glTF nodes form trees)",
+                path.display(),
+                node.index()
+            );
+        }
+        let world = parent * Mat4::from_cols_array_2d(&node.transform().matrix());
+        if !world.is_finite() {
+            bail!(
+                "{}: node '{}' has a non-finite transform",
+                path.display(),
+                node.name().unwrap_or("?")
+            );
+        }
+        let first = stack.len();
+        stack.extend(node.children().map(|child| (child, world)));
+        stack[first..].reverse();
+        if let Some(cam) = node.camera() {
+            if let Some(rec) = camera(&cam, &node, world, width, height) {
+                scene.cameras.push(rec);
+            }
+        }
+        if let Some(light) = node.light() {
+            scene.lights.push(punctual(&light, world));
+        }
+        let Some(mesh) = node.mesh() else { continue };
+        let named = |e: anyhow::Error| {
+            anyhow!(
+                "{}: node '{}': {e}",
+                path.display(),
+                node.name().unwrap_or("?")
+            )
+        };
+        let instances = gpu_instances(&doc, &node, &buffers).map_err(named)?;
+        if instances.iter().any(|i| !(world * *i).is_finite()) {
+            bail!(
+                "{}: node '{}' has an instance with a non-finite transform",
+                path.display(),
+                node.name().unwrap_or("?")
+            );
+        }
+        let mut m = MeshCtx {
+            path,
+            mesh: &mesh,
+            buffers: &buffers,
+            uv_maps: &uv_maps,
+            base,
+            default_mat: &mut default_mat,
+            scene,
+            sink,
+        };
+        if !shared[mesh.index()] {
+            for instance in instances {
+                count += m.push(world * instance)?;
+            }
+            continue;
+        }
+        let (proto, tris) = match prototypes[mesh.index()] {
+            Some(p) => p,
+            None => {
+                m.sink.begin_prototype()?;
+                m.push(Mat4::IDENTITY)?;
+                *prototypes[mesh.index()].insert(m.sink.end_prototype()?)
+            }
+        };
+        if tris == 0 {
+            continue;
+        }
+        for instance in instances {
+            let c = (world * instance).to_cols_array();
+            let to_world = std::array::from_fn(|i| c[i / 3 * 4 + i % 3]);
+            sink.instance(proto, to_world)?;
+            count += tris;
+        }
+    }
+    Ok(count)
+}
+
+/// Meshes to store once as prototypes: placed more than once (by several nodes or
+/// EXT_mesh_gpu_instancing) and emitting no light (the light sampler works on world-space
+/// emitters, so emissive meshes are flattened). None when the sink flattens.
+fn shared_meshes(
+    doc: &gltf::Document,
+    buffers: &[Vec<u8>],
+    scene: &SceneDesc,
+    base: u32,
+    sharing: bool,
+) -> Vec<bool> {
+    let mut uses = vec![0usize; doc.meshes().len()];
+    if sharing {
+        for node in doc.nodes() {
+            if let Some(m) = node.mesh() {
+                // A bad instancing extension is reported by the walk, naming the node.
+                uses[m.index()] += gpu_instances(doc, &node, buffers).map_or(1, |i| i.len());
+            }
+        }
+    }
+    doc.meshes()
+        .map(|mesh| {
+            uses[mesh.index()] >= 2
+                && mesh.primitives().all(|p| {
+                    p.material().index().is_none_or(|i| {
+                        scene.materials[base as usize + i]
+                            .emission
+                            .iter()
+                            .all(|&e| e <= 0.0)
+                    })
+                })
+        })
+        .collect()
+}
+
+/// One mesh's primitives pushed under a transform.
+struct MeshCtx<'a> {
+    path: &'a Path,
+    mesh: &'a gltf::Mesh<'a>,
+    buffers: &'a [Vec<u8>],
+    /// The file's first material in the scene's table.
+    /// Per glTF material, how its texture coordinates are read (None: untextured).
+    uv_maps: &'a [Option<UvMap>],
+    base: u32,
+    default_mat: &'a mut Option<u32>,
+    scene: &'a mut SceneDesc,
+    sink: &'a mut dyn TriangleSink,
+}
+
+impl MeshCtx<'_> {
+    /// Pushes every triangle of the mesh transformed by `world` (mirroring transforms
+    /// reverse the winding); returns how many.
+    fn push(&mut self, world: Mat4) -> Result<u64> {
+        let (path, mesh) = (self.path, self.mesh);
+        let normal_m = Mat3::from_mat4(world).inverse().transpose();
+        let flip = world.determinant() < 0.0;
+        let mut count = 0;
+        for (pi, prim) in mesh.primitives().enumerate() {
+            let what = |t: usize| {
+                format!(
+                    "{}: mesh '{}' primitive {pi} triangle {t}",
+                    path.display(),
+                    mesh.name().unwrap_or("?")
+                )
+            };
+            let mat = match (prim.material().index(), *self.default_mat) {
+                (Some(i), _) => self.base + i as u32,
+                (None, Some(m)) => m,
+                (None, None) => {
+                    let m = self
+                        .scene
+                        .add_material(super::default_material("default"))?;
+                    *self.default_mat.insert(m)
+                }
+            };
+            check_primitive(&prim).map_err(|e| anyhow!("{}: {e}", what(0)))?;
+            let buffers = self.buffers;
+            let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d[..]));
+            let Some(pos) = reader.read_positions() else {
+                continue;
+            };
+            let pos: Vec<Vec3> = pos.map(|p| world.transform_point3(Vec3::from(p))).collect();
+            let nrm: Option<Vec<Vec3>> = reader
+                .read_normals()
+                .map(|n| {
+                    n.map(|n| (normal_m * Vec3::from(n)).normalize_or_zero())
+                        .collect::<Vec<_>>()
+                })
+                .filter(|n| n.len() == pos.len());
+            if nrm.is_some() {
+                self.scene.has_normals = true;
+            }
+            let uv_map = prim.material().index().and_then(|i| self.uv_maps[i]);
+            let uvs: Option<Vec<[f32; 2]>> = match uv_map {
+                Some(map) => reader
+                    .read_tex_coords(map.set)
+                    .map(|t| t.into_f32().map(|uv| map.apply(uv)).collect::<Vec<_>>())
+                    .filter(|t| t.len() == pos.len()),
+                None => None,
+            };
+            if uvs.is_some() {
+                self.scene.has_uvs = true;
+            }
+            let idx: Vec<u32> = match reader.read_indices() {
+                Some(i) => i.into_u32().collect(),
+                None => (0..pos.len() as u32).collect(),
+            };
+            for (t, mut tri) in triangles(prim.mode(), &idx).enumerate() {
+                if flip {
+                    tri.swap(1, 2);
+                }
+                if let Some(&bad) = tri.iter().find(|&&i| i as usize >= pos.len()) {
+                    bail!(
+                        "{}: index {bad} out of range ({} vertices)",
+                        what(t),
+                        pos.len()
+                    );
+                }
+                let p = tri.map(|i| pos[i as usize].to_array());
+                let n = nrm.as_ref().map(|n| tri.map(|i| n[i as usize].to_array()));
+                let mut st = make_tri(p, n, mat, &|| what(t))?;
+                if let Some(uv) = &uvs {
+                    st.uv = tri.map(|i| uv[i as usize]);
+                    if st.uv.iter().flatten().any(|x| !x.is_finite()) {
+                        bail!("{}: non-finite texture coordinate {:?}", what(t), st.uv);
+                    }
+                }
+                self.sink.push(st)?;
+                count += 1;
+            }
+        }
+        Ok(count)
+    }
+}
+
+/// glTF nodes form a forest: no node is the child of two nodes or its own ancestor (the
+/// spec's rule; a DAG or a cycle would otherwise multiply or repeat instances without end).
+fn check_forest(doc: &gltf::Document) -> Result<()> {
+    let mut parent = vec![None; doc.nodes().len()];
+    for n in doc.nodes() {
+        for c in n.children() {
+            if let Some(p) = parent[c.index()].replace(n.index()) {
+                bail!(
+                    "node {} is a child of node {p} and again of node {} (glTF nodes form trees)",
+                    c.index(),
+                    n.index()
+                );
+            }
+        }
+    }
+    // Walk up from every node; a node on the current walk met again is a cycle. Nodes whose
+    // ancestry is known good end later walks, so the whole check is linear.
+    let mut state = vec![0u8; parent.len()]; // 0 unknown, 1 on the current walk, 2 good
+    let mut walk = Vec::new();
+    for start in 0..parent.len() {
+        let mut at = Some(start);
+        while let Some(i) = at.filter(|&i| state[i] != 2) {
+            if state[i] == 1 {
+                bail!("node {i} is its own ancestor");
+            }
+            state[i] = 1;
+            walk.push(i);
+            at = parent[i];
+        }
+        for i in walk.drain(..) {
+            state[i] = 2;
+        }
+    }
+    Ok(())
+}
+
+/// A node's EXT_mesh_gpu_instancing transforms (translation, rotation, scale per instance,
+/// in the node's space), or the identity alone.
+fn gpu_instances(
+    doc: &gltf::Document,
+    node: &gltf::Node,
+    buffers: &[Vec<u8>],
+) -> Result<Vec<Mat4>> {
+    use gltf::accessor::{DataType, Dimensions, Iter};
+    let Some(ext) = node.extension_value("EXT_mesh_gpu_instancing") else {
+        return Ok(vec![Mat4::IDENTITY]);
+    };
+    let accessor = |name: &str, dims| -> Result<Option<gltf::Accessor>> {
+        let Some(v) = ext["attributes"].get(name) else {
+            return Ok(None);
+        };
+        let a = v
+            .as_u64()
+            .and_then(|i| doc.accessors().nth(i as usize))
+            .ok_or_else(|| anyhow!("EXT_mesh_gpu_instancing {name}: {v} is not an accessor"))?;
+        check_accessor(
+            &a,
+            &format!("{name} accessor {}", a.index()),
+            &[DataType::F32],
+            dims,
+        )?;
+        Ok(Some(a))
+    };
+    let data = |b: gltf::Buffer| buffers.get(b.index()).map(|d| &d[..]);
+    let read3 = |a: Option<gltf::Accessor>| {
+        a.and_then(|a| Iter::<[f32; 3]>::new(a, data))
+            .map(|it| it.map(Vec3::from).collect::<Vec<_>>())
+    };
+    let t = read3(accessor("TRANSLATION", Dimensions::Vec3)?);
+    let s = read3(accessor("SCALE", Dimensions::Vec3)?);
+    let r: Option<Vec<glam::Quat>> = accessor("ROTATION", Dimensions::Vec4)?
+        .and_then(|a| Iter::<[f32; 4]>::new(a, data))
+        .map(|it| it.map(|q| glam::Quat::from_array(q).normalize()).collect());
+    let counts: Vec<usize> = [
+        t.as_ref().map(Vec::len),
+        r.as_ref().map(Vec::len),
+        s.as_ref().map(Vec::len),
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
+    let Some(&n) = counts.first() else {
+        bail!("EXT_mesh_gpu_instancing names no TRANSLATION, ROTATION or SCALE accessor");
+    };
+    if counts.iter().any(|&c| c != n) {
+        bail!("EXT_mesh_gpu_instancing accessors of {counts:?} elements (the spec requires one count)");
+    }
+    Ok((0..n)
+        .map(|i| {
+            Mat4::from_scale_rotation_translation(
+                s.as_ref().map_or(Vec3::ONE, |s| s[i]),
+                r.as_ref().map_or(glam::Quat::IDENTITY, |r| r[i]),
+                t.as_ref().map_or(Vec3::ZERO, |t| t[i]),
+            )
+        })
+        .collect())
+}
+
+/// Triangle index triples for a primitive's topology; points and lines give none.
+fn triangles(mode: Mode, idx: &[u32]) -> Box<dyn Iterator<Item = [u32; 3]> + '_> {
+    match mode {
+        Mode::Triangles => Box::new(idx.chunks_exact(3).map(|c| [c[0], c[1], c[2]])),
+        Mode::TriangleStrip => Box::new((2..idx.len()).map(move |i| {
+            if i % 2 == 0 {
+                [idx[i - 2], idx[i - 1], idx[i]]
+            } else {
+                [idx[i - 1], idx[i - 2], idx[i]]
+            }
+        })),
+        Mode::TriangleFan => Box::new((2..idx.len()).map(move |i| [idx[0], idx[i - 1], idx[i]])),
+        _ => Box::new(std::iter::empty()),
+    }
+}

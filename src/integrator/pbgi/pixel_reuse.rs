@@ -1,0 +1,388 @@
+//! Gathers shared between the samples of a pixel: each surface of a pixel gathers at its
+//! period, its other samples take the mean of its gathers once the render ends.
+
+use super::gather::Strata;
+use super::receiver::Pending;
+use super::surface::Surface;
+use super::PbgiIntegrator;
+use crate::material::luminance;
+use crate::moments::Moments;
+use crate::sampler::Hash;
+use crate::trace::{offset_origin, Ray, Tracer};
+use glam::Vec3A as V;
+use std::sync::atomic::Ordering::Relaxed;
+use std::sync::{Mutex, PoisonError};
+
+/// Irradiance gathers summed at one surface of a pixel.
+#[derive(Clone, Copy)]
+pub(super) struct Gathered {
+    /// The first gather's point and shading normal.
+    pub(super) p: V,
+    pub(super) n: V,
+    pub(super) sum: V,
+    /// The gathers' luminances (their count is the gathers'): their spread sets the
+    /// surface's period.
+    pub(super) y: Moments,
+    /// Samples that landed on it: it gathers at every `period`-th (at its pixel's
+    /// phase), and the pixel's first surface also at its first, so a surface's gathers
+    /// are in proportion to its share of the pixel's samples. One that has none yet
+    /// takes those of the surface whose normal is closest ([`crate::integrator::Integrator::held_back`]).
+    pub(super) samples: u32,
+    /// Σ path weight × diffuse lobe of the samples that take this surface's irradiance:
+    /// they are given the mean of all its gathers once the render ends
+    /// ([`crate::integrator::Integrator::held_back`]), not the mean of those made so far, which weighed a
+    /// pixel's first gathers most (on room at 8 gathers a pixel, as if it had 4.8).
+    pub(super) weight: V,
+    /// Its gathers are WPBGI's glossy light, not irradiance.
+    pub(super) glossy: bool,
+}
+
+impl Gathered {
+    /// Whether a receiver at `p` with normal `n` lies on this surface: normals within
+    /// 14° and `p` within `footprint` of its tangent plane, the gathers of the same kind.
+    pub(super) fn holds(&self, p: V, n: V, footprint: f32, glossy: bool) -> bool {
+        self.glossy == glossy
+            && self.n.dot(n) >= SAME_NORMAL
+            && (p - self.p).dot(self.n).abs() <= footprint
+    }
+
+    /// The variance a gather adds to one sample that takes it, in luminance: the
+    /// gathers' spread times the samples' mean weight, squared; None before two gathers.
+    pub(super) fn spread(&self) -> Option<f32> {
+        if self.y.count < 2 {
+            return None;
+        }
+        let var = self.y.variance() as f32;
+        let w = luminance(self.weight) / self.samples.max(1) as f32;
+        Some(w * w * var)
+    }
+
+    /// How often this surface gathers: every `most`-th sample (`--pbgi-reuse` R) until
+    /// its first gather, and until `PILOT_PERIOD` samples have landed on it; then every
+    /// `PILOT_PERIOD`-th until its second gather (a surface few samples hit is not worth
+    /// two), then at splitting's
+    /// optimum: a sample of variance v̄ and cost c_s, a gather of variance s²
+    /// (`spread`) and cost c_g shared by P samples, have variance × cost
+    /// (v̄ + s² P)(c_s + c_g / P), least at P = √(v̄ c_g / (s² c_s)) (`target` is
+    /// v̄ c_g / c_s), taken down to a power of two so that a longer period's samples are
+    /// a shorter one's, and at most R.
+    pub(super) fn period(&self, most: u64, target: f32) -> u64 {
+        let optimum = match (self.y.count, self.spread()) {
+            (0, _) => return most,
+            (_, None) if (self.samples as u64) < PILOT_PERIOD => return most,
+            (_, None) => return most.min(PILOT_PERIOD),
+            (_, Some(s2)) => (target / s2).sqrt(),
+        };
+        // No v̄ yet (a zero target) or a zero spread (an infinite optimum): R.
+        if !(optimum < most as f32 && target > 0.0) {
+            return most;
+        }
+        1 << (optimum.max(1.0) as u64).ilog2()
+    }
+}
+
+/// A surface's gather period between its first and second gathers, once this many
+/// samples landed on it, when `--pbgi-reuse` is longer: the two give the spread that sets
+/// the period after them.
+pub(super) const PILOT_PERIOD: u64 = 8;
+
+/// Samples of each pixel whose cached receivers are checked for a surface over them.
+pub(super) const PROBED_SAMPLES: u32 = 16;
+
+/// Surfaces a pixel keeps gathers for; samples on others gather without keeping them.
+pub(super) const SURFACES_PER_PIXEL: usize = 8;
+
+/// Two hits share gathers only when their shading normals are this close (14°).
+pub(super) const SAME_NORMAL: f32 = 0.97;
+
+/// Whether a surface lies over `s` within `reach` along its normal.
+pub(super) fn covered_over(tr: &mut Tracer, s: &Surface, reach: f32) -> bool {
+    let n = s.frame.n;
+    tr.occluded(&Ray {
+        o: offset_origin(s.p, s.err, s.ng, n),
+        d: n,
+        t_max: reach,
+    })
+}
+
+/// Where a receiver's irradiance comes from.
+#[derive(Clone, Copy)]
+pub(super) enum Reuse {
+    /// The cache's, at the receiver.
+    Cached(V),
+    /// The mean of (window) pixel's gathers on one of its surfaces, by index: given once
+    /// the render ends.
+    Pixel(usize, usize),
+    /// A gather of its own, this point of its surface's sequence.
+    Gather(Strata),
+}
+
+/// A receiver's light from its pixel, past the cache: the pixel's gathers on its surface
+/// (by pixel and surface index), or a gather of its own.
+pub(super) enum InPixel {
+    Lend(usize, usize),
+    Gather(Strata),
+}
+
+impl From<InPixel> for Reuse {
+    fn from(r: InPixel) -> Reuse {
+        match r {
+            InPixel::Lend(pixel, at) => Reuse::Pixel(pixel, at),
+            InPixel::Gather(strata) => Reuse::Gather(strata),
+        }
+    }
+}
+
+/// Bytes of a per-pixel table, in all and per pixel (none when it is empty: off).
+pub(super) fn per_pixel_bytes<T>(pixels: &[Mutex<T>]) -> [u64; 2] {
+    let per_pixel = match pixels.is_empty() {
+        true => 0,
+        false => size_of::<Mutex<T>>() as u64,
+    };
+    [per_pixel * pixels.len() as u64, per_pixel]
+}
+
+impl PbgiIntegrator {
+    /// The irradiance the cache holds at the receiver when nothing is over it within the
+    /// records' reach; else a gather of its own when its sample is its pixel's first or
+    /// falls at its surface's period (at the pixel's phase; [`Gathered::period`]); else
+    /// its surface's gathers, or, when the pixel keeps no more surfaces, those of the one
+    /// whose normal is closest to its own. A later surface's first gather waits for its
+    /// phase like the others: gathering at first sight doubled the gathers of a 60-s
+    /// render of sponza under the cut, whose gathers cost 1.6 ms each, for surfaces a few
+    /// samples hit. The period falls below `--pbgi-reuse` where a surface's gathers
+    /// scatter: the pixels the cache leaves to themselves on the showroom (the plinth's
+    /// top under the gold bunny, which sees the bunny's glossy reflection of the panel)
+    /// need a gather every few samples, not every 256th. It depends on earlier gathers
+    /// only; that they also enter the mean leaves a bias of order 1 / gathers.
+    pub(super) fn reuse(&self, tr: &mut Tracer, q: &Pending) -> Reuse {
+        if let Some((e, reach)) = self
+            .cache
+            .as_ref()
+            .and_then(|c| c.lookup(q.s.p, q.s.frame.n))
+        {
+            // A receiver with a surface over it nearer than the records' reach sits in a
+            // crevice they did not see (the gap between a ceiling and a lamp hung just
+            // below it, which the camera sees into at a grazing angle): it is left to
+            // gather for itself.
+            if !self.probes(q) || !covered_over(tr, &q.s, reach) {
+                return Reuse::Cached(e);
+            }
+            if let Some(f) = q.at.and_then(|(pixel, _)| self.crevices.get(pixel)) {
+                f.store(true, Relaxed);
+            }
+            self.tally.cache_rejects.fetch_add(1, Relaxed);
+        }
+        self.reuse_in_pixel(q, false).into()
+    }
+
+    /// A gather of the receiver's own, or its pixel's gathers on its surface, as `reuse`
+    /// decides past the cache; `glossy`: of WPBGI's glossy light.
+    pub(super) fn reuse_in_pixel(&self, q: &Pending, glossy: bool) -> InPixel {
+        let Some((pixel, footprint)) = q.at else {
+            return InPixel::Gather(Strata {
+                seed: q.key,
+                index: 0,
+            });
+        };
+        let Some(slot) = self.gathered.get(pixel) else {
+            // `--pbgi-reuse 1`: every sample gathers, the pixel's n-th sample its n-th.
+            return InPixel::Gather(self.pixel_strata(pixel, 0, q.sample));
+        };
+        let mut list = slot.lock().unwrap_or_else(PoisonError::into_inner);
+        let n = q.s.frame.n;
+        match list
+            .iter()
+            .position(|g| g.holds(q.s.p, n, footprint, glossy))
+        {
+            Some(i) => {
+                let g = &mut list[i];
+                // WPBGI's gathers keep one period: their light is heavy-tailed (rays
+                // meeting lamp-lit glossy surfaces), and a period set by the spread of a
+                // surface's first gathers sampled more where those had caught a bright
+                // tail, leaving the rest low (the showroom's floor −0.9% at 64 spp
+                // against −0.05% at a fixed 8).
+                let period = match glossy {
+                    true => (self.settings.reuse as u64).min(PILOT_PERIOD),
+                    false => g.period(self.settings.reuse as u64, self.reuse_target),
+                };
+                let k = g.samples as u64;
+                g.samples += 1;
+                // Each pixel's later gathers fall at its own phase of the period, so a pass
+                // does about 1/period of the pixels' gathers instead of all of them every
+                // period-th pass.
+                if (k + self.phase(pixel)).is_multiple_of(period) {
+                    return InPixel::Gather(self.pixel_strata(pixel, i, g.y.count as u32));
+                }
+                InPixel::Lend(pixel, i)
+            }
+            None if list.is_empty() => InPixel::Gather(self.pixel_strata(pixel, 0, 0)),
+            None if list.len() < SURFACES_PER_PIXEL => {
+                list.push(Gathered {
+                    p: q.s.p,
+                    n,
+                    sum: V::ZERO,
+                    y: Moments::default(),
+                    samples: 1,
+                    weight: V::ZERO,
+                    glossy,
+                });
+                let i = list.len() - 1;
+                if self.phase(pixel) == 0 {
+                    return InPixel::Gather(self.pixel_strata(pixel, i, 0));
+                }
+                InPixel::Lend(pixel, i)
+            }
+            None => {
+                let closest = (0..list.len())
+                    .filter(|&a| list[a].glossy == glossy)
+                    .max_by(|&a, &b| list[a].n.dot(n).total_cmp(&list[b].n.dot(n)));
+                match closest {
+                    Some(i) => InPixel::Lend(pixel, i),
+                    None => InPixel::Gather(self.pixel_strata(pixel, list.len(), 0)),
+                }
+            }
+        }
+    }
+
+    /// Adds `weight` to the weight of the pixel's `at`-th surface's gathers: the sample
+    /// takes their mean once the render ends.
+    pub(super) fn lend(&self, pixel: usize, at: usize, weight: V) {
+        self.tally.reused.fetch_add(1, Relaxed);
+        if let Some(slot) = self.gathered.get(pixel) {
+            let mut list = slot.lock().unwrap_or_else(PoisonError::into_inner);
+            if let Some(g) = list.get_mut(at) {
+                g.weight += weight;
+            }
+        }
+    }
+
+    /// The `index`-th gather on the `surface`-th surface a pixel keeps gathers for: each
+    /// surface's gathers are a sequence of their own.
+    pub(super) fn pixel_strata(&self, pixel: usize, surface: usize, index: u32) -> Strata {
+        let key = pixel as u64 ^ (self.seed as u64) << 32 ^ (surface as u64) << 56;
+        Strata {
+            seed: Hash::new(key ^ 0x5EED).u64(),
+            index,
+        }
+    }
+
+    /// Pixel `pixel`'s phase in `--pbgi-reuse`'s period: its gathers after the first fall
+    /// at the samples s with s + phase a multiple of the surface's period
+    /// ([`Gathered::period`]).
+    pub(super) fn phase(&self, pixel: usize) -> u64 {
+        let r = self.settings.reuse as u64;
+        Hash::new(pixel as u64 ^ (self.seed as u64) << 32).u64() % r
+    }
+
+    /// Whether a cached receiver is to be checked for a surface over it: in its pixel's
+    /// first `PROBED_SAMPLES` samples, and in every later one where such a check found
+    /// one. A pixel's samples run one per pass, so the flag is the same whatever the
+    /// thread count.
+    pub(super) fn probes(&self, q: &Pending) -> bool {
+        let flag = q.at.and_then(|(pixel, _)| self.crevices.get(pixel));
+        q.sample < PROBED_SAMPLES || flag.is_some_and(|f| f.load(Relaxed))
+    }
+
+    /// Adds a gather's irradiance `e` to its pixel's surface, with `weight` for the sample
+    /// that made it (see [`Gathered::weight`]); false when the pixel keeps no gathers or
+    /// none more, and the sample is to take `e` itself.
+    pub(super) fn keep(&self, q: &Pending, e: V, weight: V, glossy: bool) -> bool {
+        let Some((pixel, footprint)) = q.at else {
+            return false;
+        };
+        let Some(slot) = self.gathered.get(pixel) else {
+            return false;
+        };
+        let mut list = slot.lock().unwrap_or_else(PoisonError::into_inner);
+        let (p, n) = (q.s.p, q.s.frame.n);
+        let full = list.len() >= SURFACES_PER_PIXEL;
+        match list.iter_mut().find(|g| g.holds(p, n, footprint, glossy)) {
+            Some(g) => {
+                g.sum += e;
+                g.y.add(luminance(e));
+                g.weight += weight;
+            }
+            None if !full => list.push(Gathered {
+                p,
+                n,
+                sum: e,
+                y: Moments::of([luminance(e)]),
+                samples: 1,
+                weight,
+                glossy,
+            }),
+            None => return false,
+        }
+        true
+    }
+
+    /// The gathers kept per pixel.
+    pub(super) fn held_back_gathers(&self) -> Vec<(usize, V)> {
+        let pixel = |list: &Vec<Gathered>| {
+            let mean = |g: &Gathered| {
+                let gathered = list
+                    .iter()
+                    .filter(|o| o.y.count > 0 && o.glossy == g.glossy);
+                let closest = gathered.max_by(|a, b| a.n.dot(g.n).total_cmp(&b.n.dot(g.n)));
+                let from = if g.y.count > 0 { Some(g) } else { closest };
+                from.map_or(V::ZERO, |o| g.weight * o.sum / o.y.count as f32)
+            };
+            list.iter().map(mean).sum::<V>()
+        };
+        let lists = self
+            .gathered
+            .iter()
+            .map(|slot| pixel(&slot.lock().unwrap_or_else(PoisonError::into_inner)));
+        lists.enumerate().filter(|(_, l)| *l != V::ZERO).collect()
+    }
+}
+
+#[cfg(test)]
+mod period_tests {
+    use super::*;
+
+    /// A surface with `gathers` of luminance-grey irradiance `values`, hit by `samples`
+    /// samples of weight one each.
+    fn surface(values: &[f32], samples: u32) -> Gathered {
+        Gathered {
+            p: V::ZERO,
+            n: V::Z,
+            sum: values.iter().map(|&v| V::splat(v)).sum(),
+            y: Moments::of(values.iter().copied()),
+            samples,
+            weight: V::splat(samples as f32),
+            glossy: false,
+        }
+    }
+
+    /// The period is R until a surface's first gather and until `PILOT_PERIOD` samples
+    /// landed on it, `PILOT_PERIOD` until its second, then √(target / s²) taken down to a
+    /// power of two: shorter as the gathers scatter more, R where they agree or no
+    /// sample variance is known yet, never above R nor below 1.
+    #[test]
+    fn a_surfaces_gather_period_shortens_as_its_gathers_scatter() {
+        let r = 256;
+        assert_eq!(surface(&[], 40).period(r, 1.0), r);
+        assert_eq!(surface(&[1.0], 3).period(r, 1.0), r);
+        assert_eq!(surface(&[1.0], 9).period(r, 1.0), PILOT_PERIOD);
+        assert_eq!(surface(&[1.0], 9).period(4, 1.0), 4);
+        assert_eq!(surface(&[1.0, 1.0, 1.0], 40).period(r, 1.0), r);
+        assert_eq!(surface(&[1.0, 3.0], 40).period(r, 0.0), r);
+        // Spread s² = 2 (values 1 and 3): √(target / 2).
+        assert_eq!(surface(&[1.0, 3.0], 40).period(r, 2.0 * 100.0), 8);
+        assert_eq!(surface(&[1.0, 3.0], 40).period(r, 2.0 * 0.25), 1);
+        assert_eq!(surface(&[1.0, 3.0], 40).period(r, 2.0 * 1e9), r);
+        let mut last = r;
+        for spread in [0.01f32, 0.1, 1.0, 10.0, 100.0] {
+            let g = surface(&[1.0, 1.0 + spread, 1.0 - spread], 40);
+            let p = g.period(r, 50.0);
+            assert!(
+                p.is_power_of_two() && p <= last,
+                "{spread}: {p} after {last}"
+            );
+            last = p;
+        }
+        assert_eq!(last, 1);
+    }
+}
