@@ -3,7 +3,7 @@
 
 use crate::progress;
 use anyhow::Result;
-use canopy_format::radiance::RadianceFile;
+use canopy_format::bake::BakeFile;
 use canopy_format::{name_str, Archive, Features, Node, PageReport};
 use rayon::prelude::*;
 use serde::Serialize;
@@ -43,13 +43,13 @@ pub struct Summary {
     pub bounds_min: [f32; 3],
     pub bounds_max: [f32; 3],
     pub verified: bool,
-    /// The radiance file given with `--radiance`, checked against this archive.
+    /// The bake file given with `--bake`, checked against this archive.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub radiance: Option<RadianceSummary>,
+    pub bake: Option<BakeSummary>,
 }
 
 #[derive(Debug, Serialize)]
-pub struct RadianceSummary {
+pub struct BakeSummary {
     pub path: String,
     pub bounces: u32,
     pub samples_per_triangle: u32,
@@ -66,16 +66,11 @@ pub struct RadianceSummary {
     pub wavelet_threshold: f32,
 }
 
-/// What a radiance file holds; with `verify`, every block is decoded with its page and
+/// What a bake file holds; with `verify`, every block is decoded with its page and
 /// checked as a render checks it (values, pyramids, coefficients and the kinds the tree
 /// allows). With `budget`, a page and its block that one worker cannot hold within its
 /// share of it are refused before they are read.
-pub fn radiance(
-    a: &Archive,
-    r: &RadianceFile,
-    verify: bool,
-    budget: Option<u64>,
-) -> Result<RadianceSummary> {
+pub fn bake(a: &Archive, r: &BakeFile, verify: bool, budget: Option<u64>) -> Result<BakeSummary> {
     if verify {
         let entries = a.entries()?;
         let share = budget.map(|b| b / rayon::current_num_threads() as u64);
@@ -95,7 +90,7 @@ pub fn radiance(
     }
     let h = &r.header;
     let nodes = h.nodes.max(1) as f64;
-    Ok(RadianceSummary {
+    Ok(BakeSummary {
         path: r.path().display().to_string(),
         bounces: h.bounces,
         samples_per_triangle: h.samples_per_triangle,
@@ -170,7 +165,7 @@ pub fn summarize(a: &Archive) -> Result<Summary> {
         bounds_min: h.bounds_min,
         bounds_max: h.bounds_max,
         verified: false,
-        radiance: None,
+        bake: None,
     })
 }
 
@@ -283,7 +278,7 @@ impl std::fmt::Display for Summary {
         if s.verified {
             writeln!(f, "  verify              ok: every page decodes, checksums match, links and bounds are consistent")?;
         }
-        if let Some(r) = &s.radiance {
+        if let Some(r) = &s.bake {
             writeln!(f, "{}", r.path)?;
             writeln!(
                 f,

@@ -477,8 +477,8 @@ fn gltf_node_cycles_and_shared_children_are_refused() {
     );
 }
 
-/// Primitives without a material share one default material (each used to add its own,
-/// so 65,536 of them failed with "more than 65535 materials").
+/// Primitives without a material share one default material (one each would make
+/// 65,536 of them fail with "more than 65535 materials").
 #[test]
 fn primitives_without_a_material_share_one_default() {
     let dir = tempfile::tempdir().unwrap();

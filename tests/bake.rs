@@ -1,4 +1,4 @@
-//! `canopy bake` and the radiance file: the same light as a bake inside the render, under
+//! `canopy bake` and the bake file: the same light as a bake inside the render, under
 //! any memory budget; refused with another archive, truncated or corrupt; bad input gets
 //! a clear error and leaves no file.
 
@@ -45,7 +45,7 @@ fn a_baked_file_gives_the_in_process_image_and_a_budget_changes_no_byte() {
     let (read, stats) = render(
         &arc,
         &dir.path().join("read.exr"),
-        &[&pbgi[..], &["--radiance", s(&free)]].concat(),
+        &[&pbgi[..], &["--bake-in", s(&free)]].concat(),
     );
     assert_eq!(stats["bake_samples"], 0, "the render baked again");
     assert_eq!(rmse(&own, &read), 0.0);
@@ -59,7 +59,7 @@ fn baked_light_pages_with_the_nodes_under_a_budget() {
     let arc = bunny_box(dir.path());
     let rad = dir.path().join("a.radiance");
     bake(&arc, &rad, &[]);
-    let pbgi = [&SMALL[..], &["--integrator", "pbgi", "--radiance", s(&rad)]].concat();
+    let pbgi = [&SMALL[..], &["--integrator", "pbgi", "--bake-in", s(&rad)]].concat();
     let (free, _) = render(&arc, &dir.path().join("free.exr"), &pbgi);
     let (tight, stats) = render(
         &arc,
@@ -83,13 +83,13 @@ fn glossy_coefficients_round_trip_through_the_file_and_the_budget() {
     let info: serde_json::Value = serde_json::from_str(&ok(&[
         "inspect",
         s(&arc),
-        "--radiance",
+        "--bake",
         s(&rad),
         "--verify",
         "--json",
     ]))
     .unwrap();
-    let r = &info["radiance"];
+    let r = &info["bake"];
     assert_eq!(r["wavelet_resolution"], 4, "{r}");
     assert!(r["coefficient_bytes"].as_u64().unwrap() > 0, "{r}");
 
@@ -99,7 +99,7 @@ fn glossy_coefficients_round_trip_through_the_file_and_the_budget() {
         &dir.path().join("own.exr"),
         &[&pbgi[..], &["--wavelet-resolution", "4"]].concat(),
     );
-    let read = [&pbgi[..], &["--radiance", s(&rad)]].concat();
+    let read = [&pbgi[..], &["--bake-in", s(&rad)]].concat();
     let (free, _) = render(&arc, &dir.path().join("free.exr"), &read);
     assert_eq!(rmse(&own, &free), 0.0);
     let (tight, stats) = render(
@@ -123,7 +123,7 @@ fn a_bake_is_refused_with_another_archive() {
         &[
             &["render", s(&arc), "-o", s(&dir.path().join("x.exr"))][..],
             &SMALL,
-            &["--integrator", "pbgi", "--radiance", s(&rad)],
+            &["--integrator", "pbgi", "--bake-in", s(&rad)],
         ]
         .concat(),
     );
@@ -150,7 +150,7 @@ fn a_truncated_or_corrupt_bake_is_refused() {
             &[
                 &["render", s(&arc), "-o", s(&out)][..],
                 &["--width", "8", "--height", "8", "--spp", "1"],
-                &["--integrator", "pbgi", "--radiance", s(&bad)],
+                &["--integrator", "pbgi", "--bake-in", s(&bad)],
             ]
             .concat(),
         );
@@ -203,4 +203,23 @@ fn bake_refuses_bad_input_and_leaves_no_file() {
         3,
         "a temporary was left behind"
     );
+}
+
+/// The bake file is given to a render with `--bake-in` and to `inspect` with `--bake`; the
+/// flag `--radiance` is refused, and the error names the flag to use.
+#[test]
+fn the_radiance_flag_is_refused_naming_the_bake_flags() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = bunny_box(dir.path());
+    let rad = dir.path().join("a.bake");
+    bake(&arc, &rad, &[]);
+    let out = dir.path().join("o.exr");
+    let render = ["render", s(&arc), "-o", s(&out), "--integrator", "pbgi"];
+    let err = fails(&[&render[..], &["--radiance", s(&rad)]].concat());
+    assert!(err.contains("--bake-in FILE"), "{err}");
+    assert!(!out.exists());
+    let err = fails(&["inspect", s(&arc), "--radiance", s(&rad)]);
+    assert!(err.contains("--bake FILE"), "{err}");
+    ok(&[&render[..], &SMALL[..], &["--bake-in", s(&rad)]].concat());
+    ok(&["inspect", s(&arc), "--bake", s(&rad)]);
 }

@@ -521,10 +521,10 @@ fn edge_rays_average_a_lamp_silhouette_without_bias() {
 }
 
 /// `--max-depth` counts segments in both integrators: 1 is the emitters seen directly, 2
-/// adds direct light, 3 one bounce. The cone integrator used to add the primary hit's
-/// light sample at 1, never checked the depth after a non-diffuse triangle, and from 3
-/// on read stored light gathered with more bounces than the reading path had left (+3.5%
-/// red at 3 on cbox).
+/// adds direct light, 3 one bounce. The cone integrator must not add the primary hit's
+/// light sample at 1, must check the depth after a non-diffuse triangle, and from 3 on
+/// must not read stored light gathered with more bounces than the reading path has left
+/// (+3.5% red at 3 on cbox).
 #[test]
 fn max_depth_counts_segments_as_the_path_tracer_does() {
     let dir = tempfile::tempdir().unwrap();
@@ -727,7 +727,7 @@ double_sided = false
 /// cell border are left out).
 fn floor_cells(arc: &std::path::Path) -> std::collections::HashMap<u64, Vec<usize>> {
     let archive = Arc::new(Archive::open(arc).unwrap());
-    let keys = canopy::radiance::Keys::new(&archive.header).unwrap();
+    let keys = canopy::light_store::Keys::new(&archive.header).unwrap();
     let camera = canopy::camera::Camera::new(&archive.cameras[0], 128, 128);
     let cache = PageCache::new(Arc::clone(&archive), None, 1).unwrap();
     let mut tr = Tracer::new(&cache);
@@ -772,7 +772,7 @@ struct Visit<'a> {
     value: &'a dyn Fn(&canopy::paging::TriW) -> [f64; 3],
     on_leaf: OnLeaf<'a>,
     on_node: &'a mut dyn FnMut(u64, [f64; 3], f64),
-    keys: canopy::radiance::Keys,
+    keys: canopy::light_store::Keys,
 }
 
 impl Visit<'_> {
@@ -803,7 +803,7 @@ impl Visit<'_> {
                         None => t,
                     };
                     (self.on_leaf)(here, k, &t, (inst, pg, via));
-                    let area = canopy::radiance::tri_area(&t) as f64;
+                    let area = canopy::light_store::tri_area(&t) as f64;
                     acc = add(acc, ((self.value)(&t).map(|x| x * area), area));
                 }
                 acc
@@ -822,7 +822,7 @@ impl Visit<'_> {
 /// would mix; triangles pulled unplaced would miss the cells their hits keyed.
 #[test]
 fn stored_light_pulls_through_each_instance_apart() {
-    use canopy::radiance::{pull, Keys, RadianceStore};
+    use canopy::light_store::{pull, Keys, RadianceStore};
     use canopy::trace::NO_INSTANCE;
     let dir = tempfile::tempdir().unwrap();
     let places = [[0.0; 3], [556.0, 0.0, 0.0], [180.0, 0.0, 60.0]];

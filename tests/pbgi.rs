@@ -370,19 +370,19 @@ fn the_irradiance_cache_shares_gathers_and_keeps_the_mean() {
     let flags = ["--pbgi-rays", "--pbgi-cache", "0.3", "--threads", "2"];
     let (img, reference, stats) = pbgi_and_path("bunny_box", "0,32,8,32", 3, [8192, 64], &flags);
     let count = |k: &str| stats[k].as_u64().unwrap();
-    let receivers = count("cache_hits") + count("gathers") + count("reused_gathers");
-    let gathers = count("cache_gathers") + count("gathers");
+    let receivers = count("irradiance_cache_hits") + count("gathers") + count("reused_gathers");
+    let gathers = count("irradiance_record_gathers") + count("gathers");
     assert!(
-        count("cache_hits") > 0 && 8 * gathers < receivers,
+        count("irradiance_cache_hits") > 0 && 8 * gathers < receivers,
         "{gathers} gathers for {receivers} receivers"
     );
     // Between passes the records take more gathers, and probes test the cache.
-    assert!(count("cache_probes") > 0, "no probe");
+    assert!(count("irradiance_cache_probes") > 0, "no probe");
     assert!(
-        count("cache_gathers") > count("cache_records"),
+        count("irradiance_record_gathers") > count("irradiance_records"),
         "{} gathers for {} records",
-        count("cache_gathers"),
-        count("cache_records")
+        count("irradiance_record_gathers"),
+        count("irradiance_records")
     );
     let (a, b) = (img.mean(), reference.mean());
     for c in 0..3 {
@@ -447,7 +447,10 @@ fn receivers_in_a_gap_the_records_did_not_see_gather_for_themselves() {
         .sum::<f32>()
         / w as f32;
     assert!(diff.abs() < 0.01, "the lamp's edge row is {diff} off");
-    assert!(stats["cache_rejects"].as_u64().unwrap() > 0, "{stats}");
+    assert!(
+        stats["irradiance_cache_rejects"].as_u64().unwrap() > 0,
+        "{stats}"
+    );
 }
 
 /// The plinth's top under the showroom's gold bunny is a crevice the cache leaves to the
@@ -946,8 +949,9 @@ emission = [5.0, 5.0, 5.0]
 
 /// The bake shades each of its sample points as the path tracer shades it there: the
 /// normal map's tilted normal and the albedo texture at the point. On scenes/bumps' ridged
-/// floor the triangle's mean albedo and geometric normal left PBGI's image +2.9%, +2.2%,
-/// +1.8% at depth 3 (the wall lit by the floor, measured); now +0.6%, +0.4%, +0.3%.
+/// floor the triangle's mean albedo and geometric normal would leave PBGI's image +2.9%,
+/// +2.2%, +1.8% at depth 3 (the wall lit by the floor, measured); shaded per point it is
+/// +0.6%, +0.4%, +0.3%.
 #[test]
 fn the_bake_shades_a_normal_mapped_floor_as_the_path_tracer_does() {
     let dir = tempfile::tempdir().unwrap();

@@ -30,7 +30,7 @@ fn path_tracer_mean_matches_mitsuba() {
             "resident_bytes_peak",
             "pages_loaded",
             "pages_evicted",
-            "cache_hit_rate",
+            "page_hit_rate",
             "unique_nodes_touched",
             "nodes_per_pixel",
             "rays",
@@ -266,7 +266,7 @@ fn quarter_budget_gives_the_same_image_within_its_memory() {
         ps["pages_evicted"].as_u64().unwrap() > 0,
         "no evictions: {ps}"
     );
-    let hit = ps["cache_hit_rate"].as_f64().unwrap();
+    let hit = ps["page_hit_rate"].as_f64().unwrap();
     assert!(hit > 0.0 && hit < 1.0, "hit rate {hit}");
     let film = ps["film_bytes"].as_u64().unwrap();
     let limit = decoded / 4 + film + (64 << 20);

@@ -5,7 +5,7 @@
 
 mod common;
 
-use canopy_format::radiance_parts::RadianceParts;
+use canopy_format::bake_parts::BakeParts;
 use common::*;
 use std::io::Read;
 use std::path::{Path, PathBuf};
@@ -134,7 +134,7 @@ fn refused_store(a: &Path, dir: &Path, bytes: &[u8], expect: &str) {
 fn with_u64(seed: &[u8], at: usize, v: u64) -> Vec<u8> {
     let mut b = seed.to_vec();
     b[at..at + 8].copy_from_slice(&v.to_le_bytes());
-    canopy::radiance::file::reseal(&mut b);
+    canopy::light_store::file::reseal(&mut b);
     b
 }
 
@@ -154,7 +154,7 @@ fn with_body(seed: &[u8], entries: u64, records: &[u8], len: usize) -> Vec<u8> {
         left -= n;
     }
     b.extend(z.finish().unwrap());
-    canopy::radiance::file::reseal(&mut b);
+    canopy::light_store::file::reseal(&mut b);
     b
 }
 
@@ -215,15 +215,15 @@ fn light_stores_that_lie_about_their_sizes_or_keys_are_refused() {
     // A wrong header size is named as such, not as a version.
     let mut h = seed.clone();
     h[12] = 64;
-    canopy::radiance::file::reseal(&mut h);
+    canopy::light_store::file::reseal(&mut h);
     refused_store(&a, d, &h, "header_size 64, not 128");
     // body_len lying past the file.
     let mut l = seed.clone();
-    canopy::radiance::file::reseal(&mut l);
+    canopy::light_store::file::reseal(&mut l);
     l[64..72].copy_from_slice(&(1u64 << 40).to_le_bytes());
-    let mut hh = canopy::radiance::file::header_of(&l).unwrap();
+    let mut hh = canopy::light_store::file::header_of(&l).unwrap();
     hh.entries = entries;
-    canopy::radiance::file::set_header(&mut l, &hh);
+    canopy::light_store::file::set_header(&mut l, &hh);
     refused_store(&a, d, &l, "corrupt");
 }
 
@@ -248,7 +248,7 @@ fn refused_bake(a: &Path, dir: &Path, bytes: &[u8], expect: &str) {
         &[
             "inspect",
             s(a),
-            "--radiance",
+            "--bake",
             s(&path),
             "--verify",
             "--mem-budget",
@@ -273,7 +273,7 @@ fn refused_bake(a: &Path, dir: &Path, bytes: &[u8], expect: &str) {
             "16",
             "--mem-budget",
             BUDGET,
-            "--radiance",
+            "--bake-in",
             s(&path),
         ],
         expect,
@@ -286,7 +286,7 @@ fn bakes_that_lie_about_their_sizes_or_kinds_are_refused() {
     let d = dir.path();
     let a = archive(d);
     let seed = bake(d, &a);
-    let parts = RadianceParts::read(&seed).unwrap();
+    let parts = BakeParts::read(&seed).unwrap();
     assert!(
         parts.header.wavelet_n > 0,
         "the seed bake holds glossy light"
@@ -298,7 +298,7 @@ fn bakes_that_lie_about_their_sizes_or_kinds_are_refused() {
     ok(&[
         "inspect",
         s(&a),
-        "--radiance",
+        "--bake",
         s(&write(d, "ok.radiance", &seed)),
         "--verify",
     ]);
@@ -344,7 +344,7 @@ fn bakes_that_lie_about_their_sizes_or_kinds_are_refused() {
 /// A block with a coefficient record, and where its first record lies in the block:
 /// after the nodes, `patch_of` (one u32 per triangle of the archive's page), the patches
 /// and the section's two counts.
-fn coef_record(p: &RadianceParts, a: &Path) -> (usize, usize) {
+fn coef_record(p: &BakeParts, a: &Path) -> (usize, usize) {
     let pages = canopy_format::Archive::open(a).unwrap().entries().unwrap();
     for (i, (e, b)) in p.entries.iter().zip(&p.blocks).enumerate() {
         let start = e.node_count as usize * 96

@@ -283,8 +283,8 @@ fn longer_records_and_unknown_optional_features_are_read() {
 }
 
 /// A version 2.0 file (before instances: minor 0, the instance table's bytes reserved and
-/// zero) still opens, verifies and renders as the 2.1 file it was rewritten from. (Opening
-/// one panicked when the reader first learnt the instance table: its record size was 0.)
+/// zero) still opens, verifies and renders as the 2.1 file it was rewritten from (its
+/// instance record size is 0, which a reader must not divide by).
 #[test]
 fn version_2_0_archives_still_open() {
     let dir = tempfile::tempdir().unwrap();

@@ -229,8 +229,9 @@ fn row_means(a: &Image, b: &Image) -> Vec<f64> {
 
 /// Cone integrator, sponza as 8 tiles of 16 rows against the same frame in one process:
 /// at the tile borders the rows' mean difference jumps no more than between interior
-/// rows (within 2×). A tile used to find lamp silhouettes at its border rows from its own
-/// pixels only (its edge-ray mask), a seam: with seed 6, border jumps 3.6× the interior's.
+/// rows (within 2×). A tile that found lamp silhouettes at its border rows from its own
+/// pixels only (its edge-ray mask) would show a seam: with seed 6, border jumps 3.6× the
+/// interior's.
 #[test]
 fn cone_tiles_show_no_seam_at_their_borders() {
     let dir = tempfile::tempdir().unwrap();

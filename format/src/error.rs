@@ -40,9 +40,9 @@ pub enum FormatError {
         page: u32,
         what: String,
     },
-    #[error("{path}: not a Canopy radiance file (bad magic)")]
+    #[error("{path}: not a Canopy bake file (bad magic)")]
     NotRadiance { path: PathBuf },
-    #[error("{path}: corrupt radiance file: {what}")]
+    #[error("{path}: corrupt bake file: {what}")]
     BadRadiance { path: PathBuf, what: String },
     #[error("{path}: baked for a different archive than {archive} ({what}); bake it again with `canopy bake`")]
     WrongArchive {

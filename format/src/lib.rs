@@ -7,11 +7,11 @@ compile_error!(
 );
 
 pub mod atomic;
+pub mod bake;
+pub mod bake_parts;
 pub mod codec;
 pub mod error;
 pub mod node;
-pub mod radiance;
-pub mod radiance_parts;
 pub mod reader;
 pub mod records;
 pub mod validate;

@@ -5,8 +5,8 @@ use canopy::units;
 use clap::Args;
 use std::path::PathBuf;
 
-/// Bake the direct light every node reflects into a radiance file for `render --integrator
-/// pbgi --radiance`.
+/// Bake the direct light every node reflects into a bake file for `render --integrator
+/// pbgi --bake-in`.
 ///
 /// Leaves take light samples (light tree and shadow rays) on each triangle; inner nodes add
 /// their children's projected area and power per cube axis. Pages are baked deepest first
@@ -15,7 +15,7 @@ use std::path::PathBuf;
 #[derive(Args)]
 pub struct BakeArgs {
     archive: PathBuf,
-    /// Output radiance file (conventionally SCENE.radiance).
+    /// Output bake file (conventionally SCENE.bake).
     #[arg(short, long)]
     output: PathBuf,
     #[command(flatten)]

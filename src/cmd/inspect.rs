@@ -4,20 +4,23 @@ use clap::Args;
 use std::path::PathBuf;
 
 /// Summarize an archive: counts, sizes, compression, features, pages per path (and a
-/// radiance file baked from it).
+/// bake file made from it).
 #[derive(Args)]
 pub struct InspectArgs {
     archive: PathBuf,
     /// Decompress every page and check checksums, links, bounds and counts.
     #[arg(long)]
     verify: bool,
-    /// Also check and summarize this radiance file (`canopy bake`) against the archive;
+    /// Also check and summarize this bake file (`canopy bake`) against the archive;
     /// with --verify every block is decoded.
     #[arg(long, value_name = "FILE")]
+    bake: Option<std::path::PathBuf>,
+    /// Refused: the bake file is given with --bake.
+    #[arg(long, hide = true, value_name = "FILE", value_parser = refused_radiance)]
     radiance: Option<std::path::PathBuf>,
-    /// With --verify --radiance: memory for a page and its block per worker, e.g. 256MiB
+    /// With --verify --bake: memory for a page and its block per worker, e.g. 256MiB
     /// (default: unlimited); a block that does not fit is an error.
-    #[arg(long, value_parser = canopy::units::parse_size, requires = "radiance")]
+    #[arg(long, value_parser = canopy::units::parse_size, requires = "bake")]
     mem_budget: Option<u64>,
     /// Print JSON instead of text.
     #[arg(long)]
@@ -30,9 +33,9 @@ pub fn run(a: InspectArgs, progress: bool) -> Result<()> {
     if a.verify {
         inspect::verify(&archive, &mut s, progress)?;
     }
-    if let Some(path) = &a.radiance {
-        let r = canopy_format::radiance::RadianceFile::open(path, &archive)?;
-        s.radiance = Some(inspect::radiance(&archive, &r, a.verify, a.mem_budget)?);
+    if let Some(path) = &a.bake {
+        let r = canopy_format::bake::BakeFile::open(path, &archive)?;
+        s.bake = Some(inspect::bake(&archive, &r, a.verify, a.mem_budget)?);
     }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&s)?);
@@ -40,4 +43,8 @@ pub fn run(a: InspectArgs, progress: bool) -> Result<()> {
         print!("{s}");
     }
     Ok(())
+}
+
+fn refused_radiance(_: &str) -> Result<std::path::PathBuf, String> {
+    Err("inspect takes the bake file as --bake FILE".into())
 }

@@ -11,8 +11,8 @@
 //! Meshes placed more than once (`instances`) are built first, each as its own tree through
 //! stages 2–3; their instances become leaves of the top tree.
 
+mod aggregate;
 mod chunks;
-mod cluster;
 mod ingest;
 mod instances;
 mod pages;
@@ -21,7 +21,7 @@ mod spill;
 mod textures;
 mod tree;
 
-pub use cluster::{MatSummary, MatTable, REFLECT_COS};
+pub use aggregate::{MatSummary, MatTable, REFLECT_COS};
 pub use tree::MAX_LEAF_TRIS;
 
 use crate::import::SceneFile;

@@ -5,7 +5,7 @@
 //! the pages holding their children. Pages are numbered breadth-first so the top of the tree comes first;
 //! nodes within a page are in depth-first order.
 
-use super::cluster::round_up;
+use super::aggregate::round_up;
 use super::tree::{Kind, Tree};
 use canopy_format::{Grid, NodeFlags, PageContents, Streams, Tri};
 use std::collections::{HashMap, VecDeque};

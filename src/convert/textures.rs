@@ -239,8 +239,9 @@ struct Level {
     first_tile: u32,
     strip: Vec<u8>,
     rows: u32,
-    /// A linear row waiting for the row below it.
-    pending: Option<Vec<f32>>,
+    /// Linear rows waiting for the rows below them: one for an even height, two for an odd
+    /// one (whose next-level rows each take three).
+    pending: Vec<Vec<f32>>,
     /// The level's linear texels, when it is coarse enough to keep.
     keep: Option<Vec<f32>>,
     next: Option<Box<Level>>,
@@ -256,7 +257,7 @@ impl Level {
             first_tile,
             strip: Vec::with_capacity(w as usize * 4 * TILE as usize),
             rows: 0,
-            pending: None,
+            pending: Vec::new(),
             keep: (w.max(h) <= COARSE).then(|| Vec::with_capacity(w as usize * h as usize * 4)),
             next: (l + 1 < t.levels).then(|| Box::new(Level::new(t, l + 1, first_tile + tx * ty))),
         }
@@ -279,26 +280,21 @@ impl Level {
         if let Some(k) = self.keep.as_mut() {
             k.extend_from_slice(&lin);
         }
-        let Some(next) = self.next.as_mut() else {
+        let Some(left) = self.next.as_ref().map(|n| (n.h - n.rows) as usize) else {
             return;
         };
-        let pair = if self.h == 1 {
-            lin
-        } else {
-            match self.pending.take() {
-                None => {
-                    self.pending = Some(lin);
-                    return;
-                }
-                Some(above) => above.iter().zip(&lin).map(|(a, b)| 0.5 * (a + b)).collect(),
-            }
+        self.pending.push(lin);
+        let Some(pair) = self.reduce_down(left) else {
+            return;
+        };
+        let Some(next) = self.next.as_mut() else {
+            return;
         };
         let w2 = next.w as usize;
         let mut down = vec![0u8; w2 * 4];
         for x in 0..w2 {
-            let (a, b) = (2 * x, (2 * x + 1).min(self.w as usize - 1));
             for c in 0..4 {
-                let v = 0.5 * (pair[a * 4 + c] + pair[b * 4 + c]);
+                let v = reduce_across(&pair, self.w as usize, x, c);
                 down[x * 4 + c] = if srgb && c < 3 {
                     linear_to_srgb(v)
                 } else {
@@ -307,6 +303,33 @@ impl Level {
             }
         }
         next.push(&down, srgb, out);
+    }
+
+    /// The next level's row from the rows `pending` holds, once it holds them all: the two
+    /// rows' mean for an even height, three rows weighed by `odd_weights` for an odd one
+    /// (the last kept as the first of the next three), the row itself for a height of one.
+    /// `left`: the next level's rows still to come.
+    fn reduce_down(&mut self, left: usize) -> Option<Vec<f32>> {
+        let h = self.h as usize;
+        match self.pending.len() {
+            _ if h == 1 => self.pending.pop(),
+            2 if h.is_multiple_of(2) => {
+                let (a, b) = (&self.pending[0], &self.pending[1]);
+                let row = a.iter().zip(b).map(|(a, b)| 0.5 * (a + b)).collect();
+                self.pending.clear();
+                Some(row)
+            }
+            3 => {
+                let [w0, w1, w2] = odd_weights(h, (h - 1) / 2 - left);
+                let [a, b, c] = [0, 1, 2].map(|k| &self.pending[k]);
+                let row = (0..a.len())
+                    .map(|i| w0 * a[i] + w1 * b[i] + w2 * c[i])
+                    .collect();
+                self.pending.drain(..2);
+                Some(row)
+            }
+            _ => None,
+        }
     }
 
     /// Cuts the rows gathered so far (one strip) into tiles.
@@ -326,6 +349,30 @@ impl Level {
             out.push((self.first_tile + ty * tiles_x + tx, tile));
         }
         self.strip.clear();
+    }
+}
+
+/// The box filter's weights for a level of odd size n = 2m + 1 halved to m (as in NVIDIA's
+/// non-power-of-two mipmapping): next-level texel i takes source texels 2i, 2i + 1 and
+/// 2i + 2 with weights (m − i)/n, m/n and (i + 1)/n, so every source texel weighs m/n in
+/// all and the level's mean is kept.
+fn odd_weights(n: usize, i: usize) -> [f32; 3] {
+    let m = (n - 1) / 2;
+    [(m - i) as f32, m as f32, (i + 1) as f32].map(|w| w / n as f32)
+}
+
+/// Channel `c` of next-level texel `x` from a row of `w` linear texels: the mean of texels
+/// 2x and 2x + 1 for an even width (the texel itself for a width of one), three texels
+/// weighed by `odd_weights` for an odd width.
+fn reduce_across(row: &[f32], w: usize, x: usize, c: usize) -> f32 {
+    let t = |k: usize| row[k * 4 + c];
+    match w {
+        1 => t(0),
+        w if w.is_multiple_of(2) => 0.5 * (t(2 * x) + t(2 * x + 1)),
+        w => {
+            let [w0, w1, w2] = odd_weights(w, x);
+            w0 * t(2 * x) + w1 * t(2 * x + 1) + w2 * t(2 * x + 2)
+        }
     }
 }
 
@@ -465,5 +512,54 @@ mod tests {
         // Its mirror image: a quarter white.
         let mirror = coarse.mean_over(&rec, &[[1.0, 0.0], [0.0, 0.0], [1.0, 1.0]]);
         assert!((mirror[0] - 0.25).abs() < 0.05, "{mirror:?}");
+    }
+
+    /// Every level of an odd-sized texture keeps level 0's mean, to the 8-bit rounding of
+    /// the levels between (half a step each): the last row and column count. Here they are
+    /// the texture's only white texels, so a pyramid that dropped them would be dark.
+    #[test]
+    fn every_level_of_an_odd_sized_texture_keeps_its_mean() {
+        for (w, h) in [(7u32, 5u32), (5, 1), (1, 9), (13, 6), (6, 13)] {
+            let texel = |x: u32, y: u32| match x == w - 1 || y == h - 1 {
+                true => 255u8,
+                false => ((x * 37 + y * 11) % 200) as u8,
+            };
+            let rec = TextureRecord {
+                name: [0; 24],
+                width: w,
+                height: h,
+                levels: TextureRecord::full_levels(w, h),
+                first_tile: 0,
+                flags: 0,
+                mean: [0.0; 4],
+                reserved: [0; 4],
+            };
+            let mut top = Level::new(&rec, 0, 0);
+            let mut tiles = Vec::new();
+            for y in 0..h {
+                let row: Vec<u8> = (0..w).flat_map(|x| [texel(x, y); 4]).collect();
+                top.push(&row, false, &mut tiles);
+            }
+            tiles.sort_by_key(|t| t.0);
+            assert_eq!(tiles.len() as u32, rec.levels, "{w}×{h}: one tile a level");
+            let mean = |l: u32| {
+                let (lw, lh) = rec.level_size(l);
+                let tile = &tiles[l as usize].1;
+                let sum: u64 = (0..lh)
+                    .flat_map(|y| (0..lw).map(move |x| (y * TILE + x) as usize * 4))
+                    .map(|i| tile[i] as u64)
+                    .sum();
+                sum as f64 / (255.0 * (lw * lh) as f64)
+            };
+            for l in 1..rec.levels {
+                let bound = l as f64 * 0.5 / 255.0 + 1e-6;
+                assert!(
+                    (mean(l) - mean(0)).abs() <= bound,
+                    "{w}×{h}, level {l}: mean {} against level 0's {}",
+                    mean(l),
+                    mean(0)
+                );
+            }
+        }
     }
 }

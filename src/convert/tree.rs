@@ -1,7 +1,7 @@
 //! An in-memory binary tree over one chunk of triangles (built with obvhs's PLOC builder),
 //! with exact f32 bounds and aggregated cluster attributes per node.
 
-use super::cluster::{Cluster, MatTable};
+use super::aggregate::{Cluster, MatTable};
 use crate::import::SpillTri;
 use glam::Vec3A;
 use obvhs::{bvh2::builder::build_bvh2_from_tris, triangle::Triangle, BvhBuildParams};

@@ -8,7 +8,7 @@
 use super::{NodeRef, TNode};
 use crate::wavelet::tree::{decode_all, Kept, Shape, SparseVec};
 use crate::wavelet::{cube, haar};
-use canopy_format::radiance::{BakedBlock, BakedNode, CoefRecord, CoefValue};
+use canopy_format::bake::{BakedBlock, BakedNode, CoefRecord, CoefValue};
 use glam::Vec3;
 use half::f16;
 

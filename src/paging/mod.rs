@@ -12,7 +12,7 @@
 //! as an empty page, so traversal never panics; the renderer checks `error()` and fails.
 //! Background prefetch: `prefetch` queues a page for a loader thread (crossbeam channel).
 //!
-//! A radiance file (`canopy bake`) can be attached: each page then also carries its block
+//! A bake file (`canopy bake`) can be attached: each page then also carries its block
 //! of baked node light, loaded, counted against the budget and evicted with it.
 
 pub mod coefs;
@@ -23,7 +23,7 @@ pub mod wide;
 pub use page::{deepest_first, NodeRef, Page, TNode, TriW};
 
 use anyhow::{bail, Result};
-use canopy_format::radiance::{BakedBlock, RadianceFile};
+use canopy_format::bake::{BakeFile, BakedBlock};
 use canopy_format::{Archive, Node, NodeFlags, PageEntry, Tri};
 use crossbeam_channel::{Receiver, Sender, TrySendError};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering::Relaxed};
@@ -76,15 +76,15 @@ const TILE_COST: u64 = canopy_format::TILE_BYTES as u64 + 64;
 pub struct CacheStats {
     pub pages_loaded: u64,
     pub pages_evicted: u64,
-    #[serde(rename = "cache_hits")]
+    #[serde(rename = "page_hits")]
     pub hits: u64,
-    #[serde(rename = "cache_misses")]
+    #[serde(rename = "page_misses")]
     pub misses: u64,
     pub bytes_decoded: u64,
     pub resident_bytes_peak: u64,
     pub pinned_bytes: u64,
     pub pages_touched: u64,
-    pub cache_hit_rate: f64,
+    pub page_hit_rate: f64,
     pub texture_tiles_loaded: u64,
     pub texture_tiles_evicted: u64,
     /// Decoded texture bytes resident at the end, and at most.
@@ -125,8 +125,8 @@ pub struct PageCache {
     touched: Vec<AtomicBool>,
     error: Mutex<Option<String>>,
     prefetch_tx: Mutex<Option<Sender<u32>>>,
-    sidecar: RwLock<Option<Arc<RadianceFile>>>,
-    /// Moves when a radiance file is attached: a load that began before does not store
+    sidecar: RwLock<Option<Arc<BakeFile>>>,
+    /// Moves when a bake file is attached: a load that began before does not store
     /// its page.
     sidecar_gen: AtomicU64,
 }
@@ -309,7 +309,7 @@ impl PageCache {
     /// so each page holds its block from now on. Call it while no traversal runs. A budget
     /// that cannot hold the pinned pages with their blocks and, per worker, the largest page
     /// with its block is an error naming the minimum, before any block is read.
-    pub fn attach_radiance(&self, r: RadianceFile) -> Result<()> {
+    pub fn attach_bake(&self, r: BakeFile) -> Result<()> {
         if self.budget != u64::MAX {
             let with_block = |i: usize| {
                 decoded_size(&self.archive, &self.entries[i]) + r.blocks[i].raw_len as u64
@@ -537,7 +537,7 @@ impl PageCache {
             resident_bytes_peak: self.resident_peak.load(Relaxed),
             pinned_bytes: self.pinned_bytes,
             pages_touched: self.touched.iter().filter(|t| t.load(Relaxed)).count() as u64,
-            cache_hit_rate: if hits + misses > 0 {
+            page_hit_rate: if hits + misses > 0 {
                 hits as f64 / (hits + misses) as f64
             } else {
                 1.0

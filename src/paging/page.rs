@@ -1,6 +1,6 @@
 //! A page decoded for traversal: its nodes as 32-byte `TNode`s with their links read once
 //! (`NodeRef`), its triangles four to a block, shading normals, texture coordinates, and
-//! the baked light of an attached radiance file.
+//! the baked light of an attached bake file.
 
 use super::*;
 
@@ -111,7 +111,7 @@ pub struct Page {
     pub shading: Vec<[u32; 3]>,
     /// Per triangle, its vertices' texture coordinates (empty without TEXCOORDS).
     pub uvs: Vec<[[f32; 2]; 3]>,
-    /// The page's baked light (empty unless a radiance file is attached).
+    /// The page's baked light (empty unless a bake file is attached).
     pub baked: BakedBlock,
     /// Per node, its glossy light decoded from `baked.coefs` (empty unless the bake
     /// stored glossy light).
@@ -224,7 +224,7 @@ impl Page {
     }
 
     /// Adds the page's block of baked light from `r`.
-    pub fn with_baked(mut self, r: &RadianceFile) -> Result<Page> {
+    pub fn with_baked(mut self, r: &BakeFile) -> Result<Page> {
         self.baked = r.read_block(self.id)?;
         self.bytes += self.baked.bytes();
         let n = r.header.wavelet_n as usize;

@@ -1,6 +1,6 @@
-//! `canopy bake`: the direct light every node reflects, into a radiance file beside the
-//! archive (`format/FORMAT.md`, "The radiance file") that `render --integrator pbgi
-//! --radiance` pages in with the nodes.
+//! `canopy bake`: the direct light every node reflects, into a bake file beside the
+//! archive (`format/FORMAT.md`, "The bake file") that `render --integrator pbgi
+//! --bake-in` pages in with the nodes.
 
 use super::setup::open_scene;
 use crate::camera::Camera;

@@ -90,7 +90,7 @@ impl std::fmt::Display for RenderStats {
             self.peak_rss_bytes as f64 / 1048576.0,
             self.cache.pages_loaded,
             self.cache.pages_evicted,
-            self.cache.cache_hit_rate
+            self.cache.page_hit_rate
         )
     }
 }

@@ -81,7 +81,7 @@ fn unmutated_side_seeds_are_accepted() {
     use canopy_tools::fuzz::side::{self, Mutation};
     let dir = tempfile::tempdir().unwrap();
     let s = side::Seeds::new(dir.path()).unwrap();
-    let h: canopy_format::radiance::RadianceHeader = bytemuck::pod_read_unaligned(&s.bake[..128]);
+    let h: canopy_format::bake::BakeHeader = bytemuck::pod_read_unaligned(&s.bake[..128]);
     assert!(
         h.wavelet_n > 0 && h.coef_bytes > 0,
         "the seed bake holds glossy light"

@@ -10,11 +10,11 @@
 //!
 //! Photons are exact rays, so every deposit lands on a leaf triangle: the push of §4.8.2
 //! has nothing to move down, and the pull after each pass carries the caustic light up to
-//! the nodes wide cones stop at (`radiance::pull`).
+//! the nodes wide cones stop at (`light_store::pull`).
 
 use crate::integrator::Scene;
+use crate::light_store::{Keys, RadianceStore, GRID};
 use crate::material::{cosine_hemisphere, Frame};
-use crate::radiance::{Keys, RadianceStore, GRID};
 use crate::sampler::PixelSampler;
 use crate::texture::Lookup;
 use crate::trace::{offset_origin, Hit, Ray, Tracer};

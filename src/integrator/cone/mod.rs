@@ -33,19 +33,19 @@
 
 //!
 //! Modules: `walk` (the path), `cluster` (the cluster BRDF), `optics` (cones after smooth
-//! bounces), `light_pass` (caustics). The stored light and its pull are `crate::radiance`.
+//! bounces), `light_pass` (caustics). The stored light and its pull are `crate::light_store`.
 
-mod cluster;
 pub mod light_pass;
+mod node_brdf;
 mod optics;
 mod walk;
 
-pub use cluster::theta_norm;
+pub use node_brdf::theta_norm;
 
 use super::edge::{EdgeRays, DEFAULT_EDGE_RAYS};
 use super::{Counters, Integrator, Pass, PixelSample, Scene, Stats, Target};
+use crate::light_store::{pull, Keys, RadianceStore};
 use crate::material::Material;
-use crate::radiance::{pull, Keys, RadianceStore};
 use crate::trace::{Cone, Hit, Ray, Tracer};
 use anyhow::Context;
 use glam::Vec3A as V;
@@ -257,7 +257,7 @@ impl Integrator for ConeIntegrator {
     fn begin_pass(&mut self, scene: &Scene, pass: &Pass) -> anyhow::Result<u64> {
         let (first, count) = (pass.first, pass.count);
         if let (0, Some(path)) = (first, &self.settings.store_in) {
-            crate::radiance::file::load(&self.store, &scene.cache.archive.header, path)?;
+            crate::light_store::file::load(&self.store, &scene.cache.archive.header, path)?;
         }
         let start = Instant::now();
         self.store.begin_pass(first + count);
@@ -295,7 +295,7 @@ impl Integrator for ConeIntegrator {
     fn finish(&mut self, scene: &Scene) -> anyhow::Result<()> {
         if let Some(path) = &self.settings.store_out {
             pull(&scene.cache, &self.store, self.keys);
-            crate::radiance::file::save(&self.store, &scene.cache.archive.header, path)?;
+            crate::light_store::file::save(&self.store, &scene.cache.archive.header, path)?;
         }
         Ok(())
     }

@@ -3,7 +3,7 @@
 //! applies `--max-depth`'s count, Russian roulette and the throughput the same way for
 //! triangles, clusters and diffuse surfaces.
 
-use super::cluster::{hit_emission, phong_lobe, reflect_lut, theta_norm};
+use super::node_brdf::{hit_emission, phong_lobe, reflect_lut, theta_norm};
 use super::optics::{bent_tan, jitter};
 use super::{ConeIntegrator, STORE_TAN};
 use crate::integrator::direct::emission_weight;
@@ -11,8 +11,8 @@ use crate::integrator::surface::{passes_through, MAX_PASSES};
 use crate::integrator::{
     bsdf_term, on_side, sample_light, Counters, Receiver, Scene, ShadingPoint,
 };
+use crate::light_store::RadianceStore;
 use crate::material::{cosine_hemisphere, Frame};
-use crate::radiance::RadianceStore;
 use crate::sampler::PixelSampler;
 use crate::trace::{gamma, offset_origin, Cone, ConeHit, Hit, Ray, Tracer, NO_INSTANCE};
 use canopy_format::codec::{snorm16_decode, unorm8_decode};
@@ -622,7 +622,7 @@ impl ConeIntegrator {
         }
         // A converged node (§4.6.1) or a thinned read answers from its store without
         // recursing.
-        let stops = |e: &crate::radiance::Entry| e.n >= store.limit || thinned;
+        let stops = |e: &crate::light_store::Entry| e.n >= store.limit || thinned;
         if let (Keep::Answer(_), Some(e)) = (pend.keep, entry.filter(stops)) {
             let (v, _) = e.value().unwrap_or(([0.0; 3], 0));
             pend.keep = Keep::Fresh;

@@ -22,8 +22,8 @@ use crate::texture;
 use crate::trace::{gamma, Cone, Tracer};
 use crate::wavelet::tree::SparseVec;
 use anyhow::{bail, Result};
-use canopy_format::radiance::{
-    BakeInfo, BakedBlock, BakedNode, RadianceFile, RadianceWriter, MAX_PATCH_DEPTH,
+use canopy_format::bake::{
+    BakeFile, BakeInfo, BakedBlock, BakedNode, RadianceWriter, MAX_PATCH_DEPTH,
 };
 use glam::Vec3A as V;
 use rayon::prelude::*;
@@ -190,7 +190,7 @@ impl BakeParams {
     }
 }
 
-/// Bakes into a radiance file at `path` (it appears only when complete); returns the
+/// Bakes into a bake file at `path` (it appears only when complete); returns the
 /// light samples taken and the bytes of the blocks decoded.
 pub fn bake_file(
     scene: &Scene,
@@ -207,14 +207,14 @@ pub fn bake_file(
     Ok((samples, decoded))
 }
 
-/// Bakes into an unnamed scratch file (a render without `--radiance`) and opens it.
-pub fn bake_scratch(scene: &Scene, p: &BakeParams) -> Result<(RadianceFile, u64)> {
+/// Bakes into an unnamed scratch file (a render without `--bake-in`) and opens it.
+pub fn bake_scratch(scene: &Scene, p: &BakeParams) -> Result<(BakeFile, u64)> {
     let archive = &scene.cache.archive;
     let maps = p.maps(scene)?;
     let mut out = RadianceWriter::temporary(archive, p.info(p.bounces, maps.as_ref()))?;
     let samples = bake_bounces(scene, p, maps.as_ref(), &mut out, &|_| {})?;
     let file = out.finish()?;
-    let r = RadianceFile::from_file(file, Path::new("(temporary bake)"), archive)?;
+    let r = BakeFile::from_file(file, Path::new("(temporary bake)"), archive)?;
     Ok((r, samples))
 }
 
@@ -254,7 +254,7 @@ fn bake_bounces(
         let name = format!("(bounce {b} of the bake)");
         scene
             .cache
-            .attach_radiance(RadianceFile::from_file(file, Path::new(&name), archive)?)?;
+            .attach_bake(BakeFile::from_file(file, Path::new(&name), archive)?)?;
     }
     Ok(samples)
 }

@@ -5,7 +5,7 @@
 use super::bake::Directional;
 use super::microbuffer::MicroBuffer;
 use super::surface::{hit_light, Surface};
-use super::{cluster, PbgiIntegrator, Pending, Reuse, Scratch, Strata};
+use super::{receiver_clusters, PbgiIntegrator, Pending, Reuse, Scratch, Strata};
 use crate::integrator::surface::{hole_number, passes_through};
 use crate::integrator::{Counters, PixelSample, Scene};
 use crate::paging::{NodeRef, Page, TNode};
@@ -420,7 +420,7 @@ impl PbgiIntegrator {
             .collect();
         let p: Vec<V> = pending.iter().map(|q| q.s.p).collect();
         let n: Vec<V> = pending.iter().map(|q| q.s.n).collect();
-        for cl in cluster::kmeans(&p, &n, self.settings.clusters) {
+        for cl in receiver_clusters::kmeans(&p, &n, self.settings.clusters) {
             let members: Vec<&Surface> = cl.members.iter().map(|&m| &pending[m].s).collect();
             let field = self.field(scene, tr, &members, &pending[cl.active].s);
             for &m in &cl.members {

@@ -19,7 +19,7 @@ use crate::sampler::Hash;
 use crate::trace::{gamma, Cone, Tracer};
 use crate::wavelet::tree::{encode, SparseVec};
 use crate::wavelet::{cube, haar};
-use canopy_format::radiance::{BakedNode, CoefBlock};
+use canopy_format::bake::{BakedNode, CoefBlock};
 use glam::{Vec3, Vec3A as V};
 use std::cell::Cell;
 

@@ -383,7 +383,8 @@ impl MicroBuffer {
     /// the nearer of their nearest depths (the nearer surface moves the border, Ward and
     /// Heckbert's min), rotational from n × Σ L_k ∫ω dω. Borders of a texel whose light
     /// was sampled are left out: a glossy floor's light samples made the showroom's
-    /// gradients noise (its RMSE 2.5% higher with them than without; 0.3% lower now).
+    /// gradients noise (its RMSE 2.5% higher with them than without; 0.3% lower with
+    /// those borders left out).
     pub fn gradients(&self, texels: &Texels, incident: &[Vec3]) -> Gradients {
         let depth = |t: u32| {
             let (first, end) = (self.start[t as usize], self.start[t as usize + 1]);

@@ -47,17 +47,17 @@
 mod amb;
 pub mod bake;
 mod brdf_table;
-pub mod cache;
-pub mod cluster;
 mod cut;
 mod gather;
 pub mod glossy;
+pub mod irradiance_cache;
 pub mod microbuffer;
 pub mod patch;
 mod pixel_reuse;
 mod pixel_split;
 mod radiance_cache;
 mod receiver;
+pub mod receiver_clusters;
 mod records;
 mod settings;
 mod split;
@@ -70,9 +70,9 @@ use super::{Counters, Integrator, Pass, PixelSample, Scene, Stats, Target};
 use crate::sampler::Hash;
 use crate::trace::{Ray, Tracer};
 use anyhow::Result;
-use cache::IrradianceCache;
 use gather::*;
 use glam::Vec3A as V;
+use irradiance_cache::IrradianceCache;
 use microbuffer::Texels;
 use pixel_reuse::*;
 use receiver::*;
@@ -100,9 +100,9 @@ pub struct PbgiIntegrator {
     edge: EdgeRays,
     /// The window rendered (`Target::window`), where the cache's records are placed.
     window: [u32; 4],
-    cache: Option<IrradianceCache>,
+    irradiance_cache: Option<IrradianceCache>,
     /// WPBGI's radiance records (`--pbgi-glossy-bounce cache`), and the receivers they gave.
-    radiance: Option<radiance_cache::RadianceCache>,
+    radiance_cache: Option<radiance_cache::RadianceCache>,
     /// Rays and seconds of the radiance records' gathers.
     radiance_rays: u64,
     radiance_s: f64,
@@ -163,8 +163,8 @@ impl PbgiIntegrator {
             gathered: Vec::new(),
             edge: EdgeRays::new(settings.edge_rays, scene, target),
             window: target.window,
-            cache: None,
-            radiance: None,
+            irradiance_cache: None,
+            radiance_cache: None,
             radiance_rays: 0,
             radiance_s: 0.0,
             crevices: Vec::new(),
@@ -193,7 +193,7 @@ impl PbgiIntegrator {
 }
 
 impl Integrator for PbgiIntegrator {
-    /// The first pass bakes (or reads `--radiance`) and attaches the light to the pages,
+    /// The first pass bakes (or reads `--bake-in`) and attaches the light to the pages,
     /// so time budgets count the bake.
     /// One sample per pass when edge rays or the cache are on: a pass's edge mask comes
     /// from the passes before it, and the records are refined between passes.
@@ -243,8 +243,8 @@ impl Integrator for PbgiIntegrator {
         }
         let t = Instant::now();
         let archive = &scene.cache.archive;
-        let file = match &self.settings.radiance {
-            Some(path) => canopy_format::radiance::RadianceFile::open(path, archive)?,
+        let file = match &self.settings.bake_in {
+            Some(path) => canopy_format::bake::BakeFile::open(path, archive)?,
             None => {
                 let mut params = self.settings.bake.params(self.seed);
                 if self.settings.rays {
@@ -257,13 +257,13 @@ impl Integrator for PbgiIntegrator {
                 file
             }
         };
-        scene.cache.attach_radiance(file)?;
+        scene.cache.attach_bake(file)?;
         self.bake_s = t.elapsed().as_secs_f64();
         let mut cache_rays = 0;
         if self.settings.cache > 0.0 {
             let t = Instant::now();
             let (cache, rays) = self.build_cache(scene, self.settings.cache);
-            (self.cache, cache_rays) = (Some(cache), rays);
+            (self.irradiance_cache, cache_rays) = (Some(cache), rays);
             self.crevices = (0..self.window_pixels())
                 .map(|_| AtomicBool::new(false))
                 .collect();
@@ -274,7 +274,7 @@ impl Integrator for PbgiIntegrator {
         if self.settings.glossy_bounce == wpbgi::GlossyBounce::Cache {
             let t = Instant::now();
             let (cache, rays) = self.build_radiance_cache(scene, self.settings.cache);
-            self.radiance = Some(cache);
+            self.radiance_cache = Some(cache);
             cache_rays += rays;
             self.radiance_rays = rays;
             self.radiance_s = t.elapsed().as_secs_f64();
@@ -353,9 +353,12 @@ impl Integrator for PbgiIntegrator {
             .map(|m| m.lock().unwrap_or_else(PoisonError::into_inner).capacity())
             .sum();
         let slots = self.gathered.len() * size_of::<Mutex<Vec<Gathered>>>();
-        let cached = self.cache.as_ref().map_or(0, IrradianceCache::bytes)
+        let cached = self
+            .irradiance_cache
+            .as_ref()
+            .map_or(0, IrradianceCache::bytes)
             + self
-                .radiance
+                .radiance_cache
                 .as_ref()
                 .map_or(0, radiance_cache::RadianceCache::bytes);
         let bytes = (slots + kept * size_of::<Gathered>()) as u64 + cached;

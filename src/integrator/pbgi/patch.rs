@@ -3,7 +3,7 @@
 //! 4^j patches; the children of patch i are 4i..4i+3; level 0 is the triangle). PBGI's near
 //! field reads the finest patch under each texel's ray.
 
-use canopy_format::radiance::MAX_PATCH_DEPTH;
+use canopy_format::bake::MAX_PATCH_DEPTH;
 use glam::Vec3A as V;
 
 /// Subdivision depth giving patches of area at most `a_max` (capped).
@@ -68,7 +68,7 @@ pub fn pyramid(finest: &[V], k: u32) -> Vec<[f32; 3]> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use canopy_format::radiance::pyramid_len;
+    use canopy_format::bake::pyramid_len;
 
     /// A scalene triangle, not in a coordinate plane.
     const TRIANGLE: [V; 3] = [

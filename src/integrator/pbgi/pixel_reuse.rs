@@ -157,7 +157,7 @@ impl PbgiIntegrator {
     /// only; that they also enter the mean leaves a bias of order 1 / gathers.
     pub(super) fn reuse(&self, tr: &mut Tracer, q: &Pending) -> Reuse {
         if let Some((e, reach)) = self
-            .cache
+            .irradiance_cache
             .as_ref()
             .and_then(|c| c.lookup(q.s.p, q.s.frame.n))
         {

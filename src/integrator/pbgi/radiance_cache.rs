@@ -13,7 +13,7 @@
 //!   as a move of d shifts what lies at distance D by d/D; 002 reads the best single point.
 
 use super::brdf_table::BrdfTable;
-use super::cache::{IrradianceCache, Record};
+use super::irradiance_cache::{IrradianceCache, Record};
 use super::microbuffer::Gradients;
 use super::wpbgi::Incident;
 use glam::{Vec3, Vec3A as V};
@@ -217,6 +217,9 @@ mod tests {
         let other = Arc::new(BrdfTable::new(&gold(ALPHA), THRESHOLD));
         assert!(cache.lookup(V::ZERO, V::Z, wo, &other).is_none());
         let irradiance = Record::new(V::ZERO, V::Z, V::ONE, 0.4, 0.1, A);
-        assert!(super::super::cache::weight(&irradiance, A, V::ZERO, tilted(0.4), wo).is_some());
+        assert!(
+            super::super::irradiance_cache::weight(&irradiance, A, V::ZERO, tilted(0.4), wo)
+                .is_some()
+        );
     }
 }

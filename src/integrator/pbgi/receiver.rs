@@ -197,7 +197,7 @@ impl PbgiIntegrator {
 
     /// The glossy bounce the radiance cache's records give the receiver, if they cover it.
     pub(super) fn radiance_lookup(&self, s: &Surface) -> Option<V> {
-        let cache = self.radiance.as_ref()?;
+        let cache = self.radiance_cache.as_ref()?;
         if !wpbgi::gathers_wavelets(s) {
             return None;
         }

@@ -3,8 +3,8 @@
 //! added where a probe finds its interpolation wrong (see `cache` and `radiance_cache` for
 //! the records themselves).
 
-use super::cache;
-use super::cache::{IrradianceCache, Record};
+use super::irradiance_cache;
+use super::irradiance_cache::{IrradianceCache, Record};
 use super::microbuffer::Gradients;
 use super::radiance_cache::{Light, RadianceCache};
 use super::wpbgi::{self, Incident};
@@ -153,7 +153,7 @@ impl PbgiIntegrator {
             }
             self.centre_hit(scene, tr, nx, ny).is_some_and(|o| {
                 let owo = o.s.frame.to_world(o.s.wo_l);
-                cache::weight(&widest, a, o.s.p, o.s.frame.n, owo).is_some()
+                irradiance_cache::weight(&widest, a, o.s.p, o.s.frame.n, owo).is_some()
             })
         };
         if !NEIGHBOURS.iter().all(|&d| covered(tr, d)) {
@@ -230,7 +230,7 @@ impl PbgiIntegrator {
             .load(std::sync::atomic::Ordering::Relaxed);
         let samples = pass.first as f64 * self.window_pixels() as f64 + further as f64;
         let per_sample = self.sampled_rays(pass) as f64 / samples.max(1.0);
-        let per_gather = match &self.cache {
+        let per_gather = match &self.irradiance_cache {
             Some(cache) => self.gather_cost(cache),
             None => self.texels.upper.len() as u64,
         };
@@ -264,7 +264,7 @@ impl PbgiIntegrator {
     /// added.
     /// Returns the rays traced.
     pub(super) fn probe_cache(&mut self, scene: &Scene, pass: &Pass) -> u64 {
-        let Some(cache) = self.cache.as_ref() else {
+        let Some(cache) = self.irradiance_cache.as_ref() else {
             return 0;
         };
         // Every record has two gathers (its spread) after the second pass's refinement.
@@ -297,7 +297,7 @@ impl PbgiIntegrator {
         let cost: u64 = found.iter().map(|f| self.charged(f.1)).sum();
         let records: Vec<Record> = found.into_iter().filter_map(|f| f.0).collect();
         self.probe_records += records.len() as u64;
-        if let Some(cache) = self.cache.as_mut() {
+        if let Some(cache) = self.irradiance_cache.as_mut() {
             cache.extend(records);
         }
         self.probe_rays += cost;
@@ -318,7 +318,7 @@ impl PbgiIntegrator {
     pub(super) fn probe_order(&self) -> Vec<[u32; 2]> {
         let [x0, x1, y0, y1] = self.window;
         let held: FxHashSet<[u32; 2]> = self
-            .cache
+            .irradiance_cache
             .iter()
             .flat_map(|c| c.records().iter().map(|r| r.at))
             .collect();
@@ -355,7 +355,7 @@ impl PbgiIntegrator {
     /// One more gather each for the radiance records worth it, as `refine_cache` chooses
     /// them. Returns the rays traced.
     pub(super) fn refine_radiance(&mut self, scene: &Scene, pass: &Pass) -> u64 {
-        let Some(cache) = self.radiance.as_ref() else {
+        let Some(cache) = self.radiance_cache.as_ref() else {
             return 0;
         };
         let gathers = cache.records.gathers().max(1);
@@ -385,7 +385,7 @@ impl PbgiIntegrator {
             )
             .collect();
         let rays: u64 = found.iter().map(|f| f.1).sum();
-        if let Some(cache) = self.radiance.as_mut() {
+        if let Some(cache) = self.radiance_cache.as_mut() {
             for (&id, (inc, _)) in ids.iter().zip(&found) {
                 if let Some(inc) = inc {
                     cache.add(id, inc);
@@ -414,7 +414,7 @@ impl PbgiIntegrator {
     /// best and a fifth cost 8%; on the showroom, whose records see its steel floor through
     /// light samples, a third was 1.5× better than a tenth.
     pub(super) fn refine_cache(&mut self, scene: &Scene, pass: &Pass) -> u64 {
-        let Some(cache) = self.cache.as_ref() else {
+        let Some(cache) = self.irradiance_cache.as_ref() else {
             return 0;
         };
         let mut ids = self.worth_refining(pass, cache, self.gather_cost(cache) as f64);
@@ -435,7 +435,7 @@ impl PbgiIntegrator {
             .collect();
         let rays: u64 = found.iter().map(|f| f.1).sum();
         let cost: u64 = found.iter().map(|f| self.charged(f.1)).sum();
-        if let Some(cache) = self.cache.as_mut() {
+        if let Some(cache) = self.irradiance_cache.as_mut() {
             for (&id, (e, _)) in ids.iter().zip(&found) {
                 if let Some((e, g)) = e {
                     cache.add(id, *e, g);

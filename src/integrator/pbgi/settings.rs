@@ -133,7 +133,10 @@ pub struct PbgiSettings {
     pub cache: f32,
     /// Baked light from `canopy bake` (default: bake before the first pass, counted in the
     /// render time, into an unnamed scratch file).
-    #[arg(long, value_name = "FILE", conflicts_with_all = ["bake_samples", "patch_size", "bounces"])]
+    #[arg(long = "bake-in", value_name = "FILE", conflicts_with_all = ["bake_samples", "patch_size", "bounces"])]
+    pub bake_in: Option<PathBuf>,
+    /// Refused: the bake file is given with --bake-in.
+    #[arg(long, hide = true, value_name = "FILE", value_parser = refused_radiance)]
     pub radiance: Option<PathBuf>,
 }
 
@@ -142,6 +145,10 @@ fn parse_resolution(s: &str) -> Result<usize, String> {
         Ok(n) if (2..=64).contains(&n) && n.is_multiple_of(2) => Ok(n),
         _ => Err(format!("{s:?}: an even number from 2 to 64")),
     }
+}
+
+fn refused_radiance(_: &str) -> Result<PathBuf, String> {
+    Err("a bake file is read with --bake-in FILE".into())
 }
 
 fn parse_cache(s: &str) -> Result<f32, String> {

@@ -37,15 +37,15 @@ pub struct PbgiStats {
     pub traced_texels: u64,
     /// `--pbgi-cache`, its records, the gathers they average and the receivers that
     /// read them.
-    pub pbgi_cache: f32,
-    pub cache_records: u64,
-    pub cache_gathers: u64,
-    pub cache_hits: u64,
+    pub irradiance_cache_error: f32,
+    pub irradiance_records: u64,
+    pub irradiance_record_gathers: u64,
+    pub irradiance_cache_hits: u64,
     /// Receivers the cache covered but a surface nearer than its records' reach hid.
-    pub cache_rejects: u64,
+    pub irradiance_cache_rejects: u64,
     /// Pixels probed for the cache's error, and the records added where it was found.
-    pub cache_probes: u64,
-    pub cache_probe_records: u64,
+    pub irradiance_cache_probes: u64,
+    pub irradiance_probe_records: u64,
     /// WPBGI's glossy gathers (`--pbgi-glossy-bounce wavelet`), the adaptive micro-buffer's
     /// leaves over them (and the leaves the light importance split), the BRDF tables built
     /// and their kept Haar coefficients.
@@ -88,7 +88,7 @@ impl PbgiIntegrator {
     pub(super) fn describe(&self) -> Vec<String> {
         let s = &self.settings;
         vec![
-            match &s.radiance {
+            match &s.bake_in {
                 Some(path) => format!("bake: read from {} ({:.2} s)", path.display(), self.bake_s),
                 None => format!(
                     "bake: {} bounce(s) of light reflected by every node, {} light samples per triangle ({:.2} s)",
@@ -145,14 +145,14 @@ impl PbgiIntegrator {
                 "pbgi: each surface of a pixel gathers at every {}-th sample landing on it, the others reusing its gathers' irradiance",
                 s.reuse
             ),
-            match &self.cache {
+            match &self.irradiance_cache {
                 Some(c) => format!(
                     "pbgi: irradiance cache of error bound {}: {} records placed coarse to fine over the pixels ({} of them where one of {} probes disagreed with the cache), averaging {} gathers ({:.2} s), read by the receivers they cover",
                     s.cache, c.len(), self.probe_records, self.probed, c.gathers(), self.cache_s
                 ),
                 None => "pbgi: no irradiance cache".into(),
             },
-            match &self.radiance {
+            match &self.radiance_cache {
                 Some(c) => format!(
                     "pbgi: radiance cache: {} records placed coarse to fine where one would cover its 8 neighbouring pixels, holding {} gathers of {} Haar coefficients each ({:.2} s), the glossy bounce of {} receivers; the others' from exact lobe rays",
                     c.records.len(),
@@ -188,20 +188,26 @@ impl PbgiIntegrator {
             traced_texels: self.tally.traced_texels.load(Relaxed),
             reused_gathers: self.tally.reused.load(Relaxed),
             edge_pixels: self.edge.pixels(),
-            pbgi_cache: self.settings.cache,
-            cache_records: self.cache.as_ref().map_or(0, |c| c.len() as u64),
-            cache_gathers: self.cache.as_ref().map_or(0, |c| c.gathers()),
-            cache_hits: self.tally.cache_hits.load(Relaxed),
-            cache_rejects: self.tally.cache_rejects.load(Relaxed),
-            cache_probes: self.probed as u64,
-            cache_probe_records: self.probe_records,
+            irradiance_cache_error: self.settings.cache,
+            irradiance_records: self.irradiance_cache.as_ref().map_or(0, |c| c.len() as u64),
+            irradiance_record_gathers: self.irradiance_cache.as_ref().map_or(0, |c| c.gathers()),
+            irradiance_cache_hits: self.tally.cache_hits.load(Relaxed),
+            irradiance_cache_rejects: self.tally.cache_rejects.load(Relaxed),
+            irradiance_cache_probes: self.probed as u64,
+            irradiance_probe_records: self.probe_records,
             wavelet_gathers: self.tally.wavelet_gathers.load(Relaxed),
             amb_leaves: self.tally.amb_leaves.load(Relaxed),
             amb_light_splits: self.tally.light_splits.load(Relaxed),
             brdf_tables,
             brdf_coefficients,
-            radiance_records: self.radiance.as_ref().map_or(0, |c| c.records.len() as u64),
-            radiance_gathers: self.radiance.as_ref().map_or(0, |c| c.records.gathers()),
+            radiance_records: self
+                .radiance_cache
+                .as_ref()
+                .map_or(0, |c| c.records.len() as u64),
+            radiance_gathers: self
+                .radiance_cache
+                .as_ref()
+                .map_or(0, |c| c.records.gathers()),
             radiance_hits: self.tally.radiance_hits.load(Relaxed),
         })
     }

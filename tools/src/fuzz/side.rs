@@ -11,7 +11,7 @@ use canopy::convert::{convert, ConvertOptions};
 use canopy::integrator::pbgi::PbgiSettings;
 use canopy::integrator::Settings;
 use canopy::render::render;
-use canopy_format::radiance_parts::RadianceParts;
+use canopy_format::bake_parts::BakeParts;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
@@ -169,8 +169,8 @@ fn bake_case(s: &Seeds, dir: &Path, bytes: &[u8]) -> Result<()> {
     let path = dir.join("m.radiance");
     std::fs::write(&path, bytes)?;
     let a = canopy_format::Archive::open(&s.archive)?;
-    let r = canopy_format::radiance::RadianceFile::open(&path, &a)?;
-    canopy::inspect::radiance(&a, &r, true, Some(BUDGET))?;
+    let r = canopy_format::bake::BakeFile::open(&path, &a)?;
+    canopy::inspect::bake(&a, &r, true, Some(BUDGET))?;
     let pbgi = PbgiSettings {
         radiance: Some(path),
         ..PbgiSettings::default()
@@ -224,7 +224,7 @@ fn mutate_store_header(seed: &[u8], rng: &mut Rng) -> Vec<u8> {
             b[40..48].copy_from_slice(&entries.wrapping_add(d).wrapping_sub(2).to_le_bytes());
         }
     }
-    canopy::radiance::file::reseal(&mut b);
+    canopy::light_store::file::reseal(&mut b);
     if rng.below(4) == 0 {
         // Sizes lie while the body's checksum stays what it was.
         b[64..72].copy_from_slice(&SIZES[rng.below(SIZES.len())].to_le_bytes());
@@ -236,7 +236,7 @@ fn mutate_store_header(seed: &[u8], rng: &mut Rng) -> Vec<u8> {
 /// replaced by a frame inflating far past what the header declares; checksums recomputed.
 fn mutate_store_body(seed: &[u8], rng: &mut Rng) -> Vec<u8> {
     let mut records = zstd::decode_all(&seed[128..]).expect("the seed store inflates");
-    let mut h = canopy::radiance::file::header_of(seed).expect("a header");
+    let mut h = canopy::light_store::file::header_of(seed).expect("a header");
     let body = match rng.below(3) {
         0 if records.len() >= 64 => {
             let r = 64 * rng.below(records.len() / 64);
@@ -255,9 +255,9 @@ fn mutate_store_body(seed: &[u8], rng: &mut Rng) -> Vec<u8> {
         _ => bomb(records.len() + 64 * rng.below(1 << 20), rng.below(2) == 0),
     };
     let mut b = seed[..128].to_vec();
-    canopy::radiance::file::set_header(&mut b, &h);
+    canopy::light_store::file::set_header(&mut b, &h);
     b.extend(body);
-    canopy::radiance::file::reseal(&mut b);
+    canopy::light_store::file::reseal(&mut b);
     b
 }
 
@@ -279,7 +279,7 @@ fn bomb(len: usize, pledged: bool) -> Vec<u8> {
 
 /// A bake's header or block-table fields set to hostile values, checksums recomputed.
 fn mutate_bake_tables(seed: &[u8], rng: &mut Rng) -> Vec<u8> {
-    let mut b = RadianceParts::read(seed).expect("the seed bake");
+    let mut b = BakeParts::read(seed).expect("the seed bake");
     match rng.below(3) {
         0 => {
             let mut h = bytemuck::bytes_of(&b.header).to_vec();
@@ -314,7 +314,7 @@ fn mutate_bake_tables(seed: &[u8], rng: &mut Rng) -> Vec<u8> {
 /// A bake's decompressed blocks edited (node records, pyramids, coefficient records and
 /// kinds), or a block replaced by zeros declaring a huge patch list; checksums recomputed.
 fn mutate_bake_blocks(seed: &[u8], rng: &mut Rng) -> Vec<u8> {
-    let mut b = RadianceParts::read(seed).expect("the seed bake");
+    let mut b = BakeParts::read(seed).expect("the seed bake");
     let i = rng.below(b.blocks.len());
     if rng.below(4) == 0 {
         let patches = [357_913_760u64, 1 << 20, 1 << 24][rng.below(3)];

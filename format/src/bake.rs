@@ -1,8 +1,8 @@
-//! The radiance sidecar (`canopy bake`): per node of an archive, the light it reflects,
+//! The bake file (`canopy bake`): per node of an archive, the light it reflects,
 //! stored as one zstd block per archive page so a renderer pages it with the nodes. The
 //! header names the archive by its header checksum (which covers, through the table
 //! checksum, every page's checksum), so a bake never pairs with another archive. Layout in
-//! `FORMAT.md`, "The radiance file".
+//! `FORMAT.md`, "The bake file".
 
 use crate::atomic::{io, AtomicFile};
 use crate::error::{FormatError, Result};
@@ -91,7 +91,7 @@ pub struct BakedBlock {
     /// holding its 4^j midpoint-split patches by index (children of patch i are
     /// 4i..4i+3 of the next level).
     pub patches: Vec<[f32; 3]>,
-    /// Glossy light, when the file has coefficients (`RadianceHeader::wavelet_n` > 0).
+    /// Glossy light, when the file has coefficients (`BakeHeader::wavelet_n` > 0).
     pub coefs: CoefBlock,
 }
 
@@ -112,7 +112,7 @@ impl BakedBlock {
 /// The 128-byte header at offset 0.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
-pub struct RadianceHeader {
+pub struct BakeHeader {
     pub magic: [u8; 8],
     pub version_major: u16,
     pub version_minor: u16,
@@ -142,7 +142,7 @@ pub struct RadianceHeader {
     pub reserved: [u8; 16],
 }
 
-const _: () = assert!(std::mem::size_of::<RadianceHeader>() == 128);
+const _: () = assert!(std::mem::size_of::<BakeHeader>() == 128);
 
 /// Where archive page i's block lies (32 bytes; entry i of the table).
 #[repr(C)]
@@ -172,12 +172,12 @@ pub struct BakeInfo {
     pub wavelet_threshold: f32,
 }
 
-/// Writes a radiance file block by block, in any page order; like the archive writer it
+/// Writes a bake file block by block, in any page order; like the archive writer it
 /// leaves nothing at the output path unless `finish` succeeds.
 pub struct RadianceWriter {
     out: AtomicFile,
     path: PathBuf,
-    header: RadianceHeader,
+    header: BakeHeader,
     blocks: Vec<BlockEntry>,
     tri_counts: Vec<u32>,
     written: Vec<bool>,
@@ -202,7 +202,7 @@ impl RadianceWriter {
         info: BakeInfo,
     ) -> Result<RadianceWriter> {
         let entries = archive.entries()?;
-        let header = RadianceHeader {
+        let header = BakeHeader {
             magic: RADIANCE_MAGIC,
             version_major: RADIANCE_VERSION_MAJOR,
             version_minor: RADIANCE_VERSION_MINOR,
@@ -314,17 +314,17 @@ impl RadianceWriter {
     }
 }
 
-/// An open radiance file checked against its archive; blocks are read on demand.
-pub struct RadianceFile {
+/// An open bake file checked against its archive; blocks are read on demand.
+pub struct BakeFile {
     path: PathBuf,
     file: File,
-    pub header: RadianceHeader,
+    pub header: BakeHeader,
     pub blocks: Vec<BlockEntry>,
     tri_counts: Vec<u32>,
 }
 
-impl RadianceFile {
-    pub fn open(path: &Path, archive: &Archive) -> Result<RadianceFile> {
+impl BakeFile {
+    pub fn open(path: &Path, archive: &Archive) -> Result<BakeFile> {
         let meta = std::fs::metadata(path).map_err(io(path))?;
         if !meta.is_file() {
             return Err(FormatError::BadRadiance {
@@ -333,12 +333,12 @@ impl RadianceFile {
             });
         }
         let file = File::open(path).map_err(io(path))?;
-        RadianceFile::from_file(file, path, archive)
+        BakeFile::from_file(file, path, archive)
     }
 
     /// Checks the header, the identity, the table and every block's checksum (one read of
     /// the file, a block at a time); blocks are decoded and their values checked on demand.
-    pub fn from_file(file: File, path: &Path, archive: &Archive) -> Result<RadianceFile> {
+    pub fn from_file(file: File, path: &Path, archive: &Archive) -> Result<BakeFile> {
         let bad = |what: String| FormatError::BadRadiance {
             path: path.to_path_buf(),
             what,
@@ -356,7 +356,7 @@ impl RadianceFile {
                 "truncated: the 128-byte header, file has {len} bytes"
             )));
         }
-        let h: RadianceHeader = bytemuck::pod_read_unaligned(&head);
+        let h: BakeHeader = bytemuck::pod_read_unaligned(&head);
         if h.version_major != RADIANCE_VERSION_MAJOR {
             return Err(bad(format!(
                 "version {}.{}; this canopy reads {RADIANCE_VERSION_MAJOR}.x",
@@ -416,7 +416,7 @@ impl RadianceFile {
                 h.coef_bytes
             )));
         }
-        Ok(RadianceFile {
+        Ok(BakeFile {
             path: path.to_path_buf(),
             file,
             header: h,
@@ -632,7 +632,7 @@ fn read_at(file: &File, buf: &mut [u8], offset: u64, len: u64) -> usize {
     }
 }
 
-fn check_header(h: &RadianceHeader) -> std::result::Result<(), String> {
+fn check_header(h: &BakeHeader) -> std::result::Result<(), String> {
     let table = h.pages as u64 * std::mem::size_of::<BlockEntry>() as u64;
     if h.header_size != 128 {
         return Err(format!("header size {}, not 128", h.header_size));
@@ -667,7 +667,7 @@ fn check_header(h: &RadianceHeader) -> std::result::Result<(), String> {
     Ok(())
 }
 
-fn read_blocks(file: &File, h: &RadianceHeader) -> std::result::Result<Vec<BlockEntry>, String> {
+fn read_blocks(file: &File, h: &BakeHeader) -> std::result::Result<Vec<BlockEntry>, String> {
     let mut blocks = vec![BlockEntry::default(); h.pages as usize];
     let raw: &mut [u8] = bytemuck::cast_slice_mut(&mut blocks);
     if read_at(file, raw, h.blocks_offset, h.file_len) < raw.len() {

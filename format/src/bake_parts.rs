@@ -1,21 +1,21 @@
-//! A radiance file taken apart and put back, for tools that craft damaged files (the fuzz
+//! A bake file taken apart and put back, for tools that craft damaged files (the fuzz
 //! harness, tests): what they edit stays wrong, and every offset and checksum around it is
 //! recomputed, so the damage reaches the decoder instead of stopping at a checksum.
 
-use crate::radiance::{BlockEntry, RadianceHeader};
+use crate::bake::{BakeHeader, BlockEntry};
 
 /// The header, the block table, and each block's bytes decompressed.
 #[derive(Clone)]
-pub struct RadianceParts {
-    pub header: RadianceHeader,
+pub struct BakeParts {
+    pub header: BakeHeader,
     pub entries: Vec<BlockEntry>,
     pub blocks: Vec<Vec<u8>>,
 }
 
-impl RadianceParts {
+impl BakeParts {
     /// Takes apart a well-formed file (as `canopy bake` writes it); None otherwise.
-    pub fn read(bytes: &[u8]) -> Option<RadianceParts> {
-        let header: RadianceHeader = bytemuck::pod_read_unaligned(bytes.get(..128)?);
+    pub fn read(bytes: &[u8]) -> Option<BakeParts> {
+        let header: BakeHeader = bytemuck::pod_read_unaligned(bytes.get(..128)?);
         let at = header.blocks_offset as usize;
         let table = bytes.get(at..at + 32 * header.pages as usize)?;
         let entries: Vec<BlockEntry> = bytemuck::pod_collect_to_vec(table);
@@ -26,7 +26,7 @@ impl RadianceParts {
                 zstd::decode_all(bytes.get(from..from + e.compressed_len as usize)?).ok()
             })
             .collect::<Option<Vec<_>>>()?;
-        Some(RadianceParts {
+        Some(BakeParts {
             header,
             entries,
             blocks,
