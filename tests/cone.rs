@@ -19,15 +19,17 @@ fn cone(
 #[test]
 fn cone_scale_zero_agrees_with_the_reference() {
     let dir = tempfile::tempdir().unwrap();
-    // room_glass's light through rough glass is heavy-tailed: at 64 spp the path tracer's
-    // own image means ran −0.2 to −0.8% in five seeds of six and +4.4% in the sixth; at
-    // 256 spp the cone integrator's red ran −1.2 to +1.6% over eight seeds (standard
-    // deviation 0.85%), so it takes 1024 spp to hold 1%.
-    for (name, spp) in [
-        ("cbox", "128"),
-        ("bunny_box", "64"),
-        ("room_glossy", "64"),
-        ("room_glass", "1024"),
+    // Pixels of one light cell share its stored light, so the image mean's noise is
+    // larger than independent pixels' (measured: cbox −0.03 to −0.04%, 4 of their standard
+    // errors): each bound is just above the measured difference. room_glossy's lamp-lit
+    // gold is heavy-tailed (+0.37% in green); room_glass's light through rough glass more
+    // so: at 256 spp the cone integrator's red ran −1.2 to +1.6% over eight seeds
+    // (standard deviation 0.85%), at 1024 spp −0.70%.
+    for (name, spp, bound) in [
+        ("cbox", "128", 0.001),
+        ("bunny_box", "64", 0.0025),
+        ("room_glossy", "64", 0.006),
+        ("room_glass", "1024", 0.01),
     ] {
         let arc = dir.path().join(format!("{name}.canopy"));
         convert(&scene(&format!("{name}.glb")), &arc, None);
@@ -36,7 +38,7 @@ fn cone_scale_zero_agrees_with_the_reference() {
             &dir.path().join(format!("{name}.exr")),
             &["--cone-scale", "0", "--spp", spp],
         );
-        assert_mean_within(&img, &reference(name), 0.01, name);
+        assert_mean_within(&img, &reference(name), bound, name);
         assert!(stats["stored_nodes"].as_u64().unwrap() > 0);
         assert!(
             stats["passes"].to_string().contains("light pass: skipped"),
@@ -81,7 +83,8 @@ fn the_thesis_level_of_detail_stays_close_to_the_reference() {
         &["--spp", "64", "--cone-scale", "1"],
     );
     assert!(all_finite(&img));
-    assert_mean_within(&img, &reference("bunny_box"), 0.02, "cone scale 1");
+    // The level of detail's bias: +0.36%, +0.28%, +0.25% measured, 20–28 standard errors.
+    assert_mean_within(&img, &reference("bunny_box"), 0.005, "cone scale 1");
     assert_eq!(stats["cone_scale"], 1.0);
 }
 
@@ -196,10 +199,11 @@ fn cones_from_a_camera_a_million_units_out() {
         let args = ["--spp", "32", "--cone-scale", scale];
         let (img, _) = cone(&arc, &dir.path().join("far.exr"), &args);
         assert!(all_finite(&img));
+        // Measured at 1e6: +0.08% and +0.06% in red (scale 0 and 1), as at the origin.
         assert_mean_within(
             &img,
             &reference("cbox"),
-            0.02,
+            0.0025,
             &format!("scale {scale} at 1e6"),
         );
     }
@@ -534,7 +538,7 @@ fn max_depth_counts_segments_as_the_path_tracer_does() {
     for depth in ["1", "2", "3"] {
         let args = [
             "--spp",
-            "16",
+            "64",
             "--width",
             "64",
             "--height",
@@ -548,12 +552,8 @@ fn max_depth_counts_segments_as_the_path_tracer_does() {
             &dir.path().join(format!("c{depth}.exr")),
             &[&args[..], &["--cone-scale", "0"]].concat(),
         );
-        let (pm, cm) = (p.mean(), c.mean());
-        for k in 0..3 {
-            let rel = (cm[k] - pm[k]) / pm[k];
-            assert!(rel.abs() < 0.03, "depth {depth}: cone {cm:?}, path {pm:?}");
-        }
-        means.push(pm[1]);
+        assert_mean_within_noise(&c, &p, &format!("depth {depth}, cone against path"));
+        means.push(p.mean()[1]);
     }
     // Each segment adds light: the depths are not the same render.
     assert!(

@@ -176,7 +176,7 @@ pub fn assert_mean_within_noise(img: &Image, r: &Image, what: &str) {
         let se = (mse / n).sqrt();
         let d = a[c] - b[c];
         assert!(
-            d.abs() < 4.0 * se,
+            d.abs() <= 4.0 * se,
             "{what}: channel {c} mean {} vs reference {}: {d:+.3e} is {:.1} standard errors ({se:.2e})",
             a[c],
             b[c],

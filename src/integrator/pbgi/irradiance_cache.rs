@@ -555,9 +555,10 @@ mod tests {
 
     /// Records whose gathers are skewed (0.5 plus an exponential of mean 0.5, as when a
     /// few texels see a hot spot), refined a gather a round while their gain is worth it:
-    /// their mean (1) reads 3% low, where refined by their own spread alone it read 8% low
-    /// (a shrunk spread lessens the bias of stopping where the first gathers agree; it
-    /// does not remove it).
+    /// their mean (1) reads 2.7% low, where refined by their own spread alone it reads 8%
+    /// low (a shrunk spread lessens the bias of stopping where the first gathers agree; it
+    /// does not remove it). The 10,000 records' mean has a standard error near 0.005, so
+    /// the bound is the measured bias and 1.5 standard errors.
     #[test]
     fn refined_records_keep_a_skewed_mean() {
         let mut rng = TestRng::new(5);
@@ -581,7 +582,7 @@ mod tests {
         let n = (trials * records) as f64;
         let (mean, gathers) = (sum / n, gathers as f64 / n);
         assert!(
-            (mean - 1.0).abs() < 0.04,
+            (mean - 1.0).abs() < 0.035,
             "mean {mean} over {gathers} gathers"
         );
     }
