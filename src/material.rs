@@ -144,9 +144,13 @@ pub fn fresnel_dielectric(cos_i: f32, eta: f32) -> f32 {
     0.5 * (rs * rs + rp * rp)
 }
 
-/// Rec. 709 luminance of a linear RGB colour.
+/// Rec. 709 luminance weights of linear R, G, B.
+pub const REC709: [f64; 3] = [0.2126, 0.7152, 0.0722];
+
+/// Rec. 709 luminance of a linear RGB colour (each weight the nearest f32 to the decimal).
 pub fn luminance(c: V) -> f32 {
-    0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
+    let [r, g, b] = REC709.map(|w| w as f32);
+    r * c.x + g * c.y + b * c.z
 }
 
 /// GGX normal distribution D(h), h in the local frame.

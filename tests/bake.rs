@@ -64,7 +64,7 @@ fn baked_light_pages_with_the_nodes_under_a_budget() {
     let (tight, stats) = render(
         &arc,
         &dir.path().join("tight.exr"),
-        &[&pbgi[..], &["--mem-budget", "3MiB", "--threads", "1"]].concat(),
+        &[&pbgi[..], &["--mem-budget", "4MiB", "--threads", "1"]].concat(),
     );
     assert!(stats["pages_evicted"].as_u64().unwrap() > 0, "{stats}");
     assert_eq!(rmse(&free, &tight), 0.0);

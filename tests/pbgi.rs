@@ -1083,6 +1083,17 @@ fn wavelet_pbgi_gathers_a_rough_metal_floors_reflection() {
             "{how} {extra:?}: red off by {:.2}%",
             100.0 * off
         );
+        // The radiance records, their blend and their refinement between passes do not
+        // depend on the thread count: one thread and two give the same image.
+        if how == "cache" {
+            let threads = |n| [&pbgi[..], &[how], extra, &["--threads", n]].concat();
+            let (one, _) = render_at("3", &threads("1"));
+            let (two, _) = render_at("3", &threads("2"));
+            assert!(
+                one.pixels == two.pixels,
+                "{extra:?}: 1 and 2 threads differ"
+            );
+        }
     }
 }
 
@@ -1133,4 +1144,45 @@ fn alpha_masked_holes_show_the_floor_under_pbgi_as_under_the_path_tracer() {
     );
     assert!((fb - fp).abs() < 0.2 * fp, "path {fp}, pbgi {fb}");
     assert_mean_within_noise(&pbgi, &path, "masked plane, pbgi against path");
+}
+
+/// Under `--mem-budget` PBGI's per-pixel tables and cache records take the quarter kept
+/// for the integrator's state (the tables at most three quarters of it, keeping fewer
+/// surfaces a pixel where they must): a window whose tables do not fit even with one
+/// surface a pixel is refused before the bake, naming a budget that fits; at that budget
+/// the render's resident peak (pages, their baked light and PBGI's state) stays within it.
+/// A PBGI whose state took no share held 1.44× an 8 MiB budget at 256² (its tables alone
+/// 54 MiB at their largest).
+#[test]
+fn pbgi_keeps_its_state_within_the_budgets_share() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("c.canopy");
+    convert(&scene("cbox.glb"), &arc, None);
+    let out = dir.path().join("o.exr");
+    let size = ["--width", "256", "--height", "256", "--spp", "4"];
+    let pbgi = [
+        &["render", s(&arc), "-o", s(&out), "--integrator", "pbgi"][..],
+        &size,
+    ]
+    .concat();
+    let err = fails(&[&pbgi[..], &["--mem-budget", "8MiB"]].concat());
+    assert!(
+        err.contains("per-pixel tables for a 256x256 window"),
+        "{err}"
+    );
+    assert!(!out.exists(), "an image was written");
+    let fits = err.split("a budget of at least ").nth(1).unwrap();
+    let budget = fits.split_whitespace().next().unwrap();
+    let (img, stats) = render(
+        &arc,
+        &out,
+        &[&["--integrator", "pbgi", "--mem-budget", budget][..], &size].concat(),
+    );
+    assert!(all_finite(&img));
+    let bytes = canopy::units::parse_size(budget).unwrap();
+    let peak = stats["resident_bytes_peak"].as_u64().unwrap();
+    assert!(
+        peak <= bytes,
+        "resident peak {peak} over the budget {bytes}"
+    );
 }

@@ -626,18 +626,35 @@ fn punctual_light_intensities_give_the_analytic_radiance() {
 }
 
 /// The same scene instanced and flattened renders the same image with the path tracer:
-/// cbox's small box placed three times by EXT_mesh_gpu_instancing (as it is, mirrored in
-/// x across the room, and at half size), so rays enter instances through rotations of
-/// winding, scales and translations. With one seed the two images differ only where a
+/// cbox's small box placed four times by EXT_mesh_gpu_instancing (as it is, mirrored in
+/// x across the room, at half size, and turned about two axes with an uneven scale), so
+/// rays enter instances through rotations, reversed winding, uneven scales and
+/// translations. With one seed the two images differ only where a
 /// path's rounding differs; that difference must be far below the noise between two seeds.
 /// So must the cone integrator's, whose stored light is kept per instance; PBGI, whose
 /// baked light is per node, refuses the instanced archive, naming the fix.
 #[test]
 fn instanced_and_flattened_scenes_render_alike() {
     let dir = tempfile::tempdir().unwrap();
-    let places = [[0.0; 3], [556.0, 0.0, 0.0], [180.0, 0.0, 60.0]];
-    let scales = [[1.0; 3], [-1.0, 1.0, 1.0], [0.5; 3]];
-    let input = gpu_instanced(dir.path(), "boxes.glb", "smallbox", &places, &scales);
+    let places = [
+        [0.0; 3],
+        [556.0, 0.0, 0.0],
+        [180.0, 0.0, 60.0],
+        [330.0, 20.0, 250.0],
+    ];
+    let scales = [[1.0; 3], [-1.0, 1.0, 1.0], [0.5; 3], [0.6, 1.3, 0.4]];
+    // The fourth copy turned 40° about y and 15° about x, and scaled unevenly.
+    let (a, b) = (20f32.to_radians(), 7.5f32.to_radians());
+    let q = glam::Quat::from_rotation_y(2.0 * a) * glam::Quat::from_rotation_x(2.0 * b);
+    let turns = [[0.0, 0.0, 0.0, 1.0]; 3].into_iter().chain([q.to_array()]);
+    let input = gpu_instanced_rotated(
+        dir.path(),
+        "boxes.glb",
+        "smallbox",
+        &places,
+        &turns.collect::<Vec<_>>(),
+        &scales,
+    );
     let (inst, flat) = (dir.path().join("i.canopy"), dir.path().join("f.canopy"));
     ok(&["--quiet", "convert", s(&input), "-o", s(&inst)]);
     ok(&[

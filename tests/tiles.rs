@@ -64,8 +64,9 @@ fn assembled_tiles_are_the_whole_render_bit_for_bit() {
     );
 }
 
-/// A missing, duplicated, overlapping or foreign tile, one with other settings, a gap or a
-/// truncated file: a clear error naming the tile, exit status 1, no output.
+/// A missing, duplicated, overlapping or foreign tile, one with other settings, another
+/// seed or another frame size, a gap or a truncated file: a clear error naming the tile,
+/// exit status 1, no output.
 #[test]
 fn bad_tile_sets_are_refused_and_write_nothing() {
     let dir = tempfile::tempdir().unwrap();
@@ -78,17 +79,55 @@ fn bad_tile_sets_are_refused_and_write_nothing() {
     let wide = tile(&arc, &d.join("wide.exr"), Some("0,64,20,48"), "2");
     let foreign = tile(&other, &d.join("foreign.exr"), Some("0,64,24,48"), "2");
     let more = tile(&arc, &d.join("more.exr"), Some("0,64,24,48"), "3");
+    let other_tile = |name: &str, extra: &[&str]| {
+        let out = d.join(name);
+        let base = ["--quiet", "render", s(&arc), "-o", s(&out), "--spp", "2"];
+        ok(&[&base[..], extra].concat());
+        out
+    };
+    let seeded = other_tile(
+        "seeded.exr",
+        &[
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--seed",
+            "7",
+            "--crop",
+            "0,64,24,48",
+        ],
+    );
+    let taller = other_tile(
+        "taller.exr",
+        &[
+            "--width",
+            "64",
+            "--height",
+            "50",
+            "--seed",
+            "9",
+            "--crop",
+            "0,64,24,50",
+        ],
+    );
     let cut = d.join("cut.exr");
     let bytes = std::fs::read(&bottom).unwrap();
     std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
     let (out, nope) = (d.join("out.exr"), d.join("nope.exr"));
-    let cases: [(&str, Vec<&Path>, &str); 7] = [
+    let cases: [(&str, Vec<&Path>, &str); 9] = [
         ("missing", vec![&top, &nope], "nope.exr: no such file"),
         ("duplicated", vec![&top, &top, &bottom], "given twice"),
         ("overlapping", vec![&top, &wide], "overlap at pixel (0, 20)"),
         ("gap", vec![&top], "uncovered, the first at (0, 24)"),
         ("foreign", vec![&top, &foreign], "from another archive"),
         ("other settings", vec![&top, &more], "with other settings"),
+        ("another seed", vec![&top, &seeded], "with another seed"),
+        (
+            "another frame",
+            vec![&top, &taller],
+            "taller.exr: a 64x50 frame",
+        ),
         (
             "truncated",
             vec![&top, &cut],

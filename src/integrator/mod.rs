@@ -60,12 +60,13 @@ impl Settings {
     }
 
     /// The part of a memory budget the integrator keeps for its own state (the pages get
-    /// the rest): a quarter for the cone integrator's stored light. PBGI's baked light
-    /// (96 bytes a node) rides in the pages, so the page cache's budget holds it.
+    /// the rest): a quarter for the cone integrator's stored light and for PBGI's per-pixel
+    /// tables and records. PBGI's baked light (96 bytes a node) rides in the pages, so the
+    /// page cache's share holds it.
     pub fn state_share(&self, budget: u64) -> u64 {
         match self {
-            Settings::Path | Settings::Pbgi(_) => 0,
-            Settings::Cone(_) => budget / 4,
+            Settings::Path => 0,
+            Settings::Cone(_) | Settings::Pbgi(_) => budget / 4,
         }
     }
 

@@ -110,6 +110,8 @@ pub struct PageCache {
     tile_resident: AtomicU64,
     tile_resident_peak: AtomicU64,
     budget: u64,
+    /// How the command's `--mem-budget` was split to give `budget`, for errors.
+    budget_note: std::sync::OnceLock<String>,
     /// Worker threads the minimum budget was computed for.
     threads: usize,
     resident: AtomicU64,
@@ -181,8 +183,8 @@ impl PageCache {
         if let Some(b) = budget {
             if b < minimum {
                 bail!(
-                    "--mem-budget {} is too small for {}: the pinned top pages take {:.1} MiB and each of {threads} threads needs room for a path of pages; the minimum is {:.1} MiB",
-                    b,
+                    "the page cache's {} is too small for {}: the pinned top pages take {:.1} MiB and each of {threads} threads needs room for a path of pages; the minimum is {:.1} MiB",
+                    crate::units::format_size(b),
                     archive.path().display(),
                     pinned as f64 / 1048576.0,
                     minimum as f64 / 1048576.0,
@@ -210,6 +212,7 @@ impl PageCache {
                 .collect(),
             slots,
             budget: budget.unwrap_or(u64::MAX),
+            budget_note: std::sync::OnceLock::new(),
             threads,
             resident: AtomicU64::new(0),
             resident_peak: AtomicU64::new(0),
@@ -309,6 +312,12 @@ impl PageCache {
     /// so each page holds its block from now on. Call it while no traversal runs. A budget
     /// that cannot hold the pinned pages with their blocks and, per worker, the largest page
     /// with its block is an error naming the minimum, before any block is read.
+    /// Records how the command's `--mem-budget` was split to give the cache's budget; a
+    /// budget too small for a bake then says so.
+    pub fn note_budget(&self, note: String) {
+        let _ = self.budget_note.set(note);
+    }
+
     pub fn attach_bake(&self, r: BakeFile) -> Result<()> {
         if self.budget != u64::MAX {
             let with_block = |i: usize| {
@@ -324,13 +333,14 @@ impl PageCache {
             let minimum = pinned + self.threads as u64 * largest;
             if self.budget < minimum {
                 bail!(
-                    "--mem-budget {} is too small for {} with its baked light {}: the pinned top pages and their blocks take {:.1} MiB and the largest page with its block {:.1} MiB; the minimum is {:.1} MiB",
+                    "the page cache's {} is too small for {} with its baked light {}: the pinned top pages and their blocks take {:.1} MiB and the largest page with its block {:.1} MiB; the minimum is {:.1} MiB{}",
                     crate::units::format_size(self.budget),
                     self.archive.path().display(),
                     r.path().display(),
                     pinned as f64 / 1048576.0,
                     largest as f64 / 1048576.0,
                     minimum as f64 / 1048576.0,
+                    self.budget_note.get().map_or(String::new(), |n| format!(" ({n})")),
                 );
             }
         }

@@ -125,9 +125,10 @@ impl Film {
     }
 }
 
-/// Rec. 709 luminance, in f64 for the film's sums.
+/// Rec. 709 luminance (`material::REC709`), in f64 for the film's sums.
 pub fn luminance(c: [f64; 3]) -> f64 {
-    0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
+    let [r, g, b] = crate::material::REC709;
+    r * c[0] + g * c[1] + b * c[2]
 }
 
 #[cfg(test)]

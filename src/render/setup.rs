@@ -10,6 +10,7 @@ use crate::material::Material;
 use crate::paging::PageCache;
 use crate::texture::Textures;
 use crate::trace::MAX_DEPTH;
+use crate::units::format_size;
 use anyhow::{bail, Context, Result};
 use canopy_format::{Archive, CameraRecord};
 use glam::Vec3A as V;
@@ -202,6 +203,7 @@ pub fn open_scene(
         );
     }
     let touched = NodeSet::new(archive.header.nodes);
+    let budget_in = budget;
     let budget = match budget {
         Some((b, state)) => {
             let others = touched.bytes()
@@ -213,7 +215,22 @@ pub fn open_scene(
         }
         None => None,
     };
-    let cache = PageCache::new(Arc::clone(&archive), budget, threads)?;
+    let split = |(b, state): (u64, u64)| {
+        let pages = budget.unwrap_or(0);
+        format!(
+            "--mem-budget {} keeps {} for the integrator's state and {} for node statistics and tables, leaving the page cache {}",
+            format_size(b),
+            format_size(state),
+            format_size(b - state - pages),
+            format_size(pages)
+        )
+    };
+    let note = budget_in.map(split);
+    let cache = PageCache::new(Arc::clone(&archive), budget, threads)
+        .with_context(|| note.clone().unwrap_or_default())?;
+    if let Some(note) = note {
+        cache.note_budget(note);
+    }
     let materials: Vec<Material> = archive
         .materials
         .iter()

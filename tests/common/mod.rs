@@ -231,9 +231,31 @@ pub fn gpu_instanced(
     translations: &[[f32; 3]],
     scales: &[[f32; 3]],
 ) -> PathBuf {
+    gpu_instanced_rotated(dir, name, node, translations, &[], scales)
+}
+
+/// `gpu_instanced` with a rotation per instance (unit quaternions x, y, z, w).
+pub fn gpu_instanced_rotated(
+    dir: &Path,
+    name: &str,
+    node: &str,
+    translations: &[[f32; 3]],
+    rotations: &[[f32; 4]],
+    scales: &[[f32; 3]],
+) -> PathBuf {
+    let flat = |v: &[[f32; 3]]| v.iter().map(|a| a.to_vec()).collect::<Vec<_>>();
+    let columns = [
+        ("TRANSLATION", flat(translations), "VEC3"),
+        (
+            "ROTATION",
+            rotations.iter().map(|a| a.to_vec()).collect(),
+            "VEC4",
+        ),
+        ("SCALE", flat(scales), "VEC3"),
+    ];
     tiny_glb(dir, name, |json, bin| {
         let mut attributes = serde_json::Map::new();
-        for (attr, values) in [("TRANSLATION", translations), ("SCALE", scales)] {
+        for (attr, values, ty) in &columns {
             if values.is_empty() {
                 continue;
             }
@@ -244,12 +266,13 @@ pub fn gpu_instanced(
             for v in values.iter().flatten() {
                 bin.extend(v.to_le_bytes());
             }
+            let bytes = bin.len() - offset;
             let views = json["bufferViews"].as_array_mut().unwrap();
-            views.push(serde_json::json!({"buffer": 0, "byteOffset": offset, "byteLength": values.len() * 12}));
+            views.push(serde_json::json!({"buffer": 0, "byteOffset": offset, "byteLength": bytes}));
             let view = views.len() - 1;
             let accessors = json["accessors"].as_array_mut().unwrap();
-            accessors.push(serde_json::json!({"bufferView": view, "componentType": 5126, "count": values.len(), "type": "VEC3"}));
-            attributes.insert(attr.into(), (accessors.len() - 1).into());
+            accessors.push(serde_json::json!({"bufferView": view, "componentType": 5126, "count": values.len(), "type": ty}));
+            attributes.insert(attr.to_string(), (accessors.len() - 1).into());
         }
         json["buffers"][0]["byteLength"] = bin.len().into();
         json["extensionsUsed"] = serde_json::json!(["EXT_mesh_gpu_instancing"]);

@@ -234,7 +234,20 @@ impl IrradianceCache {
     /// Bytes held (records and grid lists).
     pub fn bytes(&self) -> u64 {
         let lists: usize = self.grid.values().map(|v| v.capacity() * 4 + 48).sum();
-        (self.records.capacity() * size_of::<Record>() + lists) as u64
+        let carry = self.carry.capacity() * size_of::<Gradients>();
+        (self.records.capacity() * size_of::<Record>() + carry + lists) as u64
+    }
+
+    /// Room for `n` more records, and no more.
+    pub fn reserve_exact(&mut self, n: usize) {
+        self.records.reserve_exact(n);
+        self.carry.reserve_exact(n);
+    }
+
+    /// Bytes a record adds at most once room is made for it: itself, its carried
+    /// gradients, and a place (and a list) in the grid's cells.
+    pub fn record_cost() -> u64 {
+        (size_of::<Record>() + size_of::<Gradients>() + 8 * (4 + 48)) as u64
     }
 
     /// Adds records, in their order.

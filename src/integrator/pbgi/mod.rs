@@ -51,6 +51,7 @@ mod cut;
 mod gather;
 pub mod glossy;
 pub mod irradiance_cache;
+mod memory;
 pub mod microbuffer;
 pub mod patch;
 mod pixel_reuse;
@@ -81,13 +82,17 @@ use settings::{GLOSSY_RAYS, PIXEL_SPLIT, SPLIT};
 use stats::PbgiCounters;
 pub use stats::PbgiStats;
 use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
-use std::sync::{Mutex, PoisonError};
+use std::sync::Mutex;
 use std::time::Instant;
 
 pub struct PbgiIntegrator {
     settings: PbgiSettings,
     /// What the render counted.
     tally: PbgiCounters,
+    /// The memory budget's share for this state (per-pixel tables and records), if any.
+    state_cap: Option<u64>,
+    /// Surfaces a pixel keeps gathers for (`SURFACES_PER_PIXEL`, fewer under a budget).
+    surfaces_per_pixel: usize,
     /// Light samples the bake took (0 when read from a file).
     bake_samples: u64,
     texels: Texels,
@@ -156,6 +161,8 @@ impl PbgiIntegrator {
         PbgiIntegrator {
             settings: settings.clone(),
             tally: PbgiCounters::default(),
+            state_cap: target.state_bytes,
+            surfaces_per_pixel: SURFACES_PER_PIXEL,
             texels: Texels::new(settings.resolution),
             bake_samples: 0,
             seed,
@@ -236,6 +243,7 @@ impl Integrator for PbgiIntegrator {
             self.radiance_s += r.elapsed().as_secs_f64();
             return Ok(edge_rays + refine_rays + probe_rays + radiance_rays);
         }
+        self.fit_tables()?;
         if self.settings.reuse > 1 {
             self.gathered = (0..self.window_pixels())
                 .map(|_| Mutex::default())
@@ -347,28 +355,7 @@ impl Integrator for PbgiIntegrator {
     }
 
     fn state_bytes(&self) -> [u64; 2] {
-        let kept: usize = self
-            .gathered
-            .iter()
-            .map(|m| m.lock().unwrap_or_else(PoisonError::into_inner).capacity())
-            .sum();
-        let slots = self.gathered.len() * size_of::<Mutex<Vec<Gathered>>>();
-        let cached = self
-            .irradiance_cache
-            .as_ref()
-            .map_or(0, IrradianceCache::bytes)
-            + self
-                .radiance_cache
-                .as_ref()
-                .map_or(0, radiance_cache::RadianceCache::bytes);
-        let bytes = (slots + kept * size_of::<Gathered>()) as u64 + cached;
-        let edge = self.edge.bytes();
-        let [split, split_per_pixel] = self.split.bytes();
-        let [further, further_per_pixel] = self.pixel_split.bytes();
-        [
-            bytes + edge + split + further,
-            bytes / self.gathered.len().max(1) as u64 + edge + split_per_pixel + further_per_pixel,
-        ]
+        self.state_bytes_now()
     }
 
     fn seconds(&self) -> Vec<(&'static str, f64)> {

@@ -217,7 +217,7 @@ impl PbgiIntegrator {
                 InPixel::Lend(pixel, i)
             }
             None if list.is_empty() => InPixel::Gather(self.pixel_strata(pixel, 0, 0)),
-            None if list.len() < SURFACES_PER_PIXEL => {
+            None if list.len() < self.surfaces_per_pixel => {
                 list.push(Gathered {
                     p: q.s.p,
                     n,
@@ -296,7 +296,7 @@ impl PbgiIntegrator {
         };
         let mut list = slot.lock().unwrap_or_else(PoisonError::into_inner);
         let (p, n) = (q.s.p, q.s.frame.n);
-        let full = list.len() >= SURFACES_PER_PIXEL;
+        let full = list.len() >= self.surfaces_per_pixel;
         match list.iter_mut().find(|g| g.holds(p, n, footprint, glossy)) {
             Some(g) => {
                 g.sum += e;

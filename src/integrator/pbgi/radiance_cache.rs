@@ -48,6 +48,11 @@ impl Light {
         self.table = Some(inc.table.clone());
         Some(e)
     }
+
+    /// Bytes its coefficients hold.
+    pub fn bytes(&self) -> u64 {
+        (self.coefs.capacity() * size_of::<Vec3>()) as u64
+    }
 }
 
 pub struct RadianceCache {
@@ -130,8 +135,8 @@ impl RadianceCache {
 
     /// Bytes held: the records and their light.
     pub fn bytes(&self) -> u64 {
-        let light: usize = self.light.iter().map(|l| l.coefs.capacity() * 12).sum();
-        self.records.bytes() + light as u64
+        let light: u64 = self.light.iter().map(Light::bytes).sum();
+        self.records.bytes() + light
     }
 }
 
@@ -221,5 +226,60 @@ mod tests {
             super::super::irradiance_cache::weight(&irradiance, A, V::ZERO, tilted(0.4), wo)
                 .is_some()
         );
+    }
+
+    /// A receiver two records cover takes the mean of their products weighted by
+    /// 1/ε − 1/a (the irradiance cache's weight): between the two, nearer the nearer.
+    #[test]
+    fn covering_records_blend_by_their_weights() {
+        let table = table();
+        let (g1, g2) = (gather(&table, 1), gather(&table, 5));
+        let wo = wo_at(THETA);
+        let mut cache = RadianceCache::new(A);
+        let mut records = Vec::new();
+        for (x, g) in [(0.0, &g1), (0.06, &g2)] {
+            let mut light = Light::default();
+            let e = light.add(g).unwrap();
+            let p = V::new(x, 0.0, 0.0);
+            let rec = RadianceCache::record(p, V::Z, wo, e, 2.0, ALPHA, 0.1, A);
+            records.push((rec, table.product(THETA, &g.faces)));
+            cache.extend([(rec, light)]);
+        }
+        let x = V::new(0.02, 0.0, 0.0);
+        let w: Vec<f32> = records
+            .iter()
+            .map(|(r, _)| super::super::irradiance_cache::weight(r, A, x, V::Z, wo).unwrap())
+            .collect();
+        assert!(w[0] > w[1] && w[1] > 0.0, "{w:?}");
+        let want = (records[0].1 * w[0] + records[1].1 * w[1]) / (w[0] + w[1]);
+        let got = Vec3::from(cache.lookup(x, V::Z, wo, &table).unwrap());
+        let scale = want.abs().max_element();
+        assert!(
+            (got - want).abs().max_element() < 1e-4 * scale,
+            "{got} against {want}"
+        );
+    }
+
+    /// A record's reach is at least a pixel's length on the surface over a: its width
+    /// across the view over cos θ_o, down to cos 0.2 (5 pixels). A gather that saw things
+    /// close by (a reach of 2α × 0.01) still covers its neighbouring pixels' receivers,
+    /// farther the more grazing the view.
+    #[test]
+    fn a_records_reach_is_at_least_a_pixels_length_on_the_surface() {
+        let footprint = 0.1;
+        for (theta, cos) in [(0.0f32, 1.0f32), (1.2, 1.2f32.cos()), (1.5, MIN_COS)] {
+            let wo = wo_at(theta);
+            let rec = RadianceCache::record(V::ZERO, V::Z, wo, V::ONE, 0.01, ALPHA, footprint, A);
+            let reach = footprint / cos / A;
+            assert!(
+                (rec.r / reach - 1.0).abs() < 1e-5,
+                "θ {theta}: {} against {reach}",
+                rec.r
+            );
+            let w = |d: f32| {
+                super::super::irradiance_cache::weight(&rec, A, V::new(d, 0.0, 0.0), V::Z, wo)
+            };
+            assert!(w(0.9 * A * reach).is_some() && w(1.1 * A * reach).is_none());
+        }
     }
 }

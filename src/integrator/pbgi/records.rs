@@ -58,6 +58,7 @@ impl PbgiIntegrator {
             &mut cache,
             |tr, cache, at| self.centre_record(scene, tr, cache, at, false),
             |cache, found| cache.extend(found),
+            (IrradianceCache::bytes, |_| IrradianceCache::record_cost()),
         );
         (cache, rays)
     }
@@ -71,6 +72,9 @@ impl PbgiIntegrator {
             &mut cache,
             |tr, cache, at| self.centre_radiance_record(scene, tr, cache, at),
             |cache, found| cache.extend(found),
+            (RadianceCache::bytes, |(_, light): &(Record, Light)| {
+                IrradianceCache::record_cost() + light.bytes()
+            }),
         );
         (cache, rays)
     }
@@ -84,6 +88,7 @@ impl PbgiIntegrator {
         cache: &mut C,
         find: impl Fn(&mut Tracer, &C, [u32; 2]) -> Option<T> + Sync,
         add: impl Fn(&mut C, Vec<T>),
+        (held, cost): (impl Fn(&C) -> u64, impl Fn(&T) -> u64),
     ) -> u64 {
         let [x0, x1, y0, y1] = self.window;
         let mut rays = 0;
@@ -111,7 +116,23 @@ impl PbgiIntegrator {
                 )
                 .collect();
             rays += found.iter().map(|f| f.1).sum::<u64>();
-            add(cache, found.into_iter().filter_map(|f| f.0).collect());
+            let mut records: Vec<T> = found.into_iter().filter_map(|f| f.0).collect();
+            // Under a budget, placing stops where the state's share is full: the pixels
+            // left without a record gather for themselves.
+            let mut more = held(cache);
+            let fit = records
+                .iter()
+                .take_while(|t| {
+                    more += cost(t);
+                    self.records_fit(more)
+                })
+                .count();
+            let full = fit < records.len();
+            records.truncate(fit);
+            add(cache, records);
+            if full {
+                break;
+            }
             step /= 2;
         }
         rays
@@ -295,9 +316,16 @@ impl PbgiIntegrator {
         self.probed = end;
         let rays: u64 = found.iter().map(|f| f.1).sum();
         let cost: u64 = found.iter().map(|f| self.charged(f.1)).sum();
-        let records: Vec<Record> = found.into_iter().filter_map(|f| f.0).collect();
+        let mut records: Vec<Record> = found.into_iter().filter_map(|f| f.0).collect();
+        // Under a budget the records stop where the state's share is full.
+        let each = IrradianceCache::record_cost();
+        let fit = (0..=records.len())
+            .rev()
+            .find(|&n| self.records_fit(n as u64 * each));
+        records.truncate(fit.unwrap_or(0));
         self.probe_records += records.len() as u64;
         if let Some(cache) = self.irradiance_cache.as_mut() {
+            cache.reserve_exact(records.len());
             cache.extend(records);
         }
         self.probe_rays += cost;

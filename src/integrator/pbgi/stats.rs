@@ -142,8 +142,8 @@ impl PbgiIntegrator {
                 ),
             },
             format!(
-                "pbgi: each surface of a pixel gathers at every {}-th sample landing on it, the others reusing its gathers' irradiance",
-                s.reuse
+                "pbgi: each surface of a pixel (up to {} a pixel) gathers at every {}-th sample landing on it, the others reusing its gathers' irradiance",
+                self.surfaces_per_pixel, s.reuse
             ),
             match &self.irradiance_cache {
                 Some(c) => format!(
