@@ -722,3 +722,54 @@ fn instanced_and_flattened_scenes_render_alike() {
     assert!(err.contains("--flatten-instances"), "{err}");
     assert!(!dir.path().join("x.exr").exists());
 }
+
+/// At the smallest `--mem-budget` a render accepts (found by bisection: one byte less is
+/// refused), two worker threads and the prefetch thread race for the page cache's room,
+/// every page evicted many times over; the image is the unlimited render's, bit for bit.
+#[test]
+fn the_smallest_budget_accepted_gives_the_unlimited_image() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("s.canopy");
+    convert(&scene("sponza.glb"), &arc, None);
+    let out = dir.path().join("o.exr");
+    let base = [
+        "--spp",
+        "2",
+        "--width",
+        "64",
+        "--height",
+        "40",
+        "--threads",
+        "2",
+    ];
+    let accepted = |b: u64| {
+        let b = b.to_string();
+        let args = [
+            &["--quiet", "render", s(&arc), "-o", s(&out)][..],
+            &base,
+            &["--mem-budget", &b],
+        ];
+        canopy(&args.concat()).status.success()
+    };
+    let (mut lo, mut hi) = (1u64 << 10, 64u64 << 20);
+    assert!(!accepted(lo) && accepted(hi));
+    while hi - lo > 1 {
+        let mid = lo + (hi - lo) / 2;
+        match accepted(mid) {
+            true => hi = mid,
+            false => lo = mid,
+        }
+    }
+    let (free, _) = render(&arc, &dir.path().join("free.exr"), &base);
+    let least = hi.to_string();
+    let (tight, st) = render(&arc, &out, &[&base[..], &["--mem-budget", &least]].concat());
+    let (loaded, pages) = (st["pages_loaded"].as_u64().unwrap(), 370);
+    assert!(
+        loaded > 10 * pages,
+        "{loaded} loads of {pages} pages at {least} bytes"
+    );
+    assert!(
+        free.pixels == tight.pixels,
+        "the image changed at the smallest budget {least}"
+    );
+}

@@ -179,4 +179,115 @@ fn sponza_as_eight_slurm_tiles_is_the_single_process_image() {
         a.pixels == b.pixels,
         "the assembled frame differs from the single render"
     );
+    // The cone integrator: a pre-pass job writes the stored light, every tile starts from
+    // it, and the frame is assembled once they all succeeded.
+    let cone_out = dir.path().join("cone.exr");
+    let mut args = vec![s(&script), s(&arc), s(&cone_out), "--tiles", "2"];
+    args.extend(size);
+    args.extend(["--integrator", "cone"]);
+    let submit = Command::new("bash")
+        .args(&args)
+        .env("SLURM_CONF", cluster.conf())
+        .env("CANOPY", env!("CARGO_BIN_EXE_canopy"))
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&submit.stdout);
+    assert!(
+        submit.status.success() && said.contains("pre-pass: job"),
+        "{said}"
+    );
+    let start = Instant::now();
+    while cluster.slurm("squeue", &["-h"]).trim() != "" {
+        assert!(
+            start.elapsed() < Duration::from_secs(600),
+            "the cone jobs did not finish"
+        );
+        std::thread::sleep(Duration::from_millis(500));
+    }
+    let store = dir.path().join("cone.exr.tiles/light.store");
+    assert!(store.exists(), "the pre-pass wrote no light store");
+    assert!(all_finite(&Image::read_exr(&cone_out).unwrap()));
+    let reread = dir.path().join("reread.exr");
+    let mut one = vec!["--quiet", "render", s(&arc), "-o", s(&reread)];
+    one.extend(size);
+    one.extend(["--integrator", "cone", "--store-in", s(&store)]);
+    ok(&one);
+}
+
+/// The script refuses bad arguments before it submits anything (no Slurm needed): each
+/// case exits with status 2 and names what is wrong.
+#[test]
+fn the_slurm_script_refuses_bad_arguments_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("cbox.canopy");
+    convert(&scene("cbox.glb"), &arc, None);
+    let out = dir.path().join("frame.exr");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/slurm/canopy-frame.sh");
+    let size = ["--width", "64", "--height", "48"];
+    let missing = dir.path().join("none.canopy");
+    let cases: [(&str, &Path, Vec<&str>, &str); 8] = [
+        (
+            "no --tiles",
+            &arc,
+            size.to_vec(),
+            "--tiles N (a positive whole number) is required",
+        ),
+        (
+            "--tiles 0",
+            &arc,
+            [&size[..], &["--tiles", "0"]].concat(),
+            "--tiles N",
+        ),
+        (
+            "no size",
+            &arc,
+            vec!["--tiles", "2"],
+            "--width and --height are required",
+        ),
+        (
+            "more tiles than rows",
+            &arc,
+            [&size[..], &["--tiles", "49"]].concat(),
+            "more than the 48 rows",
+        ),
+        (
+            "--crop",
+            &arc,
+            [&size[..], &["--tiles", "2", "--crop", "0,8,0,8"]].concat(),
+            "--crop is set by canopy-frame.sh",
+        ),
+        (
+            "--store-in",
+            &arc,
+            [&size[..], &["--tiles", "2", "--store-in", "x"]].concat(),
+            "--store-in is set by canopy-frame.sh",
+        ),
+        (
+            "--concurrent 0",
+            &arc,
+            [&size[..], &["--tiles", "2", "--concurrent", "0"]].concat(),
+            "--concurrent K must be a positive whole number",
+        ),
+        (
+            "no archive",
+            &missing,
+            [&size[..], &["--tiles", "2"]].concat(),
+            "none.canopy: no such archive",
+        ),
+    ];
+    for (what, archive, extra, expect) in cases {
+        let run = Command::new("bash")
+            .args([s(&script), s(archive), s(&out)])
+            .args(&extra)
+            .env("CANOPY", env!("CARGO_BIN_EXE_canopy"))
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&run.stderr);
+        assert_eq!(run.status.code(), Some(2), "{what}: {err}");
+        assert!(err.contains(expect), "{what}: expected '{expect}' in {err}");
+        assert!(
+            !out.exists() && !dir.path().join("frame.exr.tiles").exists(),
+            "{what}"
+        );
+    }
 }

@@ -215,11 +215,12 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     if opts.inputs.is_empty() {
         bail!("no input files");
     }
-    if opts.mem_budget < FIXED_BYTES + 4096 * BUILD_BYTES_PER_TRI {
+    let least = FIXED_BYTES + 4096 * BUILD_BYTES_PER_TRI;
+    if opts.mem_budget < least {
         bail!(
-            "--mem-budget {} is too small: converting needs at least {} MiB",
-            opts.mem_budget,
-            (FIXED_BYTES + 1024 * BUILD_BYTES_PER_TRI) >> 20
+            "--mem-budget {} is too small: converting needs at least {}",
+            crate::units::format_size(opts.mem_budget),
+            crate::units::format_size(least.div_ceil(1 << 20) << 20)
         );
     }
     let file = match &opts.scene {

@@ -9,6 +9,9 @@ use std::path::Path;
 
 const MORTON_BITS: u32 = 7;
 
+/// Bytes all chunk files' write buffers take together while partitioning.
+const BUFFERS: usize = 16 << 20;
+
 /// 21-bit Morton code of a point in the box (7 bits an axis): the histogram bin.
 fn morton(p: [f32; 3], lo: [f32; 3], hi: [f32; 3]) -> u32 {
     let cells = (1u32 << MORTON_BITS) as f32;
@@ -62,8 +65,11 @@ pub fn partition(
     })?;
     let (chunk, n) = chunk_of_bins(&hist, cap);
     drop(hist);
+    // The chunks' write buffers share `BUFFERS` (part of the converter's fixed memory):
+    // at a small budget there are many chunks, and 256 KiB each would outgrow it.
+    let buffer = (BUFFERS / n.max(1) as usize).clamp(16 << 10, 256 << 10);
     let mut outs = (0..n)
-        .map(|_| SpillWriter::create(dir, 256 << 10))
+        .map(|_| SpillWriter::create(dir, buffer))
         .collect::<Result<Vec<_>>>()?;
     let bar = progress::bar(show, total, "partitioning");
     let mut done = 0u64;
