@@ -22,6 +22,29 @@ impl Cluster {
         self.dir.join("slurm.conf")
     }
 
+    /// Runs `canopy-frame.sh` with `args` against this cluster and waits until its jobs
+    /// are done; returns what the script printed.
+    fn run_frame(&self, args: &[&str]) -> String {
+        let submit = Command::new("bash")
+            .args(args)
+            .env("SLURM_CONF", self.conf())
+            .env("CANOPY", env!("CARGO_BIN_EXE_canopy"))
+            .output()
+            .unwrap();
+        let said = String::from_utf8_lossy(&submit.stdout).into_owned();
+        let err = String::from_utf8_lossy(&submit.stderr);
+        assert!(submit.status.success(), "{said}{err}");
+        let start = Instant::now();
+        while self.slurm("squeue", &["-h"]).trim() != "" {
+            assert!(
+                start.elapsed() < Duration::from_secs(600),
+                "the jobs did not finish: {said}"
+            );
+            std::thread::sleep(Duration::from_millis(500));
+        }
+        said
+    }
+
     fn start(dir: &Path) -> Option<Cluster> {
         let port = 20000 + std::process::id() % 20000;
         let d = dir.display();
@@ -141,30 +164,11 @@ fn sponza_as_eight_slurm_tiles_is_the_single_process_image() {
         "256MiB",
     ];
     args.extend(size);
-    let submit = Command::new("bash")
-        .args(&args)
-        .env("SLURM_CONF", cluster.conf())
-        .env("CANOPY", env!("CARGO_BIN_EXE_canopy"))
-        .output()
-        .unwrap();
-    let said = String::from_utf8_lossy(&submit.stdout);
-    assert!(
-        submit.status.success(),
-        "{said}{}",
-        String::from_utf8_lossy(&submit.stderr)
-    );
+    let said = cluster.run_frame(&args);
     assert!(
         said.contains("tiles: job") && said.contains("assembly: job"),
         "{said}"
     );
-    let start = Instant::now();
-    while cluster.slurm("squeue", &["-h"]).trim() != "" {
-        assert!(
-            start.elapsed() < Duration::from_secs(600),
-            "the jobs did not finish"
-        );
-        std::thread::sleep(Duration::from_millis(500));
-    }
     let log = std::fs::read_to_string(dir.path().join("frame.exr.tiles/assemble.log"));
     assert!(out.exists(), "no frame; assembly log: {log:?}");
     let single = dir.path().join("single.exr");
@@ -185,25 +189,8 @@ fn sponza_as_eight_slurm_tiles_is_the_single_process_image() {
     let mut args = vec![s(&script), s(&arc), s(&cone_out), "--tiles", "2"];
     args.extend(size);
     args.extend(["--integrator", "cone"]);
-    let submit = Command::new("bash")
-        .args(&args)
-        .env("SLURM_CONF", cluster.conf())
-        .env("CANOPY", env!("CARGO_BIN_EXE_canopy"))
-        .output()
-        .unwrap();
-    let said = String::from_utf8_lossy(&submit.stdout);
-    assert!(
-        submit.status.success() && said.contains("pre-pass: job"),
-        "{said}"
-    );
-    let start = Instant::now();
-    while cluster.slurm("squeue", &["-h"]).trim() != "" {
-        assert!(
-            start.elapsed() < Duration::from_secs(600),
-            "the cone jobs did not finish"
-        );
-        std::thread::sleep(Duration::from_millis(500));
-    }
+    let said = cluster.run_frame(&args);
+    assert!(said.contains("pre-pass: job"), "{said}");
     let store = dir.path().join("cone.exr.tiles/light.store");
     assert!(store.exists(), "the pre-pass wrote no light store");
     assert!(all_finite(&Image::read_exr(&cone_out).unwrap()));
