@@ -90,6 +90,15 @@ pub fn check_header(h: &Header) -> Result<(), String> {
             h.page_nodes_max
         ));
     }
+    // Every page holds at least one node and at most `page_nodes_max`: readers size
+    // per-node tables by `nodes`, so it must be bounded by what the pages can hold.
+    let pages = h.pages.count as u64;
+    if h.nodes < pages || h.nodes > pages * h.page_nodes_max as u64 {
+        return Err(format!(
+            "{} nodes in {pages} pages of at most {} nodes",
+            h.nodes, h.page_nodes_max
+        ));
+    }
     // A newer minor version may give the reserved bytes a meaning; 2.0 had no instances,
     // 2.1 no textures.
     if h.version_minor <= VERSION_MINOR && (!zeroed(&h.reserved) || h.reserved0 != 0)

@@ -160,6 +160,16 @@ fn table_lies(base: &Parts) -> Vec<(&'static str, Edit, &'static str)> {
             "nodes",
         ),
         (
+            "node total far past what the pages hold",
+            Box::new(|p| p.header.nodes = 1 << 40),
+            "nodes in",
+        ),
+        (
+            "node total below the page count",
+            Box::new(|p| p.header.nodes = p.header.pages.count as u64 - 1),
+            "nodes in",
+        ),
+        (
             "reserved header byte",
             Box::new(|p| p.header.reserved[5] = 1),
             "reserved",
