@@ -43,6 +43,11 @@ pub fn format_size(bytes: u64) -> String {
     }
 }
 
+/// `bytes` rounded up to whole MiB: a budget to suggest.
+pub fn whole_mib(bytes: u64) -> u64 {
+    bytes.div_ceil(1 << 20) << 20
+}
+
 /// Seconds from a duration with a unit (ms, s, m, h); a bare number is seconds.
 pub fn parse_duration(s: &str) -> Result<std::time::Duration> {
     let t = s.trim();

@@ -220,7 +220,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         bail!(
             "--mem-budget {} is too small: converting needs at least {}",
             crate::units::format_size(opts.mem_budget),
-            crate::units::format_size(least.div_ceil(1 << 20) << 20)
+            crate::units::format_size(crate::units::whole_mib(least))
         );
     }
     let file = match &opts.scene {

@@ -203,29 +203,26 @@ pub fn open_scene(
         );
     }
     let touched = NodeSet::new(archive.header.nodes);
-    let budget_in = budget;
-    let budget = match budget {
+    // The page cache's budget, and how `--mem-budget` was split to give it (for errors).
+    let (budget, note) = match budget {
         Some((b, state)) => {
             let others = touched.bytes()
                 + state
                 + reserve(b, archive.page_count() as u64, archive.tile_count() as u64);
-            Some(b.checked_sub(others).with_context(|| {
+            let pages = b.checked_sub(others).with_context(|| {
                 format!("--mem-budget {b} cannot even hold the node statistics and the page table")
-            })?)
+            })?;
+            let note = format!(
+                "--mem-budget {} keeps {} for the integrator's state and {} for node statistics and tables, leaving the page cache {}",
+                format_size(b),
+                format_size(state),
+                format_size(others - state),
+                format_size(pages)
+            );
+            (Some(pages), Some(note))
         }
-        None => None,
+        None => (None, None),
     };
-    let split = |(b, state): (u64, u64)| {
-        let pages = budget.unwrap_or(0);
-        format!(
-            "--mem-budget {} keeps {} for the integrator's state and {} for node statistics and tables, leaving the page cache {}",
-            format_size(b),
-            format_size(state),
-            format_size(b - state - pages),
-            format_size(pages)
-        )
-    };
-    let note = budget_in.map(split);
     let cache = PageCache::new(Arc::clone(&archive), budget, threads)
         .with_context(|| note.clone().unwrap_or_default())?;
     if let Some(note) = note {

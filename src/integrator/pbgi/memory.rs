@@ -3,7 +3,7 @@
 
 use super::pixel_reuse::{Gathered, SURFACES_PER_PIXEL};
 use super::{radiance_cache, IrradianceCache, PbgiIntegrator};
-use crate::units::format_size;
+use crate::units::{format_size, whole_mib};
 use anyhow::{bail, Result};
 use std::sync::atomic::AtomicBool;
 use std::sync::{Mutex, PoisonError};
@@ -89,15 +89,26 @@ impl PbgiIntegrator {
         Ok(())
     }
 
-    /// Whether `more` bytes of records, beside those of the caches in place, still fit the
-    /// budget's share with the per-pixel tables at their largest.
-    pub(super) fn records_fit(&self, more: u64) -> bool {
-        self.state_cap
-            .is_none_or(|cap| self.record_bytes() + more + self.table_bytes_most() <= cap)
+    /// How many of `items`, taken in order at `cost` bytes each, still fit the budget's
+    /// share beside `held` bytes of a cache being built, the caches in place and the
+    /// per-pixel tables at their largest: all of them without a budget.
+    pub(super) fn records_that_fit<T>(
+        &self,
+        held: u64,
+        items: &[T],
+        cost: impl Fn(&T) -> u64,
+    ) -> usize {
+        let Some(cap) = self.state_cap else {
+            return items.len();
+        };
+        let room = cap.saturating_sub(self.record_bytes() + self.table_bytes_most());
+        let mut more = held;
+        items
+            .iter()
+            .take_while(|t| {
+                more += cost(t);
+                more <= room
+            })
+            .count()
     }
-}
-
-/// `bytes` rounded up to whole MiB, for a budget to suggest.
-fn whole_mib(bytes: u64) -> u64 {
-    bytes.div_ceil(1 << 20) << 20
 }

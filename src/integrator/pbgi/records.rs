@@ -119,14 +119,7 @@ impl PbgiIntegrator {
             let mut records: Vec<T> = found.into_iter().filter_map(|f| f.0).collect();
             // Under a budget, placing stops where the state's share is full: the pixels
             // left without a record gather for themselves.
-            let mut more = held(cache);
-            let fit = records
-                .iter()
-                .take_while(|t| {
-                    more += cost(t);
-                    self.records_fit(more)
-                })
-                .count();
+            let fit = self.records_that_fit(held(cache), &records, &cost);
             let full = fit < records.len();
             records.truncate(fit);
             add(cache, records);
@@ -318,11 +311,8 @@ impl PbgiIntegrator {
         let cost: u64 = found.iter().map(|f| self.charged(f.1)).sum();
         let mut records: Vec<Record> = found.into_iter().filter_map(|f| f.0).collect();
         // Under a budget the records stop where the state's share is full.
-        let each = IrradianceCache::record_cost();
-        let fit = (0..=records.len())
-            .rev()
-            .find(|&n| self.records_fit(n as u64 * each));
-        records.truncate(fit.unwrap_or(0));
+        let fit = self.records_that_fit(0, &records, |_| IrradianceCache::record_cost());
+        records.truncate(fit);
         self.probe_records += records.len() as u64;
         if let Some(cache) = self.irradiance_cache.as_mut() {
             cache.reserve_exact(records.len());
