@@ -280,11 +280,11 @@ impl Level {
         if let Some(k) = self.keep.as_mut() {
             k.extend_from_slice(&lin);
         }
-        let Some(left) = self.next.as_ref().map(|n| (n.h - n.rows) as usize) else {
+        let Some(y) = self.next.as_ref().map(|n| n.rows as usize) else {
             return;
         };
         self.pending.push(lin);
-        let Some(pair) = self.reduce_down(left) else {
+        let Some(pair) = self.reduce_down(y) else {
             return;
         };
         let Some(next) = self.next.as_mut() else {
@@ -308,8 +308,8 @@ impl Level {
     /// The next level's row from the rows `pending` holds, once it holds them all: the two
     /// rows' mean for an even height, three rows weighed by `odd_weights` for an odd one
     /// (the last kept as the first of the next three), the row itself for a height of one.
-    /// `left`: the next level's rows still to come.
-    fn reduce_down(&mut self, left: usize) -> Option<Vec<f32>> {
+    /// `y`: the next level's row this makes.
+    fn reduce_down(&mut self, y: usize) -> Option<Vec<f32>> {
         let h = self.h as usize;
         match self.pending.len() {
             _ if h == 1 => self.pending.pop(),
@@ -320,7 +320,7 @@ impl Level {
                 Some(row)
             }
             3 => {
-                let [w0, w1, w2] = odd_weights(h, (h - 1) / 2 - left);
+                let [w0, w1, w2] = odd_weights(h, y);
                 let [a, b, c] = [0, 1, 2].map(|k| &self.pending[k]);
                 let row = (0..a.len())
                     .map(|i| w0 * a[i] + w1 * b[i] + w2 * c[i])
