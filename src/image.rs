@@ -33,6 +33,25 @@ impl Image {
     }
 
     /// An OpenEXR image's pixels (its data window), wherever it lies in its frame.
+    /// An 8-bit sRGB PNG's pixels, linearised (alpha dropped).
+    pub fn read_png_linear(path: &Path) -> Result<Image> {
+        let img = image::open(path)
+            .with_context(|| format!("{}: not a readable PNG image", path.display()))?
+            .into_rgba8();
+        let pixels = img
+            .pixels()
+            .map(|p| {
+                let [r, g, b, _] = canopy_format::codec::texel_to_linear(&p.0, true);
+                [r, g, b]
+            })
+            .collect();
+        Ok(Image {
+            width: img.width(),
+            height: img.height(),
+            pixels,
+        })
+    }
+
     pub fn read_exr(path: &Path) -> Result<Image> {
         Ok(Self::read_exr_framed(path)?.0)
     }

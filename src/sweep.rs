@@ -292,6 +292,8 @@ pub fn eval(
             let (img, s) = render_into(o, &name, |ro| {
                 ro.integrator = o.settings(i);
                 ro.time = Some(t);
+                // As many samples as the time allows.
+                ro.spp = u32::MAX - 1;
                 ro.width = Some(r.width);
                 ro.height = Some(r.height);
             })?;

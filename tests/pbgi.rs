@@ -314,7 +314,7 @@ fn a_pixel_gathers_at_every_rth_sample_and_shades_one_near_hit_per_texel() {
                 "--pbgi-cache",
                 "0",
                 // Every render's receivers are then the same first hits.
-                "--pbgi-pixel-split",
+                "--pixel-split",
                 "1",
             ],
         );
@@ -484,7 +484,7 @@ fn pixels_left_to_themselves_gather_more_often_where_their_gathers_scatter() {
             "--seed",
             "1",
             // One camera ray a pixel and pass: the gather period alone is under test.
-            "--pbgi-pixel-split",
+            "--pixel-split",
             "1",
         ];
         render(&arc, &dir.path().join(format!("r{reuse}.exr")), &flags)
@@ -581,13 +581,13 @@ fn direct_light_on_a_glossy_surface_is_weighed_against_its_lobe_ray() {
 /// (rays) disagreed take more of them. On the gold bunny at `--max-depth 3`, at equal
 /// samples, the mean stays and the error falls below the two pairs' (measured 0.75×;
 /// 0.76× for direct light alone at depth 2), and the stats count what was split. Without
-/// `--pbgi-pixel-split`, under which direct light's pairs do not split.
+/// `--pixel-split`, under which direct light's pairs do not split.
 #[test]
 fn splitting_a_glossy_receivers_pairs_by_its_pixels_spread_keeps_the_mean_and_lowers_the_error() {
     let dir = tempfile::tempdir().unwrap();
     let bunny = gold_bunny(dir.path(), "3");
     let (reference, _) = bunny("ref.exr", &["--spp", "8192", "--seed", "3"]);
-    let pbgi = |n| bunny_pbgi(&bunny, &["--pbgi-split", n, "--pbgi-pixel-split", "1"]);
+    let pbgi = |n| bunny_pbgi(&bunny, &["--pbgi-split", n, "--pixel-split", "1"]);
     let ((two, two_stats), (split, stats)) = (pbgi("2"), pbgi("32"));
     assert!(all_finite(&split));
     assert_mean_within_noise(&split, &reference, "gold bunny, split");
@@ -601,43 +601,6 @@ fn splitting_a_glossy_receivers_pairs_by_its_pixels_spread_keeps_the_mean_and_lo
         assert_eq!(count(&two_stats, k), 0, "{k} without splitting");
         assert!(count(&stats, k) > 0, "{k}");
     }
-}
-
-/// `--pbgi-pixel-split` (the default): pixels whose earlier samples scattered take more
-/// camera rays a pass. At a lamp's silhouette (edge rays off, which would lower the same
-/// noise) the mean stays, the further samples go to a few pixels (4,287 over 32 passes of
-/// 1,024), and the squared error × rays traced falls below that of one camera ray a pixel
-/// and pass (measured 0.52×).
-#[test]
-fn more_first_hits_where_a_pixel_scatters_keep_the_mean_and_lower_the_error_per_ray() {
-    let dir = tempfile::tempdir().unwrap();
-    let arc = lamp_scene(dir.path());
-    let (truth, _) = render(&arc, &dir.path().join("p.exr"), &["--spp", "2048"]);
-    let run = |m: &str| {
-        let flags = ["--integrator", "pbgi", "--spp", "32", "--edge-rays", "0"];
-        let extra = ["--pbgi-pixel-split", m];
-        render(
-            &arc,
-            &dir.path().join(format!("m{m}.exr")),
-            &[&flags[..], &extra].concat(),
-        )
-    };
-    let ((one, one_stats), (split, stats)) = (run("1"), run("32"));
-    assert!(all_finite(&split));
-    assert_mean_within(&split, &truth, 0.01, "pixel split");
-    let count = |s: &serde_json::Value, k: &str| s[k].as_u64().unwrap() as f64;
-    assert_eq!(count(&one_stats, "further_samples"), 0.0);
-    let further = count(&stats, "further_samples");
-    assert!(
-        further > 0.0 && further < 32.0 * 32.0 * 32.0,
-        "{further} further samples"
-    );
-    let per_ray = |img: &Image, s: &serde_json::Value| rmse(img, &truth).powi(2) * count(s, "rays");
-    let (e_split, e_one) = (per_ray(&split, &stats), per_ray(&one, &one_stats));
-    assert!(
-        e_split < 0.7 * e_one,
-        "squared error × rays {e_split:.3e} split, {e_one:.3e} with one camera ray"
-    );
 }
 
 /// The glossy bounce split (`--pbgi-glossy-rays`): on the showroom's gold bunny at

@@ -23,6 +23,8 @@ image decoded to normals, scaled in x and y by the texture's scale, renormalized
 re-encoded to a float image (Mitsuba's normalmap has no scale), bilinear, with its
 shadow-terminator term and normal flipping off. Mitsuba builds
 the tangent frame as glTF does (s = ∂p/∂u, t = n × s), so UV layouts must not be mirrored.
+With `--env MAP` the scene is lit by Mitsuba's `envmap` of that file (its `scale` the
+`--env-strength`, turned `--env-rotate` degrees about +Y), as `canopy render --env` lights it.
 Prints the render time and paths per second (spp × pixels / seconds) and writes a JSON
 beside the EXR, so `canopy render` can be timed against it on the same machine.
 """
@@ -195,6 +197,9 @@ def main():
     ap.add_argument("--height", type=int)
     ap.add_argument("--threads", type=int, default=0, help="0: all cores")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--env", help="equirectangular environment map (.exr, .hdr), as canopy render --env")
+    ap.add_argument("--env-strength", type=float, default=1.0)
+    ap.add_argument("--env-rotate", type=float, default=0.0, help="degrees about +Y")
     a = ap.parse_args()
 
     import mitsuba as mi
@@ -264,6 +269,9 @@ def main():
         visit(ni, np.eye(4))
     if "sensor" not in scene:
         sys.exit(f"{a.scene}: no camera")
+    if a.env:
+        scene["environment"] = {"type": "envmap", "filename": a.env, "scale": a.env_strength,
+                                "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], a.env_rotate)}
     if a.threads:
         mi.Thread.thread_count = a.threads
     s = mi.load_dict(scene)

@@ -31,6 +31,7 @@ set_of_renders() {
   echo "c_spt spt --integrator cone --threads 1 --spp 2 --width 96 --height 64"
   echo "pb_cbox cbox --integrator pbgi --threads 1 --spp 2 --width 64 --height 64"
   echo "pb_spt spt --integrator pbgi --threads 1 --spp 1 --width 64 --height 40"
+  echo "pb_bunny bunny_box --integrator pbgi --threads 1 --spp 6 --width 48 --height 48"
   echo "c_sponza_b sponza --integrator cone --threads 1 --spp 4 --width 96 --height 64 --mem-budget 48MiB --cone-scale 2 --diffuse-tan 0.1 --cone-samples 64"
 }
 diff=0

@@ -11,7 +11,7 @@ pub enum FormatError {
     },
     #[error("{path}: not a regular file (a Canopy archive is a file, not a directory or device)")]
     NotAFile { path: PathBuf },
-    #[error("{path}: not a Canopy archive (bad magic)")]
+    #[error("{path}: not a Canopy archive (bad magic); a scene (.glb, .gltf, .ply, .obj) renders once converted: canopy convert {path} -o SCENE.canopy")]
     BadMagic { path: PathBuf },
     #[error("{path}: archive format version {major}.{minor} is newer than this canopy reads ({}.x); upgrade canopy", crate::VERSION_MAJOR)]
     NewerVersion {

@@ -32,6 +32,9 @@ pub struct BakeArgs {
     /// Also print the summary as JSON.
     #[arg(long)]
     json: bool,
+    /// The render's environment light, which the bake must share.
+    #[command(flatten)]
+    env: super::EnvArgs,
 }
 
 impl BakeArgs {
@@ -48,6 +51,7 @@ pub fn run(a: BakeArgs, progress: bool) -> Result<()> {
         seed: a.seed,
         mem_budget: a.mem_budget,
         threads: a.threads,
+        env: a.env.options(),
         progress,
     })?;
     if a.json {

@@ -14,10 +14,12 @@ use canopy::integrator::cone::ConeSettings;
 use canopy::integrator::edge::{EdgeSettings, DEFAULT_EDGE_RAYS, PBGI_EDGE_RAYS};
 use canopy::integrator::pbgi::PbgiSettings;
 use canopy::integrator::{Kind, Settings};
+use canopy::render::EnvOptions;
 use canopy::texture::TextureFilter;
 use canopy::units;
 use clap::parser::ValueSource;
 use clap::{ArgMatches, Args, CommandFactory, FromArgMatches, Parser, Subcommand};
+use std::path::PathBuf;
 
 /// Canopy: an out-of-core streaming renderer for scenes bigger than the machine.
 #[derive(Parser)]
@@ -45,11 +47,6 @@ enum Cmd {
 /// Render settings shared by `render`, `npp` and `eval`.
 #[derive(Args, Clone)]
 struct RenderSettings {
-    /// `path`: exact path tracing of the leaf triangles (the ground truth); `cone`: cone
-    /// casts with level of detail and diffuse light stored per node; `pbgi`: point-based
-    /// GI through a cut of the hierarchy into a micro-buffer.
-    #[arg(long, value_enum, default_value_t = Kind::Path)]
-    integrator: Kind,
     /// Memory for decoded pages and per-node state, e.g. 256MiB (default: unlimited).
     #[arg(long, value_parser = units::parse_size)]
     mem_budget: Option<u64>,
@@ -72,12 +69,56 @@ struct RenderSettings {
     /// sample's point (aliases unless many samples are taken; for checking the filter).
     #[arg(long, value_enum, default_value_t = TextureFilter::Trilinear)]
     texture_filter: TextureFilter,
+    /// Most camera samples a pass takes of a pixel: each pixel takes more where its
+    /// earlier samples scattered, in proportion to the root of their variance over their
+    /// rays; 1 takes one [default: 32 for pbgi, 1 for path and cone]
+    #[arg(long, value_name = "M", value_parser = clap::value_parser!(u32).range(1..=64))]
+    pixel_split: Option<u32>,
+    #[command(flatten)]
+    env: EnvArgs,
     #[command(flatten)]
     cone: ConeSettings,
     #[command(flatten)]
     pbgi: PbgiSettings,
     #[command(flatten)]
     edge: EdgeSettings,
+}
+
+/// The environment light's flags, for `render` and `bake` alike.
+#[derive(Args, Clone)]
+struct EnvArgs {
+    /// Light from an equirectangular environment map (.exr or .hdr; +Y up, Mitsuba 3's
+    /// `envmap` convention). Without it, a scene with no light source is lit by a uniform
+    /// white environment, with a note saying so.
+    #[arg(long, value_name = "FILE")]
+    env: Option<PathBuf>,
+    /// Factor on the environment map's radiance.
+    #[arg(long, value_name = "S", default_value_t = 1.0, requires = "env", value_parser = units::parse_non_negative)]
+    env_strength: f32,
+    /// Turns the environment map about +Y by this many degrees.
+    #[arg(
+        long,
+        value_name = "DEG",
+        default_value_t = 0.0,
+        requires = "env",
+        allow_negative_numbers = true
+    )]
+    env_rotate: f32,
+    /// Advanced: sample the environment map's directions uniformly over the sphere instead
+    /// of by its light (to measure what importance sampling gains).
+    #[arg(long, requires = "env")]
+    env_uniform_sampling: bool,
+}
+
+impl EnvArgs {
+    fn options(&self) -> Option<EnvOptions> {
+        self.env.clone().map(|path| EnvOptions {
+            path,
+            strength: self.env_strength,
+            rotate: self.env_rotate,
+            uniform_sampling: self.env_uniform_sampling,
+        })
+    }
 }
 
 impl RenderSettings {
@@ -152,12 +193,6 @@ fn reject_unused(name: &str, sub: &ArgMatches, kinds: &[Kind]) {
 /// `npp` and `eval` run every integrator of `--integrators`; `--integrator` would be ignored,
 /// and `--store-out` overwritten by each run.
 fn reject_single_integrator(name: &str, sub: &ArgMatches) {
-    if sub.value_source("integrator") == Some(ValueSource::CommandLine) {
-        conflict(
-            name,
-            "--integrator does not apply here; use --integrators (a list, e.g. path,cone)".into(),
-        );
-    }
     // Every cone run of a sweep would write the store over the last one's.
     if sub.value_source("store_out") == Some(ValueSource::CommandLine) {
         conflict(
@@ -196,7 +231,7 @@ pub fn run() -> Result<()> {
         Cmd::Convert(a) => convert::run(a, show),
         Cmd::Bake(a) => bake::run(a, show),
         Cmd::Render(a) => {
-            reject_unused(name, sub, &[a.settings.integrator]);
+            reject_unused(name, sub, &[a.integrator]);
             render::run(a, show)
         }
         Cmd::Npp(a) => {

@@ -1,5 +1,6 @@
 use super::RenderSettings;
 use anyhow::Result;
+use canopy::integrator::Kind;
 use canopy::render::{render, RenderOptions};
 use canopy::units;
 use clap::Args;
@@ -13,13 +14,18 @@ use std::path::PathBuf;
 #[derive(Args)]
 pub struct RenderArgs {
     archive: PathBuf,
+    /// `path`: exact path tracing of the leaf triangles (the ground truth); `cone`: cone
+    /// casts with level of detail and diffuse light stored per node; `pbgi`: point-based
+    /// GI through a cut of the hierarchy into a micro-buffer.
+    #[arg(long, value_enum, default_value_t = Kind::Path)]
+    pub integrator: Kind,
     /// Output image: .exr, or .png (which also writes the .exr).
     #[arg(short, long)]
     output: PathBuf,
-    /// Samples per pixel.
-    #[arg(long, default_value_t = 64)]
-    spp: u32,
-    /// Render until this much time is spent (e.g. 90s, 5m) instead of a fixed --spp.
+    /// Samples per pixel [default: 64]; with --time, the most (whichever comes first).
+    #[arg(long)]
+    spp: Option<u32>,
+    /// Render until this much time is spent (e.g. 90s, 5m), or --spp samples if given.
     #[arg(long, value_parser = units::parse_duration)]
     time: Option<std::time::Duration>,
     /// Image width (default: the scene's, else 512 high at the camera's aspect).
@@ -54,9 +60,11 @@ pub struct RenderArgs {
 }
 
 impl RenderSettings {
-    /// Options for a render of `archive` to `output`; the rest at their defaults.
+    /// Options for a render of `archive` to `output` with integrator `kind`; the rest at
+    /// their defaults.
     pub(super) fn options(
         &self,
+        kind: Kind,
         archive: PathBuf,
         output: PathBuf,
         spp: u32,
@@ -65,7 +73,7 @@ impl RenderSettings {
         RenderOptions {
             archive,
             output,
-            integrator: self.settings(self.integrator),
+            integrator: self.settings(kind),
             spp,
             time: None,
             noise: None,
@@ -77,6 +85,8 @@ impl RenderSettings {
             threads: self.threads,
             max_depth: self.max_depth,
             texture_filter: self.texture_filter,
+            pixel_split: self.pixel_split,
+            env: self.env.options(),
             crop: None,
             preview: false,
             exposure: 1.0,
@@ -88,6 +98,11 @@ impl RenderSettings {
 }
 
 pub fn run(a: RenderArgs, progress: bool) -> Result<()> {
+    let spp = match (a.spp, a.time) {
+        (Some(n), _) => n,
+        (None, Some(_)) => u32::MAX - 1,
+        (None, None) => 64,
+    };
     let opts = RenderOptions {
         time: a.time,
         width: a.width,
@@ -98,7 +113,7 @@ pub fn run(a: RenderArgs, progress: bool) -> Result<()> {
         stats: a.stats,
         node_stats: a.node_stats,
         ..a.settings
-            .options(a.archive, a.output.clone(), a.spp, progress)
+            .options(a.integrator, a.archive, a.output.clone(), spp, progress)
     };
     let (_, s) = render(&opts)?;
     println!("{}: {s}", a.output.display());

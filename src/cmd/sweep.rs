@@ -61,7 +61,7 @@ fn sweep_options(
 ) -> SweepOptions {
     SweepOptions {
         out_dir: dir.to_path_buf(),
-        base: s.options(archive, dir.join("x.exr"), spp, progress),
+        base: s.options(Kind::Path, archive, dir.join("x.exr"), spp, progress),
         cone: s.cone(),
         pbgi: s.pbgi(),
     }

@@ -47,6 +47,23 @@ pub fn emission_weight(
     power_heuristic(bsdf_pdf, light_pdf)
 }
 
+/// The environment's light that a ray leaving the scene along `d` meets: whole for a
+/// camera ray or after a delta bounce (`from` None), else weighed by the power heuristic
+/// of the BSDF sample's pdf at `from` (point and normal) against the light sampler's pdf
+/// for that direction.
+pub fn escaped_light(scene: &Scene, d: V, from: Option<((V, V), f32)>) -> V {
+    let lights = &scene.lights;
+    if lights.env.is_none() {
+        return V::ZERO;
+    }
+    let d = d.normalize();
+    let le = lights.escaped(d);
+    match from {
+        None => le,
+        Some((at, bsdf_pdf)) => le * power_heuristic(bsdf_pdf, lights.pdf_env(at, d)),
+    }
+}
+
 /// `f` for `sample_light` at a surface with this BSDF: (value · |cos θ|, pdf) for a
 /// direction, in the frame whose local outgoing direction is `wo_l`; zero where the
 /// direction is not `on_side` of the geometric normal `n` (turned to the frame's side).

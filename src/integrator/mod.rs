@@ -42,6 +42,11 @@ pub enum Kind {
     Pbgi,
 }
 
+/// PBGI's most camera samples per pixel and pass, unless `--pixel-split` says. With
+/// `GAIN` 4 (`render/pixel_split.rs`), 32 and 64 gave the same showroom error at 20 s
+/// (5.13e-6 and 5.20e-6, squared, seeds 1–4); 16 capped the gold bunny's highlights.
+const PBGI_PIXEL_SPLIT: u32 = 32;
+
 /// An integrator with its own parameters.
 #[derive(Clone, Debug)]
 pub enum Settings {
@@ -67,6 +72,20 @@ impl Settings {
         match self {
             Settings::Path => 0,
             Settings::Cone(_) | Settings::Pbgi(_) => budget / 4,
+        }
+    }
+
+    /// `--pixel-split`, or the integrator's default: the most camera samples a pass takes
+    /// of a pixel. PBGI's receiver clusters group a tile's receivers, one per pixel, so
+    /// they take one.
+    pub fn pixel_split(&self, asked: Option<u32>) -> anyhow::Result<u32> {
+        match (self, asked) {
+            (Settings::Pbgi(p), Some(m)) if m > 1 && p.clusters > 0 => anyhow::bail!(
+                "--pixel-split {m}: --receiver-clusters groups one receiver per pixel of a tile, so a pass takes one sample of each pixel (--pixel-split 1)"
+            ),
+            (_, Some(m)) => Ok(m),
+            (Settings::Pbgi(p), None) if p.clusters == 0 => Ok(PBGI_PIXEL_SPLIT),
+            (_, None) => Ok(1),
         }
     }
 
@@ -164,6 +183,8 @@ pub struct Target {
     pub window: [u32; 4],
     /// Bytes the integrator's state may take (None: unbounded).
     pub state_bytes: Option<u64>,
+    /// Most camera samples one pass takes of a pixel (`--pixel-split`; 1: one).
+    pub pixel_split: u32,
 }
 
 /// One sample of one pixel, as the driver hands it out.
@@ -177,6 +198,12 @@ pub struct PixelSample {
     pub sampler: PixelSampler,
     /// The camera ray through the sample's position in the pixel.
     pub ray: Ray,
+    /// Its weight in the pass's mean of the pixel: 1 over the camera samples the pass
+    /// takes of the pixel (`--pixel-split`).
+    pub share: f32,
+    /// Its number in the pixel's own sequence of further samples, when the pass takes
+    /// more than one of the pixel (None: the pass's sample `index`).
+    pub further: Option<u32>,
 }
 
 /// Statistics an integrator adds to the render's (flattened into its JSON).
@@ -195,9 +222,14 @@ pub struct Pass {
     pub count: u32,
     /// Rays traced so far.
     pub rays: u64,
-    /// The mean over pixels of the variance of one sample's luminance, so far
-    /// (`Film::sample_variance`).
+    /// The mean over pixels of the variance of one pass's sample of a pixel (the mean of
+    /// its camera samples), so far (`Film::sample_variance`).
     pub variance: f64,
+    /// Where pixels take several camera samples a pass (`--pixel-split`): the image's mean
+    /// variance of one camera sample so far.
+    pub camera_sample_variance: Option<f64>,
+    /// Camera samples taken so far over the window, further ones counted.
+    pub samples: u64,
     /// The time left in `--time`'s budget, if there is one: work between passes that
     /// outgrew it would overrun the budget, since the driver stops only after a pass.
     pub left: Option<Duration>,
@@ -226,6 +258,17 @@ pub trait Integrator: Send + Sync {
     ) -> Vec<V> {
         pxs.iter().map(|px| self.sample(scene, tr, px, c)).collect()
     }
+    /// Radiance of a pass's camera samples of one pixel, in order, each unweighted: its
+    /// pass sample and its further ones (`--pixel-split`).
+    fn sample_pixel(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        pxs: &[PixelSample],
+        c: &mut Counters,
+    ) -> Vec<V> {
+        pxs.iter().map(|px| self.sample(scene, tr, px, c)).collect()
+    }
     /// After a pass, `done` samples per pixel in all.
     fn end_pass(&mut self, _scene: &Scene, _done: u32) {}
 
@@ -243,9 +286,9 @@ pub trait Integrator: Send + Sync {
     /// What ran and why, for the stats' `passes`.
     fn passes(&self) -> Vec<String>;
     fn stats(&self) -> Stats;
-    /// Bytes of state it holds besides the page cache, and of it per pixel.
-    fn state_bytes(&self) -> [u64; 2] {
-        [0, 0]
+    /// Bytes of state it holds besides the page cache.
+    fn state_bytes(&self) -> u64 {
+        0
     }
     /// Parts of the render time it accounts for, by name.
     fn seconds(&self) -> Vec<(&'static str, f64)> {

@@ -7,8 +7,8 @@
 //! seed. Emitters are one-sided unless their material is double-sided; a single-sided
 //! opaque surface hit from behind absorbs.
 
-use super::direct::emission_weight;
-use super::surface::{scattering_hit, Scatter};
+use super::direct::{emission_weight, escaped_light};
+use super::surface::{scattering_hit, Missed, Scatter};
 use super::{
     bsdf_term, on_side, sample_light, Counters, Integrator, PixelSample, Receiver, Scene,
     ShadingPoint, Stats,
@@ -56,15 +56,21 @@ pub fn radiance(
         let [u_pick, ul0, ul1, u_lobe] = s.get4(2 * depth + 1);
         let [ud0, ud1, u_rr, _] = s.get4(2 * depth + 2);
         // Holes pass unscattered, the depth unchanged.
-        let Some(Scatter {
+        let scatter = match scattering_hit(scene, tr, &mut ray, ud0, &mut passes) {
+            Ok(s) => s,
+            Err(Missed::Left) => {
+                let from = (!prev_delta).then_some((prev, prev_pdf));
+                l += beta * escaped_light(scene, ray.d, from);
+                break;
+            }
+            Err(Missed::Degenerate) => break,
+        };
+        let Scatter {
             hit,
             ng,
             area,
             travelled,
-        }) = scattering_hit(scene, tr, &mut ray, ud0, &mut passes)
-        else {
-            break;
-        };
+        } = scatter;
         let wo = -ray.d.normalize();
         let sp = ShadingPoint::new(&hit, ng, wo, &scene.material_at_hit(&hit, ray.d));
         if sp.emitted != V::ZERO {

@@ -38,26 +38,35 @@ pub struct Scatter {
     pub travelled: f32,
 }
 
+/// Why a ray scatters nowhere.
+#[derive(Debug, PartialEq)]
+pub enum Missed {
+    /// It left the scene.
+    Left,
+    /// It met a triangle of no area.
+    Degenerate,
+}
+
 /// The first surface `ray` scatters at: holes (alpha below the cutoff, or a blend's
 /// transparency) are passed by `passes_through` with the sample number `u`, counting in
 /// `passes` (at most `MAX_PASSES` on a path), each moving `ray`'s origin past the hole.
-/// None when the ray leaves the scene or meets a degenerate triangle. Every hit met is
-/// touched (`Scene::touch`).
+/// Otherwise why not: the ray left the scene (toward the environment, along `ray`), or it
+/// met a degenerate triangle. Every hit met is touched (`Scene::touch`).
 pub fn scattering_hit(
     scene: &Scene,
     tr: &mut Tracer,
     ray: &mut Ray,
     u: f32,
     passes: &mut u32,
-) -> Option<Scatter> {
+) -> Result<Scatter, Missed> {
     let mut travelled = 0.0f32;
     loop {
-        let hit = tr.closest_hit(ray)?;
+        let hit = tr.closest_hit(ray).ok_or(Missed::Left)?;
         scene.touch(&hit);
         let ng_raw = hit.ng();
         let area = 0.5 * ng_raw.length();
         if area.is_nan() || area <= 0.0 {
-            return None;
+            return Err(Missed::Degenerate);
         }
         let ng = ng_raw / (2.0 * area);
         if *passes < MAX_PASSES && passes_through(scene.opacity_at(&hit), u, *passes) {
@@ -67,7 +76,7 @@ pub fn scattering_hit(
             ray.o = offset_origin(p, err, ng, ray.d);
             continue;
         }
-        return Some(Scatter {
+        return Ok(Scatter {
             hit,
             ng,
             area,

@@ -1,7 +1,8 @@
 //! Light sources: emissive triangles (front side only unless the material is
-//! double-sided) and glTF punctual lights. A shading point chooses one through the light
-//! tree (`tree`) by a bound on what each can send it; photons leave them in proportion to
-//! power.
+//! double-sided), glTF punctual lights and the environment (`env`). A shading point
+//! chooses one through the light tree (`tree`) by a bound on what each can send it (the
+//! environment and directional lights, which have no position, as pbrt-v4's infinite
+//! lights); photons leave them in proportion to power.
 //!
 //! Emitters are gathered once by walking only the subtrees whose nodes carry the EMISSIVE
 //! flag, so a huge scene with a few lamps loads a few pages.
@@ -16,7 +17,11 @@ use std::collections::HashMap;
 use std::f32::consts::PI;
 use tree::{LightBounds, LightTree};
 
+mod distribution;
+pub mod env;
 pub mod tree;
+
+pub use env::Environment;
 
 pub struct Emitter {
     pub p: [V; 3],
@@ -120,7 +125,10 @@ impl LightSample {
 pub struct Lights {
     pub emitters: Vec<Emitter>,
     pub punctual: Vec<Punctual>,
-    /// Cumulative power, emitters first, then punctual lights (photon emission).
+    /// Light from infinitely far away, numbered after the punctual lights.
+    pub env: Option<Environment>,
+    /// Cumulative power, emitters first, then punctual lights, then the environment
+    /// (photon emission).
     cdf: Vec<f32>,
     /// Chooses lights for shading points; lights numbered as in `cdf`.
     tree: LightTree,
@@ -212,14 +220,29 @@ impl Lights {
         let center = 0.5 * (V::from(h.bounds_min) + V::from(h.bounds_max));
         Ok(Lights {
             by_leaf,
-            ..Lights::new(emitters, punctual, center, scene_radius)
+            ..Lights::new(emitters, punctual, None, center, scene_radius)
         })
+    }
+
+    /// The same lights with `env` as the environment.
+    pub fn with_environment(self, env: Environment) -> Lights {
+        Lights {
+            by_leaf: self.by_leaf,
+            ..Lights::new(
+                self.emitters,
+                self.punctual,
+                Some(env),
+                self.center,
+                self.radius,
+            )
+        }
     }
 
     /// Lights of a scene whose bounding sphere has this center and radius.
     pub fn new(
         emitters: Vec<Emitter>,
         punctual: Vec<Punctual>,
+        env: Option<Environment>,
         center: V,
         scene_radius: f32,
     ) -> Lights {
@@ -288,11 +311,19 @@ impl Lights {
                 }
             }
         }
+        if let Some(env) = &env {
+            // What crosses the scene's bounding disc: π R² ∫ Le dω (pbrt-v4's
+            // `ImageInfiniteLight::Phi`).
+            let disc = PI * scene_radius * scene_radius;
+            add(disc * 4.0 * PI * luminance(env.mean()));
+            infinite.push((emitters.len() + punctual.len()) as u32);
+        }
         Lights {
             tree: LightTree::new(cdf.len(), bounded, infinite),
             by_leaf: HashMap::new(),
             emitters,
             punctual,
+            env,
             cdf,
             total: total as f32,
             center,
@@ -334,6 +365,25 @@ impl Lights {
         emitter.map_or(0.0, |i| self.tree.pmf(p, n, i as usize)) * dist2 / (cos_l * area)
     }
 
+    /// The environment's light number (after the emitters and punctual lights).
+    fn env_index(&self) -> usize {
+        self.emitters.len() + self.punctual.len()
+    }
+
+    /// Radiance from the environment along direction `d` (unit), which a ray that left
+    /// the scene meets.
+    pub fn escaped(&self, d: V) -> V {
+        self.env.as_ref().map_or(V::ZERO, |e| e.le(d))
+    }
+
+    /// Solid-angle pdf with which `sample` from `p` (normal `n`) picks the environment's
+    /// direction `d`: MIS weighs an escaping ray's light with it.
+    pub fn pdf_env(&self, (p, n): (V, V), d: V) -> f32 {
+        self.env
+            .as_ref()
+            .map_or(0.0, |e| self.tree.pmf(p, n, self.env_index()) * e.pdf(d))
+    }
+
     /// Samples a light for shading point `p` on a surface with normal `n` (zero: a point
     /// of any orientation).
     pub fn sample(&self, p: V, n: V, u_pick: f32, u: [f32; 2]) -> Option<LightSample> {
@@ -368,7 +418,19 @@ impl Lights {
                 texel,
             });
         }
-        match &self.punctual[i - self.emitters.len()] {
+        let Some(light) = self.punctual.get(i - self.emitters.len()) else {
+            let (wi, le, pdf) = self.env.as_ref()?.sample(u)?;
+            let pdf = pdf * p_pick;
+            return (pdf > 0.0 && pdf.is_finite()).then(|| LightSample {
+                wi,
+                dist: f32::INFINITY,
+                point: None,
+                weight: le / pdf,
+                pdf,
+                texel: None,
+            });
+        };
+        match light {
             Punctual::Spot {
                 pos,
                 dir,
@@ -433,8 +495,8 @@ impl Lights {
             let d = Frame::new(n).to_world(cosine_hemisphere([u[2], u[3]]));
             // L·cos / (p_pick · 1/A · cos/π · 1/sides).
             (q, err, n, d, e.le * (PI * e.area * sides / p_pick))
-        } else {
-            match &self.punctual[i - self.emitters.len()] {
+        } else if let Some(light) = self.punctual.get(i - self.emitters.len()) {
+            match light {
                 Punctual::Spot {
                     pos,
                     dir,
@@ -453,15 +515,18 @@ impl Lights {
                     (*pos, V::ZERO, d, d, *intensity * (fall / (pdf * p_pick)))
                 }
                 Punctual::Directional { dir, irradiance } => {
-                    let r = self.radius * u[0].sqrt();
-                    let phi = 2.0 * PI * u[1];
-                    let f = Frame::new(*dir);
-                    let o = self.center - *dir * (2.0 * self.radius)
-                        + f.to_world(V::new(r * phi.cos(), r * phi.sin(), 0.0));
+                    let o = self.disc_origin(*dir, [u[0], u[1]]);
                     let disc = PI * self.radius * self.radius;
                     (o, V::ZERO, *dir, *dir, *irradiance * (disc / p_pick))
                 }
             }
+        } else {
+            // From the environment: a direction by its density, then parallel through the
+            // disc (pbrt-v4's `ImageInfiniteLight::SampleLe`).
+            let (wi, le, pdf) = self.env.as_ref()?.sample([u[2], u[3]])?;
+            let o = self.disc_origin(-wi, [u[0], u[1]]);
+            let disc = PI * self.radius * self.radius;
+            (o, V::ZERO, -wi, -wi, le * (disc / (pdf * p_pick)))
         };
         if !(flux.is_finite() && flux.max_element() > 0.0) {
             return None;
@@ -475,6 +540,24 @@ impl Lights {
             flux,
             texel,
         })
+    }
+}
+
+impl Default for Lights {
+    /// No light.
+    fn default() -> Lights {
+        Lights::new(Vec::new(), Vec::new(), None, V::ZERO, 0.0)
+    }
+}
+
+impl Lights {
+    /// A uniform point of the scene's bounding disc facing `dir`, moved back out of the
+    /// scene against `dir` (where light from infinitely far away enters).
+    fn disc_origin(&self, dir: V, u: [f32; 2]) -> V {
+        let r = self.radius * u[0].sqrt();
+        let phi = 2.0 * PI * u[1];
+        self.center - dir * (2.0 * self.radius)
+            + Frame::new(dir).to_world(V::new(r * phi.cos(), r * phi.sin(), 0.0))
     }
 }
 
@@ -517,282 +600,4 @@ fn punctual(l: &LightRecord) -> Option<Punctual> {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    use crate::test_rng::TestRng as Rng;
-
-    fn scattered_lights(rng: &mut Rng) -> Lights {
-        let emitters = (0..200)
-            .filter_map(|k| {
-                let c = rng.v(10.0);
-                let p = [c + rng.v(0.5), c + rng.v(0.5), c + rng.v(0.5)];
-                Emitter::triangle(p, V::new(1.0, 2.0, 0.5) * rng.f32(), k % 5 == 0)
-            })
-            .collect();
-        let punctual = vec![
-            Punctual::Spot {
-                pos: V::new(0.0, 8.0, 0.0),
-                dir: V::NEG_Y,
-                intensity: V::splat(40.0),
-                cos_outer: 0.7,
-                cos_inner: 0.9,
-            },
-            Punctual::Spot {
-                pos: V::new(3.0, -2.0, 1.0),
-                dir: V::NEG_Z,
-                intensity: V::splat(5.0),
-                cos_outer: -1.0,
-                cos_inner: -1.0,
-            },
-            Punctual::Directional {
-                dir: V::new(0.3, -1.0, 0.2).normalize(),
-                irradiance: V::splat(2.0),
-            },
-        ];
-        Lights::new(emitters, punctual, V::ZERO, 20.0)
-    }
-
-    /// MIS weighs a BSDF-sampled hit on a lamp with `pick_pdf` converted to solid angle;
-    /// that must be the pdf `sample` returned for the same point, or the two strategies
-    /// double-count or lose light.
-    #[test]
-    fn a_lamp_hit_has_the_pdf_its_light_sample_had() {
-        let mut rng = Rng::new(0x51ab_1e5e_ed00_0001);
-        let lights = scattered_lights(&mut rng);
-        let mut checked = 0;
-        for _ in 0..5000 {
-            let p = rng.v(15.0);
-            let n = rng.v(1.0).normalize();
-            let Some(ls) = lights.sample(p, n, rng.f32(), [rng.f32(), rng.f32()]) else {
-                continue;
-            };
-            if ls.pdf == 0.0 {
-                continue;
-            }
-            let (q, _, normal) = ls.point.unwrap();
-            // The lamp holding q: its normal, and sub-triangle areas that add up to its own.
-            let a = |x: V, y: V, z: V| 0.5 * (y - x).cross(z - x).length();
-            let (i, e) = lights
-                .emitters
-                .iter()
-                .enumerate()
-                .find(|(_, e)| {
-                    let sum = a(q, e.p[1], e.p[2]) + a(e.p[0], q, e.p[2]) + a(e.p[0], e.p[1], q);
-                    e.n == normal && (sum / e.area - 1.0).abs() < 1e-3
-                })
-                .expect("the sampled point lies on a lamp");
-            let d2 = (q - p).length_squared();
-            let cos_l = ls.wi.dot(e.n).abs();
-            let hit_pdf = lights.pdf_li((p, n), Some(i as u32), d2, cos_l, e.area);
-            assert!(
-                (hit_pdf / ls.pdf - 1.0).abs() < 1e-3,
-                "light sample pdf {} against the hit's {hit_pdf}",
-                ls.pdf
-            );
-            checked += 1;
-        }
-        assert!(checked > 1000, "{checked} lamp samples");
-    }
-
-    #[test]
-    fn tree_probabilities_sum_to_at_most_one_and_are_what_sampling_returns() {
-        let mut rng = Rng::new(0x9e37_79b9_7f4a_7c15);
-        let lights = scattered_lights(&mut rng);
-        let count = lights.emitters.len() + lights.punctual.len();
-        for _ in 0..50 {
-            let p = rng.v(15.0);
-            let n = rng.v(1.0).normalize();
-            let pmf: Vec<f32> = (0..count).map(|i| lights.tree.pmf(p, n, i)).collect();
-            // Below 1 by what descends into subtrees whose bound is loose: there sampling
-            // finds no light, which is no bias, as only lights that cannot reach p are left.
-            let total: f32 = pmf.iter().sum();
-            assert!(
-                total <= 1.0 + 1e-5 && total > 0.5,
-                "probabilities at {p} sum to {total}"
-            );
-            let draws = 4000;
-            let mut hits = vec![0u32; count];
-            for k in 0..draws {
-                let u = (k as f32 + rng.f32()) / draws as f32;
-                let Some((i, q)) = lights.tree.sample(p, n, u) else {
-                    continue;
-                };
-                let rel = (q - pmf[i]).abs() / pmf[i];
-                assert!(
-                    rel < 1e-5,
-                    "sampled light {i}: pmf {q} but {} by walking",
-                    pmf[i]
-                );
-                hits[i] += 1;
-            }
-            for (i, &h) in hits.iter().enumerate() {
-                let expect = pmf[i] * draws as f32;
-                // Stratified u: each light's count is within one stratum per tree level of
-                // its expectation; 4σ of an unstratified count bounds that loosely.
-                let slack = 4.0 * expect.sqrt() + 12.0;
-                assert!(
-                    (h as f32 - expect).abs() <= slack,
-                    "light {i}: {h} draws, {expect} expected"
-                );
-            }
-        }
-    }
-
-    #[test]
-    fn a_one_sided_lamp_facing_away_is_never_chosen() {
-        let tri = |z: f32, flip: bool, two_sided: bool| {
-            let (a, b) = (V::new(1.0, 0.0, z), V::new(0.0, 1.0, z));
-            let p = if flip {
-                [V::new(0.0, 0.0, z), b, a]
-            } else {
-                [V::new(0.0, 0.0, z), a, b]
-            };
-            Emitter::triangle(p, V::ONE, two_sided).unwrap()
-        };
-        // Normals +z: the lamp at z = 1 faces away from the origin, the one at z = −1 faces it.
-        let lights = Lights::new(
-            vec![
-                tri(1.0, false, false),
-                tri(-1.0, false, false),
-                tri(2.0, false, true),
-            ],
-            Vec::new(),
-            V::ZERO,
-            5.0,
-        );
-        let (p, n) = (V::new(0.2, 0.2, 0.0), V::ZERO);
-        assert_eq!(lights.tree.pmf(p, n, 0), 0.0);
-        assert!(lights.tree.pmf(p, n, 1) > 0.0);
-        assert!(
-            lights.tree.pmf(p, n, 2) > 0.0,
-            "a two-sided lamp lights both sides"
-        );
-        for k in 0..1000 {
-            let (i, _) = lights.tree.sample(p, n, k as f32 / 1000.0).unwrap();
-            assert_ne!(i, 0);
-        }
-        assert!(lights.sample(p, n, 0.5, [0.5, 0.5]).is_some());
-    }
-
-    /// Two spheres of one-sided lamps, outward normals.
-    fn lamp_spheres() -> Vec<Emitter> {
-        let mut out = Vec::new();
-        for (c, r, le) in [
-            (V::new(0.0, 3.0, 0.0), 0.5, 20.0),
-            (V::new(6.0, 4.0, 1.0), 0.8, 8.0),
-        ] {
-            let (nlat, nlon) = (12, 24);
-            let at = |i: usize, j: usize| {
-                let th = PI * i as f32 / nlat as f32;
-                let ph = 2.0 * PI * j as f32 / nlon as f32;
-                c + r * V::new(th.sin() * ph.cos(), th.cos(), th.sin() * ph.sin())
-            };
-            for i in 0..nlat {
-                for j in 0..nlon {
-                    let q = [at(i, j), at(i + 1, j), at(i + 1, j + 1), at(i, j + 1)];
-                    for t in [[q[0], q[1], q[2]], [q[0], q[2], q[3]]] {
-                        let Some(e) = Emitter::triangle(t, V::splat(le), false) else {
-                            continue;
-                        };
-                        let outward = (t[0] + t[1] + t[2]) / 3.0 - c;
-                        let t = if e.n.dot(outward) < 0.0 {
-                            [t[0], t[2], t[1]]
-                        } else {
-                            t
-                        };
-                        out.extend(Emitter::triangle(t, V::splat(le), false));
-                    }
-                }
-            }
-        }
-        out
-    }
-
-    /// Irradiance at `p` with normal `n` from the lamps by a fine midpoint rule: each
-    /// triangle cut into k² pieces.
-    fn irradiance(emitters: &[Emitter], p: V, n: V) -> f64 {
-        let k = 12;
-        let mut e = 0.0f64;
-        for l in emitters {
-            let (du, dv) = ((l.p[1] - l.p[0]) / k as f32, (l.p[2] - l.p[0]) / k as f32);
-            for a in 0..k {
-                for b in 0..k - a {
-                    let base = l.p[0] + du * a as f32 + dv * b as f32;
-                    let mut pieces = vec![base + (du + dv) / 3.0];
-                    if a + b + 1 < k {
-                        pieces.push(base + (du + dv) * (2.0 / 3.0));
-                    }
-                    for q in pieces {
-                        let d = q - p;
-                        let d2 = d.length_squared();
-                        let w = d / d2.sqrt();
-                        let (cs, cl) = (n.dot(w), -l.n.dot(w));
-                        if cs > 0.0 && cl > 0.0 {
-                            let da = l.area / (k * k) as f32;
-                            e += (l.le.x * cs * cl * da / d2) as f64;
-                        }
-                    }
-                }
-            }
-        }
-        e
-    }
-
-    #[test]
-    fn light_tree_samples_are_unbiased_and_beat_sampling_by_power() {
-        let mut rng = Rng::new(7);
-        let emitters = lamp_spheres();
-        let area: f32 = emitters.iter().map(|e| e.area).sum();
-        let le_area: Vec<f32> = emitters.iter().map(|e| e.le.x * e.area).collect();
-        let total: f32 = le_area.iter().sum();
-        let reference = Lights::new(lamp_spheres(), Vec::new(), V::ZERO, 10.0);
-        assert!(area > 0.0);
-        for (p, n) in [
-            (V::new(0.0, 0.0, 0.0), V::Y),
-            (V::new(2.0, 1.0, -1.0), V::new(0.2, 1.0, 0.1).normalize()),
-            (V::new(4.0, 4.0, 3.0), V::new(0.0, 0.0, -1.0)),
-        ] {
-            let exact = irradiance(&emitters, p, n);
-            let draws = 40_000;
-            let (mut s1, mut s2, mut q1, mut q2) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
-            for _ in 0..draws {
-                let v = reference
-                    .sample(p, n, rng.f32(), [rng.f32(), rng.f32()])
-                    .map_or(0.0, |ls| (ls.weight.x * n.dot(ls.wi).max(0.0)) as f64);
-                s1 += v;
-                s2 += v * v;
-                // Sampling by power alone: a triangle in proportion to Le·A, a point on it.
-                let x = rng.f32() * total;
-                let i = le_area
-                    .iter()
-                    .scan(0.0, |acc, w| {
-                        *acc += w;
-                        Some(*acc)
-                    })
-                    .position(|c| c > x)
-                    .unwrap_or(emitters.len() - 1);
-                let e = &emitters[i];
-                let (q, _, _) = e.point([rng.f32(), rng.f32()]);
-                let d = q - p;
-                let w = d.normalize();
-                let (cs, cl) = (n.dot(w).max(0.0), (-e.n.dot(w)).max(0.0));
-                let v = (e.le.x * cs * cl / d.length_squared() * total / e.le.x) as f64;
-                q1 += v;
-                q2 += v * v;
-            }
-            let nd = draws as f64;
-            let (mean, var) = (s1 / nd, s2 / nd - (s1 / nd).powi(2));
-            let var_power = q2 / nd - (q1 / nd).powi(2);
-            let sigma = (var / nd).sqrt();
-            assert!(
-                (mean - exact).abs() < 4.0 * sigma + 2e-3 * exact,
-                "at {p}: tree estimate {mean} ± {sigma}, midpoint rule {exact}"
-            );
-            assert!(
-                var < 0.5 * var_power,
-                "at {p}: variance {var} with the tree, {var_power} by power"
-            );
-        }
-    }
-}
+mod tests;

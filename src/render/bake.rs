@@ -21,6 +21,8 @@ pub struct BakeOptions {
     pub seed: u32,
     pub mem_budget: Option<u64>,
     pub threads: Option<usize>,
+    /// The environment map lighting the scene (`render --env`).
+    pub env: Option<super::EnvOptions>,
     pub progress: bool,
 }
 
@@ -76,13 +78,19 @@ pub fn bake(o: &BakeOptions) -> Result<BakeReport> {
         .context("starting worker threads")?;
     // The bake shoots no camera rays; the scene still wants a camera.
     let camera = Camera::new(&bytemuck::Zeroable::zeroed(), 1, 1);
-    let scene = open_scene(
+    let mut scene = open_scene(
         Arc::clone(&archive),
         camera,
         o.mem_budget.map(|b| (b, 0)),
         threads,
         None,
     )?;
+    let lights = std::mem::take(&mut scene.lights);
+    let (lights, note) = super::defaults::light_the_scene(&o.archive, o.env.as_ref(), lights)?;
+    scene.lights = lights;
+    if let Some(note) = note {
+        eprintln!("note: {note}");
+    }
     let bar = crate::progress::bar(
         o.progress,
         archive.page_count() as u64 * o.bake.bounces as u64,

@@ -4,16 +4,20 @@
 
 pub mod assemble;
 pub mod bake;
+mod defaults;
 mod film;
+mod pixel_split;
 mod setup;
 mod stats;
 
+pub use defaults::EnvOptions;
 pub use setup::MAX_SIDE;
 pub use stats::{Checkpoint, RenderStats, Seconds};
 
 use crate::progress::peak_rss_bytes;
 use crate::texture::TextureFilter;
 use film::{Film, Sums};
+use pixel_split::PixelSplit;
 use setup::Setup;
 use stats::ancestors_closure;
 
@@ -34,7 +38,7 @@ pub struct RenderOptions {
     pub output: PathBuf,
     pub integrator: integrator::Settings,
     pub spp: u32,
-    /// Render passes until this much time is spent instead of `spp`.
+    /// Render passes until this much time is spent, or `spp` samples are taken.
     pub time: Option<Duration>,
     /// Without `time`: stop at the first power-of-two spp whose relative noise
     /// (`Film::noise`) is at most this, `spp` the most; each power of two is recorded in
@@ -48,6 +52,10 @@ pub struct RenderOptions {
     pub threads: Option<usize>,
     pub max_depth: Option<u32>,
     pub texture_filter: TextureFilter,
+    /// Most camera samples a pass takes of a pixel (None: the integrator's default).
+    pub pixel_split: Option<u32>,
+    /// An environment map lighting the scene from infinitely far away.
+    pub env: Option<EnvOptions>,
     /// x0, x1, y0, y1 in pixels (half-open).
     pub crop: Option<[u32; 4]>,
     pub preview: bool,
@@ -65,11 +73,14 @@ struct Tally {
     rays: AtomicU64,
     paths: AtomicU64,
     nonfinite: AtomicU64,
+    /// Camera samples beyond one a pixel and pass (`--pixel-split`).
+    further: AtomicU64,
 }
 
 /// How a render went: samples per pixel, time, work.
 struct Run {
     done: u32,
+    split: PixelSplit,
     seconds: Seconds,
     tally: Tally,
     growth: Vec<Checkpoint>,
@@ -81,11 +92,14 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     let (scene, pool) = (&s.scene, &s.pool);
     let prefetcher = scene.cache.start_prefetch();
     let mut film = Film::new(s.window);
+    let window_pixels = film.width() as usize * film.height() as usize;
+    let mut split = PixelSplit::new(s.pixel_split, o.seed, window_pixels);
     let target = Target {
         seed: o.seed,
         pixels: s.width as u64 * s.height as u64,
         window: s.window,
         state_bytes: s.state_bytes,
+        pixel_split: s.pixel_split,
     };
     let mut integ = o.integrator.build(scene, &target)?;
     let mut seconds = Seconds {
@@ -116,25 +130,39 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
                 .min(o.spp - done),
             (None, None) => integ.pass_samples(o.spp),
         };
+        // The pixel split decides a pass's camera samples from the passes before it.
+        let count = match split.most() {
+            1 => count,
+            _ => count.min(1),
+        };
         let so_far = tally.rays.load(Relaxed);
         let pass = Pass {
             first: done,
             count,
             rays: so_far,
             variance: film.sample_variance(done),
+            camera_sample_variance: split.begin_pass(),
+            samples: done as u64 * window_pixels as u64 + tally.further.load(Relaxed),
             left: o.time.map(|limit| limit.saturating_sub(t1.elapsed())),
         };
         let rays = pool.install(|| integ.begin_pass(scene, &pass))?;
         tally.rays.fetch_add(rays, Relaxed);
         // Timed after begin_pass: a bake there is paid once, not by every pass.
         let pass_start = Instant::now();
-        let integ_ref: &dyn Integrator = integ.as_ref();
+        let tiles = Tiles {
+            scene,
+            integ: integ.as_ref(),
+            film: &film,
+            split: &split,
+            seed: o.seed,
+            samples: done..done + count,
+            tally: &tally,
+        };
         let sums: Vec<Vec<Sums>> = pool.install(|| {
             film.tiles
                 .par_iter()
                 .map(|t| {
-                    let out =
-                        render_tile(scene, integ_ref, &film, *t, [done, count], o.seed, &tally);
+                    let out = tiles.render(*t);
                     if o.time.is_none() {
                         bar.inc(count as u64);
                     }
@@ -155,7 +183,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
             // Stop when the next pass would overrun the budget.
             (Some(limit), _) => {
                 bar.set_position(spent.as_secs());
-                spent + pass_start.elapsed() > limit || done >= u32::MAX - 1
+                spent + pass_start.elapsed() > limit || done >= o.spp
             }
             (None, Some(target)) if done.is_power_of_two() || done >= o.spp => {
                 let c = Checkpoint {
@@ -197,6 +225,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     seconds.total = t0.elapsed().as_secs_f64();
     let run = Run {
         done,
+        split,
         seconds,
         tally,
         growth,
@@ -219,8 +248,9 @@ fn archive_checksum(scene: &Scene) -> String {
 /// tiles of one frame must agree on it.
 fn settings_text(o: &RenderOptions, s: &Setup) -> String {
     format!(
-        "{:?} spp={} time={:?} noise={:?} max_depth={:?} textures={:?} camera={:?} size={}x{}",
+        "{:?} pixel_split={} spp={} time={:?} noise={:?} max_depth={:?} textures={:?} camera={:?} size={}x{}",
         o.integrator,
+        s.pixel_split,
         o.spp,
         o.time,
         o.noise,
@@ -241,54 +271,108 @@ fn identity(o: &RenderOptions, s: &Setup) -> Vec<(String, String)> {
     ]
 }
 
-/// Renders samples `first..first + count` of a tile's pixels; returns their sums.
-fn render_tile(
-    scene: &Scene,
-    integ: &dyn Integrator,
-    film: &Film,
-    t: [u32; 4],
-    [first, count]: [u32; 2],
+/// What every tile of a pass needs.
+struct Tiles<'a> {
+    scene: &'a Scene,
+    integ: &'a dyn Integrator,
+    film: &'a Film,
+    split: &'a PixelSplit,
     seed: u32,
-    tally: &Tally,
-) -> Vec<Sums> {
-    let mut c = Counters::default();
-    let mut tr = Tracer::new(&scene.cache);
-    let cam = &scene.camera;
-    let pixels: Vec<(u32, u32)> = (t[2]..t[3])
-        .flat_map(|y| (t[0]..t[1]).map(move |x| (y, x)))
-        .collect();
-    let mut out: Vec<Sums> = vec![[0.0; 4]; pixels.len()];
-    let mut batch = Vec::with_capacity(pixels.len());
-    for index in first..first + count {
-        batch.clear();
-        batch.extend(pixels.iter().map(|&(y, x)| {
-            let sampler = PixelSampler::new(seed, y * cam.width + x, index);
-            let [jx, jy, ..] = sampler.get4(0);
-            PixelSample {
-                x,
-                y,
-                at: film.index(x, y),
-                index,
-                ray: cam.ray(x as f32 + jx, y as f32 + jy),
-                sampler,
+    /// The pass's samples of each pixel.
+    samples: std::ops::Range<u32>,
+    tally: &'a Tally,
+}
+
+impl Tiles<'_> {
+    /// Renders the pass's samples of a tile's pixels; returns their sums.
+    fn render(&self, t: [u32; 4]) -> Vec<Sums> {
+        let mut c = Counters::default();
+        let mut tr = Tracer::new(&self.scene.cache);
+        let pixels: Vec<(u32, u32)> = (t[2]..t[3])
+            .flat_map(|y| (t[0]..t[1]).map(move |x| (y, x)))
+            .collect();
+        let mut out: Vec<Sums> = vec![[0.0; 4]; pixels.len()];
+        let mut batch = Vec::with_capacity(pixels.len());
+        for index in self.samples.clone() {
+            let ls = match self.split.most() {
+                1 => {
+                    batch.clear();
+                    batch.extend(pixels.iter().map(|&(y, x)| self.sample(x, y, index, 1)));
+                    self.integ.sample_tile(self.scene, &mut tr, &batch, &mut c)
+                }
+                _ => pixels
+                    .iter()
+                    .map(|&(y, x)| self.split_pixel(&mut tr, x, y, index, &mut c))
+                    .collect(),
+            };
+            for (sum, l) in out.iter_mut().zip(ls) {
+                let l = [l.x as f64, l.y as f64, l.z as f64];
+                for k in 0..3 {
+                    sum[k] += l[k];
+                }
+                sum[3] += film::luminance(l).powi(2);
             }
-        }));
-        for (sum, l) in out
-            .iter_mut()
-            .zip(integ.sample_tile(scene, &mut tr, &batch, &mut c))
-        {
-            let l = [l.x as f64, l.y as f64, l.z as f64];
-            for k in 0..3 {
-                sum[k] += l[k];
-            }
-            sum[3] += film::luminance(l).powi(2);
+        }
+        self.tally.rays.fetch_add(tr.rays, Relaxed);
+        self.tally.paths.fetch_add(c.paths, Relaxed);
+        self.tally.nonfinite.fetch_add(c.nonfinite, Relaxed);
+        self.scene.cache.add_lookups(tr.page_lookups());
+        out
+    }
+
+    /// Pixel (x, y)'s pass sample `index`, one of `m` camera samples the pass takes of it.
+    fn sample(&self, x: u32, y: u32, index: u32, m: u32) -> PixelSample {
+        let cam = &self.scene.camera;
+        let sampler = PixelSampler::new(self.seed, y * cam.width + x, index);
+        let [jx, jy, ..] = sampler.get4(0);
+        PixelSample {
+            x,
+            y,
+            at: self.film.index(x, y),
+            index,
+            ray: cam.ray(x as f32 + jx, y as f32 + jy),
+            sampler,
+            share: 1.0 / m as f32,
+            further: None,
         }
     }
-    tally.rays.fetch_add(tr.rays, Relaxed);
-    tally.paths.fetch_add(c.paths, Relaxed);
-    tally.nonfinite.fetch_add(c.nonfinite, Relaxed);
-    scene.cache.add_lookups(tr.page_lookups());
-    out
+
+    /// The mean of pixel (x, y)'s pass sample and the further ones its earlier samples'
+    /// spread asks for (`PixelSplit::count`), each noted for the pixel's spread.
+    fn split_pixel(
+        &self,
+        tr: &mut Tracer,
+        x: u32,
+        y: u32,
+        index: u32,
+        c: &mut Counters,
+    ) -> glam::Vec3A {
+        let cam = &self.scene.camera;
+        let m = self.split.count(self.film.index(x, y));
+        let px = self.sample(x, y, index, m);
+        let (at, share) = (px.at, px.share);
+        let further = self.split.further(at, y * cam.width + x, m - 1);
+        let pxs: Vec<PixelSample> = std::iter::once(px)
+            .chain(further.into_iter().map(|(i, sampler)| {
+                let [jx, jy, ..] = sampler.get4(0);
+                PixelSample {
+                    x,
+                    y,
+                    at,
+                    index,
+                    ray: cam.ray(x as f32 + jx, y as f32 + jy),
+                    sampler,
+                    share,
+                    further: Some(i),
+                }
+            }))
+            .collect();
+        self.tally.further.fetch_add(pxs.len() as u64 - 1, Relaxed);
+        let rays = tr.rays;
+        let ls = self.integ.sample_pixel(self.scene, tr, &pxs, c);
+        self.split.note(at, &ls, tr.rays - rays);
+        ls.iter().fold(glam::Vec3A::ZERO, |sum, &l| sum + l * share)
+    }
 }
 
 fn summarize(
@@ -301,6 +385,7 @@ fn summarize(
 ) -> Result<RenderStats> {
     let Run {
         done,
+        split,
         seconds,
         tally,
         growth,
@@ -310,12 +395,18 @@ fn summarize(
         true => Some(ancestors_closure(scene)?),
         false => None,
     };
-    let [state, per_pixel] = integ.state_bytes();
+    let state = integ.state_bytes();
     let mut cache = scene.cache.stats();
     cache.resident_bytes_peak += scene.touched.bytes() + state;
     let (rays, paths) = (tally.rays.load(Relaxed), tally.paths.load(Relaxed));
     let render_s = seconds.render.max(1e-9);
-    let mut passes = integ.passes();
+    let further = tally.further.load(Relaxed);
+    let mut passes = s.notes.clone();
+    passes.push(split.describe(further));
+    passes.extend(integ.passes());
+    if let Some(env) = &scene.lights.env {
+        passes.push(format!("environment: {}", env.name));
+    }
     if scene.lights.is_empty() {
         passes.push("no light sources: the image is black".into());
     }
@@ -334,11 +425,12 @@ fn summarize(
         mem_budget: o.mem_budget,
         archive_decoded_bytes: scene.cache.archive_decoded_bytes(),
         cache,
-        film_bytes: film.bytes() + per_pixel,
+        film_bytes: film.bytes() + split.bytes(),
         unique_nodes_touched: unique,
         nodes_per_pixel: unique.map(|u| u as f64 / (film.width() as f64 * film.height() as f64)),
         rays,
         paths,
+        further_samples: further,
         rays_per_second: rays as f64 / render_s,
         paths_per_second: paths as f64 / render_s,
         emitters: scene.lights.emitters.len() as u64,

@@ -1,6 +1,7 @@
 //! From options to a scene ready to render: outputs checked, archive opened, camera and
 //! window chosen, the memory budget split between pages and the integrator's state.
 
+use super::defaults::{camera_note, framing_camera, light_the_scene};
 use super::RenderOptions;
 use crate::camera::Camera;
 use crate::image::{check_writable, same_file};
@@ -32,6 +33,11 @@ pub struct Setup {
     pub scene: Scene,
     /// The integrator's share of the memory budget.
     pub state_bytes: Option<u64>,
+    /// Most camera samples a pass takes of a pixel (`--pixel-split`, or the integrator's
+    /// default).
+    pub pixel_split: u32,
+    /// What the render took where the archive said nothing (a camera, light).
+    pub notes: Vec<String>,
 }
 
 /// Where the EXR and (if asked) the PNG go: `-o x.png` writes x.png and x.exr beside it.
@@ -61,8 +67,12 @@ fn outputs(o: &RenderOptions) -> Result<(PathBuf, Option<PathBuf>)> {
     Ok((exr, png))
 }
 
-/// The camera `--camera` names, or the first.
-fn camera<'a>(o: &RenderOptions, archive: &'a Archive) -> Result<&'a CameraRecord> {
+/// The camera `--camera` names, or the first, or `default` where the archive has none.
+fn camera<'a>(
+    o: &RenderOptions,
+    archive: &'a Archive,
+    default: &'a CameraRecord,
+) -> Result<&'a CameraRecord> {
     let name_of = |c: &CameraRecord| canopy_format::name_str(&c.name).to_string();
     match &o.camera {
         Some(name) => archive
@@ -81,12 +91,7 @@ fn camera<'a>(o: &RenderOptions, archive: &'a Archive) -> Result<&'a CameraRecor
                     }
                 )
             }),
-        None => archive.cameras.first().with_context(|| {
-            format!(
-                "{}: the archive has no camera; convert with a glTF camera or --scene",
-                o.archive.display()
-            )
-        }),
+        None => Ok(archive.cameras.first().unwrap_or(default)),
     }
 }
 
@@ -132,12 +137,18 @@ fn window(o: &RenderOptions, width: u32, height: u32) -> Result<[u32; 4]> {
 impl Setup {
     pub fn new(o: &RenderOptions) -> Result<Setup> {
         let (exr, png) = outputs(o)?;
-        if o.spp == 0 && o.time.is_none() {
+        if o.spp == 0 {
             bail!("--spp must be at least 1");
         }
+        let pixel_split = o.integrator.pixel_split(o.pixel_split)?;
         let archive = Arc::new(Archive::open(&o.archive)?);
         o.integrator.check_archive(&archive)?;
-        let cam = camera(o, &archive)?;
+        let framing = framing_camera(&archive);
+        let cam = camera(o, &archive, &framing)?;
+        let mut notes = Vec::new();
+        if archive.cameras.is_empty() {
+            notes.push(camera_note(o, cam));
+        }
         let (width, height) = resolution(o, cam)?;
         let window = window(o, width, height)?;
         let threads = o.threads.unwrap_or_else(rayon::current_num_threads).max(1);
@@ -154,6 +165,13 @@ impl Setup {
             threads,
             o.max_depth,
         )?;
+        let lights = std::mem::take(&mut scene.lights);
+        let (lights, light_note) = light_the_scene(&o.archive, o.env.as_ref(), lights)?;
+        scene.lights = lights;
+        notes.extend(light_note);
+        for note in &notes {
+            eprintln!("note: {note}");
+        }
         let spp = o.time.is_none().then_some(o.spp);
         scene.texture_scale = o.texture_filter.footprint_scale(spp);
         Ok(Setup {
@@ -166,6 +184,8 @@ impl Setup {
             pool,
             scene,
             state_bytes,
+            pixel_split,
+            notes,
         })
     }
 }

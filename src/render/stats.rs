@@ -48,6 +48,8 @@ pub struct RenderStats {
     pub nodes_per_pixel: Option<f64>,
     pub rays: u64,
     pub paths: u64,
+    /// Camera samples pixels took beyond one a pass (`--pixel-split`).
+    pub further_samples: u64,
     pub rays_per_second: f64,
     pub paths_per_second: f64,
     pub emitters: u64,

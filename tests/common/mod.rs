@@ -405,18 +405,10 @@ pub fn edge_rays_case(integrator: &str) {
                     k,
                     "--seed",
                     seed,
-                ]
-                .into_iter()
-                // PBGI's pixel split would also take more samples at the silhouette.
-                .chain(
-                    match integrator {
-                        "pbgi" => ["--pbgi-pixel-split", "1"].as_slice(),
-                        _ => &[],
-                    }
-                    .iter()
-                    .copied(),
-                )
-                .collect::<Vec<_>>(),
+                    // PBGI's pixel split would also take more samples at the silhouette.
+                    "--pixel-split",
+                    "1",
+                ],
             );
             assert!(all_finite(&img));
             assert_mean_within(

@@ -348,9 +348,9 @@ impl Integrator for ConeIntegrator {
         })
     }
 
-    /// The store, and per pixel the emission tallies and the edge mask.
-    fn state_bytes(&self) -> [u64; 2] {
-        [self.store.bytes(), self.edge.bytes()]
+    /// The store, and the edge rays' per-pixel emission tallies and mask.
+    fn state_bytes(&self) -> u64 {
+        self.store.bytes() + self.edge.bytes()
     }
 
     fn seconds(&self) -> Vec<(&'static str, f64)> {

@@ -6,7 +6,7 @@
 use super::node_brdf::{hit_emission, phong_lobe, reflect_lut, theta_norm};
 use super::optics::{bent_tan, jitter};
 use super::{ConeIntegrator, STORE_TAN};
-use crate::integrator::direct::emission_weight;
+use crate::integrator::direct::{emission_weight, escaped_light};
 use crate::integrator::surface::{passes_through, MAX_PASSES};
 use crate::integrator::{
     bsdf_term, on_side, sample_light, Counters, Receiver, Scene, ShadingPoint,
@@ -183,6 +183,8 @@ struct Path {
     diffuse_bounces: u32,
     /// The product of the stacked bounces' throughput.
     beta: V,
+    /// The environment's light where the path left the scene.
+    escaped: V,
 }
 
 impl Path {
@@ -213,6 +215,16 @@ impl Path {
             }
             _ => V::ZERO,
         }
+    }
+
+    /// The environment's light the path meets where it leaves the scene, weighted as
+    /// emission met by a BSDF ray is (the point value: not filtered over the cone).
+    fn escape(&mut self, scene: &Scene) {
+        self.escaped = match self.prev_delta {
+            true if self.mask_caustics && self.smooth_chain => V::ZERO,
+            true => escaped_light(scene, self.ray.d, None),
+            false => escaped_light(scene, self.ray.d, Some((self.prev, self.prev_pdf))),
+        };
     }
 
     /// Takes a bounce: one more segment, the new ray and cone, then Russian roulette on
@@ -251,7 +263,7 @@ impl Path {
             .stack
             .first_mut()
             .map_or(V::ZERO, |b| std::mem::take(&mut b.emission));
-        let mut tail = V::ZERO;
+        let mut tail = self.escaped;
         while let Some(b) = self.stack.pop() {
             let incoming = b.direct + b.weight * tail;
             tail = if b.diffuse {
@@ -333,10 +345,15 @@ impl ConeIntegrator {
             smooth_chain: false,
             diffuse_bounces: 0,
             beta: V::ONE,
+            escaped: V::ZERO,
         };
         let alpha = scene.textures.has_alpha();
         let mut passes = 0;
-        while let Some(hit) = tr.cone_hit(&path.ray, &path.cone) {
+        loop {
+            let Some(hit) = tr.cone_hit(&path.ray, &path.cone) else {
+                path.escape(scene);
+                break;
+            };
             let Some(at) = Here::new(&hit, &path.ray, s, path.depth) else {
                 break;
             };

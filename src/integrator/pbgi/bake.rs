@@ -235,6 +235,7 @@ fn bake_bounces(
         pixels: 0,
         window: [0; 4],
         state_bytes: None,
+        pixel_split: 1,
     };
     let settings = super::PbgiSettings {
         edge_rays: 0,

@@ -232,7 +232,9 @@ impl PbgiIntegrator {
             t_max: f32::INFINITY,
         };
         let mut ray = ray;
-        let hit = scattering_hit(scene, tr, &mut ray, hole_number(w), &mut 0)?.hit;
+        let hit = scattering_hit(scene, tr, &mut ray, hole_number(w), &mut 0)
+            .ok()?
+            .hit;
         let page = tr.page_handle(hit.page);
         let (sends, sampled) = hit_light(scene, tr, &page, &hit, w, || strata.shading(k));
         let l = Vec3::from(sends * weight);

@@ -9,8 +9,8 @@ use std::sync::atomic::AtomicBool;
 use std::sync::{Mutex, PoisonError};
 
 impl PbgiIntegrator {
-    /// Bytes held now, in all and per pixel of the window.
-    pub(super) fn state_bytes_now(&self) -> [u64; 2] {
+    /// Bytes held now.
+    pub(super) fn state_bytes_now(&self) -> u64 {
         let kept: usize = self
             .gathered
             .iter()
@@ -18,13 +18,7 @@ impl PbgiIntegrator {
             .sum();
         let slots = self.gathered.len() * size_of::<Mutex<Vec<Gathered>>>();
         let bytes = (slots + kept * size_of::<Gathered>()) as u64 + self.record_bytes();
-        let edge = self.edge.bytes();
-        let [split, split_per_pixel] = self.split.bytes();
-        let [further, further_per_pixel] = self.pixel_split.bytes();
-        [
-            bytes + edge + split + further,
-            bytes / self.gathered.len().max(1) as u64 + edge + split_per_pixel + further_per_pixel,
-        ]
+        bytes + self.edge.bytes() + self.split.bytes()
     }
 
     /// The irradiance and radiance caches' records.
@@ -48,10 +42,7 @@ impl PbgiIntegrator {
             true => size_of::<AtomicBool>() + size_of::<[u32; 2]>(),
             false => 0,
         };
-        pixels * (gathered + cache) as u64
-            + self.edge.bytes()
-            + self.split.bytes()[0]
-            + self.pixel_split.bytes()[0]
+        pixels * (gathered + cache) as u64 + self.edge.bytes() + self.split.bytes()
     }
 
     fn table_bytes_most(&self) -> u64 {

@@ -34,9 +34,9 @@
 //!   with `cache` those gathers are kept as radiance records shared between pixels
 //!   (`radiance_cache`, 002 §4.3), receivers no record covers taking the exact rays.
 //!
-//! A pixel whose earlier samples scattered takes more camera rays a pass (`pixel_split`,
-//! not in the seeds): half of the showroom's noise was the sample's position in the
-//! pixel, which nothing at one first hit lowers.
+//! A pixel whose earlier samples scattered takes more camera samples a pass (the driver's
+//! `--pixel-split`, 32 by default for PBGI): half of the showroom's noise was the sample's
+//! position in the pixel, which nothing at one first hit lowers.
 //!
 //! Smooth mirrors and glass are followed exactly (one sampled bounce each, up to
 //! `SMOOTH_DEPTH`), so a perfectly specular surface degrades to the exact estimator
@@ -55,7 +55,6 @@ mod memory;
 pub mod microbuffer;
 pub mod patch;
 mod pixel_reuse;
-mod pixel_split;
 mod radiance_cache;
 mod receiver;
 pub mod receiver_clusters;
@@ -68,7 +67,6 @@ pub mod wpbgi;
 
 use super::edge::EdgeRays;
 use super::{Counters, Integrator, Pass, PixelSample, Scene, Stats, Target};
-use crate::sampler::Hash;
 use crate::trace::{Ray, Tracer};
 use anyhow::Result;
 use gather::*;
@@ -78,10 +76,10 @@ use microbuffer::Texels;
 use pixel_reuse::*;
 use receiver::*;
 pub use settings::PbgiSettings;
-use settings::{GLOSSY_RAYS, PIXEL_SPLIT, SPLIT};
+use settings::{GLOSSY_RAYS, SPLIT};
 use stats::PbgiCounters;
 pub use stats::PbgiStats;
-use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
+use std::sync::atomic::AtomicBool;
 use std::sync::Mutex;
 use std::time::Instant;
 
@@ -128,8 +126,6 @@ pub struct PbgiIntegrator {
     glossy_rays: u32,
     /// Pairs and bounce rays per glossy receiver, per pixel (`--pbgi-split`).
     split: split::Split,
-    /// Camera rays per pixel and pass (`--pbgi-pixel-split`), and the further ones taken.
-    pixel_split: pixel_split::PixelSplit,
     /// v̄ · c_g / c_s for the pixels' gather periods, at the pass's start (see `period`).
     reuse_target: f32,
     /// WPBGI's BRDF tables, and its gathers and their leaves.
@@ -153,11 +149,6 @@ impl PbgiIntegrator {
         };
         let [x0, x1, y0, y1] = target.window;
         let window = [(x1 - x0) as usize, (y1 - y0) as usize];
-        let pixel_split = match (settings.pixel_split, settings.clusters) {
-            (Some(m), _) => m,
-            (None, 0) => PIXEL_SPLIT,
-            (None, _) => 1,
-        };
         PbgiIntegrator {
             settings: settings.clone(),
             tally: PbgiCounters::default(),
@@ -184,8 +175,7 @@ impl PbgiIntegrator {
             probe_records: 0,
             glossy_rays,
             // With more first hits per pixel only the bounce splits (`Split::new`).
-            split: split::Split::new(split, glossy_rays, window, pixel_split == 1),
-            pixel_split: pixel_split::PixelSplit::new(pixel_split, seed, window[0] * window[1]),
+            split: split::Split::new(split, glossy_rays, window, target.pixel_split == 1),
             reuse_target: 0.0,
             tables: wpbgi::Tables::default(),
         }
@@ -217,7 +207,7 @@ impl Integrator for PbgiIntegrator {
         let edge_rays = self.edge.begin_pass(scene, pass.first, pass.count, &seen);
         // The pairs' split weighs a pair's spread against one sample's variance, which
         // the film's, of a pass's mean of a pixel's samples, understates where they split.
-        let variance = self.pixel_split.begin_pass().unwrap_or(pass.variance);
+        let variance = pass.camera_sample_variance.unwrap_or(pass.variance);
         self.split.begin_pass(variance);
         self.reuse_target = self.reuse_target(pass, variance);
         if pass.first > 0 {
@@ -290,42 +280,34 @@ impl Integrator for PbgiIntegrator {
         Ok(self.bake_samples + edge_rays + cache_rays)
     }
 
-    /// The mean of the pixel's sample and, where `--pbgi-pixel-split` asks, further
-    /// samples of it from its own sequence.
     fn sample(&self, scene: &Scene, tr: &mut Tracer, px: &PixelSample, c: &mut Counters) -> V {
-        let m = self.pixel_split.count(px.at);
-        let share = 1.0 / m as f32;
-        let rays = tr.rays;
-        let (l, pending, own) = self.first_hit_own(scene, tr, px, 0);
+        self.sample_pixel(scene, tr, std::slice::from_ref(px), c)[0]
+    }
+
+    /// A pixel's pass sample and its further ones: on a silhouette pixel the pass
+    /// sample's edge rays' mean stands for every sample's emission.
+    fn sample_pixel(
+        &self,
+        scene: &Scene,
+        tr: &mut Tracer,
+        pxs: &[PixelSample],
+        c: &mut Counters,
+    ) -> Vec<V> {
+        let Some((px, further)) = pxs.split_first() else {
+            return Vec::new();
+        };
+        let (l, pending, own) = self.first_hit_own(scene, tr, px);
         let seen = |tr: &mut Tracer, r: &Ray, c: &mut Counters| seen_emission(scene, tr, r, c);
         let edge = self.edge.emission(scene, tr, px, own, c, &seen);
-        let mut sum = self.finish(scene, tr, px.at, l + edge, pending, share, rays, c);
-        // On a silhouette pixel the edge rays' mean stands for every sample's emission.
+        let mut out = Vec::with_capacity(pxs.len());
+        out.push(self.finish(scene, tr, l + edge, pending, px.share, c));
         let masked = self.edge.masked(px.at);
-        let cam = &scene.camera;
-        let further = self
-            .pixel_split
-            .further(px.at, px.y * cam.width + px.x, m - 1);
-        self.tally
-            .further_samples
-            .fetch_add(further.len() as u64, Relaxed);
-        for (i, sampler) in further {
-            let [jx, jy, ..] = sampler.get4(0);
-            let sub = PixelSample {
-                ray: cam.ray(px.x as f32 + jx, px.y as f32 + jy),
-                sampler,
-                x: px.x,
-                y: px.y,
-                at: px.at,
-                index: px.index,
-            };
-            let salt = Hash::new(i as u64 ^ FURTHER_SALT).u64();
-            let rays = tr.rays;
-            let (l, pending, own) = self.first_hit_own(scene, tr, &sub, salt);
+        for sub in further {
+            let (l, pending, own) = self.first_hit_own(scene, tr, sub);
             let own = if masked { edge } else { own };
-            sum += self.finish(scene, tr, px.at, l + own, pending, share, rays, c);
+            out.push(self.finish(scene, tr, l + own, pending, sub.share, c));
         }
-        sum
+        out
     }
 
     fn sample_tile(
@@ -354,7 +336,7 @@ impl Integrator for PbgiIntegrator {
         self.held_back_gathers()
     }
 
-    fn state_bytes(&self) -> [u64; 2] {
+    fn state_bytes(&self) -> u64 {
         self.state_bytes_now()
     }
 

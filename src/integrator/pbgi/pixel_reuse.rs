@@ -11,7 +11,7 @@ use crate::sampler::Hash;
 use crate::trace::{offset_origin, Ray, Tracer};
 use glam::Vec3A as V;
 use std::sync::atomic::Ordering::Relaxed;
-use std::sync::{Mutex, PoisonError};
+use std::sync::PoisonError;
 
 /// Irradiance gathers summed at one surface of a pixel.
 #[derive(Clone, Copy)]
@@ -131,15 +131,6 @@ impl From<InPixel> for Reuse {
             InPixel::Gather(strata) => Reuse::Gather(strata),
         }
     }
-}
-
-/// Bytes of a per-pixel table, in all and per pixel (none when it is empty: off).
-pub(super) fn per_pixel_bytes<T>(pixels: &[Mutex<T>]) -> [u64; 2] {
-    let per_pixel = match pixels.is_empty() {
-        true => 0,
-        false => size_of::<Mutex<T>>() as u64,
-    };
-    [per_pixel * pixels.len() as u64, per_pixel]
 }
 
 impl PbgiIntegrator {

@@ -1,12 +1,12 @@
 //! The camera path to the receiver: smooth bounces followed exactly, direct light, the rough
 //! lobes' rays and their split, and the receiver left for the gather.
 
-use super::super::surface::{hole_number, scattering_hit, Scatter};
+use super::super::direct::escaped_light;
+use super::super::surface::{hole_number, scattering_hit, Missed, Scatter};
 use super::super::{on_side, Counters, PixelSample, Scene};
 use super::surface::{hit_light, LobeRay, Surface};
 use super::{split, wpbgi, PbgiIntegrator};
-use crate::material::luminance;
-use crate::sampler::PixelSampler;
+use crate::sampler::{Hash, PixelSampler};
 use crate::trace::{offset_origin, Ray, Tracer};
 use glam::Vec3A as V;
 use std::sync::atomic::Ordering::Relaxed;
@@ -17,8 +17,10 @@ pub(super) const SMOOTH_DEPTH: u32 = 8;
 /// The emission seen at a camera ray's first hit, for the edge rays.
 pub(super) fn seen_emission(scene: &Scene, tr: &mut Tracer, r: &Ray, c: &mut Counters) -> V {
     let mut ray = *r;
-    let Some(hit) = scattering_hit(scene, tr, &mut ray, hole_number(r.d), &mut 0) else {
-        return V::ZERO;
+    let hit = match scattering_hit(scene, tr, &mut ray, hole_number(r.d), &mut 0) {
+        Ok(hit) => hit,
+        Err(Missed::Left) => return c.finite(escaped_light(scene, r.d, None)),
+        Err(Missed::Degenerate) => return V::ZERO,
     };
     Surface::at(scene, &hit.hit, r.d).map_or(V::ZERO, |s| c.finite(s.emitted))
 }
@@ -42,7 +44,7 @@ pub(super) struct Pending {
     pub(super) cached: Option<V>,
 }
 
-/// Sets a pixel's further samples' exact rays apart (`PbgiIntegrator::sample`).
+/// Sets a pixel's further samples' exact rays apart (`first_hit_own`).
 pub(super) const FURTHER_SALT: u64 = 0x6a09_e667_f3bc_c908;
 
 impl PbgiIntegrator {
@@ -57,7 +59,7 @@ impl PbgiIntegrator {
         px: &PixelSample,
         c: &mut Counters,
     ) -> (V, Option<Pending>) {
-        let (l, pending, own) = self.first_hit_own(scene, tr, px, 0);
+        let (l, pending, own) = self.first_hit_own(scene, tr, px);
         let seen = |tr: &mut Tracer, r: &Ray, c: &mut Counters| seen_emission(scene, tr, r, c);
         (
             l + self.edge.emission(scene, tr, px, own, c, &seen),
@@ -65,25 +67,37 @@ impl PbgiIntegrator {
         )
     }
 
-    /// `first_hit` with the emission seen at the primary hit apart (the third value);
-    /// `salt` sets a further sample's exact rays apart from its pixel sample's (0 for
-    /// the pixel sample's own).
+    /// `first_hit` with the emission seen at the primary hit apart (the third value).
     pub(super) fn first_hit_own(
         &self,
         scene: &Scene,
         tr: &mut Tracer,
         px: &PixelSample,
-        salt: u64,
     ) -> (V, Option<Pending>, V) {
+        // A further sample's exact rays are set apart from its pass sample's.
+        let salt = px
+            .further
+            .map_or(0, |i| Hash::new(i as u64 ^ FURTHER_SALT).u64());
         let (mut ray, mut beta, mut l, mut own) = (px.ray, V::ONE, V::ZERO, V::ZERO);
         // Alpha holes pass as the path tracer passes them, with its numbers.
         let mut passes = 0;
         for depth in 0..SMOOTH_DEPTH {
             // The next bounce's set: its first number also decides alpha holes.
             let [ud0, ud1, ..] = px.sampler.get4(2 * depth + 2);
-            let Some(Scatter { hit, .. }) = scattering_hit(scene, tr, &mut ray, ud0, &mut passes)
-            else {
-                break;
+            let hit = match scattering_hit(scene, tr, &mut ray, ud0, &mut passes) {
+                Ok(Scatter { hit, .. }) => hit,
+                Err(missed) => {
+                    // Camera rays and smooth bounces see the environment whole.
+                    let sky = match missed {
+                        Missed::Left => escaped_light(scene, ray.d, None),
+                        Missed::Degenerate => V::ZERO,
+                    };
+                    match depth {
+                        0 => own = sky,
+                        _ => l += beta * sky,
+                    }
+                    break;
+                }
             };
             let Some(s) = Surface::at(scene, &hit, ray.d) else {
                 break;
@@ -268,23 +282,21 @@ impl PbgiIntegrator {
             index: 0,
             sampler: PixelSampler::new(self.seed, y * cam.width + x, 0),
             ray: cam.ray(x as f32 + 0.5, y as f32 + 0.5),
+            share: 1.0,
+            further: None,
         };
-        self.first_hit_own(scene, tr, &px, 0).1
+        self.first_hit_own(scene, tr, &px).1
     }
 
-    /// One sample's light, `l` up to its receiver and `pending`'s gather, noted for the
-    /// pixel's spread and weighted by its `share` of the pass's samples of the pixel
-    /// (its gather's held-back weight too).
-    #[allow(clippy::too_many_arguments)]
+    /// One sample's light, `l` up to its receiver and `pending`'s gather; its gather's
+    /// held-back part weighs its `share` of the pass's samples of the pixel.
     pub(super) fn finish(
         &self,
         scene: &Scene,
         tr: &mut Tracer,
-        at: usize,
         mut l: V,
         pending: Option<Pending>,
         share: f32,
-        rays_before: u64,
         c: &mut Counters,
     ) -> V {
         if let Some(mut q) = pending {
@@ -293,9 +305,6 @@ impl PbgiIntegrator {
             l += beta * self.gather(scene, tr, &q, None, None);
         }
         c.paths += 1;
-        let l = c.finite(l);
-        let rays = tr.rays - rays_before;
-        self.pixel_split.note(at, luminance(l), rays);
-        l * share
+        c.finite(l)
     }
 }

@@ -238,12 +238,7 @@ impl PbgiIntegrator {
     /// records' first gathers as charged, else a ray a texel; the passes' rays over their
     /// samples, the pixels' further ones counted).
     pub(super) fn reuse_target(&self, pass: &Pass, variance: f64) -> f32 {
-        let further = self
-            .tally
-            .further_samples
-            .load(std::sync::atomic::Ordering::Relaxed);
-        let samples = pass.first as f64 * self.window_pixels() as f64 + further as f64;
-        let per_sample = self.sampled_rays(pass) as f64 / samples.max(1.0);
+        let per_sample = self.sampled_rays(pass) as f64 / (pass.samples as f64).max(1.0);
         let per_gather = match &self.irradiance_cache {
             Some(cache) => self.gather_cost(cache),
             None => self.texels.upper.len() as u64,

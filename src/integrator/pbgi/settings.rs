@@ -94,19 +94,11 @@ pub struct PbgiSettings {
     /// spread its earlier samples' first two pairs (rays) showed, relative to the image's
     /// noise (`split.rs`), so the edges of highlights take many and the rest K. On the
     /// showroom at 60 s it lowered RMSE² × time by a third (docs/pbgi.md). Under
-    /// `--pbgi-pixel-split` above 1 (the default) only the bounce's rays split. K turns it off;
+    /// `--pixel-split` above 1 (PBGI's default) only the bounce's rays split. K turns it off;
     /// above K it needs K of at least 2, and a rough metal or rough dielectric
     /// [default: 32 where there is one]
     #[arg(long = "pbgi-split", value_name = "N", value_parser = clap::value_parser!(u32).range(1..=32))]
     pub split: Option<u32>,
-    /// Most camera rays one pass's sample of a pixel takes: each pixel's count grows with
-    /// the root of its earlier samples' variance over their rays, relative to the image's
-    /// mean (`pixel_split.rs`), so pixels whose light changes within them (a highlight on a
-    /// curved metal, a textured edge) take more first hits. 1 turns it off. Not with
-    /// --receiver-clusters, whose receivers are grouped per tile [default: 32, 1 with
-    /// --receiver-clusters]
-    #[arg(long = "pbgi-pixel-split", value_name = "M", conflicts_with = "clusters", value_parser = clap::value_parser!(u32).range(1..=64))]
-    pub pixel_split: Option<u32>,
     /// Most samples per gather: each surface of a pixel (normal within 14°, within a
     /// pixel's width of its plane; up to 8 a pixel) gathers at every R-th sample landing
     /// on it (at the pixel's phase), or more often where its first gathers scatter (a
@@ -138,6 +130,9 @@ pub struct PbgiSettings {
     /// Refused: the bake file is given with --bake-in.
     #[arg(long, hide = true, value_name = "FILE", value_parser = refused_radiance)]
     pub radiance: Option<PathBuf>,
+    /// Refused: every integrator's pixel split is --pixel-split.
+    #[arg(long = "pbgi-pixel-split", hide = true, value_name = "M", value_parser = refused_pixel_split)]
+    pub pbgi_pixel_split: Option<u32>,
 }
 
 fn parse_resolution(s: &str) -> Result<usize, String> {
@@ -149,6 +144,10 @@ fn parse_resolution(s: &str) -> Result<usize, String> {
 
 fn refused_radiance(_: &str) -> Result<PathBuf, String> {
     Err("a bake file is read with --bake-in FILE".into())
+}
+
+fn refused_pixel_split(_: &str) -> Result<u32, String> {
+    Err("the camera samples a pass takes of a pixel are set with --pixel-split M, for every integrator".into())
 }
 
 fn parse_cache(s: &str) -> Result<f32, String> {
@@ -172,8 +171,3 @@ pub(super) const GLOSSY_RAYS: u32 = 2;
 /// Most pairs and bounce rays per glossy receiver, unless `--pbgi-split` says, where
 /// some material has rough specular lobes (`Split::new` splits only where K is 2 or more).
 pub(super) const SPLIT: u32 = 32;
-
-/// Most camera rays per pixel and pass, unless `--pbgi-pixel-split` says. With
-/// `pixel_split::GAIN` 4, 32 and 64 gave the same showroom error at 20 s (5.13e-6 and
-/// 5.20e-6, squared, seeds 1–4); 16 capped the gold bunny's highlights.
-pub(super) const PIXEL_SPLIT: u32 = 32;

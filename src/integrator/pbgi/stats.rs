@@ -21,8 +21,6 @@ pub struct PbgiStats {
     /// beyond `--pbgi-glossy-rays` (`--pbgi-split`).
     pub split_pairs: u64,
     pub split_rays: u64,
-    /// Samples pixels took beyond one per pass (`--pbgi-pixel-split`).
-    pub further_samples: u64,
     /// Exact rays where a rasterized leaf's cone found none of its triangles.
     pub gap_rays: u64,
     pub receiver_clusters: usize,
@@ -78,7 +76,6 @@ pub(super) struct PbgiCounters {
     pub(super) radiance_hits: AtomicU64,
     pub(super) cache_hits: AtomicU64,
     pub(super) cache_rejects: AtomicU64,
-    pub(super) further_samples: AtomicU64,
     pub(super) wavelet_gathers: AtomicU64,
     pub(super) amb_leaves: AtomicU64,
     pub(super) light_splits: AtomicU64,
@@ -134,13 +131,6 @@ impl PbgiIntegrator {
                     ),
                 }
             },
-            match self.pixel_split.most() {
-                1 => "pixel split: off (one camera ray per pixel and pass)".into(),
-                m => format!(
-                    "pixel split: up to {m} camera rays per pixel and pass where its earlier samples scatter ({} further samples)",
-                    self.tally.further_samples.load(Relaxed)
-                ),
-            },
             format!(
                 "pbgi: each surface of a pixel (up to {} a pixel) gathers at every {}-th sample landing on it, the others reusing its gathers' irradiance",
                 self.surfaces_per_pixel, s.reuse
@@ -179,7 +169,6 @@ impl PbgiIntegrator {
             exact_hits: self.tally.exact_hits.load(Relaxed),
             split_pairs: self.tally.split_pairs.load(Relaxed),
             split_rays: self.tally.split_rays.load(Relaxed),
-            further_samples: self.tally.further_samples.load(Relaxed),
             gap_rays: self.tally.gap_rays.load(Relaxed),
             receiver_clusters: self.settings.clusters,
             clustered_receivers: self.tally.clusters.load(Relaxed),

@@ -3,8 +3,8 @@
 //! does), and what a hit the gather sees sends back (baked patch light, else direct light).
 
 use super::patch;
-use crate::integrator::direct::emission_weight;
-use crate::integrator::surface::{hole_number, scattering_hit};
+use crate::integrator::direct::{emission_weight, escaped_light};
+use crate::integrator::surface::{hole_number, scattering_hit, Missed};
 use crate::integrator::{
     bsdf_term, mis_weight, on_side, sample_light_weighted, Receiver, Scene, ShadingPoint,
 };
@@ -78,6 +78,8 @@ pub(super) struct LobeRay {
     pub(super) weight: V,
     pdf: f32,
     pub(super) hit: Option<Hit>,
+    /// It left the scene (toward the environment).
+    left: bool,
 }
 
 /// A hit prepared for shading: the shading layer's point.
@@ -132,12 +134,16 @@ impl Surface {
             d: w,
             t_max: f32::INFINITY,
         };
-        let hit = scattering_hit(scene, tr, &mut ray, hole_number(w), &mut 0).map(|s| s.hit);
+        let (hit, left) = match scattering_hit(scene, tr, &mut ray, hole_number(w), &mut 0) {
+            Ok(s) => (Some(s.hit), false),
+            Err(missed) => (None, missed == Missed::Left),
+        };
         Some(LobeRay {
             w,
             weight: bs.weight,
             pdf: bs.pdf,
             hit,
+            left,
         })
     }
 
@@ -171,10 +177,15 @@ impl Surface {
         light + lobe.map_or(V::ZERO, |r| self.lobe_emission(scene, r))
     }
 
-    /// The emission lobe ray `r` found, weighed against the light sample (power heuristic).
+    /// The emission lobe ray `r` found (or the environment's light, where it left the
+    /// scene), weighed against the light sample (power heuristic).
     fn lobe_emission(&self, scene: &Scene, r: &LobeRay) -> V {
+        let from = (self.p, self.ng);
         let Some(hit) = &r.hit else {
-            return V::ZERO;
+            return match r.left {
+                true => r.weight * escaped_light(scene, r.w, Some((from, r.pdf))),
+                false => V::ZERO,
+            };
         };
         let ng_raw = hit.ng();
         let area = 0.5 * ng_raw.length();
@@ -186,7 +197,6 @@ impl Surface {
         if le == V::ZERO {
             return V::ZERO;
         }
-        let from = (self.p, self.ng);
         let dist2 = hit.t * hit.t;
         r.weight * le * emission_weight(scene, hit, (ng, area), r.w, from, r.pdf, dist2)
     }

@@ -252,6 +252,8 @@ pub fn tiny_render(archive: &Path, dir: &Path, integrator: Settings) -> RenderOp
         threads: Some(2),
         max_depth: Some(4),
         texture_filter: canopy::texture::TextureFilter::Trilinear,
+        pixel_split: None,
+        env: None,
         crop: None,
         preview: false,
         exposure: 1.0,

@@ -86,6 +86,7 @@ impl Seeds {
             seed: 0,
             mem_budget: None,
             threads: Some(1),
+            env: None,
             progress: false,
         })?;
         let mut tiles = [Vec::new(), Vec::new()];

@@ -1,20 +1,21 @@
-//! Splitting a pixel's sample over more camera rays where its samples scatter
-//! (`--pbgi-pixel-split`, not in the seeds; a per-pixel form of adaptive sampling).
+//! Splitting a pass's sample of a pixel over more camera samples where its earlier
+//! samples scattered (`--pixel-split`, not in the seeds; a per-pixel form of adaptive
+//! sampling), for every integrator.
 //!
-//! On the showroom at 530 spp half of PBGI's variance was the sample's position in the
-//! pixel: with every camera ray through the pixel's centre the variance of two seeds'
-//! difference fell from 7.3e-6 to 3.7e-6, and to a fifth on the gold bunny, whose
-//! highlights change within a pixel. More pairs at one first hit (`split.rs`) cannot
-//! lower that part; more first hits can. A pass's sample of a pixel is the mean of m
-//! samples, the first its own and the others from a sequence of the pixel's own that
-//! runs on across passes, with m = ⌈√(κ (v / c) / (v̄ / c̄))⌉ from the pixel's earlier
-//! samples: v their variance and c their rays, v̄ and c̄ the image's means of them
-//! (splitting's optimum, n ∝ √(v / c)). The count comes only from earlier samples,
-//! never from the ones it is spent on, so every pass's mean stays unbiased. The path
-//! tracer, being the reference, does not take it; docs/pbgi.md gives what it would gain.
+//! A pass's sample of a pixel is the mean of m camera samples, the first its own and the
+//! others from a sequence of the pixel's own that runs on across passes, with
+//! m = ⌈√(κ (v / c) / (v̄ / c̄))⌉ from the pixel's earlier samples: v their variance and c
+//! their rays, v̄ and c̄ the image's means of them (splitting's optimum, n ∝ √(v / c)).
+//! The count comes only from earlier samples, never from the ones it is spent on, so
+//! every pass's mean stays unbiased. More samples at one first hit cannot lower the part
+//! of a pixel's variance that is the sample's position in it (a highlight on a curved
+//! metal, a lamp's silhouette, a textured edge); more first hits can. docs/rendering.md
+//! gives what it gains per integrator.
 
+use crate::material::luminance;
 use crate::moments::Moments;
 use crate::sampler::PixelSampler;
+use glam::Vec3A as V;
 use std::sync::{Mutex, PoisonError};
 
 /// κ in m = ⌈√(κ (v / c) / (v̄ / c̄))⌉. Under a cap of 16 camera rays κ 0.25 to 4 gave
@@ -144,22 +145,31 @@ impl PixelSplit {
             .collect()
     }
 
-    /// Records a sample of the pixel at `at` of luminance `y` that traced `rays` rays.
-    pub(super) fn note(&self, at: usize, y: f32, rays: u64) {
+    /// Records a pass's samples `ls` of the pixel at `at`, which traced `rays` rays.
+    pub(super) fn note(&self, at: usize, ls: &[V], rays: u64) {
         let Some(slot) = self.pixels.get(at) else {
             return;
         };
-        if !y.is_finite() {
-            return;
-        }
         let mut px = slot.lock().unwrap_or_else(PoisonError::into_inner);
-        px.y.add(y);
+        for y in ls.iter().map(|&l| luminance(l)).filter(|y| y.is_finite()) {
+            px.y.add(y);
+        }
         px.rays += rays;
     }
 
-    /// Bytes held, in all and per pixel.
-    pub(super) fn bytes(&self) -> [u64; 2] {
-        super::per_pixel_bytes(&self.pixels)
+    /// The stats' line saying what it did, `further` the samples it added.
+    pub(super) fn describe(&self, further: u64) -> String {
+        match self.most() {
+            1 => "pixel split: off (one camera sample per pixel and pass)".into(),
+            m => format!(
+                "pixel split: up to {m} camera samples per pixel and pass where its earlier samples scatter ({further} further samples)"
+            ),
+        }
+    }
+
+    /// Bytes held.
+    pub(super) fn bytes(&self) -> u64 {
+        (self.pixels.len() * size_of::<Mutex<Pixel>>()) as u64
     }
 }
 
@@ -171,7 +181,7 @@ mod tests {
     /// each of `rays` rays.
     fn feed(split: &PixelSplit, at: usize, n: u32, [lo, hi]: [f32; 2], rays: u64) {
         for i in 0..n {
-            split.note(at, if i % 2 == 0 { lo } else { hi }, rays);
+            split.note(at, &[V::splat(if i % 2 == 0 { lo } else { hi })], rays);
         }
     }
 
@@ -228,11 +238,11 @@ mod tests {
     #[test]
     fn one_sample_a_pass_holds_nothing() {
         let mut off = PixelSplit::new(1, 7, 100);
-        off.note(0, 1.0, 3);
+        off.note(0, &[V::ONE], 3);
         assert_eq!(off.begin_pass(), None);
         assert_eq!(off.count(0), 1);
         assert!(off.further(0, 0, 4).is_empty());
-        assert_eq!(off.bytes(), [0, 0]);
+        assert_eq!(off.bytes(), 0);
         assert_eq!(off.most(), 1);
     }
 }

@@ -1,0 +1,421 @@
+//! The environment: radiance arriving from infinitely far away, from an equirectangular
+//! map (`--env`, OpenEXR or Radiance `.hdr`) or uniform (the light of a scene that has no
+//! other).
+//!
+//! The map's convention is Mitsuba 3's `envmap`, so the same file renders the same in both
+//! (`tools/crosscheck.py`): +Y up, direction (sin θ sin φ, cos θ, −sin θ cos φ) at
+//! u = φ / 2π, v = θ / π, texel (i, j) at exactly u = (i + ½) / w, v = j / (h − 1) (the
+//! first and last rows at the poles; columns wrap), bilinear between them (found by
+//! comparing with Mitsuba's `envmap.eval` direction by direction: equal to 3e-5);
+//! `--env-rotate` turns the map about +Y. Directions are importance sampled from a
+//! piecewise-constant density over the bilinear patches, each weighted by its brightest
+//! corner's luminance times sin θ at its centre (pbrt-v4's `ImageInfiniteLight`, §12.5.2:
+//! the solid-angle density is the (u, v) density over 2π² sin θ).
+
+use super::distribution::Piecewise2D;
+use crate::image::Image;
+use crate::material::luminance;
+use anyhow::{bail, Context, Result};
+use glam::Vec3A as V;
+use std::f32::consts::PI;
+use std::path::Path;
+
+/// A uniform environment's map: constant, with enough rows that its sampling density
+/// follows sin θ.
+const UNIFORM_SIZE: [usize; 2] = [8, 65];
+
+pub struct Environment {
+    width: usize,
+    height: usize,
+    /// Radiance at the texels (scaled by the strength), row-major from θ = 0.
+    texels: Vec<V>,
+    /// sin and cos of the rotation about +Y.
+    rotation: [f32; 2],
+    density: Piecewise2D,
+    /// Mean radiance over the sphere of directions.
+    mean: V,
+    /// What it is, for the stats.
+    pub name: String,
+}
+
+impl Environment {
+    /// The map in `path` (.exr or .hdr) times `strength`, turned `rotate_deg` about +Y;
+    /// its directions sampled by their light, or uniformly over the sphere where
+    /// `uniform` (to measure what importance sampling gains).
+    pub fn from_file(
+        path: &Path,
+        strength: f32,
+        rotate_deg: f32,
+        uniform: bool,
+    ) -> Result<Environment> {
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase);
+        let img = match ext.as_deref() {
+            Some("exr") => Image::read_exr(path)?,
+            Some("hdr") => read_hdr(path)?,
+            _ => bail!(
+                "{}: an environment map is an equirectangular OpenEXR (.exr) or Radiance (.hdr) image",
+                path.display()
+            ),
+        };
+        let [w, h] = [img.width as usize, img.height as usize];
+        if w < 2 || h < 2 {
+            bail!(
+                "{}: a {w}×{h} environment map; it needs at least 2×2 texels",
+                path.display()
+            );
+        }
+        if let Some(i) = img
+            .pixels
+            .iter()
+            .position(|p| !p.iter().all(|c| c.is_finite()))
+        {
+            bail!(
+                "{}: texel ({}, {}) of the environment map is not finite ({:?})",
+                path.display(),
+                i % w,
+                i / w,
+                img.pixels[i]
+            );
+        }
+        let negative = img
+            .pixels
+            .iter()
+            .filter(|p| p.iter().any(|&c| c < 0.0))
+            .count();
+        if negative > 0 {
+            eprintln!(
+                "note: {}: {negative} texels of the environment map have negative channels; they are taken as 0",
+                path.display()
+            );
+        }
+        let texels = img
+            .pixels
+            .iter()
+            .map(|p| V::from(*p).max(V::ZERO) * strength)
+            .collect();
+        let mut env = Environment::new(w, h, texels, rotate_deg, uniform);
+        env.name = format!(
+            "{} ({w}×{h}, strength {strength}, rotated {rotate_deg}°{})",
+            path.display(),
+            if uniform { ", sampled uniformly" } else { "" }
+        );
+        Ok(env)
+    }
+
+    /// The same radiance `le` from every direction.
+    pub fn uniform(le: V) -> Environment {
+        let [w, h] = UNIFORM_SIZE;
+        let mut env = Environment::new(w, h, vec![le; w * h], 0.0, true);
+        env.name = format!("uniform radiance {:?}", le.to_array());
+        env
+    }
+
+    fn new(
+        width: usize,
+        height: usize,
+        texels: Vec<V>,
+        rotate_deg: f32,
+        uniform: bool,
+    ) -> Environment {
+        let rows = height - 1;
+        let at = |i: usize, j: usize| match uniform {
+            true => 1.0,
+            false => luminance(texels[j * width + i % width]),
+        };
+        // Cell (i, j) spans u from i / w to (i + 1) / w: the patches on either side of
+        // texel i's centre, so texels i − 1 to i + 1 of rows j and j + 1 shade it.
+        let weights: Vec<f32> = (0..rows)
+            .flat_map(|j| (0..width).map(move |i| (i, j)))
+            .map(|(i, j)| {
+                let brightest = [i + width - 1, i, i + 1]
+                    .iter()
+                    .flat_map(|&c| [at(c, j), at(c, j + 1)])
+                    .fold(0.0f32, f32::max);
+                brightest * (PI * (j as f32 + 0.5) / rows as f32).sin()
+            })
+            .collect();
+        let mut env = Environment {
+            width,
+            height,
+            texels,
+            rotation: [rotate_deg.to_radians().sin(), rotate_deg.to_radians().cos()],
+            density: Piecewise2D::new(&weights, width),
+            mean: V::ZERO,
+            name: String::new(),
+        };
+        env.mean = env.mean_radiance();
+        env
+    }
+
+    /// Mean radiance over the sphere: the bilinear map integrated exactly, patch by patch
+    /// (linear in φ, so a column pair's mean; linear in θ against sin θ dθ).
+    fn mean_radiance(&self) -> V {
+        let rows = self.height - 1;
+        let dtheta = PI / rows as f32;
+        let dphi = 2.0 * PI / self.width as f32;
+        let mut sum = V::ZERO;
+        for j in 0..rows {
+            let (t0, t1) = (j as f32 * dtheta, (j + 1) as f32 * dtheta);
+            // ∫ t sin θ dθ and ∫ (1 − t) sin θ dθ over the patch, t = (θ − θ0) / Δθ.
+            let lower = (t1.sin() - t0.sin()) / dtheta - t1.cos();
+            let upper = (t0.cos() - t1.cos()) - lower;
+            for i in 0..self.width {
+                let top = (self.texel(i, j) + self.texel(i + 1, j)) * 0.5;
+                let bottom = (self.texel(i, j + 1) + self.texel(i + 1, j + 1)) * 0.5;
+                sum += (top * upper + bottom * lower) * dphi;
+            }
+        }
+        sum / (4.0 * PI)
+    }
+
+    /// Mean radiance over the sphere of directions.
+    pub fn mean(&self) -> V {
+        self.mean
+    }
+
+    fn texel(&self, i: usize, j: usize) -> V {
+        self.texels[j.min(self.height - 1) * self.width + i % self.width]
+    }
+
+    /// Radiance arriving from direction `d` (unit, pointing away from the scene).
+    pub fn le(&self, d: V) -> V {
+        let [u, v] = self.uv(self.to_local(d));
+        let x = u * self.width as f32 - 0.5;
+        let y = v * (self.height - 1) as f32;
+        let i = x.floor();
+        let j = (y as usize).min(self.height - 2);
+        let (fx, fy) = (x - i, y - j as f32);
+        // Texel −1 is the last column.
+        let i = (i as isize).rem_euclid(self.width as isize) as usize;
+        let top = self.texel(i, j) * (1.0 - fx) + self.texel(i + 1, j) * fx;
+        let bottom = self.texel(i, j + 1) * (1.0 - fx) + self.texel(i + 1, j + 1) * fx;
+        top * (1.0 - fy) + bottom * fy
+    }
+
+    /// A direction toward the environment from two uniforms: (direction, radiance, its
+    /// solid-angle density); None where the density vanishes.
+    pub fn sample(&self, u: [f32; 2]) -> Option<(V, V, f32)> {
+        let (uv, pdf_uv) = self.density.sample(u);
+        let theta = PI * uv[1];
+        let sin_theta = theta.sin();
+        if pdf_uv <= 0.0 || sin_theta <= 0.0 {
+            return None;
+        }
+        let d = self.to_world(direction(uv));
+        let pdf = pdf_uv / (2.0 * PI * PI * sin_theta);
+        Some((d, self.le(d), pdf))
+    }
+
+    /// The solid-angle density with which `sample` picks direction `d`.
+    pub fn pdf(&self, d: V) -> f32 {
+        let local = self.to_local(d);
+        // From x and z, not 1 − y², which loses its digits near the poles.
+        let sin_theta = local.x.hypot(local.z);
+        if sin_theta <= 0.0 {
+            return 0.0;
+        }
+        self.density.density(self.uv(local)) / (2.0 * PI * PI * sin_theta)
+    }
+
+    /// Bytes held.
+    pub fn bytes(&self) -> u64 {
+        (self.texels.len() * (size_of::<V>() + 12)) as u64
+    }
+
+    fn uv(&self, d: V) -> [f32; 2] {
+        let u = d.x.atan2(-d.z) / (2.0 * PI);
+        let u = if u < 0.0 { u + 1.0 } else { u };
+        [u.min(1.0 - f32::EPSILON), d.y.clamp(-1.0, 1.0).acos() / PI]
+    }
+
+    /// World to map: the inverse of the rotation by the angle about +Y.
+    fn to_local(&self, d: V) -> V {
+        let [s, c] = self.rotation;
+        V::new(c * d.x - s * d.z, d.y, s * d.x + c * d.z)
+    }
+
+    fn to_world(&self, d: V) -> V {
+        let [s, c] = self.rotation;
+        V::new(c * d.x + s * d.z, d.y, -s * d.x + c * d.z)
+    }
+}
+
+/// The unit direction at map coordinates (u, v).
+fn direction([u, v]: [f32; 2]) -> V {
+    let (sin_p, cos_p) = (2.0 * PI * u).sin_cos();
+    let (sin_t, cos_t) = (PI * v).sin_cos();
+    V::new(sin_t * sin_p, cos_t, -sin_t * cos_p)
+}
+
+/// A Radiance RGBE image as linear RGB.
+fn read_hdr(path: &Path) -> Result<Image> {
+    let img = image::open(path)
+        .with_context(|| format!("{}: not a readable Radiance .hdr image", path.display()))?
+        .into_rgb32f();
+    Ok(Image {
+        width: img.width(),
+        height: img.height(),
+        pixels: img.pixels().map(|p| p.0).collect(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::test_rng::TestRng;
+
+    /// A map bright in one patch and dim elsewhere, turned 30°.
+    fn sunny() -> Environment {
+        let (w, h) = (16, 9);
+        let texels = (0..w * h)
+            .map(|k| match (k % w, k / w) {
+                (5, 3) => V::new(400.0, 300.0, 200.0),
+                (i, j) => V::splat(0.1 + 0.01 * (i + j) as f32),
+            })
+            .collect();
+        Environment::new(w, h, texels, 30.0, false)
+    }
+
+    #[test]
+    fn map_coordinates_and_directions_invert_each_other_under_rotation() {
+        let env = sunny();
+        let mut rng = TestRng::new(4);
+        for _ in 0..200 {
+            let uv = [rng.f32(), 0.01 + 0.98 * rng.f32()];
+            let d = env.to_world(direction(uv));
+            assert!((d.length() - 1.0).abs() < 1e-5);
+            let back = env.uv(env.to_local(d));
+            let du = (back[0] - uv[0]).abs();
+            assert!(
+                du.min(1.0 - du) < 1e-4 && (back[1] - uv[1]).abs() < 1e-4,
+                "{uv:?} → {back:?}"
+            );
+        }
+        // Mitsuba's convention: u = 0.5 looks down +Z, v = 0 up +Y.
+        let plain = Environment::uniform(V::ONE);
+        assert!((plain.to_world(direction([0.5, 0.5])) - V::Z).length() < 1e-6);
+        assert!((direction([0.25, 0.5]) - V::X).length() < 1e-6);
+        assert!((direction([0.0, 0.0]) - V::Y).length() < 1e-6);
+    }
+
+    /// The bundled sky as Mitsuba 3.9.1's `envmap.eval` gives it in these directions
+    /// (turned 30° about +Y in the last column): the seam, the poles' rows, the horizon's
+    /// red band and its edge.
+    #[test]
+    fn the_map_reads_as_mitsuba_reads_it() {
+        let sky = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/env/sky.hdr");
+        let env = Environment::from_file(&sky, 1.0, 0.0, false).unwrap();
+        let turned = Environment::from_file(&sky, 1.0, 30.0, false).unwrap();
+        let cases = [
+            (
+                [-0.3059502, 0.0157347, 0.9519175],
+                [1.738962, 1.330052, 1.28774],
+                [3.0, 0.59375, 0.296875],
+            ),
+            (
+                [0.0010038, 0.3011312, -0.9535822],
+                [1.13597, 1.221908, 1.376053],
+                [1.13597, 1.221908, 1.376053],
+            ),
+            (
+                [-0.0010038, 0.3011312, -0.9535822],
+                [1.13597, 1.221908, 1.376053],
+                [1.13597, 1.221908, 1.376053],
+            ),
+            (
+                [0.2009163, 0.9744439, 0.1004581],
+                [0.329367, 0.618429, 1.109375],
+                [0.329367, 0.618429, 1.109375],
+            ),
+            (
+                [0.5006513, 0.5707424, -0.6508467],
+                [0.811217, 0.983519, 1.265197],
+                [0.811217, 0.983519, 1.265197],
+            ),
+        ];
+        for (d, plain, rotated) in cases {
+            let d = V::from(d).normalize();
+            for (e, want) in [(&env, plain), (&turned, rotated)] {
+                let got = e.le(d);
+                assert!(
+                    (got - V::from(want)).abs().max_element() < 1e-4,
+                    "{d:?}: {got:?} vs Mitsuba's {want:?}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn texels_are_hit_exactly_at_their_coordinates() {
+        let env = sunny();
+        let at = |i: usize, j: usize| {
+            env.le(env.to_world(direction([(i as f32 + 0.5) / 16.0, j as f32 / 8.0])))
+        };
+        assert!((at(5, 3) - V::new(400.0, 300.0, 200.0)).length() < 0.05);
+        assert!((at(7, 2) - V::splat(0.19)).length() < 1e-4);
+        // Between two texels, their mean.
+        let mid = env.le(env.to_world(direction([6.0 / 16.0, 3.0 / 8.0])));
+        assert!((mid - (V::new(400.0, 300.0, 200.0) + V::splat(0.19)) * 0.5).length() < 0.05);
+    }
+
+    /// Variance of the estimate of ∫ Le dω from one sample, by the map's own density
+    /// or by a uniform one.
+    fn one_sample_variance(env: &Environment) -> f64 {
+        let mut rng = TestRng::new(5);
+        let xs: Vec<f64> = (0..100_000)
+            .filter_map(|_| env.sample([rng.f32(), rng.f32()]))
+            .map(|(_, le, pdf)| (luminance(le) / pdf) as f64)
+            .collect();
+        let mean = xs.iter().sum::<f64>() / xs.len() as f64;
+        xs.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / xs.len() as f64
+    }
+
+    /// On a map with a small bright patch, sampling by its light lowers the variance far
+    /// below uniform sampling's (measured 280×; asserted 3×).
+    #[test]
+    fn importance_sampling_beats_uniform_sampling_on_a_bright_patch() {
+        let w = 16;
+        let texels: Vec<V> = (0..w * 9)
+            .map(|k| match (k % w, k / w) {
+                (5, 3) => V::splat(400.0),
+                _ => V::splat(0.1),
+            })
+            .collect();
+        let by_light = Environment::new(w, 9, texels.clone(), 0.0, false);
+        let uniform = Environment::new(w, 9, texels, 0.0, true);
+        let (a, b) = (
+            one_sample_variance(&by_light),
+            one_sample_variance(&uniform),
+        );
+        assert!(3.0 * a < b, "variance {a} by light, {b} uniform");
+    }
+
+    /// Each direction's density agrees with `pdf`, and the estimator ∫ Le dω ≈ mean of
+    /// Le / pdf matches the map's integral (4π × `mean`) within 4 standard errors.
+    #[test]
+    fn importance_sampling_integrates_the_map() {
+        for env in [sunny(), Environment::uniform(V::splat(2.0))] {
+            let mut rng = TestRng::new(8);
+            let n = 200_000;
+            let (mut sum, mut sum2) = (0.0f64, 0.0f64);
+            for _ in 0..n {
+                let (d, le, pdf) = env.sample([rng.f32(), rng.f32()]).unwrap();
+                let check = env.pdf(d);
+                assert!((check - pdf).abs() <= 2e-3 * pdf, "pdf {pdf} vs {check}");
+                let x = (luminance(le) / pdf) as f64;
+                sum += x;
+                sum2 += x * x;
+            }
+            let mean = sum / n as f64;
+            let se = ((sum2 / n as f64 - mean * mean) / n as f64).sqrt();
+            let truth = 4.0 * std::f64::consts::PI * luminance(env.mean()) as f64;
+            assert!(
+                (mean - truth).abs() < 4.0 * se + 1e-3 * truth,
+                "{mean} vs {truth} ± {se}"
+            );
+        }
+    }
+}

@@ -1,0 +1,91 @@
+//! What a render takes where the archive says nothing: a camera that frames the scene, and
+//! light for a scene that has none. Each default is named in a note (on stderr and in the
+//! stats' `passes`), with the flag that changes it.
+
+use super::RenderOptions;
+use crate::light::{Environment, Lights};
+use anyhow::Result;
+use canopy_format::{Archive, CameraRecord};
+use glam::Vec3A as V;
+use std::path::{Path, PathBuf};
+
+/// `--env`: an environment map and how it is placed.
+#[derive(Clone, Debug)]
+pub struct EnvOptions {
+    pub path: PathBuf,
+    /// Factor on the map's radiance.
+    pub strength: f32,
+    /// Degrees about +Y.
+    pub rotate: f32,
+    /// Sample directions uniformly over the sphere rather than by the map's light.
+    pub uniform_sampling: bool,
+}
+
+/// The default camera's vertical field of view: glTF viewers' 45°.
+const FOV_DEG: f32 = 45.0;
+
+/// The default camera's image: 640×480.
+const SIZE: [u32; 2] = [640, 480];
+
+/// glTF viewers' default view: from +Z toward the centre of the archive's bounds, far
+/// enough that the bounding sphere fills the vertical field of view.
+pub fn framing_camera(archive: &Archive) -> CameraRecord {
+    let h = &archive.header;
+    let (lo, hi) = (V::from(h.bounds_min), V::from(h.bounds_max));
+    let centre = 0.5 * (lo + hi);
+    let radius = (0.5 * (hi - lo).length()).max(1e-6);
+    let fov = FOV_DEG.to_radians();
+    let distance = radius / (0.5 * fov).sin();
+    let pos = centre + V::Z * distance;
+    let mut name = [0u8; 48];
+    name[..7].copy_from_slice(b"default");
+    CameraRecord {
+        name,
+        to_world: [
+            1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, pos.x, pos.y, pos.z,
+        ],
+        yfov: fov,
+        aspect: SIZE[0] as f32 / SIZE[1] as f32,
+        znear: 0.0,
+        zfar: 0.0,
+        width: SIZE[0],
+        height: SIZE[1],
+        reserved: [0; 8],
+    }
+}
+
+/// The note saying the default camera was taken.
+pub fn camera_note(o: &RenderOptions, cam: &CameraRecord) -> String {
+    let p = &cam.to_world[9..12];
+    format!(
+        "{} has no camera: the default view looks down −Z from ({:.4}, {:.4}, {:.4}) at the centre of its bounds, which fill a {FOV_DEG}° field of view (give the input a camera, or a --scene file one)",
+        o.archive.display(),
+        p[0],
+        p[1],
+        p[2]
+    )
+}
+
+/// The archive's lights with `--env`'s map; with neither emitters nor `--env`, a uniform
+/// white environment (radiance 1), named in the note returned.
+pub fn light_the_scene(
+    archive: &Path,
+    env: Option<&EnvOptions>,
+    lights: Lights,
+) -> Result<(Lights, Option<String>)> {
+    if let Some(e) = env {
+        let env = Environment::from_file(&e.path, e.strength, e.rotate, e.uniform_sampling)?;
+        return Ok((lights.with_environment(env), None));
+    }
+    if !lights.is_empty() {
+        return Ok((lights, None));
+    }
+    let note = format!(
+        "{} has no light source: a uniform white environment (radiance 1) lights it (--env FILE lights it with a map)",
+        archive.display()
+    );
+    Ok((
+        lights.with_environment(Environment::uniform(V::ONE)),
+        Some(note),
+    ))
+}

@@ -1,0 +1,82 @@
+#!/usr/bin/env python3
+"""Write the environment-lit test scene: scenes/env/spheres.glb (a rough gold, a rough
+white metal and a Lambertian sphere on a Lambertian floor, a camera and no light source)
+and scenes/env/sky.hdr, a synthetic equirectangular sky in Mitsuba 3's `envmap`
+convention (+Y up, u = 1/2 toward +Z): a blue-to-white gradient over a brown ground, a red
+band on the horizon and a small bright sun 35 degrees up.
+
+    python3 tools/env_scene.py -o scenes/env
+"""
+import argparse, math, os, struct
+
+from caustics_scene import grid, sphere
+from glb import write_glb
+
+SIZE = (256, 128)
+SUN = (0.3, math.radians(35.0), math.radians(3.0), 400.0)  # u, elevation, radius, radiance
+
+
+def direction(u, v):
+    phi, theta = 2 * math.pi * u, math.pi * v
+    return (math.sin(theta) * math.sin(phi), math.cos(theta), -math.sin(theta) * math.cos(phi))
+
+
+def sky(u, v):
+    """Radiance at texel coordinates (u, v) = (i / w, j / (h - 1))."""
+    d = direction(u, v)
+    su, elev, radius, le = SUN
+    s = direction(su, 0.5 - elev / math.pi)
+    if sum(a * b for a, b in zip(d, s)) > math.cos(radius):
+        return (le, 0.9 * le, 0.75 * le)
+    if d[1] < 0:
+        return (0.25, 0.2, 0.15)
+    if d[1] < 0.1 and 0.55 < u < 0.7:
+        return (3.0, 0.6, 0.3)
+    t = d[1]
+    return (1.5 - 1.2 * t, 1.5 - 0.9 * t, 1.5 - 0.4 * t)
+
+
+def rgbe(c):
+    v = max(c)
+    if v < 1e-32:
+        return bytes(4)
+    m, e = math.frexp(v)
+    scale = m * 256.0 / v
+    return bytes([int(c[0] * scale), int(c[1] * scale), int(c[2] * scale), e + 128])
+
+
+def write_hdr(path):
+    w, h = SIZE
+    with open(path, "wb") as f:
+        f.write(b"#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n")
+        f.write(f"-Y {h} +X {w}\n".encode())
+        for j in range(h):
+            f.write(b"".join(rgbe(sky(i / w, j / (h - 1))) for i in range(w)))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("-o", "--output", required=True, help="directory")
+    a = ap.parse_args()
+    os.makedirs(a.output, exist_ok=True)
+    write_hdr(os.path.join(a.output, "sky.hdr"))
+    lambert = lambda name, c: {"name": name, "pbrMetallicRoughness": {"baseColorFactor": c + [1], "metallicFactor": 0.0, "roughnessFactor": 1.0},
+                               "extensions": {"KHR_materials_specular": {"specularFactor": 0.0}}}
+    metal = lambda name, c, r: {"name": name, "pbrMetallicRoughness": {"baseColorFactor": c + [1], "metallicFactor": 1.0, "roughnessFactor": r}}
+    materials = [lambert("floor", [0.5, 0.5, 0.5]), metal("gold", [1.0, 0.78, 0.34], 0.3),
+                 metal("steel", [1.0, 1.0, 1.0], 0.2), lambert("clay", [0.7, 0.45, 0.3])]
+    meshes = [("floor", grid(24, 2.0), 0),
+              ("gold", sphere([-0.6, 0.3, 0.0], 0.3), 1),
+              ("steel", sphere([0.6, 0.3, 0.0], 0.3), 2),
+              ("clay", sphere([0.0, 0.25, 0.55], 0.25), 3)]
+    eye, at = [0.0, 1.0, 2.8], [0.0, 0.25, 0.0]
+    f = [at[k] - eye[k] for k in range(3)]
+    pitch = math.asin(f[1] / math.sqrt(sum(x * x for x in f)))
+    q = [math.sin(pitch / 2), 0.0, 0.0, math.cos(pitch / 2)]
+    write_glb(os.path.join(a.output, "spheres.glb"), meshes, materials, {"yfov": 0.7, "znear": 0.01},
+              {"translation": eye, "rotation": q}, "canopy tools/env_scene.py", (128, 96),
+              ["KHR_materials_specular"])
+
+
+if __name__ == "__main__":
+    main()
