@@ -72,8 +72,13 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
         stack.extend(node.children().map(|child| (child, world)));
         stack[first..].reverse();
         if let Some(cam) = node.camera() {
-            if let Some(rec) = camera(&cam, &node, world, width, height) {
-                scene.cameras.push(rec);
+            match camera(&cam, &node, world, width, height) {
+                Some(rec) => scene.cameras.push(rec),
+                None => eprintln!(
+                    "warning: {}: camera '{}' is orthographic, which Canopy does not render; it is not recorded (a render takes another camera, or frames the bounds)",
+                    path.display(),
+                    node.name().or(cam.name()).unwrap_or("?")
+                ),
             }
         }
         if let Some(light) = node.light() {
