@@ -33,12 +33,14 @@ pub fn parse_size(s: &str) -> Result<u64> {
     Ok(bytes as u64)
 }
 
-/// A size as a person writes it: whole MiB or GiB where exact (`64MiB`), else bytes.
+/// A size as a person writes it: whole MiB or GiB where exact (`64MiB`), else MiB to a
+/// tenth with the exact bytes (`3.8 MiB (3984588 bytes)`), or bytes below a MiB.
 pub fn format_size(bytes: u64) -> String {
     const MIB: u64 = 1 << 20;
     match bytes {
         b if b >= 1 << 30 && b.is_multiple_of(1 << 30) => format!("{}GiB", b >> 30),
         b if b >= MIB && b.is_multiple_of(MIB) => format!("{}MiB", b / MIB),
+        b if b >= MIB => format!("{:.1} MiB ({b} bytes)", b as f64 / MIB as f64),
         b => format!("{b} bytes"),
     }
 }

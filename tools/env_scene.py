@@ -1,7 +1,9 @@
 #!/usr/bin/env python3
-"""Write the environment-lit test scene: scenes/env/spheres.glb (a rough gold, a rough
-white metal and a Lambertian sphere on a Lambertian floor, a camera and no light source)
-and scenes/env/sky.hdr, a synthetic equirectangular sky in Mitsuba 3's `envmap`
+"""Write the environment-lit test scenes: scenes/env/spheres.glb (a rough gold, a rough
+white metal and a Lambertian sphere on a Lambertian floor, a camera and no light source),
+scenes/env/room.glb (a closed Lambertian room lit only through a window in its +X wall,
+where the sun falls on the floor, with a rough gold and a clay sphere) and
+scenes/env/sky.hdr, a synthetic equirectangular sky in Mitsuba 3's `envmap`
 convention (+Y up, u = 1/2 toward +Z): a blue-to-white gradient over a brown ground, a red
 band on the horizon and a small bright sun 35 degrees up.
 
@@ -54,6 +56,43 @@ def write_hdr(path):
             f.write(b"".join(rgbe(sky(i / w, j / (h - 1))) for i in range(w)))
 
 
+def quad(p0, p1, p2, p3):
+    return [p0, p1, p2, p3], [[0, 1, 2], [0, 2, 3]]
+
+
+def room_walls():
+    """The room's floor, ceiling and walls (x, z in [-2, 2], y in [0, 2.5]), the +X wall
+    around a window at y in [0.8, 2], z in [-0.8, 0.8]."""
+    X, H = 2.0, 2.5
+    parts = [quad([-X, 0, -X], [-X, 0, X], [X, 0, X], [X, 0, -X]),
+             quad([-X, H, -X], [X, H, -X], [X, H, X], [-X, H, X]),
+             quad([-X, 0, -X], [X, 0, -X], [X, H, -X], [-X, H, -X]),
+             quad([-X, 0, X], [-X, H, X], [X, H, X], [X, 0, X]),
+             quad([-X, 0, -X], [-X, H, -X], [-X, H, X], [-X, 0, X])]
+    y0, y1, z0, z1 = 0.8, 2.0, -0.8, 0.8
+    for (ya, yb, za, zb) in [(0, y0, -X, X), (y1, H, -X, X), (y0, y1, -X, z0), (y0, y1, z1, X)]:
+        parts.append(quad([X, ya, za], [X, ya, zb], [X, yb, zb], [X, yb, za]))
+    verts, faces = [], []
+    for v, f in parts:
+        faces += [[i + len(verts) for i in t] for t in f]
+        verts += v
+    return verts, faces
+
+
+def look(eye, at):
+    """The camera node's rotation quaternion looking from `eye` at `at` (yaw, then pitch)."""
+    f = [at[k] - eye[k] for k in range(3)]
+    yaw = math.atan2(-f[0], -f[2])
+    pitch = math.asin(f[1] / math.sqrt(sum(x * x for x in f)))
+    qy = [0.0, math.sin(yaw / 2), 0.0, math.cos(yaw / 2)]
+    qx = [math.sin(pitch / 2), 0.0, 0.0, math.cos(pitch / 2)]
+    # qy * qx
+    return [qy[3] * qx[0] + qy[0] * qx[3] + qy[1] * qx[2] - qy[2] * qx[1],
+            qy[3] * qx[1] - qy[0] * qx[2] + qy[1] * qx[3] + qy[2] * qx[0],
+            qy[3] * qx[2] + qy[0] * qx[1] - qy[1] * qx[0] + qy[2] * qx[3],
+            qy[3] * qx[3] - qy[0] * qx[0] - qy[1] * qx[1] - qy[2] * qx[2]]
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("-o", "--output", required=True, help="directory")
@@ -75,6 +114,15 @@ def main():
     q = [math.sin(pitch / 2), 0.0, 0.0, math.cos(pitch / 2)]
     write_glb(os.path.join(a.output, "spheres.glb"), meshes, materials, {"yfov": 0.7, "znear": 0.01},
               {"translation": eye, "rotation": q}, "canopy tools/env_scene.py", (128, 96),
+              ["KHR_materials_specular"])
+    wall = dict(lambert("wall", [0.7, 0.7, 0.7]), doubleSided=True)
+    room_materials = [wall, metal("gold", [1.0, 0.78, 0.34], 0.3), lambert("clay", [0.7, 0.45, 0.3])]
+    room_meshes = [("room", room_walls(), 0),
+                   ("gold", sphere([0.4, 0.35, 0.7], 0.35), 1),
+                   ("clay", sphere([-0.6, 0.3, -0.9], 0.3), 2)]
+    eye = [-1.7, 1.5, 1.7]
+    write_glb(os.path.join(a.output, "room.glb"), room_meshes, room_materials, {"yfov": 1.0, "znear": 0.01},
+              {"translation": eye, "rotation": look(eye, [0.6, 0.5, -0.4])}, "canopy tools/env_scene.py", (128, 96),
               ["KHR_materials_specular"])
 
 

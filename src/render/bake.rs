@@ -2,10 +2,12 @@
 //! archive (`format/FORMAT.md`, "The bake file") that `render --integrator pbgi
 //! --bake-in` pages in with the nodes.
 
+use super::defaults::{light_the_scene, load_environment};
 use super::setup::open_scene;
 use crate::camera::Camera;
 use crate::image::{check_writable, same_file};
 use crate::integrator::pbgi::bake::{bake_file, BakeSettings};
+use crate::light::Environment;
 use crate::progress::peak_rss_bytes;
 use anyhow::{bail, Context, Result};
 use canopy_format::Archive;
@@ -78,15 +80,17 @@ pub fn bake(o: &BakeOptions) -> Result<BakeReport> {
         .context("starting worker threads")?;
     // The bake shoots no camera rays; the scene still wants a camera.
     let camera = Camera::new(&bytemuck::Zeroable::zeroed(), 1, 1);
+    let env = o.env.as_ref().map(load_environment).transpose()?;
+    let aside = env.as_ref().map_or(0, Environment::bytes);
     let mut scene = open_scene(
         Arc::clone(&archive),
         camera,
-        o.mem_budget.map(|b| (b, 0)),
+        o.mem_budget.map(|b| (b, aside)),
         threads,
         None,
     )?;
     let lights = std::mem::take(&mut scene.lights);
-    let (lights, note) = super::defaults::light_the_scene(&o.archive, o.env.as_ref(), lights)?;
+    let (lights, note) = light_the_scene(&o.archive, env, lights);
     scene.lights = lights;
     if let Some(note) = note {
         eprintln!("note: {note}");

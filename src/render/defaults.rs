@@ -66,26 +66,28 @@ pub fn camera_note(o: &RenderOptions, cam: &CameraRecord) -> String {
     )
 }
 
-/// The archive's lights with `--env`'s map; with neither emitters nor `--env`, a uniform
-/// white environment (radiance 1), named in the note returned.
+/// `--env`'s map, read and placed.
+pub fn load_environment(e: &EnvOptions) -> Result<Environment> {
+    Environment::from_file(&e.path, e.strength, e.rotate, e.uniform_sampling)
+}
+
+/// The archive's lights with `env`; with neither emitters nor `env`, a uniform white
+/// environment (radiance 1), named in the note returned.
 pub fn light_the_scene(
     archive: &Path,
-    env: Option<&EnvOptions>,
+    env: Option<Environment>,
     lights: Lights,
-) -> Result<(Lights, Option<String>)> {
-    if let Some(e) = env {
-        let env = Environment::from_file(&e.path, e.strength, e.rotate, e.uniform_sampling)?;
-        return Ok((lights.with_environment(env), None));
+) -> (Lights, Option<String>) {
+    if let Some(env) = env {
+        return (lights.with_environment(env), None);
     }
     if !lights.is_empty() {
-        return Ok((lights, None));
+        return (lights, None);
     }
     let note = format!(
         "{} has no light source: a uniform white environment (radiance 1) lights it (--env FILE lights it with a map)",
         archive.display()
     );
-    Ok((
-        lights.with_environment(Environment::uniform(V::ONE)),
-        Some(note),
-    ))
+    let sky = Environment::uniform(V::ONE);
+    (lights.with_environment(sky), Some(note))
 }

@@ -23,6 +23,7 @@ use stats::ancestors_closure;
 
 use crate::image::{Frame, Image};
 use crate::integrator::{self, Counters, Integrator, Pass, PixelSample, Scene, Target};
+use crate::light::Environment;
 use crate::progress;
 use crate::sampler::PixelSampler;
 use crate::trace::Tracer;
@@ -397,7 +398,8 @@ fn summarize(
     };
     let state = integ.state_bytes();
     let mut cache = scene.cache.stats();
-    cache.resident_bytes_peak += scene.touched.bytes() + state;
+    let env = scene.lights.env.as_ref().map_or(0, Environment::bytes);
+    cache.resident_bytes_peak += scene.touched.bytes() + state + env;
     let (rays, paths) = (tally.rays.load(Relaxed), tally.paths.load(Relaxed));
     let render_s = seconds.render.max(1e-9);
     let further = tally.further.load(Relaxed);

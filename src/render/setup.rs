@@ -1,11 +1,12 @@
 //! From options to a scene ready to render: outputs checked, archive opened, camera and
 //! window chosen, the memory budget split between pages and the integrator's state.
 
-use super::defaults::{camera_note, framing_camera, light_the_scene};
+use super::defaults::{camera_note, framing_camera, light_the_scene, load_environment};
 use super::RenderOptions;
 use crate::camera::Camera;
 use crate::image::{check_writable, same_file};
 use crate::integrator::{NodeSet, Scene};
+use crate::light::Environment;
 use crate::light::Lights;
 use crate::material::Material;
 use crate::paging::PageCache;
@@ -157,16 +158,19 @@ impl Setup {
             .build()
             .context("starting worker threads")?;
         let state_bytes = o.mem_budget.map(|b| o.integrator.state_share(b));
+        // The map is held whole: under a budget it is kept aside with the state.
+        let env = o.env.as_ref().map(load_environment).transpose()?;
+        let aside = state_bytes.unwrap_or(0) + env.as_ref().map_or(0, Environment::bytes);
         let camera = Camera::new(cam, width, height);
         let mut scene = open_scene(
             archive,
             camera,
-            o.mem_budget.map(|b| (b, state_bytes.unwrap_or(0))),
+            o.mem_budget.map(|b| (b, aside)),
             threads,
             o.max_depth,
         )?;
         let lights = std::mem::take(&mut scene.lights);
-        let (lights, light_note) = light_the_scene(&o.archive, o.env.as_ref(), lights)?;
+        let (lights, light_note) = light_the_scene(&o.archive, env, lights);
         scene.lights = lights;
         notes.extend(light_note);
         for note in &notes {
@@ -230,10 +234,15 @@ pub fn open_scene(
                 + state
                 + reserve(b, archive.page_count() as u64, archive.tile_count() as u64);
             let pages = b.checked_sub(others).with_context(|| {
-                format!("--mem-budget {b} cannot even hold the node statistics and the page table")
+                format!(
+                    "--mem-budget {} cannot hold the {} it keeps for the integrator's state and the environment map and the {} for node statistics and tables, and leave the page cache anything",
+                    format_size(b),
+                    format_size(state),
+                    format_size(others - state)
+                )
             })?;
             let note = format!(
-                "--mem-budget {} keeps {} for the integrator's state and {} for node statistics and tables, leaving the page cache {}",
+                "--mem-budget {} keeps {} for the integrator's state and the environment map and {} for node statistics and tables, leaving the page cache {}",
                 format_size(b),
                 format_size(state),
                 format_size(others - state),
