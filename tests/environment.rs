@@ -8,6 +8,11 @@ use std::path::{Path, PathBuf};
 /// A unit cube about the origin (no normals: flat faces) whose material has `albedo`, with
 /// neither camera nor light.
 fn cube(dir: &Path, albedo: f32) -> PathBuf {
+    cube_with(dir, albedo, "")
+}
+
+/// `cube` with more of the scene file (`extra` TOML).
+fn cube_with(dir: &Path, albedo: f32, extra: &str) -> PathBuf {
     let v = (0..8)
         .map(|i| {
             let c = |b: usize| if i >> b & 1 == 1 { 0.5 } else { -0.5 };
@@ -26,8 +31,9 @@ fn cube(dir: &Path, albedo: f32) -> PathBuf {
     .iter()
     .map(|[a, b, c, d]| format!("f {a} {b} {c}\nf {a} {c} {d}\n"))
     .collect::<String>();
-    let toml =
-        format!("[[material]]\nname = \"default\"\nbase_color = [{albedo}, {albedo}, {albedo}]\n");
+    let toml = format!(
+        "[[material]]\nname = \"default\"\nbase_color = [{albedo}, {albedo}, {albedo}]\n{extra}"
+    );
     obj_scene(
         dir,
         &[("cube.obj", v + &faces), ("scene.toml", toml)],
@@ -303,4 +309,40 @@ fn the_environment_map_counts_against_the_memory_budget() {
         err.contains("environment map") && err.contains("12MiB"),
         "{err}"
     );
+}
+
+/// A render whose every pixel is zero says why, on stderr and in the stats: here the only
+/// light is a point light shut inside the cube.
+#[test]
+fn a_black_image_says_why() {
+    let dir = tempfile::tempdir().unwrap();
+    let light = "[[light]]\ntype = \"point\"\nposition = [0.0, 0.0, 0.0]\nintensity = 5.0\n";
+    let arc = cube_with(dir.path(), 0.5, light);
+    let out = dir.path().join("o.exr");
+    let stats = dir.path().join("o.json");
+    let run = canopy(&[
+        "render",
+        s(&arc),
+        "-o",
+        s(&out),
+        "--spp",
+        "2",
+        "--width",
+        "8",
+        "--height",
+        "6",
+        "--stats",
+        s(&stats),
+    ]);
+    assert!(run.status.success());
+    let err = String::from_utf8_lossy(&run.stderr);
+    let why =
+        "the image is black: no light from its 0 emitters, 1 punctual lights reached the camera";
+    assert!(err.contains(why), "{err}");
+    assert!(std::fs::read_to_string(&stats).unwrap().contains(why));
+    assert!(Image::read_exr(&out)
+        .unwrap()
+        .pixels
+        .iter()
+        .all(|p| *p == [0.0; 3]));
 }

@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 /// (leaves hit and their ancestors, 004 §5.2), at every power-of-two spp on the way.
 /// Writes npp.csv and npp.svg.
 #[derive(Args)]
+#[command(mut_arg("store_out", |a| a.hide(true)))]
 pub struct NppArgs {
     archive: PathBuf,
     #[arg(long, value_delimiter = ',', default_value = "path,cone")]
@@ -34,6 +35,7 @@ pub struct NppArgs {
 /// Speed against error: render each integrator for each time budget, compare with a
 /// reference; writes eval.csv, eval.svg (log-log) and eval.md with c = RMSE·√s.
 #[derive(Args)]
+#[command(mut_arg("store_out", |a| a.hide(true)))]
 pub struct EvalArgs {
     archive: PathBuf,
     /// Reference image (a long path-traced render or a Mitsuba 3 render).

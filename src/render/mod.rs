@@ -212,6 +212,9 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     drop(prefetcher);
 
     let img = film.image(done);
+    if let Some(why) = black_image(scene, &img) {
+        eprintln!("warning: {}: {why}", s.exr.display());
+    }
     let t2 = Instant::now();
     let frame = Frame {
         display: [s.width, s.height],
@@ -237,6 +240,23 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         crate::image::write_atomically(p, |tmp| Ok(std::fs::write(tmp, json)?))?;
     }
     Ok((img, stats))
+}
+
+/// Why an image is black, when it is (every pixel zero).
+fn black_image(scene: &Scene, img: &Image) -> Option<String> {
+    if img.pixels.iter().any(|p| p.iter().any(|&c| c != 0.0)) {
+        return None;
+    }
+    let lights = &scene.lights;
+    Some(match lights.is_empty() {
+        true => "the image is black: the scene has no light source".into(),
+        false => format!(
+            "the image is black: no light from its {} emitters, {} punctual lights{} reached the camera (are they behind walls, facing away, or cut off by --max-depth?)",
+            lights.emitters.len(),
+            lights.punctual.len(),
+            if lights.env.is_some() { " or the environment" } else { "" }
+        ),
+    })
 }
 
 /// The archive's identity: its header checksum (which covers its tables checksum, size
@@ -409,9 +429,7 @@ fn summarize(
     if let Some(env) = &scene.lights.env {
         passes.push(format!("environment: {}", env.name));
     }
-    if scene.lights.is_empty() {
-        passes.push("no light sources: the image is black".into());
-    }
+    passes.extend(black_image(scene, img));
     Ok(RenderStats {
         integrator: o.integrator.kind(),
         archive_checksum: archive_checksum(&s.scene),
