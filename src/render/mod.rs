@@ -269,9 +269,10 @@ fn archive_checksum(scene: &Scene) -> String {
 /// tiles of one frame must agree on it.
 fn settings_text(o: &RenderOptions, s: &Setup) -> String {
     format!(
-        "{:?} pixel_split={} spp={} time={:?} noise={:?} max_depth={:?} textures={:?} camera={:?} size={}x{}",
+        "{:?} pixel_split={} env={:?} spp={} time={:?} noise={:?} max_depth={:?} textures={:?} camera={:?} size={}x{}",
         o.integrator,
         s.pixel_split,
+        o.env,
         o.spp,
         o.time,
         o.noise,
