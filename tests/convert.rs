@@ -435,3 +435,50 @@ fn geometry_converts_within_the_memory_budget() {
     let verify = ok(&["inspect", s(&arc), "--verify"]);
     assert!(verify.contains("verify              ok"), "{verify}");
 }
+
+/// A scan's PLY in the Stanford layout: its faces as one `tristrips` list with −1 restarts.
+/// It converts to the triangles (and windings) of the same mesh given as faces, and renders
+/// the same image.
+#[test]
+fn ply_triangle_strips_with_restarts_convert_like_faces() {
+    let dir = tempfile::tempdir().unwrap();
+    let header = |element: &str, n: usize| {
+        format!("ply\nformat ascii 1.0\nelement vertex 6\nproperty float x\nproperty float y\nproperty float z\nelement {element} {n}\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n2 0 0\n0 1 0\n1 1 0\n2 1 0\n")
+    };
+    // 0 3 1 4 | 1 4 2 5: four triangles, the second and fourth of each run turned.
+    let strips = header("tristrips", 1) + "9 0 3 1 4 -1 1 4 2 5\n";
+    let faces = header("face", 4) + "3 0 3 1\n3 1 3 4\n3 1 4 2\n3 2 4 5\n";
+    let toml = "[[camera]]\nposition = [1.0, 0.5, -2.0]\nlook_at = [1.0, 0.5, 0.0]\nwidth = 16\nheight = 12\n\
+                [[material]]\nname = \"default\"\nbase_color = [0.5, 0.5, 0.5]\ndouble_sided = false\n\
+                [[light]]\ntype = \"point\"\nposition = [1.0, 0.5, -1.0]\nintensity = 2.0\n";
+    std::fs::write(dir.path().join("scene.toml"), toml).unwrap();
+    let mut images = Vec::new();
+    for (name, text) in [("strips.ply", strips), ("faces.ply", faces)] {
+        let ply = dir.path().join(name);
+        std::fs::write(&ply, text).unwrap();
+        let arc = dir.path().join(format!("{name}.canopy"));
+        let scene_file = dir.path().join("scene.toml");
+        ok(&[
+            "--quiet",
+            "convert",
+            s(&ply),
+            "--scene",
+            s(&scene_file),
+            "-o",
+            s(&arc),
+        ]);
+        let report: serde_json::Value =
+            serde_json::from_str(&ok(&["inspect", s(&arc), "--json"])).unwrap();
+        assert_eq!(report["triangles"], 4, "{name}");
+        images.push(
+            render(
+                &arc,
+                &dir.path().join(format!("{name}.exr")),
+                &["--spp", "4"],
+            )
+            .0,
+        );
+    }
+    assert!(images[0].mean()[0] > 0.0, "the lit side faces the camera");
+    assert_eq!(images[0].pixels, images[1].pixels);
+}

@@ -699,3 +699,43 @@ fn images_without_a_source_are_refused_not_panicked_on() {
         assert!(!out.exists());
     }
 }
+
+/// `--missing-textures warn` with a normal map missing: the archive written is one its own
+/// reader accepts (the dropped map takes its scale with it), and it renders.
+#[test]
+fn a_missing_normal_map_leaves_an_archive_that_reads_and_renders() {
+    let dir = tempfile::tempdir().unwrap();
+    checker_png(&dir.path().join("checker.png"), 64, 4, |x, y| {
+        (x + y) % 2 == 0
+    });
+    let plane = Plane {
+        normal: Some(("ridges.png", 1.0)),
+        ..Plane::default()
+    };
+    let gltf = plane_gltf(dir.path(), "plane.gltf", &plane);
+    let out = dir.path().join("p.canopy");
+    let args = [
+        "--quiet",
+        "convert",
+        s(&gltf),
+        "-o",
+        s(&out),
+        "--missing-textures",
+        "warn",
+    ];
+    let run = canopy(&args);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    assert!(String::from_utf8_lossy(&run.stderr).contains("ridges.png"));
+    let report = ok(&["inspect", s(&out), "--verify"]);
+    assert!(report.contains("textures            1"), "{report}");
+    let (img, _) = render(
+        &out,
+        &dir.path().join("p.exr"),
+        &["--spp", "2", "--width", "32", "--height", "24"],
+    );
+    assert!(all_finite(&img) && img.mean()[0] > 0.0);
+}

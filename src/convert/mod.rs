@@ -206,6 +206,13 @@ fn write_textures(
                 *t = new;
             }
         }
+        // A dropped normal texture takes its scale with it (the reader accepts a scale
+        // only with a texture).
+        if m.textures[canopy_format::MaterialRecord::NORMAL]
+            == canopy_format::MaterialRecord::NO_TEXTURE
+        {
+            m.normal_scale = 0.0;
+        }
     }
     Ok((records, coarse))
 }

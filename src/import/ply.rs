@@ -1,5 +1,6 @@
 //! PLY, ASCII and binary (either endianness): vertices with x, y, z and optional nx, ny, nz;
-//! faces as a vertex-index list, fan-triangulated. Vertex positions are held in memory
+//! faces as a vertex-index list, fan-triangulated, or triangle strips (`tristrips`, with −1
+//! restarts, as Stanford's scans ship). Vertex positions are held in memory
 //! (12 bytes a vertex, 24 with normals) up to `IN_MEMORY_BYTES`, beyond that in an unnamed
 //! temporary file read through a map whose pages are released as faces stream, so an
 //! indexed mesh of any size imports in bounded memory; faces stream.
@@ -328,6 +329,25 @@ pub fn read_mesh(path: &Path) -> Result<IndexedMesh> {
     Ok((verts, tris))
 }
 
+/// A strip's restart (PLY's −1 in a `tristrips` list).
+const RESTART: u32 = u32::MAX;
+
+/// The triangles of a `tristrips` list (runs separated by `RESTART`): each run's k-th
+/// triangle is (s_k, s_k+1, s_k+2), every other one turned to keep the winding; those
+/// with a repeated vertex (a strip's joins) are left out.
+fn strip_triangles(idx: &[u32], mut tri: impl FnMut([u32; 3]) -> Result<()>) -> Result<()> {
+    for run in idx.split(|&v| v == RESTART) {
+        for (k, w) in run.windows(3).enumerate() {
+            let [a, b, c] = [w[0], w[1], w[2]];
+            if a == b || b == c || a == c {
+                continue;
+            }
+            tri(if k % 2 == 0 { [a, b, c] } else { [b, a, c] })?;
+        }
+    }
+    Ok(())
+}
+
 /// Streams a PLY file: vertices are read into memory, each face is handed to `face` with
 /// its validated indices. Returns whether the vertices carried normals.
 fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
@@ -407,13 +427,15 @@ fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
                 (pos, nrm) = (pos_in.finish().map_err(io)?, nrm_in.finish().map_err(io)?);
                 has_normals = normals.is_some();
             }
-            "face" => {
+            "face" | "tristrips" => {
+                let strips = e.name == "tristrips";
                 let Some(li) = e.props.iter().position(|p| {
                     p.list.is_some() && (p.name == "vertex_indices" || p.name == "vertex_index")
                 }) else {
                     bail!(
-                        "{}: face element lacks a vertex_indices list",
-                        path.display()
+                        "{}: {} element lacks a vertex_indices list",
+                        path.display(),
+                        e.name
                     );
                 };
                 let mut idx: Vec<u32> = Vec::new();
@@ -427,10 +449,19 @@ fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
                             }
                             for _ in 0..n as usize {
                                 let v = rr.scalar(p.ty).map_err(eof(i))?;
-                                if pi == li {
-                                    if v < 0.0 || v >= ps.len() as f64 {
-                                        bail!("{}: face {i}: vertex index {v} out of range ({} vertices)", path.display(), ps.len());
-                                    }
+                                if pi != li {
+                                    continue;
+                                }
+                                if strips && v == -1.0 {
+                                    idx.push(RESTART);
+                                } else if v < 0.0 || v >= ps.len() as f64 {
+                                    bail!(
+                                        "{}: {} {i}: vertex index {v} out of range ({} vertices)",
+                                        path.display(),
+                                        e.name,
+                                        ps.len()
+                                    );
+                                } else {
                                     idx.push(v as u32);
                                 }
                             }
@@ -438,7 +469,10 @@ fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
                             rr.scalar(p.ty).map_err(eof(i))?;
                         }
                     }
-                    face(i, &idx, ps, ns)?;
+                    match strips {
+                        true => strip_triangles(&idx, |tri| face(i, &tri, ps, ns))?,
+                        false => face(i, &idx, ps, ns)?,
+                    }
                     if i % RELEASE_EVERY == RELEASE_EVERY - 1 {
                         pos.release();
                         nrm.release();
