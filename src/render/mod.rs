@@ -121,21 +121,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     let mut done = 0u32;
     let mut growth = Vec::new();
     loop {
-        let count = match (o.time, o.noise) {
-            // Passes of one sample when the time decides.
-            (Some(_), _) => 1,
-            // Passes that end on powers of two, where the noise is measured.
-            (None, Some(_)) => integ
-                .pass_samples(o.spp - done)
-                .min(done.max(1))
-                .min(o.spp - done),
-            (None, None) => integ.pass_samples(o.spp),
-        };
-        // The pixel split decides a pass's camera samples from the passes before it.
-        let count = match split.most() {
-            1 => count,
-            _ => count.min(1),
-        };
+        let count = pass_count(o, integ.as_ref(), &split, done);
         let so_far = tally.rays.load(Relaxed);
         let pass = Pass {
             first: done,
@@ -212,19 +198,8 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     drop(prefetcher);
 
     let img = film.image(done);
-    if let Some(why) = black_image(scene, &img) {
-        eprintln!("warning: {}: {why}", s.exr.display());
-    }
     let t2 = Instant::now();
-    let frame = Frame {
-        display: [s.width, s.height],
-        origin: [s.window[0], s.window[2]],
-        tags: identity(o, &s),
-    };
-    img.write_exr_framed(&s.exr, &frame)?;
-    if let Some(p) = &s.png {
-        img.write_png(p, o.exposure)?;
-    }
+    write_images(o, &s, &img)?;
     seconds.write = t2.elapsed().as_secs_f64();
     seconds.total = t0.elapsed().as_secs_f64();
     let run = Run {
@@ -240,6 +215,43 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         crate::image::write_atomically(p, |tmp| Ok(std::fs::write(tmp, json)?))?;
     }
     Ok((img, stats))
+}
+
+/// Samples per pixel the next pass takes, `done` taken so far.
+fn pass_count(o: &RenderOptions, integ: &dyn Integrator, split: &PixelSplit, done: u32) -> u32 {
+    let count = match (o.time, o.noise) {
+        // Passes of one sample when the time decides.
+        (Some(_), _) => 1,
+        // Passes that end on powers of two, where the noise is measured.
+        (None, Some(_)) => integ
+            .pass_samples(o.spp - done)
+            .min(done.max(1))
+            .min(o.spp - done),
+        (None, None) => integ.pass_samples(o.spp),
+    };
+    // The pixel split decides a pass's camera samples from the passes before it.
+    match split.most() {
+        1 => count,
+        _ => count.min(1),
+    }
+}
+
+/// The EXR (a tile of its frame, tagged with what made it) and the PNG if asked; a black
+/// image says why.
+fn write_images(o: &RenderOptions, s: &Setup, img: &Image) -> Result<()> {
+    if let Some(why) = black_image(&s.scene, img) {
+        eprintln!("warning: {}: {why}", s.exr.display());
+    }
+    let frame = Frame {
+        display: [s.width, s.height],
+        origin: [s.window[0], s.window[2]],
+        tags: identity(o, s),
+    };
+    img.write_exr_framed(&s.exr, &frame)?;
+    if let Some(p) = &s.png {
+        img.write_png(p, o.exposure)?;
+    }
+    Ok(())
 }
 
 /// Why an image is black, when it is (every pixel zero).
