@@ -895,3 +895,123 @@ fn first_steps_get_plain_answers() {
         "{help}"
     );
 }
+
+/// Reads tev packets from `stream` until it closes: the image CreateImage made, filled by
+/// every UpdateImage (tev's IPC protocol, `src/render/display.rs`).
+fn tev_server(mut stream: std::net::TcpStream) -> (String, Image) {
+    use std::io::Read;
+    let mut img = Image::new(0, 0);
+    let mut name = String::new();
+    let mut len = [0u8; 4];
+    while stream.read_exact(&mut len).is_ok() {
+        let mut p = vec![0u8; u32::from_le_bytes(len) as usize - 4];
+        stream.read_exact(&mut p).unwrap();
+        let mut at = 2;
+        let mut text = || {
+            let end = at + p[at..].iter().position(|&b| b == 0).unwrap();
+            let s = String::from_utf8(p[at..end].to_vec()).unwrap();
+            at = end + 1;
+            s
+        };
+        name = text();
+        let int = |at: &mut usize, n: usize| {
+            let v = i64::from_le_bytes(
+                [&p[*at..*at + n], &[0; 8][..8 - n]]
+                    .concat()
+                    .try_into()
+                    .unwrap(),
+            );
+            *at += n;
+            v
+        };
+        let channels = |at: &mut usize| {
+            let n = int(at, 4);
+            for _ in 0..n {
+                *at += p[*at..].iter().position(|&b| b == 0).unwrap() + 1;
+            }
+            n
+        };
+        match p[0] {
+            4 => {
+                let (w, h) = (int(&mut at, 4) as u32, int(&mut at, 4) as u32);
+                assert_eq!(channels(&mut at), 3);
+                img = Image::new(w, h);
+            }
+            6 => {
+                assert_eq!(channels(&mut at), 3);
+                let [x, y, w, h] = [0; 4].map(|_| int(&mut at, 4) as u32);
+                let offsets: Vec<i64> = (0..3).map(|_| int(&mut at, 8)).collect();
+                let strides: Vec<i64> = (0..3).map(|_| int(&mut at, 8)).collect();
+                assert_eq!((offsets, strides), (vec![0, 1, 2], vec![3, 3, 3]));
+                let floats: Vec<f32> = p[at..]
+                    .chunks(4)
+                    .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+                    .collect();
+                assert_eq!(floats.len(), (w * h * 3) as usize);
+                for (k, c) in floats.chunks(3).enumerate() {
+                    let (px, py) = (x + k as u32 % w, y + k as u32 / w);
+                    img.pixels[(py * img.width + px) as usize] = [c[0], c[1], c[2]];
+                }
+            }
+            t => panic!("packet type {t}"),
+        }
+    }
+    (name, img)
+}
+
+/// `--display-server`: a render streams its image to tev as it converges; what a server
+/// speaking tev's protocol assembles from the packets is, at the end, the EXR written, in
+/// its place in the frame (a crop). An address with nothing listening is refused by name.
+#[test]
+fn a_render_streams_its_image_to_tev() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = dir.path().join("cbox.canopy");
+    ok(&["--quiet", "convert", s(&scene("cbox.glb")), "-o", s(&arc)]);
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let address = listener.local_addr().unwrap().to_string();
+    let server = std::thread::spawn(move || tev_server(listener.accept().unwrap().0));
+    let out = dir.path().join("tile.exr");
+    let flags = [
+        "--width",
+        "40",
+        "--height",
+        "30",
+        "--crop",
+        "4,36,6,30",
+        "--spp",
+        "8",
+    ];
+    let (tile, _) = render(
+        &arc,
+        &out,
+        &[&flags[..], &["--display-server", &address]].concat(),
+    );
+    let (name, frame) = server.join().unwrap();
+    assert_eq!(name, out.display().to_string());
+    assert_eq!((frame.width, frame.height), (40, 30));
+    for y in 0..30 {
+        for x in 0..40 {
+            let got = frame.pixels[(y * 40 + x) as usize];
+            let want = match (4..36).contains(&x) && (6..30).contains(&y) {
+                true => tile.pixels[((y - 6) * 32 + x - 4) as usize],
+                false => [0.0; 3],
+            };
+            assert_eq!(got, want, "pixel ({x}, {y})");
+        }
+    }
+    let closed = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let nobody = closed.local_addr().unwrap().to_string();
+    drop(closed);
+    let err = fails(&[
+        "render",
+        s(&arc),
+        "-o",
+        s(&out),
+        "--display-server",
+        &nobody,
+    ]);
+    assert!(
+        err.contains(&nobody) && err.contains("cannot connect"),
+        "{err}"
+    );
+}

@@ -45,6 +45,10 @@ pub struct RenderArgs {
     /// Scale applied before tone mapping the PNG.
     #[arg(long, default_value_t = 1.0, value_parser = units::parse_non_negative)]
     exposure: f32,
+    /// Stream the image as it converges to tev listening at HOST:PORT (e.g.
+    /// 127.0.0.1:14158, tev's default).
+    #[arg(long, value_name = "HOST:PORT")]
+    display_server: Option<String>,
     /// Write render statistics as JSON here.
     #[arg(long)]
     stats: Option<PathBuf>,
@@ -86,6 +90,7 @@ impl RenderSettings {
             max_depth: self.max_depth,
             texture_filter: self.texture_filter,
             pixel_split: self.pixel_split,
+            display: None,
             env: self.env.options(),
             crop: None,
             preview: false,
@@ -112,6 +117,7 @@ pub fn run(a: RenderArgs, progress: bool) -> Result<()> {
         exposure: a.exposure,
         stats: a.stats,
         node_stats: a.node_stats,
+        display: a.display_server,
         ..a.settings
             .options(a.integrator, a.archive, a.output.clone(), spp, progress)
     };

@@ -5,6 +5,7 @@
 pub mod assemble;
 pub mod bake;
 mod defaults;
+mod display;
 mod film;
 mod pixel_split;
 mod setup;
@@ -16,6 +17,7 @@ pub use stats::{Checkpoint, RenderStats, Seconds};
 
 use crate::progress::peak_rss_bytes;
 use crate::texture::TextureFilter;
+use display::Display;
 use film::{Film, Sums};
 use pixel_split::PixelSplit;
 use setup::Setup;
@@ -57,6 +59,8 @@ pub struct RenderOptions {
     pub pixel_split: Option<u32>,
     /// An environment map lighting the scene from infinitely far away.
     pub env: Option<EnvOptions>,
+    /// tev's address (HOST:PORT), to stream the image to as it converges.
+    pub display: Option<String>,
     /// x0, x1, y0, y1 in pixels (half-open).
     pub crop: Option<[u32; 4]>,
     pub preview: bool,
@@ -103,6 +107,12 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         pixel_split: s.pixel_split,
     };
     let mut integ = o.integrator.build(scene, &target)?;
+    let origin = [s.window[0], s.window[2]];
+    let mut display = o
+        .display
+        .as_deref()
+        .map(|a| Display::connect(a, &o.output.display().to_string(), [s.width, s.height]))
+        .transpose()?;
     let mut seconds = Seconds {
         setup: t0.elapsed().as_secs_f64(),
         ..Default::default()
@@ -161,6 +171,9 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
             film.add(film.tiles[i], v);
         }
         done += count;
+        if let Some(d) = &mut display {
+            d.update(|| film.image(done), origin, false);
+        }
         if let Some(err) = scene.cache.error() {
             bail!("{err}");
         }
@@ -198,6 +211,9 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
     drop(prefetcher);
 
     let img = film.image(done);
+    if let Some(d) = &mut display {
+        d.update(|| img.clone(), origin, true);
+    }
     let t2 = Instant::now();
     write_images(o, &s, &img)?;
     seconds.write = t2.elapsed().as_secs_f64();

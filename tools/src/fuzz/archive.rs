@@ -254,6 +254,7 @@ pub fn tiny_render(archive: &Path, dir: &Path, integrator: Settings) -> RenderOp
         texture_filter: canopy::texture::TextureFilter::Trilinear,
         pixel_split: None,
         env: None,
+        display: None,
         crop: None,
         preview: false,
         exposure: 1.0,
