@@ -906,14 +906,10 @@ fn tev_server(mut stream: std::net::TcpStream) -> (String, Image) {
     while stream.read_exact(&mut len).is_ok() {
         let mut p = vec![0u8; u32::from_le_bytes(len) as usize - 4];
         stream.read_exact(&mut p).unwrap();
-        let mut at = 2;
-        let mut text = || {
-            let end = at + p[at..].iter().position(|&b| b == 0).unwrap();
-            let s = String::from_utf8(p[at..end].to_vec()).unwrap();
-            at = end + 1;
-            s
-        };
-        name = text();
+        // After the type and the focus byte, the image's name.
+        let end = 2 + p[2..].iter().position(|&b| b == 0).unwrap();
+        name = String::from_utf8(p[2..end].to_vec()).unwrap();
+        let mut at = end + 1;
         let int = |at: &mut usize, n: usize| {
             let v = i64::from_le_bytes(
                 [&p[*at..*at + n], &[0; 8][..8 - n]]
