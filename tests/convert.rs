@@ -482,3 +482,97 @@ fn ply_triangle_strips_with_restarts_convert_like_faces() {
     assert!(images[0].mean()[0] > 0.0, "the lit side faces the camera");
     assert_eq!(images[0].pixels, images[1].pixels);
 }
+
+/// A cube as glTF with 32-bit float positions and normals, or quantized as
+/// KHR_mesh_quantization ships it: 16-bit unsigned positions scaled by its node, normals as
+/// normalized signed bytes.
+fn cube_gltf(dir: &std::path::Path, quantized: bool) -> std::path::PathBuf {
+    let corners: Vec<[i32; 3]> = (0..8).map(|i| [i & 1, i >> 1 & 1, i >> 2 & 1]).collect();
+    let idx: [u16; 36] = [
+        0, 2, 1, 1, 2, 3, 4, 5, 6, 5, 7, 6, 0, 1, 4, 1, 5, 4, 2, 6, 3, 3, 6, 7, 0, 4, 2, 2, 4, 6,
+        1, 3, 5, 3, 7, 5,
+    ];
+    // Each corner's normal points out along the diagonal: ±73/127 (±0.57) per axis.
+    let n8 = |c: i32| if c == 1 { 73i8 } else { -73 };
+    let mut bin: Vec<u8> = Vec::new();
+    let (pos_type, nrm_type, node_scale) = if quantized {
+        for c in &corners {
+            c.iter()
+                .for_each(|&v| bin.extend((v as u16 * 1000).to_le_bytes()));
+            bin.extend([0, 0]); // 4-byte element alignment
+        }
+        for c in &corners {
+            bin.extend(c.map(|v| n8(v) as u8));
+            bin.push(0);
+        }
+        (5123, 5120, 0.001f32)
+    } else {
+        for c in &corners {
+            c.iter().for_each(|&v| bin.extend((v as f32).to_le_bytes()));
+        }
+        for c in &corners {
+            c.iter()
+                .for_each(|&v| bin.extend((n8(v) as f32 / 127.0).to_le_bytes()));
+        }
+        (5126, 5126, 1.0)
+    };
+    let (stride_p, stride_n) = if quantized { (8, 4) } else { (12, 12) };
+    let idx_at = bin.len();
+    bin.extend(idx.iter().flat_map(|i| i.to_le_bytes()));
+    use base64::Engine;
+    let uri = format!(
+        "data:application/octet-stream;base64,{}",
+        base64::engine::general_purpose::STANDARD.encode(&bin)
+    );
+    let mut doc = serde_json::json!({
+        "asset": {"version": "2.0"},
+        "scene": 0, "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "scale": [node_scale, node_scale, node_scale]}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 2}]}],
+        "buffers": [{"byteLength": bin.len(), "uri": uri}],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": 8 * stride_p, "byteStride": stride_p},
+            {"buffer": 0, "byteOffset": 8 * stride_p, "byteLength": 8 * stride_n, "byteStride": stride_n},
+            {"buffer": 0, "byteOffset": idx_at, "byteLength": 72}
+        ],
+        "accessors": [
+            {"bufferView": 0, "componentType": pos_type, "count": 8, "type": "VEC3",
+             "min": [0, 0, 0], "max": if quantized { [1000, 1000, 1000] } else { [1, 1, 1] }},
+            {"bufferView": 1, "componentType": nrm_type, "normalized": quantized, "count": 8, "type": "VEC3"},
+            {"bufferView": 2, "componentType": 5123, "count": 36, "type": "SCALAR"}
+        ]
+    });
+    if quantized {
+        doc["extensionsUsed"] = serde_json::json!(["KHR_mesh_quantization"]);
+        doc["extensionsRequired"] = serde_json::json!(["KHR_mesh_quantization"]);
+    }
+    let path = dir.join(if quantized { "q.gltf" } else { "f.gltf" });
+    std::fs::write(&path, doc.to_string()).unwrap();
+    path
+}
+
+/// KHR_mesh_quantization: the quantized cube converts to the float cube's triangles (the
+/// same bounds) and renders its image (shading normals included) with nothing but its
+/// file name.
+#[test]
+fn quantized_meshes_convert_like_their_float_twins() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut images = Vec::new();
+    for quantized in [false, true] {
+        let gltf = cube_gltf(dir.path(), quantized);
+        let arc = dir.path().join(format!("{quantized}.canopy"));
+        ok(&["--quiet", "convert", s(&gltf), "-o", s(&arc)]);
+        let report: serde_json::Value =
+            serde_json::from_str(&ok(&["inspect", s(&arc), "--json"])).unwrap();
+        assert_eq!(report["triangles"], 12);
+        let flags = ["--spp", "4", "--width", "24", "--height", "18"];
+        images.push(render(&arc, &dir.path().join(format!("{quantized}.exr")), &flags).0);
+    }
+    let worst = images[0]
+        .pixels
+        .iter()
+        .zip(&images[1].pixels)
+        .flat_map(|(a, b)| (0..3).map(move |c| (a[c] - b[c]).abs()))
+        .fold(0.0f32, f32::max);
+    assert!(worst < 1e-4, "largest pixel difference {worst}");
+}

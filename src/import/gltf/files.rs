@@ -4,6 +4,10 @@
 use anyhow::{anyhow, bail, Context, Result};
 use std::path::Path;
 
+/// KHR_mesh_quantization: positions, normals and texture coordinates as 8- or 16-bit
+/// integers (normalized or not), which `read_vec3` reads.
+const QUANTIZATION: &str = "KHR_mesh_quantization";
+
 /// Largest external buffer or `.gltf` JSON read.
 const MAX_SIDE_FILE: u64 = 16 << 30;
 
@@ -15,7 +19,10 @@ pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Vec<u8>>)> {
     let bad = |e: &dyn std::fmt::Display| anyhow!("{}: not a valid glTF file: {e}", path.display());
     let g = gltf::Gltf::from_slice_without_validation(&bytes).map_err(|e| bad(&e))?;
     let blob = g.blob;
-    let json = g.document.into_json();
+    let mut json = g.document.into_json();
+    // Quantized attributes are read here (`read_vec3`), not by the gltf crate, whose
+    // validation refuses the extension.
+    json.extensions_required.retain(|e| e != QUANTIZATION);
     for (mi, m) in json.meshes.iter().enumerate() {
         for (pi, p) in m.primitives.iter().enumerate() {
             let refs = p.attributes.values().chain(p.indices.as_ref());
@@ -130,10 +137,18 @@ pub(super) fn check_primitive(prim: &gltf::Primitive) -> Result<()> {
     use gltf::accessor::{DataType, Dimensions};
     use gltf::Semantic;
     let mut wanted: Vec<(gltf::Accessor, &str, &[DataType], Dimensions)> = Vec::new();
+    // F32, or the integers KHR_mesh_quantization allows.
+    let vec3: &[DataType] = &[
+        DataType::F32,
+        DataType::I8,
+        DataType::U8,
+        DataType::I16,
+        DataType::U16,
+    ];
     for (sem, a) in prim.attributes() {
         match sem {
-            Semantic::Positions => wanted.push((a, "POSITION", &[DataType::F32], Dimensions::Vec3)),
-            Semantic::Normals => wanted.push((a, "NORMAL", &[DataType::F32], Dimensions::Vec3)),
+            Semantic::Positions => wanted.push((a, "POSITION", vec3, Dimensions::Vec3)),
+            Semantic::Normals => wanted.push((a, "NORMAL", vec3, Dimensions::Vec3)),
             _ => {}
         }
     }
@@ -155,7 +170,9 @@ pub(super) fn check_accessor(
     types: &[gltf::accessor::DataType],
     dims: gltf::accessor::Dimensions,
 ) -> Result<()> {
-    if !types.contains(&a.data_type()) || a.dimensions() != dims || a.normalized() {
+    // Only integers may be normalized.
+    let float = a.data_type() == gltf::accessor::DataType::F32;
+    if !types.contains(&a.data_type()) || a.dimensions() != dims || (a.normalized() && float) {
         bail!(
             "{what} is {:?} {:?}{}, the spec requires {dims:?} of {types:?}",
             a.dimensions(),
@@ -198,4 +215,38 @@ pub(super) fn check_accessor(
         );
     }
     Ok(())
+}
+
+/// A checked VEC3 accessor's elements (`check_accessor`) as floats: F32 as stored, integers
+/// as their values or, normalized, mapped to [−1, 1] or [0, 1] (glTF 3.11: c / 127 clamped
+/// at −1 for signed bytes, c / 255 for unsigned, and the same for 16 bits).
+pub(super) fn read_vec3(a: &gltf::Accessor, buffers: &[Vec<u8>]) -> Option<Vec<[f32; 3]>> {
+    use gltf::accessor::DataType;
+    let view = a.view()?;
+    let data = buffers.get(view.buffer().index())?;
+    let size = a.data_type().size();
+    let stride = view.stride().unwrap_or(3 * size);
+    let start = view.offset() + a.offset();
+    let norm = a.normalized();
+    let value = |b: &[u8]| -> f32 {
+        match a.data_type() {
+            DataType::F32 => f32::from_le_bytes([b[0], b[1], b[2], b[3]]),
+            DataType::I8 if norm => (b[0] as i8 as f32 / 127.0).max(-1.0),
+            DataType::I8 => b[0] as i8 as f32,
+            DataType::U8 if norm => b[0] as f32 / 255.0,
+            DataType::U8 => b[0] as f32,
+            DataType::I16 if norm => (i16::from_le_bytes([b[0], b[1]]) as f32 / 32767.0).max(-1.0),
+            DataType::I16 => i16::from_le_bytes([b[0], b[1]]) as f32,
+            DataType::U16 if norm => u16::from_le_bytes([b[0], b[1]]) as f32 / 65535.0,
+            DataType::U16 => u16::from_le_bytes([b[0], b[1]]) as f32,
+            DataType::U32 => u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f32,
+        }
+    };
+    (0..a.count())
+        .map(|i| {
+            let at = start + i * stride;
+            let e = data.get(at..at + 3 * size)?;
+            Some([0, 1, 2].map(|k| value(&e[k * size..])))
+        })
+        .collect()
 }

@@ -13,7 +13,7 @@ use std::path::Path;
 mod files;
 mod material;
 mod view;
-use files::{check_accessor, check_primitive, load};
+use files::{check_accessor, check_primitive, load, read_vec3};
 use material::{material, UvMap};
 use view::{camera, punctual, render_size};
 
@@ -214,14 +214,18 @@ impl MeshCtx<'_> {
             check_primitive(&prim).map_err(|e| anyhow!("{}: {e}", what(0)))?;
             let buffers = self.buffers;
             let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d[..]));
-            let Some(pos) = reader.read_positions() else {
+            let attribute = |s: gltf::Semantic| prim.get(&s).and_then(|a| read_vec3(&a, buffers));
+            let Some(pos) = attribute(gltf::Semantic::Positions) else {
                 continue;
             };
-            let pos: Vec<Vec3> = pos.map(|p| world.transform_point3(Vec3::from(p))).collect();
-            let nrm: Option<Vec<Vec3>> = reader
-                .read_normals()
+            let pos: Vec<Vec3> = pos
+                .iter()
+                .map(|&p| world.transform_point3(Vec3::from(p)))
+                .collect();
+            let nrm: Option<Vec<Vec3>> = attribute(gltf::Semantic::Normals)
                 .map(|n| {
-                    n.map(|n| (normal_m * Vec3::from(n)).normalize_or_zero())
+                    n.iter()
+                        .map(|&n| (normal_m * Vec3::from(n)).normalize_or_zero())
                         .collect::<Vec<_>>()
                 })
                 .filter(|n| n.len() == pos.len());
