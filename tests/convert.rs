@@ -576,3 +576,47 @@ fn quantized_meshes_convert_like_their_float_twins() {
         .fold(0.0f32, f32::max);
     assert!(worst < 1e-4, "largest pixel difference {worst}");
 }
+
+/// Texture coordinates as normalized signed bytes (KHR_mesh_quantization allows them; the
+/// gltf crate's own reader has no case for them) convert, read by the importer.
+#[test]
+fn quantized_texture_coordinates_convert() {
+    let dir = tempfile::tempdir().unwrap();
+    textured::solid_png(&dir.path().join("t.png"), 4, [200, 100, 50, 255]);
+    let mut bin: Vec<u8> = [0.0f32, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
+    bin.extend([0, 0, 127, 0, 0, 127, 0, 0]);
+    use base64::Engine;
+    let uri = format!(
+        "data:application/octet-stream;base64,{}",
+        base64::engine::general_purpose::STANDARD.encode(&bin)
+    );
+    let doc = serde_json::json!({
+        "asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0, "TEXCOORD_0": 1}, "material": 0}]}],
+        "materials": [{"pbrMetallicRoughness": {"baseColorTexture": {"index": 0}}}],
+        "textures": [{"source": 0}], "images": [{"uri": "t.png"}],
+        "buffers": [{"byteLength": bin.len(), "uri": uri}],
+        "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": 36}, {"buffer": 0, "byteOffset": 36, "byteLength": 8}],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3", "min": [0, 0, 0], "max": [1, 1, 0]},
+            {"bufferView": 1, "componentType": 5120, "normalized": true, "count": 3, "type": "VEC2"}
+        ],
+        "extensionsUsed": ["KHR_mesh_quantization"], "extensionsRequired": ["KHR_mesh_quantization"]
+    });
+    let gltf = dir.path().join("uv.gltf");
+    std::fs::write(&gltf, doc.to_string()).unwrap();
+    let arc = dir.path().join("uv.canopy");
+    ok(&["--quiet", "convert", s(&gltf), "-o", s(&arc)]);
+    let (img, _) = render(
+        &arc,
+        &dir.path().join("uv.exr"),
+        &["--spp", "2", "--width", "8", "--height", "6"],
+    );
+    assert!(
+        all_finite(&img) && img.mean()[0] > img.mean()[2],
+        "the texture's orange shows"
+    );
+}

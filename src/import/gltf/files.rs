@@ -5,7 +5,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use std::path::Path;
 
 /// KHR_mesh_quantization: positions, normals and texture coordinates as 8- or 16-bit
-/// integers (normalized or not), which `read_vec3` reads.
+/// integers (normalized or not), which `read_floats` reads.
 const QUANTIZATION: &str = "KHR_mesh_quantization";
 
 /// Largest external buffer or `.gltf` JSON read.
@@ -20,7 +20,7 @@ pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Vec<u8>>)> {
     let g = gltf::Gltf::from_slice_without_validation(&bytes).map_err(|e| bad(&e))?;
     let blob = g.blob;
     let mut json = g.document.into_json();
-    // Quantized attributes are read here (`read_vec3`), not by the gltf crate, whose
+    // Quantized attributes are read here (`read_floats`), not by the gltf crate, whose
     // validation refuses the extension.
     json.extensions_required.retain(|e| e != QUANTIZATION);
     for (mi, m) in json.meshes.iter().enumerate() {
@@ -149,6 +149,7 @@ pub(super) fn check_primitive(prim: &gltf::Primitive) -> Result<()> {
         match sem {
             Semantic::Positions => wanted.push((a, "POSITION", vec3, Dimensions::Vec3)),
             Semantic::Normals => wanted.push((a, "NORMAL", vec3, Dimensions::Vec3)),
+            Semantic::TexCoords(_) => wanted.push((a, "TEXCOORD", vec3, Dimensions::Vec2)),
             _ => {}
         }
     }
@@ -217,15 +218,18 @@ pub(super) fn check_accessor(
     Ok(())
 }
 
-/// A checked VEC3 accessor's elements (`check_accessor`) as floats: F32 as stored, integers
-/// as their values or, normalized, mapped to [−1, 1] or [0, 1] (glTF 3.11: c / 127 clamped
-/// at −1 for signed bytes, c / 255 for unsigned, and the same for 16 bits).
-pub(super) fn read_vec3(a: &gltf::Accessor, buffers: &[Vec<u8>]) -> Option<Vec<[f32; 3]>> {
+/// A checked accessor's N-component elements (`check_accessor`) as floats: F32 as stored,
+/// integers as their values or, normalized, mapped to [−1, 1] or [0, 1] (glTF 3.11: c / 127
+/// clamped at −1 for signed bytes, c / 255 for unsigned, and the same for 16 bits).
+pub(super) fn read_floats<const N: usize>(
+    a: &gltf::Accessor,
+    buffers: &[Vec<u8>],
+) -> Option<Vec<[f32; N]>> {
     use gltf::accessor::DataType;
     let view = a.view()?;
     let data = buffers.get(view.buffer().index())?;
     let size = a.data_type().size();
-    let stride = view.stride().unwrap_or(3 * size);
+    let stride = view.stride().unwrap_or(N * size);
     let start = view.offset() + a.offset();
     let norm = a.normalized();
     let value = |b: &[u8]| -> f32 {
@@ -245,8 +249,8 @@ pub(super) fn read_vec3(a: &gltf::Accessor, buffers: &[Vec<u8>]) -> Option<Vec<[
     (0..a.count())
         .map(|i| {
             let at = start + i * stride;
-            let e = data.get(at..at + 3 * size)?;
-            Some([0, 1, 2].map(|k| value(&e[k * size..])))
+            let e = data.get(at..at + N * size)?;
+            Some(std::array::from_fn(|k| value(&e[k * size..])))
         })
         .collect()
 }

@@ -13,7 +13,7 @@ use std::path::Path;
 mod files;
 mod material;
 mod view;
-use files::{check_accessor, check_primitive, load, read_vec3};
+use files::{check_accessor, check_primitive, load, read_floats};
 use material::{material, UvMap};
 use view::{camera, punctual, render_size};
 
@@ -214,7 +214,8 @@ impl MeshCtx<'_> {
             check_primitive(&prim).map_err(|e| anyhow!("{}: {e}", what(0)))?;
             let buffers = self.buffers;
             let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d[..]));
-            let attribute = |s: gltf::Semantic| prim.get(&s).and_then(|a| read_vec3(&a, buffers));
+            let attribute =
+                |s: gltf::Semantic| prim.get(&s).and_then(|a| read_floats::<3>(&a, buffers));
             let Some(pos) = attribute(gltf::Semantic::Positions) else {
                 continue;
             };
@@ -234,9 +235,10 @@ impl MeshCtx<'_> {
             }
             let uv_map = prim.material().index().and_then(|i| self.uv_maps[i]);
             let uvs: Option<Vec<[f32; 2]>> = match uv_map {
-                Some(map) => reader
-                    .read_tex_coords(map.set)
-                    .map(|t| t.into_f32().map(|uv| map.apply(uv)).collect::<Vec<_>>())
+                Some(map) => prim
+                    .get(&gltf::Semantic::TexCoords(map.set))
+                    .and_then(|a| read_floats::<2>(&a, buffers))
+                    .map(|t| t.into_iter().map(|uv| map.apply(uv)).collect::<Vec<_>>())
                     .filter(|t| t.len() == pos.len()),
                 None => None,
             };
