@@ -620,3 +620,31 @@ fn quantized_texture_coordinates_convert() {
         "the texture's orange shows"
     );
 }
+
+/// A primitive Canopy does not render (lines here) is named at convert time, with what is
+/// done instead; the triangles beside it convert.
+#[test]
+fn primitives_that_are_not_triangles_are_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let gltf = cube_gltf(dir.path(), false);
+    let mut doc: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&gltf).unwrap()).unwrap();
+    let lines = serde_json::json!({"attributes": {"POSITION": 0}, "indices": 2, "mode": 1});
+    doc["meshes"][0]["primitives"]
+        .as_array_mut()
+        .unwrap()
+        .push(lines);
+    doc["meshes"][0]["name"] = "box".into();
+    std::fs::write(&gltf, doc.to_string()).unwrap();
+    let arc = dir.path().join("l.canopy");
+    let run = canopy(&["--quiet", "convert", s(&gltf), "-o", s(&arc)]);
+    assert!(run.status.success());
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert!(
+        err.contains("mesh 'box' primitive 1 draws Lines") && err.contains("skipped"),
+        "{err}"
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&ok(&["inspect", s(&arc), "--json"])).unwrap();
+    assert_eq!(report["triangles"], 12);
+}

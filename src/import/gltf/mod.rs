@@ -19,6 +19,7 @@ use view::{camera, punctual, render_size};
 
 pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -> Result<u64> {
     let (doc, buffers) = load(path)?;
+    name_unsupported(path, &doc);
     let (width, height) = render_size(&doc);
     let base = scene.materials.len() as u32;
     let dir = path.parent().unwrap_or(Path::new("."));
@@ -376,6 +377,40 @@ fn gpu_instances(
 }
 
 /// Triangle index triples for a primitive's topology; points and lines give none.
+/// Warns of what the file holds that Canopy does not render, naming where and what is
+/// done instead: primitives of points and lines (skipped), morph targets (the base shape
+/// is kept) and skins (the bind pose is kept).
+fn name_unsupported(path: &Path, doc: &gltf::Document) {
+    for mesh in doc.meshes() {
+        let name = mesh.name().unwrap_or("?");
+        for (pi, prim) in mesh.primitives().enumerate() {
+            let mode = prim.mode();
+            if !matches!(
+                mode,
+                Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan
+            ) {
+                eprintln!(
+                    "warning: {}: mesh '{name}' primitive {pi} draws {mode:?}, which Canopy does not render; it is skipped",
+                    path.display()
+                );
+            }
+            if prim.morph_targets().next().is_some() {
+                eprintln!(
+                    "warning: {}: mesh '{name}' primitive {pi} has morph targets, which Canopy does not apply; its base shape is kept",
+                    path.display()
+                );
+            }
+        }
+    }
+    let skinned = doc.nodes().filter(|n| n.skin().is_some()).count();
+    if skinned > 0 {
+        eprintln!(
+            "warning: {}: {skinned} nodes are skinned, which Canopy does not apply; their meshes keep the bind pose",
+            path.display()
+        );
+    }
+}
+
 fn triangles(mode: Mode, idx: &[u32]) -> Box<dyn Iterator<Item = [u32; 3]> + '_> {
     match mode {
         Mode::Triangles => Box::new(idx.chunks_exact(3).map(|c| [c[0], c[1], c[2]])),
