@@ -372,18 +372,30 @@ impl Tiles<'_> {
 
     /// Pixel (x, y)'s pass sample `index`, one of `m` camera samples the pass takes of it.
     fn sample(&self, x: u32, y: u32, index: u32, m: u32) -> PixelSample {
-        let cam = &self.scene.camera;
-        let sampler = PixelSampler::new(self.seed, y * cam.width + x, index);
+        let pixel = y * self.scene.camera.width + x;
+        let sampler = PixelSampler::new(self.seed, pixel, index);
+        self.camera_sample([x, y], index, sampler, 1.0 / m as f32, None)
+    }
+
+    /// A camera sample of pixel (x, y) through the position `sampler` draws in it.
+    fn camera_sample(
+        &self,
+        [x, y]: [u32; 2],
+        index: u32,
+        sampler: PixelSampler,
+        share: f32,
+        further: Option<u32>,
+    ) -> PixelSample {
         let [jx, jy, ..] = sampler.get4(0);
         PixelSample {
             x,
             y,
             at: self.film.index(x, y),
             index,
-            ray: cam.ray(x as f32 + jx, y as f32 + jy),
+            ray: self.scene.camera.ray(x as f32 + jx, y as f32 + jy),
             sampler,
-            share: 1.0 / m as f32,
-            further: None,
+            share,
+            further,
         }
     }
 
@@ -397,25 +409,18 @@ impl Tiles<'_> {
         index: u32,
         c: &mut Counters,
     ) -> glam::Vec3A {
-        let cam = &self.scene.camera;
         let m = self.split.count(self.film.index(x, y));
         let px = self.sample(x, y, index, m);
         let (at, share) = (px.at, px.share);
-        let further = self.split.further(at, y * cam.width + x, m - 1);
+        let further = self
+            .split
+            .further(at, y * self.scene.camera.width + x, m - 1);
         let pxs: Vec<PixelSample> = std::iter::once(px)
-            .chain(further.into_iter().map(|(i, sampler)| {
-                let [jx, jy, ..] = sampler.get4(0);
-                PixelSample {
-                    x,
-                    y,
-                    at,
-                    index,
-                    ray: cam.ray(x as f32 + jx, y as f32 + jy),
-                    sampler,
-                    share,
-                    further: Some(i),
-                }
-            }))
+            .chain(
+                further
+                    .into_iter()
+                    .map(|(i, sampler)| self.camera_sample([x, y], index, sampler, share, Some(i))),
+            )
             .collect();
         self.tally.further.fetch_add(pxs.len() as u64 - 1, Relaxed);
         let rays = tr.rays;
