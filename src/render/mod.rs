@@ -89,6 +89,8 @@ struct Run {
     seconds: Seconds,
     tally: Tally,
     growth: Vec<Checkpoint>,
+    /// Why the image is black, when it is.
+    black: Option<String>,
 }
 
 pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
@@ -215,7 +217,8 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         d.update(|| img.clone(), origin, true);
     }
     let t2 = Instant::now();
-    write_images(o, &s, &img)?;
+    let black = black_image(scene, &img);
+    write_images(o, &s, &img, black.as_deref())?;
     seconds.write = t2.elapsed().as_secs_f64();
     seconds.total = t0.elapsed().as_secs_f64();
     let run = Run {
@@ -224,6 +227,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         seconds,
         tally,
         growth,
+        black,
     };
     let stats = summarize(o, &s, integ.as_ref(), &film, &img, run)?;
     if let Some(p) = &o.stats {
@@ -253,9 +257,9 @@ fn pass_count(o: &RenderOptions, integ: &dyn Integrator, split: &PixelSplit, don
 }
 
 /// The EXR (a tile of its frame, tagged with what made it) and the PNG if asked; a black
-/// image says why.
-fn write_images(o: &RenderOptions, s: &Setup, img: &Image) -> Result<()> {
-    if let Some(why) = black_image(&s.scene, img) {
+/// image says `black`, why it is.
+fn write_images(o: &RenderOptions, s: &Setup, img: &Image, black: Option<&str>) -> Result<()> {
+    if let Some(why) = black {
         eprintln!("warning: {}: {why}", s.exr.display());
     }
     let frame = Frame {
@@ -444,6 +448,7 @@ fn summarize(
         seconds,
         tally,
         growth,
+        black,
     } = run;
     let scene = &s.scene;
     let unique = match o.node_stats || o.noise.is_some() {
@@ -463,7 +468,7 @@ fn summarize(
     if let Some(env) = &scene.lights.env {
         passes.push(format!("environment: {}", env.name));
     }
-    passes.extend(black_image(scene, img));
+    passes.extend(black);
     Ok(RenderStats {
         integrator: o.integrator.kind(),
         archive_checksum: archive_checksum(&s.scene),
