@@ -13,9 +13,10 @@
 //! the solid-angle density is the (u, v) density over 2π² sin θ).
 
 use super::distribution::Piecewise2D;
+use super::env_build::{density_bytes, from_image, read_map, Built};
+use super::env_tiles::{EnvStats, Tiles};
 use crate::image::Image;
-use crate::material::luminance;
-use anyhow::{bail, Context, Result};
+use anyhow::Result;
 use glam::Vec3A as V;
 use std::f32::consts::PI;
 use std::path::Path;
@@ -25,13 +26,13 @@ use std::path::Path;
 const UNIFORM_SIZE: [usize; 2] = [8, 65];
 
 pub struct Environment {
-    width: usize,
-    height: usize,
     /// Radiance at the texels (scaled by the strength), row-major from θ = 0.
-    texels: Vec<V>,
+    tiles: Tiles,
     /// sin and cos of the rotation about +Y.
     rotation: [f32; 2],
     density: Piecewise2D,
+    /// Bytes of the sampling tables.
+    density_bytes: u64,
     /// Mean radiance over the sphere of directions.
     mean: V,
     /// What it is, for the stats.
@@ -41,66 +42,30 @@ pub struct Environment {
 impl Environment {
     /// The map in `path` (.exr or .hdr) times `strength`, turned `rotate_deg` about +Y;
     /// its directions sampled by their light, or uniformly over the sphere where
-    /// `uniform` (to measure what importance sampling gains).
+    /// `uniform` (to measure what importance sampling gains). Its texels are paged under
+    /// `share` bytes when they do not fit in it (None: held whole).
     pub fn from_file(
         path: &Path,
         strength: f32,
         rotate_deg: f32,
         uniform: bool,
+        share: Option<u64>,
     ) -> Result<Environment> {
-        let ext = path
-            .extension()
-            .and_then(|e| e.to_str())
-            .map(str::to_ascii_lowercase);
-        let img = match ext.as_deref() {
-            Some("exr") => Image::read_exr(path)?,
-            Some("hdr") => read_hdr(path)?,
-            _ => bail!(
-                "{}: an environment map is an equirectangular OpenEXR (.exr) or Radiance (.hdr) image",
-                path.display()
-            ),
-        };
-        let [w, h] = [img.width as usize, img.height as usize];
-        if w < 2 || h < 2 {
-            bail!(
-                "{}: a {w}×{h} environment map; it needs at least 2×2 texels",
-                path.display()
-            );
-        }
-        if let Some(i) = img
-            .pixels
-            .iter()
-            .position(|p| !p.iter().all(|c| c.is_finite()))
-        {
-            bail!(
-                "{}: texel ({}, {}) of the environment map is not finite ({:?})",
-                path.display(),
-                i % w,
-                i / w,
-                img.pixels[i]
-            );
-        }
-        let negative = img
-            .pixels
-            .iter()
-            .filter(|p| p.iter().any(|&c| c < 0.0))
-            .count();
-        if negative > 0 {
+        let built = read_map(path, strength, share)?;
+        if built.negative > 0 {
             eprintln!(
-                "note: {}: {negative} texels of the environment map have negative channels; they are taken as 0",
-                path.display()
+                "note: {}: {} texels of the environment map have negative channels; they are taken as 0",
+                path.display(),
+                built.negative
             );
         }
-        let texels = img
-            .pixels
-            .iter()
-            .map(|p| V::from(*p).max(V::ZERO) * strength)
-            .collect();
-        let mut env = Environment::new(w, h, texels, rotate_deg, uniform);
+        let mut env = Environment::new(built, rotate_deg, uniform);
+        let [w, h] = [env.tiles.width, env.tiles.height];
         env.name = format!(
-            "{} ({w}×{h}, strength {strength}, rotated {rotate_deg}°{})",
+            "{} ({w}×{h}, strength {strength}, rotated {rotate_deg}°{}{})",
             path.display(),
-            if uniform { ", sampled uniformly" } else { "" }
+            if uniform { ", sampled uniformly" } else { "" },
+            if env.tiles.paged() { ", paged" } else { "" }
         );
         Ok(env)
     }
@@ -108,67 +73,40 @@ impl Environment {
     /// The same radiance `le` from every direction.
     pub fn uniform(le: V) -> Environment {
         let [w, h] = UNIFORM_SIZE;
-        let mut env = Environment::new(w, h, vec![le; w * h], 0.0, true);
+        let img = Image {
+            width: w as u32,
+            height: h as u32,
+            pixels: vec![le.to_array(); w * h],
+        };
+        let built = from_image(&img)
+            .finish(Path::new("uniform environment"))
+            .expect("a finite uniform map");
+        let mut env = Environment::new(built, 0.0, true);
         env.name = format!("uniform radiance {:?}", le.to_array());
         env
     }
 
-    fn new(
-        width: usize,
-        height: usize,
-        texels: Vec<V>,
-        rotate_deg: f32,
-        uniform: bool,
-    ) -> Environment {
-        let rows = height - 1;
-        let at = |i: usize, j: usize| match uniform {
-            true => 1.0,
-            false => luminance(texels[j * width + i % width]),
-        };
-        // Cell (i, j) spans u from i / w to (i + 1) / w: the patches on either side of
-        // texel i's centre, so texels i − 1 to i + 1 of rows j and j + 1 shade it.
+    fn new(built: Built, rotate_deg: f32, uniform: bool) -> Environment {
+        let [cols, rows] = built.grid;
+        // Each cell weighted by the brightest texel reaching it times sin θ at its centre.
         let weights: Vec<f32> = (0..rows)
-            .flat_map(|j| (0..width).map(move |i| (i, j)))
+            .flat_map(|j| (0..cols).map(move |i| (i, j)))
             .map(|(i, j)| {
-                let brightest = [i + width - 1, i, i + 1]
-                    .iter()
-                    .flat_map(|&c| [at(c, j), at(c, j + 1)])
-                    .fold(0.0f32, f32::max);
-                brightest * (PI * (j as f32 + 0.5) / rows as f32).sin()
+                let light = match uniform {
+                    true => 1.0,
+                    false => built.brightest[j * cols + i],
+                };
+                light * (PI * (j as f32 + 0.5) / rows as f32).sin()
             })
             .collect();
-        let mut env = Environment {
-            width,
-            height,
-            texels,
+        Environment {
+            mean: mean_radiance(&built.row_sums, built.tiles.width),
+            tiles: built.tiles,
             rotation: [rotate_deg.to_radians().sin(), rotate_deg.to_radians().cos()],
-            density: Piecewise2D::new(&weights, width),
-            mean: V::ZERO,
+            density: Piecewise2D::new(&weights, cols),
+            density_bytes: density_bytes(built.grid),
             name: String::new(),
-        };
-        env.mean = env.mean_radiance();
-        env
-    }
-
-    /// Mean radiance over the sphere: the bilinear map integrated exactly, patch by patch
-    /// (linear in φ, so a column pair's mean; linear in θ against sin θ dθ).
-    fn mean_radiance(&self) -> V {
-        let rows = self.height - 1;
-        let dtheta = PI / rows as f32;
-        let dphi = 2.0 * PI / self.width as f32;
-        let mut sum = V::ZERO;
-        for j in 0..rows {
-            let (t0, t1) = (j as f32 * dtheta, (j + 1) as f32 * dtheta);
-            // ∫ t sin θ dθ and ∫ (1 − t) sin θ dθ over the patch, t = (θ − θ0) / Δθ.
-            let lower = (t1.sin() - t0.sin()) / dtheta - t1.cos();
-            let upper = (t0.cos() - t1.cos()) - lower;
-            for i in 0..self.width {
-                let top = (self.texel(i, j) + self.texel(i + 1, j)) * 0.5;
-                let bottom = (self.texel(i, j + 1) + self.texel(i + 1, j + 1)) * 0.5;
-                sum += (top * upper + bottom * lower) * dphi;
-            }
         }
-        sum / (4.0 * PI)
     }
 
     /// Mean radiance over the sphere of directions.
@@ -177,19 +115,21 @@ impl Environment {
     }
 
     fn texel(&self, i: usize, j: usize) -> V {
-        self.texels[j.min(self.height - 1) * self.width + i % self.width]
+        let t = &self.tiles;
+        t.texel(i % t.width, j.min(t.height - 1))
     }
 
     /// Radiance arriving from direction `d` (unit, pointing away from the scene).
     pub fn le(&self, d: V) -> V {
         let [u, v] = self.uv(self.to_local(d));
-        let x = u * self.width as f32 - 0.5;
-        let y = v * (self.height - 1) as f32;
+        let [w, h] = [self.tiles.width, self.tiles.height];
+        let x = u * w as f32 - 0.5;
+        let y = v * (h - 1) as f32;
         let i = x.floor();
-        let j = (y as usize).min(self.height - 2);
+        let j = (y as usize).min(h - 2);
         let (fx, fy) = (x - i, y - j as f32);
         // Texel −1 is the last column.
-        let i = (i as isize).rem_euclid(self.width as isize) as usize;
+        let i = (i as isize).rem_euclid(w as isize) as usize;
         let top = self.texel(i, j) * (1.0 - fx) + self.texel(i + 1, j) * fx;
         let bottom = self.texel(i, j + 1) * (1.0 - fx) + self.texel(i + 1, j + 1) * fx;
         top * (1.0 - fy) + bottom * fy
@@ -220,9 +160,27 @@ impl Environment {
         self.density.density(self.uv(local)) / (2.0 * PI * PI * sin_theta)
     }
 
-    /// Bytes held.
+    /// Bytes the environment may hold resident.
     pub fn bytes(&self) -> u64 {
-        (self.texels.len() * (size_of::<V>() + 12)) as u64
+        self.density_bytes + self.tiles.bytes_bound()
+    }
+
+    /// Bytes its share of a budget of `budget` bytes: a quarter, which holds a 2 k × 1 k map
+    /// whole under 64 MiB and pages larger ones (with their sampling tables, up to 6 MiB).
+    pub fn share(budget: u64) -> u64 {
+        budget / 4
+    }
+
+    /// Its paging counters.
+    pub fn stats(&self) -> EnvStats {
+        let mut s = self.tiles.stats();
+        s.env_bytes_peak += self.density_bytes;
+        s
+    }
+
+    /// The first failure to read its paged tiles, if any.
+    pub fn error(&self) -> Option<String> {
+        self.tiles.error()
     }
 
     fn uv(&self, d: V) -> [f32; 2] {
@@ -250,22 +208,43 @@ fn direction([u, v]: [f32; 2]) -> V {
     V::new(sin_t * sin_p, cos_t, -sin_t * cos_p)
 }
 
-/// A Radiance RGBE image as linear RGB.
-fn read_hdr(path: &Path) -> Result<Image> {
-    let img = image::open(path)
-        .with_context(|| format!("{}: not a readable Radiance .hdr image", path.display()))?
-        .into_rgb32f();
-    Ok(Image {
-        width: img.width(),
-        height: img.height(),
-        pixels: img.pixels().map(|p| p.0).collect(),
-    })
+/// Mean radiance over the sphere of the bilinear map, integrated exactly from its row
+/// sums: a patch between rows j and j + 1 is linear in φ, so each texel weighs Δφ in its
+/// row, and linear in θ against sin θ dθ, which splits the patch's solid angle between its
+/// two rows.
+fn mean_radiance(row_sums: &[[f64; 3]], width: usize) -> V {
+    let rows = row_sums.len() - 1;
+    let dtheta = std::f64::consts::PI / rows as f64;
+    let dphi = 2.0 * std::f64::consts::PI / width as f64;
+    let mut sum = [0.0f64; 3];
+    for j in 0..rows {
+        let (t0, t1) = (j as f64 * dtheta, (j + 1) as f64 * dtheta);
+        // ∫ t sin θ dθ and ∫ (1 − t) sin θ dθ over the patch, t = (θ − θ0) / Δθ.
+        let lower = (t1.sin() - t0.sin()) / dtheta - t1.cos();
+        let upper = (t0.cos() - t1.cos()) - lower;
+        for (c, s) in sum.iter_mut().enumerate() {
+            *s += (row_sums[j][c] * upper + row_sums[j + 1][c] * lower) * dphi;
+        }
+    }
+    V::from(sum.map(|s| (s / (4.0 * std::f64::consts::PI)) as f32))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::material::luminance;
     use crate::test_rng::TestRng;
+
+    /// A `w` × `h` map of `texels`, held whole.
+    fn map(w: usize, h: usize, texels: Vec<V>, rotate_deg: f32, uniform: bool) -> Environment {
+        let img = Image {
+            width: w as u32,
+            height: h as u32,
+            pixels: texels.iter().map(|t| t.to_array()).collect(),
+        };
+        let built = from_image(&img).finish(Path::new("test")).unwrap();
+        Environment::new(built, rotate_deg, uniform)
+    }
 
     /// A map bright in one patch and dim elsewhere, turned 30°.
     fn sunny() -> Environment {
@@ -276,7 +255,7 @@ mod tests {
                 (i, j) => V::splat(0.1 + 0.01 * (i + j) as f32),
             })
             .collect();
-        Environment::new(w, h, texels, 30.0, false)
+        map(w, h, texels, 30.0, false)
     }
 
     #[test]
@@ -307,8 +286,8 @@ mod tests {
     #[test]
     fn the_map_reads_as_mitsuba_reads_it() {
         let sky = Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/env/sky.hdr");
-        let env = Environment::from_file(&sky, 1.0, 0.0, false).unwrap();
-        let turned = Environment::from_file(&sky, 1.0, 30.0, false).unwrap();
+        let env = Environment::from_file(&sky, 1.0, 0.0, false, None).unwrap();
+        let turned = Environment::from_file(&sky, 1.0, 30.0, false, None).unwrap();
         let cases = [
             (
                 [-0.3059502, 0.0157347, 0.9519175],
@@ -355,7 +334,9 @@ mod tests {
             env.le(env.to_world(direction([(i as f32 + 0.5) / 16.0, j as f32 / 8.0])))
         };
         assert!((at(5, 3) - V::new(400.0, 300.0, 200.0)).length() < 0.05);
-        assert!((at(7, 2) - V::splat(0.19)).length() < 1e-4);
+        // Stored as halves of the tile's range (its brightest, 400, near 2^14): 0.19 is
+        // within half a step, 2^-8 × 2^-6 ≈ 6.1e-5 a channel.
+        assert!((at(7, 2) - V::splat(0.19)).abs().max_element() < 6.2e-5);
         // Between two texels, their mean.
         let mid = env.le(env.to_world(direction([6.0 / 16.0, 3.0 / 8.0])));
         assert!((mid - (V::new(400.0, 300.0, 200.0) + V::splat(0.19)) * 0.5).length() < 0.05);
@@ -384,8 +365,8 @@ mod tests {
                 _ => V::splat(0.1),
             })
             .collect();
-        let by_light = Environment::new(w, 9, texels.clone(), 0.0, false);
-        let uniform = Environment::new(w, 9, texels, 0.0, true);
+        let by_light = map(w, 9, texels.clone(), 0.0, false);
+        let uniform = map(w, 9, texels, 0.0, true);
         let (a, b) = (
             one_sample_variance(&by_light),
             one_sample_variance(&uniform),

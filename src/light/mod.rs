@@ -19,6 +19,8 @@ use tree::{LightBounds, LightTree};
 
 mod distribution;
 pub mod env;
+mod env_build;
+pub mod env_tiles;
 pub mod tree;
 
 pub use env::Environment;
@@ -363,6 +365,11 @@ impl Lights {
         area: f32,
     ) -> f32 {
         emitter.map_or(0.0, |i| self.tree.pmf(p, n, i as usize)) * dist2 / (cos_l * area)
+    }
+
+    /// The first failure to read the environment's paged tiles, if any.
+    pub fn error(&self) -> Option<String> {
+        self.env.as_ref().and_then(Environment::error)
     }
 
     /// The environment's light number (after the emitters and punctual lights).

@@ -80,7 +80,11 @@ pub fn bake(o: &BakeOptions) -> Result<BakeReport> {
         .context("starting worker threads")?;
     // The bake shoots no camera rays; the scene still wants a camera.
     let camera = Camera::new(&bytemuck::Zeroable::zeroed(), 1, 1);
-    let env = o.env.as_ref().map(load_environment).transpose()?;
+    let env = o
+        .env
+        .as_ref()
+        .map(|e| load_environment(e, o.mem_budget))
+        .transpose()?;
     let aside = env.as_ref().map_or(0, Environment::bytes);
     let mut scene = open_scene(
         Arc::clone(&archive),

@@ -66,9 +66,10 @@ pub fn camera_note(o: &RenderOptions, cam: &CameraRecord) -> String {
     )
 }
 
-/// `--env`'s map, read and placed.
-pub fn load_environment(e: &EnvOptions) -> Result<Environment> {
-    Environment::from_file(&e.path, e.strength, e.rotate, e.uniform_sampling)
+/// `--env`'s map, read and placed; paged under its share of `budget` when it does not fit.
+pub fn load_environment(e: &EnvOptions, budget: Option<u64>) -> Result<Environment> {
+    let share = budget.map(Environment::share);
+    Environment::from_file(&e.path, e.strength, e.rotate, e.uniform_sampling, share)
 }
 
 /// The archive's lights with `env`; with neither emitters nor `env`, a uniform white

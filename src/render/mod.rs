@@ -176,7 +176,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         if let Some(d) = &mut display {
             d.update(|| film.image(done), origin, false);
         }
-        if let Some(err) = scene.cache.error() {
+        if let Some(err) = scene.cache.error().or_else(|| scene.lights.error()) {
             bail!("{err}");
         }
         pool.install(|| integ.end_pass(scene, done));
@@ -457,7 +457,8 @@ fn summarize(
     };
     let state = integ.state_bytes();
     let mut cache = scene.cache.stats();
-    let env = scene.lights.env.as_ref().map_or(0, Environment::bytes);
+    let environment = scene.lights.env.as_ref().map(Environment::stats);
+    let env = environment.map_or(0, |e| e.env_bytes_peak);
     cache.resident_bytes_peak += scene.touched.bytes() + state + env;
     let (rays, paths) = (tally.rays.load(Relaxed), tally.paths.load(Relaxed));
     let render_s = seconds.render.max(1e-9);
@@ -484,6 +485,7 @@ fn summarize(
         mem_budget: o.mem_budget,
         archive_decoded_bytes: scene.cache.archive_decoded_bytes(),
         cache,
+        environment,
         film_bytes: film.bytes() + split.bytes(),
         unique_nodes_touched: unique,
         nodes_per_pixel: unique.map(|u| u as f64 / (film.width() as f64 * film.height() as f64)),

@@ -158,8 +158,12 @@ impl Setup {
             .build()
             .context("starting worker threads")?;
         let state_bytes = o.mem_budget.map(|b| o.integrator.state_share(b));
-        // The map is held whole: under a budget it is kept aside with the state.
-        let env = o.env.as_ref().map(load_environment).transpose()?;
+        // Under a budget, the map's share is kept aside with the state.
+        let env = o
+            .env
+            .as_ref()
+            .map(|e| load_environment(e, o.mem_budget))
+            .transpose()?;
         let aside = state_bytes.unwrap_or(0) + env.as_ref().map_or(0, Environment::bytes);
         let camera = Camera::new(cam, width, height);
         let mut scene = open_scene(

@@ -40,6 +40,9 @@ pub struct RenderStats {
     /// integrator's state.
     #[serde(flatten)]
     pub cache: CacheStats,
+    /// The environment map's paging (`--env`), if it has one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub environment: Option<crate::light::env_tiles::EnvStats>,
     pub film_bytes: u64,
     /// With `--node-stats`: hit nodes and their ancestors (004 §5.2).
     #[serde(skip_serializing_if = "Option::is_none")]

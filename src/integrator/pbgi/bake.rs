@@ -329,7 +329,7 @@ fn bake(
             glossy_roots[id as usize] = Vec::new();
         }
     }
-    if let Some(e) = cache.error() {
+    if let Some(e) = cache.error().or_else(|| scene.lights.error()) {
         anyhow::bail!(e);
     }
     Ok(samples)
