@@ -648,3 +648,50 @@ fn primitives_that_are_not_triangles_are_named() {
         serde_json::from_str(&ok(&["inspect", s(&arc), "--json"])).unwrap();
     assert_eq!(report["triangles"], 12);
 }
+
+/// KHR_draco_mesh_compression: `scenes/draco/spheres.glb`, `scenes/env/spheres.glb`
+/// encoded by Google's reference encoder (`tools/draco_variant.py`, 14-bit positions),
+/// converts to the plain file's triangles, its bounds within the quantization step (the
+/// 4-unit span over 2^14), and renders its image within noise (independent seeds).
+/// Draco data that does not decode is refused by name.
+#[test]
+fn draco_meshes_convert_like_their_plain_twins() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut runs = Vec::new();
+    for (name, seed) in [("env/spheres.glb", "1"), ("draco/spheres.glb", "2")] {
+        let arc = dir.path().join(format!("{seed}.canopy"));
+        ok(&["--quiet", "convert", s(&scene(name)), "-o", s(&arc)]);
+        let report: serde_json::Value =
+            serde_json::from_str(&ok(&["inspect", s(&arc), "--json"])).unwrap();
+        let flags = [
+            "--spp", "32", "--width", "64", "--height", "48", "--seed", seed,
+        ];
+        let img = render(&arc, &dir.path().join(format!("{seed}.exr")), &flags).0;
+        runs.push((report, img));
+    }
+    let (plain, draco) = (&runs[0].0, &runs[1].0);
+    assert_eq!(plain["triangles"], draco["triangles"]);
+    let step = 4.0 / 16384.0;
+    for key in ["bounds_min", "bounds_max"] {
+        for k in 0..3 {
+            let (a, b) = (
+                plain[key][k].as_f64().unwrap(),
+                draco[key][k].as_f64().unwrap(),
+            );
+            assert!((a - b).abs() <= step, "{key}[{k}]: {a} vs {b}");
+        }
+    }
+    assert_mean_within_noise(&runs[1].1, &runs[0].1, "Draco twin");
+    // The bitstream's bytes scrambled.
+    let bytes = std::fs::read(scene("draco/spheres.glb")).unwrap();
+    let json_len = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
+    let mut bad = bytes.clone();
+    let bin = 20 + json_len + 8;
+    bad[bin..bin + 64].iter_mut().for_each(|b| *b ^= 0x5a);
+    let broken = dir.path().join("broken.glb");
+    std::fs::write(&broken, bad).unwrap();
+    let out = dir.path().join("broken.canopy");
+    let err = fails(&["convert", s(&broken), "-o", s(&out)]);
+    assert!(err.contains("KHR_draco_mesh_compression"), "{err}");
+    assert!(!out.exists(), "no archive is left behind");
+}

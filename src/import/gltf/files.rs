@@ -1,6 +1,7 @@
 //! Reading a glTF file: the JSON or GLB container, its buffers (embedded, data URIs or
 //! side files, each bounded) and the checks on images, primitives and accessors.
 
+use super::draco::{Vertices, DRACO};
 use anyhow::{anyhow, bail, Context, Result};
 use std::path::Path;
 
@@ -20,9 +21,10 @@ pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Vec<u8>>)> {
     let g = gltf::Gltf::from_slice_without_validation(&bytes).map_err(|e| bad(&e))?;
     let blob = g.blob;
     let mut json = g.document.into_json();
-    // Quantized attributes are read here (`read_floats`), not by the gltf crate, whose
-    // validation refuses the extension.
-    json.extensions_required.retain(|e| e != QUANTIZATION);
+    // Quantized attributes are read here (`read_floats`) and Draco data decoded here
+    // (`draco`), not by the gltf crate, whose validation refuses both extensions.
+    json.extensions_required
+        .retain(|e| e != QUANTIZATION && e != DRACO);
     for (mi, m) in json.meshes.iter().enumerate() {
         for (pi, p) in m.primitives.iter().enumerate() {
             let refs = p.attributes.values().chain(p.indices.as_ref());
@@ -35,6 +37,7 @@ pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Vec<u8>>)> {
             }
         }
     }
+    stand_in_views(&mut json);
     check_images(&json).map_err(|e| anyhow!("{}: {e}", path.display()))?;
     let doc = gltf::Document::from_json(json).map_err(|e| bad(&e))?;
     let dir = path.parent().unwrap_or(Path::new("."));
@@ -44,6 +47,31 @@ pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Vec<u8>>)> {
         .collect::<Result<Vec<_>>>()
         .with_context(|| path.display().to_string())?;
     Ok((doc, buffers))
+}
+
+/// A Draco primitive's accessors have no buffer view, which the gltf crate's validation
+/// refuses: each is given the primitive's Draco view to stand in. Nothing reads them
+/// through it (`draco::decode` reads the primitive), and any other reader bounds-checks it.
+fn stand_in_views(json: &mut gltf::json::Root) {
+    for m in &json.meshes {
+        for p in &m.primitives {
+            let Some(view) = p
+                .extensions
+                .as_ref()
+                .and_then(|e| e.others.get(DRACO))
+                .and_then(|d| d.get("bufferView"))
+                .and_then(|v| v.as_u64())
+                .and_then(|v| u32::try_from(v).ok())
+            else {
+                continue;
+            };
+            for a in p.attributes.values().chain(p.indices.as_ref()) {
+                if let Some(acc) = json.accessors.get_mut(a.value()) {
+                    acc.buffer_view.get_or_insert(gltf::json::Index::new(view));
+                }
+            }
+        }
+    }
 }
 
 /// Every texture's image and sampler exist, and every image names a buffer view in range
@@ -253,4 +281,23 @@ pub(super) fn read_floats<const N: usize>(
             Some(std::array::from_fn(|k| value(&e[k * size..])))
         })
         .collect()
+}
+
+/// A checked primitive's vertices from its accessors (`check_primitive`): positions,
+/// normals and texture-coordinate set `uv_set`, and its indices; None without positions.
+pub(super) fn accessor_vertices(
+    prim: &gltf::Primitive,
+    buffers: &[Vec<u8>],
+    uv_set: Option<u32>,
+) -> Option<Vertices> {
+    let attribute = |s: gltf::Semantic| prim.get(&s).and_then(|a| read_floats::<3>(&a, buffers));
+    let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d[..]));
+    Some(Vertices {
+        pos: attribute(gltf::Semantic::Positions)?,
+        nrm: attribute(gltf::Semantic::Normals),
+        uv: uv_set
+            .and_then(|s| prim.get(&gltf::Semantic::TexCoords(s)))
+            .and_then(|a| read_floats::<2>(&a, buffers)),
+        idx: reader.read_indices().map(|i| i.into_u32().collect()),
+    })
 }

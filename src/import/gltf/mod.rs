@@ -10,10 +10,11 @@ use glam::{Mat3, Mat4, Vec3};
 use gltf::mesh::Mode;
 use std::path::Path;
 
+mod draco;
 mod files;
 mod material;
 mod view;
-use files::{check_accessor, check_primitive, load, read_floats};
+use files::{accessor_vertices, check_accessor, check_primitive, load};
 use material::{material, UvMap};
 use view::{camera, punctual, render_size};
 
@@ -103,6 +104,7 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
         }
         let mut m = MeshCtx {
             path,
+            doc: &doc,
             mesh: &mesh,
             buffers: &buffers,
             uv_maps: &uv_maps,
@@ -175,6 +177,7 @@ fn shared_meshes(
 /// One mesh's primitives pushed under a transform.
 struct MeshCtx<'a> {
     path: &'a Path,
+    doc: &'a gltf::Document,
     mesh: &'a gltf::Mesh<'a>,
     buffers: &'a [Vec<u8>],
     /// The file's first material in the scene's table.
@@ -212,19 +215,27 @@ impl MeshCtx<'_> {
                     *self.default_mat.insert(m)
                 }
             };
-            check_primitive(&prim).map_err(|e| anyhow!("{}: {e}", what(0)))?;
-            let buffers = self.buffers;
-            let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d[..]));
-            let attribute =
-                |s: gltf::Semantic| prim.get(&s).and_then(|a| read_floats::<3>(&a, buffers));
-            let Some(pos) = attribute(gltf::Semantic::Positions) else {
-                continue;
+            let uv_map = prim.material().index().and_then(|i| self.uv_maps[i]);
+            let uv_set = uv_map.map(|m| m.set);
+            let decoded = draco::decode(&prim, self.doc, self.buffers, uv_set)
+                .map_err(|e| anyhow!("{}: {e}", what(0)))?;
+            let v = match decoded {
+                Some(v) => v,
+                None => {
+                    check_primitive(&prim).map_err(|e| anyhow!("{}: {e}", what(0)))?;
+                    let Some(v) = accessor_vertices(&prim, self.buffers, uv_set) else {
+                        continue;
+                    };
+                    v
+                }
             };
-            let pos: Vec<Vec3> = pos
+            let pos: Vec<Vec3> = v
+                .pos
                 .iter()
                 .map(|&p| world.transform_point3(Vec3::from(p)))
                 .collect();
-            let nrm: Option<Vec<Vec3>> = attribute(gltf::Semantic::Normals)
+            let nrm: Option<Vec<Vec3>> = v
+                .nrm
                 .map(|n| {
                     n.iter()
                         .map(|&n| (normal_m * Vec3::from(n)).normalize_or_zero())
@@ -234,22 +245,15 @@ impl MeshCtx<'_> {
             if nrm.is_some() {
                 self.scene.has_normals = true;
             }
-            let uv_map = prim.material().index().and_then(|i| self.uv_maps[i]);
-            let uvs: Option<Vec<[f32; 2]>> = match uv_map {
-                Some(map) => prim
-                    .get(&gltf::Semantic::TexCoords(map.set))
-                    .and_then(|a| read_floats::<2>(&a, buffers))
-                    .map(|t| t.into_iter().map(|uv| map.apply(uv)).collect::<Vec<_>>())
-                    .filter(|t| t.len() == pos.len()),
-                None => None,
+            let uvs: Option<Vec<[f32; 2]>> = match (uv_map, v.uv) {
+                (Some(map), Some(t)) => Some(t.into_iter().map(|uv| map.apply(uv)).collect())
+                    .filter(|t: &Vec<_>| t.len() == pos.len()),
+                _ => None,
             };
             if uvs.is_some() {
                 self.scene.has_uvs = true;
             }
-            let idx: Vec<u32> = match reader.read_indices() {
-                Some(i) => i.into_u32().collect(),
-                None => (0..pos.len() as u32).collect(),
-            };
+            let idx = v.idx.unwrap_or_else(|| (0..pos.len() as u32).collect());
             for (t, mut tri) in triangles(prim.mode(), &idx).enumerate() {
                 if flip {
                     tri.swap(1, 2);
