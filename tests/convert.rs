@@ -649,49 +649,94 @@ fn primitives_that_are_not_triangles_are_named() {
     assert_eq!(report["triangles"], 12);
 }
 
-/// KHR_draco_mesh_compression: `scenes/draco/spheres.glb`, `scenes/env/spheres.glb`
-/// encoded by Google's reference encoder (`tools/draco_variant.py`, 14-bit positions),
-/// converts to the plain file's triangles, its bounds within the quantization step (the
-/// 4-unit span over 2^14), and renders its image within noise (independent seeds).
-/// Draco data that does not decode is refused by name.
-#[test]
-fn draco_meshes_convert_like_their_plain_twins() {
+/// Converts `plain` and its compressed `twin` (bundled scenes), renders each with `flags`
+/// and independent seeds, and checks the twin has the plain file's triangles, its bounds
+/// within `step`, and its image within noise.
+fn assert_twins(plain: &str, twin: &str, flags: &[&str], step: f64) {
     let dir = tempfile::tempdir().unwrap();
     let mut runs = Vec::new();
-    for (name, seed) in [("env/spheres.glb", "1"), ("draco/spheres.glb", "2")] {
+    for (name, seed) in [(plain, "1"), (twin, "2")] {
         let arc = dir.path().join(format!("{seed}.canopy"));
         ok(&["--quiet", "convert", s(&scene(name)), "-o", s(&arc)]);
         let report: serde_json::Value =
             serde_json::from_str(&ok(&["inspect", s(&arc), "--json"])).unwrap();
-        let flags = [
-            "--spp", "32", "--width", "64", "--height", "48", "--seed", seed,
-        ];
+        let flags = [flags, &["--seed", seed]].concat();
         let img = render(&arc, &dir.path().join(format!("{seed}.exr")), &flags).0;
         runs.push((report, img));
     }
-    let (plain, draco) = (&runs[0].0, &runs[1].0);
-    assert_eq!(plain["triangles"], draco["triangles"]);
-    let step = 4.0 / 16384.0;
+    let (a, b) = (&runs[0].0, &runs[1].0);
+    assert_eq!(a["triangles"], b["triangles"], "{twin}");
     for key in ["bounds_min", "bounds_max"] {
         for k in 0..3 {
-            let (a, b) = (
-                plain[key][k].as_f64().unwrap(),
-                draco[key][k].as_f64().unwrap(),
-            );
-            assert!((a - b).abs() <= step, "{key}[{k}]: {a} vs {b}");
+            let (p, q) = (a[key][k].as_f64().unwrap(), b[key][k].as_f64().unwrap());
+            assert!((p - q).abs() <= step, "{twin}: {key}[{k}]: {p} vs {q}");
         }
     }
-    assert_mean_within_noise(&runs[1].1, &runs[0].1, "Draco twin");
-    // The bitstream's bytes scrambled.
-    let bytes = std::fs::read(scene("draco/spheres.glb")).unwrap();
+    assert_mean_within_noise(&runs[1].1, &runs[0].1, twin);
+}
+
+/// A copy of bundled scene `name` with `edit` applied to its GLB bytes (after the
+/// JSON chunk, whose length it is given), converted: the error, which must be clean.
+fn convert_edited(name: &str, edit: impl Fn(&mut Vec<u8>, usize)) -> String {
+    let dir = tempfile::tempdir().unwrap();
+    let mut bytes = std::fs::read(scene(name)).unwrap();
     let json_len = u32::from_le_bytes(bytes[12..16].try_into().unwrap()) as usize;
-    let mut bad = bytes.clone();
-    let bin = 20 + json_len + 8;
-    bad[bin..bin + 64].iter_mut().for_each(|b| *b ^= 0x5a);
+    edit(&mut bytes, json_len);
     let broken = dir.path().join("broken.glb");
-    std::fs::write(&broken, bad).unwrap();
+    std::fs::write(&broken, bytes).unwrap();
     let out = dir.path().join("broken.canopy");
     let err = fails(&["convert", s(&broken), "-o", s(&out)]);
-    assert!(err.contains("KHR_draco_mesh_compression"), "{err}");
     assert!(!out.exists(), "no archive is left behind");
+    err
+}
+
+/// KHR_draco_mesh_compression: `scenes/draco/spheres.glb`, `scenes/env/spheres.glb`
+/// encoded by Google's reference encoder (`tools/draco_variant.py`, 14-bit positions),
+/// converts to the plain file's triangles, its bounds within the quantization step (the
+/// 4-unit span over 2^14), and renders its image within noise. Draco data that does not
+/// decode is refused by name.
+#[test]
+fn draco_meshes_convert_like_their_plain_twins() {
+    let flags = ["--spp", "32", "--width", "64", "--height", "48"];
+    assert_twins(
+        "env/spheres.glb",
+        "draco/spheres.glb",
+        &flags,
+        4.0 / 16384.0,
+    );
+    let err = convert_edited("draco/spheres.glb", |b, json| {
+        let bin = 20 + json + 8;
+        b[bin..bin + 64].iter_mut().for_each(|x| *x ^= 0x5a);
+    });
+    assert!(err.contains("KHR_draco_mesh_compression"), "{err}");
+}
+
+/// EXT_meshopt_compression: `scenes/meshopt/bumps.glb`, `scenes/bumps/bumps.gltf` as
+/// meshoptimizer's gltfpack 1.3 ships it (`-cc -vpf`: meshopt streams, the exponential
+/// filter on float positions, quantized texture coordinates, the normal map embedded),
+/// converts to the plain triangles and renders the plain image within noise. A stream
+/// cut short is refused by name.
+#[test]
+fn meshopt_meshes_convert_like_their_plain_twins() {
+    let flags = ["--spp", "16", "--width", "80", "--height", "60"];
+    assert_twins("bumps/bumps.gltf", "meshopt/bumps.glb", &flags, 1e-5);
+    let err = convert_edited("meshopt/bumps.glb", |b, json| {
+        let text = String::from_utf8(b[20..20 + json].to_vec()).unwrap();
+        // The first stream's length: shorter than its data.
+        let ext = text
+            .find("\"EXT_meshopt_compression\":{\"buffer\"")
+            .unwrap();
+        let at = ext + text[ext..].find("\"byteLength\":").unwrap() + 13;
+        let text = format!(
+            "{}1{}",
+            &text[..at],
+            &text[at..].trim_start_matches(char::is_numeric)
+        );
+        let text = format!("{text:<json$}");
+        b[20..20 + json].copy_from_slice(&text.as_bytes()[..json]);
+    });
+    assert!(
+        err.contains("EXT_meshopt_compression") && err.contains("buffer view"),
+        "{err}"
+    );
 }

@@ -2,6 +2,7 @@
 //! side files, each bounded) and the checks on images, primitives and accessors.
 
 use super::draco::{Vertices, DRACO};
+use super::meshopt::{self, MESHOPT};
 use anyhow::{anyhow, bail, Context, Result};
 use std::path::Path;
 
@@ -21,10 +22,10 @@ pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Vec<u8>>)> {
     let g = gltf::Gltf::from_slice_without_validation(&bytes).map_err(|e| bad(&e))?;
     let blob = g.blob;
     let mut json = g.document.into_json();
-    // Quantized attributes are read here (`read_floats`) and Draco data decoded here
-    // (`draco`), not by the gltf crate, whose validation refuses both extensions.
+    // Quantized attributes are read here (`read_floats`), Draco and meshopt data decoded
+    // here (`draco`, `meshopt`), not by the gltf crate, whose validation refuses them.
     json.extensions_required
-        .retain(|e| e != QUANTIZATION && e != DRACO);
+        .retain(|e| e != QUANTIZATION && e != DRACO && e != MESHOPT);
     for (mi, m) in json.meshes.iter().enumerate() {
         for (pi, p) in m.primitives.iter().enumerate() {
             let refs = p.attributes.values().chain(p.indices.as_ref());
@@ -39,13 +40,20 @@ pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Vec<u8>>)> {
     }
     stand_in_views(&mut json);
     check_images(&json).map_err(|e| anyhow!("{}: {e}", path.display()))?;
+    let fallback = meshopt::fallback_buffers(&json);
+    let packed =
+        meshopt::compressed_views(&json).map_err(|e| anyhow!("{}: {e}", path.display()))?;
     let doc = gltf::Document::from_json(json).map_err(|e| bad(&e))?;
     let dir = path.parent().unwrap_or(Path::new("."));
-    let buffers = doc
+    let mut buffers = doc
         .buffers()
-        .map(|b| load_buffer(&b, blob.as_deref(), dir))
+        .map(|b| match fallback[b.index()] {
+            true => meshopt::fallback_bytes(&packed, b.index(), b.length() as u64),
+            false => load_buffer(&b, blob.as_deref(), dir),
+        })
         .collect::<Result<Vec<_>>>()
         .with_context(|| path.display().to_string())?;
+    meshopt::decode(&packed, &mut buffers).with_context(|| path.display().to_string())?;
     Ok((doc, buffers))
 }
 

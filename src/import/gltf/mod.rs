@@ -13,6 +13,7 @@ use std::path::Path;
 mod draco;
 mod files;
 mod material;
+mod meshopt;
 mod view;
 use files::{accessor_vertices, check_accessor, check_primitive, load};
 use material::{material, UvMap};
