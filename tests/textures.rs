@@ -739,3 +739,41 @@ fn a_missing_normal_map_leaves_an_archive_that_reads_and_renders() {
     );
     assert!(all_finite(&img) && img.mean()[0] > 0.0);
 }
+
+/// EXT_texture_webp and KHR_texture_basisu: `scenes/webp` and `scenes/ktx2`, the bumps
+/// scene with its normal map as a lossless WebP or a UASTC KTX2 (which holds this map
+/// exactly) and no PNG fallback (`tools/texture_variant.py`), render the PNG scene's image
+/// exactly: neither codec loses a texel here.
+#[test]
+fn webp_and_ktx2_only_textures_render_as_their_png_twin() {
+    let dir = tempfile::tempdir().unwrap();
+    let flags = ["--spp", "4", "--width", "80", "--height", "60"];
+    let images: Vec<_> = ["bumps/bumps.gltf", "webp/bumps.gltf", "ktx2/bumps.gltf"]
+        .iter()
+        .enumerate()
+        .map(|(i, name)| {
+            let arc = dir.path().join(format!("{i}.canopy"));
+            ok(&["--quiet", "convert", s(&scene(name)), "-o", s(&arc)]);
+            render(&arc, &dir.path().join(format!("{i}.exr")), &flags).0
+        })
+        .collect();
+    assert!(
+        images[0].pixels == images[1].pixels,
+        "the WebP twin's image differs"
+    );
+    assert!(
+        images[0].pixels == images[2].pixels,
+        "the KTX2 twin's image differs"
+    );
+    // The KTX2 file cut after its header: refused, naming the image.
+    let broken = dir.path().join("broken");
+    std::fs::create_dir(&broken).unwrap();
+    for f in ["bumps.gltf", "bumps.bin"] {
+        std::fs::copy(scene("ktx2").join(f), broken.join(f)).unwrap();
+    }
+    let ktx = std::fs::read(scene("ktx2/ridges.ktx2")).unwrap();
+    std::fs::write(broken.join("ridges.ktx2"), &ktx[..80]).unwrap();
+    let out = dir.path().join("broken.canopy");
+    let err = fails(&["convert", s(&broken.join("bumps.gltf")), "-o", s(&out)]);
+    assert!(err.contains("ridges.ktx2") && err.contains("KTX2"), "{err}");
+}

@@ -15,6 +15,7 @@ mod aggregate;
 mod chunks;
 mod ingest;
 mod instances;
+mod ktx2;
 mod pages;
 mod partition;
 mod spill;

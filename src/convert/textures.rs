@@ -182,12 +182,21 @@ impl<T: BufRead + std::io::Seek + Send> ReadSeek for T {}
 /// Bytes a whole-image decode takes per texel: the decoder's buffer and the RGBA copy.
 const WHOLE_BYTES_PER_TEXEL: u64 = 8;
 
-/// The image's rows: streamed for non-interlaced PNG; JPEG, TGA and interlaced PNG are
-/// decoded whole, refused when that would take more than `whole_limit` bytes.
+/// The image's rows: streamed for non-interlaced PNG; JPEG, TGA, WebP, KTX2 and interlaced
+/// PNG are decoded whole, refused when that would take more than `whole_limit` bytes.
 fn open_rows(src: &TextureSource, whole_limit: u64) -> Result<Box<dyn Rows>> {
-    let mut magic = [0u8; 8];
-    let got = open_source(src)?.read(&mut magic)?;
-    if got == 8 && magic == *b"\x89PNG\r\n\x1a\n" {
+    let mut magic = Vec::with_capacity(12);
+    open_source(src)?.take(12).read_to_end(&mut magic)?;
+    if magic == super::ktx2::MAGIC {
+        let mut bytes = Vec::new();
+        open_source(src)?
+            .take(whole_limit)
+            .read_to_end(&mut bytes)?;
+        let image = super::ktx2::decode(&bytes, whole_limit)?;
+        check_size(image.width(), image.height())?;
+        return Ok(Box::new(WholeRows { image, next: 0 }));
+    }
+    if magic.starts_with(b"\x89PNG\r\n\x1a\n") {
         let mut d = png::Decoder::new(seekable(src)?);
         d.set_transformations(png::Transformations::normalize_to_color8());
         d.set_limits(png::Limits { bytes: 1 << 30 });
@@ -209,7 +218,7 @@ fn open_rows(src: &TextureSource, whole_limit: u64) -> Result<Box<dyn Rows>> {
         let ext = src.name.rsplit('.').next().unwrap_or("");
         r.set_format(
             image::ImageFormat::from_extension(ext)
-                .ok_or_else(|| anyhow!("not a PNG, JPEG or TGA image"))?,
+                .ok_or_else(|| anyhow!("not a PNG, JPEG, TGA or WebP image"))?,
         );
     }
     let mut limits = image::Limits::default();

@@ -25,7 +25,7 @@ pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Vec<u8>>)> {
     // Quantized attributes are read here (`read_floats`), Draco and meshopt data decoded
     // here (`draco`, `meshopt`), not by the gltf crate, whose validation refuses them.
     json.extensions_required
-        .retain(|e| e != QUANTIZATION && e != DRACO && e != MESHOPT);
+        .retain(|e| ![QUANTIZATION, DRACO, MESHOPT, WEBP, BASISU].contains(&e.as_str()));
     for (mi, m) in json.meshes.iter().enumerate() {
         for (pi, p) in m.primitives.iter().enumerate() {
             let refs = p.attributes.values().chain(p.indices.as_ref());
@@ -39,6 +39,7 @@ pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Vec<u8>>)> {
         }
     }
     stand_in_views(&mut json);
+    choose_image_sources(&mut json);
     check_images(&json).map_err(|e| anyhow!("{}: {e}", path.display()))?;
     let fallback = meshopt::fallback_buffers(&json);
     let packed =
@@ -78,6 +79,29 @@ fn stand_in_views(json: &mut gltf::json::Root) {
                     acc.buffer_view.get_or_insert(gltf::json::Index::new(view));
                 }
             }
+        }
+    }
+}
+
+/// EXT_texture_webp: a texture's WebP image, which the importer decodes.
+const WEBP: &str = "EXT_texture_webp";
+/// KHR_texture_basisu: a texture's KTX2 image with Basis Universal data, transcoded.
+const BASISU: &str = "KHR_texture_basisu";
+
+/// Each texture's image, as glTF's fallback rules choose it: the image an extension
+/// offers (WebP, then KTX2; the `source` is then a fallback, or absent), else its `source`.
+fn choose_image_sources(json: &mut gltf::json::Root) {
+    for t in &mut json.textures {
+        let offered = |name: &str| {
+            t.extensions
+                .as_ref()
+                .and_then(|e| e.others.get(name))
+                .and_then(|w| w.get("source"))
+                .and_then(|s| s.as_u64())
+                .and_then(|s| u32::try_from(s).ok())
+        };
+        if let Some(image) = offered(WEBP).or_else(|| offered(BASISU)) {
+            t.source = gltf::json::Index::new(image);
         }
     }
 }
