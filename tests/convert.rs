@@ -740,3 +740,42 @@ fn meshopt_meshes_convert_like_their_plain_twins() {
         "{err}"
     );
 }
+
+/// What Canopy does not read is named, never dropped in silence: an extension a material
+/// uses (its materials listed, the file converts), vertex colours, and an extension the
+/// file requires (refused by name, no archive written).
+#[test]
+fn unread_gltf_features_are_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let used = tiny_glb(dir.path(), "used.glb", |j, _| {
+        j["materials"][0]["extensions"] =
+            serde_json::json!({"KHR_materials_clearcoat": {"clearcoatFactor": 1.0}});
+        j["extensionsUsed"] = serde_json::json!(["KHR_materials_clearcoat", "KHR_xmp_json_ld"]);
+        j["meshes"][0]["primitives"][0]["attributes"]["COLOR_0"] =
+            j["meshes"][0]["primitives"][0]["attributes"]["POSITION"].clone();
+    });
+    let out = dir.path().join("used.canopy");
+    let run = canopy(&["convert", s(&used), "-o", s(&out)]);
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "{err}");
+    assert!(
+        err.contains("use KHR_materials_clearcoat, which Canopy does not render"),
+        "{err}"
+    );
+    assert!(
+        err.contains("KHR_xmp_json_ld, which Canopy does not read"),
+        "{err}"
+    );
+    assert!(err.contains("vertex colours (COLOR_0)"), "{err}");
+    let required = tiny_glb(dir.path(), "required.glb", |j, _| {
+        j["extensionsUsed"] = serde_json::json!(["KHR_materials_variants"]);
+        j["extensionsRequired"] = serde_json::json!(["KHR_materials_variants"]);
+    });
+    let out = dir.path().join("required.canopy");
+    let err = fails(&["convert", s(&required), "-o", s(&out)]);
+    assert!(
+        err.contains("requires KHR_materials_variants, which Canopy does not read"),
+        "{err}"
+    );
+    assert!(!out.exists());
+}

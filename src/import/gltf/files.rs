@@ -24,6 +24,16 @@ pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Vec<u8>>)> {
     let mut json = g.document.into_json();
     // Quantized attributes are read here (`read_floats`), Draco and meshopt data decoded
     // here (`draco`, `meshopt`), not by the gltf crate, whose validation refuses them.
+    if let Some(e) = json
+        .extensions_required
+        .iter()
+        .find(|e| !READ.contains(&e.as_str()))
+    {
+        bail!(
+            "{}: the file requires {e}, which Canopy does not read (its content cannot be rendered without it)",
+            path.display()
+        );
+    }
     json.extensions_required
         .retain(|e| ![QUANTIZATION, DRACO, MESHOPT, WEBP, BASISU].contains(&e.as_str()));
     for (mi, m) in json.meshes.iter().enumerate() {
@@ -82,6 +92,23 @@ fn stand_in_views(json: &mut gltf::json::Root) {
         }
     }
 }
+
+/// The extensions Canopy reads; any other is named when a file uses it, and a file that
+/// requires one is refused.
+pub(super) const READ: &[&str] = &[
+    "KHR_lights_punctual",
+    "KHR_materials_emissive_strength",
+    "KHR_materials_ior",
+    "KHR_materials_specular",
+    "KHR_materials_transmission",
+    "KHR_texture_transform",
+    "EXT_mesh_gpu_instancing",
+    QUANTIZATION,
+    DRACO,
+    MESHOPT,
+    WEBP,
+    BASISU,
+];
 
 /// EXT_texture_webp: a texture's WebP image, which the importer decodes.
 const WEBP: &str = "EXT_texture_webp";

@@ -3,7 +3,7 @@
 
 use super::files::{data_uri, relative_file};
 use crate::import::{SceneDesc, TextureSource};
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, Context, Result};
 use canopy_format::{name_bytes, MaterialRecord, TextureRecord};
 use std::path::Path;
 
@@ -17,12 +17,14 @@ pub(super) struct UvMap {
 
 /// The material record, its textures added to `scene`, and how its texture coordinates are
 /// read. All textures of a material share one coordinate set and transform (the archive
-/// stores one set per vertex); a material that mixes them is refused.
+/// stores one set per vertex): a texture that reads another is dropped, its factor kept,
+/// and `notes` says so.
 pub(super) fn material(
     m: &gltf::Material,
     scene: &mut SceneDesc,
     buffers: &[Vec<u8>],
     dir: &Path,
+    notes: &mut Vec<String>,
 ) -> Result<(MaterialRecord, Option<UvMap>)> {
     let pbr = m.pbr_metallic_roughness();
     let strength = m.emissive_strength().unwrap_or(1.0);
@@ -46,6 +48,7 @@ pub(super) fn material(
     }
     let mut textures = [MaterialRecord::NO_TEXTURE; 4];
     let mut uv: Option<UvMap> = None;
+    let mut dropped_normal = false;
     pub(super) fn info(i: gltf::texture::Info<'_>) -> (Result<UvMap>, gltf::Texture<'_>) {
         (Ok(UvMap::of(&i)), i.texture())
     }
@@ -76,8 +79,13 @@ pub(super) fn material(
             continue;
         };
         let map = map?;
-        if uv.is_some_and(|u| u != map) {
-            bail!("its textures use different texture coordinates or transforms (Canopy stores one set per vertex)");
+        if let Some(u) = uv.filter(|&u| u != map) {
+            notes.push(format!(
+                "its {} texture reads texture coordinates {} (or another transform) where its other textures read {}; Canopy stores one set per vertex, so it is dropped and its factor kept",
+                SLOT_NAMES[slot], map.set, u.set
+            ));
+            dropped_normal |= slot == MaterialRecord::NORMAL;
+            continue;
         }
         uv = Some(map);
         textures[slot] = scene.add_texture(texture_source(&texture, srgb, buffers, dir)?)?;
@@ -101,10 +109,16 @@ pub(super) fn material(
         flags,
         textures,
         alpha_cutoff: m.alpha_cutoff().unwrap_or(0.5),
-        normal_scale: normal.as_ref().map_or(0.0, |n| n.scale()),
+        normal_scale: match dropped_normal {
+            true => 0.0,
+            false => normal.as_ref().map_or(0.0, |n| n.scale()),
+        },
     };
     Ok((rec, uv))
 }
+
+/// The texture slots' names, by `MaterialRecord` slot.
+const SLOT_NAMES: [&str; 4] = ["base colour", "metallic-roughness", "emissive", "normal"];
 
 /// Where a glTF texture's image is: a buffer view, a data URI or a file beside the glTF.
 pub(super) fn texture_source(

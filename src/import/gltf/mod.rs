@@ -34,7 +34,15 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
                 m.name().unwrap_or("?")
             )
         };
-        let (rec, uv) = material(&m, scene, &buffers, dir).map_err(named)?;
+        let mut notes = Vec::new();
+        let (rec, uv) = material(&m, scene, &buffers, dir, &mut notes).map_err(named)?;
+        for note in notes {
+            eprintln!(
+                "warning: {}: material '{}': {note}",
+                path.display(),
+                m.name().unwrap_or("?")
+            );
+        }
         if rec.flags & MaterialRecord::TEXTURED != 0 {
             scene.textured = true;
         }
@@ -383,12 +391,37 @@ fn gpu_instances(
 
 /// Triangle index triples for a primitive's topology; points and lines give none.
 /// Warns of what the file holds that Canopy does not render, naming where and what is
-/// done instead: primitives of points and lines (skipped), morph targets (the base shape
-/// is kept) and skins (the bind pose is kept).
+/// done instead: extensions it does not read (ignored; material extensions name their
+/// materials), vertex colours (the base colour is used), primitives of points and lines
+/// (skipped), morph targets (the base shape is kept) and skins (the bind pose is kept).
 fn name_unsupported(path: &Path, doc: &gltf::Document) {
+    for ext in doc.extensions_used().filter(|e| !files::READ.contains(e)) {
+        let users: Vec<String> = doc
+            .materials()
+            .filter(|m| m.extension_value(ext).is_some())
+            .map(|m| format!("'{}'", m.name().unwrap_or("?")))
+            .collect();
+        match users.is_empty() {
+            true => eprintln!(
+                "warning: {}: uses {ext}, which Canopy does not read; it is ignored",
+                path.display()
+            ),
+            false => eprintln!(
+                "warning: {}: materials {} use {ext}, which Canopy does not render; they are shaded as metallic-roughness without it",
+                path.display(),
+                users.join(", ")
+            ),
+        }
+    }
     for mesh in doc.meshes() {
         let name = mesh.name().unwrap_or("?");
         for (pi, prim) in mesh.primitives().enumerate() {
+            if prim.get(&gltf::Semantic::Colors(0)).is_some() {
+                eprintln!(
+                    "warning: {}: mesh '{name}' primitive {pi} has vertex colours (COLOR_0), which Canopy does not apply; its material's base colour is used",
+                    path.display()
+                );
+            }
             let mode = prim.mode();
             if !matches!(
                 mode,
