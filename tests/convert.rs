@@ -779,3 +779,82 @@ fn unread_gltf_features_are_named() {
     );
     assert!(!out.exists());
 }
+
+/// Sparse accessors (glTF 3.6.2.3): positions with no buffer view (zeros) and three
+/// substitutions make one triangle with the substituted corners; a substitution past the
+/// accessor's elements is refused by name.
+#[test]
+fn sparse_positions_are_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let gltf = |index2: u16| {
+        let mut bin: Vec<u8> = [1u16, 2, index2, 0]
+            .iter()
+            .flat_map(|i| i.to_le_bytes())
+            .collect();
+        bin.extend(
+            [1.0f32, 0.0, 0.0, 0.0, 2.0, 0.0]
+                .iter()
+                .flat_map(|v| v.to_le_bytes()),
+        );
+        bin.extend([0.0f32, 0.0, 0.5].iter().flat_map(|v| v.to_le_bytes()));
+        use base64::Engine;
+        let uri = format!(
+            "data:application/octet-stream;base64,{}",
+            base64::engine::general_purpose::STANDARD.encode(&bin)
+        );
+        serde_json::json!({
+            "asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+            "nodes": [{"mesh": 0}],
+            "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}],
+            "buffers": [{"byteLength": bin.len(), "uri": uri}],
+            "bufferViews": [
+                {"buffer": 0, "byteOffset": 0, "byteLength": 8},
+                {"buffer": 0, "byteOffset": 8, "byteLength": 36}
+            ],
+            "accessors": [{"componentType": 5126, "count": 3, "type": "VEC3",
+                "min": [0, 0, 0], "max": [1, 2, 0.5],
+                "sparse": {"count": 3,
+                    "indices": {"bufferView": 0, "componentType": 5123},
+                    "values": {"bufferView": 1}}}]
+        })
+        .to_string()
+    };
+    // Elements 1, 2 and 0 replaced: (1, 0, 0), (0, 2, 0), (0, 0, 0.5).
+    let good = dir.path().join("sparse.gltf");
+    std::fs::write(&good, gltf(0)).unwrap();
+    let arc = dir.path().join("sparse.canopy");
+    ok(&["--quiet", "convert", s(&good), "-o", s(&arc)]);
+    let report: serde_json::Value =
+        serde_json::from_str(&ok(&["inspect", s(&arc), "--json"])).unwrap();
+    assert_eq!(report["triangles"], 1);
+    assert_eq!(report["bounds_max"], serde_json::json!([1.0, 2.0, 0.5]));
+    let bad = dir.path().join("past.gltf");
+    std::fs::write(&bad, gltf(7)).unwrap();
+    let err = fails(&["convert", s(&bad), "-o", s(&dir.path().join("past.canopy"))]);
+    assert!(err.contains("sparse storage: an index is past"), "{err}");
+}
+
+/// KHR_materials_pbrSpecularGlossiness, even required, converts: its materials shaded as
+/// metallic-roughness, named in a warning that says how.
+#[test]
+fn specular_glossiness_materials_convert_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let glb = tiny_glb(dir.path(), "sg.glb", |j, _| {
+        j["materials"][0]["extensions"] = serde_json::json!({
+            "KHR_materials_pbrSpecularGlossiness": {
+                "diffuseFactor": [0.2, 0.4, 0.6, 1.0], "specularFactor": [0.04, 0.04, 0.04],
+                "glossinessFactor": 0.7}});
+        let ext = serde_json::json!(["KHR_materials_pbrSpecularGlossiness"]);
+        j["extensionsUsed"] = ext.clone();
+        j["extensionsRequired"] = ext;
+    });
+    let out = dir.path().join("sg.canopy");
+    let run = canopy(&["convert", s(&glb), "-o", s(&out)]);
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "{err}");
+    assert!(
+        err.contains("uses KHR_materials_pbrSpecularGlossiness: shaded as metallic-roughness"),
+        "{err}"
+    );
+    ok(&["inspect", s(&out)]);
+}

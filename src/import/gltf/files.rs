@@ -101,6 +101,7 @@ pub(super) const READ: &[&str] = &[
     "KHR_materials_ior",
     "KHR_materials_specular",
     "KHR_materials_transmission",
+    "KHR_materials_pbrSpecularGlossiness",
     "KHR_texture_transform",
     "EXT_mesh_gpu_instancing",
     QUANTIZATION,
@@ -220,7 +221,7 @@ fn load_buffer(b: &gltf::Buffer, blob: Option<&[u8]>, dir: &Path) -> Result<Vec<
 
 /// The accessors a primitive's triangles are read from, checked before the gltf crate reads
 /// them (`check_accessor`).
-pub(super) fn check_primitive(prim: &gltf::Primitive) -> Result<()> {
+pub(super) fn check_primitive(prim: &gltf::Primitive, buffers: &[Vec<u8>]) -> Result<()> {
     use gltf::accessor::{DataType, Dimensions};
     use gltf::Semantic;
     let mut wanted: Vec<(gltf::Accessor, &str, &[DataType], Dimensions)> = Vec::new();
@@ -245,7 +246,8 @@ pub(super) fn check_primitive(prim: &gltf::Primitive) -> Result<()> {
         wanted.push((a, "indices", ints, Dimensions::Scalar));
     }
     for (a, name, types, dims) in wanted {
-        check_accessor(&a, &format!("{name} accessor {}", a.index()), types, dims)?;
+        let what = format!("{name} accessor {}", a.index());
+        check_accessor(&a, &what, types, dims, buffers)?;
     }
     Ok(())
 }
@@ -257,6 +259,7 @@ pub(super) fn check_accessor(
     what: &str,
     types: &[gltf::accessor::DataType],
     dims: gltf::accessor::Dimensions,
+    buffers: &[Vec<u8>],
 ) -> Result<()> {
     // Only integers may be normalized.
     let float = a.data_type() == gltf::accessor::DataType::F32;
@@ -268,11 +271,18 @@ pub(super) fn check_accessor(
             if a.normalized() { " normalized" } else { "" }
         );
     }
-    if a.sparse().is_some() {
-        bail!("{what} is sparse, which Canopy does not read");
+    if let Some(sp) = a.sparse() {
+        if a.dimensions() == gltf::accessor::Dimensions::Scalar {
+            bail!("{what} is sparse, which Canopy reads only for vertex attributes");
+        }
+        check_sparse(a, &sp, buffers).map_err(|e| anyhow!("{what}: sparse storage: {e}"))?;
     }
     let Some(view) = a.view() else {
-        bail!("{what} has no buffer view");
+        return match a.sparse() {
+            // Zeros where the sparse values do not say otherwise.
+            Some(_) => Ok(()),
+            None => bail!("{what} has no buffer view"),
+        };
     };
     let elem = a.size();
     let stride = view.stride().unwrap_or(elem);
@@ -305,6 +315,61 @@ pub(super) fn check_accessor(
     Ok(())
 }
 
+/// A sparse accessor's substitutions lie inside their views and name elements it has.
+fn check_sparse(
+    a: &gltf::Accessor,
+    sp: &gltf::accessor::sparse::Sparse,
+    buffers: &[Vec<u8>],
+) -> Result<()> {
+    let n = sp.count();
+    if n > a.count() {
+        bail!("{n} substitutions for {} elements", a.count());
+    }
+    let (iv, vv) = (sp.indices().view(), sp.values().view());
+    let isize = sp.indices().index_type().size();
+    let need_i = sp.indices().offset() as u128 + (n * isize) as u128;
+    let need_v = sp.values().offset() as u128 + (n * a.size()) as u128;
+    for (view, need) in [(&iv, need_i), (&vv, need_v)] {
+        if need > view.length() as u128
+            || view.offset() as u128 + view.length() as u128 > view.buffer().length() as u128
+        {
+            bail!(
+                "buffer view {} is too short or lies outside its buffer",
+                view.index()
+            );
+        }
+    }
+    if sparse_indices(sp, buffers, a.count()).is_none() {
+        bail!("an index is past the accessor's {} elements", a.count());
+    }
+    Ok(())
+}
+
+/// A sparse accessor's substituted element numbers, or None if one is out of range.
+fn sparse_indices(
+    sp: &gltf::accessor::sparse::Sparse,
+    buffers: &[Vec<u8>],
+    count: usize,
+) -> Option<Vec<usize>> {
+    use gltf::accessor::sparse::IndexType;
+    let ind = sp.indices();
+    let view = ind.view();
+    let data = buffers.get(view.buffer().index())?;
+    let start = view.offset() + ind.offset();
+    let size = ind.index_type().size();
+    (0..sp.count())
+        .map(|k| {
+            let b = data.get(start + k * size..start + (k + 1) * size)?;
+            let i = match ind.index_type() {
+                IndexType::U8 => b[0] as usize,
+                IndexType::U16 => u16::from_le_bytes([b[0], b[1]]) as usize,
+                IndexType::U32 => u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize,
+            };
+            (i < count).then_some(i)
+        })
+        .collect()
+}
+
 /// A checked accessor's N-component elements (`check_accessor`) as floats: F32 as stored,
 /// integers as their values or, normalized, mapped to [−1, 1] or [0, 1] (glTF 3.11: c / 127
 /// clamped at −1 for signed bytes, c / 255 for unsigned, and the same for 16 bits).
@@ -313,11 +378,7 @@ pub(super) fn read_floats<const N: usize>(
     buffers: &[Vec<u8>],
 ) -> Option<Vec<[f32; N]>> {
     use gltf::accessor::DataType;
-    let view = a.view()?;
-    let data = buffers.get(view.buffer().index())?;
     let size = a.data_type().size();
-    let stride = view.stride().unwrap_or(N * size);
-    let start = view.offset() + a.offset();
     let norm = a.normalized();
     let value = |b: &[u8]| -> f32 {
         match a.data_type() {
@@ -333,13 +394,34 @@ pub(super) fn read_floats<const N: usize>(
             DataType::U32 => u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as f32,
         }
     };
-    (0..a.count())
-        .map(|i| {
-            let at = start + i * stride;
-            let e = data.get(at..at + N * size)?;
-            Some(std::array::from_fn(|k| value(&e[k * size..])))
-        })
-        .collect()
+    let element = |data: &[u8], at: usize| -> Option<[f32; N]> {
+        let e = data.get(at..at + N * size)?;
+        Some(std::array::from_fn(|k| value(&e[k * size..])))
+    };
+    let mut out: Vec<[f32; N]> = match a.view() {
+        Some(view) => {
+            let data = buffers.get(view.buffer().index())?;
+            let stride = view.stride().unwrap_or(N * size);
+            let start = view.offset() + a.offset();
+            (0..a.count())
+                .map(|i| element(data, start + i * stride))
+                .collect::<Option<_>>()?
+        }
+        None => vec![[0.0; N]; a.count()],
+    };
+    // Sparse storage (glTF 3.6.2.3): the listed elements replaced.
+    if let Some(sp) = a.sparse() {
+        let values = sp.values();
+        let data = buffers.get(values.view().buffer().index())?;
+        let start = values.view().offset() + values.offset();
+        for (k, i) in sparse_indices(&sp, buffers, a.count())?
+            .into_iter()
+            .enumerate()
+        {
+            out[i] = element(data, start + k * N * size)?;
+        }
+    }
+    Some(out)
 }
 
 /// A checked primitive's vertices from its accessors (`check_primitive`): positions,

@@ -27,10 +27,14 @@ pub(super) fn material(
     notes: &mut Vec<String>,
 ) -> Result<(MaterialRecord, Option<UvMap>)> {
     let pbr = m.pbr_metallic_roughness();
+    let sg = m.pbr_specular_glossiness();
     let strength = m.emissive_strength().unwrap_or(1.0);
     let spec = m.specular();
     let normal = m.normal_texture();
-    let textured = pbr.base_color_texture().is_some()
+    let base_texture = pbr
+        .base_color_texture()
+        .or_else(|| sg.as_ref().and_then(|s| s.diffuse_texture()));
+    let textured = base_texture.is_some()
         || pbr.metallic_roughness_texture().is_some()
         || m.emissive_texture().is_some()
         || normal.is_some();
@@ -53,11 +57,7 @@ pub(super) fn material(
         (Ok(UvMap::of(&i)), i.texture())
     }
     let slots = [
-        (
-            MaterialRecord::BASE_COLOR,
-            pbr.base_color_texture().map(info),
-            true,
-        ),
+        (MaterialRecord::BASE_COLOR, base_texture.map(info), true),
         (
             MaterialRecord::METALLIC_ROUGHNESS,
             pbr.metallic_roughness_texture().map(info),
@@ -114,7 +114,37 @@ pub(super) fn material(
             false => normal.as_ref().map_or(0.0, |n| n.scale()),
         },
     };
-    Ok((rec, uv))
+    Ok((
+        match sg {
+            Some(sg) => specular_glossiness(rec, &sg, notes),
+            None => rec,
+        },
+        uv,
+    ))
+}
+
+/// KHR_materials_pbrSpecularGlossiness as metallic-roughness with KHR_materials_specular:
+/// the diffuse colour as base colour (dielectric, metallic 0), roughness 1 − glossiness,
+/// and the specular colour as F0 through the specular colour factor (F0 = 0.04 × factor at
+/// ior 1.5, clamped at 1 where shaded). The specular-glossiness texture has no slot: it is
+/// dropped, its factors kept, and `notes` says so.
+fn specular_glossiness(
+    mut rec: MaterialRecord,
+    sg: &gltf::material::PbrSpecularGlossiness,
+    notes: &mut Vec<String>,
+) -> MaterialRecord {
+    rec.base_color = sg.diffuse_factor();
+    rec.metallic = 0.0;
+    rec.roughness = 1.0 - sg.glossiness_factor();
+    rec.ior = 1.5;
+    rec.specular = 1.0;
+    rec.specular_color = sg.specular_factor().map(|f| f / 0.04);
+    let mut note = "uses KHR_materials_pbrSpecularGlossiness: shaded as metallic-roughness (diffuse as base colour, roughness 1 − glossiness, specular as F0)".to_string();
+    if sg.specular_glossiness_texture().is_some() {
+        note += "; its specularGlossinessTexture is dropped, its factors kept";
+    }
+    notes.push(note);
+    rec
 }
 
 /// The texture slots' names, by `MaterialRecord` slot.

@@ -231,7 +231,8 @@ impl MeshCtx<'_> {
             let v = match decoded {
                 Some(v) => v,
                 None => {
-                    check_primitive(&prim).map_err(|e| anyhow!("{}: {e}", what(0)))?;
+                    check_primitive(&prim, self.buffers)
+                        .map_err(|e| anyhow!("{}: {e}", what(0)))?;
                     let Some(v) = accessor_vertices(&prim, self.buffers, uv_set) else {
                         continue;
                     };
@@ -351,6 +352,7 @@ fn gpu_instances(
             &format!("{name} accessor {}", a.index()),
             &[DataType::F32],
             dims,
+            buffers,
         )?;
         Ok(Some(a))
     };
