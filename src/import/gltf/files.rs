@@ -102,6 +102,7 @@ pub(super) const READ: &[&str] = &[
     "KHR_materials_specular",
     "KHR_materials_transmission",
     "KHR_materials_pbrSpecularGlossiness",
+    "KHR_materials_unlit",
     "KHR_texture_transform",
     "EXT_mesh_gpu_instancing",
     QUANTIZATION,

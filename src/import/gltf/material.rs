@@ -114,13 +114,27 @@ pub(super) fn material(
             false => normal.as_ref().map_or(0.0, |n| n.scale()),
         },
     };
-    Ok((
-        match sg {
-            Some(sg) => specular_glossiness(rec, &sg, notes),
-            None => rec,
-        },
-        uv,
-    ))
+    let rec = match sg {
+        Some(sg) => specular_glossiness(rec, &sg, notes),
+        None => rec,
+    };
+    Ok((if m.unlit() { unlit(rec, notes) } else { rec }, uv))
+}
+
+/// KHR_materials_unlit as an emitter of its base colour (factor and texture) that reflects
+/// nothing: seen directly it shows its base colour, as the extension asks, and, as a
+/// renderer with no notion of "unlit" must choose, it also lights what faces it (as
+/// Blender's importer makes it an emission shader). `notes` says so.
+fn unlit(mut rec: MaterialRecord, notes: &mut Vec<String>) -> MaterialRecord {
+    let [r, g, b, a] = rec.base_color;
+    rec.emission = [r, g, b];
+    rec.textures[MaterialRecord::EMISSIVE] = rec.textures[MaterialRecord::BASE_COLOR];
+    rec.base_color = [0.0, 0.0, 0.0, a];
+    rec.metallic = 0.0;
+    rec.specular = 0.0;
+    rec.transmission = 0.0;
+    notes.push("uses KHR_materials_unlit: shaded as an emitter of its base colour that reflects nothing, so it also lights its surroundings".into());
+    rec
 }
 
 /// KHR_materials_pbrSpecularGlossiness as metallic-roughness with KHR_materials_specular:
