@@ -776,6 +776,12 @@ fn webp_and_ktx2_only_textures_render_as_their_png_twin() {
     let out = dir.path().join("broken.canopy");
     let err = fails(&["convert", s(&broken.join("bumps.gltf")), "-o", s(&out)]);
     assert!(err.contains("ridges.ktx2") && err.contains("KTX2"), "{err}");
+    // Level 0 declaring 2^62 decompressed bytes (the transcoder would allocate them).
+    let mut huge = ktx.clone();
+    huge[96..104].copy_from_slice(&(1u64 << 62).to_le_bytes());
+    std::fs::write(broken.join("ridges.ktx2"), &huge).unwrap();
+    let err = fails(&["convert", s(&broken.join("bumps.gltf")), "-o", s(&out)]);
+    assert!(err.contains("KTX2 level 0 declares"), "{err}");
 }
 
 /// A material whose textures read two coordinate sets (the archive stores one a vertex)

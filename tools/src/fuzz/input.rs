@@ -126,7 +126,24 @@ pub fn seed_inputs() -> Vec<(&'static str, Vec<u8>)> {
         ("bin.ply", bply),
         ("s.glb", seed_glb(false)),
         ("i.glb", seed_glb(true)),
+        // The bundled encodings: Draco and meshopt meshes, WebP and KTX2 textures (each
+        // .gltf names its bumps.bin and its image).
+        ("d.glb", scene("draco/spheres.glb")),
+        ("mo.glb", scene("meshopt/bumps.glb")),
+        ("bumps.bin", scene("bumps/bumps.bin")),
+        ("ridges.webp", scene("webp/ridges.webp")),
+        ("w.gltf", scene("webp/bumps.gltf")),
+        ("ridges.ktx2", scene("ktx2/ridges.ktx2")),
+        ("k.gltf", scene("ktx2/bumps.gltf")),
     ]
+}
+
+/// A bundled scene file's bytes.
+fn scene(name: &str) -> Vec<u8> {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../scenes")
+        .join(name);
+    std::fs::read(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
 }
 
 /// A glb: two triangles (an emitter over a glass floor), interleaved positions and normals,

@@ -218,9 +218,11 @@ pub fn run(c: &Config, dir: &Path, mut log: impl FnMut(&Tally, u64)) -> Result<T
                 let (class, bytes) = mutate_input(name, raw, &mut rng);
                 let mut files = inputs.clone();
                 files[k].1 = bytes;
-                // Mutating the MTL exercises the OBJ that reads it.
+                // Mutating a side file (MTL, image, buffer) exercises the file that reads it.
                 let main = match *name {
                     "m.mtl" => "m.obj",
+                    "ridges.webp" => "w.gltf",
+                    "ridges.ktx2" | "bumps.bin" => "k.gltf",
                     n => n,
                 };
                 let what = format!("{i} (seed {seed}): {} in {name}", CLASSES[class]);
