@@ -6,6 +6,7 @@
 //! attribute's unique id; the decoded points are the vertices and the faces the triangles,
 //! in place of the primitive's accessors (which keep only their count and type).
 
+use super::files::view_bytes;
 use anyhow::{anyhow, bail, Result};
 use draco_core::decoder_buffer::DecoderBuffer;
 use draco_core::draco_types::DataType;
@@ -76,15 +77,12 @@ pub(super) fn decode(
     let view = doc.views().nth(view as usize).ok_or_else(|| {
         anyhow!("its {DRACO} extension names buffer view {view}, which does not exist")
     })?;
-    let bytes = buffers
-        .get(view.buffer().index())
-        .and_then(|b| b.get(view.offset()..view.offset().checked_add(view.length())?))
-        .ok_or_else(|| {
-            anyhow!(
-                "{DRACO} buffer view {} lies outside its buffer",
-                view.index()
-            )
-        })?;
+    let bytes = view_bytes(&view, buffers).ok_or_else(|| {
+        anyhow!(
+            "{DRACO} buffer view {} lies outside its buffer",
+            view.index()
+        )
+    })?;
     let mut mesh = Mesh::new();
     MeshDecoder::new()
         .decode(&mut DecoderBuffer::new(bytes), &mut mesh)

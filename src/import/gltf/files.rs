@@ -169,6 +169,16 @@ fn check_images(json: &gltf::json::Root) -> Result<()> {
     Ok(())
 }
 
+/// A buffer view's bytes, or None where it lies outside its buffer.
+pub(super) fn view_bytes<'a>(
+    view: &gltf::buffer::View,
+    buffers: &'a [Vec<u8>],
+) -> Option<&'a [u8]> {
+    buffers
+        .get(view.buffer().index())?
+        .get(view.offset()..view.offset().checked_add(view.length())?)
+}
+
 /// The bytes of a base64 `data:` URI.
 pub(super) fn data_uri(uri: &str) -> Result<Vec<u8>> {
     use base64::Engine;

@@ -1,7 +1,7 @@
 //! glTF materials: metallic-roughness with the KHR extensions Canopy models, their
 //! texture sources and UV transforms.
 
-use super::files::{data_uri, relative_file};
+use super::files::{data_uri, relative_file, view_bytes};
 use crate::import::{SceneDesc, TextureSource};
 use anyhow::{anyhow, Context, Result};
 use canopy_format::{name_bytes, MaterialRecord, TextureRecord};
@@ -188,15 +188,12 @@ pub(super) fn texture_source(
     };
     match image.source() {
         gltf::image::Source::View { view, .. } => {
-            let data = buffers
-                .get(view.buffer().index())
-                .and_then(|b| b.get(view.offset()..view.offset().checked_add(view.length())?))
-                .ok_or_else(|| {
-                    anyhow!(
-                        "image {}: its buffer view lies outside its buffer",
-                        image.index()
-                    )
-                })?;
+            let data = view_bytes(&view, buffers).ok_or_else(|| {
+                anyhow!(
+                    "image {}: its buffer view lies outside its buffer",
+                    image.index()
+                )
+            })?;
             src.bytes = Some(std::sync::Arc::new(data.to_vec()));
             if src.name.is_empty() {
                 src.name = format!("image {}", image.index());
