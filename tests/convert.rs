@@ -902,3 +902,24 @@ fn unlit_materials_show_their_base_colour() {
         img.pixels.len()
     );
 }
+
+/// A scan's per-vertex colours (which Canopy does not apply) are named at convert, with
+/// what is used instead; the mesh still converts.
+#[test]
+fn ply_vertex_colours_are_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let ply = dir.path().join("c.ply");
+    std::fs::write(
+        &ply,
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0 255 0 0\n1 0 0 0 255 0\n0 1 0 0 0 255\n3 0 1 2\n",
+    )
+    .unwrap();
+    let out = dir.path().join("c.canopy");
+    let run = canopy(&["convert", s(&ply), "-o", s(&out)]);
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "{err}");
+    assert!(
+        err.contains("its vertices carry red, green, blue, which Canopy does not apply"),
+        "{err}"
+    );
+}

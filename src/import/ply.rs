@@ -350,6 +350,44 @@ fn strip_triangles(idx: &[u32], mut tri: impl FnMut([u32; 3]) -> Result<()>) -> 
 
 /// Streams a PLY file: vertices are read into memory, each face is handed to `face` with
 /// its validated indices. Returns whether the vertices carried normals.
+/// Warns of vertex properties Canopy does not apply (colours, texture coordinates), naming
+/// them and what is used instead.
+fn name_unread(path: &Path, e: &Element) {
+    let unread: Vec<&str> = e
+        .props
+        .iter()
+        .map(|p| p.name.as_str())
+        .filter(|n| {
+            matches!(
+                *n,
+                "red"
+                    | "green"
+                    | "blue"
+                    | "alpha"
+                    | "diffuse_red"
+                    | "diffuse_green"
+                    | "diffuse_blue"
+                    | "r"
+                    | "g"
+                    | "b"
+                    | "s"
+                    | "t"
+                    | "u"
+                    | "v"
+                    | "texture_u"
+                    | "texture_v"
+            )
+        })
+        .collect();
+    if !unread.is_empty() {
+        eprintln!(
+            "warning: {}: its vertices carry {}, which Canopy does not apply; the material is one colour",
+            path.display(),
+            unread.join(", ")
+        );
+    }
+}
+
 fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
     let f = std::fs::File::open(path).map_err(context(path))?;
     let file_len = f.metadata().map_err(context(path))?.len();
@@ -396,6 +434,7 @@ fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
                     (Some(a), Some(b), Some(c)) => Some([a, b, c]),
                     _ => None,
                 };
+                name_unread(path, e);
                 let io = |err: std::io::Error| {
                     anyhow::anyhow!("{}: vertex spill file: {err}", path.display())
                 };
