@@ -133,6 +133,66 @@ fn a_bake_is_refused_with_another_archive() {
     );
 }
 
+/// A bake records the environment it was lit by: read by a render under the same map,
+/// strength and rotation it gives that render's image; under another map, another
+/// rotation or none, it is refused by name.
+#[test]
+fn a_bake_is_refused_under_another_environment() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = bunny_box(dir.path());
+    let sky = scene("env/sky.hdr");
+    let rad = dir.path().join("sky.radiance");
+    bake(&arc, &rad, &["--env", s(&sky)]);
+    let pbgi = [&SMALL[..], &["--integrator", "pbgi", "--env", s(&sky)]].concat();
+    let (own, _) = render(&arc, &dir.path().join("own.exr"), &pbgi);
+    let with = [&pbgi[..], &["--bake-in", s(&rad)]].concat();
+    let (read, _) = render(&arc, &dir.path().join("read.exr"), &with);
+    assert_eq!(rmse(&own, &read), 0.0);
+    let out = dir.path().join("x.exr");
+    let render_args = |extra: &[&'static str]| -> Vec<String> {
+        [
+            &["render", s(&arc), "-o", s(&out)][..],
+            &SMALL,
+            &["--integrator", "pbgi", "--bake-in", s(&rad)],
+            extra,
+        ]
+        .concat()
+        .into_iter()
+        .map(String::from)
+        .collect()
+    };
+    let run = |extra: &[&'static str], more: &[&str]| {
+        let mut a = render_args(extra);
+        a.extend(more.iter().map(|m| m.to_string()));
+        fails(&a.iter().map(String::as_str).collect::<Vec<_>>())
+    };
+    let turned = run(&["--env-rotate", "90"], &["--env", s(&sky)]);
+    assert!(
+        turned.contains("baked under another environment") && turned.contains(s(&rad)),
+        "{turned}"
+    );
+    let none = run(&[], &[]);
+    assert!(none.contains("baked under another environment"), "{none}");
+    let plain = dir.path().join("plain.radiance");
+    bake(&arc, &plain, &[]);
+    let lit = fails(
+        &[
+            &["render", s(&arc), "-o", s(&out)][..],
+            &SMALL,
+            &[
+                "--integrator",
+                "pbgi",
+                "--bake-in",
+                s(&plain),
+                "--env",
+                s(&sky),
+            ],
+        ]
+        .concat(),
+    );
+    assert!(lit.contains("with no environment light"), "{lit}");
+}
+
 /// Every truncation and a flipped byte anywhere (header, blocks, block table) is refused
 /// with an error naming the file, when opened or when its page is read.
 #[test]

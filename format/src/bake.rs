@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 
 pub const RADIANCE_MAGIC: [u8; 8] = *b"CNPYRAD\x1a";
 pub const RADIANCE_VERSION_MAJOR: u16 = 1;
-pub const RADIANCE_VERSION_MINOR: u16 = 1;
+pub const RADIANCE_VERSION_MINOR: u16 = 2;
 
 /// What a node shows along each cube axis (+x, −x, +y, −y, +z, −z): projected area and
 /// reflected power (radiance times projected area) over its triangles.
@@ -139,8 +139,14 @@ pub struct BakeHeader {
     pub wavelet_n: u32,
     /// The truncation threshold, relative per page (1.1).
     pub wavelet_threshold: f32,
-    pub reserved: [u8; 16],
+    /// The environment the bake was lit by (1.2): `NO_ENVIRONMENT`, or an identity of the
+    /// map as stored; 0 in files that record none (1.0, 1.1).
+    pub environment: u64,
+    pub reserved: [u8; 8],
 }
+
+/// `BakeHeader::environment` of a bake lit by no environment.
+pub const NO_ENVIRONMENT: u64 = 1;
 
 const _: () = assert!(std::mem::size_of::<BakeHeader>() == 128);
 
@@ -170,6 +176,8 @@ pub struct BakeInfo {
     /// Texels per cube-face side of glossy radiance (0: none) and the relative threshold.
     pub wavelet_n: u32,
     pub wavelet_threshold: f32,
+    /// The environment's identity (`BakeHeader::environment`).
+    pub environment: u64,
 }
 
 /// Writes a bake file block by block, in any page order; like the archive writer it
@@ -223,7 +231,8 @@ impl RadianceWriter {
             header_checksum: 0,
             wavelet_n: info.wavelet_n,
             wavelet_threshold: info.wavelet_threshold,
-            reserved: [0; 16],
+            environment: info.environment,
+            reserved: [0; 8],
         };
         let blocks = entries
             .iter()
@@ -643,7 +652,7 @@ fn check_header(h: &BakeHeader) -> std::result::Result<(), String> {
     if !(h.patch_size.is_finite() && h.patch_size > 0.0) {
         return Err(format!("patch size {}", h.patch_size));
     }
-    if h.reserved != [0; 16] {
+    if h.reserved != [0; 8] {
         return Err("reserved bytes set".into());
     }
     if h.wavelet_n == 0 && (h.coef_bytes != 0 || h.wavelet_threshold != 0.0) {
@@ -731,67 +740,5 @@ fn check_block(
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn block() -> BakedBlock {
-        let value = |index| CoefValue {
-            index,
-            rgb: [1.0, -2.0, 0.5],
-        };
-        BakedBlock {
-            nodes: vec![BakedNode::default(); 3],
-            patch_of: Vec::new(),
-            patches: Vec::new(),
-            coefs: CoefBlock {
-                records: vec![
-                    CoefRecord {
-                        node: 0,
-                        kind: CoefRecord::AVERAGE,
-                        first: 0,
-                        count: 2,
-                    },
-                    CoefRecord {
-                        node: 2,
-                        kind: CoefRecord::DETAIL,
-                        first: 2,
-                        count: 1,
-                    },
-                ],
-                values: vec![value(0), value(5), value(23)],
-            },
-        }
-    }
-
-    /// A coefficient section reads back as written; each way a record can lie about its
-    /// node, kind, values or indices is refused.
-    #[test]
-    fn coefficient_sections_round_trip_and_bad_records_are_refused() {
-        let good = block();
-        let c = &good.coefs;
-        let mut raw = Vec::new();
-        raw.extend_from_slice(&(c.records.len() as u32).to_le_bytes());
-        raw.extend_from_slice(&(c.values.len() as u32).to_le_bytes());
-        raw.extend_from_slice(bytemuck::cast_slice(&c.records));
-        raw.extend_from_slice(bytemuck::cast_slice(&c.values));
-        assert_eq!(raw.len() as u64, c.bytes());
-        assert_eq!(&read_coefs(&raw).unwrap(), c);
-        assert!(read_coefs(&raw[..raw.len() - 1]).is_err());
-        assert!(check_coefs(&good, 2).is_ok());
-        assert!(check_coefs(&good, 1).is_err(), "index 23 needs 6·2² texels");
-        let bad: [&dyn Fn(&mut CoefBlock); 7] = [
-            &|c| c.records[1].node = 0,
-            &|c| c.records[1].node = 3,
-            &|c| c.records[0].kind = 2,
-            &|c| c.records[1].first = 1,
-            &|c| c.records[1].count = 2,
-            &|c| c.values.swap(0, 1),
-            &|c| c.values[2].rgb[1] = f32::NAN,
-        ];
-        for (k, spoil) in bad.iter().enumerate() {
-            let mut b = good.clone();
-            spoil(&mut b.coefs);
-            assert!(check_coefs(&b, 2).is_err(), "spoiled record {k} accepted");
-        }
-    }
-}
+#[path = "bake_tests.rs"]
+mod tests;

@@ -35,6 +35,8 @@ pub struct Environment {
     density_bytes: u64,
     /// Mean radiance over the sphere of directions.
     mean: V,
+    /// Its identity: the map as stored, its rotation and its sampling (`id`).
+    id: u64,
     /// What it is, for the stats.
     pub name: String,
 }
@@ -99,7 +101,13 @@ impl Environment {
                 light * (PI * (j as f32 + 0.5) / rows as f32).sin()
             })
             .collect();
+        let id = [built.hash, rotate_deg.to_bits() as u64, uniform as u64]
+            .iter()
+            .flat_map(|x| x.to_le_bytes())
+            .collect::<Vec<u8>>();
         Environment {
+            // Never 0 or 1, which a bake file gives "not recorded" and "none".
+            id: xxhash_rust::xxh3::xxh3_64(&id).max(2),
             mean: mean_radiance(&built.row_sums, built.tiles.width),
             tiles: built.tiles,
             rotation: [rotate_deg.to_radians().sin(), rotate_deg.to_radians().cos()],
@@ -107,6 +115,12 @@ impl Environment {
             density_bytes: density_bytes(built.grid),
             name: String::new(),
         }
+    }
+
+    /// An identity of the environment for bake files: equal for the same map (as stored,
+    /// its strength applied), rotation and sampling.
+    pub fn id(&self) -> u64 {
+        self.id
     }
 
     /// Mean radiance over the sphere of directions.

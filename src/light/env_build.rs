@@ -76,6 +76,8 @@ pub struct Built {
     pub row_sums: Vec<[f64; 3]>,
     /// Texels with a negative channel (taken as 0).
     pub negative: u64,
+    /// A hash of the map as stored: its size and every tile's halves and scale.
+    pub hash: u64,
 }
 
 pub struct Builder {
@@ -85,6 +87,8 @@ pub struct Builder {
     bands: HashMap<usize, Band>,
     sink: Result<Sink, String>,
     scale: Vec<f32>,
+    /// Per tile, a hash of its stored halves and scale.
+    hashes: Vec<u64>,
     row_sums: Vec<[f64; 3]>,
     brightest: Vec<f32>,
     negative: u64,
@@ -113,6 +117,7 @@ impl Builder {
             bands: HashMap::new(),
             sink,
             scale: vec![1.0; tiles],
+            hashes: vec![0; tiles],
             row_sums: vec![[0.0; 3]; height],
             brightest: vec![0.0; grid[0] * grid[1]],
             negative: 0,
@@ -185,6 +190,9 @@ impl Builder {
                     }
                 }
             }
+            let mut bytes: Vec<u8> = tile.iter().flat_map(|h| h.to_le_bytes()).collect();
+            bytes.extend(scale.to_le_bytes());
+            self.hashes[t] = xxhash_rust::xxh3::xxh3_64(&bytes);
             self.store_tile(t, &tile);
         }
     }
@@ -221,7 +229,13 @@ impl Builder {
             Sink::Whole(all) => Store::Whole(all),
             Sink::File(f) => Store::Paged(Paged::new(f, Tiles::count(w, h), self.capacity)),
         };
+        let all: Vec<u8> = [w as u64, h as u64]
+            .iter()
+            .chain(&self.hashes)
+            .flat_map(|x| x.to_le_bytes())
+            .collect();
         Ok(Built {
+            hash: xxhash_rust::xxh3::xxh3_64(&all),
             tiles: Tiles::new(w, h, self.scale, store),
             brightest: self.brightest,
             grid: self.grid,

@@ -163,8 +163,9 @@ pub struct BakeParams {
 }
 
 impl BakeParams {
-    fn info(&self, bounces: u32, maps: Option<&GlossyMaps>) -> BakeInfo {
+    fn info(&self, scene: &Scene, bounces: u32, maps: Option<&GlossyMaps>) -> BakeInfo {
         BakeInfo {
+            environment: environment_id(scene),
             bounces,
             samples_per_triangle: self.samples,
             seed: self.seed,
@@ -200,18 +201,48 @@ pub fn bake_file(
 ) -> Result<(u64, u64)> {
     let archive = &scene.cache.archive;
     let maps = p.maps(scene)?;
-    let mut out = RadianceWriter::create(path, archive, p.info(p.bounces, maps.as_ref()))?;
+    let mut out = RadianceWriter::create(path, archive, p.info(scene, p.bounces, maps.as_ref()))?;
     let samples = bake_bounces(scene, p, maps.as_ref(), &mut out, progress)?;
     let decoded = out.decoded_bytes();
     out.finish()?;
     Ok((samples, decoded))
 }
 
+/// The identity a bake file records for the scene's environment.
+pub fn environment_id(scene: &Scene) -> u64 {
+    scene.lights.env.as_ref().map_or(
+        canopy_format::bake::NO_ENVIRONMENT,
+        crate::light::Environment::id,
+    )
+}
+
+/// A bake read with `--bake-in` was lit by the render's environment: the same map, strength,
+/// rotation and sampling, or none for both (files that record none are taken as they are).
+pub fn check_environment(file: &BakeFile, scene: &Scene, path: &Path) -> Result<()> {
+    let (baked, now) = (file.header.environment, environment_id(scene));
+    if baked == 0 || baked == now {
+        return Ok(());
+    }
+    let render = scene
+        .lights
+        .env
+        .as_ref()
+        .map_or("none".to_string(), |e| e.name.clone());
+    let baked = match baked {
+        canopy_format::bake::NO_ENVIRONMENT => "with no environment light; this render has one",
+        _ => "under another environment than this render's",
+    };
+    bail!(
+        "{} was baked {baked} ({render}): bake again with the render's --env flags",
+        path.display()
+    )
+}
+
 /// Bakes into an unnamed scratch file (a render without `--bake-in`) and opens it.
 pub fn bake_scratch(scene: &Scene, p: &BakeParams) -> Result<(BakeFile, u64)> {
     let archive = &scene.cache.archive;
     let maps = p.maps(scene)?;
-    let mut out = RadianceWriter::temporary(archive, p.info(p.bounces, maps.as_ref()))?;
+    let mut out = RadianceWriter::temporary(archive, p.info(scene, p.bounces, maps.as_ref()))?;
     let samples = bake_bounces(scene, p, maps.as_ref(), &mut out, &|_| {})?;
     let file = out.finish()?;
     let r = BakeFile::from_file(file, Path::new("(temporary bake)"), archive)?;
@@ -249,7 +280,7 @@ fn bake_bounces(
             samples += bake(scene, p, maps, last, progress, gather)?;
             break;
         }
-        let mut out = RadianceWriter::temporary(archive, p.info(b, maps))?;
+        let mut out = RadianceWriter::temporary(archive, p.info(scene, b, maps))?;
         samples += bake(scene, p, maps, &mut out, progress, gather)?;
         let file = out.finish()?;
         let name = format!("(bounce {b} of the bake)");

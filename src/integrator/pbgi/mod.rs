@@ -242,7 +242,11 @@ impl Integrator for PbgiIntegrator {
         let t = Instant::now();
         let archive = &scene.cache.archive;
         let file = match &self.settings.bake_in {
-            Some(path) => canopy_format::bake::BakeFile::open(path, archive)?,
+            Some(path) => {
+                let file = canopy_format::bake::BakeFile::open(path, archive)?;
+                bake::check_environment(&file, scene, path)?;
+                file
+            }
             None => {
                 let mut params = self.settings.bake.params(self.seed);
                 if self.settings.rays {
