@@ -348,8 +348,6 @@ fn strip_triangles(idx: &[u32], mut tri: impl FnMut([u32; 3]) -> Result<()>) -> 
     Ok(())
 }
 
-/// Streams a PLY file: vertices are read into memory, each face is handed to `face` with
-/// its validated indices. Returns whether the vertices carried normals.
 /// Warns of vertex properties Canopy does not apply (colours, texture coordinates), naming
 /// them and what is used instead.
 fn name_unread(path: &Path, e: &Element) {
@@ -388,6 +386,8 @@ fn name_unread(path: &Path, e: &Element) {
     }
 }
 
+/// Streams a PLY file: vertices are read into memory, each face is handed to `face` with
+/// its validated indices. Returns whether the vertices carried normals.
 fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
     let f = std::fs::File::open(path).map_err(context(path))?;
     let file_len = f.metadata().map_err(context(path))?.len();
