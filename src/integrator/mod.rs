@@ -362,6 +362,12 @@ impl Scene {
         self.material_at(m, &hit.tri.p, hit.uv, hit.b, ray.d, spread)
     }
 
+    /// The first failure to read the scene's data during a render: a page or texture tile,
+    /// or a paged environment tile.
+    pub fn error(&self) -> Option<String> {
+        self.cache.error().or_else(|| self.lights.error())
+    }
+
     /// A triangle hit's opacity alone (no colour lookups): see `Textures::opacity`.
     pub fn opacity_at(&self, hit: &Hit) -> f32 {
         let index = hit.tri.material;

@@ -176,7 +176,7 @@ pub fn render(o: &RenderOptions) -> Result<(Image, RenderStats)> {
         if let Some(d) = &mut display {
             d.update(|| film.image(done), origin, false);
         }
-        if let Some(err) = scene.cache.error().or_else(|| scene.lights.error()) {
+        if let Some(err) = scene.error() {
             bail!("{err}");
         }
         pool.install(|| integ.end_pass(scene, done));

@@ -360,7 +360,7 @@ fn bake(
             glossy_roots[id as usize] = Vec::new();
         }
     }
-    if let Some(e) = cache.error().or_else(|| scene.lights.error()) {
+    if let Some(e) = scene.error() {
         anyhow::bail!(e);
     }
     Ok(samples)
