@@ -4,7 +4,9 @@
 //! builder keeps what sampling and the map's mean need: each row's sum, and the brightest
 //! texel that reaches each cell of the sampling grid.
 
-use super::env_tiles::{tile_scale, Paged, Store, Tiles, SIDE, TEXELS, TILE_BYTES};
+use super::env_tiles::{
+    tile_scale, Paged, Store, Tiles, PAGED_TABLE_BYTES, SIDE, TEXELS, TILE_BYTES, TILE_COST,
+};
 use crate::image::Image;
 use crate::material::luminance;
 use anyhow::{anyhow, bail, Context, Result};
@@ -63,7 +65,8 @@ struct Band {
 
 enum Sink {
     Whole(Vec<f16>),
-    File(File),
+    /// A temporary file, and the tiles its map may hold resident when paged.
+    File(File, u64),
 }
 
 /// What a finished build gives the environment.
@@ -93,8 +96,6 @@ pub struct Builder {
     brightest: Vec<f32>,
     negative: u64,
     not_finite: Option<(usize, usize, [f32; 3])>,
-    /// Tiles a paged map may hold resident.
-    capacity: u64,
 }
 
 impl Builder {
@@ -105,8 +106,8 @@ impl Builder {
         let tiles = Tiles::count(width, height);
         let sink = match capacity {
             None => Ok(Sink::Whole(vec![f16::ZERO; tiles * 3 * TEXELS])),
-            Some(_) => tempfile::tempfile()
-                .map(Sink::File)
+            Some(c) => tempfile::tempfile()
+                .map(|f| Sink::File(f, c))
                 .map_err(|e| format!("creating a temporary file for the environment's tiles: {e}")),
         };
         let grid = grid_size(width, height);
@@ -122,7 +123,6 @@ impl Builder {
             brightest: vec![0.0; grid[0] * grid[1]],
             negative: 0,
             not_finite: None,
-            capacity: capacity.unwrap_or(0),
         }
     }
 
@@ -190,20 +190,22 @@ impl Builder {
                     }
                 }
             }
-            let mut bytes: Vec<u8> = tile.iter().flat_map(|h| h.to_le_bytes()).collect();
-            bytes.extend(scale.to_le_bytes());
-            self.hashes[t] = xxhash_rust::xxh3::xxh3_64(&bytes);
-            self.store_tile(t, &tile);
+            let bytes: Vec<u8> = tile.iter().flat_map(|h| h.to_le_bytes()).collect();
+            let mut hash = xxhash_rust::xxh3::Xxh3::new();
+            hash.update(&bytes);
+            hash.update(&scale.to_le_bytes());
+            self.hashes[t] = hash.digest();
+            self.store_tile(t, &tile, &bytes);
         }
     }
 
-    fn store_tile(&mut self, t: usize, tile: &[f16]) {
+    /// Tile `t`, as halves and as their little-endian bytes (what the file holds).
+    fn store_tile(&mut self, t: usize, tile: &[f16], bytes: &[u8]) {
         let Ok(sink) = &mut self.sink else { return };
         match sink {
             Sink::Whole(all) => all[t * 3 * TEXELS..(t + 1) * 3 * TEXELS].copy_from_slice(tile),
-            Sink::File(f) => {
-                let bytes: Vec<u8> = tile.iter().flat_map(|h| h.to_le_bytes()).collect();
-                if let Err(e) = f.write_all_at(&bytes, (t * TILE_BYTES) as u64) {
+            Sink::File(f, _) => {
+                if let Err(e) = f.write_all_at(bytes, (t * TILE_BYTES) as u64) {
                     self.sink = Err(format!("writing the environment's tiles: {e}"));
                 }
             }
@@ -227,7 +229,7 @@ impl Builder {
         let [w, h] = self.size;
         let store = match self.sink.map_err(|e| anyhow!("{}: {e}", path.display()))? {
             Sink::Whole(all) => Store::Whole(all),
-            Sink::File(f) => Store::Paged(Paged::new(f, Tiles::count(w, h), self.capacity)),
+            Sink::File(f, capacity) => Store::Paged(Paged::new(f, Tiles::count(w, h), capacity)),
         };
         let all: Vec<u8> = [w as u64, h as u64]
             .iter()
@@ -256,11 +258,9 @@ pub fn density_bytes([cols, rows]: [usize; 2]) -> u64 {
 pub fn paged_capacity(width: usize, height: usize, share: Option<u64>) -> Option<u64> {
     let share = share?;
     let tiles = Tiles::count(width, height);
-    // The sampling tables, and per tile its scale and cache slot.
-    let tables = density_bytes(grid_size(width, height)) + (tiles * 28) as u64;
+    let tables = density_bytes(grid_size(width, height)) + tiles as u64 * PAGED_TABLE_BYTES;
     let whole = (tiles * TILE_BYTES) as u64;
-    (whole + tables > share)
-        .then(|| (share.saturating_sub(tables) / super::env_tiles::TILE_COST).max(16))
+    (whole + tables > share).then(|| (share.saturating_sub(tables) / TILE_COST).max(16))
 }
 
 /// Reads the equirectangular map in `path` (.exr streamed, .hdr whole) into a builder.

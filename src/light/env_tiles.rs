@@ -20,6 +20,11 @@ pub const TEXELS: usize = SIDE * SIDE;
 pub const TILE_BYTES: usize = TEXELS * 3 * 2;
 /// Bytes a resident paged tile counts against the budget (texels and bookkeeping).
 pub const TILE_COST: u64 = TILE_BYTES as u64 + 64;
+/// Bytes every tile keeps beside its texels: its scale, and when paged its cache slot.
+const SCALE_BYTES: u64 = 4;
+const SLOT_BYTES: u64 = 24;
+/// Bytes a paged map keeps per tile, resident or not.
+pub const PAGED_TABLE_BYTES: u64 = SCALE_BYTES + SLOT_BYTES;
 
 /// The power of two a tile whose brightest channel is `max` is stored divided by.
 pub fn tile_scale(max: f32) -> f32 {
@@ -193,13 +198,21 @@ impl Tiles {
         matches!(self.store, Store::Paged(_))
     }
 
+    /// Bytes of the per-tile tables, resident whatever is paged.
+    fn table_bytes(&self) -> u64 {
+        let per_tile = match &self.store {
+            Store::Whole(_) => SCALE_BYTES,
+            Store::Paged(_) => PAGED_TABLE_BYTES,
+        };
+        self.scale.len() as u64 * per_tile
+    }
+
     /// Bytes the texels may hold resident.
     pub fn bytes_bound(&self) -> u64 {
-        let tables = (self.scale.len() * 4) as u64;
-        tables
+        self.table_bytes()
             + match &self.store {
                 Store::Whole(all) => (all.len() * 2) as u64,
-                Store::Paged(p) => p.capacity * TILE_COST + (p.slots.len() * 24) as u64,
+                Store::Paged(p) => p.capacity * TILE_COST,
             }
     }
 
@@ -212,8 +225,7 @@ impl Tiles {
             Store::Paged(p) => EnvStats {
                 env_tiles_loaded: p.loads.load(Relaxed),
                 env_tiles_evicted: p.evictions.load(Relaxed),
-                env_bytes_peak: p.peak.load(Relaxed) * TILE_COST
-                    + (self.scale.len() * 4 + p.slots.len() * 24) as u64,
+                env_bytes_peak: p.peak.load(Relaxed) * TILE_COST + self.table_bytes(),
             },
         }
     }
