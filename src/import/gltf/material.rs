@@ -52,7 +52,6 @@ pub(super) fn material(
     }
     let mut textures = [MaterialRecord::NO_TEXTURE; 4];
     let mut uv: Option<UvMap> = None;
-    let mut dropped_normal = false;
     pub(super) fn info(i: gltf::texture::Info<'_>) -> (Result<UvMap>, gltf::Texture<'_>) {
         (Ok(UvMap::of(&i)), i.texture())
     }
@@ -84,7 +83,6 @@ pub(super) fn material(
                 "its {} texture reads texture coordinates {} (or another transform) where its other textures read {}; Canopy stores one set per vertex, so it is dropped and its factor kept",
                 SLOT_NAMES[slot], map.set, u.set
             ));
-            dropped_normal |= slot == MaterialRecord::NORMAL;
             continue;
         }
         uv = Some(map);
@@ -109,9 +107,10 @@ pub(super) fn material(
         flags,
         textures,
         alpha_cutoff: m.alpha_cutoff().unwrap_or(0.5),
-        normal_scale: match dropped_normal {
-            true => 0.0,
-            false => normal.as_ref().map_or(0.0, |n| n.scale()),
+        // Finite with a normal texture, 0 without (a dropped one included).
+        normal_scale: match textures[MaterialRecord::NORMAL] {
+            MaterialRecord::NO_TEXTURE => 0.0,
+            _ => normal.as_ref().map_or(0.0, |n| n.scale()),
         },
     };
     let rec = match sg {
