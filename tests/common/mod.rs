@@ -29,6 +29,14 @@ pub fn ok(args: &[&str]) -> String {
     String::from_utf8(out.stdout).unwrap()
 }
 
+/// Runs canopy, asserts success, and returns stderr (its warnings and notes).
+pub fn succeeds_saying(args: &[&str]) -> String {
+    let out = canopy(args);
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(out.status.success(), "canopy {args:?} failed: {err}");
+    err
+}
+
 /// Runs canopy, asserts a clean failure (exit 1 for bad input, 2 for bad arguments; no
 /// panic, no signal) and returns stderr.
 pub fn fails(args: &[&str]) -> String {
