@@ -9,8 +9,9 @@ use std::path::PathBuf;
 /// Render an archive to a linear OpenEXR image (and a PNG preview) under a memory budget.
 ///
 /// Pages are decoded on demand into a cache bounded by --mem-budget; the top pages stay
-/// pinned. The same archive, settings and seed give the same image whatever the thread
-/// count. `-o x.png` writes x.png and x.exr beside it.
+/// pinned. The path tracer and PBGI give the same image for the same archive, settings and
+/// seed whatever the thread count; the cone integrator's stored light depends on the order
+/// threads reach it. `-o x.png` writes x.png and x.exr beside it.
 #[derive(Args)]
 pub struct RenderArgs {
     archive: PathBuf,
