@@ -14,7 +14,8 @@ use canopy::integrator::cone::ConeSettings;
 use canopy::integrator::edge::{EdgeSettings, DEFAULT_EDGE_RAYS, PBGI_EDGE_RAYS};
 use canopy::integrator::pbgi::PbgiSettings;
 use canopy::integrator::{Kind, Settings};
-use canopy::render::EnvOptions;
+use canopy::light::sky::SkyOptions;
+use canopy::render::{EnvOptions, EnvSource};
 use canopy::texture::TextureFilter;
 use canopy::units;
 use clap::parser::ValueSource;
@@ -88,19 +89,44 @@ struct RenderSettings {
 #[derive(Args, Clone)]
 struct EnvArgs {
     /// Light from an equirectangular environment map (.exr or .hdr; +Y up, Mitsuba 3's
-    /// `envmap` convention). Without it, a scene with no light source is lit by a uniform
-    /// white environment, with a note saying so.
-    #[arg(long, value_name = "FILE")]
+    /// `envmap` convention). Without it or --sky, a scene with no light source is lit by a
+    /// uniform white environment, with a note saying so.
+    #[arg(long, value_name = "FILE", group = "environment")]
     env: Option<PathBuf>,
-    /// Factor on the environment map's radiance.
-    #[arg(long, value_name = "S", default_value_t = 1.0, requires = "env", value_parser = units::parse_non_negative)]
+    /// Light from a clear sky (Hosek–Wilkie, in Mitsuba 3's `sunsky` units) and its sun.
+    #[arg(long, group = "environment")]
+    sky: bool,
+    /// The sun's height above the horizon in degrees, 0 to 90.
+    #[arg(long, value_name = "DEG", default_value_t = 45.0, requires = "sky")]
+    sun_elevation: f32,
+    /// The sun's direction about +Y in degrees, from −Z toward +X (the default 135° lights
+    /// the default view from its upper right).
+    #[arg(
+        long,
+        value_name = "DEG",
+        default_value_t = 135.0,
+        requires = "sky",
+        allow_negative_numbers = true
+    )]
+    sun_azimuth: f32,
+    /// Advanced: the sky's turbidity, 1 (arctic clear) to 10 (humid haze).
+    #[arg(long, value_name = "T", default_value_t = 3.0, requires = "sky")]
+    turbidity: f32,
+    /// Advanced: the ground albedo the sky model assumes, 0 to 1 (the ground itself is not drawn).
+    #[arg(long, value_name = "A", default_value_t = 0.3, requires = "sky")]
+    ground_albedo: f32,
+    /// Advanced: factor on the sun's radiance (0: the sky alone).
+    #[arg(long, value_name = "S", default_value_t = 1.0, requires = "sky", value_parser = units::parse_non_negative)]
+    sun_strength: f32,
+    /// Factor on the environment's radiance (map or sky).
+    #[arg(long, value_name = "S", default_value_t = 1.0, requires = "environment", value_parser = units::parse_non_negative)]
     env_strength: f32,
-    /// Turns the environment map about +Y by this many degrees.
+    /// Turns the environment (map or sky) about +Y by this many degrees.
     #[arg(
         long,
         value_name = "DEG",
         default_value_t = 0.0,
-        requires = "env",
+        requires = "environment",
         allow_negative_numbers = true
     )]
     env_rotate: f32,
@@ -112,8 +138,19 @@ struct EnvArgs {
 
 impl EnvArgs {
     fn options(&self) -> Option<EnvOptions> {
-        self.env.clone().map(|path| EnvOptions {
-            path,
+        let source = match (&self.env, self.sky) {
+            (Some(path), _) => EnvSource::Map(path.clone()),
+            (None, true) => EnvSource::Sky(SkyOptions {
+                elevation: self.sun_elevation,
+                azimuth: self.sun_azimuth,
+                turbidity: self.turbidity,
+                albedo: self.ground_albedo,
+                sun_strength: self.sun_strength,
+            }),
+            (None, false) => return None,
+        };
+        Some(EnvOptions {
+            source,
             strength: self.env_strength,
             rotate: self.env_rotate,
             uniform_sampling: self.env_uniform_sampling,

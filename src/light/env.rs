@@ -1,6 +1,6 @@
 //! The environment: radiance arriving from infinitely far away, from an equirectangular
-//! map (`--env`, OpenEXR or Radiance `.hdr`) or uniform (the light of a scene that has no
-//! other).
+//! map (`--env`, OpenEXR or Radiance `.hdr`), a sky and its sun (`--sky`, `sky`), or uniform
+//! (the light of a scene that has no other).
 //!
 //! The map's convention is Mitsuba 3's `envmap`, so the same file renders the same in both
 //! (`tools/crosscheck.py`): +Y up, direction (sin θ sin φ, cos θ, −sin θ cos φ) at
@@ -15,7 +15,9 @@
 use super::distribution::Piecewise2D;
 use super::env_build::{density_bytes, from_image, read_map, Built};
 use super::env_tiles::{EnvStats, Tiles};
+use super::sky::{sky_map, SkyOptions, Sun};
 use crate::image::Image;
+use crate::material::luminance;
 use anyhow::Result;
 use glam::Vec3A as V;
 use std::f32::consts::PI;
@@ -31,6 +33,8 @@ pub struct Environment {
     /// sin and cos of the rotation about +Y.
     rotation: [f32; 2],
     density: Piecewise2D,
+    /// The sun beside the map, and the chance that `sample` picks it.
+    sun: Option<(Sun, f32)>,
     /// Bytes of the sampling tables.
     density_bytes: u64,
     /// Mean radiance over the sphere of directions.
@@ -67,6 +71,43 @@ impl Environment {
             "{} ({w}×{h}, strength {strength}, rotated {rotate_deg}°{}{})",
             path.display(),
             if uniform { ", sampled uniformly" } else { "" },
+            if env.tiles.paged() { ", paged" } else { "" }
+        );
+        Ok(env)
+    }
+
+    /// The sky of `o` and its sun, times `strength`, turned `rotate_deg` about +Y; the sky's
+    /// map is paged under `share` bytes when it does not fit.
+    pub fn sky(
+        o: &SkyOptions,
+        strength: f32,
+        rotate_deg: f32,
+        share: Option<u64>,
+    ) -> Result<Environment> {
+        let mut env = Environment::new(sky_map(o, strength, share)?, rotate_deg, false);
+        let sun = Sun::new(o, strength);
+        let sun_power = luminance(sun.le) * sun.solid_angle();
+        let sky_power = luminance(env.mean) * 4.0 * PI;
+        // Sampled in proportion to its power, but never starving the sky or itself.
+        let pick = (sun_power / (sun_power + sky_power)).clamp(0.05, 0.95);
+        if sun_power > 0.0 {
+            env.mean += sun.le * (sun.solid_angle() / (4.0 * PI));
+            env.sun = Some((sun, pick));
+        }
+        let id = [
+            env.id,
+            sun.le.x.to_bits() as u64,
+            sun.dir.x.to_bits() as u64,
+            sun.dir.z.to_bits() as u64,
+        ];
+        env.id = xxhash_rust::xxh3::xxh3_64(bytemuck::cast_slice(&id)).max(2);
+        env.name = format!(
+            "sky (sun {}° up, azimuth {}°, turbidity {}, ground albedo {}, strength {strength}, sun strength {}, rotated {rotate_deg}°{})",
+            o.elevation,
+            o.azimuth,
+            o.turbidity,
+            o.albedo,
+            o.sun_strength,
             if env.tiles.paged() { ", paged" } else { "" }
         );
         Ok(env)
@@ -112,6 +153,7 @@ impl Environment {
             tiles: built.tiles,
             rotation: [rotate_deg.to_radians().sin(), rotate_deg.to_radians().cos()],
             density: Piecewise2D::new(&weights, cols),
+            sun: None,
             density_bytes: density_bytes(built.grid),
             name: String::new(),
         }
@@ -146,26 +188,50 @@ impl Environment {
         let i = (i as isize).rem_euclid(w as isize) as usize;
         let top = self.texel(i, j) * (1.0 - fx) + self.texel(i + 1, j) * fx;
         let bottom = self.texel(i, j + 1) * (1.0 - fx) + self.texel(i + 1, j + 1) * fx;
-        top * (1.0 - fy) + bottom * fy
+        let sun = self.sun.map_or(V::ZERO, |(s, _)| s.le(self.to_local(d)));
+        top * (1.0 - fy) + bottom * fy + sun
     }
 
     /// A direction toward the environment from two uniforms: (direction, radiance, its
     /// solid-angle density); None where the density vanishes.
-    pub fn sample(&self, u: [f32; 2]) -> Option<(V, V, f32)> {
+    /// With a sun, the sun's cone or the map is picked first, the first uniform reused.
+    pub fn sample(&self, [u0, u1]: [f32; 2]) -> Option<(V, V, f32)> {
+        let Some((sun, pick)) = self.sun else {
+            let (d, pdf) = self.sample_map([u0, u1])?;
+            return Some((d, self.le(d), pdf));
+        };
+        let d = if u0 < pick {
+            self.to_world(sun.sample([u0 / pick, u1]))
+        } else {
+            self.sample_map([(u0 - pick) / (1.0 - pick), u1])?.0
+        };
+        let pdf = self.pdf(d);
+        (pdf > 0.0).then(|| (d, self.le(d), pdf))
+    }
+
+    /// A direction from the map's density, and that density.
+    fn sample_map(&self, u: [f32; 2]) -> Option<(V, f32)> {
         let (uv, pdf_uv) = self.density.sample(u);
-        let theta = PI * uv[1];
-        let sin_theta = theta.sin();
+        let sin_theta = (PI * uv[1]).sin();
         if pdf_uv <= 0.0 || sin_theta <= 0.0 {
             return None;
         }
-        let d = self.to_world(direction(uv));
         let pdf = pdf_uv / (2.0 * PI * PI * sin_theta);
-        Some((d, self.le(d), pdf))
+        Some((self.to_world(direction(uv)), pdf))
     }
 
     /// The solid-angle density with which `sample` picks direction `d`.
     pub fn pdf(&self, d: V) -> f32 {
         let local = self.to_local(d);
+        let map = self.map_pdf(local);
+        match self.sun {
+            Some((sun, pick)) => pick * sun.pdf(local) + (1.0 - pick) * map,
+            None => map,
+        }
+    }
+
+    /// The map density's solid-angle density at `local` (map coordinates).
+    fn map_pdf(&self, local: V) -> f32 {
         // From x and z, not 1 − y², which loses its digits near the poles.
         let sin_theta = local.x.hypot(local.z);
         if sin_theta <= 0.0 {
@@ -216,7 +282,7 @@ impl Environment {
 }
 
 /// The unit direction at map coordinates (u, v).
-fn direction([u, v]: [f32; 2]) -> V {
+pub(super) fn direction([u, v]: [f32; 2]) -> V {
     let (sin_p, cos_p) = (2.0 * PI * u).sin_cos();
     let (sin_t, cos_t) = (PI * v).sin_cos();
     V::new(sin_t * sin_p, cos_t, -sin_t * cos_p)
@@ -392,7 +458,16 @@ mod tests {
     /// Le / pdf matches the map's integral (4π × `mean`) within 4 standard errors.
     #[test]
     fn importance_sampling_integrates_the_map() {
-        for env in [sunny(), Environment::uniform(V::splat(2.0))] {
+        let sky = crate::light::sky::SkyOptions {
+            elevation: 20.0,
+            azimuth: 30.0,
+            turbidity: 3.0,
+            albedo: 0.3,
+            sun_strength: 1.0,
+        };
+        let sky = Environment::sky(&sky, 1.0, 40.0, None).unwrap();
+        assert!(sky.sun.is_some());
+        for env in [sunny(), Environment::uniform(V::splat(2.0)), sky] {
             let mut rng = TestRng::new(8);
             let n = 200_000;
             let (mut sum, mut sum2) = (0.0f64, 0.0f64);

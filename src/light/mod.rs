@@ -21,6 +21,7 @@ mod distribution;
 pub mod env;
 mod env_build;
 pub mod env_tiles;
+pub mod sky;
 pub mod tree;
 
 pub use env::Environment;

@@ -3,16 +3,26 @@
 //! stats' `passes`), with the flag that changes it.
 
 use super::RenderOptions;
+use crate::light::sky::SkyOptions;
 use crate::light::{Environment, Lights};
 use anyhow::Result;
 use canopy_format::{Archive, CameraRecord};
 use glam::Vec3A as V;
 use std::path::{Path, PathBuf};
 
-/// `--env`: an environment map and how it is placed.
+/// Where the environment's light comes from.
+#[derive(Clone, Debug)]
+pub enum EnvSource {
+    /// `--env`: an equirectangular map.
+    Map(PathBuf),
+    /// `--sky`: a clear sky and its sun.
+    Sky(SkyOptions),
+}
+
+/// `--env` or `--sky`: the environment and how it is placed.
 #[derive(Clone, Debug)]
 pub struct EnvOptions {
-    pub path: PathBuf,
+    pub source: EnvSource,
     /// Factor on the map's radiance.
     pub strength: f32,
     /// Degrees about +Y.
@@ -66,10 +76,16 @@ pub fn camera_note(o: &RenderOptions, cam: &CameraRecord) -> String {
     )
 }
 
-/// `--env`'s map, read and placed; paged under its share of `budget` when it does not fit.
+/// `--env`'s map or `--sky`'s sky, made and placed; paged under its share of `budget` when
+/// it does not fit.
 pub fn load_environment(e: &EnvOptions, budget: Option<u64>) -> Result<Environment> {
     let share = budget.map(Environment::share);
-    Environment::from_file(&e.path, e.strength, e.rotate, e.uniform_sampling, share)
+    match &e.source {
+        EnvSource::Map(path) => {
+            Environment::from_file(path, e.strength, e.rotate, e.uniform_sampling, share)
+        }
+        EnvSource::Sky(sky) => Environment::sky(sky, e.strength, e.rotate, share),
+    }
 }
 
 /// The archive's lights with `env`; with neither emitters nor `env`, a uniform white
@@ -86,7 +102,7 @@ pub fn light_the_scene(
         return (lights, None);
     }
     let note = format!(
-        "{} has no light source: a uniform white environment (radiance 1) lights it (--env FILE lights it with a map)",
+        "{} has no light source: a uniform white environment (radiance 1) lights it (--env FILE lights it with a map, --sky with a sky and sun)",
         archive.display()
     );
     let sky = Environment::uniform(V::ONE);

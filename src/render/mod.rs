@@ -11,7 +11,7 @@ mod pixel_split;
 mod setup;
 mod stats;
 
-pub use defaults::EnvOptions;
+pub use defaults::{EnvOptions, EnvSource};
 pub use setup::MAX_SIDE;
 pub use stats::{Checkpoint, RenderStats, Seconds};
 
