@@ -436,7 +436,10 @@ fn eval_writes_rows_plot_and_table() {
             .collect();
         assert!(r[1].0 >= r[0].0, "{name}: {r:?}");
         if r[1].0 >= 4 * r[0].0 {
-            assert!(r[1].1 < r[0].1, "{name}: RMSE {r:?} should fall with samples");
+            assert!(
+                r[1].1 < r[0].1,
+                "{name}: RMSE {r:?} should fall with samples"
+            );
         }
     }
     let md = std::fs::read_to_string(out.join("eval.md")).unwrap();

@@ -25,6 +25,10 @@ shadow-terminator term and normal flipping off. Mitsuba builds
 the tangent frame as glTF does (s = ∂p/∂u, t = n × s), so UV layouts must not be mirrored.
 With `--env MAP` the scene is lit by Mitsuba's `envmap` of that file (its `scale` the
 `--env-strength`, turned `--env-rotate` degrees about +Y), as `canopy render --env` lights it.
+With `--sky` it is lit by Mitsuba's `sunsky` (its Z-up frame turned to +Y up) with the sun
+where `canopy render --sky` puts it (`--sun-elevation`, `--sun-azimuth`, `--turbidity`,
+`--ground-albedo`, `--sun-strength` as its `sun_scale`). Mitsuba's sun is Hosek and Wilkie's
+solar model, Canopy's Preetham's: compare the sky alone with `--sun-strength 0`.
 Prints the render time and paths per second (spp × pixels / seconds) and writes a JSON
 beside the EXR, so `canopy render` can be timed against it on the same machine.
 """
@@ -200,6 +204,12 @@ def main():
     ap.add_argument("--env", help="equirectangular environment map (.exr, .hdr), as canopy render --env")
     ap.add_argument("--env-strength", type=float, default=1.0)
     ap.add_argument("--env-rotate", type=float, default=0.0, help="degrees about +Y")
+    ap.add_argument("--sky", action="store_true", help="Mitsuba's sunsky, as canopy render --sky")
+    ap.add_argument("--sun-elevation", type=float, default=45.0)
+    ap.add_argument("--sun-azimuth", type=float, default=135.0)
+    ap.add_argument("--turbidity", type=float, default=3.0)
+    ap.add_argument("--ground-albedo", type=float, default=0.3)
+    ap.add_argument("--sun-strength", type=float, default=1.0)
     a = ap.parse_args()
 
     import mitsuba as mi
@@ -272,6 +282,15 @@ def main():
     if a.env:
         scene["environment"] = {"type": "envmap", "filename": a.env, "scale": a.env_strength,
                                 "to_world": mi.ScalarTransform4f().rotate([0, 1, 0], a.env_rotate)}
+    if a.sky:
+        e, z = np.radians(a.sun_elevation), np.radians(a.sun_azimuth)
+        sun = np.array([np.cos(e) * np.sin(z), np.sin(e), -np.cos(e) * np.cos(z)])
+        turn = mi.ScalarTransform4f().rotate([0, 1, 0], a.env_rotate)
+        up = mi.ScalarTransform4f([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]])
+        scene["environment"] = {"type": "sunsky", "sun_direction": (turn @ mi.ScalarVector3f(sun)),
+                                "turbidity": a.turbidity, "albedo": a.ground_albedo,
+                                "sun_scale": a.sun_strength * a.env_strength,
+                                "sky_scale": a.env_strength, "to_world": turn @ up}
     if a.threads:
         mi.Thread.thread_count = a.threads
     s = mi.load_dict(scene)
