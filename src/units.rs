@@ -120,3 +120,12 @@ mod tests {
         assert!(parse_duration("5 fortnights").is_err());
     }
 }
+
+/// A local time with its UTC offset, RFC 3339 (`2026-06-21T15:00:00+02:00`).
+pub fn parse_time(s: &str) -> Result<chrono::DateTime<chrono::FixedOffset>> {
+    chrono::DateTime::parse_from_rfc3339(s).map_err(|e| {
+        anyhow::anyhow!(
+            "'{s}' is not a time with its UTC offset such as 2026-06-21T15:00:00+02:00 ({e})"
+        )
+    })
+}

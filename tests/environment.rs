@@ -531,3 +531,44 @@ fn the_sun_lights_as_much_as_it_shows() {
         );
     }
 }
+
+/// `--latitude`, `--longitude` and `--datetime` place the sun, and say where; a sun below
+/// the horizon at that time is refused by name, as is a time without its UTC offset.
+#[test]
+fn the_sun_is_placed_by_where_and_when() {
+    let dir = tempfile::tempdir().unwrap();
+    let arc = cube(dir.path(), 0.5);
+    let out = dir.path().join("o.exr");
+    let at = |time: &str| {
+        [
+            "render",
+            s(&arc),
+            "-o",
+            s(&out),
+            "--spp",
+            "1",
+            "--sky",
+            "--latitude",
+            "48.85",
+            "--longitude",
+            "2.35",
+            "--datetime",
+            time,
+        ]
+        .map(str::to_string)
+    };
+    let args = at("2026-12-03T12:30:00+01:00");
+    let err = succeeds_saying(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(
+        err.contains("the sun stands 18.98° up at azimuth 177.46°"),
+        "{err}"
+    );
+    std::fs::remove_file(&out).unwrap();
+    let args = at("2026-12-03T22:30:00+01:00");
+    let err = fails(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(err.contains("below the horizon"), "{err}");
+    assert!(!out.exists());
+    let args = at("2026-12-03T12:30");
+    let err = fails(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(err.contains("UTC offset"), "{err}");
+}

@@ -109,6 +109,21 @@ struct EnvArgs {
         allow_negative_numbers = true
     )]
     sun_azimuth: f32,
+    /// Place the sun by where and when instead: latitude in degrees, north positive (with
+    /// --longitude and --datetime; north is −Z, east +X).
+    #[arg(long, value_name = "DEG", requires_all = ["sky", "longitude", "datetime"], conflicts_with_all = ["sun_elevation", "sun_azimuth"], allow_negative_numbers = true)]
+    latitude: Option<f64>,
+    /// Longitude in degrees, east positive (with --latitude).
+    #[arg(
+        long,
+        value_name = "DEG",
+        requires = "latitude",
+        allow_negative_numbers = true
+    )]
+    longitude: Option<f64>,
+    /// Local time with its offset from UTC, RFC 3339: 2026-06-21T15:00:00+02:00 (with --latitude).
+    #[arg(long, value_name = "TIME", requires = "latitude", value_parser = units::parse_time)]
+    datetime: Option<chrono::DateTime<chrono::FixedOffset>>,
     /// Advanced: the sky's turbidity, 1 (arctic clear) to 10 (humid haze).
     #[arg(long, value_name = "T", default_value_t = 3.0, requires = "sky")]
     turbidity: f32,
@@ -146,6 +161,11 @@ impl EnvArgs {
                 turbidity: self.turbidity,
                 albedo: self.ground_albedo,
                 sun_strength: self.sun_strength,
+                place: self
+                    .latitude
+                    .zip(self.longitude)
+                    .zip(self.datetime)
+                    .map(|((lat, lon), time)| (lat, lon, time)),
             }),
             (None, false) => return None,
         };

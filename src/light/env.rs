@@ -84,6 +84,7 @@ impl Environment {
         rotate_deg: f32,
         share: Option<u64>,
     ) -> Result<Environment> {
+        let o = &o.resolved()?;
         let mut env = Environment::new(sky_map(o, strength, share)?, rotate_deg, false);
         let sun = Sun::new(o, strength);
         let sun_power = luminance(sun.le) * sun.solid_angle();
@@ -102,7 +103,7 @@ impl Environment {
         ];
         env.id = xxhash_rust::xxh3::xxh3_64(bytemuck::cast_slice(&id)).max(2);
         env.name = format!(
-            "sky (sun {}° up, azimuth {}°, turbidity {}, ground albedo {}, strength {strength}, sun strength {}, rotated {rotate_deg}°{})",
+            "sky (sun {:.2}° up, azimuth {:.2}°, turbidity {}, ground albedo {}, strength {strength}, sun strength {}, rotated {rotate_deg}°{})",
             o.elevation,
             o.azimuth,
             o.turbidity,
@@ -464,6 +465,7 @@ mod tests {
             turbidity: 3.0,
             albedo: 0.3,
             sun_strength: 1.0,
+            place: None,
         };
         let sky = Environment::sky(&sky, 1.0, 40.0, None).unwrap();
         assert!(sky.sun.is_some());

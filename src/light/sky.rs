@@ -16,7 +16,9 @@
 //! whose tables no crate carries; the two are compared in docs/environment.md.
 
 use super::env_build::{paged_capacity, Builder, Built};
+use super::sun_position::sun_position;
 use anyhow::{bail, Result};
+use chrono::{DateTime, FixedOffset};
 use glam::Vec3A as V;
 use hw_skymodel::rgb::{Channel, SkyParams, SkyState};
 use std::f32::consts::PI;
@@ -44,11 +46,40 @@ pub struct SkyOptions {
     pub albedo: f32,
     /// Factor on the sun's radiance (0: the sky alone).
     pub sun_strength: f32,
+    /// Latitude and longitude (degrees, north and east positive) and a time: where they
+    /// put the sun replaces `elevation` and `azimuth`.
+    pub place: Option<(f64, f64, DateTime<FixedOffset>)>,
 }
 
 impl SkyOptions {
+    /// The options with the sun placed by `place`, if given, and checked.
+    pub fn resolved(&self) -> Result<SkyOptions> {
+        let mut o = *self;
+        if let Some((lat, lon, time)) = self.place {
+            if !(-90.0..=90.0).contains(&lat) || !(-180.0..=180.0).contains(&lon) {
+                bail!("--latitude {lat} --longitude {lon}: a latitude is from −90 to 90 and a longitude from −180 to 180");
+            }
+            let [elevation, azimuth] = sun_position(lat, lon, time);
+            if elevation < 0.0 {
+                bail!(
+                    "--datetime {}: at latitude {lat}, longitude {lon} the sun is {:.2}° below the horizon; the sky model holds it from 0° to 90°",
+                    time.to_rfc3339(),
+                    -elevation
+                );
+            }
+            eprintln!(
+                "note: at latitude {lat}, longitude {lon} on {} the sun stands {elevation:.2}° up at azimuth {azimuth:.2}° (north 0°, east 90°)",
+                time.to_rfc3339()
+            );
+            o.elevation = elevation as f32;
+            o.azimuth = azimuth as f32;
+        }
+        o.check()?;
+        Ok(o)
+    }
+
     /// The options' range, checked before anything is built.
-    pub fn check(&self) -> Result<()> {
+    fn check(&self) -> Result<()> {
         if !(0.0..=90.0).contains(&self.elevation) {
             bail!(
                 "--sun-elevation {}: the sky model holds the sun from 0° (the horizon) to 90°",
@@ -77,7 +108,6 @@ impl SkyOptions {
 
 /// The sky's map, scaled by `strength`, paged under `share` bytes when it does not fit.
 pub fn sky_map(o: &SkyOptions, strength: f32, share: Option<u64>) -> Result<Built> {
-    o.check()?;
     let state = SkyState::new(&SkyParams {
         elevation: o.elevation.to_radians(),
         turbidity: o.turbidity,

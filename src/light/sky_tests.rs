@@ -9,6 +9,7 @@ fn options(elevation: f32, azimuth: f32, turbidity: f32, albedo: f32) -> SkyOpti
         turbidity,
         albedo,
         sun_strength: 0.0,
+        place: None,
     }
 }
 
