@@ -96,6 +96,15 @@ pub fn parse_threads(s: &str) -> Result<usize> {
     }
 }
 
+/// A local time with its UTC offset, RFC 3339 (`2026-06-21T15:00:00+02:00`).
+pub fn parse_time(s: &str) -> Result<chrono::DateTime<chrono::FixedOffset>> {
+    chrono::DateTime::parse_from_rfc3339(s).map_err(|e| {
+        anyhow::anyhow!(
+            "'{s}' is not a time with its UTC offset such as 2026-06-21T15:00:00+02:00 ({e})"
+        )
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -119,13 +128,4 @@ mod tests {
         assert_eq!(parse_duration("250ms").unwrap().as_millis(), 250);
         assert!(parse_duration("5 fortnights").is_err());
     }
-}
-
-/// A local time with its UTC offset, RFC 3339 (`2026-06-21T15:00:00+02:00`).
-pub fn parse_time(s: &str) -> Result<chrono::DateTime<chrono::FixedOffset>> {
-    chrono::DateTime::parse_from_rfc3339(s).map_err(|e| {
-        anyhow::anyhow!(
-            "'{s}' is not a time with its UTC offset such as 2026-06-21T15:00:00+02:00 ({e})"
-        )
-    })
 }
