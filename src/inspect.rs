@@ -4,7 +4,7 @@
 use crate::progress;
 use anyhow::Result;
 use canopy_format::bake::BakeFile;
-use canopy_format::{name_str, Archive, Features, Node, PageReport};
+use canopy_format::{name_str, Archive, CameraRecord, Features, Node, PageReport};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -145,7 +145,13 @@ pub fn summarize(a: &Archive) -> Result<Summary> {
         cameras: a
             .cameras
             .iter()
-            .map(|c| format!("{} {}x{}", name_str(&c.name), c.width, c.height))
+            .map(|c| {
+                let view = match c.projection {
+                    CameraRecord::ORTHOGRAPHIC => format!("orthographic, {} high", 2.0 * c.ymag),
+                    _ => format!("{:.1}° high", c.yfov.to_degrees()),
+                };
+                format!("{} {}x{} ({view})", name_str(&c.name), c.width, c.height)
+            })
             .collect(),
         lights: a.lights.len(),
         instances: a.instances.len(),

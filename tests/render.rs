@@ -1011,3 +1011,43 @@ fn a_render_streams_its_image_to_tev() {
         "{err}"
     );
 }
+
+/// An orthographic glTF camera is kept and renders parallel rays: moved back along its
+/// axis it sees the same image (a pinhole moved back sees the box shrink), and its view
+/// is 2·ymag high in world units whatever the distance.
+#[test]
+fn an_orthographic_camera_sees_the_same_from_any_distance() {
+    let dir = tempfile::tempdir().unwrap();
+    let shot = |name: &str, orthographic: bool, z: f64| {
+        let glb = tiny_glb(dir.path(), &format!("{name}.glb"), |j, _| {
+            if orthographic {
+                j["cameras"][0] = serde_json::json!({"type": "orthographic",
+                    "orthographic": {"xmag": 300.0, "ymag": 300.0, "znear": 0.001, "zfar": 5000.0}});
+            }
+            j["nodes"][8]["matrix"][14] = z.into();
+        });
+        let arc = dir.path().join(format!("{name}.canopy"));
+        let err = succeeds_saying(&["convert", s(&glb), "-o", s(&arc)]);
+        assert!(!err.contains("camera"), "{err}");
+        render(
+            &arc,
+            &dir.path().join(format!("{name}.exr")),
+            &["--spp", "16", "--width", "64", "--height", "64"],
+        )
+        .0
+    };
+    let (near, far) = (shot("near", true, -800.0), shot("far", true, -1600.0));
+    let (pin_near, pin_far) = (shot("pn", false, -800.0), shot("pf", false, -1600.0));
+    let mean = near.mean()[1];
+    assert!(
+        mean > 0.01,
+        "the orthographic view sees the lit box: {mean}"
+    );
+    let same = rmse(&near, &far);
+    let moved = rmse(&pin_near, &pin_far);
+    assert!(
+        same < 0.01 * mean,
+        "orthographic views differ: {same} (mean {mean})"
+    );
+    assert!(moved > 10.0 * same, "pinhole views {moved} vs {same}");
+}

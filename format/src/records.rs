@@ -5,7 +5,7 @@ use bytemuck::{Pod, Zeroable};
 
 pub const MAGIC: [u8; 8] = *b"CANOPY\x00\x1a";
 pub const VERSION_MAJOR: u16 = 2;
-pub const VERSION_MINOR: u16 = 2;
+pub const VERSION_MINOR: u16 = 3;
 pub const PAGE_MAGIC: [u8; 4] = *b"PAGE";
 /// Page frames and tables start at multiples of this many bytes, so records can be read in
 /// place from the mapping.
@@ -447,13 +447,14 @@ impl MaterialRecord {
     pub const NORMAL: usize = 3;
 }
 
-/// Perspective camera (128 bytes).
+/// Perspective or orthographic camera (128 bytes).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 pub struct CameraRecord {
     pub name: [u8; 48],
     /// Camera-to-world, column-major 3×4 (x axis, y axis, z axis, position); looks down −z.
     pub to_world: [f32; 12],
+    /// Vertical field of view in radians (perspective); 0 for an orthographic camera.
     pub yfov: f32,
     /// Width / height; 0 when the input left it open.
     pub aspect: f32,
@@ -462,7 +463,16 @@ pub struct CameraRecord {
     pub zfar: f32,
     pub width: u32,
     pub height: u32,
-    pub reserved: [u8; 8],
+    /// `PERSPECTIVE` or `ORTHOGRAPHIC` (version 2.3; reserved, so perspective, before).
+    pub projection: u8,
+    pub reserved: [u8; 3],
+    /// Orthographic: half the view's height in world units (glTF `ymag`); 0 for perspective.
+    pub ymag: f32,
+}
+
+impl CameraRecord {
+    pub const PERSPECTIVE: u8 = 0;
+    pub const ORTHOGRAPHIC: u8 = 1;
 }
 
 const _: () = assert!(std::mem::size_of::<CameraRecord>() == 128);

@@ -311,7 +311,21 @@ pub fn check_camera(c: &CameraRecord) -> Result<(), String> {
             "the transform",
             finite(&c.to_world) && c.to_world[..9].iter().any(|&x| x != 0.0),
         ),
-        ("yfov", c.yfov > 0.0 && c.yfov < std::f32::consts::PI),
+        ("the projection", c.projection <= CameraRecord::ORTHOGRAPHIC),
+        (
+            "yfov",
+            match c.projection {
+                CameraRecord::PERSPECTIVE => c.yfov > 0.0 && c.yfov < std::f32::consts::PI,
+                _ => c.yfov == 0.0,
+            },
+        ),
+        (
+            "ymag",
+            match c.projection {
+                CameraRecord::PERSPECTIVE => c.ymag == 0.0,
+                _ => c.ymag > 0.0 && c.ymag.is_finite(),
+            },
+        ),
         ("aspect", non_negative(&[c.aspect])),
         ("znear", non_negative(&[c.znear])),
         ("zfar", non_negative(&[c.zfar])),
@@ -696,5 +710,42 @@ fn check_node(
             }
         }
         _ => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn camera(projection: u8, yfov: f32, ymag: f32) -> CameraRecord {
+        let mut to_world = [0.0; 12];
+        (to_world[0], to_world[4], to_world[8]) = (1.0, 1.0, 1.0);
+        CameraRecord {
+            to_world,
+            projection,
+            yfov,
+            ymag,
+            ..bytemuck::Zeroable::zeroed()
+        }
+    }
+
+    #[test]
+    fn a_camera_is_perspective_or_orthographic_with_the_fields_that_make_it() {
+        assert!(check_camera(&camera(CameraRecord::PERSPECTIVE, 0.8, 0.0)).is_ok());
+        assert!(check_camera(&camera(CameraRecord::ORTHOGRAPHIC, 0.0, 2.5)).is_ok());
+        for (c, bad) in [
+            (camera(2, 0.8, 0.0), "projection"),
+            (camera(CameraRecord::PERSPECTIVE, 0.8, 1.0), "ymag"),
+            (camera(CameraRecord::PERSPECTIVE, 0.0, 0.0), "yfov"),
+            (camera(CameraRecord::ORTHOGRAPHIC, 0.8, 2.5), "yfov"),
+            (camera(CameraRecord::ORTHOGRAPHIC, 0.0, 0.0), "ymag"),
+            (
+                camera(CameraRecord::ORTHOGRAPHIC, 0.0, f32::INFINITY),
+                "ymag",
+            ),
+        ] {
+            let e = check_camera(&c).unwrap_err();
+            assert!(e.contains(bad), "{e}");
+        }
     }
 }

@@ -286,7 +286,9 @@ impl SceneFile {
                     zfar: 0.0,
                     width: c.width,
                     height: c.height,
-                    reserved: [0; 8],
+                    projection: CameraRecord::PERSPECTIVE,
+                    reserved: [0; 3],
+                    ymag: 0.0,
                 }
             })
             .collect()

@@ -347,8 +347,7 @@ impl Scene {
         if !self.textures.varies(hit.tri.material) {
             return Shaded::plain(self.materials[hit.tri.material as usize]);
         }
-        let pixel = 2.0 * self.camera.tan_half / self.camera.height.max(1) as f32;
-        let spread = self.texture_scale * pixel * (hit.point().0 - self.camera.pos).length();
+        let spread = self.texture_scale * self.camera.footprint(hit.point().0);
         self.material_at(hit.tri.material, &hit.tri.p, hit.uv, hit.b, d, spread)
     }
 

@@ -60,7 +60,9 @@ pub fn framing_camera(archive: &Archive) -> CameraRecord {
         zfar: 0.0,
         width: SIZE[0],
         height: SIZE[1],
-        reserved: [0; 8],
+        projection: CameraRecord::PERSPECTIVE,
+        reserved: [0; 3],
+        ymag: 0.0,
     }
 }
 

@@ -86,7 +86,7 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
             match camera(&cam, &node, world, width, height) {
                 Some(rec) => scene.cameras.push(rec),
                 None => eprintln!(
-                    "warning: {}: camera '{}' is orthographic, which Canopy does not render; it is not recorded (a render takes another camera, or frames the bounds)",
+                    "warning: {}: orthographic camera '{}' has a zero or non-finite magnification; it is not recorded (a render takes another camera, or frames the bounds)",
                     path.display(),
                     node.name().or(cam.name()).unwrap_or("?")
                 ),

@@ -21,6 +21,8 @@ pub(super) fn render_size(doc: &gltf::Document) -> (u32, u32) {
     (get("width"), get("height"))
 }
 
+/// The camera's record, None for an orthographic one whose magnification is zero or not
+/// finite (it shows nothing).
 pub(super) fn camera(
     cam: &gltf::Camera,
     node: &gltf::Node,
@@ -28,9 +30,6 @@ pub(super) fn camera(
     width: u32,
     height: u32,
 ) -> Option<CameraRecord> {
-    let gltf::camera::Projection::Perspective(p) = cam.projection() else {
-        return None;
-    };
     let c = world.to_cols_array();
     let mut to_world = [0.0f32; 12];
     for col in 0..4 {
@@ -41,17 +40,34 @@ pub(super) fn camera(
         .or(cam.name())
         .map(str::to_string)
         .unwrap_or_else(|| format!("camera{}", cam.index()));
-    Some(CameraRecord {
+    let base = CameraRecord {
         name: name_bytes(&name),
         to_world,
-        yfov: p.yfov(),
-        aspect: p.aspect_ratio().unwrap_or(0.0),
-        znear: p.znear(),
-        zfar: p.zfar().unwrap_or(0.0),
         width,
         height,
-        reserved: [0; 8],
-    })
+        ..bytemuck::Zeroable::zeroed()
+    };
+    match cam.projection() {
+        gltf::camera::Projection::Perspective(p) => Some(CameraRecord {
+            yfov: p.yfov(),
+            aspect: p.aspect_ratio().unwrap_or(0.0),
+            znear: p.znear(),
+            zfar: p.zfar().unwrap_or(0.0),
+            ..base
+        }),
+        // glTF's xmag and ymag are half the view's width and height.
+        gltf::camera::Projection::Orthographic(o) => {
+            let (x, y) = (o.xmag().abs(), o.ymag().abs());
+            (x > 0.0 && y > 0.0 && (x / y).is_finite() && y.is_finite()).then(|| CameraRecord {
+                projection: CameraRecord::ORTHOGRAPHIC,
+                ymag: y,
+                aspect: x / y,
+                znear: o.znear().max(0.0),
+                zfar: o.zfar().max(0.0),
+                ..base
+            })
+        }
+    }
 }
 
 pub(super) fn punctual(l: &gltf::khr_lights_punctual::Light, world: Mat4) -> LightRecord {

@@ -189,8 +189,8 @@ impl ConeIntegrator {
             ),
             keys,
             primary: Cone {
-                r0: 0.0,
-                tan_a: 2.0 * cam.tan_half / cam.height as f32,
+                r0: cam.cone().0,
+                tan_a: cam.cone().1,
                 scale: settings.scale,
                 spread: settings.diffuse_tan,
             },

@@ -191,8 +191,7 @@ impl PbgiIntegrator {
                 break;
             }
             // A pixel's width at x, seen from the camera.
-            let footprint = (s.p - scene.camera.pos).length() * 2.0 * scene.camera.tan_half
-                / scene.camera.height as f32;
+            let footprint = scene.camera.footprint(s.p);
             let at = Some((px.at, footprint));
             let sample = px.index;
             let q = Pending {
