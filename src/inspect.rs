@@ -4,7 +4,9 @@
 use crate::progress;
 use anyhow::Result;
 use canopy_format::bake::BakeFile;
-use canopy_format::{name_str, Archive, CameraRecord, Features, Node, PageReport};
+use canopy_format::{
+    name_str, Archive, CameraRecord, EnvironmentRecord, Features, Node, PageReport,
+};
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -33,6 +35,8 @@ pub struct Summary {
     pub materials: Vec<String>,
     pub cameras: Vec<String>,
     pub lights: usize,
+    /// The environment its scene file gave, if any.
+    pub environment: Option<String>,
     /// Placements of prototypes, and the distinct prototypes they place.
     pub instances: usize,
     pub prototypes: usize,
@@ -154,6 +158,13 @@ pub fn summarize(a: &Archive) -> Result<Summary> {
             })
             .collect(),
         lights: a.lights.len(),
+        environment: a.environment.map(|e| match e.kind {
+            EnvironmentRecord::SKY => format!(
+                "sky, sun {}° up at azimuth {}°, turbidity {}",
+                e.sun_elevation, e.sun_azimuth, e.turbidity
+            ),
+            _ => format!("map {}", e.path()),
+        }),
         instances: a.instances.len(),
         prototypes: {
             let mut p: Vec<u32> = a.instances.iter().map(|i| i.prototype_page).collect();
@@ -254,6 +265,9 @@ impl std::fmt::Display for Summary {
         )?;
         writeln!(f, "  cameras             {}", list_or_none(&s.cameras))?;
         writeln!(f, "  punctual lights     {}", s.lights)?;
+        if let Some(e) = &s.environment {
+            writeln!(f, "  environment         {e}")?;
+        }
         writeln!(
             f,
             "  textures            {}{}",

@@ -572,3 +572,94 @@ fn the_sun_is_placed_by_where_and_when() {
     let err = fails(&args.iter().map(String::as_str).collect::<Vec<_>>());
     assert!(err.contains("UTC offset"), "{err}");
 }
+
+/// A scene file's `[environment]` travels in the archive: rendered with no flag, the archive
+/// is lit as `--sky` (or `--env`) with the same values lights the same geometry converted
+/// without it, sample for sample, and a note names it. Flags replace it.
+#[test]
+fn the_scene_files_environment_travels_in_the_archive() {
+    let dir = tempfile::tempdir().unwrap();
+    let plain = cube(dir.path(), 0.5);
+    let map = scene("env/sky.hdr");
+    let cases = [
+        (
+            "[environment]\nsky = true\nsun_elevation_degrees = 30.0\nturbidity = 4.0\n"
+                .to_string(),
+            vec!["--sky", "--sun-elevation", "30", "--turbidity", "4"],
+        ),
+        (
+            format!(
+                "[environment]\nmap = {:?}\nstrength = 2.0\nrotate_degrees = 40.0\n",
+                map.to_str().unwrap()
+            ),
+            vec![
+                "--env",
+                s(&map),
+                "--env-strength",
+                "2",
+                "--env-rotate",
+                "40",
+            ],
+        ),
+    ];
+    for (k, (toml, flags)) in cases.iter().enumerate() {
+        let sub = dir.path().join(format!("case{k}"));
+        std::fs::create_dir(&sub).unwrap();
+        let carried = cube_with(&sub, 0.5, toml);
+        let out = |name: &str| sub.join(format!("{name}.exr"));
+        let base = ["render", "--spp", "8", "--width", "48", "--height", "32"];
+        let say = succeeds_saying(&[&base[..], &[s(&carried), "-o", s(&out("carried"))]].concat());
+        assert!(
+            err_has(&say, "lit by the environment its scene file gave"),
+            "{say}"
+        );
+        ok(&[&base[..], &[s(&plain), "-o", s(&out("flags"))], &flags[..]].concat());
+        let (a, b) = (
+            Image::read_exr(&out("carried")).unwrap(),
+            Image::read_exr(&out("flags")).unwrap(),
+        );
+        assert_eq!(a.pixels, b.pixels, "case {k}");
+        let say = succeeds_saying(
+            &[
+                &base[..],
+                &[s(&carried), "-o", s(&out("replaced")), "--sky"],
+            ]
+            .concat(),
+        );
+        assert!(
+            err_has(&say, "is replaced by the one the flags give"),
+            "{say}"
+        );
+    }
+    for (toml, what) in [
+        (
+            "[environment]\nsky = true\nmap = \"sky.hdr\"\n",
+            "either map",
+        ),
+        ("[environment]\nmap = \"missing.hdr\"\n", "missing.hdr"),
+        (
+            "[environment]\nsky = true\nsun_elevation_degrees = 120.0\n",
+            "sun",
+        ),
+    ] {
+        let sub = tempfile::tempdir().unwrap();
+        let v = "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n";
+        std::fs::write(sub.path().join("t.obj"), v).unwrap();
+        std::fs::write(sub.path().join("scene.toml"), toml).unwrap();
+        let err = fails(&[
+            "convert",
+            s(&sub.path().join("t.obj")),
+            "--scene",
+            s(&sub.path().join("scene.toml")),
+            "-o",
+            s(&sub.path().join("t.canopy")),
+        ]);
+        assert!(err.contains(what), "{err}");
+    }
+}
+
+fn err_has(stderr: &str, what: &str) -> bool {
+    stderr
+        .lines()
+        .any(|l| l.starts_with("note:") && l.contains(what))
+}

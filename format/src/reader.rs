@@ -21,6 +21,8 @@ pub struct Archive {
     pub instances: Vec<InstanceRecord>,
     pub textures: Vec<TextureRecord>,
     tiles: Vec<TileEntry>,
+    /// The scene's environment light, if its scene file gave one (2.3).
+    pub environment: Option<EnvironmentRecord>,
 }
 
 impl Archive {
@@ -126,6 +128,7 @@ impl Archive {
         }
         let textures = read_table::<TextureRecord>(&map, &header.textures);
         let tiles = read_table::<TileEntry>(&map, &header.tiles);
+        let environment = read_table::<EnvironmentRecord>(&map, &header.environment);
         if header.pages.count == 0 || header.root_page >= header.pages.count {
             return Err(corrupt(format!(
                 "root page {} of {} pages",
@@ -135,6 +138,7 @@ impl Archive {
         check_tables(&header, &materials, &cameras, &lights).map_err(&corrupt)?;
         check_instances(&header, &instances).map_err(&corrupt)?;
         check_textures(header.materials.offset, &materials, &textures, &tiles).map_err(&corrupt)?;
+        check_environment(&environment).map_err(&corrupt)?;
         let archive = Self {
             path: p,
             map,
@@ -145,6 +149,7 @@ impl Archive {
             instances,
             textures,
             tiles,
+            environment: environment.first().copied(),
         };
         archive.entry(header.root_page)?;
         archive.check_prototypes()?;

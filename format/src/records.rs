@@ -109,7 +109,8 @@ pub struct Header {
     /// zero before 2.2).
     pub textures: TableRef,
     pub tiles: TableRef,
-    pub reserved: [u8; 16],
+    /// 2.3: the environment table (0 or 1 records) after the tiles; zero before 2.3.
+    pub environment: TableRef,
 }
 
 const _: () = assert!(std::mem::size_of::<Header>() == 256);
@@ -504,3 +505,42 @@ impl LightRecord {
     pub const SPOT: u32 = 1;
     pub const DIRECTIONAL: u32 = 2;
 }
+
+/// The scene's environment light (256 bytes, version 2.3): a map file or a sky.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct EnvironmentRecord {
+    /// `MAP` or `SKY`.
+    pub kind: u32,
+    /// Factor on the radiance.
+    pub strength: f32,
+    /// Degrees about +Y.
+    pub rotate_degrees: f32,
+    /// Sky: the sun's elevation and compass azimuth in degrees.
+    pub sun_elevation: f32,
+    pub sun_azimuth: f32,
+    /// Sky: Hosek–Wilkie turbidity, ground albedo, factor on the sun.
+    pub turbidity: f32,
+    pub ground_albedo: f32,
+    pub sun_strength: f32,
+    /// Map: the file's path, UTF-8, zero-padded; relative to the archive's directory unless
+    /// absolute.
+    pub path: [u8; 224],
+}
+
+impl EnvironmentRecord {
+    pub const MAP: u32 = 1;
+    pub const SKY: u32 = 2;
+
+    /// The map's path as recorded.
+    pub fn path(&self) -> &str {
+        let end = self
+            .path
+            .iter()
+            .position(|&b| b == 0)
+            .unwrap_or(self.path.len());
+        std::str::from_utf8(&self.path[..end]).unwrap_or("")
+    }
+}
+
+const _: () = assert!(std::mem::size_of::<EnvironmentRecord>() == 256);

@@ -101,10 +101,11 @@ pub fn check_header(h: &Header) -> Result<(), String> {
     }
     // A newer minor version may give the reserved bytes a meaning; 2.0 had no instances,
     // 2.1 no textures.
-    if h.version_minor <= VERSION_MINOR && (!zeroed(&h.reserved) || h.reserved0 != 0)
+    if h.version_minor <= VERSION_MINOR && h.reserved0 != 0
         || h.version_minor == 0 && h.instances != TableRef::default()
         || h.version_minor <= 1
             && (h.textures != TableRef::default() || h.tiles != TableRef::default())
+        || h.version_minor <= 2 && h.environment != TableRef::default()
     {
         return Err("reserved header bytes are not zero".into());
     }
@@ -131,7 +132,42 @@ pub fn small_tables(h: &Header) -> Vec<(&'static str, &TableRef, usize)> {
         t.push(("texture", &h.textures, std::mem::size_of::<TextureRecord>()));
         t.push(("tile", &h.tiles, std::mem::size_of::<TileEntry>()));
     }
+    if h.version_minor >= 3 {
+        let known = std::mem::size_of::<EnvironmentRecord>();
+        t.push(("environment", &h.environment, known));
+    }
     t
+}
+
+/// At most one environment, of a known kind, with finite non-negative factors, a sky's
+/// values in the model's range and a map's path UTF-8, not empty, zero after its end.
+pub fn check_environment(all: &[EnvironmentRecord]) -> Result<(), String> {
+    if all.len() > 1 {
+        return Err(format!("{} environments (at most one)", all.len()));
+    }
+    let Some(e) = all.first() else { return Ok(()) };
+    let end = e.path.iter().position(|&b| b == 0).unwrap_or(e.path.len());
+    first_bad(&[
+        (
+            "the kind",
+            e.kind == EnvironmentRecord::MAP || e.kind == EnvironmentRecord::SKY,
+        ),
+        ("the strength", non_negative(&[e.strength, e.sun_strength])),
+        ("the rotation", e.rotate_degrees.is_finite()),
+        (
+            "the sky",
+            e.kind != EnvironmentRecord::SKY
+                || (0.0..=90.0).contains(&e.sun_elevation)
+                    && e.sun_azimuth.is_finite()
+                    && (1.0..=10.0).contains(&e.turbidity)
+                    && (0.0..=1.0).contains(&e.ground_albedo),
+        ),
+        (
+            "the map's path",
+            (e.kind != EnvironmentRecord::MAP || end > 0 && !e.path().is_empty())
+                && zeroed(&e.path[end..]),
+        ),
+    ])
 }
 
 /// Where the tables the tables checksum covers end.
@@ -746,6 +782,69 @@ mod tests {
         ] {
             let e = check_camera(&c).unwrap_err();
             assert!(e.contains(bad), "{e}");
+        }
+    }
+
+    #[test]
+    fn an_environment_is_one_map_or_one_sky_within_the_models_range() {
+        let sky = EnvironmentRecord {
+            kind: EnvironmentRecord::SKY,
+            strength: 1.0,
+            sun_elevation: 30.0,
+            turbidity: 3.0,
+            ground_albedo: 0.3,
+            sun_strength: 1.0,
+            ..bytemuck::Zeroable::zeroed()
+        };
+        let mut map = EnvironmentRecord {
+            kind: EnvironmentRecord::MAP,
+            strength: 1.0,
+            ..bytemuck::Zeroable::zeroed()
+        };
+        map.path[..7].copy_from_slice(b"sky.hdr");
+        assert!(check_environment(&[]).is_ok());
+        assert!(check_environment(&[sky]).is_ok());
+        assert!(check_environment(&[map]).is_ok());
+        let mut past_end = map;
+        past_end.path[9] = b'x';
+        let mut not_utf8 = map;
+        not_utf8.path[0] = 0xff;
+        for (e, bad) in [
+            (vec![sky, sky], "at most one"),
+            (vec![EnvironmentRecord { kind: 3, ..sky }], "kind"),
+            (
+                vec![EnvironmentRecord {
+                    strength: -1.0,
+                    ..sky
+                }],
+                "strength",
+            ),
+            (
+                vec![EnvironmentRecord {
+                    turbidity: 0.5,
+                    ..sky
+                }],
+                "sky",
+            ),
+            (
+                vec![EnvironmentRecord {
+                    sun_elevation: f32::NAN,
+                    ..sky
+                }],
+                "sky",
+            ),
+            (
+                vec![EnvironmentRecord {
+                    path: [0; 224],
+                    ..map
+                }],
+                "path",
+            ),
+            (vec![past_end], "path"),
+            (vec![not_utf8], "path"),
+        ] {
+            let err = check_environment(&e).unwrap_err();
+            assert!(err.contains(bad), "{err}");
         }
     }
 }

@@ -143,6 +143,8 @@ pub struct SceneInfo {
     pub instances: Vec<InstanceRecord>,
     /// Textures whose tiles were appended with `push_tile`, numbered from 0.
     pub textures: Vec<TextureRecord>,
+    /// The environment light its scene file gave, if any.
+    pub environment: Option<EnvironmentRecord>,
 }
 
 pub struct ArchiveWriter {
@@ -309,6 +311,7 @@ impl ArchiveWriter {
         let instances = append_table(&mut tables, base, &info.instances);
         let textures = append_table(&mut tables, base, &info.textures);
         let tiles = append_table(&mut tables, base, &self.tiles);
+        let environment = append_table(&mut tables, base, info.environment.as_slice());
         let tables_checksum = xxhash_rust::xxh3::xxh3_64(&tables);
         tables.resize((tables.len() as u64).next_multiple_of(ALIGN) as usize, 0);
         let pages = append_table(&mut tables, base, &self.pages);
@@ -340,7 +343,7 @@ impl ArchiveWriter {
             instances,
             textures,
             tiles,
-            reserved: [0; 16],
+            environment,
         };
         header.header_checksum = xxhash_rust::xxh3::xxh3_64(bytemuck::bytes_of(&header));
         self.out.write_all(&tables)?;

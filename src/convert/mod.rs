@@ -235,6 +235,15 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         Some(p) => SceneFile::load(p)?,
         None => SceneFile::default(),
     };
+    let environment = file.environment().with_context(|| {
+        format!(
+            "{}",
+            opts.scene
+                .as_deref()
+                .unwrap_or(std::path::Path::new(""))
+                .display()
+        )
+    })?;
     let mut writer = ArchiveWriter::create(&opts.output)?;
     let dir = match opts.output.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
@@ -309,6 +318,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         lights: scene.lights,
         instances: placed.records,
         textures,
+        environment,
     };
     report.pages = writer.page_count() as u64;
     report.nodes = writer.node_count();

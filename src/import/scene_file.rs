@@ -27,10 +27,17 @@
 //! position = [0.0, 1.0, 0.0]
 //! color = [1.0, 1.0, 1.0]
 //! intensity = 10.0
+//!
+//! [environment]             # at most one: a map, or a sky (as render --env / --sky)
+//! map = "sky.hdr"           # .exr or .hdr, relative to this file
+//! strength = 1.0            # default
+//! rotate_degrees = 0.0      # default
+//! # sky = true, sun_elevation_degrees = 45.0, sun_azimuth_degrees = 135.0,
+//! # turbidity = 3.0, ground_albedo = 0.3, sun_strength = 1.0 (the defaults)
 //! ```
 
 use anyhow::{bail, Context, Result};
-use canopy_format::{name_bytes, CameraRecord, LightRecord, MaterialRecord};
+use canopy_format::{name_bytes, CameraRecord, EnvironmentRecord, LightRecord, MaterialRecord};
 use glam::Vec3;
 use serde::Deserialize;
 use std::collections::HashMap;
@@ -47,6 +54,45 @@ pub struct SceneFile {
     assign: HashMap<String, String>,
     #[serde(default)]
     light: Vec<LightDef>,
+    environment: Option<EnvironmentDef>,
+    /// The file's directory, which relative paths start from.
+    #[serde(skip)]
+    dir: std::path::PathBuf,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct EnvironmentDef {
+    map: Option<String>,
+    #[serde(default)]
+    sky: bool,
+    #[serde(default = "one")]
+    strength: f32,
+    #[serde(default)]
+    rotate_degrees: f32,
+    #[serde(default = "elevation")]
+    sun_elevation_degrees: f32,
+    #[serde(default = "azimuth")]
+    sun_azimuth_degrees: f32,
+    #[serde(default = "turbidity")]
+    turbidity: f32,
+    #[serde(default = "albedo")]
+    ground_albedo: f32,
+    #[serde(default = "one")]
+    sun_strength: f32,
+}
+
+fn elevation() -> f32 {
+    45.0
+}
+fn azimuth() -> f32 {
+    135.0
+}
+fn turbidity() -> f32 {
+    3.0
+}
+fn albedo() -> f32 {
+    0.3
 }
 
 #[derive(Debug, Deserialize)]
@@ -145,8 +191,9 @@ impl SceneFile {
         let bytes = super::read_regular(path, 16 << 20, "scene file")?;
         let text = String::from_utf8(bytes)
             .with_context(|| format!("{}: the scene file is not UTF-8", path.display()))?;
-        let file: SceneFile =
+        let mut file: SceneFile =
             toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        file.dir = path.parent().unwrap_or(Path::new("")).to_path_buf();
         for (input, m) in &file.assign {
             if !file.material.iter().any(|d| &d.name == m) {
                 bail!("{}: [assign] gives '{input}' the material '{m}', which no [[material]] defines", path.display());
@@ -292,6 +339,63 @@ impl SceneFile {
                 }
             })
             .collect()
+    }
+
+    /// The environment record: a map's path made absolute (it must be a regular file), or
+    /// the sky's values checked as `render --sky` checks them.
+    pub fn environment(&self) -> Result<Option<EnvironmentRecord>> {
+        let Some(e) = &self.environment else {
+            return Ok(None);
+        };
+        let mut rec = EnvironmentRecord {
+            strength: e.strength,
+            rotate_degrees: e.rotate_degrees,
+            ..bytemuck::Zeroable::zeroed()
+        };
+        if !(e.strength.is_finite() && e.strength >= 0.0 && e.rotate_degrees.is_finite()) {
+            bail!("[environment]: strength must be finite and ≥ 0 and rotate_degrees finite");
+        }
+        match (&e.map, e.sky) {
+            (Some(map), false) => {
+                let path = self.dir.join(map);
+                let abs = std::fs::canonicalize(&path)
+                    .with_context(|| format!("[environment] map {}", path.display()))?;
+                if !abs.is_file() {
+                    bail!("[environment] map {}: not a regular file", abs.display());
+                }
+                let s = abs.to_str().with_context(|| {
+                    format!("[environment] map {}: the path is not UTF-8", abs.display())
+                })?;
+                if s.len() >= rec.path.len() {
+                    bail!(
+                        "[environment] map {s}: the path is {} bytes, more than an archive records ({}); give the map to render with --env",
+                        s.len(),
+                        rec.path.len() - 1
+                    );
+                }
+                rec.kind = EnvironmentRecord::MAP;
+                rec.path[..s.len()].copy_from_slice(s.as_bytes());
+            }
+            (None, true) => {
+                let sky = crate::light::sky::SkyOptions {
+                    elevation: e.sun_elevation_degrees,
+                    azimuth: e.sun_azimuth_degrees,
+                    turbidity: e.turbidity,
+                    albedo: e.ground_albedo,
+                    sun_strength: e.sun_strength,
+                    place: None,
+                };
+                sky.resolved().context("[environment]")?;
+                rec.kind = EnvironmentRecord::SKY;
+                rec.sun_elevation = sky.elevation;
+                rec.sun_azimuth = sky.azimuth;
+                rec.turbidity = sky.turbidity;
+                rec.ground_albedo = sky.albedo;
+                rec.sun_strength = sky.sun_strength;
+            }
+            _ => bail!("[environment] gives either map = \"FILE\" or sky = true"),
+        }
+        Ok(Some(rec))
     }
 
     pub fn lights(&self) -> Vec<LightRecord> {

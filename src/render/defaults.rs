@@ -6,7 +6,7 @@ use super::RenderOptions;
 use crate::light::sky::SkyOptions;
 use crate::light::{Environment, Lights};
 use anyhow::Result;
-use canopy_format::{Archive, CameraRecord};
+use canopy_format::{Archive, CameraRecord, EnvironmentRecord};
 use glam::Vec3A as V;
 use std::path::{Path, PathBuf};
 
@@ -76,6 +76,56 @@ pub fn camera_note(o: &RenderOptions, cam: &CameraRecord) -> String {
         p[1],
         p[2]
     )
+}
+
+/// The environment a render takes: the flags' (`--env`, `--sky`), else the one the archive
+/// carries from its scene file, with a note naming it.
+pub fn environment_options(
+    flags: Option<&EnvOptions>,
+    archive: &Archive,
+) -> (Option<EnvOptions>, Option<String>) {
+    let Some(e) = archive.environment else {
+        return (flags.cloned(), None);
+    };
+    if let Some(f) = flags {
+        let note = format!(
+            "{}: the environment its scene file gave is replaced by the one the flags give",
+            archive.path().display()
+        );
+        return (Some(f.clone()), Some(note));
+    }
+    let source = match e.kind {
+        EnvironmentRecord::SKY => EnvSource::Sky(SkyOptions {
+            elevation: e.sun_elevation,
+            azimuth: e.sun_azimuth,
+            turbidity: e.turbidity,
+            albedo: e.ground_albedo,
+            sun_strength: e.sun_strength,
+            place: None,
+        }),
+        _ => {
+            let dir = archive.path().parent().unwrap_or(Path::new(""));
+            EnvSource::Map(dir.join(e.path()))
+        }
+    };
+    let what = match &source {
+        EnvSource::Map(p) => format!("the map {}", p.display()),
+        EnvSource::Sky(s) => format!(
+            "a sky with the sun {}° up at azimuth {}°",
+            s.elevation, s.azimuth
+        ),
+    };
+    let note = format!(
+        "{}: lit by the environment its scene file gave, {what} (--env or --sky replace it)",
+        archive.path().display()
+    );
+    let options = EnvOptions {
+        source,
+        strength: e.strength,
+        rotate: e.rotate_degrees,
+        uniform_sampling: false,
+    };
+    (Some(options), Some(note))
 }
 
 /// `--env`'s map or `--sky`'s sky, made and placed; paged under its share of `budget` when

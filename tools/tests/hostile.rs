@@ -171,7 +171,7 @@ fn table_lies(base: &Parts) -> Vec<(&'static str, Edit, &'static str)> {
         ),
         (
             "reserved header byte",
-            Box::new(|p| p.header.reserved[5] = 1),
+            Box::new(|p| p.header.reserved0 = 1),
             "reserved",
         ),
         (

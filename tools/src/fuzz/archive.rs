@@ -21,6 +21,7 @@ pub struct Parts {
     pub lights: Vec<LightRecord>,
     pub instances: Vec<InstanceRecord>,
     pub textures: Vec<TextureRecord>,
+    pub environment: Vec<EnvironmentRecord>,
     /// Decoded texels of each texture tile.
     pub tiles: Vec<Vec<u8>>,
     /// Tile indices in the order their frames lie in the file (the converter writes them
@@ -50,6 +51,7 @@ impl Parts {
             lights: a.lights.clone(),
             instances: a.instances.clone(),
             textures: a.textures.clone(),
+            environment: a.environment.into_iter().collect(),
             tiles: (0..a.tile_count())
                 .map(|i| Ok(a.read_tile(i)?))
                 .collect::<Result<Vec<_>>>()?,
@@ -123,6 +125,14 @@ impl Parts {
         table(&mut out, textures, self.textures.len(), 64, &mut h.textures);
         let tile_table = bytemuck::cast_slice(&tiles);
         table(&mut out, tile_table, tiles.len(), 32, &mut h.tiles);
+        let environment = bytemuck::cast_slice(&self.environment);
+        table(
+            &mut out,
+            environment,
+            self.environment.len(),
+            256,
+            &mut h.environment,
+        );
         h.tables_checksum = xxhash_rust::xxh3::xxh3_64(&out[h.materials.offset as usize..]);
         align(&mut out);
         let pages = bytemuck::cast_slice(&entries);
