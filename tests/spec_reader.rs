@@ -249,8 +249,9 @@ fn longer_records_and_unknown_optional_features_are_read() {
             out.extend_from_slice(&rec);
         }
     };
-    // Materials, cameras, lights, (2.1) instances, (2.2) textures and tiles, back to back.
-    for at in [104, 120, 136, 192, 208, 224] {
+    // Materials, cameras, lights, (2.1) instances, (2.2) textures and tiles, (2.3) the
+    // environment, back to back.
+    for at in [104, 120, 136, 192, 208, 224, 240] {
         grow(&mut out, at, false);
     }
     let tables = xxh3(&out[start..]);
@@ -293,7 +294,7 @@ fn version_2_0_archives_still_open() {
     let mut file = std::fs::read(&good).unwrap();
     assert_eq!(u32_at(&file, 196), 0, "cbox has no instances");
     file[10..12].copy_from_slice(&0u16.to_le_bytes());
-    file[192..240].fill(0);
+    file[192..256].fill(0);
     file[176..184].fill(0);
     let h = xxhash_rust::xxh3::xxh3_64(&file[..256]);
     file[176..184].copy_from_slice(&h.to_le_bytes());
