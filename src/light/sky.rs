@@ -21,6 +21,7 @@ use anyhow::{bail, Result};
 use chrono::{DateTime, FixedOffset};
 use glam::Vec3A as V;
 use hw_skymodel::rgb::{Channel, SkyParams, SkyState};
+use rayon::prelude::*;
 use std::f32::consts::PI;
 use std::path::Path;
 
@@ -116,10 +117,24 @@ pub fn sky_map(o: &SkyOptions, strength: f32, share: Option<u64>) -> Result<Buil
     let sun = o.sun_direction();
     let [w, h] = SIZE;
     let mut b = Builder::new(w, h, strength, paged_capacity(w, h, share));
-    for j in 0..h {
-        for i in 0..w {
-            let d = super::env::direction([(i as f32 + 0.5) / w as f32, j as f32 / (h - 1) as f32]);
-            b.put(i, j, radiance(&state, d, sun));
+    // A band of 64 rows (one row of tiles) at a time, its rows evaluated in parallel.
+    for band in (0..h).step_by(64) {
+        let rows: Vec<Vec<[f32; 3]>> = (band..(band + 64).min(h))
+            .into_par_iter()
+            .map(|j| {
+                let v = j as f32 / (h - 1) as f32;
+                (0..w)
+                    .map(|i| {
+                        let d = super::env::direction([(i as f32 + 0.5) / w as f32, v]);
+                        radiance(&state, d, sun)
+                    })
+                    .collect()
+            })
+            .collect();
+        for (k, row) in rows.iter().enumerate() {
+            for (i, &rgb) in row.iter().enumerate() {
+                b.put(i, band + k, rgb);
+            }
         }
     }
     b.finish(Path::new("sky"))

@@ -183,11 +183,12 @@ pub fn mutate_archive(base: &Parts, raw: &[u8], rng: &mut Rng) -> (usize, Vec<u8
             p.assemble()
         }
         4 => {
-            match rng.below(5) {
+            match rng.below(6) {
                 0 => poke_record(&mut p.materials, rng),
                 1 => poke_record(&mut p.cameras, rng),
                 2 => poke_record(&mut p.lights, rng),
                 3 => poke_record(&mut p.textures, rng),
+                4 => poke_record(&mut p.environment, rng),
                 _ => poke_record(&mut p.instances, rng),
             }
             p.assemble()
@@ -303,6 +304,9 @@ pub fn exercise_archive(path: &Path, dir: &Path) -> Result<()> {
     verified
 }
 
+/// The scene-file environment one seed archive carries.
+const SEED_SKY: &str = "\n[environment]\nsky = true\nsun_elevation_degrees = 30.0\n";
+
 /// The archives mutations start from: the seed inputs converted with small pages, so they
 /// have several pages and child-page links.
 pub fn seed_archives(dir: &Path) -> Result<Vec<(Parts, Vec<u8>)>> {
@@ -314,7 +318,9 @@ pub fn seed_archives(dir: &Path) -> Result<Vec<(Parts, Vec<u8>)>> {
         for (name, bytes) in &inputs {
             std::fs::write(d.join(name), bytes)?;
         }
-        std::fs::write(d.join("scene.toml"), SEED_SCENE)?;
+        // One seed carries a sky for the environment table's mutations.
+        let sky = if main == "m.obj" { SEED_SKY } else { "" };
+        std::fs::write(d.join("scene.toml"), format!("{SEED_SCENE}{sky}"))?;
         let path = d.join("x.canopy");
         let mut o = ConvertOptions::new(vec![d.join(main)], path.clone());
         o.page_nodes = 3;

@@ -45,7 +45,7 @@ pub const CLASSES: [&str; 15] = [
     "archive: truncated or extended",
     "archive: header field, checksums recomputed",
     "archive: page-table field, checksums recomputed",
-    "archive: material/camera/light/instance/texture field, checksums recomputed",
+    "archive: material/camera/light/instance/texture/environment field, checksums recomputed",
     "archive: decoded page bytes (nodes, links, triangles, vertices), recompressed and rechecksummed",
     "archive: page tree rewired (DAG, cycle, shared child), rechecksummed",
     "input: glTF JSON value replaced (accessors, views, buffers, strides, types)",
