@@ -233,7 +233,7 @@ pub fn check_environment(file: &BakeFile, scene: &Scene, path: &Path) -> Result<
         _ => "under another environment than this render's",
     };
     bail!(
-        "{} was baked {baked} ({render}): bake again with the render's --env flags",
+        "{} was baked {baked} ({render}): bake again with the render's --env or --sky flags",
         path.display()
     )
 }
