@@ -55,10 +55,15 @@ impl Camera {
         }
     }
 
+    /// A pixel's height on the film: an angle (perspective) or a length (orthographic).
+    fn pixel(&self) -> f32 {
+        2.0 * self.half_height / self.height.max(1) as f32
+    }
+
     /// The width of a pixel's view at point `p`: its angle times the distance from the
     /// pinhole, or the same everywhere for an orthographic view.
     pub fn footprint(&self, p: V) -> f32 {
-        let pixel = 2.0 * self.half_height / self.height.max(1) as f32;
+        let pixel = self.pixel();
         match self.orthographic {
             true => pixel,
             false => pixel * (p - self.pos).length(),
@@ -69,7 +74,7 @@ impl Camera {
     /// one pixel's spacing): a pixel's angle from a pinhole, a pixel's width for an
     /// orthographic view.
     pub fn cone(&self) -> (f32, f32) {
-        let pixel = 2.0 * self.half_height / self.height.max(1) as f32;
+        let pixel = self.pixel();
         match self.orthographic {
             true => (pixel, 0.0),
             false => (0.0, pixel),

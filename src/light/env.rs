@@ -95,13 +95,12 @@ impl Environment {
             env.mean += sun.le * (sun.solid_angle() / (4.0 * PI));
             env.sun = Some((sun, pick));
         }
-        let id = [
+        env.id = identity(&[
             env.id,
             sun.le.x.to_bits() as u64,
             sun.dir.x.to_bits() as u64,
             sun.dir.z.to_bits() as u64,
-        ];
-        env.id = xxhash_rust::xxh3::xxh3_64(bytemuck::cast_slice(&id)).max(2);
+        ]);
         env.name = format!(
             "sky (sun {:.2}° up, azimuth {:.2}°, turbidity {}, ground albedo {}, strength {strength}, sun strength {}, rotated {rotate_deg}°{})",
             o.elevation,
@@ -143,13 +142,8 @@ impl Environment {
                 light * (PI * (j as f32 + 0.5) / rows as f32).sin()
             })
             .collect();
-        let id = [built.hash, rotate_deg.to_bits() as u64, uniform as u64]
-            .iter()
-            .flat_map(|x| x.to_le_bytes())
-            .collect::<Vec<u8>>();
         Environment {
-            // Never 0 or 1, which a bake file gives "not recorded" and "none".
-            id: xxhash_rust::xxh3::xxh3_64(&id).max(2),
+            id: identity(&[built.hash, rotate_deg.to_bits() as u64, uniform as u64]),
             mean: mean_radiance(&built.row_sums, built.tiles.width),
             tiles: built.tiles,
             rotation: [rotate_deg.to_radians().sin(), rotate_deg.to_radians().cos()],
@@ -178,7 +172,8 @@ impl Environment {
 
     /// Radiance arriving from direction `d` (unit, pointing away from the scene).
     pub fn le(&self, d: V) -> V {
-        let [u, v] = self.uv(self.to_local(d));
+        let local = self.to_local(d);
+        let [u, v] = self.uv(local);
         let [w, h] = [self.tiles.width, self.tiles.height];
         let x = u * w as f32 - 0.5;
         let y = v * (h - 1) as f32;
@@ -189,7 +184,7 @@ impl Environment {
         let i = (i as isize).rem_euclid(w as isize) as usize;
         let top = self.texel(i, j) * (1.0 - fx) + self.texel(i + 1, j) * fx;
         let bottom = self.texel(i, j + 1) * (1.0 - fx) + self.texel(i + 1, j + 1) * fx;
-        let sun = self.sun.map_or(V::ZERO, |(s, _)| s.le(self.to_local(d)));
+        let sun = self.sun.map_or(V::ZERO, |(s, _)| s.le(local));
         top * (1.0 - fy) + bottom * fy + sun
     }
 
@@ -280,6 +275,13 @@ impl Environment {
         let [s, c] = self.rotation;
         V::new(c * d.x + s * d.z, d.y, -s * d.x + c * d.z)
     }
+}
+
+/// An environment's identity from what makes it: a hash of `parts` (little-endian), never
+/// 0 or 1, which a bake file gives "not recorded" and "none".
+fn identity(parts: &[u64]) -> u64 {
+    let bytes: Vec<u8> = parts.iter().flat_map(|x| x.to_le_bytes()).collect();
+    xxhash_rust::xxh3::xxh3_64(&bytes).max(2)
 }
 
 /// The unit direction at map coordinates (u, v).

@@ -2,7 +2,7 @@
 //! archive (`format/FORMAT.md`, "The bake file") that `render --integrator pbgi
 //! --bake-in` pages in with the nodes.
 
-use super::defaults::{environment_options, light_the_scene, load_environment};
+use super::defaults::{chosen_environment, light_the_scene};
 use super::setup::open_scene;
 use crate::camera::Camera;
 use crate::image::{check_writable, same_file};
@@ -80,13 +80,10 @@ pub fn bake(o: &BakeOptions) -> Result<BakeReport> {
         .context("starting worker threads")?;
     // The bake shoots no camera rays; the scene still wants a camera.
     let camera = Camera::new(&bytemuck::Zeroable::zeroed(), 1, 1);
-    let (env, note) = environment_options(o.env.as_ref(), &archive);
+    let (env, note) = chosen_environment(o.env.as_ref(), &archive, o.mem_budget)?;
     if let Some(note) = note {
         eprintln!("note: {note}");
     }
-    let env = env
-        .map(|e| load_environment(&e, o.mem_budget))
-        .transpose()?;
     let aside = env.as_ref().map_or(0, Environment::bytes);
     let mut scene = open_scene(
         Arc::clone(&archive),

@@ -80,7 +80,7 @@ pub fn camera_note(o: &RenderOptions, cam: &CameraRecord) -> String {
 
 /// The environment a render takes: the flags' (`--env`, `--sky`), else the one the archive
 /// carries from its scene file, with a note naming it.
-pub fn environment_options(
+fn environment_options(
     flags: Option<&EnvOptions>,
     archive: &Archive,
 ) -> (Option<EnvOptions>, Option<String>) {
@@ -128,9 +128,21 @@ pub fn environment_options(
     (Some(options), Some(note))
 }
 
+/// The environment a render or bake takes (`environment_options`), made and placed under
+/// `budget`, and the note naming where it came from.
+pub fn chosen_environment(
+    flags: Option<&EnvOptions>,
+    archive: &Archive,
+    budget: Option<u64>,
+) -> Result<(Option<Environment>, Option<String>)> {
+    let (options, note) = environment_options(flags, archive);
+    let env = options.map(|e| load_environment(&e, budget)).transpose()?;
+    Ok((env, note))
+}
+
 /// `--env`'s map or `--sky`'s sky, made and placed; paged under its share of `budget` when
 /// it does not fit.
-pub fn load_environment(e: &EnvOptions, budget: Option<u64>) -> Result<Environment> {
+fn load_environment(e: &EnvOptions, budget: Option<u64>) -> Result<Environment> {
     let share = budget.map(Environment::share);
     match &e.source {
         EnvSource::Map(path) => {

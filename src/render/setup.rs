@@ -1,9 +1,7 @@
 //! From options to a scene ready to render: outputs checked, archive opened, camera and
 //! window chosen, the memory budget split between pages and the integrator's state.
 
-use super::defaults::{
-    camera_note, environment_options, framing_camera, light_the_scene, load_environment,
-};
+use super::defaults::{camera_note, chosen_environment, framing_camera, light_the_scene};
 use super::RenderOptions;
 use crate::camera::Camera;
 use crate::image::{check_writable, same_file};
@@ -161,11 +159,8 @@ impl Setup {
             .context("starting worker threads")?;
         let state_bytes = o.mem_budget.map(|b| o.integrator.state_share(b));
         // Under a budget, the map's share is kept aside with the state.
-        let (env, env_note) = environment_options(o.env.as_ref(), &archive);
+        let (env, env_note) = chosen_environment(o.env.as_ref(), &archive, o.mem_budget)?;
         notes.extend(env_note);
-        let env = env
-            .map(|e| load_environment(&e, o.mem_budget))
-            .transpose()?;
         let aside = state_bytes.unwrap_or(0) + env.as_ref().map_or(0, Environment::bytes);
         let camera = Camera::new(cam, width, height);
         let mut scene = open_scene(
