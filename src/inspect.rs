@@ -303,7 +303,12 @@ impl std::fmt::Display for Summary {
             writeln!(
                 f,
                 "  baked               {} bounce(s), {} light samples per triangle, seed {}",
-                r.bounces, r.samples_per_triangle, r.seed
+                match r.bounces {
+                    canopy_format::bake::ALL_BOUNCES => "all".to_string(),
+                    n => n.to_string(),
+                },
+                r.samples_per_triangle,
+                r.seed
             )?;
             writeln!(
                 f,

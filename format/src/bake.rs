@@ -123,6 +123,7 @@ pub struct BakeHeader {
     pub nodes: u64,
     pub pages: u32,
     pub record_size: u32,
+    /// Bounces the records hold; `ALL_BOUNCES`: every one (walks ended by roulette).
     pub bounces: u32,
     pub samples_per_triangle: u32,
     pub seed: u32,
@@ -144,6 +145,9 @@ pub struct BakeHeader {
     pub environment: u64,
     pub reserved: [u8; 8],
 }
+
+/// `BakeHeader::bounces` of a bake holding every bounce.
+pub const ALL_BOUNCES: u32 = 0;
 
 /// `BakeHeader::environment` of a bake lit by no environment.
 pub const NO_ENVIRONMENT: u64 = 1;

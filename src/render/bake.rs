@@ -100,7 +100,7 @@ pub fn bake(o: &BakeOptions) -> Result<BakeReport> {
     }
     let bar = crate::progress::bar(
         o.progress,
-        archive.page_count() as u64 * o.bake.bounces as u64,
+        archive.page_count() as u64 * o.bake.bounces.map_or(2, |n| n.min(2)) as u64,
         "baking pages",
     );
     let (samples, decoded_bytes) =

@@ -14,6 +14,7 @@
 
 use super::glossy::{self, GlossyMaps, WaveletMode};
 use super::patch;
+use super::walk::Walks;
 use crate::integrator::{sample_light, Receiver, Scene};
 use crate::material::luminance;
 use crate::paging::{deepest_first, NodeRef, Page};
@@ -98,13 +99,11 @@ pub struct BakeSettings {
     /// slower bake.
     #[arg(long = "patch-size", default_value_t = 0.01, value_parser = parse_patch_size)]
     pub patch_size: f32,
-    /// Bounces of light the cloud carries (000 Alg. 1): 1 is direct light reflected once;
-    /// each further bounce bakes again, adding what the previous bake's cloud sends to one
-    /// point of every triangle (of every level-3 patch of a large one), gathered as PBGI's
-    /// receivers do with its default cut and micro-buffer. Each costs about a render of
-    /// one sample per triangle. PBGI then stands for the path tracer at `--max-depth` 2 + N.
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=16))]
-    pub bounces: u32,
+    /// Bounces of light the cloud carries: 1 is direct light reflected once; more add
+    /// walks from every patch that read the direct bake, N − 1 surfaces deep
+    /// [default: all, ended by Russian roulette; under --max-depth D, D − 2]
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=256))]
+    pub bounces: Option<u32>,
     /// Glossy light as Haar wavelets (000 §3.1): nodes of rough metal or rough dielectric
     /// surfaces also store what their specular lobes reflect, per direction, on a cube map
     /// coded along the tree. `auto`: when some material is glossy.
@@ -156,17 +155,19 @@ pub struct BakeParams {
     pub seed: u32,
     /// Finest patch side as a fraction of the scene's diagonal.
     pub patch_size: f32,
-    pub bounces: u32,
+    /// None: all bounces.
+    pub bounces: Option<u32>,
     pub wavelet: WaveletMode,
     pub wavelet_n: usize,
     pub wavelet_threshold: f32,
 }
 
 impl BakeParams {
-    fn info(&self, scene: &Scene, bounces: u32, maps: Option<&GlossyMaps>) -> BakeInfo {
+    /// The file's record of a bake holding `bounces` bounces (None: all).
+    fn info(&self, scene: &Scene, bounces: Option<u32>, maps: Option<&GlossyMaps>) -> BakeInfo {
         BakeInfo {
             environment: environment_id(scene),
-            bounces,
+            bounces: bounces.unwrap_or(canopy_format::bake::ALL_BOUNCES),
             samples_per_triangle: self.samples,
             seed: self.seed,
             patch_size: self.patch_size,
@@ -249,9 +250,9 @@ pub fn bake_scratch(scene: &Scene, p: &BakeParams) -> Result<(BakeFile, u64)> {
     Ok((r, samples))
 }
 
-/// Bakes `p.bounces` bounces into `last` (000 Alg. 1): the first bake holds direct light;
-/// each further one adds, per patch, what the previous one's cloud sends there, that bake
-/// attached to the pages while the next is made. Returns the light samples taken.
+/// Bakes `p.bounces` bounces into `last`: the direct bake alone for one; otherwise the
+/// direct bake is made first and attached to the pages, and the final one adds to every
+/// patch what walks reading it find (`walk`). Returns the light samples taken.
 fn bake_bounces(
     scene: &Scene,
     p: &BakeParams,
@@ -259,40 +260,28 @@ fn bake_bounces(
     last: &mut RadianceWriter,
     progress: &dyn Fn(u64),
 ) -> Result<u64> {
-    let archive = &scene.cache.archive;
-    // A gatherer of no pixels: no window, no edge rays.
-    let target = crate::integrator::Target {
-        seed: p.seed,
-        pixels: 0,
-        window: [0; 4],
-        state_bytes: None,
-        pixel_split: 1,
-    };
-    let settings = super::PbgiSettings {
-        edge_rays: 0,
-        ..Default::default()
-    };
-    let gatherer = (p.bounces > 1).then(|| super::PbgiIntegrator::new(&settings, scene, &target));
-    let mut samples = 0;
-    for b in 1..=p.bounces {
-        let gather = gatherer.as_ref().filter(|_| b > 1);
-        if b == p.bounces {
-            samples += bake(scene, p, maps, last, progress, gather)?;
-            break;
-        }
-        let mut out = RadianceWriter::temporary(archive, p.info(scene, b, maps))?;
-        samples += bake(scene, p, maps, &mut out, progress, gather)?;
-        let file = out.finish()?;
-        let name = format!("(bounce {b} of the bake)");
-        scene
-            .cache
-            .attach_bake(BakeFile::from_file(file, Path::new(&name), archive)?)?;
+    if p.bounces == Some(1) {
+        return bake(scene, p, maps, last, progress, None);
     }
+    let archive = &scene.cache.archive;
+    let mut out = RadianceWriter::temporary(archive, p.info(scene, Some(1), maps))?;
+    let mut samples = bake(scene, p, maps, &mut out, progress, None)?;
+    let file = out.finish()?;
+    scene.cache.attach_bake(BakeFile::from_file(
+        file,
+        Path::new("(the direct bake)"),
+        archive,
+    )?)?;
+    let walks = Walks {
+        count: p.samples,
+        vertices: p.bounces.map(|n| n - 1),
+    };
+    samples += bake(scene, p, maps, last, progress, Some(&walks))?;
     Ok(samples)
 }
 
-/// Deepest patch level that gathers its own indirect light in bounces after the first
-/// (4³ = 64 gathers for a large triangle).
+/// Deepest patch level whose walks are its own (4³ = 64 for a large triangle): indirect
+/// light varies slowly, and the finest patches under one share its walks.
 const INDIRECT_DEPTH: u32 = 3;
 
 /// Pages baked at once: enough to keep every thread busy, few enough that memory holds
@@ -300,15 +289,15 @@ const INDIRECT_DEPTH: u32 = 3;
 const BATCH: usize = 64;
 
 /// Bakes every page of the archive, writing each page's block to `out` as it is done;
-/// returns the light samples taken. With `gather`, each patch also reflects what the
-/// cloud attached to the pages sends it.
+/// returns the light samples taken. With `walks`, each patch also reflects the indirect
+/// light walks from it find in the direct bake attached to the pages.
 fn bake(
     scene: &Scene,
     p: &BakeParams,
     maps: Option<&GlossyMaps>,
     out: &mut RadianceWriter,
     progress: &dyn Fn(u64),
-    gather: Option<&super::PbgiIntegrator>,
+    walks: Option<&Walks>,
 ) -> Result<u64> {
     let cache = &scene.cache;
     let archive = &cache.archive;
@@ -338,7 +327,7 @@ fn bake(
                             tr,
                             p,
                             a_max,
-                            gather,
+                            walks,
                             maps,
                         };
                         let (block, g, n) = job.bake_page(&page, &done);
@@ -378,7 +367,7 @@ struct PageJob<'a, 'b> {
     tr: &'b mut Tracer<'a>,
     p: &'a BakeParams,
     a_max: f32,
-    gather: Option<&'a super::PbgiIntegrator>,
+    walks: Option<&'a Walks>,
     maps: Option<&'a GlossyMaps>,
 }
 
@@ -417,7 +406,7 @@ impl PageJob<'_, '_> {
                             self.p,
                             self.a_max,
                             key,
-                            self.gather,
+                            self.walks,
                         );
                         samples += t.samples;
                         d.add(&t.node);
@@ -497,7 +486,7 @@ fn triangle(
     p: &BakeParams,
     a_max: f32,
     key: u64,
-    gather: Option<&super::PbgiIntegrator>,
+    walks: Option<&Walks>,
 ) -> BakedTriangle {
     let v = t.p.map(V::from);
     let cross = (v[1] - v[0]).cross(v[2] - v[0]);
@@ -581,17 +570,14 @@ fn triangle(
         baked += patches.len();
     }
     let mut finest: Vec<V> = patches.iter().map(|p| p.l).collect();
-    if let Some(g) = gather {
-        // One gather per patch of level m ≤ INDIRECT_DEPTH, shared by the finest patches
-        // under it: indirect light varies slowly, and a gather costs hundreds of rays.
+    if let Some(walks) = walks {
         let m = k.min(INDIRECT_DEPTH);
         for i in 0..1usize << (2 * m) {
             let mut rng = seeded(patch_key(i) ^ 0x5bd1_e995);
-            let q = uniform_point(patch::patch(v, m, i), &mut rng);
-            let e = rho * FRAC_1_PI * g.irradiance(scene, tr, q, err, ng, rng.u64());
+            let l = walks.incident(scene, tr, patch::patch(v, m, i), (err, ng), &mut rng);
             let under = 1usize << (2 * (k - m));
             for f in &mut finest[i * under..(i + 1) * under] {
-                *f += e;
+                *f += rho * l;
             }
         }
     }

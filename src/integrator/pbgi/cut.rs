@@ -4,7 +4,7 @@
 
 use super::bake::Directional;
 use super::microbuffer::MicroBuffer;
-use super::surface::{hit_light, Surface};
+use super::surface::Surface;
 use super::{receiver_clusters, PbgiIntegrator, Pending, Reuse, Scratch, Strata};
 use crate::integrator::surface::{hole_number, passes_through};
 use crate::integrator::{Counters, PixelSample, Scene};
@@ -206,7 +206,7 @@ impl PbgiIntegrator {
                         Some(p) if p.id == hit.page => p,
                         _ => tr.page_handle(hit.page),
                     };
-                    let (sends, sampled) = hit_light(scene, tr, &p, &hit, w, || strata.shading(k));
+                    let (sends, sampled) = self.hit_sends(scene, tr, &p, &hit, w, || strata.shading(k));
                     let id = (1 << 62) | (hit.leaf << 3) | hit.slot as u64;
                     let l = Vec3::from(sends * weight);
                     sc.put(target, k, hit.t, id, l, sampled);

@@ -7,7 +7,7 @@ use super::cut::{Field, Fill};
 use super::microbuffer::{Gradients, MicroBuffer};
 use super::pixel_reuse::{InPixel, Reuse};
 use super::receiver::Pending;
-use super::surface::{hit_light, Surface};
+use super::surface::Surface;
 use super::{amb, wpbgi, PbgiIntegrator};
 use crate::material::{Bsdf, Frame};
 use crate::sampler::PixelSampler;
@@ -236,7 +236,7 @@ impl PbgiIntegrator {
             .ok()?
             .hit;
         let page = tr.page_handle(hit.page);
-        let (sends, sampled) = hit_light(scene, tr, &page, &hit, w, || strata.shading(k));
+        let (sends, sampled) = self.hit_sends(scene, tr, &page, &hit, w, || strata.shading(k));
         let l = Vec3::from(sends * weight);
         Some((hit.t, u64::MAX - k as u64, l, sampled))
     }

@@ -63,6 +63,7 @@ mod settings;
 mod split;
 mod stats;
 mod surface;
+mod walk;
 pub mod wpbgi;
 
 use super::edge::EdgeRays;
@@ -124,6 +125,9 @@ pub struct PbgiIntegrator {
     probe_records: u64,
     /// `--pbgi-glossy-rays`, or its default for the scene.
     glossy_rays: u32,
+    /// The bake holds every bounce: light past surfaces it does not cover is followed
+    /// (`walk::onward`).
+    onward: bool,
     /// Pairs and bounce rays per glossy receiver, per pixel (`--pbgi-split`).
     split: split::Split,
     /// v̄ · c_g / c_s for the pixels' gather periods, at the pass's start (see `period`).
@@ -174,6 +178,7 @@ impl PbgiIntegrator {
             probe_rays: 0,
             probe_records: 0,
             glossy_rays,
+            onward: false,
             // With more first hits per pixel only the bounce splits (`Split::new`).
             split: split::Split::new(split, glossy_rays, window, target.pixel_split == 1),
             reuse_target: 0.0,
@@ -249,6 +254,11 @@ impl Integrator for PbgiIntegrator {
             }
             None => {
                 let mut params = self.settings.bake.params(self.seed);
+                // Under --max-depth D the cloud holds what paths of D segments reflect
+                // past the receiver's gather: D − 2 bounces.
+                if params.bounces.is_none() {
+                    params.bounces = scene.max_depth.map(|d| d.saturating_sub(2).max(1));
+                }
                 if self.settings.rays {
                     // Texel rays, and WPBGI's leaf rays, read only the patches' diffuse
                     // light.
@@ -259,6 +269,7 @@ impl Integrator for PbgiIntegrator {
                 file
             }
         };
+        self.onward = file.header.bounces == canopy_format::bake::ALL_BOUNCES;
         scene.cache.attach_bake(file)?;
         self.bake_s = t.elapsed().as_secs_f64();
         let mut cache_rays = 0;

@@ -4,7 +4,7 @@
 use super::super::direct::escaped_light;
 use super::super::surface::{hole_number, scattering_hit, Missed, Scatter};
 use super::super::{on_side, Counters, PixelSample, Scene};
-use super::surface::{hit_light, LobeRay, Surface};
+use super::surface::{LobeRay, Surface};
 use super::{split, wpbgi, PbgiIntegrator};
 use crate::sampler::{Hash, PixelSampler};
 use crate::trace::{offset_origin, Ray, Tracer};
@@ -261,7 +261,7 @@ impl PbgiIntegrator {
         };
         self.tally.exact_hits.fetch_add(1, Relaxed);
         let page = tr.page_handle(hit.page);
-        r.weight * hit_light(scene, tr, &page, hit, r.w, || u).0
+        r.weight * self.hit_sends(scene, tr, &page, hit, r.w, || u).0
     }
 
     /// The receiver at pixel (x, y)'s first hit through its centre, if there is one.

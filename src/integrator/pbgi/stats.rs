@@ -89,7 +89,9 @@ impl PbgiIntegrator {
                 Some(path) => format!("bake: read from {} ({:.2} s)", path.display(), self.bake_s),
                 None => format!(
                     "bake: {} bounce(s) of light reflected by every node, {} light samples per triangle ({:.2} s)",
-                    s.bake.bounces, s.bake.bake_samples, self.bake_s
+                    s.bake.bounces.map_or("all".to_string(), |n| n.to_string()),
+                    s.bake.bake_samples,
+                    self.bake_s
                 ),
             },
             {
