@@ -399,14 +399,25 @@ impl PageJob<'_, '_> {
                             continue;
                         };
                         let uv = page.uvs.get(k as usize).copied().unwrap_or_default();
+                        // The first pass's direct light, attached to the page.
+                        let direct = page.baked.patches_of(k as usize).and_then(|(depth, at)| {
+                            let at = at + patch::level_start(depth);
+                            let finest = page.baked.patches.get(at..at + (1 << (2 * depth)))?;
+                            Some((depth, finest))
+                        });
+                        let light = match (self.walks, direct) {
+                            (Some(w), Some((depth, finest))) => {
+                                Light::WithIndirect(w, depth, finest)
+                            }
+                            _ => Light::Direct,
+                        };
                         let t = triangle(
                             self.scene,
                             self.tr,
                             (&tri, uv),
                             self.p,
-                            self.a_max,
-                            key,
-                            self.walks,
+                            (self.a_max, key),
+                            light,
                         );
                         samples += t.samples;
                         d.add(&t.node);
@@ -477,6 +488,14 @@ struct BakedTriangle {
     samples: u64,
 }
 
+/// What a triangle's bake adds up: its direct light alone, or the direct light a first
+/// pass baked (its depth and finest patches) and the walks' indirect light.
+#[derive(Clone, Copy)]
+enum Light<'a> {
+    Direct,
+    WithIndirect(&'a Walks, u32, &'a [[f32; 3]]),
+}
+
 /// A triangle's reflected radiance ρ·E/π, as a patch; split into 4^k patches baked one by
 /// one when it is larger than `a_max`.
 fn triangle(
@@ -484,15 +503,13 @@ fn triangle(
     tr: &mut Tracer,
     (t, uv): (&crate::paging::TriW, [[f32; 2]; 3]),
     p: &BakeParams,
-    a_max: f32,
-    key: u64,
-    walks: Option<&Walks>,
+    (a_max, key): (f32, u64),
+    light: Light,
 ) -> BakedTriangle {
     let v = t.p.map(V::from);
     let cross = (v[1] - v[0]).cross(v[2] - v[0]);
     let area = 0.5 * cross.length();
-    let m = &scene.mean_material(t.material);
-    let rho = m.bsdf(true).diffuse;
+    let rho = scene.mean_material(t.material).bsdf(true).diffuse;
     let dark = |node| BakedTriangle {
         node,
         depth: 0,
@@ -507,10 +524,56 @@ fn triangle(
         return dark(BakedNode::patch(area, ng, V::ZERO));
     }
     let err = (v[0].abs() + v[1].abs() + v[2].abs()) * gamma(7);
-    let seeded = |key: u64| Hash::new(p.seed as u64 ^ key.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    let (k, mut finest, baked) = match light {
+        Light::Direct => direct_patches(scene, tr, (t, uv), p, (a_max, key), (ng, err)),
+        Light::WithIndirect(_, k, direct) => (k, direct.iter().map(|&l| V::from(l)).collect(), 0),
+    };
+    if let Light::WithIndirect(walks, ..) = light {
+        let m = k.min(INDIRECT_DEPTH);
+        for i in 0..1usize << (2 * m) {
+            let mut rng = seeded(p, patch_key(key, i) ^ 0x5bd1_e995);
+            let l = walks.incident(scene, tr, patch::patch(v, m, i), (err, ng), &mut rng);
+            let under = 1usize << (2 * (k - m));
+            for f in &mut finest[i * under..(i + 1) * under] {
+                *f += rho * l;
+            }
+        }
+    }
+    let mean = finest.iter().sum::<V>() / finest.len() as f32;
+    let present = coverage(scene, (t, uv), &mut seeded(p, key ^ 0xC0FE_u64 << 44));
+    BakedTriangle {
+        node: BakedNode::patch(area * present, ng, mean),
+        depth: k,
+        samples: p.samples as u64 * baked as u64,
+        pyramid: patch::pyramid(&finest, k),
+    }
+}
+
+/// The numbers of the bake's estimate with key `key`.
+fn seeded(p: &BakeParams, key: u64) -> Hash {
+    Hash::new(p.seed as u64 ^ key.wrapping_mul(0x9E37_79B9_7F4A_7C15))
+}
+
+/// The key of patch `i` of the triangle with key `key`.
+fn patch_key(key: u64, i: usize) -> u64 {
+    key ^ ((i as u64 + 1) << 40)
+}
+
+/// A triangle's direct light as patches: their depth, their finest level's light, and how
+/// many patches were baked (with a shadow's edge across them, a coarser level first).
+fn direct_patches(
+    scene: &Scene,
+    tr: &mut Tracer,
+    (t, uv): (&crate::paging::TriW, [[f32; 2]; 3]),
+    p: &BakeParams,
+    (a_max, key): (f32, u64),
+    (ng, err): (V, V),
+) -> (u32, Vec<V>, usize) {
+    let v = t.p.map(V::from);
+    let rho = scene.mean_material(t.material).bsdf(true).diffuse;
     let textured = scene.textures.varies(t.material);
     let mut direct = |tri: [V; 3], key: u64| {
-        let mut rng = seeded(key);
+        let mut rng = seeded(p, key);
         let (mut sum, mut sum_y2) = (V::ZERO, 0.0);
         let side = (tri[1] - tri[0]).length().max((tri[2] - tri[0]).length());
         for _ in 0..p.samples {
@@ -549,13 +612,13 @@ fn triangle(
         let var = (sum_y2 / n - luminance(mean).powi(2)).max(0.0) / (n - 1.0).max(1.0);
         Patch { l: mean, var }
     };
+    let area = 0.5 * (v[1] - v[0]).cross(v[2] - v[0]).length();
     let mut k = patch::depth(area, a_max);
-    let patch_key = |i: usize| key ^ ((i as u64 + 1) << 40);
     let mut level = |k: u32| -> Vec<Patch> {
         match k {
             0 => vec![direct(v, key)],
             _ => (0..1usize << (2 * k))
-                .map(|i| direct(patch::patch(v, k, i), patch_key(i)))
+                .map(|i| direct(patch::patch(v, k, i), patch_key(key, i)))
                 .collect(),
         }
     };
@@ -569,26 +632,7 @@ fn triangle(
         patches = level(k);
         baked += patches.len();
     }
-    let mut finest: Vec<V> = patches.iter().map(|p| p.l).collect();
-    if let Some(walks) = walks {
-        let m = k.min(INDIRECT_DEPTH);
-        for i in 0..1usize << (2 * m) {
-            let mut rng = seeded(patch_key(i) ^ 0x5bd1_e995);
-            let l = walks.incident(scene, tr, patch::patch(v, m, i), (err, ng), &mut rng);
-            let under = 1usize << (2 * (k - m));
-            for f in &mut finest[i * under..(i + 1) * under] {
-                *f += rho * l;
-            }
-        }
-    }
-    let mean = finest.iter().sum::<V>() / finest.len() as f32;
-    let present = coverage(scene, (t, uv), &mut seeded(key ^ 0xC0FE_u64 << 44));
-    BakedTriangle {
-        node: BakedNode::patch(area * present, ng, mean),
-        depth: k,
-        samples: p.samples as u64 * baked as u64,
-        pyramid: patch::pyramid(&finest, k),
-    }
+    (k, patches.iter().map(|p| p.l).collect(), baked)
 }
 
 /// Points a masked or blended triangle's coverage is estimated at.
