@@ -206,7 +206,8 @@ impl PbgiIntegrator {
                         Some(p) if p.id == hit.page => p,
                         _ => tr.page_handle(hit.page),
                     };
-                    let (sends, sampled) = self.hit_sends(scene, tr, &p, &hit, w, || strata.shading(k));
+                    let (sends, sampled) =
+                        self.hit_sends(scene, tr, &p, &hit, w, || strata.shading(k));
                     let id = (1 << 62) | (hit.leaf << 3) | hit.slot as u64;
                     let l = Vec3::from(sends * weight);
                     sc.put(target, k, hit.t, id, l, sampled);
