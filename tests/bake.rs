@@ -93,7 +93,11 @@ fn glossy_coefficients_round_trip_through_the_file_and_the_budget() {
     assert_eq!(r["wavelet_resolution"], 4, "{r}");
     assert!(r["coefficient_bytes"].as_u64().unwrap() > 0, "{r}");
 
-    let pbgi = [&SMALL[..], &["--integrator", "pbgi"]].concat();
+    let pbgi = [
+        &SMALL[..],
+        &["--integrator", "pbgi", "--pbgi-gather", "cut"],
+    ]
+    .concat();
     let (own, _) = render(
         &arc,
         &dir.path().join("own.exr"),

@@ -8,7 +8,7 @@ use common::*;
 /// light, `--max-depth 3`), 32×24 pixels below the lamp (its silhouette's noise would
 /// swamp the means). Returns the worst channel's relative error of the image mean.
 fn one_bounce_mean_error(name: &str) -> f64 {
-    mean_error(name, 3, &[])
+    mean_error(name, 3, &["--pbgi-gather", "cut"])
 }
 
 /// PBGI with `extra` flags against the path tracer at `depth` in the same window, every
@@ -108,7 +108,7 @@ fn splatted_nodes_keep_bunny_box_within_one_percent() {
 /// nodes (above) goes. Measured −0.03%, −0.08%, −0.07% here.
 #[test]
 fn texel_rays_reading_the_bake_keep_bunny_box_within_half_a_percent() {
-    let e = mean_error("bunny_box", 3, &["--pbgi-rays"]);
+    let e = mean_error("bunny_box", 3, &["--pbgi-gather", "rays"]);
     assert!(e < 0.005, "bunny_box: image mean off by {:.2}%", 100.0 * e);
 }
 
@@ -142,15 +142,41 @@ fn pbgi_flags_are_refused_elsewhere_and_checked() {
             "--cone-scale applies to --integrator cone",
         ),
         (
-            &["--integrator", "pbgi", "--wavelet", "on"],
+            &[
+                "--integrator",
+                "pbgi",
+                "--pbgi-gather",
+                "cut",
+                "--wavelet",
+                "on",
+            ],
             "no material of",
+        ),
+        (
+            &["--integrator", "pbgi", "--wavelet", "on"],
+            "--wavelet on applies to the cut's gather",
         ),
         (
             &["--integrator", "pbgi", "--wavelet-resolution", "6"],
             "power of two",
         ),
         (
-            &["--integrator", "pbgi", "--pbgi-rays", "--pbgi-angle", "2"],
+            &["--integrator", "pbgi", "--pbgi-angle", "2"],
+            "--pbgi-angle applies to the cut's gather",
+        ),
+        (
+            &["--integrator", "pbgi", "--receiver-clusters", "4"],
+            "--receiver-clusters applies to the cut's gather",
+        ),
+        (
+            &[
+                "--integrator",
+                "pbgi",
+                "--bake-in",
+                "x.bake",
+                "--quality",
+                "final",
+            ],
             "cannot be used with",
         ),
         (
@@ -253,6 +279,8 @@ fn a_very_bright_small_lamp_gives_no_bad_pixel() {
             "24",
             "--spp",
             "4",
+            "--pbgi-gather",
+            "cut",
             "--wavelet-threshold",
             "0.1",
         ],
@@ -301,6 +329,8 @@ fn a_pixel_gathers_at_every_rth_sample_and_shades_one_near_hit_per_texel() {
             &[
                 "--integrator",
                 "pbgi",
+                "--pbgi-gather",
+                "cut",
                 "--width",
                 "32",
                 "--height",
@@ -367,7 +397,14 @@ fn a_pixel_gathers_at_every_rth_sample_and_shades_one_near_hit_per_texel() {
 /// thread count, so the image is too.
 #[test]
 fn the_irradiance_cache_shares_gathers_and_keeps_the_mean() {
-    let flags = ["--pbgi-rays", "--pbgi-cache", "0.3", "--threads", "2"];
+    let flags = [
+        "--pbgi-gather",
+        "rays",
+        "--pbgi-cache",
+        "0.3",
+        "--threads",
+        "2",
+    ];
     let (img, reference, stats) = pbgi_and_path("bunny_box", "0,32,8,32", 3, [8192, 64], &flags);
     let count = |k: &str| stats[k].as_u64().unwrap();
     let receivers = count("irradiance_cache_hits") + count("gathers") + count("reused_gathers");
@@ -393,7 +430,7 @@ fn the_irradiance_cache_shares_gathers_and_keeps_the_mean() {
         "0,32,8,32",
         3,
         [1, 64],
-        &[&flags[..3], &["--threads", "1"]].concat(),
+        &[&flags[..4], &["--threads", "1"]].concat(),
     );
     assert_eq!(
         rmse(&img, &one),
@@ -415,7 +452,8 @@ fn receivers_in_a_gap_the_records_did_not_see_gather_for_themselves() {
     let base = [
         "--integrator",
         "pbgi",
-        "--pbgi-rays",
+        "--pbgi-gather",
+        "rays",
         "--pbgi-reuse",
         "256",
         "--width",
@@ -468,7 +506,8 @@ fn pixels_left_to_themselves_gather_more_often_where_their_gathers_scatter() {
         let flags = [
             "--integrator",
             "pbgi",
-            "--pbgi-rays",
+            "--pbgi-gather",
+            "rays",
             "--pbgi-reuse",
             reuse,
             "--width",
@@ -651,6 +690,8 @@ fn receiver_clusters_of_one_equal_pbgi_and_larger_ones_share_far_splats() {
         "0",
         "--bounces",
         "1",
+        "--pbgi-gather",
+        "cut",
     ];
     let render_with = |name: &str, extra: &[&str]| {
         render(&arc, &dir.path().join(name), &[&base[..], extra].concat())
@@ -841,7 +882,8 @@ fn wavelet_pbgi_gathers_a_rough_glass_floors_reflection() {
         let flags = [
             "--integrator",
             "pbgi",
-            "--pbgi-rays",
+            "--pbgi-gather",
+            "rays",
             "--spp",
             "64",
             "--pbgi-glossy-bounce",
@@ -934,7 +976,8 @@ fn the_bake_shades_a_normal_mapped_floor_as_the_path_tracer_does() {
         &[
             "--integrator",
             "pbgi",
-            "--pbgi-rays",
+            "--pbgi-gather",
+            "rays",
             "--spp",
             "32",
             "--seed",
@@ -970,7 +1013,16 @@ fn a_rough_metal_floor_sends_its_glossy_light_to_a_diffuse_wall() {
             &dir.path().join("pbgi.exr"),
             &[
                 &small[..],
-                &["--integrator", "pbgi", "--spp", "16", "--wavelet", wavelet],
+                &[
+                    "--integrator",
+                    "pbgi",
+                    "--pbgi-gather",
+                    "cut",
+                    "--spp",
+                    "16",
+                    "--wavelet",
+                    wavelet,
+                ],
             ]
             .concat(),
         );
@@ -1020,12 +1072,15 @@ fn wavelet_pbgi_gathers_a_rough_metal_floors_reflection() {
     ];
     let light = ["--pbgi-light-importance", "0.5"];
     for (how, extra) in [
-        ("wavelet", &["--pbgi-rays"][..]),
-        ("wavelet", &[]),
-        ("wavelet", &[&["--pbgi-rays"][..], &light].concat()),
-        ("wavelet", &light),
-        ("cache", &["--pbgi-rays"]),
-        ("cache", &[]),
+        ("wavelet", &["--pbgi-gather", "rays"][..]),
+        ("wavelet", &["--pbgi-gather", "cut"]),
+        (
+            "wavelet",
+            &[&["--pbgi-gather", "rays"][..], &light].concat(),
+        ),
+        ("wavelet", &[&["--pbgi-gather", "cut"][..], &light].concat()),
+        ("cache", &["--pbgi-gather", "rays"]),
+        ("cache", &["--pbgi-gather", "cut"]),
     ] {
         let (img, stats) = render_at("3", &[&pbgi[..], &[how], extra].concat());
         assert!(all_finite(&img));

@@ -837,7 +837,14 @@ fn the_pixel_split_is_one_flag_for_every_integrator() {
     let pbgi = ["render", s(&arc), "-o", s(&out), "--integrator", "pbgi"];
     let err = fails(&[&pbgi[..], &["--pbgi-pixel-split", "4"]].concat());
     assert!(err.contains("--pixel-split M"), "{err}");
-    let clusters = ["--receiver-clusters", "8", "--pixel-split", "4"];
+    let clusters = [
+        "--pbgi-gather",
+        "cut",
+        "--receiver-clusters",
+        "8",
+        "--pixel-split",
+        "4",
+    ];
     let err = fails(&[&pbgi[..], &clusters].concat());
     assert!(
         err.contains("--pixel-split 4") && err.contains("--receiver-clusters"),

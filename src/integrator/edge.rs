@@ -29,10 +29,8 @@ pub const PBGI_EDGE_RAYS: u32 = 16;
 #[derive(Clone, Debug, clap::Args)]
 #[command(next_help_heading = "Cone and point-based GI (--integrator cone or pbgi)")]
 pub struct EdgeSettings {
-    /// On pixels where earlier samples, of the pixel or its 8 neighbours, both saw an
-    /// emitter and missed it (a lamp's silhouette), the emission seen directly is averaged
-    /// over this many primary rays per sample instead of the sample's own; they cost no
-    /// shading. 0 turns it off [default: 8 under cone, 16 under pbgi]
+    /// Primary rays that average the emission seen on a lamp's silhouette pixels (no
+    /// shading); 0 is off [default: 8 under cone, 16 under pbgi]
     #[arg(long, value_parser = clap::value_parser!(u32).range(0..=256))]
     pub edge_rays: Option<u32>,
 }

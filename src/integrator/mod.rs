@@ -117,6 +117,20 @@ impl Settings {
                     "--pbgi-split {n}: no material of {path} is a rough metal or rough dielectric, so no receiver has a glossy lobe to split"
                 );
             }
+            if p.rays() {
+                let cut_only = if p.angle.is_some() {
+                    Some("--pbgi-angle")
+                } else if p.clusters > 0 {
+                    Some("--receiver-clusters")
+                } else {
+                    p.bake.wavelet_given()
+                };
+                if let Some(flag) = cut_only {
+                    anyhow::bail!(
+                        "{flag} applies to the cut's gather (--pbgi-gather cut); texel rays read only the baked diffuse light"
+                    );
+                }
+            }
             if let (Some(t), pbgi::wpbgi::GlossyBounce::Rays) = (p.brdf_threshold, p.glossy_bounce)
             {
                 anyhow::bail!(

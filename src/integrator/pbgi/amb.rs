@@ -17,7 +17,7 @@
 //! scene's exposure. Each fragment keeps the node that made it (the per-texel node list),
 //! so a leaf that splits hands its nodes back to be traversed again and splatted onto its
 //! children only; its hits are dropped, and the children take their own rays, but a
-//! traced ray is handed to the child it passes through. Under `--pbgi-rays` each leaf's
+//! traced ray is handed to the child it passes through. Under `--pbgi-gather rays` each leaf's
 //! ray is traced instead of the cut ([`Amb::rays`]).
 
 use super::brdf_table::RES;

@@ -89,34 +89,56 @@ fn axis_cosines(v: V) -> [f32; 6] {
 /// The bake's flags, shared by `canopy bake` and `render --integrator pbgi`.
 #[derive(Clone, Debug, clap::Args)]
 pub struct BakeSettings {
-    /// Light samples per triangle in the bake (per finest patch of a subdivided triangle).
-    #[arg(long = "bake-samples", default_value_t = 16, value_parser = clap::value_parser!(u32).range(1..=65536))]
-    pub bake_samples: u32,
-    /// Finest patch side as a fraction of the scene's diagonal: a larger triangle is baked
-    /// as up to 4^6 patches, each with its own light, so a near wall rasterized by PBGI
-    /// shows light that varies across it; where a shadow's edge crosses its patches, they
-    /// are baked two levels finer (up to the same cap). Smaller is more exact, with a
-    /// slower bake.
-    #[arg(long = "patch-size", default_value_t = 0.01, value_parser = parse_patch_size)]
-    pub patch_size: f32,
-    /// Bounces of light the cloud carries: 1 is direct light reflected once; more add
-    /// walks from every patch that read the direct bake, N − 1 surfaces deep
-    /// [default: all, ended by Russian roulette; under --max-depth D, D − 2]
+    /// The bake's light samples and patch size together (docs/pbgi.md measures each).
+    #[arg(long, value_enum, default_value_t = Quality::Default)]
+    pub quality: Quality,
+    /// Bounces the baked light carries: 1 is direct light reflected once [default: all,
+    /// ended by Russian roulette; under --max-depth D, D − 2].
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..=256))]
     pub bounces: Option<u32>,
-    /// Glossy light as Haar wavelets (000 §3.1): nodes of rough metal or rough dielectric
-    /// surfaces also store what their specular lobes reflect, per direction, on a cube map
-    /// coded along the tree. `auto`: when some material is glossy.
-    #[arg(long, value_enum, default_value_t = WaveletMode::Auto)]
+    /// Light samples per patch in the bake [default: set by --quality].
+    #[arg(long = "bake-samples", help_heading = ADVANCED, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    pub bake_samples: Option<u32>,
+    /// Finest patch side as a fraction of the scene's diagonal; larger triangles are baked
+    /// as up to 4^6 patches [default: set by --quality].
+    #[arg(long = "patch-size", help_heading = ADVANCED, value_parser = parse_patch_size)]
+    pub patch_size: Option<f32>,
+    /// Glossy light stored per node as Haar wavelets (000 §3.1), for the cut gather:
+    /// `auto` when some material is glossy and the gather is the cut.
+    #[arg(long, help_heading = ADVANCED, value_enum, default_value_t = WaveletMode::Auto)]
     pub wavelet: WaveletMode,
-    /// Texels per cube-face side of those maps (a power of two up to 32): finer follows
-    /// narrower lobes and costs more bake time and bytes.
-    #[arg(long = "wavelet-resolution", default_value_t = 8, value_parser = parse_wavelet_resolution)]
-    pub wavelet_resolution: usize,
-    /// Coefficients below this fraction of the largest of their page's roots are dropped
-    /// (0 keeps every one).
-    #[arg(long = "wavelet-threshold", default_value_t = 0.01, value_parser = crate::units::parse_non_negative)]
-    pub wavelet_threshold: f32,
+    /// Texels per cube-face side of the glossy maps, a power of two up to 32 [default: 8].
+    #[arg(long = "wavelet-resolution", help_heading = ADVANCED, value_parser = parse_wavelet_resolution)]
+    pub wavelet_resolution: Option<usize>,
+    /// Glossy coefficients below this fraction of their page's largest are dropped
+    /// [default: 0.01].
+    #[arg(long = "wavelet-threshold", help_heading = ADVANCED, value_parser = crate::units::parse_non_negative)]
+    pub wavelet_threshold: Option<f32>,
+}
+
+/// The help heading of the PBGI and bake settings that rarely matter.
+pub const ADVANCED: &str = "Point-based GI, advanced";
+
+/// `--quality`: the bake's samples and patch size, set together.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Quality {
+    /// 4 samples a patch, patches of 2% of the scene's diagonal.
+    Draft,
+    /// 16 samples a patch, patches of 1%.
+    Default,
+    /// 64 samples a patch, patches of 1%.
+    Final,
+}
+
+impl Quality {
+    /// Light samples per patch and the finest patch's side (docs/pbgi.md measures them).
+    fn bake(self) -> (u32, f32) {
+        match self {
+            Quality::Draft => (4, 0.02),
+            Quality::Default => (16, 0.01),
+            Quality::Final => (64, 0.01),
+        }
+    }
 }
 
 fn parse_wavelet_resolution(s: &str) -> Result<usize, String> {
@@ -135,14 +157,28 @@ fn parse_patch_size(s: &str) -> Result<f32, String> {
 
 impl BakeSettings {
     pub fn params(&self, seed: u32) -> BakeParams {
+        let (samples, patch_size) = self.quality.bake();
         BakeParams {
-            samples: self.bake_samples,
+            samples: self.bake_samples.unwrap_or(samples),
             seed,
-            patch_size: self.patch_size,
+            patch_size: self.patch_size.unwrap_or(patch_size),
             bounces: self.bounces,
             wavelet: self.wavelet,
-            wavelet_n: self.wavelet_resolution,
-            wavelet_threshold: self.wavelet_threshold,
+            wavelet_n: self.wavelet_resolution.unwrap_or(8),
+            wavelet_threshold: self.wavelet_threshold.unwrap_or(0.01),
+        }
+    }
+
+    /// Whether a glossy-map setting was given (they apply only where maps are baked).
+    pub fn wavelet_given(&self) -> Option<&'static str> {
+        if self.wavelet == WaveletMode::On {
+            Some("--wavelet on")
+        } else if self.wavelet_resolution.is_some() {
+            Some("--wavelet-resolution")
+        } else if self.wavelet_threshold.is_some() {
+            Some("--wavelet-threshold")
+        } else {
+            None
         }
     }
 }

@@ -79,7 +79,7 @@ impl Scratch {
 }
 
 impl PbgiIntegrator {
-    /// Fills the micro-buffer `target`: under `--pbgi-rays` every texel's (or leaf's) ray
+    /// Fills the micro-buffer `target`: under `--pbgi-gather rays` (the default) every texel's (or leaf's) ray
     /// in `sc.rays` traced exactly, else from the cut.
     #[allow(clippy::too_many_arguments)]
     pub(super) fn fill_texels(
@@ -92,7 +92,7 @@ impl PbgiIntegrator {
         strata: Strata,
         target: Fill,
     ) {
-        if !self.settings.rays {
+        if !self.settings.rays() {
             return self.fill_from_cut(scene, tr, s, field, sc, strata, target);
         }
         self.trace_texels(scene, tr, s, sc, strata, target);
@@ -133,7 +133,7 @@ impl PbgiIntegrator {
         strata: Strata,
         nodes: &[u64],
     ) {
-        if self.settings.rays {
+        if self.settings.rays() {
             return self.trace_texels(scene, tr, s, sc, strata, Fill::Adaptive);
         }
         sc.start_cut();
@@ -295,7 +295,7 @@ impl PbgiIntegrator {
     /// subtends at most `--pbgi-angle` texels of solid angle `texel` (the hemicube's
     /// smallest, or the adaptive leaf under it) and p lies outside NEAR radii.
     fn far(&self, page: &Page, i: u32, c: V, r: f32, p: V, texel: f32) -> Option<Far> {
-        let omega_max = self.settings.angle * texel;
+        let omega_max = self.settings.angle() * texel;
         let node = page.bvh.get(i as usize)?;
         // A leaf within one texel is splatted even when the cut asks for more.
         let limit = if matches!(node.link(), NodeRef::Leaf { .. }) {

@@ -213,7 +213,7 @@ impl PbgiIntegrator {
 
     /// Texel k's ray traced exactly, its hit shaded as a rasterized hit and weighted as the
     /// ray's place in the texel asks ([`Texels::ray`]): every texel under
-    /// `--pbgi-rays`; otherwise where a rasterized leaf's cone promised geometry its
+    /// `--pbgi-gather rays`; otherwise where a rasterized leaf's cone promised geometry its
     /// triangles did not hold (without it the texel would show splats' partial coverage
     /// and the black background through the gaps).
     /// Returns the hit's depth, fragment id, weighted light and whether it was sampled.

@@ -1,10 +1,12 @@
 //! `--integrator pbgi`: point-based global illumination over the archive's hierarchy
 //! (003 ch. 2; Christensen 2008 as cited there).
 //!
-//! The bake (`bake`) stores in every node the direct light it reflects diffusely. At the
+//! The bake (`bake`) stores in every node the light it reflects diffusely: direct light,
+//! and by default every further bounce, carried by walks from each patch (`walk`). At the
 //! first non-specular hit x the renderer adds the emission seen, direct light as the path
 //! tracer takes it (a light sample, weighed by MIS against the ray sampled from x's rough
-//! specular lobes), and one bounce of indirect light gathered from the hierarchy:
+//! specular lobes), and the indirect light gathered from the hierarchy, by the texel rays
+//! below (`--pbgi-gather rays`, the default) or by a cut:
 //! - the cut: from the root, a node is splatted whole when x lies outside its bounding
 //!   sphere and the sphere's solid angle π r²/d² is at most `--pbgi-angle` times the
 //!   smallest micro-buffer texel's; otherwise its children are visited. Nodes wholly below
@@ -24,7 +26,7 @@
 //!   lobe being constant, the gather is kept as irradiance, and each surface of a pixel
 //!   gathers at most at every `--pbgi-reuse`-th sample landing on it (more often where
 //!   its gathers scatter), its other samples reusing its gathers' mean;
-//! - `--pbgi-rays` skips the cut: every texel's ray is traced and reads the bake;
+//! - `--pbgi-gather rays`, the default, skips the cut: every texel's ray is traced and reads the bake;
 //! - x's rough specular lobes, mostly narrower than a texel, take exact rays sampled
 //!   from them instead (`--pbgi-glossy-rays`; the first with the pixel's own sample
 //!   sequence, as the path tracer's next bounce would), their hits shaded as a rasterized
@@ -40,8 +42,10 @@
 //!
 //! Smooth mirrors and glass are followed exactly (one sampled bounce each, up to
 //! `SMOOTH_DEPTH`), so a perfectly specular surface degrades to the exact estimator
-//! (000 §A.8). The cloud holds `--bounces N` bounces (1: direct light reflected once):
-//! compare with `--max-depth` 2 + N of the path tracer (camera → x → node → … → light).
+//! (000 §A.8). The cloud holds every bounce by default, or `--bounces N` (1: direct light
+//! reflected once): compare with `--max-depth` 2 + N of the path tracer (camera → x →
+//! node → … → light). A gather's ray that meets a surface the bake does not cover (glossy,
+//! specular or a back face) follows the light on to the next one it does (`walk::onward`).
 //! A smooth lobe layered over a diffuse one is not sampled (its delta part is lost).
 
 mod amb;
@@ -259,7 +263,7 @@ impl Integrator for PbgiIntegrator {
                 if params.bounces.is_none() {
                     params.bounces = scene.max_depth.map(|d| d.saturating_sub(2).max(1));
                 }
-                if self.settings.rays {
+                if self.settings.rays() {
                     // Texel rays, and WPBGI's leaf rays, read only the patches' diffuse
                     // light.
                     params.wavelet = glossy::WaveletMode::Off;

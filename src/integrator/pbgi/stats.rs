@@ -31,7 +31,7 @@ pub struct PbgiStats {
     pub reused_gathers: u64,
     /// Pixels at an emitter's silhouette (these take `--edge-rays`).
     pub edge_pixels: u64,
-    /// Texel rays traced exactly under `--pbgi-rays`.
+    /// Texel rays traced exactly under `--pbgi-gather rays` (the default).
     pub traced_texels: u64,
     /// `--pbgi-cache`, its records, the gathers they average and the receivers that
     /// read them.
@@ -88,9 +88,9 @@ impl PbgiIntegrator {
             match &s.bake_in {
                 Some(path) => format!("bake: read from {} ({:.2} s)", path.display(), self.bake_s),
                 None => format!(
-                    "bake: {} bounce(s) of light reflected by every node, {} light samples per triangle ({:.2} s)",
+                    "bake: {} bounce(s) of light reflected by every node, {} light samples per patch ({:.2} s)",
                     s.bake.bounces.map_or("all".to_string(), |n| n.to_string()),
-                    s.bake.bake_samples,
+                    s.bake.params(self.seed).samples,
                     self.bake_s
                 ),
             },
@@ -122,14 +122,14 @@ impl PbgiIntegrator {
                     }
                     wpbgi::GlossyBounce::Rays => glossy,
                 };
-                match s.rays {
+                match s.rays() {
                     true => format!(
                         "pbgi: indirect light from a {}² hemicube micro-buffer for diffuse lobes, every texel's ray traced and reading the baked light ({glossy})",
                         s.resolution
                     ),
                     false => format!(
                         "pbgi: indirect light from a cut at {} texels' solid angle into a {}² hemicube micro-buffer for diffuse lobes ({glossy}); near leaves rasterized with baked patch light",
-                        s.angle, s.resolution
+                        s.angle(), s.resolution
                     ),
                 }
             },
@@ -162,7 +162,7 @@ impl PbgiIntegrator {
     pub(super) fn pbgi_stats(&self) -> Stats {
         let (brdf_tables, brdf_coefficients) = self.tables.sizes();
         Stats::Pbgi(PbgiStats {
-            pbgi_angle: self.settings.angle,
+            pbgi_angle: self.settings.angle(),
             pbgi_resolution: self.settings.resolution,
             bake_seconds: self.bake_s,
             bake_samples: self.bake_samples,

@@ -126,7 +126,7 @@ impl PbgiIntegrator {
             self.leaf_rays(sc, &frame, s, 0, strata);
             self.fill_texels(scene, tr, &turned, None, sc, strata, Fill::Adaptive);
             let mut incident = sc.amb.resolve();
-            let light = (gamma, self.settings.rays);
+            let light = (gamma, self.settings.rays());
             let brdf = |f, r, x, y| table.varies(theta_o, f, r, x, y);
             while let Some((first, nodes)) = (gamma > 0.0)
                 .then(|| sc.amb.refine(&incident, light, brdf))
