@@ -70,9 +70,8 @@ struct RenderSettings {
     /// sample's point (aliases unless many samples are taken; for checking the filter).
     #[arg(long, value_enum, default_value_t = TextureFilter::Trilinear)]
     texture_filter: TextureFilter,
-    /// Most camera samples a pass takes of a pixel: each pixel takes more where its
-    /// earlier samples scattered, in proportion to the root of their variance over their
-    /// rays; 1 takes one [default: 32 for pbgi, 1 for path and cone]
+    /// Most camera samples a pass takes of a pixel, more where its earlier samples
+    /// scattered (pays on glossy highlights); 1 takes one [default: 1]
     #[arg(long, value_name = "M", value_parser = clap::value_parser!(u32).range(1..=64))]
     pixel_split: Option<u32>,
     #[command(flatten)]

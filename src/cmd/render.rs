@@ -17,7 +17,7 @@ pub struct RenderArgs {
     archive: PathBuf,
     /// `path`: exact path tracing of the leaf triangles (the ground truth); `cone`: cone
     /// casts with level of detail and diffuse light stored per node; `pbgi`: point-based
-    /// GI through a cut of the hierarchy into a micro-buffer.
+    /// GI, every bounce baked into the nodes and gathered into a micro-buffer per receiver.
     #[arg(long, value_enum, default_value_t = Kind::Path)]
     pub integrator: Kind,
     /// Output image: .exr, or .png (which also writes the .exr).

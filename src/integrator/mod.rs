@@ -37,15 +37,10 @@ pub enum Kind {
     /// Cone casts that stop at the level of detail the cone resolves, with diffuse light
     /// stored per node and reused (004 §4.5–4.8).
     Cone,
-    /// Point-based GI: direct light baked into the nodes, gathered per receiver through a
-    /// cut of the hierarchy into a micro-buffer (003 ch. 2).
+    /// Point-based GI: light of every bounce baked into the nodes, gathered per receiver
+    /// into a micro-buffer (003 ch. 2).
     Pbgi,
 }
-
-/// PBGI's most camera samples per pixel and pass, unless `--pixel-split` says. With
-/// `GAIN` 4 (`render/pixel_split.rs`), 32 and 64 gave the same showroom error at 20 s
-/// (5.13e-6 and 5.20e-6, squared, seeds 1–4); 16 capped the gold bunny's highlights.
-const PBGI_PIXEL_SPLIT: u32 = 32;
 
 /// An integrator with its own parameters.
 #[derive(Clone, Debug)]
@@ -75,17 +70,14 @@ impl Settings {
         }
     }
 
-    /// `--pixel-split`, or the integrator's default: the most camera samples a pass takes
-    /// of a pixel. PBGI's receiver clusters group a tile's receivers, one per pixel, so
-    /// they take one.
+    /// `--pixel-split` (1 unless given): the most camera samples a pass takes of a pixel.
+    /// PBGI's receiver clusters group a tile's receivers, one per pixel, so they take one.
     pub fn pixel_split(&self, asked: Option<u32>) -> anyhow::Result<u32> {
         match (self, asked) {
             (Settings::Pbgi(p), Some(m)) if m > 1 && p.clusters > 0 => anyhow::bail!(
                 "--pixel-split {m}: --receiver-clusters groups one receiver per pixel of a tile, so a pass takes one sample of each pixel (--pixel-split 1)"
             ),
-            (_, Some(m)) => Ok(m),
-            (Settings::Pbgi(p), None) if p.clusters == 0 => Ok(PBGI_PIXEL_SPLIT),
-            (_, None) => Ok(1),
+            (_, m) => Ok(m.unwrap_or(1)),
         }
     }
 

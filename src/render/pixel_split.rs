@@ -6,8 +6,10 @@
 //! others from a sequence of the pixel's own that runs on across passes, with
 //! m = ⌈√(κ (v / c) / (v̄ / c̄))⌉ from the pixel's earlier samples: v their variance and c
 //! their rays, v̄ and c̄ the image's means of them (splitting's optimum, n ∝ √(v / c)).
-//! The count comes only from earlier samples, never from the ones it is spent on, so
-//! every pass's mean stays unbiased. More samples at one first hit cannot lower the part
+//! The count comes only from earlier samples, never from the ones it is spent on; still,
+//! the pass's first sample is the next point of the pixel's stratified sequence, placed
+//! away from the earlier points that set its weight, so the mean drifts at low sample
+//! counts (docs/rendering.md measures it). The split is off by default. More samples at one first hit cannot lower the part
 //! of a pixel's variance that is the sample's position in it (a highlight on a curved
 //! metal, a lamp's silhouette, a textured edge); more first hits can. docs/rendering.md
 //! gives what it gains per integrator.

@@ -317,7 +317,8 @@ fn bake_bounces(
 }
 
 /// Deepest patch level whose walks are its own (4³ = 64 for a large triangle): indirect
-/// light varies slowly, and the finest patches under one share its walks.
+/// light varies slowly, and the finest patches under one share its walks (pooled: each
+/// group takes the walks of all its finest patches).
 const INDIRECT_DEPTH: u32 = 3;
 
 /// Pages baked at once: enough to keep every thread busy, few enough that memory holds
@@ -566,10 +567,16 @@ fn triangle(
     };
     if let Light::WithIndirect(walks, ..) = light {
         let m = k.min(INDIRECT_DEPTH);
+        let under = 1usize << (2 * (k - m));
+        // As many walks as the finest patches under the group would take: the image's
+        // error from the bake follows the walks per area seen, not per patch.
+        let group = Walks {
+            count: walks.count * under as u32,
+            ..*walks
+        };
         for i in 0..1usize << (2 * m) {
             let mut rng = seeded(p, patch_key(key, i) ^ 0x5bd1_e995);
-            let l = walks.incident(scene, tr, patch::patch(v, m, i), (err, ng), &mut rng);
-            let under = 1usize << (2 * (k - m));
+            let l = group.incident(scene, tr, patch::patch(v, m, i), (err, ng), &mut rng);
             for f in &mut finest[i * under..(i + 1) * under] {
                 *f += rho * l;
             }

@@ -36,9 +36,9 @@
 //!   with `cache` those gathers are kept as radiance records shared between pixels
 //!   (`radiance_cache`, 002 §4.3), receivers no record covers taking the exact rays.
 //!
-//! A pixel whose earlier samples scattered takes more camera samples a pass (the driver's
-//! `--pixel-split`, 32 by default for PBGI): half of the showroom's noise was the sample's
-//! position in the pixel, which nothing at one first hit lowers.
+//! A pixel whose earlier samples scattered may take more camera samples a pass (the
+//! driver's `--pixel-split`, off by default): on the glossy showroom it pays, as half of
+//! the noise is the sample's position in the pixel, which nothing at one first hit lowers.
 //!
 //! Smooth mirrors and glass are followed exactly (one sampled bounce each, up to
 //! `SMOOTH_DEPTH`), so a perfectly specular surface degrades to the exact estimator
