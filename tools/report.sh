@@ -2,7 +2,7 @@
 # The default speed-against-error report on the bundled scenes: converts cbox, bunny_box,
 # room, room_glossy, room_glass, showroom, caustics and the glTF scenes bumps (normal maps)
 # and sponza_textured, runs `canopy eval` (path, cone and PBGI at 5, 15 and 60 seconds; on
-# showroom also PBGI without glossy coefficients, in showroom_flat/) against the Mitsuba 3
+# showroom also PBGI gathering through the cut, in showroom_cut/) against the Mitsuba 3
 # references in scenes/refs (sponza_textured's has 1024 spp: its noise floors the RMSE
 # there), and `canopy npp` (both
 # integrators, to 10% noise) on bunny_box. Results go to docs/report/<scene>/ (eval.csv,
@@ -24,8 +24,8 @@ for input in cbox.glb bunny_box.glb room.glb room_glossy.glb room_glass.glb show
     rm -f "$OUT/$scene"/*.exr "$OUT/$scene"/eval_*.json
 done
 $BIN --quiet eval "$OUT/showroom.canopy" --reference scenes/refs/showroom.exr \
-    --integrators pbgi --wavelet off --times "$TIMES" -o "$OUT/showroom_flat"
-rm -f "$OUT/showroom_flat"/*.exr "$OUT/showroom_flat"/eval_*.json
+    --integrators pbgi --pbgi-gather cut --times "$TIMES" -o "$OUT/showroom_cut"
+rm -f "$OUT/showroom_cut"/*.exr "$OUT/showroom_cut"/eval_*.json
 $BIN --quiet npp "$OUT/bunny_box.canopy" --integrators path,cone,pbgi --resolutions 32,64,128,256 --noise 0.1 --spp 256 \
     -o "$OUT/bunny_box_npp"
 rm -f "$OUT"/*.canopy "$OUT/bunny_box_npp"/*.exr "$OUT/bunny_box_npp"/npp_*.json

@@ -2,7 +2,7 @@
 //! (003 ch. 2, phase 1). Leaves estimate each triangle's reflected radiance ρ·E/π with
 //! light samples (light tree and shadow rays) at random points of the triangle. Emission
 //! is left out: the renderer adds direct light with the path tracer's estimator, so the
-//! cloud carries only what one bounce reflects.
+//! cloud carries only reflected light (with `walk`'s walks, of every bounce).
 //!
 //! A node keeps what it shows each way, not one mean: per cube axis a_k, its projected
 //! area P_k = Σ A·max(0, n·a_k) and reflected power Q_k = Σ A·B·max(0, n·a_k) over its
@@ -14,6 +14,7 @@
 
 use super::glossy::{self, GlossyMaps, WaveletMode};
 use super::patch;
+pub use super::settings::BakeSettings;
 use super::walk::Walks;
 use crate::integrator::{sample_light, Receiver, Scene};
 use crate::material::luminance;
@@ -84,103 +85,6 @@ fn axis_cosines(v: V) -> [f32; 6] {
         v.z.max(0.0),
         (-v.z).max(0.0),
     ]
-}
-
-/// The bake's flags, shared by `canopy bake` and `render --integrator pbgi`.
-#[derive(Clone, Debug, clap::Args)]
-pub struct BakeSettings {
-    /// The bake's light samples and patch size together (docs/pbgi.md measures each).
-    #[arg(long, value_enum, default_value_t = Quality::Default)]
-    pub quality: Quality,
-    /// Bounces the baked light carries: 1 is direct light reflected once [default: all,
-    /// ended by Russian roulette; under --max-depth D, D − 2].
-    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=256))]
-    pub bounces: Option<u32>,
-    /// Light samples per patch in the bake [default: set by --quality].
-    #[arg(long = "bake-samples", help_heading = ADVANCED, value_parser = clap::value_parser!(u32).range(1..=65536))]
-    pub bake_samples: Option<u32>,
-    /// Finest patch side as a fraction of the scene's diagonal; larger triangles are baked
-    /// as up to 4^6 patches [default: set by --quality].
-    #[arg(long = "patch-size", help_heading = ADVANCED, value_parser = parse_patch_size)]
-    pub patch_size: Option<f32>,
-    /// Glossy light stored per node as Haar wavelets (000 §3.1), for the cut gather:
-    /// `auto` when some material is glossy and the gather is the cut.
-    #[arg(long, help_heading = ADVANCED, value_enum, default_value_t = WaveletMode::Auto)]
-    pub wavelet: WaveletMode,
-    /// Texels per cube-face side of the glossy maps, a power of two up to 32 [default: 8].
-    #[arg(long = "wavelet-resolution", help_heading = ADVANCED, value_parser = parse_wavelet_resolution)]
-    pub wavelet_resolution: Option<usize>,
-    /// Glossy coefficients below this fraction of their page's largest are dropped
-    /// [default: 0.01].
-    #[arg(long = "wavelet-threshold", help_heading = ADVANCED, value_parser = crate::units::parse_non_negative)]
-    pub wavelet_threshold: Option<f32>,
-}
-
-/// The help heading of the PBGI and bake settings that rarely matter.
-pub const ADVANCED: &str = "Point-based GI, advanced";
-
-/// `--quality`: the bake's samples and patch size, set together.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum Quality {
-    /// 4 samples a patch, patches of 2% of the scene's diagonal.
-    Draft,
-    /// 16 samples a patch, patches of 1%.
-    Default,
-    /// 64 samples a patch, patches of 1%.
-    Final,
-}
-
-impl Quality {
-    /// Light samples per patch and the finest patch's side (docs/pbgi.md measures them).
-    fn bake(self) -> (u32, f32) {
-        match self {
-            Quality::Draft => (4, 0.02),
-            Quality::Default => (16, 0.01),
-            Quality::Final => (64, 0.01),
-        }
-    }
-}
-
-fn parse_wavelet_resolution(s: &str) -> Result<usize, String> {
-    match s.parse::<usize>() {
-        Ok(n) if n.is_power_of_two() && n <= 32 => Ok(n),
-        _ => Err(format!("{s:?}: a power of two from 1 to 32")),
-    }
-}
-
-fn parse_patch_size(s: &str) -> Result<f32, String> {
-    match s.parse::<f32>() {
-        Ok(v) if v > 0.0 && v <= 1.0 => Ok(v),
-        _ => Err(format!("{s:?}: a fraction in (0, 1]")),
-    }
-}
-
-impl BakeSettings {
-    pub fn params(&self, seed: u32) -> BakeParams {
-        let (samples, patch_size) = self.quality.bake();
-        BakeParams {
-            samples: self.bake_samples.unwrap_or(samples),
-            seed,
-            patch_size: self.patch_size.unwrap_or(patch_size),
-            bounces: self.bounces,
-            wavelet: self.wavelet,
-            wavelet_n: self.wavelet_resolution.unwrap_or(8),
-            wavelet_threshold: self.wavelet_threshold.unwrap_or(0.01),
-        }
-    }
-
-    /// Whether a glossy-map setting was given (they apply only where maps are baked).
-    pub fn wavelet_given(&self) -> Option<&'static str> {
-        if self.wavelet == WaveletMode::On {
-            Some("--wavelet on")
-        } else if self.wavelet_resolution.is_some() {
-            Some("--wavelet-resolution")
-        } else if self.wavelet_threshold.is_some() {
-            Some("--wavelet-threshold")
-        } else {
-            None
-        }
-    }
 }
 
 /// How to bake.

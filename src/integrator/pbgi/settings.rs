@@ -1,6 +1,7 @@
-//! PBGI's command-line flags.
+//! PBGI's command-line flags, the bake's among them.
 
-use super::bake::{self, ADVANCED};
+use super::bake::BakeParams;
+use super::glossy::WaveletMode;
 use super::wpbgi;
 use crate::integrator::edge::PBGI_EDGE_RAYS;
 use std::path::PathBuf;
@@ -14,7 +15,7 @@ pub struct PbgiSettings {
     #[arg(long = "pbgi-gather", value_enum, default_value_t = Gather::Rays)]
     pub gather: Gather,
     #[command(flatten)]
-    pub bake: bake::BakeSettings,
+    pub bake: BakeSettings,
     /// Baked light from `canopy bake` (default: baked before the first pass, counted in the
     /// render time).
     #[arg(long = "bake-in", value_name = "FILE", conflicts_with_all = ["bake_samples", "patch_size", "bounces", "quality"])]
@@ -139,3 +140,100 @@ pub(super) const GLOSSY_RAYS: u32 = 2;
 /// Most pairs and bounce rays per glossy receiver, unless `--pbgi-split` says, where
 /// some material has rough specular lobes (`Split::new` splits only where K is 2 or more).
 pub(super) const SPLIT: u32 = 32;
+
+/// The bake's flags, shared by `canopy bake` and `render --integrator pbgi`.
+#[derive(Clone, Debug, clap::Args)]
+pub struct BakeSettings {
+    /// The bake's light samples and patch size together (docs/pbgi.md measures each).
+    #[arg(long, value_enum, default_value_t = Quality::Default)]
+    pub quality: Quality,
+    /// Bounces the baked light carries: 1 is direct light reflected once [default: all,
+    /// ended by Russian roulette; under --max-depth D, D − 2].
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=256))]
+    pub bounces: Option<u32>,
+    /// Light samples per patch in the bake [default: set by --quality].
+    #[arg(long = "bake-samples", help_heading = ADVANCED, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    pub bake_samples: Option<u32>,
+    /// Finest patch side as a fraction of the scene's diagonal; larger triangles are baked
+    /// as up to 4^6 patches [default: set by --quality].
+    #[arg(long = "patch-size", help_heading = ADVANCED, value_parser = parse_patch_size)]
+    pub patch_size: Option<f32>,
+    /// Glossy light stored per node as Haar wavelets (000 §3.1), for the cut gather:
+    /// `auto` when some material is glossy and the gather is the cut.
+    #[arg(long, help_heading = ADVANCED, value_enum, default_value_t = WaveletMode::Auto)]
+    pub wavelet: WaveletMode,
+    /// Texels per cube-face side of the glossy maps, a power of two up to 32 [default: 8].
+    #[arg(long = "wavelet-resolution", help_heading = ADVANCED, value_parser = parse_wavelet_resolution)]
+    pub wavelet_resolution: Option<usize>,
+    /// Glossy coefficients below this fraction of their page's largest are dropped
+    /// [default: 0.01].
+    #[arg(long = "wavelet-threshold", help_heading = ADVANCED, value_parser = crate::units::parse_non_negative)]
+    pub wavelet_threshold: Option<f32>,
+}
+
+/// The help heading of the PBGI and bake settings that rarely matter.
+pub const ADVANCED: &str = "Point-based GI, advanced";
+
+/// `--quality`: the bake's samples and patch size, set together.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Quality {
+    /// 4 samples a patch, patches of 2% of the scene's diagonal.
+    Draft,
+    /// 16 samples a patch, patches of 1%.
+    Default,
+    /// 64 samples a patch, patches of 1%.
+    Final,
+}
+
+impl Quality {
+    /// Light samples per patch and the finest patch's side (docs/pbgi.md measures them).
+    fn bake(self) -> (u32, f32) {
+        match self {
+            Quality::Draft => (4, 0.02),
+            Quality::Default => (16, 0.01),
+            Quality::Final => (64, 0.01),
+        }
+    }
+}
+
+fn parse_wavelet_resolution(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(n) if n.is_power_of_two() && n <= 32 => Ok(n),
+        _ => Err(format!("{s:?}: a power of two from 1 to 32")),
+    }
+}
+
+fn parse_patch_size(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(v) if v > 0.0 && v <= 1.0 => Ok(v),
+        _ => Err(format!("{s:?}: a fraction in (0, 1]")),
+    }
+}
+
+impl BakeSettings {
+    pub fn params(&self, seed: u32) -> BakeParams {
+        let (samples, patch_size) = self.quality.bake();
+        BakeParams {
+            samples: self.bake_samples.unwrap_or(samples),
+            seed,
+            patch_size: self.patch_size.unwrap_or(patch_size),
+            bounces: self.bounces,
+            wavelet: self.wavelet,
+            wavelet_n: self.wavelet_resolution.unwrap_or(8),
+            wavelet_threshold: self.wavelet_threshold.unwrap_or(0.01),
+        }
+    }
+
+    /// Whether a glossy-map setting was given (they apply only where maps are baked).
+    pub fn wavelet_given(&self) -> Option<&'static str> {
+        if self.wavelet == WaveletMode::On {
+            Some("--wavelet on")
+        } else if self.wavelet_resolution.is_some() {
+            Some("--wavelet-resolution")
+        } else if self.wavelet_threshold.is_some() {
+            Some("--wavelet-threshold")
+        } else {
+            None
+        }
+    }
+}
