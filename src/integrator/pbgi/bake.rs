@@ -465,19 +465,21 @@ fn triangle(
         return dark(BakedNode::patch(area, ng, V::ZERO));
     }
     let err = (v[0].abs() + v[1].abs() + v[2].abs()) * gamma(7);
-    let (k, mut finest, baked) = match light {
+    let (k, mut finest, samples) = match light {
         Light::Direct => direct_patches(scene, tr, (t, uv), p, (a_max, key), (ng, err)),
         Light::WithIndirect(_, k, direct) => (k, direct.iter().map(|&l| V::from(l)).collect(), 0),
     };
     if let Light::WithIndirect(walks, ..) = light {
         let m = k.min(INDIRECT_DEPTH);
         let under = 1usize << (2 * (k - m));
-        // As many walks as the finest patches under the group would take: the image's
-        // error from the bake follows the walks per area seen, not per patch.
-        let group = Walks {
-            count: walks.count * under as u32,
-            ..*walks
+        // As many walks as the finest patches under the group would take, and a triangle
+        // smaller than a patch its share of a patch's: the image's error from the bake
+        // follows the walks per area seen, not per triangle or patch.
+        let count = match k {
+            0 => per_area(walks.count, area, a_max),
+            _ => walks.count * under as u32,
         };
+        let group = Walks { count, ..*walks };
         for i in 0..1usize << (2 * m) {
             let mut rng = seeded(p, patch_key(key, i) ^ 0x5bd1_e995);
             let l = group.incident(scene, tr, patch::patch(v, m, i), (err, ng), &mut rng);
@@ -491,7 +493,7 @@ fn triangle(
     BakedTriangle {
         node: BakedNode::patch(area * present, ng, mean),
         depth: k,
-        samples: p.samples as u64 * baked as u64,
+        samples,
         pyramid: patch::pyramid(&finest, k),
     }
 }
@@ -506,8 +508,15 @@ fn patch_key(key: u64, i: usize) -> u64 {
     key ^ ((i as u64 + 1) << 40)
 }
 
-/// A triangle's direct light as patches: their depth, their finest level's light, and how
-/// many patches were baked (with a shadow's edge across them, a coarser level first).
+/// `count` scaled to a triangle of `area` smaller than a patch of `a_max`: its share, at
+/// least one. Small triangles then take samples at the density patches take them.
+fn per_area(count: u32, area: f32, a_max: f32) -> u32 {
+    ((count as f32 * area / a_max).ceil() as u32).clamp(1, count)
+}
+
+/// A triangle's direct light as patches: their depth, their finest level's light, and the
+/// light samples taken (with a shadow's edge across them, a coarser level first too). A
+/// triangle smaller than a patch takes its share of a patch's samples (`per_area`).
 fn direct_patches(
     scene: &Scene,
     tr: &mut Tracer,
@@ -515,15 +524,15 @@ fn direct_patches(
     p: &BakeParams,
     (a_max, key): (f32, u64),
     (ng, err): (V, V),
-) -> (u32, Vec<V>, usize) {
+) -> (u32, Vec<V>, u64) {
     let v = t.p.map(V::from);
     let rho = scene.mean_material(t.material).bsdf(true).diffuse;
     let textured = scene.textures.varies(t.material);
-    let mut direct = |tri: [V; 3], key: u64| {
+    let mut direct = |tri: [V; 3], key: u64, samples: u32| {
         let mut rng = seeded(p, key);
         let (mut sum, mut sum_y2) = (V::ZERO, 0.0);
         let side = (tri[1] - tri[0]).length().max((tri[2] - tri[0]).length());
-        for _ in 0..p.samples {
+        for _ in 0..samples {
             let q = uniform_point(tri, &mut rng);
             // The albedo and normal map at q, as the path tracer shades there (the albedo
             // filtered over the patch's side, normal maps read at level 0 as always); the
@@ -554,7 +563,7 @@ fn direct_patches(
             sum += l;
             sum_y2 += luminance(l) * luminance(l);
         }
-        let n = p.samples as f32;
+        let n = samples as f32;
         let mean = sum / n;
         let var = (sum_y2 / n - luminance(mean).powi(2)).max(0.0) / (n - 1.0).max(1.0);
         Patch { l: mean, var }
@@ -563,23 +572,26 @@ fn direct_patches(
     let mut k = patch::depth(area, a_max);
     let mut level = |k: u32| -> Vec<Patch> {
         match k {
-            0 => vec![direct(v, key)],
+            0 => vec![direct(v, key, per_area(p.samples, area, a_max))],
             _ => (0..1usize << (2 * k))
-                .map(|i| direct(patch::patch(v, k, i), patch_key(key, i)))
+                .map(|i| direct(patch::patch(v, k, i), patch_key(key, i), p.samples))
                 .collect(),
         }
     };
     let mut patches = level(k);
-    let mut baked = patches.len();
+    let mut samples = match k {
+        0 => per_area(p.samples, area, a_max) as u64,
+        _ => p.samples as u64 * patches.len() as u64,
+    };
     // A shadow's edge across the patches: bake them REFINE levels finer, so that a
     // contact's shadow is not averaged with the light beside it (on the showroom the gold
     // bunny's base, whose glossy bounce sees its plinth's top, was 1.6% dark).
     if k > 0 && k < MAX_PATCH_DEPTH && disagree(&patches) {
         k = (k + REFINE).min(MAX_PATCH_DEPTH);
         patches = level(k);
-        baked += patches.len();
+        samples += p.samples as u64 * patches.len() as u64;
     }
-    (k, patches.iter().map(|p| p.l).collect(), baked)
+    (k, patches.iter().map(|p| p.l).collect(), samples)
 }
 
 /// Points a masked or blended triangle's coverage is estimated at.
