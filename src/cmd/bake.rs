@@ -5,10 +5,11 @@ use canopy::units;
 use clap::Args;
 use std::path::PathBuf;
 
-/// Bake the direct light every node reflects into a bake file for `render --integrator
-/// pbgi --bake-in`.
+/// Bake the light every node reflects, every bounce by default, into a bake file for
+/// `render --integrator pbgi --bake-in`.
 ///
-/// Leaves take light samples (light tree and shadow rays) on each triangle; inner nodes add
+/// Leaves take light samples (light tree and shadow rays) on each triangle, then walks
+/// from each patch add the further bounces; inner nodes add
 /// their children's projected area and power per cube axis. Pages are baked deepest first
 /// and written as they finish, so memory stays under --mem-budget. The file names the
 /// archive it was baked from and is refused with any other; it appears only once complete.

@@ -1,4 +1,4 @@
-//! `canopy bake`: the direct light every node reflects, into a bake file beside the
+//! `canopy bake`: the light every node reflects, into a bake file beside the
 //! archive (`format/FORMAT.md`, "The bake file") that `render --integrator pbgi
 //! --bake-in` pages in with the nodes.
 
