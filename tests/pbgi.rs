@@ -83,6 +83,49 @@ fn at_its_defaults_pbgi_matches_mitsubas_full_global_illumination() {
     }
 }
 
+/// `render --help` keeps PBGI's main heading to the settings that matter (at most six);
+/// the rest sit under its advanced heading, and each flag's help is a line or two.
+#[test]
+fn pbgi_help_lists_a_handful_of_settings_before_the_advanced_ones() {
+    let help = ok(&["render", "-h"]);
+    let section = |title: &str| -> Vec<String> {
+        let lines = help.lines().skip_while(|l| !l.starts_with(title)).skip(1);
+        let body = lines.take_while(|l| l.starts_with(' '));
+        body.map(str::to_string).collect()
+    };
+    let main = section("Point-based GI (--integrator pbgi):");
+    let flags: Vec<&String> = main
+        .iter()
+        .filter(|l| l.trim_start().starts_with("--"))
+        .collect();
+    assert!(
+        !flags.is_empty() && flags.len() <= 6,
+        "{} PBGI flags outside the advanced heading:\n{}",
+        flags.len(),
+        main.join("\n")
+    );
+    let advanced = section("Point-based GI, advanced:");
+    assert!(
+        advanced
+            .iter()
+            .any(|l| l.trim_start().starts_with("--pbgi-angle")),
+        "{help}"
+    );
+    let long = ok(&["render", "--help"]);
+    let longest = long
+        .split("\n\n")
+        .filter(|block| {
+            block.contains("--pbgi") || block.contains("--bake") || block.contains("--quality")
+        })
+        .map(|block| block.lines().filter(|l| !l.trim().is_empty()).count())
+        .max()
+        .unwrap();
+    assert!(
+        longest <= 8,
+        "a PBGI flag's help runs to {longest} lines:\n{long}"
+    );
+}
+
 /// `--bounces 2` adds walks one surface deep from every patch reading the direct bake, so
 /// PBGI stands for the path tracer at depth 4: on cbox that second bounce adds 9–14% of
 /// the window's light, and PBGI was measured within 0.5% of it with it (0.62 s).
