@@ -9,10 +9,10 @@
 //! The count comes only from earlier samples, never from the ones it is spent on; still,
 //! the pass's first sample is the next point of the pixel's stratified sequence, placed
 //! away from the earlier points that set its weight, so the mean drifts at low sample
-//! counts (docs/rendering.md measures it). The split is off by default. More samples at one first hit cannot lower the part
-//! of a pixel's variance that is the sample's position in it (a highlight on a curved
-//! metal, a lamp's silhouette, a textured edge); more first hits can. docs/rendering.md
-//! gives what it gains per integrator.
+//! counts (docs/rendering.md measures it). The split is off by default. More samples at
+//! one first hit cannot lower the part of a pixel's variance that is the sample's
+//! position in it (a highlight on a curved metal, a lamp's silhouette, a textured edge);
+//! more first hits can. docs/rendering.md gives what it gains per integrator.
 
 use crate::material::luminance;
 use crate::moments::Moments;

@@ -570,9 +570,10 @@ fn direct_patches(
     };
     let area = 0.5 * (v[1] - v[0]).cross(v[2] - v[0]).length();
     let mut k = patch::depth(area, a_max);
+    let whole = per_area(p.samples, area, a_max);
     let mut level = |k: u32| -> Vec<Patch> {
         match k {
-            0 => vec![direct(v, key, per_area(p.samples, area, a_max))],
+            0 => vec![direct(v, key, whole)],
             _ => (0..1usize << (2 * k))
                 .map(|i| direct(patch::patch(v, k, i), patch_key(key, i), p.samples))
                 .collect(),
@@ -580,7 +581,7 @@ fn direct_patches(
     };
     let mut patches = level(k);
     let mut samples = match k {
-        0 => per_area(p.samples, area, a_max) as u64,
+        0 => whole as u64,
         _ => p.samples as u64 * patches.len() as u64,
     };
     // A shadow's edge across the patches: bake them REFINE levels finer, so that a

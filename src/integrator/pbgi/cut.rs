@@ -79,8 +79,8 @@ impl Scratch {
 }
 
 impl PbgiIntegrator {
-    /// Fills the micro-buffer `target`: under `--pbgi-gather rays` (the default) every texel's (or leaf's) ray
-    /// in `sc.rays` traced exactly, else from the cut.
+    /// Fills the micro-buffer `target`: under `--pbgi-gather rays` (the default) every
+    /// texel's (or leaf's) ray in `sc.rays` traced exactly, else from the cut.
     #[allow(clippy::too_many_arguments)]
     pub(super) fn fill_texels(
         &self,

@@ -26,7 +26,8 @@
 //!   lobe being constant, the gather is kept as irradiance, and each surface of a pixel
 //!   gathers at most at every `--pbgi-reuse`-th sample landing on it (more often where
 //!   its gathers scatter), its other samples reusing its gathers' mean;
-//! - `--pbgi-gather rays`, the default, skips the cut: every texel's ray is traced and reads the bake;
+//! - `--pbgi-gather rays`, the default, skips the cut: every texel's ray is traced and
+//!   reads the bake;
 //! - x's rough specular lobes, mostly narrower than a texel, take exact rays sampled
 //!   from them instead (`--pbgi-glossy-rays`; the first with the pixel's own sample
 //!   sequence, as the path tracer's next bounce would), their hits shaded as a rasterized
