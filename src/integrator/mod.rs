@@ -81,14 +81,30 @@ impl Settings {
         }
     }
 
-    /// Refuses an archive the integrator cannot render: PBGI's baked light is per node, so
-    /// two instances in different light would share it (it needs `--flatten-instances`);
-    /// the cone integrator keys its stored light per instance, in 64 bits.
-    pub fn check_archive(&self, archive: &canopy_format::Archive) -> anyhow::Result<()> {
+    /// Refuses an archive the integrator cannot render: PBGI's cut and wavelet bounce read
+    /// light aggregated up the tree, which holds none for instances (their light depends on
+    /// the placement); the cone integrator keys its stored light per instance, in 64 bits.
+    /// Returns a note where PBGI's bake leaves instanced meshes to texel rays' paths.
+    pub fn check_archive(
+        &self,
+        archive: &canopy_format::Archive,
+    ) -> anyhow::Result<Option<String>> {
         match self {
-            Settings::Path => Ok(()),
-            Settings::Cone(_) => cone::keys(archive).map(|_| ()),
-            Settings::Pbgi(_) => refuse_instances(archive, "the pbgi integrator"),
+            Settings::Path => Ok(None),
+            Settings::Cone(_) => cone::keys(archive).map(|_| None),
+            Settings::Pbgi(p) if !p.rays() => {
+                refuse_instances(archive, "--pbgi-gather cut").map(|()| None)
+            }
+            Settings::Pbgi(p) if p.glossy_bounce != pbgi::wpbgi::GlossyBounce::Rays => {
+                refuse_instances(archive, "--pbgi-glossy-bounce wavelet or cache").map(|()| None)
+            }
+            Settings::Pbgi(_) => Ok(has_instances(archive).then(|| {
+                format!(
+                    "{}: PBGI's bake holds the archive's unique meshes; what its {} instances place is lit by paths followed on to them, as the path tracer lights it",
+                    archive.path().display(),
+                    archive.instances.len()
+                )
+            })),
         }
     }
 
@@ -455,13 +471,19 @@ impl NodeSet {
     }
 }
 
-/// An error for `what` on an archive with instances, naming the fix.
+/// An error for `what` (which reads light aggregated up the tree) on an archive with
+/// instances, naming what does render it.
 pub fn refuse_instances(archive: &canopy_format::Archive, what: &str) -> anyhow::Result<()> {
-    if archive.header.features & canopy_format::Features::INSTANCES != 0 {
+    if has_instances(archive) {
         anyhow::bail!(
-            "{}: {what} does not support instanced archives yet (its baked light would be shared by every copy); convert with --flatten-instances, or render with --integrator path or cone",
+            "{}: {what} reads light summed up the tree, which holds none for instanced meshes (their light depends on where each is placed); PBGI's defaults (texel rays, glossy bounce by rays) render it, or convert with --flatten-instances",
             archive.path().display()
         );
     }
     Ok(())
+}
+
+/// Whether the archive places prototypes by instances.
+pub fn has_instances(archive: &canopy_format::Archive) -> bool {
+    archive.header.features & canopy_format::Features::INSTANCES != 0
 }

@@ -20,7 +20,7 @@ pub mod instance;
 mod page;
 pub mod wide;
 
-pub use page::{deepest_first, NodeRef, Page, TNode, TriW};
+pub use page::{deepest_first, in_scene_tree, NodeRef, Page, TNode, TriW};
 
 use anyhow::{bail, Result};
 use canopy_format::bake::{BakeFile, BakedBlock};

@@ -85,6 +85,37 @@ pub fn deepest_first(entries: &[PageEntry], mut pages: Vec<u32>) -> Vec<Vec<u32>
         .collect()
 }
 
+/// For each page, whether it lies in the scene's tree (its chain of parents ends at
+/// `root`) rather than in a prototype's, which instances place. A chain that loops or runs
+/// past every page counts as outside (decoding such a page then fails its checks).
+pub fn in_scene_tree(entries: &[PageEntry], root: u32) -> Vec<bool> {
+    let mut known: Vec<Option<bool>> = vec![None; entries.len()];
+    for start in 0..entries.len() {
+        let mut chain = Vec::new();
+        let mut p = start as u32;
+        let answer = loop {
+            if let Some(k) = known.get(p as usize).copied().flatten() {
+                break k;
+            }
+            let Some(e) = entries.get(p as usize) else {
+                break false;
+            };
+            if chain.len() > entries.len() {
+                break false;
+            }
+            chain.push(p);
+            if e.parent_page == canopy_format::NONE {
+                break p == root;
+            }
+            p = e.parent_page;
+        };
+        for q in chain {
+            known[q as usize] = Some(answer);
+        }
+    }
+    known.into_iter().map(|k| k == Some(true)).collect()
+}
+
 /// A triangle with its vertices expanded, as intersection wants it.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct TriW {

@@ -72,7 +72,6 @@ pub fn bake(o: &BakeOptions) -> Result<BakeReport> {
     }
     check_writable(&o.output)?;
     let archive = Arc::new(Archive::open(&o.archive)?);
-    crate::integrator::refuse_instances(&archive, "bake")?;
     let threads = o.threads.unwrap_or_else(rayon::current_num_threads).max(1);
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)

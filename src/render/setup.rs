@@ -143,10 +143,10 @@ impl Setup {
         }
         let pixel_split = o.integrator.pixel_split(o.pixel_split)?;
         let archive = Arc::new(Archive::open(&o.archive)?);
-        o.integrator.check_archive(&archive)?;
+        let instances_note = o.integrator.check_archive(&archive)?;
         let framing = framing_camera(&archive);
         let cam = camera(o, &archive, &framing)?;
-        let mut notes = Vec::new();
+        let mut notes: Vec<String> = instances_note.into_iter().collect();
         if archive.cameras.is_empty() {
             notes.push(camera_note(o, cam));
         }

@@ -119,14 +119,19 @@ impl BakeParams {
     /// The glossy maps this scene gets under `--wavelet`.
     fn maps(&self, scene: &Scene) -> Result<Option<GlossyMaps>> {
         let glossy = glossy::any_glossy(scene);
+        let archive = &scene.cache.archive;
         let on = match self.wavelet {
             WaveletMode::Off => false,
-            WaveletMode::Auto => glossy,
-            WaveletMode::On if !glossy => bail!(
+            // Glossy maps sum light up the tree, which holds none for instances.
+            WaveletMode::Auto => glossy && !crate::integrator::has_instances(archive),
+            WaveletMode::On if glossy => {
+                crate::integrator::refuse_instances(archive, "--wavelet on")?;
+                true
+            }
+            WaveletMode::On => bail!(
                 "--wavelet on: no material of {} is a rough metal or rough dielectric, so there is no glossy light to store",
-                scene.cache.archive.path().display()
+                archive.path().display()
             ),
-            WaveletMode::On => true,
         };
         Ok(on.then(|| GlossyMaps::new(self.wavelet_n, self.wavelet_threshold)))
     }
@@ -248,7 +253,13 @@ fn bake(
     let mut roots = vec![[BakedNode::default(); 2]; cache.entries.len()];
     let mut glossy_roots: Vec<Vec<SparseVec<glam::Vec3>>> = vec![Vec::new(); cache.entries.len()];
     let mut samples = 0;
-    let pages: Vec<u32> = (0..cache.entries.len() as u32).collect();
+    let scene_tree = crate::paging::in_scene_tree(&cache.entries, archive.header.root_page);
+    let (pages, placed): (Vec<u32>, Vec<u32>) =
+        (0..cache.entries.len() as u32).partition(|&p| scene_tree[p as usize]);
+    for id in placed {
+        out.push(id, &unbaked_block(&cache.entries[id as usize]))?;
+        progress(1);
+    }
     // Glossy vectors of the level below, which only this level's pages read.
     let mut below: Vec<u32> = Vec::new();
     for level in deepest_first(&cache.entries, pages) {
@@ -294,6 +305,20 @@ fn bake(
         anyhow::bail!(e);
     }
     Ok(samples)
+}
+
+/// The block of a page in a prototype's tree: its light depends on where each instance
+/// places it, so the bake holds nothing there (zero nodes; every triangle's one patch
+/// zero), and the render reads none of it (`surface::hit_light` lights instanced hits
+/// itself).
+fn unbaked_block(e: &canopy_format::PageEntry) -> BakedBlock {
+    let tris = e.tri_count as usize;
+    BakedBlock {
+        nodes: vec![BakedNode::default(); e.node_count as usize],
+        patch_of: vec![0; tris],
+        patches: if tris > 0 { vec![[0.0; 3]] } else { Vec::new() },
+        coefs: Default::default(),
+    }
 }
 
 /// What deeper pages left for their parents: their roots' records and glossy vectors.
@@ -390,7 +415,7 @@ impl PageJob<'_, '_> {
                         d.add(r);
                     }
                 }
-                // Bakes refuse instanced archives (`integrator::refuse_instances`).
+                // Placed light is not baked (`unbaked_block`): an instance adds none.
                 NodeRef::Instance(_) => {}
             }
             block.nodes[i] = d;

@@ -284,7 +284,7 @@ impl PbgiIntegrator {
                 }
                 NodeRef::Inner(l, rr) => sc.stack.extend([(pid, l), (pid, rr)]),
                 NodeRef::ChildPage(cp) => sc.stack.extend([(cp, 0), (cp, 1)]),
-                // PBGI refuses instanced archives (`integrator::refuse_instances`).
+                // The cut is refused on instanced archives (`Settings::check_archive`).
                 NodeRef::Instance(_) => {}
             }
         }

@@ -186,7 +186,7 @@ impl GlossyMaps {
             let (parts, total): (Vec<(f32, SparseVec<Vec3>)>, f32) = match page.bvh[i].link() {
                 NodeRef::Leaf { .. } => (leaf(i).map(|v| (1.0, v)).into_iter().collect(), 1.0),
                 NodeRef::ChildPage(c) => (child_roots(c), weight(&nodes[i])),
-                // Bakes refuse instanced archives (`integrator::refuse_instances`).
+                // Glossy maps are not made for instanced archives (`BakeParams::maps`).
                 NodeRef::Instance(_) => (Vec::new(), 1.0),
                 NodeRef::Inner(l, r) => {
                     let kids = [l, r].map(|c| (shape.weight[c as usize], g[c as usize].clone()));

@@ -10,11 +10,12 @@ use crate::integrator::{
 };
 use crate::material::Bsdf;
 use crate::paging::{NodeRef, Page};
-use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer};
+use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer, NO_INSTANCE};
 use glam::Vec3A as V;
 
 /// What a hit sends back along `w`: the baked light of the finest patch under it, or,
-/// where the bake holds nothing (back faces, non-diffuse surfaces), direct light as the
+/// where the bake holds nothing (back faces, non-diffuse surfaces, instanced meshes, whose
+/// light depends on the placement), direct light as the
 /// path tracer would take it, with the numbers `u` gives (drawn only then: most hits read
 /// the bake); the flag says it was sampled.
 pub(super) fn hit_light(
@@ -28,6 +29,7 @@ pub(super) fn hit_light(
     let t = page
         .bvh
         .get(hit.leaf.wrapping_sub(page.first_node) as usize)
+        .filter(|_| hit.instance == NO_INSTANCE)
         .and_then(|n| match n.link() {
             NodeRef::Leaf { first, .. } => Some((first + hit.slot) as usize),
             _ => None,
