@@ -225,11 +225,6 @@ fn bake_bounces(
     Ok(samples)
 }
 
-/// Deepest patch level whose walks are its own (4³ = 64 for a large triangle): indirect
-/// light varies slowly, and the finest patches under one share its walks (pooled: each
-/// group takes the walks of all its finest patches).
-const INDIRECT_DEPTH: u32 = 3;
-
 /// Pages baked at once: enough to keep every thread busy, few enough that memory holds
 /// only their blocks and two records per page finished (its roots, which parents read).
 const BATCH: usize = 64;
@@ -495,22 +490,18 @@ fn triangle(
         Light::WithIndirect(_, k, direct) => (k, direct.iter().map(|&l| V::from(l)).collect(), 0),
     };
     if let Light::WithIndirect(walks, ..) = light {
-        let m = k.min(INDIRECT_DEPTH);
-        let under = 1usize << (2 * (k - m));
-        // As many walks as the finest patches under the group would take, and a triangle
-        // smaller than a patch its share of a patch's: the image's error from the bake
-        // follows the walks per area seen, not per triangle or patch.
+        // Every finest patch takes its own walks, and a triangle smaller than a patch its
+        // share of a patch's: the image's error from the bake follows the walks per area
+        // seen. Walks pooled over groups of patches flattened the indirect light where it
+        // changes fastest, in corners, which gathers nearby weigh most (docs/pbgi.md).
         let count = match k {
             0 => per_area(walks.count, area, a_max),
-            _ => walks.count * under as u32,
+            _ => walks.count,
         };
-        let group = Walks { count, ..*walks };
-        for i in 0..1usize << (2 * m) {
+        let own = Walks { count, ..*walks };
+        for (i, f) in finest.iter_mut().enumerate() {
             let mut rng = seeded(p, patch_key(key, i) ^ 0x5bd1_e995);
-            let l = group.incident(scene, tr, patch::patch(v, m, i), (err, ng), &mut rng);
-            for f in &mut finest[i * under..(i + 1) * under] {
-                *f += rho * l;
-            }
+            *f += rho * own.incident(scene, tr, patch::patch(v, k, i), (err, ng), &mut rng);
         }
     }
     let mean = finest.iter().sum::<V>() / finest.len() as f32;
