@@ -117,6 +117,14 @@ impl Textures {
         })
     }
 
+    /// Whether material `m` tilts its shading normal by a normal texture.
+    #[inline]
+    pub fn bumped(&self, m: u32) -> bool {
+        self.bindings
+            .get(m as usize)
+            .is_some_and(|b| b.normal.is_some())
+    }
+
     /// Whether material `m`'s emission comes from a texture.
     pub fn emission_textured(&self, m: u32) -> bool {
         self.bindings

@@ -1018,10 +1018,12 @@ emission = [5.0, 5.0, 5.0]
 }
 
 /// The bake shades each of its sample points as the path tracer shades it there: the
-/// normal map's tilted normal and the albedo texture at the point. On scenes/bumps' ridged
-/// floor the triangle's mean albedo and geometric normal would leave PBGI's image +2.9%,
-/// +2.2%, +1.8% at depth 3 (the wall lit by the floor, measured); shaded per point it is
-/// +0.6%, +0.4%, +0.3%.
+/// normal map's tilted normal and the albedo texture at the point; and a hit reads no
+/// baked light where the tilted normal faces away from the ray, as the BSDF reflects
+/// none there. On scenes/bumps' ridged floor the triangle's mean albedo and geometric
+/// normal would leave PBGI's image +2.9%, +2.2%, +1.8% at depth 3 (the wall lit by the
+/// floor, measured); shaded per point +0.6%, +0.4%, +0.3%; with the facing check too,
+/// within 0.2% at 320×240.
 #[test]
 fn the_bake_shades_a_normal_mapped_floor_as_the_path_tracer_does() {
     let dir = tempfile::tempdir().unwrap();
@@ -1049,7 +1051,8 @@ fn the_bake_shades_a_normal_mapped_floor_as_the_path_tracer_does() {
     let (a, b) = (pbgi.mean(), reference.mean());
     for c in 0..3 {
         let d = a[c] / b[c] - 1.0;
-        assert!(d.abs() < 0.012, "channel {c}: {:+.2}%", 100.0 * d);
+        eprintln!("channel {c}: {:+.2}%", 100.0 * d);
+        assert!(d.abs() < 0.005, "channel {c}: {:+.2}%", 100.0 * d);
     }
 }
 

@@ -499,9 +499,11 @@ fn triangle(
             _ => walks.count,
         };
         let own = Walks { count, ..*walks };
+        let shading = Shading::new(scene, (t, uv), ng);
         for (i, f) in finest.iter_mut().enumerate() {
             let mut rng = seeded(p, patch_key(key, i) ^ 0x5bd1_e995);
-            *f += rho * own.incident(scene, tr, patch::patch(v, k, i), (err, ng), &mut rng);
+            let tri = patch::patch(v, k, i);
+            *f += own.reflected(scene, tr, tri, (err, ng), &shading, &mut rng);
         }
     }
     let mean = finest.iter().sum::<V>() / finest.len() as f32;
@@ -530,6 +532,53 @@ fn per_area(count: u32, area: f32, a_max: f32) -> u32 {
     ((count as f32 * area / a_max).ceil() as u32).clamp(1, count)
 }
 
+/// A triangle's albedo and shading normal at its points, as the path tracer shades there:
+/// the albedo filtered over a patch's side, normal maps read at level 0 as always (the
+/// triangle's mean albedo and geometric normal left the bumps scene 3% bright).
+pub(super) struct Shading<'a> {
+    scene: &'a Scene,
+    t: &'a crate::paging::TriW,
+    uv: [[f32; 2]; 3],
+    ng: V,
+    /// The mean albedo, for a material that does not vary over the surface.
+    rho: V,
+    textured: bool,
+}
+
+impl<'a> Shading<'a> {
+    fn new(scene: &'a Scene, (t, uv): (&'a crate::paging::TriW, [[f32; 2]; 3]), ng: V) -> Self {
+        Shading {
+            scene,
+            t,
+            uv,
+            ng,
+            rho: scene.mean_material(t.material).bsdf(true).diffuse,
+            textured: scene.textures.varies(t.material),
+        }
+    }
+
+    /// The diffuse albedo and shading normal at point q, a patch of `side` around it.
+    pub(super) fn at(&self, q: V, side: f32) -> (V, V) {
+        if !self.textured {
+            return (self.rho, self.ng);
+        }
+        let v = self.t.p.map(V::from);
+        let b = barycentrics(v, q);
+        let shaded = self
+            .scene
+            .material_at(self.t.material, &self.t.p, self.uv, b, -self.ng, side);
+        let n = shaded
+            .bump
+            .map_or(self.ng, |tn| texture::perturb(v, self.uv, self.ng, tn));
+        (shaded.m.bsdf(true).diffuse, n)
+    }
+}
+
+/// The longer of a patch's two sides from vertex 0: the footprint its texture reads span.
+pub(super) fn patch_side(tri: [V; 3]) -> f32 {
+    (tri[1] - tri[0]).length().max((tri[2] - tri[0]).length())
+}
+
 /// A triangle's direct light as patches: their depth, their finest level's light, and the
 /// light samples taken (with a shadow's edge across them, a coarser level first too). A
 /// triangle smaller than a patch takes its share of a patch's samples (`per_area`).
@@ -542,26 +591,14 @@ fn direct_patches(
     (ng, err): (V, V),
 ) -> (u32, Vec<V>, u64) {
     let v = t.p.map(V::from);
-    let rho = scene.mean_material(t.material).bsdf(true).diffuse;
-    let textured = scene.textures.varies(t.material);
+    let shading = Shading::new(scene, (t, uv), ng);
     let mut direct = |tri: [V; 3], key: u64, samples: u32| {
         let mut rng = seeded(p, key);
         let (mut sum, mut sum_y2) = (V::ZERO, 0.0);
-        let side = (tri[1] - tri[0]).length().max((tri[2] - tri[0]).length());
+        let side = patch_side(tri);
         for _ in 0..samples {
             let q = uniform_point(tri, &mut rng);
-            // The albedo and normal map at q, as the path tracer shades there (the albedo
-            // filtered over the patch's side, normal maps read at level 0 as always); the
-            // triangle's mean albedo and geometric normal left the bumps scene 3% bright.
-            let (rho, n) = match textured {
-                true => {
-                    let b = barycentrics(v, q);
-                    let shaded = scene.material_at(t.material, &t.p, uv, b, -ng, side);
-                    let n = shaded.bump.map_or(ng, |tn| texture::perturb(v, uv, ng, tn));
-                    (shaded.m.bsdf(true).diffuse, n)
-                }
-                false => (rho, ng),
-            };
+            let (rho, n) = shading.at(q, side);
             // Light sampling alone (BSDF pdf 0 gives it full weight): nothing else samples
             // the emitters here. A tilted normal takes no light from below the surface,
             // as `on_side` has it.

@@ -36,7 +36,7 @@ pub(super) fn hit_light(
         });
     let front = hit.ng().dot(w) < 0.0;
     if let Some(l) = t.and_then(|t| baked_light(scene, page, t, hit.tri.material, front, hit.b)) {
-        return (l, false);
+        return (seen_through_bumps(scene, hit, w, l), false);
     }
     let l = match Surface::at(scene, hit, w) {
         Some(h) if !h.absorbs && !h.bsdf.has_smooth_only() => {
@@ -47,6 +47,20 @@ pub(super) fn hit_light(
         _ => V::ZERO,
     };
     (l, true)
+}
+
+/// Baked light `l` of a hit seen along `w`: none where a normal map tilts the shading
+/// normal away from the viewer, as the BSDF has it (a facet seen from behind reflects
+/// nothing); the patch's light is the same toward every other direction. Read as stored,
+/// the bumps scene's ridged floor left the image 0.7% bright with one bounce.
+fn seen_through_bumps(scene: &Scene, hit: &Hit, w: V, l: V) -> V {
+    if !scene.textures.bumped(hit.tri.material) {
+        return l;
+    }
+    match Surface::at(scene, hit, w) {
+        Some(s) if s.wo_l.z > 0.0 => l,
+        _ => V::ZERO,
+    }
 }
 
 /// The baked light of the finest patch at barycentrics `b` of triangle `t`, when the bake

@@ -41,31 +41,37 @@ enum Until {
 }
 
 impl Walks {
-    /// The mean indirect radiance arriving at patch `tri` (front normal `ng`, rounding
-    /// bound `err`) over `count` walks, each from a uniform point of it along a
-    /// cosine-distributed direction: the patch's indirect irradiance over π.
-    pub fn incident(
+    /// The indirect radiance patch `tri` (front normal `ng`, rounding bound `err`) reflects,
+    /// over `count` walks: each from a uniform point q of it along a direction
+    /// cosine-distributed about q's shading normal, weighed by q's albedo (f·cos/pdf of a
+    /// diffuse lobe); a direction below the surface takes nothing, as `on_side` has it.
+    pub fn reflected(
         &self,
         scene: &Scene,
         tr: &mut Tracer,
         tri: [V; 3],
         (err, ng): (V, V),
+        shading: &super::bake::Shading,
         rng: &mut Hash,
     ) -> V {
-        let frame = Frame::new(ng);
         let most = self.vertices.unwrap_or(MAX_VERTICES).min(MAX_VERTICES);
+        let side = super::bake::patch_side(tri);
         let mut sum = V::ZERO;
         for _ in 0..self.count {
             let q = super::bake::uniform_point(tri, rng);
-            let w = frame
+            let (rho, n) = shading.at(q, side);
+            let w = Frame::new(n)
                 .to_world(cosine_hemisphere([rng.f32(), rng.f32()]))
                 .normalize();
+            if ng.dot(w) <= 0.0 {
+                continue;
+            }
             let ray = Ray {
                 o: offset_origin(q, err, ng, w),
                 d: w,
                 t_max: f32::INFINITY,
             };
-            sum += walk(scene, tr, ray, rng, (Until::Roulette(most), false));
+            sum += rho * walk(scene, tr, ray, rng, (Until::Roulette(most), false));
         }
         sum / self.count.max(1) as f32
     }
