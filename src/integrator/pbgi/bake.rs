@@ -15,12 +15,12 @@
 use super::glossy::{self, GlossyMaps, WaveletMode};
 use super::patch;
 pub use super::settings::BakeSettings;
+use super::surface::Shading;
 use super::walk::Walks;
 use crate::integrator::{sample_light, Receiver, Scene};
 use crate::material::luminance;
 use crate::paging::{deepest_first, NodeRef, Page};
 use crate::sampler::Hash;
-use crate::texture;
 use crate::trace::{gamma, Cone, Tracer};
 use crate::wavelet::tree::SparseVec;
 use anyhow::{bail, Result};
@@ -532,53 +532,6 @@ fn per_area(count: u32, area: f32, a_max: f32) -> u32 {
     ((count as f32 * area / a_max).ceil() as u32).clamp(1, count)
 }
 
-/// A triangle's albedo and shading normal at its points, as the path tracer shades there:
-/// the albedo filtered over a patch's side, normal maps read at level 0 as always (the
-/// triangle's mean albedo and geometric normal left the bumps scene 3% bright).
-pub(super) struct Shading<'a> {
-    scene: &'a Scene,
-    t: &'a crate::paging::TriW,
-    uv: [[f32; 2]; 3],
-    ng: V,
-    /// The mean albedo, for a material that does not vary over the surface.
-    rho: V,
-    textured: bool,
-}
-
-impl<'a> Shading<'a> {
-    fn new(scene: &'a Scene, (t, uv): (&'a crate::paging::TriW, [[f32; 2]; 3]), ng: V) -> Self {
-        Shading {
-            scene,
-            t,
-            uv,
-            ng,
-            rho: scene.mean_material(t.material).bsdf(true).diffuse,
-            textured: scene.textures.varies(t.material),
-        }
-    }
-
-    /// The diffuse albedo and shading normal at point q, a patch of `side` around it.
-    pub(super) fn at(&self, q: V, side: f32) -> (V, V) {
-        if !self.textured {
-            return (self.rho, self.ng);
-        }
-        let v = self.t.p.map(V::from);
-        let b = barycentrics(v, q);
-        let shaded = self
-            .scene
-            .material_at(self.t.material, &self.t.p, self.uv, b, -self.ng, side);
-        let n = shaded
-            .bump
-            .map_or(self.ng, |tn| texture::perturb(v, self.uv, self.ng, tn));
-        (shaded.m.bsdf(true).diffuse, n)
-    }
-}
-
-/// The longer of a patch's two sides from vertex 0: the footprint its texture reads span.
-pub(super) fn patch_side(tri: [V; 3]) -> f32 {
-    (tri[1] - tri[0]).length().max((tri[2] - tri[0]).length())
-}
-
 /// A triangle's direct light as patches: their depth, their finest level's light, and the
 /// light samples taken (with a shadow's edge across them, a coarser level first too). A
 /// triangle smaller than a patch takes its share of a patch's samples (`per_area`).
@@ -595,9 +548,9 @@ fn direct_patches(
     let mut direct = |tri: [V; 3], key: u64, samples: u32| {
         let mut rng = seeded(p, key);
         let (mut sum, mut sum_y2) = (V::ZERO, 0.0);
-        let side = patch_side(tri);
+        let side = patch::side(tri);
         for _ in 0..samples {
-            let q = uniform_point(tri, &mut rng);
+            let q = patch::uniform_point(tri, &mut rng);
             let (rho, n) = shading.at(q, side);
             // Light sampling alone (BSDF pdf 0 gives it full weight): nothing else samples
             // the emitters here. A tilted normal takes no light from below the surface,
@@ -700,24 +653,6 @@ fn disagree(patches: &[Patch]) -> bool {
         let d = y(hi) - y(lo);
         d > mean && d * d > 9.0 * (hi.var + lo.var)
     })
-}
-
-/// The barycentrics (weights of vertices 0, 1, 2) of a point `q` in triangle `v`'s plane.
-fn barycentrics(v: [V; 3], q: V) -> [f32; 3] {
-    let (e1, e2, d) = (v[1] - v[0], v[2] - v[0], q - v[0]);
-    let c = e1.cross(e2);
-    let inv = 1.0 / c.length_squared();
-    let (b1, b2) = (d.cross(e2).dot(c) * inv, e1.cross(d).dot(c) * inv);
-    [1.0 - b1 - b2, b1, b2]
-}
-
-/// A uniform point of triangle `tri` (the unit square folded onto it).
-pub fn uniform_point(tri: [V; 3], rng: &mut Hash) -> V {
-    let (mut a, mut b) = (rng.f32(), rng.f32());
-    if a + b > 1.0 {
-        (a, b) = (1.0 - a, 1.0 - b);
-    }
-    tri[0] + (tri[1] - tri[0]) * a + (tri[2] - tri[0]) * b
 }
 
 #[cfg(test)]

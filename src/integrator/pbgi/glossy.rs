@@ -10,7 +10,7 @@
 //! light samples at area-weighted points of their glossy triangles, one sample serving
 //! every texel. Perfect mirrors and glass are left out: the renderer follows them exactly.
 
-use super::bake::uniform_point;
+use super::patch::uniform_point;
 use crate::integrator::{sample_light, Receiver, Scene};
 use crate::material::{Bsdf, Frame, Material};
 use crate::paging::coefs::{weight, PageShape, BOOTSTRAP};

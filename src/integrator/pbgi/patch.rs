@@ -3,6 +3,7 @@
 //! 4^j patches; the children of patch i are 4i..4i+3; level 0 is the triangle). PBGI's near
 //! field reads the finest patch under each texel's ray.
 
+use crate::sampler::Hash;
 use canopy_format::bake::MAX_PATCH_DEPTH;
 use glam::Vec3A as V;
 
@@ -63,6 +64,29 @@ pub fn pyramid(finest: &[V], k: u32) -> Vec<[f32; 3]> {
         levels.push(up);
     }
     levels.iter().rev().flatten().map(|v| (*v).into()).collect()
+}
+
+/// The barycentrics (weights of vertices 0, 1, 2) of a point `q` in triangle `v`'s plane.
+pub fn barycentrics(v: [V; 3], q: V) -> [f32; 3] {
+    let (e1, e2, d) = (v[1] - v[0], v[2] - v[0], q - v[0]);
+    let c = e1.cross(e2);
+    let inv = 1.0 / c.length_squared();
+    let (b1, b2) = (d.cross(e2).dot(c) * inv, e1.cross(d).dot(c) * inv);
+    [1.0 - b1 - b2, b1, b2]
+}
+
+/// A uniform point of triangle `tri` (the unit square folded onto it).
+pub fn uniform_point(tri: [V; 3], rng: &mut Hash) -> V {
+    let (mut a, mut b) = (rng.f32(), rng.f32());
+    if a + b > 1.0 {
+        (a, b) = (1.0 - a, 1.0 - b);
+    }
+    tri[0] + (tri[1] - tri[0]) * a + (tri[2] - tri[0]) * b
+}
+
+/// The longer of a patch's two sides from vertex 0: the footprint its texture reads span.
+pub fn side(tri: [V; 3]) -> f32 {
+    (tri[1] - tri[0]).length().max((tri[2] - tri[0]).length())
 }
 
 #[cfg(test)]

@@ -51,14 +51,14 @@ impl Walks {
         tr: &mut Tracer,
         tri: [V; 3],
         (err, ng): (V, V),
-        shading: &super::bake::Shading,
+        shading: &super::surface::Shading,
         rng: &mut Hash,
     ) -> V {
         let most = self.vertices.unwrap_or(MAX_VERTICES).min(MAX_VERTICES);
-        let side = super::bake::patch_side(tri);
+        let side = super::patch::side(tri);
         let mut sum = V::ZERO;
         for _ in 0..self.count {
-            let q = super::bake::uniform_point(tri, rng);
+            let q = super::patch::uniform_point(tri, rng);
             let (rho, n) = shading.at(q, side);
             let w = Frame::new(n)
                 .to_world(cosine_hemisphere([rng.f32(), rng.f32()]))
