@@ -216,18 +216,27 @@ impl Textures {
     }
 
     /// Material `index`'s opacity at `uv`: 0 or 1 under a mask, alpha under blend (alpha
-    /// the factor's times the base-colour texel's), 1 otherwise. Alpha is read at the
+    /// the factor's times the base-colour texel's times `colour_alpha`, the vertex
+    /// colour's), 1 otherwise. Alpha is read at the
     /// point, unfiltered (level 0): a cut-out's coverage must not fade with the footprint,
     /// as thresholding a filtered alpha thins distant chains and leaves, and differently for
     /// each integrator's footprint.
-    pub fn opacity(&self, look: &mut Lookup, m: &Material, index: u32, uv: [f32; 2]) -> f32 {
+    pub fn opacity(
+        &self,
+        look: &mut Lookup,
+        m: &Material,
+        index: u32,
+        uv: [f32; 2],
+        colour_alpha: f32,
+    ) -> f32 {
         let Some(b) = self.bindings.get(index as usize) else {
             return 1.0;
         };
         if b.mask.is_none() && !b.blend {
             return 1.0;
         }
-        let alpha = m.opacity * b.base.map_or(1.0, |t| look.trilinear(self, t, uv, 0.0)[3]);
+        let alpha =
+            m.opacity * colour_alpha * b.base.map_or(1.0, |t| look.trilinear(self, t, uv, 0.0)[3]);
         match b.mask {
             Some(cut) => (alpha >= cut) as u32 as f32,
             None => alpha.clamp(0.0, 1.0),

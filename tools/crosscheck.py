@@ -14,7 +14,8 @@ KHR_materials_specular.specularFactor = 0; smooth white glass as `dielectric`; w
 metals as `conductor`/`roughconductor` with no absorption; Mitsuba's `principled`
 otherwise), emission
 (emissiveFactor × KHR_materials_emissive_strength, front face only unless double-sided),
-and on Lambertian materials a baseColorTexture (TEXCOORD_0, repeat wrapping): the image is
+COLOR_0 vertex colours times baseColorFactor as a `mesh_attribute` base colour (not with a
+texture), and on Lambertian materials a baseColorTexture (TEXCOORD_0, repeat wrapping): the image is
 decoded to linear RGB, multiplied by baseColorFactor and given to a `bitmap` texture
 (bilinear, no MIP maps: what Canopy converges to as its filter narrows), with
 alphaMode MASK as Mitsuba's `mask` over the image's alpha cut at alphaCutoff; a
@@ -78,6 +79,15 @@ def accessor(doc, binary, i):
     return np.frombuffer(binary, dtype, count=a["count"] * comps, offset=start).reshape(a["count"], comps)
 
 
+def vertex_colours(doc, binary, i):
+    """COLOR_0 accessor `i` as linear RGB floats (normalized integers mapped to [0, 1]; an
+    alpha channel dropped)."""
+    a = doc["accessors"][i]
+    c = accessor(doc, binary, i).astype(np.float64)
+    c /= {5126: 1.0, 5123: 65535.0, 5121: 255.0}[a["componentType"]]
+    return c[:, :3]
+
+
 def node_matrix(n):
     if "matrix" in n:
         return np.array(n["matrix"], dtype=np.float64).reshape(4, 4).T
@@ -132,10 +142,15 @@ def normalmap_of(mi, doc, scene_dir, tmp, info, name):
     return {"type": "bitmap", "filename": path, "raw": True, "filter_type": "bilinear", "wrap_mode": "repeat"}
 
 
-def bsdf_of(mi, m, doc=None, scene_dir=None, tmp=None, name=""):
+def bsdf_of(mi, m, doc=None, scene_dir=None, tmp=None, name="", coloured=False):
+    """The material's BSDF; with `coloured` its base colour is the mesh's `vertex_color`
+    attribute (COLOR_0 times baseColorFactor, which the caller multiplied in)."""
     import os
     pbr = m.get("pbrMetallicRoughness", {})
     base = pbr.get("baseColorFactor", [1, 1, 1, 1])[:3]
+    colour = {"type": "mesh_attribute", "name": "vertex_color"}
+    if coloured and "baseColorTexture" in pbr:
+        sys.exit(f"{m.get('name', name)}: COLOR_0 with a baseColorTexture is not expressed here")
     metallic = pbr.get("metallicFactor", 1.0)
     rough = pbr.get("roughnessFactor", 1.0)
     ext = m.get("extensions", {})
@@ -149,14 +164,14 @@ def bsdf_of(mi, m, doc=None, scene_dir=None, tmp=None, name=""):
                                 pbr.get("baseColorFactor", [1, 1, 1, 1]), name)
         b = {"type": "diffuse", "reflectance": tex}
     elif metallic == 0 and spec == 0 and trans == 0:
-        b = {"type": "diffuse", "reflectance": {"type": "rgb", "value": base}}
-    elif metallic == 0 and trans == 1 and rough == 0 and white and spec == 1:
+        b = {"type": "diffuse", "reflectance": colour if coloured else {"type": "rgb", "value": base}}
+    elif metallic == 0 and trans == 1 and rough == 0 and white and spec == 1 and not coloured:
         # Smooth glass: glTF's dielectric interface with the exact Fresnel term.
         b = {"type": "dielectric", "int_ior": ior, "ext_ior": 1.0}
-    elif metallic == 0 and trans == 1 and white and spec == 1:
+    elif metallic == 0 and trans == 1 and white and spec == 1 and not coloured:
         # Rough glass: GGX with alpha = roughness², as Canopy's rough interface.
         b = {"type": "roughdielectric", "distribution": "ggx", "alpha": rough * rough, "int_ior": ior, "ext_ior": 1.0}
-    elif metallic == 1 and white:
+    elif metallic == 1 and white and not coloured:
         # A white metal: Schlick with F0 = 1 reflects everything, as Mitsuba's
         # `none` conductor does; GGX with alpha = roughness² (glTF), visible normals.
         b = {"type": "conductor", "material": "none"} if rough == 0 else \
@@ -164,7 +179,7 @@ def bsdf_of(mi, m, doc=None, scene_dir=None, tmp=None, name=""):
     else:
         b = {
             "type": "principled",
-            "base_color": {"type": "rgb", "value": base},
+            "base_color": colour if coloured else {"type": "rgb", "value": base},
             "metallic": metallic,
             "roughness": rough,
             "spec_trans": trans,
@@ -262,10 +277,15 @@ def main():
                 params["faces"] = idx.astype(np.uint32).ravel()
                 params.update()
                 mat = mats[p["material"]] if "material" in p else {}
+                colours = p["attributes"].get("COLOR_0")
+                if colours is not None:
+                    c = vertex_colours(doc, binary, colours)
+                    factor = mat.get("pbrMetallicRoughness", {}).get("baseColorFactor", [1, 1, 1, 1])
+                    mesh.add_attribute("vertex_color", 3, (c * np.array(factor[:3])).astype(np.float32).ravel())
                 ply = f"{tmp}/m{count}.ply"
                 mesh.write_ply(ply)
                 entry = {"type": "ply", "filename": ply, "face_normals": True,
-                         "bsdf": bsdf_of(mi, mat, doc, scene_dir, tmp, f"t{count}")}
+                         "bsdf": bsdf_of(mi, mat, doc, scene_dir, tmp, f"t{count}", colours is not None)}
                 strength = mat.get("extensions", {}).get("KHR_materials_emissive_strength", {}).get("emissiveStrength", 1.0)
                 le = [c * strength for c in mat.get("emissiveFactor", [0, 0, 0])]
                 if max(le) > 0:

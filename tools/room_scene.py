@@ -76,6 +76,20 @@ def glass(name, rough):
             "extensions": {"KHR_materials_transmission": {"transmissionFactor": 1.0}, "KHR_materials_ior": {"ior": 1.5}}}
 
 
+def look_rotation(eye, at):
+    """The quaternion turning a glTF camera (looking down −z, +y up) at `eye` toward `at`."""
+    f = [at[k] - eye[k] for k in range(3)]
+    yaw = math.atan2(-f[0], -f[2])
+    pitch = math.atan2(f[1], math.hypot(f[0], f[2]))
+    qy = [0.0, math.sin(yaw / 2), 0.0, math.cos(yaw / 2)]
+    qx = [math.sin(pitch / 2), 0.0, 0.0, math.cos(pitch / 2)]
+    # q = qy * qx (yaw after pitch).
+    return [qy[3] * qx[0] + qy[0] * qx[3] + qy[1] * qx[2] - qy[2] * qx[1],
+            qy[3] * qx[1] - qy[0] * qx[2] + qy[1] * qx[3] + qy[2] * qx[0],
+            qy[3] * qx[2] + qy[0] * qx[1] - qy[1] * qx[0] + qy[2] * qx[3],
+            qy[3] * qx[3] - qy[0] * qx[0] - qy[1] * qx[1] - qy[2] * qx[2]]
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("-o", "--output", required=True)
@@ -114,16 +128,7 @@ def main():
     ]
     # Camera near the front wall, looking at the plinths and up at the ceiling.
     eye, at = [0.3, 1.0, 1.9], [0.0, 0.75, -0.6]
-    f = [at[k] - eye[k] for k in range(3)]
-    yaw = math.atan2(-f[0], -f[2])
-    pitch = math.atan2(f[1], math.hypot(f[0], f[2]))
-    qy = [0.0, math.sin(yaw / 2), 0.0, math.cos(yaw / 2)]
-    qx = [math.sin(pitch / 2), 0.0, 0.0, math.cos(pitch / 2)]
-    # q = qy * qx (yaw after pitch).
-    q = [qy[3] * qx[0] + qy[0] * qx[3] + qy[1] * qx[2] - qy[2] * qx[1],
-         qy[3] * qx[1] - qy[0] * qx[2] + qy[1] * qx[3] + qy[2] * qx[0],
-         qy[3] * qx[2] + qy[0] * qx[1] - qy[1] * qx[0] + qy[2] * qx[3],
-         qy[3] * qx[3] - qy[0] * qx[0] - qy[1] * qx[1] - qy[2] * qx[2]]
+    q = look_rotation(eye, at)
     write_glb(a.output, room, materials, {"yfov": 1.0, "aspectRatio": 4 / 3, "znear": 0.01}, {"translation": eye, "rotation": q},
               "canopy tools/room_scene.py", (128, 96),
               ["KHR_materials_emissive_strength", "KHR_materials_specular"] + (["KHR_materials_transmission", "KHR_materials_ior"] if a.glass or a.showroom else []))

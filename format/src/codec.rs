@@ -54,20 +54,23 @@ pub fn rgbe64_decode(bits: u64) -> [f32; 3] {
     out
 }
 
-/// [0, 1] as value/255, rounded to nearest. Error <= 0.5/255; out-of-range input is clamped.
-/// sRGB-encoded byte to linear (IEC 61966-2-1).
+/// Opaque white in a page's colour stream (linear unorm16 RGBA): the colour of a vertex
+/// whose input had none.
+pub const WHITE: [u16; 4] = [u16::MAX; 4];
+
+/// An sRGB-encoded value in [0, 1] to linear (IEC 61966-2-1).
+pub fn srgb_decode(v: f32) -> f32 {
+    if v <= 0.04045 {
+        v / 12.92
+    } else {
+        ((v + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// sRGB-encoded byte to linear (`srgb_decode` of value/255, from a table).
 pub fn srgb_to_linear(c: u8) -> f32 {
     static LUT: OnceLock<[f32; 256]> = OnceLock::new();
-    LUT.get_or_init(|| {
-        std::array::from_fn(|i| {
-            let v = i as f32 / 255.0;
-            if v <= 0.04045 {
-                v / 12.92
-            } else {
-                ((v + 0.055) / 1.055).powf(2.4)
-            }
-        })
-    })[c as usize]
+    LUT.get_or_init(|| std::array::from_fn(|i| srgb_decode(i as f32 / 255.0)))[c as usize]
 }
 
 /// Linear value in [0, 1] to the nearest sRGB-encoded byte (a 2¹⁶-entry table: its step is

@@ -248,6 +248,7 @@ impl Archive {
                 != (e.node_count, e.tri_count, e.vert_count, e.coef_bytes)
             || (h.has_normals != 0) != streams.normals
             || (h.has_uvs != 0) != streams.uvs
+            || (h.has_colours != 0) != streams.colours
         {
             return Err(self.page_err(page, "page header disagrees with the page table"));
         }
@@ -274,12 +275,18 @@ impl Archive {
         } else {
             Vec::new()
         };
+        let colours: Vec<[u16; 4]> = if streams.colours {
+            bytemuck::pod_collect_to_vec(take(h.vert_count as usize * 8))
+        } else {
+            Vec::new()
+        };
         let contents = PageContents {
             nodes,
             tris,
             verts,
             normals,
             uvs,
+            colours,
         };
         self.check_indices(page, &contents)?;
         Ok(contents)

@@ -5,7 +5,7 @@ use bytemuck::{Pod, Zeroable};
 
 pub const MAGIC: [u8; 8] = *b"CANOPY\x00\x1a";
 pub const VERSION_MAJOR: u16 = 2;
-pub const VERSION_MINOR: u16 = 3;
+pub const VERSION_MINOR: u16 = 4;
 pub const PAGE_MAGIC: [u8; 4] = *b"PAGE";
 /// Page frames and tables start at multiples of this many bytes, so records can be read in
 /// place from the mapping.
@@ -35,6 +35,9 @@ impl Features {
     /// Pages carry a per-vertex texture-coordinate stream (required: it changes the page
     /// layout). Version 2.2.
     pub const TEXCOORDS: u64 = 1 << 34;
+    /// Pages carry a per-vertex colour stream (required: it changes the page layout).
+    /// Version 2.4.
+    pub const COLOURS: u64 = 1 << 35;
     pub const REQUIRED: u64 = 0xFFFF_FFFF_0000_0000;
     pub const ALL: u64 = Self::EMITTERS
         | Self::GLOSSY
@@ -43,7 +46,8 @@ impl Features {
         | Self::PUNCTUAL_LIGHTS
         | Self::SHADING_NORMALS
         | Self::INSTANCES
-        | Self::TEXCOORDS;
+        | Self::TEXCOORDS
+        | Self::COLOURS;
 
     pub fn names(bits: u64) -> Vec<&'static str> {
         [
@@ -55,6 +59,7 @@ impl Features {
             (Self::PUNCTUAL_LIGHTS, "punctual-lights"),
             (Self::INSTANCES, "instances"),
             (Self::TEXCOORDS, "texcoords"),
+            (Self::COLOURS, "vertex-colours"),
         ]
         .iter()
         .filter(|(b, _)| bits & b != 0)
@@ -385,7 +390,8 @@ pub struct PageHeader {
     pub has_normals: u32,
     /// 1 when a texture-coordinate stream follows (version 2.2).
     pub has_uvs: u32,
-    pub reserved: [u8; 4],
+    /// 1 when a vertex-colour stream follows (version 2.4; reserved zero before).
+    pub has_colours: u32,
 }
 
 const _: () = assert!(std::mem::size_of::<PageHeader>() == 32);

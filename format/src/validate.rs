@@ -516,7 +516,7 @@ pub fn check_entry(h: &Header, page: u32, e: &PageEntry) -> Result<(), String> {
         coef_bytes: 0,
         has_normals: (h.features & Features::SHADING_NORMALS != 0) as u32,
         has_uvs: (h.features & Features::TEXCOORDS != 0) as u32,
-        reserved: [0; 4],
+        has_colours: (h.features & Features::COLOURS != 0) as u32,
     };
     if e.node_count == 0 || e.node_count > h.page_nodes_max {
         return Err(format!(

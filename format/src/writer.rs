@@ -19,6 +19,8 @@ pub struct PageContents {
     pub normals: Vec<u32>,
     /// Texture coordinates, one per vertex, or empty.
     pub uvs: Vec<[f32; 2]>,
+    /// Linear RGBA colours (unorm16), one per vertex, or empty.
+    pub colours: Vec<[u16; 4]>,
 }
 
 /// Which per-vertex streams follow the positions in every page of an archive.
@@ -28,6 +30,8 @@ pub struct Streams {
     pub normals: bool,
     /// TEXCOORDS.
     pub uvs: bool,
+    /// COLOURS.
+    pub colours: bool,
 }
 
 impl Streams {
@@ -35,6 +39,7 @@ impl Streams {
         Streams {
             normals: features & Features::SHADING_NORMALS != 0,
             uvs: features & Features::TEXCOORDS != 0,
+            colours: features & Features::COLOURS != 0,
         }
     }
 }
@@ -72,6 +77,10 @@ pub fn encode_page(
         if streams.normals { p.verts.len() } else { 0 }
     );
     assert_eq!(p.uvs.len(), if streams.uvs { p.verts.len() } else { 0 });
+    assert_eq!(
+        p.colours.len(),
+        if streams.colours { p.verts.len() } else { 0 }
+    );
     let header = PageHeader {
         magic: PAGE_MAGIC,
         node_count: p.nodes.len() as u32,
@@ -80,7 +89,7 @@ pub fn encode_page(
         coef_bytes: 0,
         has_normals: streams.normals as u32,
         has_uvs: streams.uvs as u32,
-        reserved: [0; 4],
+        has_colours: streams.colours as u32,
     };
     let mut raw = Vec::with_capacity(raw_page_len(&header, NODE_SIZE));
     raw.extend_from_slice(bytemuck::bytes_of(&header));
@@ -89,6 +98,7 @@ pub fn encode_page(
     raw.extend_from_slice(bytemuck::cast_slice(&p.verts));
     raw.extend_from_slice(bytemuck::cast_slice(&p.normals));
     raw.extend_from_slice(bytemuck::cast_slice(&p.uvs));
+    raw.extend_from_slice(bytemuck::cast_slice(&p.colours));
     let bytes = zstd::bulk::compress(&raw, zstd_level)?;
     Ok(EncodedPage {
         checksum: xxhash_rust::xxh3::xxh3_64(&bytes),
@@ -119,7 +129,10 @@ pub fn encode_tile(texels: &[u8], zstd_level: i32) -> std::io::Result<EncodedTil
 
 /// Decompressed size a page header implies, with node records of `node_size` bytes.
 pub fn raw_page_len(h: &PageHeader, node_size: u32) -> usize {
-    let per_vertex = 12 + 4 * (h.has_normals != 0) as usize + 8 * (h.has_uvs != 0) as usize;
+    let per_vertex = 12
+        + 4 * (h.has_normals != 0) as usize
+        + 8 * (h.has_uvs != 0) as usize
+        + 8 * (h.has_colours != 0) as usize;
     std::mem::size_of::<PageHeader>()
         + h.node_count as usize * node_size as usize
         + h.tri_count as usize * std::mem::size_of::<Tri>()

@@ -3,7 +3,7 @@
 //! normals and deliberately not normalized.
 
 use super::textures::Coarse;
-use crate::import::SpillTri;
+use crate::import::{SpillTri, WHITE};
 use canopy_format::codec::{f16_encode, rgbe64_encode, snorm16, unorm8};
 use canopy_format::{cofactors3, det3};
 use canopy_format::{MaterialRecord, Node, NodeFlags, TextureRecord};
@@ -140,7 +140,8 @@ impl MatTable {
         }
     }
 
-    /// What triangle `t` contributes per unit area.
+    /// What triangle `t` contributes per unit area (its vertex colours and the texels
+    /// under it applied).
     pub fn of(&self, t: &SpillTri) -> MatSummary {
         let i = t.material as usize;
         let m = &self.records[i];
@@ -149,13 +150,23 @@ impl MatTable {
             MaterialRecord::METALLIC_ROUGHNESS,
             MaterialRecord::EMISSIVE,
         ];
-        if slots
-            .iter()
-            .all(|&s| m.textures[s] as usize >= self.textures.len())
+        let coloured = t.colour != [WHITE; 3];
+        if !coloured
+            && slots
+                .iter()
+                .all(|&s| m.textures[s] as usize >= self.textures.len())
         {
             return self.summaries[i];
         }
         let mut rec = *m;
+        if coloured {
+            // The vertex colour multiplies the base colour (glTF 2.0 §3.9.2); linear over
+            // the triangle, its mean is the vertices' mean.
+            for k in 0..4 {
+                let mean = t.colour.iter().map(|c| c[k] as f32).sum::<f32>() / (3.0 * 65535.0);
+                rec.base_color[k] *= mean;
+            }
+        }
         for slot in slots {
             let Some(tex) = self.textures.get(m.textures[slot] as usize) else {
                 continue;

@@ -7,6 +7,7 @@
 
 use super::aggregate::round_up;
 use super::tree::{Kind, Tree};
+use crate::import::WHITE;
 use canopy_format::{Grid, NodeFlags, PageContents, Streams, Tri};
 use std::collections::{HashMap, VecDeque};
 
@@ -41,6 +42,9 @@ impl std::hash::Hasher for FastHasher {
             self.write_u64(b as u64);
         }
     }
+    fn write_u16(&mut self, v: u16) {
+        self.write_u64(v as u64);
+    }
     fn write_u32(&mut self, v: u32) {
         self.write_u64(v as u64);
     }
@@ -49,6 +53,10 @@ impl std::hash::Hasher for FastHasher {
     }
 }
 type FastMap<K, V> = HashMap<K, V, std::hash::BuildHasherDefault<FastHasher>>;
+
+/// A page vertex's identity: the bits of its position, normal, texture coordinates and
+/// colour.
+type VertexKey = ([u32; 3], u32, [u32; 2], [u16; 4]);
 
 impl Plan {
     pub fn new(tree: &Tree, roots: Vec<u32>, max_nodes: usize) -> Plan {
@@ -149,7 +157,7 @@ impl Plan {
         let grid = self.grid(tree, page);
         let mut out = PageContents::default();
         let mut externals = Vec::new();
-        let mut verts: FastMap<([u32; 3], u32, [u32; 2]), u16> = FastMap::default();
+        let mut verts: FastMap<VertexKey, u16> = FastMap::default();
         // Quantized bounds of each node's parent, by local index (roots have none).
         let mut parent_q: Vec<Option<[u16; 6]>> = vec![None; p.nodes.len()];
         for (local, &id) in p.nodes.iter().enumerate() {
@@ -189,7 +197,8 @@ impl Plan {
                         let v = [0, 1, 2].map(|k| {
                             let n = if streams.normals { t.n[k] } else { 0 };
                             let uv = if streams.uvs { t.uv[k] } else { [0.0; 2] };
-                            let key = (t.p[k].map(f32::to_bits), n, uv.map(f32::to_bits));
+                            let c = if streams.colours { t.colour[k] } else { WHITE };
+                            let key = (t.p[k].map(f32::to_bits), n, uv.map(f32::to_bits), c);
                             *verts.entry(key).or_insert_with(|| {
                                 out.verts.push(t.p[k]);
                                 if streams.normals {
@@ -197,6 +206,9 @@ impl Plan {
                                 }
                                 if streams.uvs {
                                     out.uvs.push(uv);
+                                }
+                                if streams.colours {
+                                    out.colours.push(c);
                                 }
                                 u16::try_from(out.verts.len() - 1)
                                     .expect("page vertex count fits u16")

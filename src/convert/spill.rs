@@ -6,11 +6,12 @@
 //!
 //! A record is 40 bytes (positions and material). Triangles with shading normals or
 //! curvature add a 16-byte attribute record, flagged in the material's top bit (texture
-//! coordinates a 24-byte one, flagged in the next bit), so meshes
+//! coordinates a 24-byte one, flagged in the next bit; vertex colours other than white a
+//! 24-byte one, flagged in the bit after), so meshes
 //! without normals cost 40 bytes a triangle on disk instead of 56: spill I/O is most of the
 //! time a conversion larger than the page cache's dirty limit spends.
 
-use crate::import::SpillTri;
+use crate::import::{SpillTri, WHITE};
 use anyhow::{bail, Context, Result};
 use bytemuck::{Pod, Zeroable};
 use std::fs::File;
@@ -20,6 +21,9 @@ use std::path::{Path, PathBuf};
 const HAS_ATTR: u32 = 1 << 31;
 /// A 24-byte texture-coordinate record follows (after the attribute record, if any).
 const HAS_UV: u32 = 1 << 30;
+/// A 24-byte vertex-colour record follows (after the texture coordinates, if any).
+const HAS_COLOUR: u32 = 1 << 29;
+const FLAGS: u32 = HAS_ATTR | HAS_UV | HAS_COLOUR;
 
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
@@ -61,14 +65,19 @@ impl SpillWriter {
     }
 
     pub fn write(&mut self, t: &SpillTri) -> Result<()> {
-        if t.material & (HAS_ATTR | HAS_UV) != 0 {
+        if t.material & FLAGS != 0 {
             bail!("material index {} is out of range", t.material);
         }
         let attr = t.n != [0; 3] || t.curvature != 0.0;
         let uv = t.uv != [[0.0; 2]; 3];
+        let colour = t.colour != [WHITE; 3];
+        let flag = |on: bool, bit: u32| if on { bit } else { 0 };
         let rec = Rec {
             p: t.p,
-            material: t.material | if attr { HAS_ATTR } else { 0 } | if uv { HAS_UV } else { 0 },
+            material: t.material
+                | flag(attr, HAS_ATTR)
+                | flag(uv, HAS_UV)
+                | flag(colour, HAS_COLOUR),
         };
         let mut r = self.out.write_all(bytemuck::bytes_of(&rec));
         if attr && r.is_ok() {
@@ -81,7 +90,10 @@ impl SpillWriter {
         if uv && r.is_ok() {
             r = self.out.write_all(bytemuck::bytes_of(&t.uv));
         }
-        self.written += 40 + 16 * attr as u64 + 24 * uv as u64;
+        if colour && r.is_ok() {
+            r = self.out.write_all(bytemuck::bytes_of(&t.colour));
+        }
+        self.written += 40 + 16 * attr as u64 + 24 * uv as u64 + 24 * colour as u64;
         r.with_context(|| format!("{}: writing spill file", self.path.display()))
     }
 
@@ -137,7 +149,7 @@ pub fn for_each_in(
             .with_context(err)?;
         let mut t = SpillTri {
             p: rec.p,
-            material: rec.material & !(HAS_ATTR | HAS_UV),
+            material: rec.material & !FLAGS,
             ..Default::default()
         };
         if rec.material & HAS_ATTR != 0 {
@@ -149,6 +161,10 @@ pub fn for_each_in(
         }
         if rec.material & HAS_UV != 0 {
             r.read_exact(bytemuck::bytes_of_mut(&mut t.uv))
+                .with_context(err)?;
+        }
+        if rec.material & HAS_COLOUR != 0 {
+            r.read_exact(bytemuck::bytes_of_mut(&mut t.colour))
                 .with_context(err)?;
         }
         f(&t)?;
@@ -187,6 +203,11 @@ mod tests {
                 } else {
                     [[0.0; 2]; 3]
                 },
+                colour: if i % 6 == 2 {
+                    [[i as u16, 0, 7, 65535], WHITE, [1, 2, 3, 4]]
+                } else {
+                    [WHITE; 3]
+                },
             })
             .collect();
         let mut w = SpillWriter::create(dir.path(), 4096).unwrap();
@@ -204,8 +225,12 @@ mod tests {
             .filter(|t| t.n != [0; 3] || t.curvature != 0.0)
             .count() as u64;
         let uvs = tris.iter().filter(|t| t.uv != [[0.0; 2]; 3]).count() as u64;
+        let colours = tris.iter().filter(|t| t.colour != [WHITE; 3]).count() as u64;
         let len = spill.file.metadata().unwrap().len();
-        assert_eq!(len, tris.len() as u64 * 40 + attrs * 16 + uvs * 24);
+        assert_eq!(
+            len,
+            tris.len() as u64 * 40 + attrs * 16 + (uvs + colours) * 24
+        );
         assert_eq!(read_all(&spill).unwrap(), tris);
     }
 

@@ -15,9 +15,12 @@ use canopy_format::codec::{oct_encode, NO_NORMAL};
 use canopy_format::{CameraRecord, LightRecord, MaterialRecord};
 use std::path::Path;
 
-/// One input triangle as the importers produce it (spilled as 40 or 56 bytes, see `build::spill`).
+pub use canopy_format::codec::WHITE;
+
+/// One input triangle as the importers produce it (spilled as 40 to 128 bytes, see
+/// `convert::spill`).
 #[repr(C)]
-#[derive(Clone, Copy, Debug, Default, PartialEq, Pod, Zeroable)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 pub struct SpillTri {
     pub p: [[f32; 3]; 3],
     /// Octahedral shading normals; zero when the input had none.
@@ -27,6 +30,31 @@ pub struct SpillTri {
     pub curvature: f32,
     /// Texture coordinates of the vertices (zero when the input had none).
     pub uv: [[f32; 2]; 3],
+    /// Linear RGBA vertex colours, unorm16 (`WHITE` when the input had none).
+    pub colour: [[u16; 4]; 3],
+}
+
+impl Default for SpillTri {
+    fn default() -> Self {
+        SpillTri {
+            p: [[0.0; 3]; 3],
+            n: [0; 3],
+            material: 0,
+            curvature: 0.0,
+            uv: [[0.0; 2]; 3],
+            colour: [WHITE; 3],
+        }
+    }
+}
+
+/// A colour channel in [0, 1] (clamped; NaN reads 0) as linear unorm16.
+pub fn unorm16(x: f32) -> u16 {
+    (x.clamp(0.0, 1.0) * 65535.0).round() as u16
+}
+
+/// An sRGB-encoded channel in [0, 1] (8-bit colours of PLY and OBJ files) as linear unorm16.
+pub fn srgb_unorm16(x: f32) -> u16 {
+    unorm16(canopy_format::codec::srgb_decode(x.clamp(0.0, 1.0)))
 }
 
 impl SpillTri {
@@ -59,6 +87,8 @@ pub struct SceneDesc {
     pub textured: bool,
     /// Some triangle carries texture coordinates.
     pub has_uvs: bool,
+    /// Some triangle carries vertex colours.
+    pub has_colours: bool,
     /// The images materials name, in texture-table order.
     pub textures: Vec<TextureSource>,
 }
@@ -199,7 +229,7 @@ pub fn make_tri(
         n: n_enc,
         material,
         curvature,
-        uv: [[0.0; 2]; 3],
+        ..Default::default()
     })
 }
 
@@ -235,10 +265,22 @@ pub fn import(
 }
 
 /// Material index for a raw mesh (PLY/OBJ without MTL): the scene file's choice or a default.
-fn raw_mesh_material(path: &Path, scene: &mut SceneDesc, file: &SceneFile) -> Result<u32> {
-    let m = file
-        .material_for(path)
-        .unwrap_or_else(|| default_material("default"));
+/// The material of a PLY or OBJ mesh without one of its own: the scene file's for `path`,
+/// else `default`, or, for a mesh with vertex colours (`coloured`), white `vertex colour`
+/// so the colours are the base colour.
+fn raw_mesh_material(
+    path: &Path,
+    scene: &mut SceneDesc,
+    file: &SceneFile,
+    coloured: bool,
+) -> Result<u32> {
+    let m = file.material_for(path).unwrap_or_else(|| match coloured {
+        true => MaterialRecord {
+            base_color: [1.0; 4],
+            ..default_material("vertex colour")
+        },
+        false => default_material("default"),
+    });
     if let Some(i) = scene.materials.iter().position(|x| *x == m) {
         return Ok(i as u32);
     }

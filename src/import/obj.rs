@@ -1,8 +1,9 @@
-//! Wavefront OBJ with MTL: `v`, `vn`, `vt`, `f` (polygons fan-triangulated, negative indices
-//! allowed), `usemtl`, `mtllib`. Vertices are held in memory; faces stream.
+//! Wavefront OBJ with MTL: `v` (with an optional `r g b` colour), `vn`, `vt`, `f` (polygons
+//! fan-triangulated, negative indices allowed), `usemtl`, `mtllib`. Vertices are held in memory; faces stream.
 
 use super::{
-    context, make_tri, raw_mesh_material, SceneDesc, SceneFile, TextureSource, TriangleSink,
+    context, make_tri, raw_mesh_material, srgb_unorm16, SceneDesc, SceneFile, TextureSource,
+    TriangleSink, WHITE,
 };
 use anyhow::{bail, Result};
 use canopy_format::{name_bytes, MaterialRecord, TextureRecord};
@@ -135,6 +136,29 @@ fn read_mtl(path: &Path) -> Result<HashMap<String, MtlEntry>> {
     Ok(out)
 }
 
+/// The colour of vertex `count` (numbered from 1) from its `v` line's words after x, y, z:
+/// `r g b` (the common extension, sRGB-encoded values in [0, 1] as MeshLab writes them),
+/// or white. `colours` stays empty until a vertex has a colour.
+fn vertex_colour(
+    colours: &mut Vec<[u16; 4]>,
+    count: usize,
+    rest: &[&str],
+    path: &Path,
+    ln: usize,
+) -> Result<()> {
+    if rest.len() < 6 {
+        if !colours.is_empty() {
+            colours.push(WHITE);
+        }
+        return Ok(());
+    }
+    let rgb = floats::<3>(&rest[3..6], path, ln)?;
+    colours.resize(count - 1, WHITE);
+    let [r, g, b] = rgb.map(srgb_unorm16);
+    colours.push([r, g, b, u16::MAX]);
+    Ok(())
+}
+
 pub fn import(
     path: &Path,
     scene: &mut SceneDesc,
@@ -146,6 +170,8 @@ pub fn import(
     let mut pos: Vec<[f32; 3]> = Vec::new();
     let mut nrm: Vec<[f32; 3]> = Vec::new();
     let mut tex: Vec<[f32; 2]> = Vec::new();
+    // Empty until a vertex has a colour; then one per vertex.
+    let mut colour: Vec<[u16; 4]> = Vec::new();
     let mut library: HashMap<String, MtlEntry> = HashMap::new();
     let mut indices: HashMap<String, u32> = HashMap::new();
     let mut material = None;
@@ -158,7 +184,10 @@ pub fn import(
             continue;
         };
         match key {
-            "v" => pos.push(floats::<3>(rest, path, ln)?),
+            "v" => {
+                pos.push(floats::<3>(rest, path, ln)?);
+                vertex_colour(&mut colour, pos.len(), rest, path, ln)?;
+            }
             "vn" => nrm.push(floats::<3>(rest, path, ln)?),
             // OBJ's t runs up the image, glTF's (and the archive's) down.
             "vt" => {
@@ -200,7 +229,9 @@ pub fn import(
             "f" => {
                 let mat = match material {
                     Some(m) => m,
-                    None => *material.insert(raw_mesh_material(path, scene, file)?),
+                    None => {
+                        *material.insert(raw_mesh_material(path, scene, file, !colour.is_empty())?)
+                    }
                 };
                 face.clear();
                 for v in rest {
@@ -244,6 +275,10 @@ pub fn import(
                         if t.uv.iter().flatten().any(|x| !x.is_finite()) {
                             bail!("{}:{ln}: non-finite texture coordinate", path.display());
                         }
+                    }
+                    if !colour.is_empty() {
+                        t.colour = tri.map(|(v, _, _)| colour[v as usize]);
+                        scene.has_colours = true;
                     }
                     sink.push(t)?;
                     count += 1;

@@ -1,11 +1,14 @@
-//! PLY, ASCII and binary (either endianness): vertices with x, y, z and optional nx, ny, nz;
+//! PLY, ASCII and binary (either endianness): vertices with x, y, z and optional nx, ny, nz
+//! and colours (red, green, blue, alpha);
 //! faces as a vertex-index list, fan-triangulated, or triangle strips (`tristrips`, with −1
-//! restarts, as Stanford's scans ship). Vertex positions are held in memory
-//! (12 bytes a vertex, 24 with normals) up to `IN_MEMORY_BYTES`, beyond that in an unnamed
+//! restarts, as Stanford's scans ship). Each vertex array (positions 12 bytes a vertex,
+//! normals 12, colours 8) is held in memory up to `IN_MEMORY_BYTES`, beyond that in an unnamed
 //! temporary file read through a map whose pages are released as faces stream, so an
 //! indexed mesh of any size imports in bounded memory; faces stream.
 
-use super::{context, make_tri, raw_mesh_material, SceneDesc, SceneFile, TriangleSink};
+use super::{
+    context, make_tri, raw_mesh_material, srgb_unorm16, unorm16, SceneDesc, SceneFile, TriangleSink,
+};
 use anyhow::{bail, Context, Result};
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -209,30 +212,32 @@ const IN_MEMORY_BYTES: u64 = 64 << 20;
 const RELEASE_EVERY: u64 = 1 << 20;
 
 /// One vertex attribute array while it is read, in memory or in a temporary file.
-enum VertexSink {
-    Mem(Vec<[f32; 3]>),
+enum VertexSink<T> {
+    Mem(Vec<T>),
     File(std::io::BufWriter<std::fs::File>),
 }
 
 /// A vertex attribute array once read.
-enum Vertices {
-    Mem(Vec<[f32; 3]>),
+enum Vertices<T> {
+    Mem(Vec<T>),
     Mapped(memmap2::Mmap),
 }
 
-impl VertexSink {
-    fn new(count: u64) -> std::io::Result<VertexSink> {
-        Ok(if count * 12 > IN_MEMORY_BYTES {
-            VertexSink::File(std::io::BufWriter::with_capacity(
-                1 << 20,
-                tempfile::tempfile()?,
-            ))
-        } else {
-            VertexSink::Mem(Vec::with_capacity(count as usize))
-        })
+impl<T: bytemuck::Pod> VertexSink<T> {
+    fn new(count: u64) -> std::io::Result<VertexSink<T>> {
+        Ok(
+            if count * std::mem::size_of::<T>() as u64 > IN_MEMORY_BYTES {
+                VertexSink::File(std::io::BufWriter::with_capacity(
+                    1 << 20,
+                    tempfile::tempfile()?,
+                ))
+            } else {
+                VertexSink::Mem(Vec::with_capacity(count as usize))
+            },
+        )
     }
 
-    fn push(&mut self, v: [f32; 3]) -> std::io::Result<()> {
+    fn push(&mut self, v: T) -> std::io::Result<()> {
         match self {
             VertexSink::Mem(m) => m.push(v),
             VertexSink::File(w) => std::io::Write::write_all(w, bytemuck::bytes_of(&v))?,
@@ -240,7 +245,7 @@ impl VertexSink {
         Ok(())
     }
 
-    fn finish(self) -> std::io::Result<Vertices> {
+    fn finish(self) -> std::io::Result<Vertices<T>> {
         Ok(match self {
             VertexSink::Mem(m) => Vertices::Mem(m),
             VertexSink::File(w) => {
@@ -252,11 +257,11 @@ impl VertexSink {
     }
 }
 
-impl Vertices {
-    fn as_slice(&self) -> &[[f32; 3]] {
+impl<T: bytemuck::Pod> Vertices<T> {
+    fn as_slice(&self) -> &[T] {
         match self {
             Vertices::Mem(m) => m,
-            // A map is page aligned, so f32 triples read in place.
+            // A map is page aligned, so the values read in place.
             Vertices::Mapped(m) => bytemuck::cast_slice(&m[..]),
         }
     }
@@ -274,7 +279,48 @@ impl Vertices {
     }
 }
 
-type FaceFn<'a> = dyn FnMut(u64, &[u32], &[[f32; 3]], &[[f32; 3]]) -> Result<()> + 'a;
+/// A PLY file's vertex arrays: positions, and normals and colours where it has them
+/// (empty otherwise).
+struct VertexArrays {
+    pos: Vertices<[f32; 3]>,
+    nrm: Vertices<[f32; 3]>,
+    /// Linear unorm16 RGBA.
+    colour: Vertices<[u16; 4]>,
+}
+
+impl VertexArrays {
+    fn none() -> VertexArrays {
+        VertexArrays {
+            pos: Vertices::Mem(Vec::new()),
+            nrm: Vertices::Mem(Vec::new()),
+            colour: Vertices::Mem(Vec::new()),
+        }
+    }
+
+    fn attrs(&self) -> Attrs<'_> {
+        Attrs {
+            pos: self.pos.as_slice(),
+            nrm: self.nrm.as_slice(),
+            colour: self.colour.as_slice(),
+        }
+    }
+
+    fn release(&self) {
+        self.pos.release();
+        self.nrm.release();
+        self.colour.release();
+    }
+}
+
+/// The vertex arrays a face indexes (normals and colours empty when the file has none).
+#[derive(Clone, Copy)]
+struct Attrs<'a> {
+    pos: &'a [[f32; 3]],
+    nrm: &'a [[f32; 3]],
+    colour: &'a [[u16; 4]],
+}
+
+type FaceFn<'a> = dyn FnMut(u64, &[u32], Attrs) -> Result<()> + 'a;
 
 pub fn import(
     path: &Path,
@@ -282,21 +328,28 @@ pub fn import(
     file: &SceneFile,
     sink: &mut dyn TriangleSink,
 ) -> Result<u64> {
-    let material = raw_mesh_material(path, scene, file)?;
+    let mut material = None;
     let mut count = 0u64;
-    let has_normals = parse(path, &mut |i, idx, pos, nrm| {
+    let found = parse(path, &mut |i, idx, a| {
+        let material = match material {
+            Some(m) => m,
+            None => *material.insert(raw_mesh_material(path, scene, file, !a.colour.is_empty())?),
+        };
         for k in 2..idx.len() {
             let tri = [idx[0], idx[k - 1], idx[k]];
-            let p = tri.map(|v| pos[v as usize]);
-            let n = (!nrm.is_empty()).then(|| tri.map(|v| nrm[v as usize]));
-            sink.push(make_tri(p, n, material, &|| {
-                format!("{}: face {i}", path.display())
-            })?)?;
+            let p = tri.map(|v| a.pos[v as usize]);
+            let n = (!a.nrm.is_empty()).then(|| tri.map(|v| a.nrm[v as usize]));
+            let mut t = make_tri(p, n, material, &|| format!("{}: face {i}", path.display()))?;
+            if !a.colour.is_empty() {
+                t.colour = tri.map(|v| a.colour[v as usize]);
+            }
+            sink.push(t)?;
             count += 1;
         }
         Ok(())
     })?;
-    scene.has_normals |= has_normals;
+    scene.has_normals |= found.normals;
+    scene.has_colours |= found.colours;
     Ok(count)
 }
 
@@ -307,7 +360,8 @@ pub type IndexedMesh = (Vec<[f32; 3]>, Vec<[u32; 3]>);
 pub fn read_mesh(path: &Path) -> Result<IndexedMesh> {
     let mut tris = Vec::new();
     let mut verts = Vec::new();
-    parse(path, &mut |i, idx, pos, _| {
+    parse(path, &mut |i, idx, a| {
+        let pos = a.pos;
         if verts.is_empty() {
             verts = pos.to_vec();
         }
@@ -348,34 +402,14 @@ fn strip_triangles(idx: &[u32], mut tri: impl FnMut([u32; 3]) -> Result<()>) -> 
     Ok(())
 }
 
-/// Warns of vertex properties Canopy does not apply (colours, texture coordinates), naming
-/// them and what is used instead.
+/// Warns of vertex properties Canopy does not apply (texture coordinates: PLY names no
+/// image for them), naming them and what is used instead.
 fn name_unread(path: &Path, e: &Element) {
     let unread: Vec<&str> = e
         .props
         .iter()
         .map(|p| p.name.as_str())
-        .filter(|n| {
-            matches!(
-                *n,
-                "red"
-                    | "green"
-                    | "blue"
-                    | "alpha"
-                    | "diffuse_red"
-                    | "diffuse_green"
-                    | "diffuse_blue"
-                    | "r"
-                    | "g"
-                    | "b"
-                    | "s"
-                    | "t"
-                    | "u"
-                    | "v"
-                    | "texture_u"
-                    | "texture_v"
-            )
-        })
+        .filter(|n| matches!(*n, "s" | "t" | "u" | "v" | "texture_u" | "texture_v"))
         .collect();
     if !unread.is_empty() {
         eprintln!(
@@ -386,9 +420,124 @@ fn name_unread(path: &Path, e: &Element) {
     }
 }
 
+/// Which optional vertex attributes a PLY file carried.
+struct Found {
+    normals: bool,
+    colours: bool,
+}
+
+/// Where a vertex record's colour channels are, and what one of them reads as 1.
+struct ColourProps {
+    rgb: [usize; 3],
+    alpha: Option<usize>,
+    /// The largest value of the channels' type (255 for uchar; 1 for floats).
+    one: f64,
+}
+
+impl ColourProps {
+    /// The colour properties of a vertex element: `red`, `green`, `blue` (or `diffuse_red`…,
+    /// or `r`, `g`, `b`) and `alpha`, all scalars of one type.
+    fn find(e: &Element) -> Option<ColourProps> {
+        let find = |n: &str| e.props.iter().position(|p| p.name == n && p.list.is_none());
+        let rgb = [
+            ["red", "green", "blue"],
+            ["diffuse_red", "diffuse_green", "diffuse_blue"],
+            ["r", "g", "b"],
+        ]
+        .iter()
+        .find_map(|names| {
+            let [r, g, b] = names.map(find);
+            Some([r?, g?, b?])
+        })?;
+        let one = match e.props[rgb[0]].ty {
+            Scalar::U8 | Scalar::I8 => 255.0,
+            Scalar::U16 | Scalar::I16 => 65535.0,
+            Scalar::U32 | Scalar::I32 => u32::MAX as f64,
+            Scalar::F32 | Scalar::F64 => 1.0,
+        };
+        Some(ColourProps {
+            rgb,
+            alpha: find("alpha"),
+            one,
+        })
+    }
+
+    /// A record's colour: sRGB-encoded display values (as scanners and MeshLab write
+    /// them) made linear; alpha is linear.
+    fn read(&self, vals: &[f64]) -> [u16; 4] {
+        let c = |i: usize| (vals[i] / self.one) as f32;
+        let [r, g, b] = self.rgb.map(|i| srgb_unorm16(c(i)));
+        [r, g, b, self.alpha.map_or(u16::MAX, |a| unorm16(c(a)))]
+    }
+}
+
+/// Reads a vertex element's records: positions, and normals and colours where the element
+/// has them.
+fn read_vertices<R: BufRead>(
+    rr: &mut RecordReader<R>,
+    e: &Element,
+    path: &Path,
+) -> Result<(VertexArrays, Found)> {
+    let find = |n: &str| e.props.iter().position(|p| p.name == n && p.list.is_none());
+    let (Some(x), Some(y), Some(z)) = (find("x"), find("y"), find("z")) else {
+        bail!("{}: vertex element lacks x, y, z", path.display());
+    };
+    let normals = match (find("nx"), find("ny"), find("nz")) {
+        (Some(a), Some(b), Some(c)) => Some([a, b, c]),
+        _ => None,
+    };
+    let colours = ColourProps::find(e);
+    name_unread(path, e);
+    let io = |err: std::io::Error| anyhow::anyhow!("{}: vertex spill file: {err}", path.display());
+    let eof = |i: u64, err: std::io::Error| {
+        anyhow::anyhow!(
+            "{}: truncated or malformed PLY: vertex {i} of {}: {err}",
+            path.display(),
+            e.count
+        )
+    };
+    let count_if = |on: bool| if on { e.count } else { 0 };
+    let mut pos_in = VertexSink::new(e.count).map_err(io)?;
+    let mut nrm_in = VertexSink::new(count_if(normals.is_some())).map_err(io)?;
+    let mut colour_in = VertexSink::new(count_if(colours.is_some())).map_err(io)?;
+    let mut vals = Vec::with_capacity(e.props.len());
+    for i in 0..e.count {
+        vals.clear();
+        for p in &e.props {
+            if let Some(ct) = p.list {
+                let n = rr.scalar(ct).map_err(|err| eof(i, err))? as usize;
+                for _ in 0..n {
+                    rr.scalar(p.ty).map_err(|err| eof(i, err))?;
+                }
+                vals.push(0.0);
+            } else {
+                vals.push(rr.scalar(p.ty).map_err(|err| eof(i, err))?);
+            }
+        }
+        let triple = |[a, b, c]: [usize; 3]| [vals[a] as f32, vals[b] as f32, vals[c] as f32];
+        pos_in.push(triple([x, y, z])).map_err(io)?;
+        if let Some(n) = normals {
+            nrm_in.push(triple(n)).map_err(io)?;
+        }
+        if let Some(c) = &colours {
+            colour_in.push(c.read(&vals)).map_err(io)?;
+        }
+    }
+    let arrays = VertexArrays {
+        pos: pos_in.finish().map_err(io)?,
+        nrm: nrm_in.finish().map_err(io)?,
+        colour: colour_in.finish().map_err(io)?,
+    };
+    let found = Found {
+        normals: normals.is_some(),
+        colours: colours.is_some(),
+    };
+    Ok((arrays, found))
+}
+
 /// Streams a PLY file: vertices are read into memory, each face is handed to `face` with
-/// its validated indices. Returns whether the vertices carried normals.
-fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
+/// its validated indices. Returns which vertex attributes the file carried.
+fn parse(path: &Path, face: &mut FaceFn) -> Result<Found> {
     let f = std::fs::File::open(path).map_err(context(path))?;
     let file_len = f.metadata().map_err(context(path))?.len();
     let mut r = BufReader::with_capacity(1 << 20, f);
@@ -400,10 +549,11 @@ fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
         at: 0,
         buf: [0; 8],
     };
-    let mut pos = Vertices::Mem(Vec::new());
-    let mut nrm = Vertices::Mem(Vec::new());
-    let mut has_normals = false;
-    let mut vals = Vec::new();
+    let mut arrays = VertexArrays::none();
+    let mut found = Found {
+        normals: false,
+        colours: false,
+    };
     for e in &elems {
         // Every record takes at least a byte: refuse absurd counts before allocating.
         if e.count > file_len {
@@ -425,47 +575,7 @@ fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
             }
         };
         match e.name.as_str() {
-            "vertex" => {
-                let find = |n: &str| e.props.iter().position(|p| p.name == n && p.list.is_none());
-                let (Some(x), Some(y), Some(z)) = (find("x"), find("y"), find("z")) else {
-                    bail!("{}: vertex element lacks x, y, z", path.display());
-                };
-                let normals = match (find("nx"), find("ny"), find("nz")) {
-                    (Some(a), Some(b), Some(c)) => Some([a, b, c]),
-                    _ => None,
-                };
-                name_unread(path, e);
-                let io = |err: std::io::Error| {
-                    anyhow::anyhow!("{}: vertex spill file: {err}", path.display())
-                };
-                let mut pos_in = VertexSink::new(e.count).map_err(io)?;
-                let mut nrm_in =
-                    VertexSink::new(if normals.is_some() { e.count } else { 0 }).map_err(io)?;
-                for i in 0..e.count {
-                    vals.clear();
-                    for p in &e.props {
-                        if let Some(ct) = p.list {
-                            let n = rr.scalar(ct).map_err(eof(i))? as usize;
-                            for _ in 0..n {
-                                rr.scalar(p.ty).map_err(eof(i))?;
-                            }
-                            vals.push(0.0);
-                        } else {
-                            vals.push(rr.scalar(p.ty).map_err(eof(i))?);
-                        }
-                    }
-                    pos_in
-                        .push([vals[x] as f32, vals[y] as f32, vals[z] as f32])
-                        .map_err(io)?;
-                    if let Some([a, b, c]) = normals {
-                        nrm_in
-                            .push([vals[a] as f32, vals[b] as f32, vals[c] as f32])
-                            .map_err(io)?;
-                    }
-                }
-                (pos, nrm) = (pos_in.finish().map_err(io)?, nrm_in.finish().map_err(io)?);
-                has_normals = normals.is_some();
-            }
+            "vertex" => (arrays, found) = read_vertices(&mut rr, e, path)?,
             "face" | "tristrips" => {
                 let strips = e.name == "tristrips";
                 let Some(li) = e.props.iter().position(|p| {
@@ -478,7 +588,7 @@ fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
                     );
                 };
                 let mut idx: Vec<u32> = Vec::new();
-                let (ps, ns) = (pos.as_slice(), nrm.as_slice());
+                let a = arrays.attrs();
                 for i in 0..e.count {
                     for (pi, p) in e.props.iter().enumerate() {
                         if let Some(ct) = p.list {
@@ -493,12 +603,12 @@ fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
                                 }
                                 if strips && v == -1.0 {
                                     idx.push(RESTART);
-                                } else if v < 0.0 || v >= ps.len() as f64 {
+                                } else if v < 0.0 || v >= a.pos.len() as f64 {
                                     bail!(
                                         "{}: {} {i}: vertex index {v} out of range ({} vertices)",
                                         path.display(),
                                         e.name,
-                                        ps.len()
+                                        a.pos.len()
                                     );
                                 } else {
                                     idx.push(v as u32);
@@ -509,12 +619,11 @@ fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
                         }
                     }
                     match strips {
-                        true => strip_triangles(&idx, |tri| face(i, &tri, ps, ns))?,
-                        false => face(i, &idx, ps, ns)?,
+                        true => strip_triangles(&idx, |tri| face(i, &tri, a))?,
+                        false => face(i, &idx, a)?,
                     }
                     if i % RELEASE_EVERY == RELEASE_EVERY - 1 {
-                        pos.release();
-                        nrm.release();
+                        arrays.release();
                     }
                 }
             }
@@ -533,5 +642,5 @@ fn parse(path: &Path, face: &mut FaceFn) -> Result<bool> {
             }
         }
     }
-    Ok(has_normals)
+    Ok(found)
 }

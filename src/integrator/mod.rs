@@ -19,7 +19,7 @@ pub use surface::{on_side, shading_frame, ShadingPoint};
 use crate::camera::Camera;
 use crate::light::Lights;
 use crate::material::Material;
-use crate::paging::PageCache;
+use crate::paging::{Corners, PageCache};
 use crate::sampler::PixelSampler;
 use crate::texture::{self, Lookup, Shaded, Textures};
 use crate::trace::{Cone, Hit, Ray, Tracer};
@@ -341,36 +341,44 @@ impl Scene {
         }
     }
 
-    /// Material `index` as shaded at a triangle point (barycentrics `b`, texture
-    /// coordinates `uv`) met along direction `d` with a footprint `spread` wide there, and
-    /// its opacity (see `Textures::shade`). Untextured materials are returned as they are.
+    /// Material `index` as shaded at a triangle point (barycentrics `b`; the vertices'
+    /// texture coordinates and colours `c`) met along direction `d` with a footprint
+    /// `spread` wide there (see `Textures::shade`), the vertex colour multiplying the base
+    /// colour (glTF 2.0 §3.9.2, `COLOR_0`). Untextured, uncoloured materials are returned
+    /// as they are.
     #[inline]
     pub fn material_at(
         &self,
         index: u32,
         tri: &[[f32; 3]; 3],
-        uv: [[f32; 2]; 3],
+        c: &Corners,
         b: [f32; 3],
         d: V,
         spread: f32,
     ) -> Shaded {
         let m = &self.materials[index as usize];
-        if !self.textures.varies(index) {
-            return Shaded::plain(*m);
+        let mut shaded = if self.textures.varies(index) {
+            let (at, width) = texture::footprint(tri.map(V::from), c.uv, b, d, spread);
+            self.textures
+                .shade(&mut Lookup::new(&self.cache), m, index, at, width)
+        } else {
+            Shaded::plain(*m)
+        };
+        if let Some(rgba) = c.colour_at(b) {
+            shaded.m.base =
+                (shaded.m.base * V::new(rgba[0], rgba[1], rgba[2])).clamp(V::ZERO, V::ONE);
         }
-        let (at, width) = texture::footprint(tri.map(V::from), uv, b, d, spread);
-        self.textures
-            .shade(&mut Lookup::new(&self.cache), m, index, at, width)
+        shaded
     }
 
     /// The material at a hit, with the path tracer's footprint: a pixel's spread at the
     /// hit's distance from the camera (pbrt-v4's `Approximate_dp_dxy`, used at every bounce).
     pub fn material_at_hit(&self, hit: &Hit, d: V) -> Shaded {
-        if !self.textures.varies(hit.tri.material) {
-            return Shaded::plain(self.materials[hit.tri.material as usize]);
-        }
-        let spread = self.texture_scale * self.camera.footprint(hit.point().0);
-        self.material_at(hit.tri.material, &hit.tri.p, hit.uv, hit.b, d, spread)
+        let spread = match self.textures.varies(hit.tri.material) {
+            true => self.texture_scale * self.camera.footprint(hit.point().0),
+            false => 0.0,
+        };
+        self.material_at(hit.tri.material, &hit.tri.p, &hit.corners, hit.b, d, spread)
     }
 
     /// The material at a cone's triangle hit: the cone's radius there is the footprint. A
@@ -380,7 +388,7 @@ impl Scene {
     pub fn material_at_cone(&self, hit: &Hit, ray: &Ray, cone: &Cone) -> Shaded {
         let spread = self.texture_scale * cone.radius(hit.t);
         let m = hit.tri.material;
-        self.material_at(m, &hit.tri.p, hit.uv, hit.b, ray.d, spread)
+        self.material_at(m, &hit.tri.p, &hit.corners, hit.b, ray.d, spread)
     }
 
     /// The first failure to read the scene's data during a render: a page or texture tile,
@@ -389,16 +397,22 @@ impl Scene {
         self.cache.error().or_else(|| self.lights.error())
     }
 
-    /// A triangle hit's opacity alone (no colour lookups): see `Textures::opacity`.
+    /// A triangle hit's opacity alone (no colour lookups): see `opacity`.
     pub fn opacity_at(&self, hit: &Hit) -> f32 {
-        let index = hit.tri.material;
+        self.opacity(hit.tri.material, &hit.corners, hit.b)
+    }
+
+    /// Material `index`'s opacity at barycentrics `b` of a triangle whose vertices carry
+    /// `c` (see `Textures::opacity`; the vertex colour's alpha multiplies the material's).
+    pub fn opacity(&self, index: u32, c: &Corners, b: [f32; 3]) -> f32 {
         if !self.textures.varies(index) {
             return 1.0;
         }
         let m = &self.materials[index as usize];
-        let at = texture::uv_at(hit.uv, hit.b);
+        let alpha = c.colour_at(b).map_or(1.0, |rgba| rgba[3]);
+        let at = texture::uv_at(c.uv, b);
         self.textures
-            .opacity(&mut Lookup::new(&self.cache), m, index, at)
+            .opacity(&mut Lookup::new(&self.cache), m, index, at, alpha)
     }
 
     /// Material `index` with its textures' means (for values over a whole triangle).

@@ -135,7 +135,7 @@ pub fn on_side(frame: &Frame, n: V, w: V) -> bool {
 /// frame is turned round whole, as a real bump seen from behind is a dent.
 pub fn shading_frame(hit: &Hit, ng: V, front: bool, bump: Option<V>) -> Frame {
     let n = match bump {
-        Some(tn) => texture::perturb(hit.tri.p.map(V::from), hit.uv, ng, tn),
+        Some(tn) => texture::perturb(hit.tri.p.map(V::from), hit.corners.uv, ng, tn),
         None => ng,
     };
     Frame::new(if front { n } else { -n })

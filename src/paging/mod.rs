@@ -20,7 +20,7 @@ pub mod instance;
 mod page;
 pub mod wide;
 
-pub use page::{deepest_first, in_scene_tree, NodeRef, Page, TNode, TriW};
+pub use page::{deepest_first, in_scene_tree, Corners, NodeRef, Page, TNode, TriW, WHITE};
 
 use anyhow::{bail, Result};
 use canopy_format::bake::{BakeFile, BakedBlock};
@@ -148,8 +148,10 @@ pub fn one_arena() {
 /// Decoded size of a page without decoding it (from its page-table counts).
 pub fn decoded_size(archive: &Archive, e: &PageEntry) -> u64 {
     let streams = canopy_format::Streams::of(archive.header.features);
-    let per_tri =
-        std::mem::size_of::<TriW>() + 12 * streams.normals as usize + 24 * streams.uvs as usize;
+    let per_tri = std::mem::size_of::<TriW>()
+        + 12 * streams.normals as usize
+        + 24 * streams.uvs as usize
+        + 24 * streams.colours as usize;
     (std::mem::size_of::<Page>()
         + e.node_count as usize * (std::mem::size_of::<Node>() + std::mem::size_of::<TNode>())
         + e.tri_count as usize * per_tri) as u64

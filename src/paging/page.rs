@@ -142,12 +142,52 @@ pub struct Page {
     pub shading: Vec<[u32; 3]>,
     /// Per triangle, its vertices' texture coordinates (empty without TEXCOORDS).
     pub uvs: Vec<[[f32; 2]; 3]>,
+    /// Per triangle, its vertices' linear unorm16 RGBA colours (empty without COLOURS).
+    pub colours: Vec<[[u16; 4]; 3]>,
     /// The page's baked light (empty unless a bake file is attached).
     pub baked: BakedBlock,
     /// Per node, its glossy light decoded from `baked.coefs` (empty unless the bake
     /// stored glossy light).
     pub glossy: coefs::GlossyTexels,
     pub bytes: u64,
+}
+
+pub use canopy_format::codec::WHITE;
+
+/// What a triangle's vertices carry besides their positions, for shading: texture
+/// coordinates (zero without TEXCOORDS) and colours (`WHITE` without COLOURS).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Corners {
+    pub uv: [[f32; 2]; 3],
+    pub colour: [[u16; 4]; 3],
+}
+
+impl Default for Corners {
+    fn default() -> Self {
+        Corners {
+            uv: [[0.0; 2]; 3],
+            colour: [WHITE; 3],
+        }
+    }
+}
+
+impl Corners {
+    /// The linear RGBA vertex colour at barycentrics `b`, None where every vertex is white.
+    #[inline]
+    pub fn colour_at(&self, b: [f32; 3]) -> Option<[f32; 4]> {
+        if self.colour == [WHITE; 3] {
+            return None;
+        }
+        let c = self.colour.map(|c| c.map(|x| x as f32 / 65535.0));
+        Some(std::array::from_fn(|k| {
+            b[0] * c[0][k] + b[1] * c[1][k] + b[2] * c[2][k]
+        }))
+    }
+
+    /// The mean colour over the triangle (the vertices' mean), None where all are white.
+    pub fn mean_colour(&self) -> Option<[f32; 4]> {
+        self.colour_at([1.0 / 3.0; 3])
+    }
 }
 
 impl Page {
@@ -157,6 +197,15 @@ impl Page {
         let slot = *self.tri_slot.get(i as usize)?;
         let block = self.tri4.get(slot as usize / 4)?;
         Some(block.tri(slot as usize % 4))
+    }
+
+    /// What triangle `i`'s vertices carry for shading (defaults where the page has none).
+    #[inline]
+    pub fn corners(&self, i: u32) -> Corners {
+        Corners {
+            uv: self.uvs.get(i as usize).copied().unwrap_or_default(),
+            colour: self.colours.get(i as usize).copied().unwrap_or([WHITE; 3]),
+        }
     }
 
     /// The page's triangles, whether a leaf holds them or not.
@@ -217,6 +266,14 @@ impl Page {
                 .map(|t| t.v.map(|v| c.uvs[v as usize]))
                 .collect()
         };
+        let colours: Vec<[[u16; 4]; 3]> = if c.colours.is_empty() {
+            Vec::new()
+        } else {
+            c.tris
+                .iter()
+                .map(|t| t.v.map(|v| c.colours[v as usize]))
+                .collect()
+        };
         let e = &archive.entry(id)?;
         let (tri4, tri_slot) = wide::tri4s(&mut bvh, &tris).ok_or_else(|| {
             anyhow::anyhow!(
@@ -236,7 +293,8 @@ impl Page {
             + tri4.capacity() * std::mem::size_of::<wide::Tri4>()
             + tri_slot.capacity() * 4
             + shading.capacity() * 12
-            + uvs.capacity() * 24) as u64;
+            + uvs.capacity() * 24
+            + colours.capacity() * 24) as u64;
         Ok(Page {
             id,
             first_node: e.first_node,
@@ -248,6 +306,7 @@ impl Page {
             tri_slot,
             shading,
             uvs,
+            colours,
             baked: BakedBlock::default(),
             glossy: coefs::GlossyTexels::default(),
             bytes,
@@ -280,6 +339,7 @@ impl Page {
             tri_slot: Vec::new(),
             shading: Vec::new(),
             uvs: Vec::new(),
+            colours: Vec::new(),
             baked: BakedBlock::default(),
             glossy: coefs::GlossyTexels::default(),
             bytes: 0,

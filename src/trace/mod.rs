@@ -25,7 +25,7 @@ pub use triangle::Watertight;
 
 use crate::paging::instance::Instance;
 use crate::paging::wide::{self, Tri4, Wide};
-use crate::paging::{NodeRef, Page, PageCache, TNode, TriW};
+use crate::paging::{Corners, NodeRef, Page, PageCache, TNode, TriW};
 use canopy_format::Node;
 use glam::{Vec3A as V, Vec4};
 use std::sync::Arc;

@@ -40,8 +40,8 @@ pub struct Hit {
     pub instance_leaf: u64,
     /// What transforming `tri` to world space adds to the hit point's error bound.
     pub transform_err: V,
-    /// Texture coordinates of the triangle's vertices (zero without TEXCOORDS).
-    pub uv: [[f32; 2]; 3],
+    /// What the triangle's vertices carry for shading (texture coordinates, colours).
+    pub corners: Corners,
 }
 
 /// A prototype's triangle as `inst` places it in the world, bit for bit as a hit on it
@@ -91,7 +91,7 @@ impl Hit {
             instance: r.instance,
             instance_leaf: r.via,
             transform_err: V::ZERO,
-            uv: page.uvs.get(r.index as usize).copied().unwrap_or_default(),
+            corners: page.corners(r.index),
         }
     }
 

@@ -22,6 +22,8 @@ pub(super) struct Vertices {
     pub nrm: Option<Vec<[f32; 3]>>,
     /// The texture-coordinate set the material reads, where it has one.
     pub uv: Option<Vec<[f32; 2]>>,
+    /// `COLOR_0` as RGBA (alpha 1 for an RGB accessor).
+    pub colour: Option<Vec<[f32; 4]>>,
     /// Indices into the vertices (None: the vertices in order).
     pub idx: Option<Vec<u32>>,
 }
@@ -60,7 +62,7 @@ fn values<const N: usize>(a: &PointAttribute, points: usize) -> Vec<[f32; N]> {
 }
 
 /// The decoded vertices of a primitive that carries the extension (None if it does not):
-/// positions, normals and texture-coordinate set `uv_set`.
+/// positions, normals, texture-coordinate set `uv_set` and vertex colours.
 pub(super) fn decode(
     prim: &gltf::Primitive,
     doc: &gltf::Document,
@@ -109,11 +111,22 @@ pub(super) fn decode(
         Some(s) => get(&format!("TEXCOORD_{s}"))?.map(|a| values::<2>(a, points)),
         None => None,
     };
+    let colour = match get("COLOR_0")? {
+        Some(a) if a.num_components() == 4 => Some(values::<4>(a, points)),
+        Some(a) => Some(
+            values::<3>(a, points)
+                .into_iter()
+                .map(|[r, g, b]| [r, g, b, 1.0])
+                .collect(),
+        ),
+        None => None,
+    };
     let idx = mesh.faces().iter().flat_map(|f| f.map(|p| p.0)).collect();
     Ok(Some(Vertices {
         pos: values::<3>(pos, points),
         nrm: get("NORMAL")?.map(|a| values::<3>(a, points)),
         uv,
+        colour,
         idx: Some(idx),
     }))
 }

@@ -437,6 +437,20 @@ pub(super) fn read_floats<const N: usize>(
 
 /// A checked primitive's vertices from its accessors (`check_primitive`): positions,
 /// normals and texture-coordinate set `uv_set`, and its indices; None without positions.
+/// A `COLOR_0` accessor's colours as RGBA (alpha 1 for VEC3), None for another type.
+fn colours(a: &gltf::Accessor, buffers: &[Vec<u8>]) -> Option<Vec<[f32; 4]>> {
+    match a.dimensions() {
+        gltf::accessor::Dimensions::Vec4 => read_floats::<4>(a, buffers),
+        gltf::accessor::Dimensions::Vec3 => Some(
+            read_floats::<3>(a, buffers)?
+                .into_iter()
+                .map(|[r, g, b]| [r, g, b, 1.0])
+                .collect(),
+        ),
+        _ => None,
+    }
+}
+
 pub(super) fn accessor_vertices(
     prim: &gltf::Primitive,
     buffers: &[Vec<u8>],
@@ -450,6 +464,9 @@ pub(super) fn accessor_vertices(
         uv: uv_set
             .and_then(|s| prim.get(&gltf::Semantic::TexCoords(s)))
             .and_then(|a| read_floats::<2>(&a, buffers)),
+        colour: prim
+            .get(&gltf::Semantic::Colors(0))
+            .and_then(|a| colours(&a, buffers)),
         idx: reader.read_indices().map(|i| i.into_u32().collect()),
     })
 }

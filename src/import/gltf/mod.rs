@@ -3,10 +3,11 @@
 //! flattens), perspective cameras, metallic-roughness materials with the
 //! KHR extensions Canopy models, and KHR_lights_punctual.
 
-use super::{make_tri, SceneDesc, TriangleSink};
+use super::{make_tri, unorm16, SceneDesc, TriangleSink};
 use anyhow::{anyhow, bail, Result};
 use canopy_format::MaterialRecord;
 use glam::{Mat3, Mat4, Vec3};
+use gltf::accessor::Dimensions;
 use gltf::mesh::Mode;
 use std::path::Path;
 
@@ -263,6 +264,13 @@ impl MeshCtx<'_> {
             if uvs.is_some() {
                 self.scene.has_uvs = true;
             }
+            let colours: Option<Vec<[u16; 4]>> = v
+                .colour
+                .filter(|c| c.len() == pos.len())
+                .map(|c| c.iter().map(|c| c.map(unorm16)).collect());
+            if colours.is_some() {
+                self.scene.has_colours = true;
+            }
             let idx = v.idx.unwrap_or_else(|| (0..pos.len() as u32).collect());
             for (t, mut tri) in triangles(prim.mode(), &idx).enumerate() {
                 if flip {
@@ -283,6 +291,9 @@ impl MeshCtx<'_> {
                     if st.uv.iter().flatten().any(|x| !x.is_finite()) {
                         bail!("{}: non-finite texture coordinate {:?}", what(t), st.uv);
                     }
+                }
+                if let Some(c) = &colours {
+                    st.colour = tri.map(|i| c[i as usize]);
                 }
                 self.sink.push(st)?;
                 count += 1;
@@ -418,11 +429,14 @@ fn name_unsupported(path: &Path, doc: &gltf::Document) {
     for mesh in doc.meshes() {
         let name = mesh.name().unwrap_or("?");
         for (pi, prim) in mesh.primitives().enumerate() {
-            if prim.get(&gltf::Semantic::Colors(0)).is_some() {
-                eprintln!(
-                    "warning: {}: mesh '{name}' primitive {pi} has vertex colours (COLOR_0), which Canopy does not apply; its material's base colour is used",
-                    path.display()
-                );
+            if let Some(a) = prim.get(&gltf::Semantic::Colors(0)) {
+                let dims = a.dimensions();
+                if !matches!(dims, Dimensions::Vec3 | Dimensions::Vec4) {
+                    eprintln!(
+                        "warning: {}: mesh '{name}' primitive {pi} has COLOR_0 of type {dims:?} (glTF allows VEC3 and VEC4); its vertex colours are ignored",
+                        path.display()
+                    );
+                }
             }
             let mode = prim.mode();
             if !matches!(

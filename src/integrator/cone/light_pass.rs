@@ -90,7 +90,14 @@ fn trace_photon(
             return false;
         };
         let m = &scene
-            .material_at(hit.tri.material, &hit.tri.p, hit.uv, hit.b, ray.d, 0.0)
+            .material_at(
+                hit.tri.material,
+                &hit.tri.p,
+                &hit.corners,
+                hit.b,
+                ray.d,
+                0.0,
+            )
             .m;
         let ng = hit.ng().normalize_or_zero();
         let wo = -ray.d;

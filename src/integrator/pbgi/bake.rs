@@ -19,7 +19,7 @@ use super::surface::Shading;
 use super::walk::Walks;
 use crate::integrator::{sample_light, Receiver, Scene};
 use crate::material::luminance;
-use crate::paging::{deepest_first, NodeRef, Page};
+use crate::paging::{deepest_first, Corners, NodeRef, Page};
 use crate::sampler::Hash;
 use crate::trace::{gamma, Cone, Tracer};
 use crate::wavelet::tree::SparseVec;
@@ -359,7 +359,7 @@ impl PageJob<'_, '_> {
                         let Some(tri) = page.tri(k) else {
                             continue;
                         };
-                        let uv = page.uvs.get(k as usize).copied().unwrap_or_default();
+                        let corners = page.corners(k);
                         // The first pass's direct light, attached to the page.
                         let direct = page.baked.patches_of(k as usize).and_then(|(depth, at)| {
                             let at = at + patch::level_start(depth);
@@ -375,7 +375,7 @@ impl PageJob<'_, '_> {
                         let t = triangle(
                             self.scene,
                             self.tr,
-                            (&tri, uv),
+                            (&tri, corners),
                             self.p,
                             (self.a_max, key),
                             light,
@@ -462,7 +462,7 @@ enum Light<'a> {
 fn triangle(
     scene: &Scene,
     tr: &mut Tracer,
-    (t, uv): (&crate::paging::TriW, [[f32; 2]; 3]),
+    (t, corners): (&crate::paging::TriW, Corners),
     p: &BakeParams,
     (a_max, key): (f32, u64),
     light: Light,
@@ -486,7 +486,7 @@ fn triangle(
     }
     let err = (v[0].abs() + v[1].abs() + v[2].abs()) * gamma(7);
     let (k, mut finest, samples) = match light {
-        Light::Direct => direct_patches(scene, tr, (t, uv), p, (a_max, key), (ng, err)),
+        Light::Direct => direct_patches(scene, tr, (t, corners), p, (a_max, key), (ng, err)),
         Light::WithIndirect(_, k, direct) => (k, direct.iter().map(|&l| V::from(l)).collect(), 0),
     };
     if let Light::WithIndirect(walks, ..) = light {
@@ -499,7 +499,7 @@ fn triangle(
             _ => walks.count,
         };
         let own = Walks { count, ..*walks };
-        let shading = Shading::new(scene, (t, uv), ng);
+        let shading = Shading::new(scene, (t, corners), ng);
         for (i, f) in finest.iter_mut().enumerate() {
             let mut rng = seeded(p, patch_key(key, i) ^ 0x5bd1_e995);
             let tri = patch::patch(v, k, i);
@@ -507,7 +507,7 @@ fn triangle(
         }
     }
     let mean = finest.iter().sum::<V>() / finest.len() as f32;
-    let present = coverage(scene, (t, uv), &mut seeded(p, key ^ 0xC0FE_u64 << 44));
+    let present = coverage(scene, (t, corners), &mut seeded(p, key ^ 0xC0FE_u64 << 44));
     BakedTriangle {
         node: BakedNode::patch(area * present, ng, mean),
         depth: k,
@@ -538,13 +538,13 @@ fn per_area(count: u32, area: f32, a_max: f32) -> u32 {
 fn direct_patches(
     scene: &Scene,
     tr: &mut Tracer,
-    (t, uv): (&crate::paging::TriW, [[f32; 2]; 3]),
+    (t, corners): (&crate::paging::TriW, Corners),
     p: &BakeParams,
     (a_max, key): (f32, u64),
     (ng, err): (V, V),
 ) -> (u32, Vec<V>, u64) {
     let v = t.p.map(V::from);
-    let shading = Shading::new(scene, (t, uv), ng);
+    let shading = Shading::new(scene, (t, corners), ng);
     let mut direct = |tri: [V; 3], key: u64, samples: u32| {
         let mut rng = seeded(p, key);
         let (mut sum, mut sum_y2) = (V::ZERO, 0.0);
@@ -608,21 +608,17 @@ const COVERAGE_SAMPLES: u32 = 32;
 /// blend): the mean opacity at `COVERAGE_SAMPLES` uniform points, read as the path tracer
 /// reads it (level 0, the cutoff applied). A node's splat then hides and sends only what
 /// is there, as the cone integrator's clusters take coverage (glTF 2.0 §3.9.4).
-fn coverage(scene: &Scene, (t, uv): (&crate::paging::TriW, [[f32; 2]; 3]), rng: &mut Hash) -> f32 {
+fn coverage(scene: &Scene, (t, c): (&crate::paging::TriW, Corners), rng: &mut Hash) -> f32 {
     if !scene.textures.has_alpha() || !scene.textures.varies(t.material) {
         return 1.0;
     }
-    let m = &scene.materials[t.material as usize];
-    let mut look = crate::texture::Lookup::new(&scene.cache);
     let sum: f32 = (0..COVERAGE_SAMPLES)
         .map(|_| {
             let (mut a, mut b) = (rng.f32(), rng.f32());
             if a + b > 1.0 {
                 (a, b) = (1.0 - a, 1.0 - b);
             }
-            let w = [1.0 - a - b, a, b];
-            let at = [0, 1].map(|c| w[0] * uv[0][c] + w[1] * uv[1][c] + w[2] * uv[2][c]);
-            scene.textures.opacity(&mut look, m, t.material, at)
+            scene.opacity(t.material, &c, [1.0 - a - b, a, b])
         })
         .sum();
     sum / COVERAGE_SAMPLES as f32

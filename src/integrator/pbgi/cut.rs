@@ -518,7 +518,7 @@ impl PbgiIntegrator {
                     instance: NO_INSTANCE,
                     instance_leaf: 0,
                     transform_err: V::ZERO,
-                    uv: page.uvs.get(t as usize).copied().unwrap_or_default(),
+                    corners: page.corners(t),
                 };
                 // An alpha hole hides nothing: the ray goes on to what lies behind it.
                 if alpha && passes_through(scene.opacity_at(&hit), hole_number(w), 0) {

@@ -9,6 +9,7 @@ use crate::integrator::{
     bsdf_term, mis_weight, on_side, sample_light_weighted, Receiver, Scene, ShadingPoint,
 };
 use crate::material::Bsdf;
+use crate::paging::{Corners, WHITE};
 use crate::paging::{NodeRef, Page};
 use crate::texture;
 use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer, NO_INSTANCE};
@@ -225,26 +226,23 @@ impl Surface {
 pub(super) struct Shading<'a> {
     scene: &'a Scene,
     t: &'a crate::paging::TriW,
-    uv: [[f32; 2]; 3],
+    c: Corners,
     ng: V,
     /// The mean albedo, for a material that does not vary over the surface.
     rho: V,
+    /// The albedo varies over the triangle (textures or vertex colours).
     textured: bool,
 }
 
 impl<'a> Shading<'a> {
-    pub(super) fn new(
-        scene: &'a Scene,
-        (t, uv): (&'a crate::paging::TriW, [[f32; 2]; 3]),
-        ng: V,
-    ) -> Self {
+    pub(super) fn new(scene: &'a Scene, (t, c): (&'a crate::paging::TriW, Corners), ng: V) -> Self {
         Shading {
             scene,
             t,
-            uv,
+            c,
             ng,
             rho: scene.mean_material(t.material).bsdf(true).diffuse,
-            textured: scene.textures.varies(t.material),
+            textured: scene.textures.varies(t.material) || c.colour != [WHITE; 3],
         }
     }
 
@@ -257,10 +255,10 @@ impl<'a> Shading<'a> {
         let b = patch::barycentrics(v, q);
         let shaded = self
             .scene
-            .material_at(self.t.material, &self.t.p, self.uv, b, -self.ng, side);
+            .material_at(self.t.material, &self.t.p, &self.c, b, -self.ng, side);
         let n = shaded
             .bump
-            .map_or(self.ng, |tn| texture::perturb(v, self.uv, self.ng, tn));
+            .map_or(self.ng, |tn| texture::perturb(v, self.c.uv, self.ng, tn));
         (shaded.m.bsdf(true).diffuse, n)
     }
 }
