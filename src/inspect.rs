@@ -37,6 +37,8 @@ pub struct Summary {
     pub lights: usize,
     /// The environment its scene file gave, if any.
     pub environment: Option<String>,
+    /// What the converter said of the input: features the archive does not carry.
+    pub notes: Vec<String>,
     /// Placements of prototypes, and the distinct prototypes they place.
     pub instances: usize,
     pub prototypes: usize,
@@ -165,6 +167,7 @@ pub fn summarize(a: &Archive) -> Result<Summary> {
             ),
             _ => format!("map {}", e.path()),
         }),
+        notes: a.notes.clone(),
         instances: a.instances.len(),
         prototypes: {
             let mut p: Vec<u32> = a.instances.iter().map(|i| i.prototype_page).collect();
@@ -295,6 +298,16 @@ impl std::fmt::Display for Summary {
             "  bounds              {:?} .. {:?}",
             s.bounds_min, s.bounds_max
         )?;
+        if !s.notes.is_empty() {
+            writeln!(
+                f,
+                "  not carried         {} (what convert met and did instead):",
+                s.notes.len()
+            )?;
+            for n in &s.notes {
+                writeln!(f, "    {n}")?;
+            }
+        }
         if s.verified {
             writeln!(f, "  verify              ok: every page decodes, checksums match, links and bounds are consistent")?;
         }

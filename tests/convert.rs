@@ -645,6 +645,11 @@ fn primitives_that_are_not_triangles_are_named() {
     let report: serde_json::Value =
         serde_json::from_str(&ok(&["inspect", s(&arc), "--json"])).unwrap();
     assert_eq!(report["triangles"], 12);
+    let listed = ok(&["inspect", s(&arc)]);
+    assert!(
+        listed.contains("not carried         1") && listed.contains("primitive 1 draws Lines"),
+        "{listed}"
+    );
 }
 
 /// Converts `plain` and its compressed `twin` (bundled scenes), renders each with `flags`
@@ -740,8 +745,8 @@ fn meshopt_meshes_convert_like_their_plain_twins() {
 }
 
 /// What Canopy does not read is named, never dropped in silence: an extension a material
-/// uses (its materials listed, the file converts), vertex colours, and an extension the
-/// file requires (refused by name, no archive written).
+/// uses (its materials listed, the file converts; the archive's notes and `inspect` list
+/// it) and an extension the file requires (refused by name, no archive written).
 #[test]
 fn unread_gltf_features_are_named() {
     let dir = tempfile::tempdir().unwrap();
@@ -762,7 +767,19 @@ fn unread_gltf_features_are_named() {
         err.contains("KHR_xmp_json_ld, which Canopy does not read"),
         "{err}"
     );
-    assert!(err.contains("vertex colours (COLOR_0)"), "{err}");
+    let report: serde_json::Value =
+        serde_json::from_str(&ok(&["inspect", s(&out), "--json"])).unwrap();
+    let notes: Vec<&str> = report["notes"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|n| n.as_str().unwrap())
+        .collect();
+    assert_eq!(notes.len(), 2, "{notes:?}");
+    assert!(notes
+        .iter()
+        .any(|n| n.contains("use KHR_materials_clearcoat")));
+    assert!(notes.iter().any(|n| n.contains("KHR_xmp_json_ld")));
     let required = tiny_glb(dir.path(), "required.glb", |j, _| {
         j["extensionsUsed"] = serde_json::json!(["KHR_materials_variants"]);
         j["extensionsRequired"] = serde_json::json!(["KHR_materials_variants"]);
@@ -897,21 +914,23 @@ fn unlit_materials_show_their_base_colour() {
     );
 }
 
-/// A scan's per-vertex colours (which Canopy does not apply) are named at convert, with
-/// what is used instead; the mesh still converts.
+/// A scan's texture coordinates (which Canopy does not apply: PLY names no image) are
+/// named at convert, with what is used instead, and listed by `inspect`; the mesh still
+/// converts, its colours applied.
 #[test]
-fn ply_vertex_colours_are_named() {
+fn ply_texture_coordinates_are_named_and_listed() {
     let dir = tempfile::tempdir().unwrap();
     let ply = dir.path().join("c.ply");
     std::fs::write(
         &ply,
-        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0 255 0 0\n1 0 0 0 255 0\n0 1 0 0 0 255\n3 0 1 2\n",
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\nproperty float s\nproperty float t\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0 255 0 0 0 0\n1 0 0 0 255 0 1 0\n0 1 0 0 0 255 0 1\n3 0 1 2\n",
     )
     .unwrap();
     let out = dir.path().join("c.canopy");
     let err = succeeds_saying(&["convert", s(&ply), "-o", s(&out)]);
-    assert!(
-        err.contains("its vertices carry red, green, blue, which Canopy does not apply"),
-        "{err}"
-    );
+    let said = "its vertices carry s, t, which Canopy does not apply";
+    assert!(err.contains(said), "{err}");
+    let listed = ok(&["inspect", s(&out)]);
+    assert!(listed.contains(said), "{listed}");
+    assert!(listed.contains("vertex-colours"), "{listed}");
 }

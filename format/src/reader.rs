@@ -23,6 +23,8 @@ pub struct Archive {
     tiles: Vec<TileEntry>,
     /// The scene's environment light, if its scene file gave one (2.3).
     pub environment: Option<EnvironmentRecord>,
+    /// What the converter said of its input (2.4; empty before).
+    pub notes: Vec<String>,
 }
 
 impl Archive {
@@ -129,6 +131,10 @@ impl Archive {
         let textures = read_table::<TextureRecord>(&map, &header.textures);
         let tiles = read_table::<TileEntry>(&map, &header.tiles);
         let environment = read_table::<EnvironmentRecord>(&map, &header.environment);
+        let notes = match header.version_minor >= 4 {
+            true => read_table::<NoteRecord>(&map, &notes_table(&header)),
+            false => Vec::new(),
+        };
         if header.pages.count == 0 || header.root_page >= header.pages.count {
             return Err(corrupt(format!(
                 "root page {} of {} pages",
@@ -139,6 +145,7 @@ impl Archive {
         check_instances(&header, &instances).map_err(&corrupt)?;
         check_textures(header.materials.offset, &materials, &textures, &tiles).map_err(&corrupt)?;
         check_environment(&environment).map_err(&corrupt)?;
+        let notes = check_notes(&notes).map_err(&corrupt)?;
         let archive = Self {
             path: p,
             map,
@@ -150,6 +157,7 @@ impl Archive {
             textures,
             tiles,
             environment: environment.first().copied(),
+            notes,
         };
         archive.entry(header.root_page)?;
         archive.check_prototypes()?;

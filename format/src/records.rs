@@ -107,7 +107,8 @@ pub struct Header {
     pub header_checksum: u64,
     /// Bytes per node record (`NODE_SIZE` or more).
     pub node_size: u32,
-    pub reserved0: u32,
+    /// Version 2.4: how many `NoteRecord`s follow the environment table (zero before).
+    pub notes: u32,
     /// Version 2.1: the instance table, right after the lights (all zero in 2.0 files).
     pub instances: TableRef,
     /// Version 2.2: the texture table and the texture-tile table, after the instances (all
@@ -510,6 +511,23 @@ impl LightRecord {
     pub const POINT: u32 = 0;
     pub const SPOT: u32 = 1;
     pub const DIRECTIONAL: u32 = 2;
+}
+
+/// What the converter said of its input (256 bytes, version 2.4): a feature it does not
+/// read, where, and what it did instead. UTF-8, zero padded (a longer note is cut at a
+/// character boundary).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
+pub struct NoteRecord {
+    pub text: [u8; 256],
+}
+
+impl NoteRecord {
+    pub fn new(text: &str) -> NoteRecord {
+        NoteRecord {
+            text: name_bytes(text),
+        }
+    }
 }
 
 /// The scene's environment light (256 bytes, version 2.3): a map file or a sky.

@@ -100,8 +100,8 @@ pub fn check_header(h: &Header) -> Result<(), String> {
         ));
     }
     // A newer minor version may give the reserved bytes a meaning; 2.0 had no instances,
-    // 2.1 no textures.
-    if h.version_minor <= VERSION_MINOR && h.reserved0 != 0
+    // 2.1 no textures, 2.2 no environment, 2.3 no notes.
+    if h.version_minor <= 3 && h.notes != 0
         || h.version_minor == 0 && h.instances != TableRef::default()
         || h.version_minor <= 1
             && (h.textures != TableRef::default() || h.tiles != TableRef::default())
@@ -114,29 +114,59 @@ pub fn check_header(h: &Header) -> Result<(), String> {
 
 /// The tables after the pages, in file order, with their known record sizes: the instance
 /// table exists from version 2.1.
-pub fn small_tables(h: &Header) -> Vec<(&'static str, &TableRef, usize)> {
+pub fn small_tables(h: &Header) -> Vec<(&'static str, TableRef, usize)> {
     let mut t = vec![
         (
             "material",
-            &h.materials,
+            h.materials,
             std::mem::size_of::<MaterialRecord>(),
         ),
-        ("camera", &h.cameras, std::mem::size_of::<CameraRecord>()),
-        ("light", &h.lights, std::mem::size_of::<LightRecord>()),
+        ("camera", h.cameras, std::mem::size_of::<CameraRecord>()),
+        ("light", h.lights, std::mem::size_of::<LightRecord>()),
     ];
     if h.version_minor >= 1 {
         let known = std::mem::size_of::<InstanceRecord>();
-        t.push(("instance", &h.instances, known));
+        t.push(("instance", h.instances, known));
     }
     if h.version_minor >= 2 {
-        t.push(("texture", &h.textures, std::mem::size_of::<TextureRecord>()));
-        t.push(("tile", &h.tiles, std::mem::size_of::<TileEntry>()));
+        t.push(("texture", h.textures, std::mem::size_of::<TextureRecord>()));
+        t.push(("tile", h.tiles, std::mem::size_of::<TileEntry>()));
     }
     if h.version_minor >= 3 {
         let known = std::mem::size_of::<EnvironmentRecord>();
-        t.push(("environment", &h.environment, known));
+        t.push(("environment", h.environment, known));
+    }
+    if h.version_minor >= 4 {
+        t.push(("note", notes_table(h), std::mem::size_of::<NoteRecord>()));
     }
     t
+}
+
+/// The note table (2.4): `notes` records of 256 bytes right after the environment table.
+pub fn notes_table(h: &Header) -> TableRef {
+    let e = &h.environment;
+    TableRef {
+        offset: e.offset + e.count as u64 * e.record_size as u64,
+        count: h.notes,
+        record_size: std::mem::size_of::<NoteRecord>() as u32,
+    }
+}
+
+/// Each note is UTF-8 up to its first zero byte, and zero after it.
+pub fn check_notes(notes: &[NoteRecord]) -> Result<Vec<String>, String> {
+    notes
+        .iter()
+        .enumerate()
+        .map(|(i, n)| {
+            let end = n.text.iter().position(|&b| b == 0).unwrap_or(n.text.len());
+            if !zeroed(&n.text[end..]) {
+                return Err(format!("note {i}: bytes after its end are not zero"));
+            }
+            std::str::from_utf8(&n.text[..end])
+                .map(str::to_string)
+                .map_err(|_| format!("note {i} is not UTF-8"))
+        })
+        .collect()
 }
 
 /// At most one environment, of a known kind, with finite non-negative factors, a sky's
@@ -187,7 +217,7 @@ pub fn check_table_ranges(h: &Header) -> Result<(), String> {
         ));
     }
     let mut tables = small_tables(h);
-    tables.push(("page", &h.pages, std::mem::size_of::<PageEntry>()));
+    tables.push(("page", h.pages, std::mem::size_of::<PageEntry>()));
     for (name, t, known) in tables {
         if name == "page" {
             at = at.next_multiple_of(ALIGN as u128);

@@ -158,6 +158,8 @@ pub struct SceneInfo {
     pub textures: Vec<TextureRecord>,
     /// The environment light its scene file gave, if any.
     pub environment: Option<EnvironmentRecord>,
+    /// What the converter said of its input (features not read, and what was done).
+    pub notes: Vec<NoteRecord>,
 }
 
 pub struct ArchiveWriter {
@@ -325,6 +327,7 @@ impl ArchiveWriter {
         let textures = append_table(&mut tables, base, &info.textures);
         let tiles = append_table(&mut tables, base, &self.tiles);
         let environment = append_table(&mut tables, base, info.environment.as_slice());
+        append_table(&mut tables, base, &info.notes);
         let tables_checksum = xxhash_rust::xxh3::xxh3_64(&tables);
         tables.resize((tables.len() as u64).next_multiple_of(ALIGN) as usize, 0);
         let pages = append_table(&mut tables, base, &self.pages);
@@ -352,7 +355,7 @@ impl ArchiveWriter {
             tables_checksum,
             header_checksum: 0,
             node_size: NODE_SIZE,
-            reserved0: 0,
+            notes: info.notes.len() as u32,
             instances,
             textures,
             tiles,

@@ -170,6 +170,7 @@ fn write_textures(
     let mut records = Vec::new();
     let mut coarse = Vec::new();
     let mut index = Vec::with_capacity(scene.textures.len());
+    let mut notes = Vec::new();
     for (i, src) in scene.textures.iter().enumerate() {
         let missing = src
             .file
@@ -177,10 +178,10 @@ fn write_textures(
             .filter(|f| src.bytes.is_none() && !f.exists());
         if let Some(f) = missing {
             if opts.missing_textures == MissingTextures::Warn {
-                eprintln!(
-                    "warning: {}: texture file missing; its materials keep their factors",
+                notes.push(format!(
+                    "{}: texture file missing; its materials keep their factors",
                     f.display()
-                );
+                ));
                 index.push(canopy_format::MaterialRecord::NO_TEXTURE);
                 continue;
             }
@@ -201,6 +202,7 @@ fn write_textures(
         records.push(rec);
         coarse.push(levels);
     }
+    notes.into_iter().for_each(|n| scene.note(n));
     for m in &mut scene.materials {
         for t in &mut m.textures {
             if let Some(&new) = index.get(*t as usize) {
@@ -304,6 +306,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     seconds_build += t2.elapsed().as_secs_f64();
     report.seconds_build = seconds_build;
     let scene = imported.scene;
+    let notes = scene.note_records();
     let info = SceneInfo {
         features,
         input_triangles: report.input_triangles,
@@ -319,6 +322,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         instances: placed.records,
         textures,
         environment,
+        notes,
     };
     report.pages = writer.page_count() as u64;
     report.nodes = writer.node_count();

@@ -91,7 +91,12 @@ pub struct SceneDesc {
     pub has_colours: bool,
     /// The images materials name, in texture-table order.
     pub textures: Vec<TextureSource>,
+    /// What the inputs hold that the archive does not carry, and what was done instead.
+    pub notes: Vec<String>,
 }
+
+/// Most notes an archive records; one more then says how many were left out.
+pub const MAX_NOTES: usize = 256;
 
 impl TextureSource {
     /// The file, or the embedded image's name, for messages.
@@ -117,6 +122,31 @@ pub struct TextureSource {
 }
 
 impl SceneDesc {
+    /// Warns of something an input holds that the archive will not carry (naming what,
+    /// where, and what was done instead), and records it for the archive's note table.
+    pub fn note(&mut self, text: String) {
+        eprintln!("warning: {text}");
+        self.notes.push(text);
+    }
+
+    /// The notes as the archive stores them: the first `MAX_NOTES`, then how many more.
+    pub fn note_records(&self) -> Vec<canopy_format::NoteRecord> {
+        let mut out: Vec<_> = self
+            .notes
+            .iter()
+            .take(MAX_NOTES)
+            .map(|n| canopy_format::NoteRecord::new(n))
+            .collect();
+        if self.notes.len() > MAX_NOTES {
+            let more = format!(
+                "and {} more notes (convert prints them all)",
+                self.notes.len() - MAX_NOTES
+            );
+            out.push(canopy_format::NoteRecord::new(&more));
+        }
+        out
+    }
+
     /// How many materials, cameras and lights the scene holds, for `check_since`.
     pub fn counts(&self) -> [usize; 3] {
         [self.materials.len(), self.cameras.len(), self.lights.len()]

@@ -350,6 +350,9 @@ pub fn import(
     })?;
     scene.has_normals |= found.normals;
     scene.has_colours |= found.colours;
+    if let Some(note) = found.unread {
+        scene.note(note);
+    }
     Ok(count)
 }
 
@@ -402,28 +405,31 @@ fn strip_triangles(idx: &[u32], mut tri: impl FnMut([u32; 3]) -> Result<()>) -> 
     Ok(())
 }
 
-/// Warns of vertex properties Canopy does not apply (texture coordinates: PLY names no
-/// image for them), naming them and what is used instead.
-fn name_unread(path: &Path, e: &Element) {
+/// The note for vertex properties Canopy does not apply (texture coordinates: PLY names
+/// no image for them), naming them and what is used instead.
+fn name_unread(path: &Path, e: &Element) -> Option<String> {
     let unread: Vec<&str> = e
         .props
         .iter()
         .map(|p| p.name.as_str())
         .filter(|n| matches!(*n, "s" | "t" | "u" | "v" | "texture_u" | "texture_v"))
         .collect();
-    if !unread.is_empty() {
-        eprintln!(
-            "warning: {}: its vertices carry {}, which Canopy does not apply; the material is one colour",
+    (!unread.is_empty()).then(|| {
+        format!(
+            "{}: its vertices carry {}, which Canopy does not apply; the material is one colour",
             path.display(),
             unread.join(", ")
-        );
-    }
+        )
+    })
 }
 
-/// Which optional vertex attributes a PLY file carried.
+/// Which optional vertex attributes a PLY file carried, and the note for those it does
+/// not apply.
+#[derive(Default)]
 struct Found {
     normals: bool,
     colours: bool,
+    unread: Option<String>,
 }
 
 /// Where a vertex record's colour channels are, and what one of them reads as 1.
@@ -487,7 +493,6 @@ fn read_vertices<R: BufRead>(
         _ => None,
     };
     let colours = ColourProps::find(e);
-    name_unread(path, e);
     let io = |err: std::io::Error| anyhow::anyhow!("{}: vertex spill file: {err}", path.display());
     let eof = |i: u64, err: std::io::Error| {
         anyhow::anyhow!(
@@ -531,6 +536,7 @@ fn read_vertices<R: BufRead>(
     let found = Found {
         normals: normals.is_some(),
         colours: colours.is_some(),
+        unread: name_unread(path, e),
     };
     Ok((arrays, found))
 }
@@ -550,10 +556,7 @@ fn parse(path: &Path, face: &mut FaceFn) -> Result<Found> {
         buf: [0; 8],
     };
     let mut arrays = VertexArrays::none();
-    let mut found = Found {
-        normals: false,
-        colours: false,
-    };
+    let mut found = Found::default();
     for e in &elems {
         // Every record takes at least a byte: refuse absurd counts before allocating.
         if e.count > file_len {

@@ -4,7 +4,7 @@
 //! validated structure.
 
 use canopy::render::render;
-use canopy_format::{Archive, Node, NodeFlags};
+use canopy_format::{Archive, Node, NodeFlags, NoteRecord};
 use canopy_tools::fuzz::{self, Parts};
 use std::path::Path;
 
@@ -170,9 +170,18 @@ fn table_lies(base: &Parts) -> Vec<(&'static str, Edit, &'static str)> {
             "nodes in",
         ),
         (
-            "reserved header byte",
-            Box::new(|p| p.header.reserved0 = 1),
-            "reserved",
+            "a note that is not UTF-8",
+            Box::new(|p| p.notes.push(NoteRecord { text: [0xFF; 256] })),
+            "is not UTF-8",
+        ),
+        (
+            "a note with bytes after its end",
+            Box::new(|p| {
+                let mut n = NoteRecord::new("a");
+                n.text[2] = b'b';
+                p.notes.push(n);
+            }),
+            "after its end",
         ),
         (
             "reserved page-table byte",

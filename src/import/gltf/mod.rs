@@ -22,7 +22,7 @@ use view::{camera, punctual, render_size};
 
 pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -> Result<u64> {
     let (doc, buffers) = load(path)?;
-    name_unsupported(path, &doc);
+    name_unsupported(path, &doc, scene);
     let (width, height) = render_size(&doc);
     let base = scene.materials.len() as u32;
     let dir = path.parent().unwrap_or(Path::new("."));
@@ -38,11 +38,8 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
         let mut notes = Vec::new();
         let (rec, uv) = material(&m, scene, &buffers, dir, &mut notes).map_err(named)?;
         for note in notes {
-            eprintln!(
-                "warning: {}: material '{}': {note}",
-                path.display(),
-                m.name().unwrap_or("?")
-            );
+            let name = m.name().unwrap_or("?");
+            scene.note(format!("{}: material '{name}': {note}", path.display()));
         }
         if rec.flags & MaterialRecord::TEXTURED != 0 {
             scene.textured = true;
@@ -86,11 +83,11 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
         if let Some(cam) = node.camera() {
             match camera(&cam, &node, world, width, height) {
                 Some(rec) => scene.cameras.push(rec),
-                None => eprintln!(
-                    "warning: {}: orthographic camera '{}' has a zero or non-finite magnification; it is not recorded (a render takes another camera, or frames the bounds)",
+                None => scene.note(format!(
+                    "{}: orthographic camera '{}' has a zero or non-finite magnification; it is not recorded (a render takes another camera, or frames the bounds)",
                     path.display(),
                     node.name().or(cam.name()).unwrap_or("?")
-                ),
+                )),
             }
         }
         if let Some(light) = node.light() {
@@ -402,12 +399,11 @@ fn gpu_instances(
         .collect())
 }
 
-/// Triangle index triples for a primitive's topology; points and lines give none.
-/// Warns of what the file holds that Canopy does not render, naming where and what is
-/// done instead: extensions it does not read (ignored; material extensions name their
-/// materials), vertex colours (the base colour is used), primitives of points and lines
-/// (skipped), morph targets (the base shape is kept) and skins (the bind pose is kept).
-fn name_unsupported(path: &Path, doc: &gltf::Document) {
+/// Notes what the file holds that Canopy does not render, naming where and what is done
+/// instead: extensions it does not read (ignored; material extensions name their
+/// materials), COLOR_0 of a type glTF does not allow (ignored), primitives of points and
+/// lines (skipped), morph targets (the base shape is kept) and skins (the bind pose is kept).
+fn name_unsupported(path: &Path, doc: &gltf::Document, scene: &mut SceneDesc) {
     for ext in doc.extensions_used().filter(|e| !files::READ.contains(e)) {
         let users: Vec<String> = doc
             .materials()
@@ -415,15 +411,15 @@ fn name_unsupported(path: &Path, doc: &gltf::Document) {
             .map(|m| format!("'{}'", m.name().unwrap_or("?")))
             .collect();
         match users.is_empty() {
-            true => eprintln!(
-                "warning: {}: uses {ext}, which Canopy does not read; it is ignored",
+            true => scene.note(format!(
+                "{}: uses {ext}, which Canopy does not read; it is ignored",
                 path.display()
-            ),
-            false => eprintln!(
-                "warning: {}: materials {} use {ext}, which Canopy does not render; they are shaded as metallic-roughness without it",
+            )),
+            false => scene.note(format!(
+                "{}: materials {} use {ext}, which Canopy does not render; they are shaded as metallic-roughness without it",
                 path.display(),
                 users.join(", ")
-            ),
+            )),
         }
     }
     for mesh in doc.meshes() {
@@ -432,10 +428,10 @@ fn name_unsupported(path: &Path, doc: &gltf::Document) {
             if let Some(a) = prim.get(&gltf::Semantic::Colors(0)) {
                 let dims = a.dimensions();
                 if !matches!(dims, Dimensions::Vec3 | Dimensions::Vec4) {
-                    eprintln!(
-                        "warning: {}: mesh '{name}' primitive {pi} has COLOR_0 of type {dims:?} (glTF allows VEC3 and VEC4); its vertex colours are ignored",
+                    scene.note(format!(
+                        "{}: mesh '{name}' primitive {pi} has COLOR_0 of type {dims:?} (glTF allows VEC3 and VEC4); its vertex colours are ignored",
                         path.display()
-                    );
+                    ));
                 }
             }
             let mode = prim.mode();
@@ -443,28 +439,29 @@ fn name_unsupported(path: &Path, doc: &gltf::Document) {
                 mode,
                 Mode::Triangles | Mode::TriangleStrip | Mode::TriangleFan
             ) {
-                eprintln!(
-                    "warning: {}: mesh '{name}' primitive {pi} draws {mode:?}, which Canopy does not render; it is skipped",
+                scene.note(format!(
+                    "{}: mesh '{name}' primitive {pi} draws {mode:?}, which Canopy does not render; it is skipped",
                     path.display()
-                );
+                ));
             }
             if prim.morph_targets().next().is_some() {
-                eprintln!(
-                    "warning: {}: mesh '{name}' primitive {pi} has morph targets, which Canopy does not apply; its base shape is kept",
+                scene.note(format!(
+                    "{}: mesh '{name}' primitive {pi} has morph targets, which Canopy does not apply; its base shape is kept",
                     path.display()
-                );
+                ));
             }
         }
     }
     let skinned = doc.nodes().filter(|n| n.skin().is_some()).count();
     if skinned > 0 {
-        eprintln!(
-            "warning: {}: {skinned} nodes are skinned, which Canopy does not apply; their meshes keep the bind pose",
+        scene.note(format!(
+            "{}: {skinned} nodes are skinned, which Canopy does not apply; their meshes keep the bind pose",
             path.display()
-        );
+        ));
     }
 }
 
+/// Triangle index triples for a primitive's topology; points and lines give none.
 fn triangles(mode: Mode, idx: &[u32]) -> Box<dyn Iterator<Item = [u32; 3]> + '_> {
     match mode {
         Mode::Triangles => Box::new(idx.chunks_exact(3).map(|c| [c[0], c[1], c[2]])),

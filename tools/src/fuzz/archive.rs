@@ -22,6 +22,7 @@ pub struct Parts {
     pub instances: Vec<InstanceRecord>,
     pub textures: Vec<TextureRecord>,
     pub environment: Vec<EnvironmentRecord>,
+    pub notes: Vec<NoteRecord>,
     /// Decoded texels of each texture tile.
     pub tiles: Vec<Vec<u8>>,
     /// Tile indices in the order their frames lie in the file (the converter writes them
@@ -52,6 +53,7 @@ impl Parts {
             instances: a.instances.clone(),
             textures: a.textures.clone(),
             environment: a.environment.into_iter().collect(),
+            notes: a.notes.iter().map(|n| NoteRecord::new(n)).collect(),
             tiles: (0..a.tile_count())
                 .map(|i| Ok(a.read_tile(i)?))
                 .collect::<Result<Vec<_>>>()?,
@@ -133,6 +135,8 @@ impl Parts {
             256,
             &mut h.environment,
         );
+        h.notes = self.notes.len() as u32;
+        out.extend_from_slice(bytemuck::cast_slice(&self.notes));
         h.tables_checksum = xxhash_rust::xxh3::xxh3_64(&out[h.materials.offset as usize..]);
         align(&mut out);
         let pages = bytemuck::cast_slice(&entries);
@@ -183,12 +187,13 @@ pub fn mutate_archive(base: &Parts, raw: &[u8], rng: &mut Rng) -> (usize, Vec<u8
             p.assemble()
         }
         4 => {
-            match rng.below(6) {
+            match rng.below(7) {
                 0 => poke_record(&mut p.materials, rng),
                 1 => poke_record(&mut p.cameras, rng),
                 2 => poke_record(&mut p.lights, rng),
                 3 => poke_record(&mut p.textures, rng),
                 4 => poke_record(&mut p.environment, rng),
+                5 => poke_record(&mut p.notes, rng),
                 _ => poke_record(&mut p.instances, rng),
             }
             p.assemble()

@@ -106,7 +106,8 @@ pub fn mutate_input(name: &str, raw: &[u8], rng: &mut Rng) -> (usize, Vec<u8>) {
 }
 
 /// Small seed inputs: an OBJ with a material library, ASCII and binary PLYs, a glb with an
-/// emitter, glass and a camera, and a scene file giving the meshes a camera and a lamp.
+/// emitter, glass (with vertex colours), a camera and an extension Canopy does not read (a
+/// note), and a scene file giving the meshes a camera and a lamp.
 pub fn seed_inputs() -> Vec<(&'static str, Vec<u8>)> {
     let obj = "mtllib m.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nv 0 0 1\nvn 0 0 1\nusemtl lamp\nf 1//1 2//1 3//1\nusemtl glass\nf 2 4 3\nf 1 3 5\n";
     let mtl = "newmtl lamp\nKd 0.5 0.5 0.5\nKe 4 4 4\nnewmtl glass\nKd 1 1 1\nNi 1.5\nd 0.5\nNs 200\nKs 1 1 1\n";
@@ -176,10 +177,10 @@ fn seed_glb(instanced: bool) -> Vec<u8> {
             {"emissiveFactor": [1.0, 1.0, 1.0], "extensions": {"KHR_materials_emissive_strength": {"emissiveStrength": 5.0}}},
             {"pbrMetallicRoughness": {"roughnessFactor": 0.0, "metallicFactor": 0.0}, "extensions": {"KHR_materials_transmission": {"transmissionFactor": 1.0}}}
         ],
-        "extensionsUsed": ["KHR_materials_emissive_strength", "KHR_materials_transmission"],
+        "extensionsUsed": ["KHR_materials_emissive_strength", "KHR_materials_transmission", "KHR_materials_sheen"],
         "meshes": [{"primitives": [
             {"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 2, "material": 0},
-            {"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 3, "material": 1}
+            {"attributes": {"POSITION": 0, "NORMAL": 1, "COLOR_0": 1}, "indices": 3, "material": 1}
         ]}],
         "buffers": [{"byteLength": bin.len()}],
         "bufferViews": [
