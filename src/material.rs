@@ -35,6 +35,19 @@ pub struct Material {
     pub double_sided: bool,
     /// baseColorFactor's alpha (textures multiply theirs in).
     pub opacity: f32,
+    /// KHR_materials_volume: the attenuation coefficient σ = −ln(colour)/distance per
+    /// channel inside the mesh (zero without a volume).
+    pub sigma: V,
+}
+
+/// σ per channel from a record's attenuation colour and distance (zero for no volume); a
+/// colour channel of 0 absorbs all but a trace (σ for 10⁻⁶ at the distance).
+fn attenuation(m: &MaterialRecord) -> V {
+    let d = m.attenuation_distance;
+    if !(d.is_finite() && d > 0.0) {
+        return V::ZERO;
+    }
+    V::from(m.attenuation_color.map(|c| -c.clamp(1e-6, 1.0).ln() / d))
 }
 
 impl Material {
@@ -51,6 +64,17 @@ impl Material {
             emission: V::from(m.emission).max(V::ZERO),
             double_sided: m.flags & MaterialRecord::DOUBLE_SIDED != 0,
             opacity: m.base_color[3].clamp(0.0, 1.0),
+            sigma: attenuation(m),
+        }
+    }
+
+    /// Beer–Lambert transmittance exp(−σ·length) of a segment `length` long that ended on
+    /// the back of this material (`front` false): inside a mesh with a volume (glTF's
+    /// KHR_materials_volume, whose meshes are closed). 1 on a front face or without one.
+    pub fn transmittance(&self, front: bool, length: f32) -> V {
+        match front {
+            true => V::ONE,
+            false => (-self.sigma * length).exp(),
         }
     }
 

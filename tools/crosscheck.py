@@ -15,7 +15,8 @@ metals as `conductor`/`roughconductor` with no absorption; Mitsuba's `principled
 otherwise), emission
 (emissiveFactor × KHR_materials_emissive_strength, front face only unless double-sided),
 COLOR_0 vertex colours times baseColorFactor as a `mesh_attribute` base colour (not with a
-texture), and on Lambertian materials a baseColorTexture (TEXCOORD_0, repeat wrapping): the image is
+texture), KHR_materials_volume's attenuation as a `homogeneous` absorbing interior medium
+(with the `volpath` integrator), and on Lambertian materials a baseColorTexture (TEXCOORD_0, repeat wrapping): the image is
 decoded to linear RGB, multiplied by baseColorFactor and given to a `bitmap` texture
 (bilinear, no MIP maps: what Canopy converges to as its filter narrows), with
 alphaMode MASK as Mitsuba's `mask` over the image's alpha cut at alphaCutoff; a
@@ -140,6 +141,25 @@ def normalmap_of(mi, doc, scene_dir, tmp, info, name):
     path = f"{tmp}/{name}_normal.exr"
     mi.Bitmap(np.ascontiguousarray((n + 1) / 2, dtype=np.float32)).write(path)
     return {"type": "bitmap", "filename": path, "raw": True, "filter_type": "bilinear", "wrap_mode": "repeat"}
+
+
+def volume_of(m):
+    """KHR_materials_volume as Mitsuba's `homogeneous` medium inside the mesh: pure
+    absorption (albedo 0) with σ_t = −ln(attenuationColor)/attenuationDistance per channel.
+    None for a thin wall (thickness 0), an infinite distance or no transmission."""
+    ext = m.get("extensions", {})
+    v = ext.get("KHR_materials_volume")
+    trans = ext.get("KHR_materials_transmission", {}).get("transmissionFactor", 0.0)
+    if v is None or trans <= 0 or v.get("thicknessFactor", 0.0) <= 0:
+        return None
+    d = v.get("attenuationDistance", float("inf"))
+    if not np.isfinite(d) or d <= 0:
+        return None
+    sigma = [-np.log(max(c, 1e-6)) / d for c in v.get("attenuationColor", [1, 1, 1])]
+    # Mitsuba takes RGB values in [0, 1] and a scale.
+    top = max(max(sigma), 1e-9)
+    return {"type": "homogeneous", "albedo": 0.0, "scale": top,
+            "sigma_t": {"type": "rgb", "value": [x / top for x in sigma]}}
 
 
 def bsdf_of(mi, m, doc=None, scene_dir=None, tmp=None, name="", coloured=False):
@@ -286,6 +306,10 @@ def main():
                 mesh.write_ply(ply)
                 entry = {"type": "ply", "filename": ply, "face_normals": True,
                          "bsdf": bsdf_of(mi, mat, doc, scene_dir, tmp, f"t{count}", colours is not None)}
+                medium = volume_of(mat)
+                if medium is not None:
+                    entry["interior"] = medium
+                    scene["integrator"]["type"] = "volpath"
                 strength = mat.get("extensions", {}).get("KHR_materials_emissive_strength", {}).get("emissiveStrength", 1.0)
                 le = [c * strength for c in mat.get("emissiveFactor", [0, 0, 0])]
                 if max(le) > 0:

@@ -2,7 +2,9 @@
 """Write the environment-lit test scenes: scenes/env/spheres.glb (a rough gold, a rough
 white metal and a Lambertian sphere on a Lambertian floor, a camera and no light source),
 scenes/env/room.glb (a closed Lambertian room lit only through a window in its +X wall,
-where the sun falls on the floor, with a rough gold and a clay sphere) and
+where the sun falls on the floor, with a rough gold and a clay sphere), scenes/env/glass.glb
+(a smooth and a rough glass sphere whose insides absorb, KHR_materials_volume, on the
+floor) and
 scenes/env/sky.hdr, a synthetic equirectangular sky in Mitsuba 3's `envmap`
 convention (+Y up, u = 1/2 toward +Z): a blue-to-white gradient over a brown ground, a red
 band on the horizon and a small bright sun 35 degrees up.
@@ -124,6 +126,19 @@ def main():
     write_glb(os.path.join(a.output, "room.glb"), room_meshes, room_materials, {"yfov": 1.0, "znear": 0.01},
               {"translation": eye, "rotation": look(eye, [0.6, 0.5, -0.4])}, "canopy tools/env_scene.py", (128, 96),
               ["KHR_materials_specular"])
+
+    glass = lambda name, r, c, d: {"name": name, "pbrMetallicRoughness": {"baseColorFactor": [1, 1, 1, 1], "metallicFactor": 0.0, "roughnessFactor": r},
+                                   "extensions": {"KHR_materials_transmission": {"transmissionFactor": 1.0}, "KHR_materials_ior": {"ior": 1.5},
+                                                  "KHR_materials_volume": {"thicknessFactor": 0.5, "attenuationColor": c, "attenuationDistance": d}}}
+    glass_materials = [lambert("floor", [0.5, 0.5, 0.5]), glass("teal", 0.0, [0.2, 0.6, 0.8], 0.25),
+                       glass("amber", 0.3, [0.9, 0.55, 0.15], 0.4)]
+    glass_meshes = [("floor", grid(24, 2.0), 0),
+                    ("teal", sphere([-0.45, 0.35, 0.0], 0.35), 1),
+                    ("amber", sphere([0.45, 0.35, 0.0], 0.35), 2)]
+    eye = [0.0, 0.9, 2.4]
+    write_glb(os.path.join(a.output, "glass.glb"), glass_meshes, glass_materials, {"yfov": 0.7, "znear": 0.01},
+              {"translation": eye, "rotation": look(eye, [0.0, 0.3, 0.0])}, "canopy tools/env_scene.py", (128, 96),
+              ["KHR_materials_specular", "KHR_materials_transmission", "KHR_materials_ior", "KHR_materials_volume"])
 
 
 if __name__ == "__main__":

@@ -385,8 +385,15 @@ fn read_table<T: bytemuck::Pod>(map: &[u8], t: &TableRef) -> Vec<T> {
         return Vec::new();
     }
     let at = t.offset as usize;
+    // A record of an earlier minor version may be shorter than `T`: its missing fields
+    // read as zero.
+    let take = (t.record_size as usize).min(std::mem::size_of::<T>());
     map[at..at + t.count as usize * t.record_size as usize]
         .chunks_exact(t.record_size as usize)
-        .map(|r| bytemuck::pod_read_unaligned(&r[..std::mem::size_of::<T>()]))
+        .map(|r| {
+            let mut v = T::zeroed();
+            bytemuck::bytes_of_mut(&mut v)[..take].copy_from_slice(&r[..take]);
+            v
+        })
         .collect()
 }

@@ -413,7 +413,8 @@ pub fn name_str(b: &[u8]) -> String {
     String::from_utf8_lossy(&b[..end]).into_owned()
 }
 
-/// glTF metallic-roughness material in full precision (128 bytes). Leaves shade with these.
+/// glTF metallic-roughness material in full precision (144 bytes; 128 before version 2.4).
+/// Leaves shade with these.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
 pub struct MaterialRecord {
@@ -437,9 +438,18 @@ pub struct MaterialRecord {
     /// glTF normalTexture.scale on the tangent-space normal's x and y (with a normal
     /// texture; 0 otherwise).
     pub normal_scale: f32,
+    /// Version 2.4, KHR_materials_volume: the colour white light takes after
+    /// `attenuation_distance` inside the mesh (zero before 2.4).
+    pub attenuation_color: [f32; 3],
+    /// Version 2.4: the distance (scene units) at which light inside the mesh takes
+    /// `attenuation_color`; 0 for no attenuation (a thin wall, or no volume).
+    pub attenuation_distance: f32,
 }
 
-const _: () = assert!(std::mem::size_of::<MaterialRecord>() == 128);
+const _: () = assert!(std::mem::size_of::<MaterialRecord>() == 144);
+
+/// A material record's size before version 2.4 (no volume fields).
+pub const MATERIAL_RECORD_2_3: usize = 128;
 
 impl MaterialRecord {
     pub const DOUBLE_SIDED: u32 = 1;

@@ -116,11 +116,7 @@ pub fn check_header(h: &Header) -> Result<(), String> {
 /// table exists from version 2.1.
 pub fn small_tables(h: &Header) -> Vec<(&'static str, TableRef, usize)> {
     let mut t = vec![
-        (
-            "material",
-            h.materials,
-            std::mem::size_of::<MaterialRecord>(),
-        ),
+        ("material", h.materials, material_record_size(h)),
         ("camera", h.cameras, std::mem::size_of::<CameraRecord>()),
         ("light", h.lights, std::mem::size_of::<LightRecord>()),
     ];
@@ -140,6 +136,14 @@ pub fn small_tables(h: &Header) -> Vec<(&'static str, TableRef, usize)> {
         t.push(("note", notes_table(h), std::mem::size_of::<NoteRecord>()));
     }
     t
+}
+
+/// The material record's known size in `h`'s minor version.
+pub fn material_record_size(h: &Header) -> usize {
+    match h.version_minor >= 4 {
+        true => std::mem::size_of::<MaterialRecord>(),
+        false => MATERIAL_RECORD_2_3,
+    }
 }
 
 /// The note table (2.4): `notes` records of 256 bytes right after the environment table.
@@ -274,6 +278,11 @@ pub fn check_material(m: &MaterialRecord) -> Result<(), String> {
         (
             "ior",
             m.ior.is_finite() && (m.ior >= 1.0 || m.ior == 0.0) && m.ior <= 1e3,
+        ),
+        ("attenuation colour", in_unit(&m.attenuation_color)),
+        (
+            "attenuation distance",
+            m.attenuation_distance.is_finite() && m.attenuation_distance >= 0.0,
         ),
     ])?;
     let known = MaterialRecord::DOUBLE_SIDED

@@ -212,6 +212,8 @@ pub fn default_material(name: &str) -> MaterialRecord {
         textures: [MaterialRecord::NO_TEXTURE; 4],
         alpha_cutoff: 0.5,
         normal_scale: 0.0,
+        attenuation_color: [1.0; 3],
+        attenuation_distance: 0.0,
     }
 }
 

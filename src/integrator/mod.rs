@@ -415,6 +415,13 @@ impl Scene {
             .opacity(&mut Lookup::new(&self.cache), m, index, at, alpha)
     }
 
+    /// The share of light that survives a ray's `length` along unit `d` to `hit`: less than
+    /// 1 where the hit is on the back of a material with a volume (`Material::transmittance`).
+    pub fn transmittance_to(&self, hit: &Hit, d: V, length: f32) -> V {
+        let front = hit.ng().dot(d) < 0.0;
+        self.materials[hit.tri.material as usize].transmittance(front, length)
+    }
+
     /// Material `index` with its textures' means (for values over a whole triangle).
     pub fn mean_material(&self, index: u32) -> Material {
         self.textures

@@ -73,11 +73,13 @@ pub fn radiance(
         } = scatter;
         let wo = -ray.d.normalize();
         let sp = ShadingPoint::new(&hit, ng, wo, &scene.material_at_hit(&hit, ray.d));
+        let length = travelled + hit.t * ray.d.length();
+        beta *= sp.through(length);
         if sp.emitted != V::ZERO {
             if prev_delta {
                 l += beta * sp.emitted;
             } else {
-                let dist2 = (travelled + hit.t * ray.d.length()).powi(2);
+                let dist2 = length * length;
                 let mis = emission_weight(scene, &hit, (ng, area), wo, prev, prev_pdf, dist2);
                 l += beta * sp.emitted * mis;
             }

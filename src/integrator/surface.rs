@@ -101,6 +101,9 @@ pub struct ShadingPoint {
     pub wo_l: V,
     pub emitted: V,
     pub absorbs: bool,
+    /// The volume's attenuation coefficient where the hit is on a back face (the ray ran
+    /// inside the mesh), zero otherwise: see `through`.
+    pub sigma: V,
 }
 
 impl ShadingPoint {
@@ -121,7 +124,14 @@ impl ShadingPoint {
             wo_l: frame.to_local(wo),
             emitted: m.emitted(front),
             absorbs: m.absorbs(front),
+            sigma: if front { V::ZERO } else { m.sigma },
         }
+    }
+
+    /// The share of light that survives the `length` the ray ran to reach this point: less
+    /// than 1 only inside a mesh with a volume (`Material::transmittance`).
+    pub fn through(&self, length: f32) -> V {
+        (-self.sigma * length).exp()
     }
 }
 

@@ -103,6 +103,7 @@ pub(super) const READ: &[&str] = &[
     "KHR_materials_transmission",
     "KHR_materials_pbrSpecularGlossiness",
     "KHR_materials_unlit",
+    "KHR_materials_volume",
     "KHR_texture_transform",
     "EXT_mesh_gpu_instancing",
     QUANTIZATION,

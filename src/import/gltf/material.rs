@@ -112,12 +112,36 @@ pub(super) fn material(
             MaterialRecord::NO_TEXTURE => 0.0,
             _ => normal.as_ref().map_or(0.0, |n| n.scale()),
         },
+        ..volume(m)
     };
     let rec = match sg {
         Some(sg) => specular_glossiness(rec, &sg, notes),
         None => rec,
     };
     Ok((if m.unlit() { unlit(rec, notes) } else { rec }, uv))
+}
+
+/// KHR_materials_volume's attenuation as a record's volume fields (the rest default): none
+/// for a thin wall (thickness 0), an infinite distance, or a material that transmits
+/// nothing (the volume is seen only through transmission). The thickness itself, a
+/// rasterizer's stand-in for the mesh's depth, is not needed: rays measure the depth.
+fn volume(m: &gltf::Material) -> MaterialRecord {
+    let mut rec = <MaterialRecord as bytemuck::Zeroable>::zeroed();
+    rec.attenuation_color = [1.0; 3];
+    let transmits = m
+        .transmission()
+        .is_some_and(|t| t.transmission_factor() > 0.0);
+    if let Some(v) = m
+        .volume()
+        .filter(|v| transmits && v.thickness_factor() > 0.0)
+    {
+        let d = v.attenuation_distance();
+        if d.is_finite() && d > 0.0 {
+            rec.attenuation_color = v.attenuation_color().map(|c| c.clamp(0.0, 1.0));
+            rec.attenuation_distance = d;
+        }
+    }
+    rec
 }
 
 /// KHR_materials_unlit as an emitter of its base colour (factor and texture) that reflects

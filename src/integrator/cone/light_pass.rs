@@ -105,6 +105,7 @@ fn trace_photon(
         if ng == V::ZERO || m.absorbs(front) {
             return false;
         }
+        flux *= m.transmittance(front, hit.t * ray.d.length());
         let n = if front { ng } else { -ng };
         if m.is_pure_diffuse() {
             // Direct light (no specular bounce yet) is the eye pass's next-event estimate.

@@ -438,6 +438,8 @@ impl ConeIntegrator {
         if sp.absorbs {
             return Event::Stop;
         }
+        // Inside a mesh with a volume, what this hit sends on is attenuated on the way.
+        let through = sp.through(h.t * path.ray.d.length());
         let ShadingPoint {
             ng,
             n,
@@ -461,14 +463,15 @@ impl ConeIntegrator {
             });
         }
         if !bsdf.has_smooth_only() {
-            pend.direct += sample_light(
-                scene,
-                tr,
-                &Receiver::surface(at.p, at.err, ng),
-                &path.shadow_cone,
-                [at.pick, at.light[0], at.light[1]],
-                bsdf_term(frame, n, bsdf, wo_l),
-            );
+            pend.direct += through
+                * sample_light(
+                    scene,
+                    tr,
+                    &Receiver::surface(at.p, at.err, ng),
+                    &path.shadow_cone,
+                    [at.pick, at.light[0], at.light[1]],
+                    bsdf_term(frame, n, bsdf, wo_l),
+                );
         }
         let Some(bs) = bsdf.sample(wo_l, at.lobe, at.dir) else {
             return Event::Stop;
@@ -477,7 +480,7 @@ impl ConeIntegrator {
         if !on_side(&frame, n, wi) {
             return Event::Stop;
         }
-        pend.weight = bs.weight;
+        pend.weight = bs.weight * through;
         // A smooth surface bends the cone by its curvature (eq. 4.21–4.22) and the
         // direction is resampled inside the incoming opening (eq. 4.14–4.16, Fig. 7). A
         // glossy bounce starts a fresh diffuse-width cone.

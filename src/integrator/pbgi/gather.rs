@@ -203,6 +203,7 @@ impl PbgiIntegrator {
             emitted: V::ZERO,
             absorbs: false,
             front: true,
+            sigma: V::ZERO,
         };
         let strata = Strata {
             seed: key,

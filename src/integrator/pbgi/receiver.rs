@@ -84,8 +84,8 @@ impl PbgiIntegrator {
         for depth in 0..SMOOTH_DEPTH {
             // The next bounce's set: its first number also decides alpha holes.
             let [ud0, ud1, ..] = px.sampler.get4(2 * depth + 2);
-            let hit = match scattering_hit(scene, tr, &mut ray, ud0, &mut passes) {
-                Ok(Scatter { hit, .. }) => hit,
+            let (hit, travelled) = match scattering_hit(scene, tr, &mut ray, ud0, &mut passes) {
+                Ok(Scatter { hit, travelled, .. }) => (hit, travelled),
                 Err(missed) => {
                     // Camera rays and smooth bounces see the environment whole.
                     let sky = match missed {
@@ -102,6 +102,7 @@ impl PbgiIntegrator {
             let Some(s) = Surface::at(scene, &hit, ray.d) else {
                 break;
             };
+            beta *= s.through(travelled + hit.t * ray.d.length());
             match depth {
                 0 => own = s.emitted,
                 _ => l += beta * s.emitted,

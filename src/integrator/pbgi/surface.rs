@@ -152,13 +152,17 @@ impl Surface {
             d: w,
             t_max: f32::INFINITY,
         };
-        let (hit, left) = match scattering_hit(scene, tr, &mut ray, hole_number(w), &mut 0) {
-            Ok(s) => (Some(s.hit), false),
-            Err(missed) => (None, missed == Missed::Left),
+        let (hit, left, through) = match scattering_hit(scene, tr, &mut ray, hole_number(w), &mut 0)
+        {
+            Ok(s) => {
+                let through = scene.transmittance_to(&s.hit, w, s.travelled + s.hit.t);
+                (Some(s.hit), false, through)
+            }
+            Err(missed) => (None, missed == Missed::Left, V::ONE),
         };
         Some(LobeRay {
             w,
-            weight: bs.weight,
+            weight: bs.weight * through,
             pdf: bs.pdf,
             hit,
             left,

@@ -117,13 +117,14 @@ fn walk(
             }
             Err(_) => break,
         };
+        let Some(sp) = Surface::at(scene, &s.hit, ray.d) else {
+            break;
+        };
+        beta *= sp.through(s.travelled + s.hit.t * ray.d.length());
         let page = tr.page_handle(s.hit.page);
         let u = || [0; 6].map(|_| rng.f32());
         let (sends, sampled) = hit_light(scene, tr, &page, &s.hit, ray.d, u);
         l += beta * sends;
-        let Some(sp) = Surface::at(scene, &s.hit, ray.d) else {
-            break;
-        };
         if delta {
             l += beta * sp.emitted;
         }

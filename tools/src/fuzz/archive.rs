@@ -108,7 +108,7 @@ impl Parts {
             &mut out,
             materials,
             self.materials.len(),
-            128,
+            std::mem::size_of::<MaterialRecord>(),
             &mut h.materials,
         );
         let cameras = bytemuck::cast_slice(&self.cameras);
