@@ -193,29 +193,52 @@ pub fn assert_mean_within_noise(img: &Image, r: &Image, what: &str) {
     }
 }
 
-/// Per 16×16 block, the block means of `img` and `r` agree within 4 standard errors of
-/// their difference (from the pixels' squared differences, as `assert_mean_within_noise`).
-pub fn assert_blocks_within_noise(img: &Image, r: &Image, what: &str) {
-    for by in (0..img.height).step_by(16) {
-        for bx in (0..img.width).step_by(16) {
-            let at: Vec<usize> = (by..(by + 16).min(img.height))
+/// The image's 16×16 blocks (the last row and column may be smaller): each block's corner
+/// and its pixels' indices.
+pub fn blocks(img: &Image) -> impl Iterator<Item = (u32, u32, Vec<usize>)> + '_ {
+    (0..img.height).step_by(16).flat_map(move |by| {
+        (0..img.width).step_by(16).map(move |bx| {
+            let at = (by..(by + 16).min(img.height))
                 .flat_map(|y| {
                     (bx..(bx + 16).min(img.width)).map(move |x| (y * img.width + x) as usize)
                 })
                 .collect();
-            let n = at.len() as f64;
-            for c in 0..3 {
-                let d: Vec<f64> = at
-                    .iter()
-                    .map(|&i| img.pixels[i][c] as f64 - r.pixels[i][c] as f64)
-                    .collect();
-                let mean = d.iter().sum::<f64>() / n;
-                let se = (d.iter().map(|x| x * x).sum::<f64>() / n / n).sqrt();
-                assert!(
-                    mean.abs() <= 4.0 * se,
-                    "{what}: block ({bx}, {by}) channel {c} differs by {mean:.3e} (standard error {se:.2e})"
-                );
-            }
+            (bx, by, at)
+        })
+    })
+}
+
+/// Per 16×16 block, the block means of `img` and `r` agree within 4 standard errors of
+/// their difference (from the pixels' squared differences, as `assert_mean_within_noise`).
+pub fn assert_blocks_within_noise(img: &Image, r: &Image, what: &str) {
+    for (bx, by, at) in blocks(img) {
+        let n = at.len() as f64;
+        for c in 0..3 {
+            let d: Vec<f64> = at
+                .iter()
+                .map(|&i| img.pixels[i][c] as f64 - r.pixels[i][c] as f64)
+                .collect();
+            let mean = d.iter().sum::<f64>() / n;
+            let se = (d.iter().map(|x| x * x).sum::<f64>() / n / n).sqrt();
+            assert!(
+                mean.abs() <= 4.0 * se,
+                "{what}: block ({bx}, {by}) channel {c} differs by {mean:.3e} (standard error {se:.2e})"
+            );
+        }
+    }
+}
+
+/// Per 16×16 block and channel, `img`'s mean within `tol` of `r`'s, relative: the image's
+/// structure holds, not only its total.
+pub fn assert_blocks_within(img: &Image, r: &Image, tol: f64, what: &str) {
+    for (bx, by, at) in blocks(img) {
+        for c in 0..3 {
+            let sum = |im: &Image| at.iter().map(|&i| im.pixels[i][c] as f64).sum::<f64>();
+            let rel = sum(img) / sum(r) - 1.0;
+            assert!(
+                rel.abs() <= tol,
+                "{what}: block ({bx}, {by}) channel {c} is {rel:+.4} off"
+            );
         }
     }
 }
