@@ -78,6 +78,11 @@ impl Material {
         }
     }
 
+    /// The base colour multiplied by a vertex colour's RGB (glTF 2.0 §3.9.2, `COLOR_0`).
+    pub fn tint(&mut self, rgba: [f32; 4]) {
+        self.base = (self.base * V::new(rgba[0], rgba[1], rgba[2])).clamp(V::ZERO, V::ONE);
+    }
+
     pub fn is_emissive(&self) -> bool {
         self.emission.max_element() > 0.0
     }

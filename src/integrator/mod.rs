@@ -365,8 +365,7 @@ impl Scene {
             Shaded::plain(*m)
         };
         if let Some(rgba) = c.colour_at(b) {
-            shaded.m.base =
-                (shaded.m.base * V::new(rgba[0], rgba[1], rgba[2])).clamp(V::ZERO, V::ONE);
+            shaded.m.tint(rgba);
         }
         shaded
     }
@@ -426,6 +425,16 @@ impl Scene {
     pub fn mean_material(&self, index: u32) -> Material {
         self.textures
             .mean_shade(&self.materials[index as usize], index)
+    }
+
+    /// `mean_material` over a triangle whose vertices carry `c`: their mean colour
+    /// multiplies the base colour.
+    pub fn mean_material_over(&self, index: u32, c: &Corners) -> Material {
+        let mut m = self.mean_material(index);
+        if let Some(rgba) = c.mean_colour() {
+            m.tint(rgba);
+        }
+        m
     }
 
     /// Whether a hit at `depth` (segments before it, from 0) is on the last segment

@@ -101,7 +101,9 @@ impl GlossyMaps {
             };
             let bsdf = Bsdf {
                 diffuse: V::ZERO,
-                ..scene.mean_material(tri.material).bsdf(true)
+                ..scene
+                    .mean_material_over(tri.material, &page.corners(t))
+                    .bsdf(true)
             };
             self.sample(scene, tr, tri.p.map(V::from), bsdf, rng, &mut map);
         }
