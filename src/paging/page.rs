@@ -154,6 +154,16 @@ pub struct Page {
 
 pub use canopy_format::codec::WHITE;
 
+/// A per-vertex stream as each triangle's three values (empty for an absent stream).
+fn by_triangle<T: Copy>(tris: &[Tri], per_vertex: &[T]) -> Vec<[T; 3]> {
+    if per_vertex.is_empty() {
+        return Vec::new();
+    }
+    tris.iter()
+        .map(|t| t.v.map(|v| per_vertex[v as usize]))
+        .collect()
+}
+
 /// What a triangle's vertices carry besides their positions, for shading: texture
 /// coordinates (zero without TEXCOORDS) and colours (`WHITE` without COLOURS).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -250,30 +260,9 @@ impl Page {
                 material: t.material as u32,
             })
             .collect();
-        let shading: Vec<[u32; 3]> = if c.normals.is_empty() {
-            Vec::new()
-        } else {
-            c.tris
-                .iter()
-                .map(|t| t.v.map(|v| c.normals[v as usize]))
-                .collect()
-        };
-        let uvs: Vec<[[f32; 2]; 3]> = if c.uvs.is_empty() {
-            Vec::new()
-        } else {
-            c.tris
-                .iter()
-                .map(|t| t.v.map(|v| c.uvs[v as usize]))
-                .collect()
-        };
-        let colours: Vec<[[u16; 4]; 3]> = if c.colours.is_empty() {
-            Vec::new()
-        } else {
-            c.tris
-                .iter()
-                .map(|t| t.v.map(|v| c.colours[v as usize]))
-                .collect()
-        };
+        let shading = by_triangle(&c.tris, &c.normals);
+        let uvs = by_triangle(&c.tris, &c.uvs);
+        let colours = by_triangle(&c.tris, &c.colours);
         let e = &archive.entry(id)?;
         let (tri4, tri_slot) = wide::tri4s(&mut bvh, &tris).ok_or_else(|| {
             anyhow::anyhow!(
