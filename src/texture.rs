@@ -51,6 +51,9 @@ struct Binding {
     /// The normal texture and its scale.
     normal: Option<(u32, f32)>,
     emissive: Option<u32>,
+    /// Clearcoat, clearcoat roughness, sheen colour and sheen roughness
+    /// (`MaterialRecord::layer_textures`).
+    layers: [Option<u32>; 4],
 }
 
 /// A material as shaded at one point of a surface (its opacity apart: `Textures::opacity`).
@@ -81,10 +84,10 @@ pub struct Textures {
 impl Textures {
     pub fn new(records: &[TextureRecord], materials: &[MaterialRecord]) -> Textures {
         let level_first = records.iter().map(|t| t.level_first_tiles()).collect();
-        let slot = |m: &MaterialRecord, s: usize| {
-            let t = m.textures[s];
+        let index = |t: u16| {
             (t != MaterialRecord::NO_TEXTURE && (t as usize) < records.len()).then_some(t as u32)
         };
+        let slot = |m: &MaterialRecord, s: usize| index(m.textures[s]);
         let bindings: Vec<Binding> = materials
             .iter()
             .map(|m| Binding {
@@ -94,6 +97,7 @@ impl Textures {
                 blend: m.flags & MaterialRecord::ALPHA_BLEND != 0,
                 normal: slot(m, MaterialRecord::NORMAL).map(|t| (t, m.normal_scale)),
                 emissive: slot(m, MaterialRecord::EMISSIVE),
+                layers: m.layer_textures.map(index),
             })
             .collect();
         Textures {
@@ -114,6 +118,7 @@ impl Textures {
                 || b.blend
                 || b.normal.is_some()
                 || b.emissive.is_some()
+                || b.layers.iter().any(Option::is_some)
         })
     }
 
@@ -191,8 +196,9 @@ impl Textures {
     }
 
     /// `m` with each of material `index`'s textures multiplying its factor (glTF 2.0
-    /// §3.9: base colour RGB; roughness from G, metalness from B; emission RGB),
-    /// `texel(t)` giving texture t's linear RGBA.
+    /// §3.9: base colour RGB; roughness from G, metalness from B; emission RGB; and the
+    /// extensions': clearcoat R, clearcoat roughness G, sheen colour RGB, sheen roughness
+    /// A), `texel(t)` giving texture t's linear RGBA.
     fn apply(&self, m: &Material, index: u32, mut texel: impl FnMut(u32) -> [f32; 4]) -> Material {
         let mut out = *m;
         let Some(b) = self.bindings.get(index as usize) else {
@@ -211,6 +217,20 @@ impl Textures {
         if let Some(t) = b.emissive {
             let c = texel(t);
             out.emission = (m.emission * V::new(c[0], c[1], c[2])).max(V::ZERO);
+        }
+        let [coat, coat_roughness, sheen, sheen_roughness] = b.layers.map(|t| t.map(&mut texel));
+        if let Some(c) = coat {
+            out.clearcoat = (m.clearcoat * c[0]).clamp(0.0, 1.0);
+        }
+        if let Some(c) = coat_roughness {
+            let r = (m.coat_alpha.sqrt() * c[1]).clamp(0.0, 1.0);
+            out.coat_alpha = r * r;
+        }
+        if let Some(c) = sheen {
+            out.sheen = (m.sheen * V::new(c[0], c[1], c[2])).clamp(V::ZERO, V::ONE);
+        }
+        if let Some(c) = sheen_roughness {
+            out.sheen_roughness = (m.sheen_roughness * c[3]).clamp(0.0, 1.0);
         }
         out
     }

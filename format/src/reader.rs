@@ -128,6 +128,12 @@ impl Archive {
                 m.textures = [MaterialRecord::NO_TEXTURE; 4];
             }
         }
+        if header.version_minor < 5 {
+            // Records before 2.5 end before the layer textures: none.
+            for m in &mut materials {
+                m.layer_textures = [MaterialRecord::NO_TEXTURE; 4];
+            }
+        }
         let textures = read_table::<TextureRecord>(&map, &header.textures);
         let tiles = read_table::<TileEntry>(&map, &header.tiles);
         let environment = read_table::<EnvironmentRecord>(&map, &header.environment);

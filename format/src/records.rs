@@ -5,7 +5,7 @@ use bytemuck::{Pod, Zeroable};
 
 pub const MAGIC: [u8; 8] = *b"CANOPY\x00\x1a";
 pub const VERSION_MAJOR: u16 = 2;
-pub const VERSION_MINOR: u16 = 4;
+pub const VERSION_MINOR: u16 = 5;
 pub const PAGE_MAGIC: [u8; 4] = *b"PAGE";
 /// Page frames and tables start at multiples of this many bytes, so records can be read in
 /// place from the mapping.
@@ -413,7 +413,8 @@ pub fn name_str(b: &[u8]) -> String {
     String::from_utf8_lossy(&b[..end]).into_owned()
 }
 
-/// glTF metallic-roughness material in full precision (144 bytes; 128 before version 2.4).
+/// glTF metallic-roughness material in full precision (176 bytes; 144 in version 2.4, 128
+/// before).
 /// Leaves shade with these.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
@@ -444,12 +445,25 @@ pub struct MaterialRecord {
     /// Version 2.4: the distance (scene units) at which light inside the mesh takes
     /// `attenuation_color`; 0 for no attenuation (a thin wall, or no volume).
     pub attenuation_distance: f32,
+    /// Version 2.5, KHR_materials_clearcoat: the coat's clearcoatFactor and
+    /// clearcoatRoughnessFactor (zero before 2.5: no coat).
+    pub clearcoat: f32,
+    pub clearcoat_roughness: f32,
+    /// Version 2.5, KHR_materials_sheen: sheenColorFactor (zero: no sheen) and
+    /// sheenRoughnessFactor.
+    pub sheen_color: [f32; 3],
+    pub sheen_roughness: f32,
+    /// Version 2.5: texture indices of the clearcoat (R), clearcoat roughness (G), sheen
+    /// colour (RGB) and sheen roughness (A) textures (`NO_TEXTURE`: none).
+    pub layer_textures: [u16; 4],
 }
 
-const _: () = assert!(std::mem::size_of::<MaterialRecord>() == 144);
+const _: () = assert!(std::mem::size_of::<MaterialRecord>() == 176);
 
 /// A material record's size before version 2.4 (no volume fields).
 pub const MATERIAL_RECORD_2_3: usize = 128;
+/// A material record's size in version 2.4 (no clearcoat or sheen).
+pub const MATERIAL_RECORD_2_4: usize = 144;
 
 impl MaterialRecord {
     pub const DOUBLE_SIDED: u32 = 1;
@@ -463,6 +477,15 @@ impl MaterialRecord {
     pub const METALLIC_ROUGHNESS: usize = 1;
     pub const EMISSIVE: usize = 2;
     pub const NORMAL: usize = 3;
+    pub const CLEARCOAT: usize = 0;
+    pub const CLEARCOAT_ROUGHNESS: usize = 1;
+    pub const SHEEN_COLOR: usize = 2;
+    pub const SHEEN_ROUGHNESS: usize = 3;
+
+    /// Every texture index the record names: `textures`, then `layer_textures`.
+    pub fn all_textures(&self) -> impl Iterator<Item = u16> + '_ {
+        self.textures.iter().chain(&self.layer_textures).copied()
+    }
 }
 
 /// Perspective or orthographic camera (128 bytes).

@@ -140,9 +140,10 @@ pub fn small_tables(h: &Header) -> Vec<(&'static str, TableRef, usize)> {
 
 /// The material record's known size in `h`'s minor version.
 pub fn material_record_size(h: &Header) -> usize {
-    match h.version_minor >= 4 {
-        true => std::mem::size_of::<MaterialRecord>(),
-        false => MATERIAL_RECORD_2_3,
+    match h.version_minor {
+        0..=3 => MATERIAL_RECORD_2_3,
+        4 => MATERIAL_RECORD_2_4,
+        _ => std::mem::size_of::<MaterialRecord>(),
     }
 }
 
@@ -280,6 +281,11 @@ pub fn check_material(m: &MaterialRecord) -> Result<(), String> {
             m.ior.is_finite() && (m.ior >= 1.0 || m.ior == 0.0) && m.ior <= 1e3,
         ),
         ("attenuation colour", in_unit(&m.attenuation_color)),
+        ("clearcoat", in_unit(&[m.clearcoat, m.clearcoat_roughness])),
+        (
+            "sheen",
+            in_unit(&m.sheen_color) && in_unit(&[m.sheen_roughness]),
+        ),
         (
             "attenuation distance",
             m.attenuation_distance.is_finite() && m.attenuation_distance >= 0.0,
@@ -369,10 +375,9 @@ pub fn check_textures(
         }
     }
     for (i, m) in materials.iter().enumerate() {
-        if let Some(&t) = m
-            .textures
-            .iter()
-            .find(|&&t| t != MaterialRecord::NO_TEXTURE && t as usize >= textures.len())
+        if let Some(t) = m
+            .all_textures()
+            .find(|&t| t != MaterialRecord::NO_TEXTURE && t as usize >= textures.len())
         {
             return Err(format!("material {i}: texture {t} of {}", textures.len()));
         }

@@ -61,9 +61,18 @@ impl MatSummary {
         let f0_max = f0[0].max(f0[1]).max(f0[2]);
         let f0d_max = f0_d[0].max(f0_d[1]).max(f0_d[2]);
         let bmax = base[0].max(base[1]).max(base[2]);
+        // A clearcoat reflects coat·F(cos θ) above the rest, which it scales by 1 − that
+        // (KHR_materials_clearcoat); a sheen's albedo scales the layer below it.
+        let coat = m.clearcoat.clamp(0.0, 1.0);
+        let sheen = sheen_albedo(m);
+        let below = |c: f32| (1.0 - coat * coat_fresnel(c)) * (1.0 - sheen.1);
         let reflect = REFLECT_COS.map(|c| {
-            coverage * ((1.0 - metal) * spec * schlick(f0d_max, c) + metal * schlick(bmax, c))
+            let base = (1.0 - metal) * spec * schlick(f0d_max, c) + metal * schlick(bmax, c);
+            coverage * (base * below(c) + coat * coat_fresnel(c))
         });
+        // The layers over the diffuse lobe at their hemispherical means: the coat's
+        // Fresnel 0.04 + 0.96·2/42, the sheen's albedo (reflected as if diffuse).
+        let diffuse_below = (1.0 - coat * COAT_FRESNEL_MEAN) * (1.0 - sheen.1);
         // What passes: light refracted by the material, and through alpha holes untinted.
         let passing = hole + coverage * trans;
         let mut flags = 0;
@@ -77,7 +86,10 @@ impl MatSummary {
             flags |= NodeFlags::TRANSMISSIVE;
         }
         Self {
-            diffuse: base.map(|c| c * (1.0 - metal) * (1.0 - trans) * coverage),
+            diffuse: [0, 1, 2].map(|i| {
+                let d = base[i] * (1.0 - metal) * (1.0 - trans) * diffuse_below;
+                (d + sheen.0[i]) * coverage
+            }),
             refractiveness: passing,
             translucency: base.map(|c| hole + coverage * trans * c),
             reflect,
@@ -86,12 +98,46 @@ impl MatSummary {
             } else {
                 [0.0; 3]
             },
-            roughness: m.roughness.clamp(0.0, 1.0),
+            // The stronger reflection's at normal incidence.
+            roughness: match coat * 0.04 >= reflect_base_normal(m, base) {
+                true => m.clearcoat_roughness.clamp(0.0, 1.0),
+                false => m.roughness.clamp(0.0, 1.0),
+            },
             ior: m.ior,
             emission: m.emission.map(|e| e.max(0.0)),
             flags,
         }
     }
+}
+
+/// The clearcoat's Schlick Fresnel at F0 = 0.04 and its mean over the hemisphere,
+/// weighted by cos θ (0.04 + 0.96·2/42).
+fn coat_fresnel(c: f32) -> f32 {
+    schlick(0.04, c)
+}
+const COAT_FRESNEL_MEAN: f32 = 0.04 + 0.96 * 2.0 / 42.0;
+
+/// A sheen's hemispherical-mean albedo per channel and the largest channel's: what it
+/// reflects of uniform light, and what it takes from the layer below.
+fn sheen_albedo(m: &MaterialRecord) -> ([f32; 3], f32) {
+    let c = m.sheen_color.map(|c| c.clamp(0.0, 1.0));
+    if c == [0.0; 3] {
+        return ([0.0; 3], 0.0);
+    }
+    let e = crate::material::sheen_mean_albedo(m.sheen_roughness.clamp(0.0, 1.0));
+    (c.map(|c| c * e), c[0].max(c[1]).max(c[2]) * e)
+}
+
+/// The base layer's reflectance at normal incidence (largest channel).
+fn reflect_base_normal(m: &MaterialRecord, base: [f32; 3]) -> f32 {
+    let metal = m.metallic.clamp(0.0, 1.0);
+    let r0 = ((m.ior - 1.0) / (m.ior + 1.0)).powi(2);
+    let f0d = m
+        .specular_color
+        .iter()
+        .fold(0f32, |a, &c| a.max((r0 * c).clamp(0.0, 1.0)));
+    let bmax = base[0].max(base[1]).max(base[2]);
+    (1.0 - metal) * m.specular.clamp(0.0, 1.0) * f0d + metal * bmax
 }
 
 /// The share of a material's surface that is there (glTF 2.0 §3.9.4 alpha as coverage),

@@ -214,6 +214,11 @@ pub fn default_material(name: &str) -> MaterialRecord {
         normal_scale: 0.0,
         attenuation_color: [1.0; 3],
         attenuation_distance: 0.0,
+        clearcoat: 0.0,
+        clearcoat_roughness: 0.0,
+        sheen_color: [0.0; 3],
+        sheen_roughness: 0.0,
+        layer_textures: [MaterialRecord::NO_TEXTURE; 4],
     }
 }
 

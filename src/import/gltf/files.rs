@@ -97,6 +97,8 @@ fn stand_in_views(json: &mut gltf::json::Root) {
 /// requires one is refused.
 pub(super) const READ: &[&str] = &[
     "KHR_lights_punctual",
+    super::layers::CLEARCOAT,
+    super::layers::SHEEN,
     "KHR_materials_emissive_strength",
     "KHR_materials_ior",
     "KHR_materials_specular",

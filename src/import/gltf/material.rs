@@ -2,6 +2,7 @@
 //! texture sources and UV transforms.
 
 use super::files::{data_uri, relative_file, view_bytes};
+use super::layers::layers;
 use crate::import::{SceneDesc, TextureSource};
 use anyhow::{anyhow, Context, Result};
 use canopy_format::{name_bytes, MaterialRecord, TextureRecord};
@@ -21,6 +22,7 @@ pub(super) struct UvMap {
 /// and `notes` says so.
 pub(super) fn material(
     m: &gltf::Material,
+    doc: &gltf::Document,
     scene: &mut SceneDesc,
     buffers: &[Vec<u8>],
     dir: &Path,
@@ -34,10 +36,12 @@ pub(super) fn material(
     let base_texture = pbr
         .base_color_texture()
         .or_else(|| sg.as_ref().and_then(|s| s.diffuse_texture()));
+    let layers = layers(m, doc, notes)?;
     let textured = base_texture.is_some()
         || pbr.metallic_roughness_texture().is_some()
         || m.emissive_texture().is_some()
-        || normal.is_some();
+        || normal.is_some()
+        || layers.textures.iter().any(Option::is_some);
     let mut flags = 0;
     if m.double_sided() {
         flags |= MaterialRecord::DOUBLE_SIDED;
@@ -50,30 +54,27 @@ pub(super) fn material(
         gltf::material::AlphaMode::Blend => flags |= MaterialRecord::ALPHA_BLEND,
         gltf::material::AlphaMode::Opaque => {}
     }
-    let mut textures = [MaterialRecord::NO_TEXTURE; 4];
+    // Slots 0..4 are `textures`, 4..8 `layer_textures`.
+    let mut textures = [MaterialRecord::NO_TEXTURE; 8];
     let mut uv: Option<UvMap> = None;
     pub(super) fn info(i: gltf::texture::Info<'_>) -> (Result<UvMap>, gltf::Texture<'_>) {
         (Ok(UvMap::of(&i)), i.texture())
     }
+    let [coat, coat_roughness, sheen_color, sheen_roughness] = layers.textures;
     let slots = [
-        (MaterialRecord::BASE_COLOR, base_texture.map(info), true),
+        (base_texture.map(info), true),
+        (pbr.metallic_roughness_texture().map(info), false),
+        (m.emissive_texture().map(info), true),
         (
-            MaterialRecord::METALLIC_ROUGHNESS,
-            pbr.metallic_roughness_texture().map(info),
-            false,
-        ),
-        (
-            MaterialRecord::EMISSIVE,
-            m.emissive_texture().map(info),
-            true,
-        ),
-        (
-            MaterialRecord::NORMAL,
             normal.as_ref().map(|n| (UvMap::of_normal(n), n.texture())),
             false,
         ),
+        (coat, false),
+        (coat_roughness, false),
+        (sheen_color, true),
+        (sheen_roughness, false),
     ];
-    for (slot, found, srgb) in slots {
+    for (slot, (found, srgb)) in slots.into_iter().enumerate() {
         let Some((map, texture)) = found else {
             continue;
         };
@@ -88,6 +89,7 @@ pub(super) fn material(
         uv = Some(map);
         textures[slot] = scene.add_texture(texture_source(&texture, srgb, buffers, dir)?)?;
     }
+    let [b, mr, e, n, c0, c1, s0, s1] = textures;
     let rec = MaterialRecord {
         name: name_bytes(m.name().unwrap_or("")),
         base_color: pbr.base_color_factor(),
@@ -105,13 +107,18 @@ pub(super) fn material(
             .map(|s| s.specular_color_factor())
             .unwrap_or([1.0; 3]),
         flags,
-        textures,
+        textures: [b, mr, e, n],
         alpha_cutoff: m.alpha_cutoff().unwrap_or(0.5),
         // Finite with a normal texture, 0 without (a dropped one included).
         normal_scale: match textures[MaterialRecord::NORMAL] {
             MaterialRecord::NO_TEXTURE => 0.0,
             _ => normal.as_ref().map_or(0.0, |n| n.scale()),
         },
+        clearcoat: layers.clearcoat,
+        clearcoat_roughness: layers.clearcoat_roughness,
+        sheen_color: layers.sheen_color,
+        sheen_roughness: layers.sheen_roughness,
+        layer_textures: [c0, c1, s0, s1],
         ..volume(m)
     };
     let rec = match sg {
@@ -184,8 +191,17 @@ fn specular_glossiness(
     rec
 }
 
-/// The texture slots' names, by `MaterialRecord` slot.
-const SLOT_NAMES: [&str; 4] = ["base colour", "metallic-roughness", "emissive", "normal"];
+/// The texture slots' names: `MaterialRecord::textures`, then `layer_textures`.
+const SLOT_NAMES: [&str; 8] = [
+    "base colour",
+    "metallic-roughness",
+    "emissive",
+    "normal",
+    "clearcoat",
+    "clearcoat roughness",
+    "sheen colour",
+    "sheen roughness",
+];
 
 /// Where a glTF texture's image is: a buffer view, a data URI or a file beside the glTF.
 pub(super) fn texture_source(
@@ -253,19 +269,30 @@ impl UvMap {
 
     /// The gltf crate gives a normal texture's KHR_texture_transform only as JSON.
     pub(super) fn of_normal(n: &gltf::material::NormalTexture) -> Result<UvMap> {
+        let transform = n.extension_value("KHR_texture_transform");
+        UvMap::from_json(n.tex_coord(), transform, "normalTexture")
+    }
+
+    /// Texture coordinate set `set` under a KHR_texture_transform given as JSON, of the
+    /// texture named `what`.
+    pub(super) fn from_json(
+        set: u32,
+        transform: Option<&serde_json::Value>,
+        what: &str,
+    ) -> Result<UvMap> {
         use gltf::json::extensions::texture::TextureTransform;
-        Ok(match n.extension_value("KHR_texture_transform") {
+        Ok(match transform {
             Some(v) => {
                 let t: TextureTransform = serde_json::from_value(v.clone())
-                    .context("normalTexture's KHR_texture_transform")?;
+                    .with_context(|| format!("{what}'s KHR_texture_transform"))?;
                 UvMap::new(
-                    t.tex_coord.unwrap_or(n.tex_coord()),
+                    t.tex_coord.unwrap_or(set),
                     t.offset.0,
                     t.rotation.0,
                     t.scale.0,
                 )
             }
-            None => UvMap::new(n.tex_coord(), [0.0; 2], 0.0, [1.0; 2]),
+            None => UvMap::new(set, [0.0; 2], 0.0, [1.0; 2]),
         })
     }
 

@@ -13,6 +13,7 @@ use std::path::Path;
 
 mod draco;
 mod files;
+mod layers;
 mod material;
 mod meshopt;
 mod view;
@@ -36,7 +37,7 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
             )
         };
         let mut notes = Vec::new();
-        let (rec, uv) = material(&m, scene, &buffers, dir, &mut notes).map_err(named)?;
+        let (rec, uv) = material(&m, &doc, scene, &buffers, dir, &mut notes).map_err(named)?;
         for note in notes {
             let name = m.name().unwrap_or("?");
             scene.note(format!("{}: material '{name}': {note}", path.display()));

@@ -459,9 +459,8 @@ mod tests {
             f0: V::splat(0.9),
             f90: V::ONE,
             alpha: 0.09,
-            trans: 0.0,
-            tint: V::ONE,
             eta: 1.5,
+            ..Bsdf::lambert(V::ZERO)
         };
         BrdfTable::new(&bsdf, super::super::brdf_table::THRESHOLD)
     }

@@ -247,13 +247,11 @@ pub(super) mod tests {
 
     pub(in super::super) fn gold(alpha: f32) -> Bsdf {
         Bsdf {
-            diffuse: V::ZERO,
             f0: V::new(1.0, 0.78, 0.34),
             f90: V::ONE,
             alpha,
-            trans: 0.0,
-            tint: V::ONE,
             eta: 1.5,
+            ..Bsdf::lambert(V::ZERO)
         }
     }
 

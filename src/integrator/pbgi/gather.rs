@@ -183,15 +183,7 @@ impl PbgiIntegrator {
     pub fn irradiance(&self, scene: &Scene, tr: &mut Tracer, q: V, err: V, ng: V, key: u64) -> V {
         let frame = Frame::new(ng);
         // The gather reads only the point, its normals and frame; any BSDF will do.
-        let white = Bsdf {
-            diffuse: V::ONE,
-            f0: V::ZERO,
-            f90: V::ZERO,
-            alpha: 1.0,
-            trans: 0.0,
-            tint: V::ONE,
-            eta: 1.0,
-        };
+        let white = Bsdf::lambert(V::ONE);
         let s = Surface {
             p: q,
             err,

@@ -47,7 +47,9 @@
 //! reflected once): compare with `--max-depth` 2 + N of the path tracer (camera → x →
 //! node → … → light). A gather's ray that meets a surface the bake does not cover (glossy,
 //! specular or a back face) follows the light on to the next one it does (`walk::onward`).
-//! A smooth lobe layered over a diffuse one is not sampled (its delta part is lost).
+//! A smooth lobe layered over rough ones (a smooth clearcoat or mirror over a diffuse base)
+//! is followed exactly with the probability of choosing it, the rough lobes estimated at
+//! the receiver otherwise (`receiver::lobes`).
 
 mod amb;
 pub mod bake;

@@ -6,6 +6,7 @@ use super::super::surface::{hole_number, scattering_hit, Missed, Scatter};
 use super::super::{on_side, Counters, PixelSample, Scene};
 use super::surface::{LobeRay, Surface};
 use super::{split, wpbgi, PbgiIntegrator};
+use crate::material::{Bsdf, BsdfSample};
 use crate::sampler::{Hash, PixelSampler};
 use crate::trace::{offset_origin, Ray, Tracer};
 use glam::Vec3A as V;
@@ -111,22 +112,28 @@ impl PbgiIntegrator {
                 break;
             }
             let [u_pick, ul0, ul1, u_lobe] = px.sampler.get4(2 * depth + 1);
-            if s.bsdf.has_smooth_only() {
-                let Some(bs) = s.bsdf.sample(s.wo_l, u_lobe, [ud0, ud1]) else {
-                    break;
-                };
-                let wi = s.frame.to_world(bs.wi).normalize();
-                if !on_side(&s.frame, s.n, wi) {
-                    break;
+            let u_lobe = match lobes(&s.bsdf, s.wo_l, u_lobe, [ud0, ud1]) {
+                Lobes::Here { scale, u_lobe } => {
+                    beta *= scale;
+                    u_lobe
                 }
-                beta *= bs.weight;
-                ray = Ray {
-                    o: offset_origin(s.p, s.err, s.ng, wi),
-                    d: wi,
-                    t_max: f32::INFINITY,
-                };
-                continue;
-            }
+                Lobes::Follow(bs) => {
+                    let Some(bs) = bs else {
+                        break;
+                    };
+                    let wi = s.frame.to_world(bs.wi).normalize();
+                    if !on_side(&s.frame, s.n, wi) {
+                        break;
+                    }
+                    beta *= bs.weight;
+                    ray = Ray {
+                        o: offset_origin(s.p, s.err, s.ng, wi),
+                        d: wi,
+                        t_max: f32::INFINITY,
+                    };
+                    continue;
+                }
+            };
             let key = ((px.at as u64) << 20 ^ px.index as u64) ^ (self.seed as u64) << 52 ^ salt;
             // The pixel's own sequence (`ud0`, `ud1`), as the path tracer's next bounce
             // would take it.
@@ -306,5 +313,35 @@ impl PbgiIntegrator {
         }
         c.paths += 1;
         c.finite(l)
+    }
+}
+
+/// How a receiver's lobes are taken.
+enum Lobes {
+    /// Follow a smooth lobe's sampled bounce (None: the sample failed).
+    Follow(Option<BsdfSample>),
+    /// Estimate the rough lobes here, scaled by `scale`, with `u_lobe` for their choice.
+    Here { scale: f32, u_lobe: f32 },
+}
+
+/// A smooth-only BSDF's bounce is followed. With a smooth lobe over rough ones (a smooth
+/// coat or mirror over a diffuse base), the smooth lobe is followed with the probability
+/// p that `Bsdf::sample` chooses it, and otherwise the rough lobes are estimated at the
+/// receiver, scaled by 1/(1 − p): together unbiased, where dropping the smooth lobe
+/// would lose its light.
+fn lobes(b: &Bsdf, wo: V, u_lobe: f32, u: [f32; 2]) -> Lobes {
+    if b.has_smooth_only() {
+        return Lobes::Follow(b.sample(wo, u_lobe, u));
+    }
+    let p = b.delta_share(wo);
+    if p <= 0.0 {
+        return Lobes::Here { scale: 1.0, u_lobe };
+    }
+    match u_lobe < p {
+        true => Lobes::Follow(b.sample_delta(wo, u_lobe / p, u)),
+        false => Lobes::Here {
+            scale: 1.0 / (1.0 - p),
+            u_lobe: (u_lobe - p) / (1.0 - p),
+        },
     }
 }

@@ -45,14 +45,11 @@ pub(super) struct Incident {
 
 /// BRDF tables built on first use, one per distinct reflecting lobe.
 #[derive(Default)]
-pub struct Tables(Mutex<Vec<([u32; 9], Arc<BrdfTable>)>>);
+pub struct Tables(Mutex<Vec<([u32; 15], Arc<BrdfTable>)>>);
 
 impl Tables {
     fn get(&self, g: &Bsdf, threshold: f32) -> Arc<BrdfTable> {
-        let key = [
-            g.f0.x, g.f0.y, g.f0.z, g.f90.x, g.f90.y, g.f90.z, g.alpha, g.trans, g.eta,
-        ]
-        .map(f32::to_bits);
+        let key = g.glossy_key();
         let mut list = self.0.lock().unwrap_or_else(PoisonError::into_inner);
         if let Some((_, t)) = list.iter().find(|(k, _)| *k == key) {
             return t.clone();

@@ -175,9 +175,13 @@ fn seed_glb(instanced: bool) -> Vec<u8> {
         "cameras": [{"type": "perspective", "perspective": {"yfov": 0.8, "znear": 0.01}}],
         "materials": [
             {"emissiveFactor": [1.0, 1.0, 1.0], "extensions": {"KHR_materials_emissive_strength": {"emissiveStrength": 5.0}}},
-            {"pbrMetallicRoughness": {"roughnessFactor": 0.0, "metallicFactor": 0.0}, "extensions": {"KHR_materials_transmission": {"transmissionFactor": 1.0}}}
+            {"pbrMetallicRoughness": {"roughnessFactor": 0.0, "metallicFactor": 0.0}, "extensions": {
+                "KHR_materials_transmission": {"transmissionFactor": 1.0},
+                "KHR_materials_clearcoat": {"clearcoatFactor": 0.5, "clearcoatRoughnessFactor": 0.2},
+                "KHR_materials_sheen": {"sheenColorFactor": [0.5, 0.4, 0.3], "sheenRoughnessFactor": 0.3}
+            }}
         ],
-        "extensionsUsed": ["KHR_materials_emissive_strength", "KHR_materials_transmission", "KHR_materials_sheen"],
+        "extensionsUsed": ["KHR_materials_emissive_strength", "KHR_materials_transmission", "KHR_materials_clearcoat", "KHR_materials_sheen", "KHR_materials_iridescence"],
         "meshes": [{"primitives": [
             {"attributes": {"POSITION": 0, "NORMAL": 1}, "indices": 2, "material": 0},
             {"attributes": {"POSITION": 0, "NORMAL": 1, "COLOR_0": 1}, "indices": 3, "material": 1}

@@ -1,5 +1,6 @@
 //! Materials: the glTF 2.0 metallic-roughness model (spec Appendix B) with
-//! `KHR_materials_specular`, `_ior`, `_transmission` and `_emissive_strength`.
+//! `KHR_materials_specular`, `_ior`, `_transmission`, `_emissive_strength`, `_volume`,
+//! `_sheen` and `_clearcoat`.
 //!
 //! Lobes, in the shading frame (z = normal on the side of the outgoing direction):
 //! - Lambert, albedo baseColor·(1−metallic)·(1−transmission), weighted by 1 − F(cos θo) of
@@ -12,7 +13,20 @@
 //!   Fresnel), smooth (a delta lobe) when roughness is below `SMOOTH_ALPHA`, otherwise GGX
 //!   (Walter et al. 2007), tinted by baseColor. Without `KHR_materials_volume` glTF calls
 //!   transmission thin-walled; we refract (as Mitsuba's `dielectric`/`roughdielectric`),
-//!   which caustics need.
+//!   which caustics need;
+//! - KHR_materials_sheen: the Charlie lobe (`sheen`) times sheenColor, above the three
+//!   lobes, which are scaled by 1 − max(sheenColor)·E(cos θo), E the white lobe's albedo.
+//!   The extension's full form takes the smaller scaling of E(cos θo) and E(cos θi); its
+//!   simplified form, used here, keeps the diffuse lobe the same for every incident
+//!   direction, which PBGI's irradiance gather relies on;
+//! - KHR_materials_clearcoat: a GGX lobe of clearcoatRoughness with Schlick Fresnel at
+//!   F0 = 0.04 (ior 1.5), weighted by clearcoatFactor, over everything else, which is
+//!   scaled by 1 − clearcoat·F(cos θo) (the Khronos sample viewer's form; the extension's
+//!   text takes F at the half vector, the same for a mirror and close for a rough coat).
+//!   A white sheen over a white base under a smooth coat thus reflects all light.
+//!   The coat shares the base's shading normal (a clearcoatNormalTexture is not carried).
+
+mod sheen;
 
 use canopy_format::MaterialRecord;
 use glam::Vec3A as V;
@@ -38,6 +52,12 @@ pub struct Material {
     /// KHR_materials_volume: the attenuation coefficient σ = −ln(colour)/distance per
     /// channel inside the mesh (zero without a volume).
     pub sigma: V,
+    /// KHR_materials_clearcoat: the coat's weight and GGX α (clearcoatRoughness²).
+    pub clearcoat: f32,
+    pub coat_alpha: f32,
+    /// KHR_materials_sheen: the sheen colour (zero without a sheen) and roughness.
+    pub sheen: V,
+    pub sheen_roughness: f32,
 }
 
 /// σ per channel from a record's attenuation colour and distance (zero for no volume); a
@@ -65,6 +85,10 @@ impl Material {
             double_sided: m.flags & MaterialRecord::DOUBLE_SIDED != 0,
             opacity: m.base_color[3].clamp(0.0, 1.0),
             sigma: attenuation(m),
+            clearcoat: m.clearcoat.clamp(0.0, 1.0),
+            coat_alpha: m.clearcoat_roughness.clamp(0.0, 1.0).powi(2),
+            sheen: V::from(m.sheen_color).clamp(V::ZERO, V::ONE),
+            sheen_roughness: m.sheen_roughness.clamp(0.0, 1.0),
         }
     }
 
@@ -105,12 +129,18 @@ impl Material {
     /// Lambertian only: the cone integrator stores light on these and the light pass
     /// leaves caustics on them.
     pub fn is_pure_diffuse(&self) -> bool {
-        self.metallic == 0.0 && self.transmission == 0.0 && self.specular == 0.0
+        !self.has_base_specular() && self.clearcoat == 0.0 && self.sheen == V::ZERO
     }
 
-    /// Has a perfectly smooth (delta) mirror or interface lobe: caustics are possible.
+    /// The base layer has a specular reflection or interface lobe.
+    fn has_base_specular(&self) -> bool {
+        self.metallic > 0.0 || self.transmission > 0.0 || self.specular > 0.0
+    }
+
+    /// Has a perfectly smooth (delta) mirror, interface or coat lobe: caustics are possible.
     pub fn has_delta_lobe(&self) -> bool {
-        !self.is_pure_diffuse() && self.alpha < SMOOTH_ALPHA
+        self.has_base_specular() && self.alpha < SMOOTH_ALPHA
+            || self.clearcoat > 0.0 && self.coat_alpha < SMOOTH_ALPHA
     }
 
     /// The BSDF seen from outside (`front`: the ray arrived on the front face).
@@ -127,6 +157,10 @@ impl Material {
             trans: self.transmission * (1.0 - m),
             tint: self.base,
             eta: if front { self.ior } else { 1.0 / self.ior },
+            coat: self.clearcoat,
+            coat_alpha: self.coat_alpha,
+            sheen: self.sheen,
+            sheen_roughness: self.sheen_roughness,
         }
     }
 }
@@ -143,6 +177,12 @@ pub struct Bsdf {
     pub tint: V,
     /// Relative index of refraction across the surface (inside / outside).
     pub eta: f32,
+    /// Clearcoat weight and GGX α.
+    pub coat: f32,
+    pub coat_alpha: f32,
+    /// Sheen colour (zero: none) and roughness.
+    pub sheen: V,
+    pub sheen_roughness: f32,
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -203,6 +243,14 @@ fn ggx_lambda(w: V, a: f32) -> f32 {
     0.5 * ((1.0 + a * a * t2).sqrt() - 1.0)
 }
 
+/// The GGX reflection lobe without Fresnel: D(h)·G2/(4·cos θo·cos θi), G2 the
+/// height-correlated Smith masking-shadowing.
+fn ggx_reflection(wo: V, wi: V, h: V, a: f32) -> f32 {
+    let d = ggx_d(h, a);
+    let g2 = 1.0 / (1.0 + ggx_lambda(wo, a) + ggx_lambda(wi, a));
+    d * g2 / (4.0 * wo.z * wi.z)
+}
+
 fn ggx_g1(w: V, a: f32) -> f32 {
     1.0 / (1.0 + ggx_lambda(w, a))
 }
@@ -241,26 +289,85 @@ fn refract(wo: V, m: V, eta: f32) -> Option<V> {
     Some((-wo / eta + (c / eta - ct) * m).normalize())
 }
 
+/// The lobes a BSDF samples from, in the order `Bsdf::lobe_probs` lists them.
+const INTERFACE: usize = 0;
+const SPECULAR: usize = 1;
+const DIFFUSE: usize = 2;
+const SHEEN: usize = 3;
+const COAT: usize = 4;
+
+/// Schlick Fresnel of the clearcoat layer: F0 = 0.04 (ior 1.5), F90 = 1
+/// (KHR_materials_clearcoat).
+fn coat_fresnel(c: f32) -> f32 {
+    0.04 + 0.96 * (1.0 - c.clamp(0.0, 1.0)).powi(5)
+}
+
 impl Bsdf {
+    /// A Lambertian BSDF of albedo `rho`.
+    pub fn lambert(rho: V) -> Bsdf {
+        Bsdf {
+            diffuse: rho,
+            f0: V::ZERO,
+            f90: V::ZERO,
+            alpha: 1.0,
+            trans: 0.0,
+            tint: V::ONE,
+            eta: 1.0,
+            coat: 0.0,
+            coat_alpha: 0.0,
+            sheen: V::ZERO,
+            sheen_roughness: 0.0,
+        }
+    }
+
     fn spec_on(&self) -> bool {
         self.f90.max_element() > 0.0 || self.f0.max_element() > 0.0
     }
 
-    /// Lobe selection probabilities (diffuse, glossy reflection, dielectric interface).
-    fn lobe_probs(&self, wo: V) -> [f32; 3] {
-        let f = schlick(self.f0, self.f90, wo.z);
-        let d = luminance(self.diffuse * (V::ONE - f)).max(0.0);
-        let s = if self.spec_on() {
-            luminance(f) * (1.0 - self.trans)
-        } else {
-            0.0
-        };
-        let t = self.trans * luminance(self.tint).max(0.05);
-        let sum = d + s + t;
-        if sum <= 0.0 {
-            return [0.0; 3];
+    /// What the coat leaves of the layers below it for a viewer at `wo`:
+    /// 1 − coat·F(cos θo).
+    fn coat_scale(&self, wo: V) -> f32 {
+        match self.coat > 0.0 {
+            true => 1.0 - self.coat * coat_fresnel(wo.z),
+            false => 1.0,
         }
-        [d / sum, s / sum, t / sum]
+    }
+
+    /// What the layers above the base (the coat, then the sheen) leave of it for a viewer
+    /// at `wo`: (1 − coat·F(cos θo))·(1 − max(sheen)·E(cos θo)).
+    fn base_scale(&self, wo: V) -> f32 {
+        let s = self.coat_scale(wo);
+        match self.sheen.max_element() > 0.0 {
+            true => {
+                s * (1.0 - self.sheen.max_element() * sheen::albedo(wo.z, self.sheen_roughness))
+            }
+            false => s,
+        }
+    }
+
+    /// Lobe selection probabilities: dielectric interface, glossy reflection, diffuse,
+    /// sheen, clearcoat.
+    fn lobe_probs(&self, wo: V) -> [f32; 5] {
+        let f = schlick(self.f0, self.f90, wo.z);
+        let base = self.base_scale(wo);
+        let mut p = [0.0; 5];
+        p[INTERFACE] = base * self.trans * luminance(self.tint).max(0.05);
+        if self.spec_on() {
+            p[SPECULAR] = base * luminance(f) * (1.0 - self.trans);
+        }
+        p[DIFFUSE] = base * luminance(self.diffuse * (V::ONE - f)).max(0.0);
+        if self.sheen.max_element() > 0.0 {
+            let e = sheen::albedo(wo.z, self.sheen_roughness);
+            p[SHEEN] = self.coat_scale(wo) * luminance(self.sheen) * e;
+        }
+        p[COAT] = self.coat * coat_fresnel(wo.z);
+        // Summed in this order, the three base lobes' shares are the same bits as without
+        // the layers.
+        let sum = p[DIFFUSE] + p[SPECULAR] + p[INTERFACE] + p[SHEEN] + p[COAT];
+        match sum > 0.0 {
+            true => p.map(|x| x / sum),
+            false => [0.0; 5],
+        }
     }
 
     /// Value f(wo, wi) (non-delta lobes) and the pdf of sampling wi.
@@ -269,27 +376,37 @@ impl Bsdf {
             return (V::ZERO, 0.0);
         }
         let probs = self.lobe_probs(wo);
+        let base = self.base_scale(wo);
         let mut f = V::ZERO;
         let mut pdf = 0.0;
         if wi.z > 0.0 {
             let fr = schlick(self.f0, self.f90, wo.z);
-            if probs[0] > 0.0 {
-                f += self.diffuse * (V::ONE - fr) * FRAC_1_PI;
-                pdf += probs[0] * wi.z * FRAC_1_PI;
+            let h = (wo + wi).normalize();
+            if probs[DIFFUSE] > 0.0 {
+                f += self.diffuse * (V::ONE - fr) * (base * FRAC_1_PI);
+                pdf += probs[DIFFUSE] * wi.z * FRAC_1_PI;
             }
-            if probs[1] > 0.0 && self.alpha >= SMOOTH_ALPHA {
-                let h = (wo + wi).normalize();
+            if probs[SPECULAR] > 0.0 && self.alpha >= SMOOTH_ALPHA {
                 let fh = schlick(self.f0, self.f90, wo.dot(h));
-                let d = ggx_d(h, self.alpha);
-                let g2 = 1.0 / (1.0 + ggx_lambda(wo, self.alpha) + ggx_lambda(wi, self.alpha));
-                f += fh * (d * g2 / (4.0 * wo.z * wi.z)) * (1.0 - self.trans);
-                pdf += probs[1] * ggx_pdf_vn(wo, h, self.alpha) / (4.0 * wo.dot(h));
+                f += fh * ggx_reflection(wo, wi, h, self.alpha) * (1.0 - self.trans) * base;
+                pdf += probs[SPECULAR] * ggx_pdf_vn(wo, h, self.alpha) / (4.0 * wo.dot(h));
+            }
+            if probs[SHEEN] > 0.0 {
+                let a = sheen::alpha(self.sheen_roughness);
+                f += self.sheen * (sheen::brdf(wo, wi, a) * self.coat_scale(wo));
+                pdf += probs[SHEEN] * wi.z * FRAC_1_PI;
+            }
+            if probs[COAT] > 0.0 && self.coat_alpha >= SMOOTH_ALPHA {
+                let a = self.coat_alpha;
+                let fc = self.coat * coat_fresnel(wo.dot(h));
+                f += V::splat(fc * ggx_reflection(wo, wi, h, a));
+                pdf += probs[COAT] * ggx_pdf_vn(wo, h, a) / (4.0 * wo.dot(h));
             }
         }
-        if probs[2] > 0.0 && self.alpha >= SMOOTH_ALPHA && wi.z != 0.0 {
+        if probs[INTERFACE] > 0.0 && self.alpha >= SMOOTH_ALPHA && wi.z != 0.0 {
             let (fi, pi) = self.eval_interface(wo, wi);
-            f += fi;
-            pdf += probs[2] * pi;
+            f += fi * base;
+            pdf += probs[INTERFACE] * pi;
         }
         (f, pdf)
     }
@@ -335,34 +452,53 @@ impl Bsdf {
         }
     }
 
+    /// The lobe `u` picks among `probs` after the interface's share: the glossy
+    /// reflection, diffuse, sheen and coat shares in turn (rounding left over goes to the
+    /// last lobe that has a share).
+    fn pick(probs: &[f32; 5], u: f32) -> Option<usize> {
+        let mut u = u;
+        for lobe in [SPECULAR, DIFFUSE, SHEEN, COAT] {
+            if u < probs[lobe] {
+                return Some(lobe);
+            }
+            u -= probs[lobe];
+        }
+        [COAT, SHEEN, DIFFUSE].into_iter().find(|&l| probs[l] > 0.0)
+    }
+
+    /// A mirror-direction (delta) sample of a smooth lobe whose reflectance is `f`.
+    fn mirror(wo: V, f: V, p_lobe: f32) -> BsdfSample {
+        BsdfSample {
+            wi: V::new(-wo.x, -wo.y, wo.z),
+            weight: f / p_lobe,
+            pdf: p_lobe,
+            delta: true,
+        }
+    }
+
     /// Samples an incident direction with three uniforms (lobe choice, then two).
     pub fn sample(&self, wo: V, u_lobe: f32, u: [f32; 2]) -> Option<BsdfSample> {
         if wo.z <= 0.0 {
             return None;
         }
         let probs = self.lobe_probs(wo);
-        if u_lobe < probs[2] {
-            return self.sample_interface(wo, u_lobe / probs[2], u, probs[2]);
+        if u_lobe < probs[INTERFACE] {
+            let p = probs[INTERFACE];
+            return self.sample_interface(wo, u_lobe / p, u, p);
         }
-        let u_lobe = u_lobe - probs[2];
-        let smooth = self.alpha < SMOOTH_ALPHA;
-        if u_lobe < probs[1] && smooth {
-            let wi = V::new(-wo.x, -wo.y, wo.z);
-            let f = schlick(self.f0, self.f90, wo.z) * (1.0 - self.trans);
-            return Some(BsdfSample {
-                wi,
-                weight: f / probs[1],
-                pdf: probs[1],
-                delta: true,
-            });
-        }
-        let wi = if u_lobe < probs[1] {
-            let h = ggx_sample_vn(wo, self.alpha, u);
-            reflect(wo, h)
-        } else if probs[0] > 0.0 {
-            cosine_hemisphere(u)
-        } else {
-            return None;
+        let lobe = Bsdf::pick(&probs, u_lobe - probs[INTERFACE])?;
+        let wi = match lobe {
+            SPECULAR if self.alpha < SMOOTH_ALPHA => {
+                let f = schlick(self.f0, self.f90, wo.z) * (1.0 - self.trans) * self.base_scale(wo);
+                return Some(Bsdf::mirror(wo, f, probs[SPECULAR]));
+            }
+            COAT if self.coat_alpha < SMOOTH_ALPHA => {
+                let f = V::splat(self.coat * coat_fresnel(wo.z));
+                return Some(Bsdf::mirror(wo, f, probs[COAT]));
+            }
+            SPECULAR => reflect(wo, ggx_sample_vn(wo, self.alpha, u)),
+            COAT => reflect(wo, ggx_sample_vn(wo, self.coat_alpha, u)),
+            _ => cosine_hemisphere(u),
         };
         if wi.z <= 0.0 {
             return None;
@@ -402,10 +538,11 @@ impl Bsdf {
             });
         }
         let fr = fresnel_dielectric(wo.z, self.eta);
+        let trans = self.trans * self.base_scale(wo);
         if u < fr {
             return Some(BsdfSample {
                 wi: V::new(-wo.x, -wo.y, wo.z),
-                weight: V::splat(self.trans / p_lobe),
+                weight: V::splat(trans / p_lobe),
                 pdf: p_lobe * fr,
                 delta: true,
             });
@@ -417,17 +554,95 @@ impl Bsdf {
         // Radiance is scaled by 1/η² crossing into the denser medium (pbrt-v4 §9.5.2).
         Some(BsdfSample {
             wi,
-            weight: self.tint * (self.trans / p_lobe / (eta * eta)),
+            weight: self.tint * (trans / p_lobe / (eta * eta)),
             pdf: p_lobe * (1.0 - fr),
             delta: true,
         })
     }
 
-    /// Whether the BSDF has any non-delta lobe (next-event estimation is useful).
+    /// The share of `sample`'s lobe choices at `wo` that fall on a delta lobe: the smooth
+    /// reflection and interface, then the smooth coat, whose choices come first and last.
+    /// Returns (the base's share, the coat's).
+    fn delta_shares(&self, wo: V) -> (f32, f32) {
+        if wo.z <= 0.0 {
+            return (0.0, 0.0);
+        }
+        let p = self.lobe_probs(wo);
+        let base = match self.alpha < SMOOTH_ALPHA {
+            true => p[INTERFACE] + p[SPECULAR],
+            false => 0.0,
+        };
+        let coat = match self.coat_alpha < SMOOTH_ALPHA {
+            true => p[COAT],
+            false => 0.0,
+        };
+        (base, coat)
+    }
+
+    /// The probability that `sample` at `wo` takes a delta lobe.
+    pub fn delta_share(&self, wo: V) -> f32 {
+        let (base, coat) = self.delta_shares(wo);
+        base + coat
+    }
+
+    /// A sample of the delta lobes alone, `u` choosing among them by their shares: what
+    /// `sample` returns when its lobe choice falls on one (weight f/p of that lobe's
+    /// choice), for an estimator that takes the delta lobes with probability
+    /// `delta_share` and the others apart.
+    pub fn sample_delta(&self, wo: V, u: f32, u2: [f32; 2]) -> Option<BsdfSample> {
+        let (base, coat) = self.delta_shares(wo);
+        let x = u * (base + coat);
+        let u_lobe = match x < base {
+            true => x,
+            // The coat's choices are the last `coat` of [0, 1).
+            false => (1.0 - coat + (x - base)).min(1.0 - f32::EPSILON),
+        };
+        self.sample(wo, u_lobe, u2).filter(|s| s.delta)
+    }
+
+    /// Whether the BSDF has no non-delta lobe (next-event estimation is useless).
     pub fn has_smooth_only(&self) -> bool {
         let p = self.lobe_probs(V::Z);
-        p[0] == 0.0 && ((p[1] == 0.0 && p[2] == 0.0) || self.alpha < SMOOTH_ALPHA)
+        let base_smooth = (p[SPECULAR] == 0.0 && p[INTERFACE] == 0.0) || self.alpha < SMOOTH_ALPHA;
+        let coat_smooth = p[COAT] == 0.0 || self.coat_alpha < SMOOTH_ALPHA;
+        p[DIFFUSE] == 0.0 && p[SHEEN] == 0.0 && base_smooth && coat_smooth
     }
+
+    /// The parameters of the reflection lobes other than the diffuse as bits: equal
+    /// keys, equal glossy reflection.
+    pub fn glossy_key(&self) -> [u32; 15] {
+        let (f0, f90, sh) = (self.f0, self.f90, self.sheen);
+        [
+            f0.x,
+            f0.y,
+            f0.z,
+            f90.x,
+            f90.y,
+            f90.z,
+            self.alpha,
+            self.trans,
+            self.eta,
+            self.coat,
+            self.coat_alpha,
+            sh.x,
+            sh.y,
+            sh.z,
+            self.sheen_roughness,
+        ]
+        .map(f32::to_bits)
+    }
+}
+
+/// A white sheen lobe's albedo averaged over the hemisphere of viewing directions,
+/// weighted by cos θ: 2∫E(μ)·μ dμ.
+pub fn sheen_mean_albedo(roughness: f32) -> f32 {
+    const N: usize = 64;
+    (0..N)
+        .map(|i| {
+            let mu = (i as f32 + 0.5) / N as f32;
+            2.0 * sheen::albedo(mu, roughness) * mu / N as f32
+        })
+        .sum()
 }
 
 /// Cosine-weighted hemisphere direction (concentric disk mapping).
@@ -472,249 +687,4 @@ impl Frame {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use bytemuck::Zeroable;
-
-    use crate::test_rng::TestRng as Rng;
-
-    fn mat(base: f32, metallic: f32, roughness: f32, specular: f32, transmission: f32) -> Material {
-        let mut r = MaterialRecord::zeroed();
-        r.base_color = [base, base * 0.9, base * 0.8, 1.0];
-        r.metallic = metallic;
-        r.roughness = roughness;
-        r.specular = specular;
-        r.specular_color = [1.0; 3];
-        r.ior = 1.5;
-        r.transmission = transmission;
-        r.flags = MaterialRecord::DOUBLE_SIDED;
-        Material::from_record(&r)
-    }
-
-    fn materials() -> Vec<(&'static str, Material)> {
-        vec![
-            ("lambert", mat(0.8, 0.0, 1.0, 0.0, 0.0)),
-            ("plastic", mat(0.5, 0.0, 0.5, 1.0, 0.0)),
-            ("glossy plastic", mat(0.9, 0.0, 0.15, 1.0, 0.0)),
-            ("rough metal", mat(1.0, 1.0, 0.3, 1.0, 0.0)),
-            ("very rough metal", mat(1.0, 1.0, 1.0, 1.0, 0.0)),
-            ("mirror", mat(1.0, 1.0, 0.0, 1.0, 0.0)),
-            ("glass", mat(1.0, 0.0, 0.0, 1.0, 1.0)),
-            ("half glass", mat(0.7, 0.0, 0.4, 1.0, 0.5)),
-            ("rough glass", mat(1.0, 0.0, 0.3, 1.0, 1.0)),
-        ]
-    }
-
-    fn dir(cos: f32, phi: f32) -> V {
-        let s = (1.0 - cos * cos).max(0.0).sqrt();
-        V::new(s * phi.cos(), s * phi.sin(), cos)
-    }
-
-    /// A non-delta sample's weight and pdf are what `eval` gives for its direction:
-    /// weight = f·|cos θi| / pdf (eval is what MIS and light sampling use, sample what the
-    /// paths use; a mismatch biases one against the other).
-    #[test]
-    fn sample_weights_agree_with_eval() {
-        let mut rng = Rng::new(5);
-        for (name, m) in materials() {
-            let b = m.bsdf(true);
-            let mut checked = 0;
-            for k in 0..8 {
-                let wo = dir(0.05 + 0.95 * k as f32 / 7.0, 1.3);
-                for _ in 0..2000 {
-                    let Some(s) = b.sample(wo, rng.f32(), [rng.f32(), rng.f32()]) else {
-                        continue;
-                    };
-                    if s.delta || s.pdf < 1e-3 {
-                        continue;
-                    }
-                    let (f, pdf) = b.eval(wo, s.wi);
-                    let want = f * s.wi.z.abs() / pdf;
-                    let tol = 2e-3 * want.max_element().max(1e-3);
-                    assert!(
-                        (pdf / s.pdf - 1.0).abs() < 2e-3,
-                        "{name}: sampled pdf {} against eval's {pdf} at wo {wo:?}, wi {:?}",
-                        s.pdf,
-                        s.wi
-                    );
-                    assert!(
-                        (s.weight - want).abs().max_element() < tol,
-                        "{name}: weight {:?} against f·cos/pdf {want:?}",
-                        s.weight
-                    );
-                    checked += 1;
-                }
-            }
-            let smooth = name == "mirror" || name == "glass";
-            assert!(
-                smooth || checked > 1000,
-                "{name}: {checked} samples checked"
-            );
-        }
-    }
-
-    #[test]
-    fn albedo_never_exceeds_one() {
-        let mut rng = Rng::new(1);
-        for (name, m) in materials() {
-            let b = m.bsdf(true);
-            for k in 0..12 {
-                let wo = dir(0.02 + 0.98 * k as f32 / 11.0, 0.7);
-                let n = 40_000;
-                let (mut sum, mut sq) = (0f64, 0f64);
-                for _ in 0..n {
-                    let s = b.sample(wo, rng.f32(), [rng.f32(), rng.f32()]);
-                    if let Some(s) = &s {
-                        assert!(
-                            s.weight.is_finite() && s.weight.min_element() >= 0.0,
-                            "{name}: sample weight {:?}",
-                            s.weight
-                        );
-                    }
-                    let w = match s {
-                        // Energy, not radiance: undo the 1/η² of refraction.
-                        Some(s) if s.wi.z < 0.0 => s.weight.max_element() * b.eta * b.eta,
-                        Some(s) => s.weight.max_element(),
-                        None => 0.0,
-                    } as f64;
-                    sum += w;
-                    sq += w * w;
-                }
-                let mean = sum / n as f64;
-                let sigma = ((sq / n as f64 - mean * mean).max(0.0) / n as f64).sqrt();
-                assert!(
-                    mean <= 1.0 + 4.0 * sigma + 1e-4,
-                    "{name}: albedo {mean} ± {sigma} at cos θo = {}",
-                    wo.z
-                );
-                // A white mirror and clear smooth glass absorb nothing: all energy returns.
-                if name == "mirror" || name == "glass" {
-                    assert!(
-                        mean >= 1.0 - 4.0 * sigma - 1e-4,
-                        "{name}: albedo {mean} ± {sigma} at cos θo = {} loses energy",
-                        wo.z
-                    );
-                }
-            }
-        }
-        // Lambert with cosine sampling: every sample weighs exactly the albedo.
-        let b = mat(0.8, 0.0, 1.0, 0.0, 0.0).bsdf(true);
-        let s = b.sample(dir(0.5, 0.0), 0.3, [0.2, 0.9]).unwrap();
-        assert!((s.weight - V::new(0.8, 0.72, 0.64)).abs().max_element() < 1e-5);
-    }
-
-    /// Wilson–Hilferty normal deviate of a chi-square statistic.
-    fn chi2_z(chi2: f64, dof: f64) -> f64 {
-        let k = 2.0 / (9.0 * dof);
-        ((chi2 / dof).powf(1.0 / 3.0) - (1.0 - k)) / k.sqrt()
-    }
-
-    #[test]
-    fn sampling_matches_pdf_chi_square() {
-        const NT: usize = 20;
-        const NP: usize = 40;
-        // Sub-samples per bin side when integrating the pdf (glossy lobes are narrow).
-        const S: usize = 24;
-        let mut rng = Rng::new(7);
-        for (name, m) in materials() {
-            let b = m.bsdf(true);
-            for cos_o in [0.15f32, 0.6, 0.95] {
-                let wo = dir(cos_o, 1.1);
-                let n = 300_000;
-                let mut obs = vec![0f64; NT * NP];
-                for _ in 0..n {
-                    if let Some(s) = b.sample(wo, rng.f32(), [rng.f32(), rng.f32()]) {
-                        if s.delta {
-                            continue;
-                        }
-                        let t = (((s.wi.z + 1.0) * 0.5 * NT as f32) as usize).min(NT - 1);
-                        let mut phi = s.wi.y.atan2(s.wi.x);
-                        if phi < 0.0 {
-                            phi += 2.0 * PI;
-                        }
-                        let p = ((phi / (2.0 * PI) * NP as f32) as usize).min(NP - 1);
-                        obs[t * NP + p] += 1.0;
-                    }
-                }
-                // Expected counts: the pdf integrated over each bin (midpoint rule).
-                let mut exp = vec![0f64; NT * NP];
-                let (dc, dp) = (2.0 / NT as f64, 2.0 * std::f64::consts::PI / NP as f64);
-                for t in 0..NT {
-                    for p in 0..NP {
-                        let mut sum = 0.0;
-                        for i in 0..S {
-                            for j in 0..S {
-                                let c = -1.0 + (t as f64 + (i as f64 + 0.5) / S as f64) * dc;
-                                let ph = (p as f64 + (j as f64 + 0.5) / S as f64) * dp;
-                                sum += b.eval(wo, dir(c as f32, ph as f32)).1 as f64;
-                            }
-                        }
-                        exp[t * NP + p] = sum / (S * S) as f64 * dc * dp * n as f64;
-                    }
-                }
-                // Pool bins expecting fewer than 5 samples.
-                let (mut chi2, mut dof, mut pool_o, mut pool_e) = (0.0, 0.0, 0.0, 0.0);
-                for (o, e) in obs.iter().zip(&exp) {
-                    if *e < 5.0 {
-                        pool_o += o;
-                        pool_e += e;
-                    } else {
-                        chi2 += (o - e) * (o - e) / e;
-                        dof += 1.0;
-                    }
-                }
-                if pool_e > 0.0 {
-                    chi2 += (pool_o - pool_e) * (pool_o - pool_e) / pool_e.max(1.0);
-                    dof += 1.0;
-                }
-                if obs.iter().sum::<f64>() == 0.0 {
-                    // Only delta lobes (mirror, smooth glass): nothing to bin.
-                    assert!(exp.iter().sum::<f64>() < 1.0, "{name}: pdf without samples");
-                    continue;
-                }
-                let z = chi2_z(chi2, (dof - 1.0_f64).max(1.0));
-                assert!(
-                    z < 4.5,
-                    "{name}, cos θo {cos_o}: chi² {chi2:.1} with {dof} bins (z = {z:.2})"
-                );
-            }
-        }
-    }
-
-    #[test]
-    fn smooth_dielectric_splits_by_fresnel() {
-        let b = mat(1.0, 0.0, 0.0, 1.0, 1.0).bsdf(true);
-        let wo = dir(0.5, 0.0);
-        // The Fresnel equations from their s and p amplitudes (Born & Wolf), in f64, not
-        // the function the sampler calls.
-        let (ci, eta) = (0.5f64, 1.5f64);
-        let ct = (1.0 - (1.0 - ci * ci) / (eta * eta)).sqrt();
-        let rs = (ci - eta * ct) / (ci + eta * ct);
-        let rp = (eta * ci - ct) / (eta * ci + ct);
-        let fr = (0.5 * (rs * rs + rp * rp)) as f32;
-        let mut rng = Rng::new(3);
-        let n = 200_000;
-        let mut refl = 0;
-        for _ in 0..n {
-            let s = b.sample(wo, rng.f32(), [rng.f32(), rng.f32()]).unwrap();
-            assert!(s.delta);
-            if s.wi.z > 0.0 {
-                refl += 1;
-            } else {
-                // Snell: sin θt = sin θi / η.
-                let st = (1.0 - s.wi.z * s.wi.z).sqrt();
-                assert!((st - (0.75f32).sqrt() / 1.5).abs() < 1e-5);
-            }
-        }
-        let got = refl as f32 / n as f32;
-        let sigma = (fr * (1.0 - fr) / n as f32).sqrt();
-        assert!(
-            (got - fr).abs() < 4.0 * sigma,
-            "reflected share {got}, Fresnel {fr} ± {sigma}"
-        );
-        // Normal incidence on η = 1.5: F = 0.04.
-        assert!((fresnel_dielectric(1.0, 1.5) - 0.04).abs() < 1e-6);
-        // Total internal reflection from inside beyond the critical angle.
-        assert_eq!(fresnel_dielectric(0.3, 1.0 / 1.5), 1.0);
-    }
-}
+mod tests;
