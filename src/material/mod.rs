@@ -121,7 +121,9 @@ impl Material {
         }
     }
 
-    /// A single-sided opaque surface hit from behind absorbs: nothing reflects there.
+    /// A single-sided opaque surface hit from behind absorbs: nothing reflects there. (Rays
+    /// pass the back faces the textures' bindings cull, `texture::culls_back`; what is
+    /// left to absorb is an emitter's back.)
     pub fn absorbs(&self, front: bool) -> bool {
         !front && !self.double_sided && self.transmission == 0.0
     }
@@ -381,12 +383,13 @@ impl Bsdf {
         let mut pdf = 0.0;
         if wi.z > 0.0 {
             let fr = schlick(self.f0, self.f90, wo.z);
-            let h = (wo + wi).normalize();
+            let h = || (wo + wi).normalize();
             if probs[DIFFUSE] > 0.0 {
                 f += self.diffuse * (V::ONE - fr) * (base * FRAC_1_PI);
                 pdf += probs[DIFFUSE] * wi.z * FRAC_1_PI;
             }
             if probs[SPECULAR] > 0.0 && self.alpha >= SMOOTH_ALPHA {
+                let h = h();
                 let fh = schlick(self.f0, self.f90, wo.dot(h));
                 f += fh * ggx_reflection(wo, wi, h, self.alpha) * (1.0 - self.trans) * base;
                 pdf += probs[SPECULAR] * ggx_pdf_vn(wo, h, self.alpha) / (4.0 * wo.dot(h));
@@ -397,7 +400,7 @@ impl Bsdf {
                 pdf += probs[SHEEN] * wi.z * FRAC_1_PI;
             }
             if probs[COAT] > 0.0 && self.coat_alpha >= SMOOTH_ALPHA {
-                let a = self.coat_alpha;
+                let (a, h) = (self.coat_alpha, h());
                 let fc = self.coat * coat_fresnel(wo.dot(h));
                 f += V::splat(fc * ggx_reflection(wo, wi, h, a));
                 pdf += probs[COAT] * ggx_pdf_vn(wo, h, a) / (4.0 * wo.dot(h));
