@@ -31,35 +31,7 @@ fn sphere_gltf(dir: &Path, material: serde_json::Value, used: &[&str]) -> PathBu
             }
         }
     }
-    let mut bin: Vec<u8> = verts
-        .iter()
-        .flatten()
-        .flat_map(|v| v.to_le_bytes())
-        .collect();
-    let positions = bin.len();
-    bin.extend(faces.iter().flat_map(|i| i.to_le_bytes()));
-    use base64::Engine;
-    let uri = format!(
-        "data:application/octet-stream;base64,{}",
-        base64::engine::general_purpose::STANDARD.encode(&bin)
-    );
-    let doc = serde_json::json!({
-        "asset": {"version": "2.0"},
-        "scene": 0, "scenes": [{"nodes": [0]}],
-        "nodes": [{"mesh": 0}],
-        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1, "material": 0}]}],
-        "materials": [material],
-        "extensionsUsed": used,
-        "buffers": [{"byteLength": bin.len(), "uri": uri}],
-        "bufferViews": [
-            {"buffer": 0, "byteOffset": 0, "byteLength": positions},
-            {"buffer": 0, "byteOffset": positions, "byteLength": bin.len() - positions}
-        ],
-        "accessors": [
-            {"bufferView": 0, "componentType": 5126, "count": verts.len(), "type": "VEC3", "min": [-1.0, -1.0, -1.0], "max": [1.0, 1.0, 1.0]},
-            {"bufferView": 1, "componentType": 5125, "count": faces.len(), "type": "SCALAR"}
-        ]
-    });
+    let doc = inline_mesh_gltf(&verts, &faces, material, used);
     let path = dir.join("sphere.gltf");
     std::fs::write(&path, doc.to_string()).unwrap();
     path
@@ -92,17 +64,8 @@ fn white_layers_vanish_in_a_white_furnace() {
     let mut white = Image::new(48, 48);
     white.pixels.iter_mut().for_each(|p| *p = [1.0; 3]);
     for integrator in ["path", "cone", "pbgi"] {
-        let flags = [
-            "--integrator",
-            integrator,
-            "--spp",
-            "16",
-            "--width",
-            "48",
-            "--height",
-            "48",
-        ];
-        let (img, _) = render(&arc, &dir.path().join(format!("{integrator}.exr")), &flags);
+        let out = dir.path().join(format!("{integrator}.exr"));
+        let img = render_sized(&arc, &out, integrator, 16, [48, 48]);
         assert_blocks_within_noise(&img, &white, &format!("{integrator} in the furnace"));
     }
 }

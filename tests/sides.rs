@@ -16,39 +16,17 @@ fn quad_gltf(dir: &Path, name: &str, facing_camera: bool, material: serde_json::
         [1.0, 1.0, 0.0],
         [-1.0, 1.0, 0.0],
     ];
-    let idx: [u16; 6] = match facing_camera {
+    let idx: [u32; 6] = match facing_camera {
         true => [0, 1, 2, 0, 2, 3],
         false => [0, 2, 1, 0, 3, 2],
     };
-    let mut bin: Vec<u8> = corners
-        .iter()
-        .flatten()
-        .flat_map(|v| v.to_le_bytes())
-        .collect();
-    bin.extend(idx.iter().flat_map(|i| i.to_le_bytes()));
-    use base64::Engine;
-    let uri = format!(
-        "data:application/octet-stream;base64,{}",
-        base64::engine::general_purpose::STANDARD.encode(&bin)
-    );
-    let doc = serde_json::json!({
-        "asset": {"version": "2.0"},
-        "scene": 0, "scenes": [{"nodes": [0, 1]}],
-        "nodes": [{"mesh": 0}, {"camera": 0, "translation": [0.0, 0.0, 3.0]}],
-        "cameras": [{"type": "perspective", "perspective": {"yfov": 0.3, "aspectRatio": 1.0, "znear": 0.01}}],
-        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1, "material": 0}]}],
-        "materials": [material],
-        "extensionsUsed": ["KHR_materials_specular", "KHR_materials_emissive_strength"],
-        "buffers": [{"byteLength": bin.len(), "uri": uri}],
-        "bufferViews": [
-            {"buffer": 0, "byteOffset": 0, "byteLength": 48},
-            {"buffer": 0, "byteOffset": 48, "byteLength": 12}
-        ],
-        "accessors": [
-            {"bufferView": 0, "componentType": 5126, "count": 4, "type": "VEC3", "min": [-1.0, -1.0, 0.0], "max": [1.0, 1.0, 0.0]},
-            {"bufferView": 1, "componentType": 5123, "count": 6, "type": "SCALAR"}
-        ]
-    });
+    let used = ["KHR_materials_specular", "KHR_materials_emissive_strength"];
+    let mut doc = inline_mesh_gltf(&corners, &idx, material, &used);
+    doc["scenes"][0]["nodes"] = serde_json::json!([0, 1]);
+    doc["nodes"] = serde_json::json!([{"mesh": 0}, {"camera": 0, "translation": [0.0, 0.0, 3.0]}]);
+    doc["cameras"] = serde_json::json!([
+        {"type": "perspective", "perspective": {"yfov": 0.3, "aspectRatio": 1.0, "znear": 0.01}}
+    ]);
     let path = dir.join(format!("{name}.gltf"));
     std::fs::write(&path, doc.to_string()).unwrap();
     path
@@ -96,18 +74,8 @@ fn single_sided_back_faces_are_culled() {
         let arc = dir.path().join(format!("{name}.canopy"));
         convert(&gltf, &arc, None);
         for integrator in ["path", "cone", "pbgi"] {
-            let flags = [
-                "--integrator",
-                integrator,
-                "--spp",
-                "16",
-                "--width",
-                "32",
-                "--height",
-                "32",
-            ];
             let out = dir.path().join(format!("{name}_{integrator}.exr"));
-            let seen = middle(&render(&arc, &out, &flags).0);
+            let seen = middle(&render_sized(&arc, &out, integrator, 16, [32, 32]));
             for c in seen {
                 assert!(
                     (c - want).abs() <= 0.02 * want.max(0.5),

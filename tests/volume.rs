@@ -13,45 +13,24 @@ fn cube_of_glass(dir: &Path, colour: [f32; 3], distance: f32) -> PathBuf {
     let corners: Vec<[f32; 3]> = (0..8)
         .map(|i| [i & 1, i >> 1 & 1, i >> 2 & 1].map(|c| c as f32 - 0.5))
         .collect();
-    let idx: [u16; 36] = [
+    let idx: [u32; 36] = [
         0, 2, 1, 1, 2, 3, 4, 5, 6, 5, 7, 6, 0, 1, 4, 1, 5, 4, 2, 6, 3, 3, 6, 7, 0, 4, 2, 2, 4, 6,
         1, 3, 5, 3, 7, 5,
     ];
-    let mut bin: Vec<u8> = corners
-        .iter()
-        .flatten()
-        .flat_map(|v| v.to_le_bytes())
-        .collect();
-    bin.extend(idx.iter().flat_map(|i| i.to_le_bytes()));
-    use base64::Engine;
-    let uri = format!(
-        "data:application/octet-stream;base64,{}",
-        base64::engine::general_purpose::STANDARD.encode(&bin)
-    );
-    let doc = serde_json::json!({
-        "asset": {"version": "2.0"},
-        "scene": 0, "scenes": [{"nodes": [0]}],
-        "nodes": [{"mesh": 0}],
-        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1, "material": 0}]}],
-        "materials": [{
-            "pbrMetallicRoughness": {"metallicFactor": 0.0, "roughnessFactor": 0.0},
-            "extensions": {
-                "KHR_materials_transmission": {"transmissionFactor": 1.0},
-                "KHR_materials_ior": {"ior": 1.0},
-                "KHR_materials_volume": {"thicknessFactor": 1.0, "attenuationColor": colour, "attenuationDistance": distance}
-            }
-        }],
-        "extensionsUsed": ["KHR_materials_transmission", "KHR_materials_ior", "KHR_materials_volume"],
-        "buffers": [{"byteLength": bin.len(), "uri": uri}],
-        "bufferViews": [
-            {"buffer": 0, "byteOffset": 0, "byteLength": 96},
-            {"buffer": 0, "byteOffset": 96, "byteLength": 72}
-        ],
-        "accessors": [
-            {"bufferView": 0, "componentType": 5126, "count": 8, "type": "VEC3", "min": [-0.5, -0.5, -0.5], "max": [0.5, 0.5, 0.5]},
-            {"bufferView": 1, "componentType": 5123, "count": 36, "type": "SCALAR"}
-        ]
+    let material = serde_json::json!({
+        "pbrMetallicRoughness": {"metallicFactor": 0.0, "roughnessFactor": 0.0},
+        "extensions": {
+            "KHR_materials_transmission": {"transmissionFactor": 1.0},
+            "KHR_materials_ior": {"ior": 1.0},
+            "KHR_materials_volume": {"thicknessFactor": 1.0, "attenuationColor": colour, "attenuationDistance": distance}
+        }
     });
+    let used = [
+        "KHR_materials_transmission",
+        "KHR_materials_ior",
+        "KHR_materials_volume",
+    ];
+    let doc = inline_mesh_gltf(&corners, &idx, material, &used);
     let path = dir.join("cube.gltf");
     std::fs::write(&path, doc.to_string()).unwrap();
     path

@@ -10,30 +10,11 @@ reference comes from Blender Cycles through Blender's own glTF importer
 
     python3 tools/layers_scene.py -o scenes/layers.glb
 """
-import argparse, math, os
+import argparse, os
 
+from caustics_scene import sphere
 from glb import write_glb
 from room_scene import box, bunny, emitter, lambert, look_rotation, quad
-
-
-def sphere(c, r, nu=64, nv=32):
-    """A UV sphere of nu × nv quads, split in triangles, its poles as fans."""
-    verts, faces = [], []
-    for j in range(nv + 1):
-        th = math.pi * j / nv
-        for i in range(nu):
-            ph = 2 * math.pi * i / nu
-            verts.append([c[0] + r * math.sin(th) * math.cos(ph), c[1] + r * math.cos(th),
-                          c[2] + r * math.sin(th) * math.sin(ph)])
-    idx = lambda i, j: j * nu + i % nu
-    for j in range(nv):
-        for i in range(nu):
-            a, b, cc, d = idx(i, j), idx(i + 1, j), idx(i + 1, j + 1), idx(i, j + 1)
-            if j > 0:
-                faces.append([a, b, cc])
-            if j < nv - 1:
-                faces.append([a, cc, d])
-    return verts, faces
 
 
 def layered(name, rgb, coat=None, sheen=None):
@@ -61,11 +42,11 @@ def main():
         ("left", quad([-W, 0, -D], [-W, H, -D], [-W, H, D], [-W, 0, D]), 0),
         ("right", quad([W, 0, -D], [W, 0, D], [W, H, D], [W, H, -D]), 0),
         ("panel", quad([-0.5, H - 0.01, -0.6], [0.5, H - 0.01, -0.6], [0.5, H - 0.01, 0.1], [-0.5, H - 0.01, 0.1]), 2),
-        ("coated", sphere([-1.0, 0.35, -0.6], 0.35), 3),
-        ("coated_blue", sphere([-0.25, 0.3, -0.9], 0.3), 4),
+        ("coated", sphere([-1.0, 0.35, -0.6], 0.35, 64, 32), 3),
+        ("coated_blue", sphere([-0.25, 0.3, -0.9], 0.3, 64, 32), 4),
         ("plinth", box([0.2, 0, -0.95], [0.8, 0.3, -0.35]), 0),
         ("velvet", bunny(ply, [0.5, 0.3, -0.65], 0.7), 5),
-        ("satin", sphere([1.2, 0.3, -0.2], 0.3), 6),
+        ("satin", sphere([1.2, 0.3, -0.2], 0.3, 64, 32), 6),
     ]
     materials = [
         lambert("white", [0.8, 0.8, 0.8]),

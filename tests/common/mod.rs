@@ -82,6 +82,28 @@ pub fn render(archive: &Path, out: &Path, extra: &[&str]) -> (Image, serde_json:
     (img, json)
 }
 
+/// `render` with `integrator` at `spp` samples and `width` × `height` pixels: the image.
+pub fn render_sized(
+    archive: &Path,
+    out: &Path,
+    integrator: &str,
+    spp: u32,
+    [width, height]: [u32; 2],
+) -> Image {
+    let (spp, width, height) = (spp.to_string(), width.to_string(), height.to_string());
+    let flags = [
+        "--integrator",
+        integrator,
+        "--spp",
+        &spp,
+        "--width",
+        &width,
+        "--height",
+        &height,
+    ];
+    render(archive, out, &flags).0
+}
+
 pub fn all_finite(img: &Image) -> bool {
     img.pixels
         .iter()
@@ -250,6 +272,50 @@ mod test_rng;
 pub use test_rng::TestRng;
 
 pub mod textured;
+
+/// A glTF document of one mesh node (`positions`, `indices`, its one material
+/// `material`), its buffer inline as a data URI, no camera and no light; the caller adds
+/// what else it needs.
+pub fn inline_mesh_gltf(
+    positions: &[[f32; 3]],
+    indices: &[u32],
+    material: serde_json::Value,
+    used: &[&str],
+) -> serde_json::Value {
+    let mut bin: Vec<u8> = positions
+        .iter()
+        .flatten()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
+    let at = bin.len();
+    bin.extend(indices.iter().flat_map(|i| i.to_le_bytes()));
+    let bound = |f: fn(f32, f32) -> f32, init: f32| {
+        [0, 1, 2].map(|a| positions.iter().map(|p| p[a]).fold(init, f))
+    };
+    use base64::Engine;
+    let uri = format!(
+        "data:application/octet-stream;base64,{}",
+        base64::engine::general_purpose::STANDARD.encode(&bin)
+    );
+    serde_json::json!({
+        "asset": {"version": "2.0"},
+        "scene": 0, "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1, "material": 0}]}],
+        "materials": [material],
+        "extensionsUsed": used,
+        "buffers": [{"byteLength": bin.len(), "uri": uri}],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": at},
+            {"buffer": 0, "byteOffset": at, "byteLength": bin.len() - at}
+        ],
+        "accessors": [
+            {"bufferView": 0, "componentType": 5126, "count": positions.len(), "type": "VEC3",
+             "min": bound(f32::min, f32::INFINITY), "max": bound(f32::max, f32::NEG_INFINITY)},
+            {"bufferView": 1, "componentType": 5125, "count": indices.len(), "type": "SCALAR"}
+        ]
+    })
+}
 
 /// cbox.glb with its JSON and BIN chunk edited, written to `dir/name`.
 pub fn tiny_glb(
