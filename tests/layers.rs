@@ -110,3 +110,64 @@ fn layers_agree_with_cycles() {
         }
     }
 }
+
+/// The layer textures multiply their factors from the channels the extensions name
+/// (clearcoat R, clearcoat roughness G, sheen colour RGB as sRGB, sheen roughness A): a
+/// plane whose four layer textures are one solid RGBA image renders as the plane whose
+/// factors are those channels' values, computed here from the texel.
+#[test]
+fn layer_textures_read_their_channels() {
+    use common::textured::{plane_gltf, solid_png, Plane};
+    let dir = tempfile::tempdir().unwrap();
+    let texel = [128u8, 64, 200, 32];
+    solid_png(&dir.path().join("solid.png"), 4, texel);
+    let plane = Plane {
+        image: "solid.png",
+        ..Default::default()
+    };
+    let linear = |k: usize| texel[k] as f64 / 255.0;
+    // The sRGB transfer function (IEC 61966-2-1), decoded.
+    let srgb = |k: usize| {
+        let v = linear(k);
+        match v <= 0.04045 {
+            true => v / 12.92,
+            false => ((v + 0.055) / 1.055).powf(2.4),
+        }
+    };
+    let tex = serde_json::json!({"index": 0});
+    let textured = serde_json::json!({
+        "KHR_materials_clearcoat": {"clearcoatFactor": 1.0, "clearcoatTexture": tex,
+            "clearcoatRoughnessFactor": 1.0, "clearcoatRoughnessTexture": tex},
+        "KHR_materials_sheen": {"sheenColorFactor": [1.0, 1.0, 1.0], "sheenColorTexture": tex,
+            "sheenRoughnessFactor": 1.0, "sheenRoughnessTexture": tex}
+    });
+    let factors = serde_json::json!({
+        "KHR_materials_clearcoat": {"clearcoatFactor": linear(0), "clearcoatRoughnessFactor": linear(1)},
+        "KHR_materials_sheen": {"sheenColorFactor": [srgb(0), srgb(1), srgb(2)],
+            "sheenRoughnessFactor": linear(3)}
+    });
+    let mut images = Vec::new();
+    for (name, layers) in [("textured", textured), ("factors", factors)] {
+        let gltf = plane_gltf(dir.path(), &format!("{name}.gltf"), &plane);
+        let mut doc: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
+        for (ext, value) in layers.as_object().unwrap() {
+            doc["materials"][0]["extensions"][ext] = value.clone();
+            doc["extensionsUsed"]
+                .as_array_mut()
+                .unwrap()
+                .push(ext.clone().into());
+        }
+        std::fs::write(&gltf, doc.to_string()).unwrap();
+        let arc = dir.path().join(format!("{name}.canopy"));
+        convert(&gltf, &arc, None);
+        let out = dir.path().join(format!("{name}.exr"));
+        images.push(render_sized(&arc, &out, "path", 16, [64, 64]));
+    }
+    assert_mean_within(
+        &images[0],
+        &images[1],
+        2e-3,
+        "layer textures against factors",
+    );
+}
