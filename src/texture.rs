@@ -48,24 +48,12 @@ struct Binding {
     mask: Option<f32>,
     /// `ALPHA_BLEND`.
     blend: bool,
-    /// Its back faces are culled: a hole for every ray (`culls_back`).
-    cull: bool,
     /// The normal texture and its scale.
     normal: Option<(u32, f32)>,
     emissive: Option<u32>,
     /// Clearcoat, clearcoat roughness, sheen colour and sheen roughness
     /// (`MaterialRecord::layer_textures`).
     layers: [Option<u32>; 4],
-}
-
-/// Whether a material's back faces are culled, as glTF asks of a material that is not
-/// double-sided: a ray meets nothing there and goes on. A transmissive material's back
-/// face is the inside of its interface, and a one-sided emitter's back stays an opaque
-/// dark side (as Mitsuba 3 and pbrt-v4 have it, so a lamp shades what lies behind it).
-pub fn culls_back(m: &MaterialRecord) -> bool {
-    m.flags & MaterialRecord::DOUBLE_SIDED == 0
-        && m.transmission <= 0.0
-        && m.emission.iter().all(|&e| e <= 0.0)
 }
 
 /// A material as shaded at one point of a surface (its opacity apart: `Textures::opacity`).
@@ -89,8 +77,8 @@ pub struct Textures {
     /// Per texture, the first tile of each level (tile-table indices; one more at the end).
     level_first: Vec<Vec<u32>>,
     bindings: Vec<Binding>,
-    /// Some material has an alpha mode or culls its back faces.
-    holes: bool,
+    /// Some material has an alpha mode.
+    alpha: bool,
 }
 
 impl Textures {
@@ -107,7 +95,6 @@ impl Textures {
                 metallic_roughness: slot(m, MaterialRecord::METALLIC_ROUGHNESS),
                 mask: (m.flags & MaterialRecord::ALPHA_MASK != 0).then_some(m.alpha_cutoff),
                 blend: m.flags & MaterialRecord::ALPHA_BLEND != 0,
-                cull: culls_back(m),
                 normal: slot(m, MaterialRecord::NORMAL).map(|t| (t, m.normal_scale)),
                 emissive: slot(m, MaterialRecord::EMISSIVE),
                 layers: m.layer_textures.map(index),
@@ -116,9 +103,7 @@ impl Textures {
         Textures {
             records: records.to_vec(),
             level_first,
-            holes: bindings
-                .iter()
-                .any(|b| b.mask.is_some() || b.blend || b.cull),
+            alpha: bindings.iter().any(|b| b.mask.is_some() || b.blend),
             bindings,
         }
     }
@@ -170,16 +155,9 @@ impl Textures {
         }))
     }
 
-    /// Whether some material cuts holes (alpha mask or blend, or culled back faces): rays
-    /// must then test opacity.
-    pub fn has_holes(&self) -> bool {
-        self.holes
-    }
-
-    /// Whether material `m` culls its back faces.
-    #[inline]
-    pub fn culls(&self, m: u32) -> bool {
-        self.bindings.get(m as usize).is_some_and(|b| b.cull)
+    /// Whether some material cuts holes (alpha mask or blend): rays must then test alpha.
+    pub fn has_alpha(&self) -> bool {
+        self.alpha
     }
 
     /// Material `index` with its textures' means in place of texels: what a baked or

@@ -164,29 +164,22 @@ pub fn sample_light_weighted(
 }
 
 /// The fraction of light a shadow ray carries: 0 or 1, or between under alpha blend. With
-/// alpha materials or culled back faces an exact ray looks through holes, up to
-/// `MAX_PASSES` of them (a shadow cone treats every surface as opaque).
+/// alpha materials an exact ray looks through holes, up to `MAX_PASSES` of them (a shadow
+/// cone treats every surface as opaque).
 fn transmittance(scene: &Scene, tr: &mut Tracer, mut ray: Ray, cone: &Cone) -> f32 {
-    if cone.scale > 0.0 || !scene.textures.has_holes() {
+    if cone.scale > 0.0 || !scene.textures.has_alpha() {
         return if tr.cone_occluded(&ray, cone) {
             0.0
         } else {
             1.0
         };
     }
-    // Any hit first: a ray that meets nothing, or meets something wholly there, needs
-    // no walk from hole to hole.
-    match tr.occluder(&ray) {
-        None => return 1.0,
-        Some(hit) if scene.opacity_at(&hit, ray.d) >= 1.0 => return 0.0,
-        Some(_) => {}
-    }
     let mut seen = 1.0f32;
     for _ in 0..super::surface::MAX_PASSES {
         let Some(hit) = tr.closest_hit(&ray) else {
             return seen;
         };
-        let opacity = scene.opacity_at(&hit, ray.d);
+        let opacity = scene.opacity_at(&hit);
         seen *= 1.0 - opacity;
         let n = hit.ng();
         if seen <= 0.0 || n == V::ZERO {

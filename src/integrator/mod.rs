@@ -396,14 +396,9 @@ impl Scene {
         self.cache.error().or_else(|| self.lights.error())
     }
 
-    /// A triangle hit's opacity to a ray along `d` (no colour lookups): 0 on the back
-    /// face of a material that culls it, else `opacity`.
-    pub fn opacity_at(&self, hit: &Hit, d: V) -> f32 {
-        let m = hit.tri.material;
-        if self.textures.culls(m) && hit.ng().dot(d) > 0.0 {
-            return 0.0;
-        }
-        self.opacity(m, &hit.corners, hit.b)
+    /// A triangle hit's opacity alone (no colour lookups): see `opacity`.
+    pub fn opacity_at(&self, hit: &Hit) -> f32 {
+        self.opacity(hit.tri.material, &hit.corners, hit.b)
     }
 
     /// Material `index`'s opacity at barycentrics `b` of a triangle whose vertices carry

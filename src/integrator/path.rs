@@ -4,8 +4,8 @@
 //! (pbrt-v4 `PathIntegrator`), unbounded depth unless `--max-depth` caps it.
 //!
 //! Parameters: `max_depth` (longest path in segments, default unbounded), the sampler's
-//! seed. Emitters are one-sided unless their material is double-sided; the back face of a
-//! single-sided material is culled (rays pass it), except an emitter's, which absorbs.
+//! seed. Emitters are one-sided unless their material is double-sided; a single-sided
+//! opaque surface hit from behind absorbs.
 
 use super::direct::{emission_weight, escaped_light};
 use super::surface::{scattering_hit, Missed, Scatter};

@@ -69,7 +69,7 @@ pub fn scattering_hit(
             return Err(Missed::Degenerate);
         }
         let ng = ng_raw / (2.0 * area);
-        if *passes < MAX_PASSES && passes_through(scene.opacity_at(&hit, ray.d), u, *passes) {
+        if *passes < MAX_PASSES && passes_through(scene.opacity_at(&hit), u, *passes) {
             *passes += 1;
             travelled += hit.t * ray.d.length();
             let (p, err) = hit.point();

@@ -121,9 +121,7 @@ impl Material {
         }
     }
 
-    /// A single-sided opaque surface hit from behind absorbs: nothing reflects there. (Rays
-    /// pass the back faces the textures' bindings cull, `texture::culls_back`; what is
-    /// left to absorb is an emitter's back.)
+    /// A single-sided opaque surface hit from behind absorbs: nothing reflects there.
     pub fn absorbs(&self, front: bool) -> bool {
         !front && !self.double_sided && self.transmission == 0.0
     }

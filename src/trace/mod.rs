@@ -318,17 +318,6 @@ impl<'a> Tracer<'a> {
         }
     }
 
-    /// Some triangle that blocks the ray before `ray.t_max` (the first the any-hit walk
-    /// meets, not the nearest), if any.
-    pub fn occluder(&mut self, ray: &Ray) -> Option<Hit> {
-        let mut found: Option<TriRef> = None;
-        match self.instanced {
-            false => self.walk_exact::<false>(ray, |r| found = Some(r), true),
-            true => self.walk_instanced(ray, |r| found = Some(r), true),
-        };
-        found.map(|r| self.hit(&r))
-    }
-
     /// Whether a shadow cone meets anything before `ray.t_max`: like `occluded`, but a node
     /// the cone cannot resolve counts as an occluder (004 §4.6.2 casts light samples as
     /// cones too). `ray.d` must be unit length.

@@ -89,12 +89,6 @@ fn trace_photon(
         let Some(hit) = tr.closest_hit(&ray) else {
             return false;
         };
-        // A culled back face is not there: the photon goes on.
-        if scene.textures.culls(hit.tri.material) && hit.ng().dot(ray.d) > 0.0 {
-            let (p, err) = hit.point();
-            ray.o = offset_origin(p, err, hit.ng().normalize_or_zero(), ray.d);
-            continue;
-        }
         let m = &scene
             .material_at(
                 hit.tri.material,
@@ -192,8 +186,7 @@ fn deposit(
 
 /// Visible fraction of a cell (004 §4.7.1): a point is hidden when a ray leaving it over
 /// the side the photon came from first meets the back of a one-sided surface, i.e. the
-/// point lies inside a closed object (a floor under a box standing on it). A culled back
-/// face counts too: the ray back toward the light would meet its front. The thesis
+/// point lies inside a closed object (a floor under a box standing on it). The thesis
 /// needed this for overlapping surfels; with exact triangles only such buried parts
 /// remain. Never below one sample's worth, since a photon did reach the cell.
 fn visible_fraction(scene: &Scene, tr: &mut Tracer, hit: &Hit, n: V, cell: u64, side: f32) -> f32 {

@@ -309,14 +309,13 @@ fn widened(cone: &Cone) -> Cone {
     }
 }
 
-/// Whether a cone's triangle hit along `d` falls in an alpha hole (mask) or on a culled
-/// back face or, under blend, is passed with probability 1 − alpha, as the path tracer
-/// does. Nodes are opaque.
-fn through_hole(scene: &Scene, hit: &ConeHit, d: V, at: &Here, passes: u32) -> bool {
+/// Whether a cone's triangle hit falls in an alpha hole (mask) or, under blend, is passed
+/// with probability 1 − alpha, as the path tracer does. Nodes are opaque.
+fn through_hole(scene: &Scene, hit: &ConeHit, at: &Here, passes: u32) -> bool {
     let ConeHit::Tri(h) = hit else {
         return false;
     };
-    passes_through(scene.opacity_at(h, d), at.dir[0], passes)
+    passes_through(scene.opacity_at(h), at.dir[0], passes)
 }
 
 impl ConeIntegrator {
@@ -348,7 +347,7 @@ impl ConeIntegrator {
             beta: V::ONE,
             escaped: V::ZERO,
         };
-        let alpha = scene.textures.has_holes();
+        let alpha = scene.textures.has_alpha();
         let mut passes = 0;
         loop {
             let Some(hit) = tr.cone_hit(&path.ray, &path.cone) else {
@@ -358,7 +357,7 @@ impl ConeIntegrator {
             let Some(at) = Here::new(&hit, &path.ray, s, path.depth) else {
                 break;
             };
-            if alpha && passes < MAX_PASSES && through_hole(scene, &hit, path.ray.d, &at, passes) {
+            if alpha && passes < MAX_PASSES && through_hole(scene, &hit, &at, passes) {
                 // A cut-out: the cone goes on unchanged (its width kept) past the surface.
                 passes += 1;
                 path.cone.r0 = path.cone.radius(at.t);

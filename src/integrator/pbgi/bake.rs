@@ -609,7 +609,7 @@ const COVERAGE_SAMPLES: u32 = 32;
 /// reads it (level 0, the cutoff applied). A node's splat then hides and sends only what
 /// is there, as the cone integrator's clusters take coverage (glTF 2.0 §3.9.4).
 fn coverage(scene: &Scene, (t, c): (&crate::paging::TriW, Corners), rng: &mut Hash) -> f32 {
-    if !scene.textures.has_holes() || !scene.textures.varies(t.material) {
+    if !scene.textures.has_alpha() || !scene.textures.varies(t.material) {
         return 1.0;
     }
     let sum: f32 = (0..COVERAGE_SAMPLES)

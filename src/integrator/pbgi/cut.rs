@@ -476,7 +476,7 @@ impl PbgiIntegrator {
         // Rays leave from just above x, as exact rays do, so x's neighbours on its own
         // surface (coplanar up to rounding) do not block its horizon.
         let o = offset_origin(s.p, s.err, s.ng, s.n);
-        let alpha = scene.textures.has_holes();
+        let alpha = scene.textures.has_alpha();
         let mut met = false;
         for t in tris.clone() {
             let Some(tri) = page.tri(t) else {
@@ -520,9 +520,8 @@ impl PbgiIntegrator {
                     transform_err: V::ZERO,
                     corners: page.corners(t),
                 };
-                // An alpha hole or a culled back face hides nothing: the ray goes on to
-                // what lies behind it.
-                if alpha && passes_through(scene.opacity_at(&hit, w), hole_number(w), 0) {
+                // An alpha hole hides nothing: the ray goes on to what lies behind it.
+                if alpha && passes_through(scene.opacity_at(&hit), hole_number(w), 0) {
                     continue;
                 }
                 sc.nearest[j] = Some(hit);
