@@ -4,6 +4,7 @@
 
 use super::textures::Coarse;
 use crate::import::{SpillTri, WHITE};
+use crate::material::coat_fresnel;
 use canopy_format::codec::{f16_encode, rgbe64_encode, snorm16, unorm8};
 use canopy_format::{cofactors3, det3};
 use canopy_format::{MaterialRecord, Node, NodeFlags, TextureRecord};
@@ -66,10 +67,12 @@ impl MatSummary {
         let coat = m.clearcoat.clamp(0.0, 1.0);
         let sheen = sheen_albedo(m);
         let below = |c: f32| (1.0 - coat * coat_fresnel(c)) * (1.0 - sheen.1);
-        let reflect = REFLECT_COS.map(|c| {
-            let base = (1.0 - metal) * spec * schlick(f0d_max, c) + metal * schlick(bmax, c);
-            coverage * (base * below(c) + coat * coat_fresnel(c))
-        });
+        let base_at =
+            |c: f32| (1.0 - metal) * spec * schlick(f0d_max, c) + metal * schlick(bmax, c);
+        let reflect =
+            REFLECT_COS.map(|c| coverage * (base_at(c) * below(c) + coat * coat_fresnel(c)));
+        // The base's reflectance at normal incidence, against the coat's 0.04.
+        let base_normal = base_at(1.0);
         // The layers over the diffuse lobe at their hemispherical means: the coat's
         // Fresnel 0.04 + 0.96·2/42, the sheen's albedo (reflected as if diffuse).
         let diffuse_below = (1.0 - coat * COAT_FRESNEL_MEAN) * (1.0 - sheen.1);
@@ -99,7 +102,7 @@ impl MatSummary {
                 [0.0; 3]
             },
             // The stronger reflection's at normal incidence.
-            roughness: match coat * 0.04 >= reflect_base_normal(m, base) {
+            roughness: match coat * 0.04 >= base_normal {
                 true => m.clearcoat_roughness.clamp(0.0, 1.0),
                 false => m.roughness.clamp(0.0, 1.0),
             },
@@ -110,11 +113,8 @@ impl MatSummary {
     }
 }
 
-/// The clearcoat's Schlick Fresnel at F0 = 0.04 and its mean over the hemisphere,
-/// weighted by cos θ (0.04 + 0.96·2/42).
-fn coat_fresnel(c: f32) -> f32 {
-    schlick(0.04, c)
-}
+/// The clearcoat's Schlick Fresnel (`material::coat_fresnel`) averaged over the hemisphere,
+/// weighted by cos θ: 0.04 + 0.96·2/42.
 const COAT_FRESNEL_MEAN: f32 = 0.04 + 0.96 * 2.0 / 42.0;
 
 /// A sheen's hemispherical-mean albedo per channel and the largest channel's: what it
@@ -126,18 +126,6 @@ fn sheen_albedo(m: &MaterialRecord) -> ([f32; 3], f32) {
     }
     let e = crate::material::sheen_mean_albedo(m.sheen_roughness.clamp(0.0, 1.0));
     (c.map(|c| c * e), c[0].max(c[1]).max(c[2]) * e)
-}
-
-/// The base layer's reflectance at normal incidence (largest channel).
-fn reflect_base_normal(m: &MaterialRecord, base: [f32; 3]) -> f32 {
-    let metal = m.metallic.clamp(0.0, 1.0);
-    let r0 = ((m.ior - 1.0) / (m.ior + 1.0)).powi(2);
-    let f0d = m
-        .specular_color
-        .iter()
-        .fold(0f32, |a, &c| a.max((r0 * c).clamp(0.0, 1.0)));
-    let bmax = base[0].max(base[1]).max(base[2]);
-    (1.0 - metal) * m.specular.clamp(0.0, 1.0) * f0d + metal * bmax
 }
 
 /// The share of a material's surface that is there (glTF 2.0 §3.9.4 alpha as coverage),

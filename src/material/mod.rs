@@ -289,6 +289,17 @@ fn refract(wo: V, m: V, eta: f32) -> Option<V> {
     Some((-wo / eta + (c / eta - ct) * m).normalize())
 }
 
+/// What the layers leave at one viewing direction θo.
+#[derive(Clone, Copy)]
+struct Scales {
+    /// What the coat leaves of everything below it: 1 − coat·F(cos θo).
+    coat: f32,
+    /// The white sheen lobe's directional albedo E(cos θo) (0 without a sheen).
+    sheen_e: f32,
+    /// What reaches the base: coat · (1 − max(sheen)·E).
+    base: f32,
+}
+
 /// The lobes a BSDF samples from, in the order `Bsdf::lobe_probs` lists them.
 const INTERFACE: usize = 0;
 const SPECULAR: usize = 1;
@@ -298,7 +309,7 @@ const COAT: usize = 4;
 
 /// Schlick Fresnel of the clearcoat layer: F0 = 0.04 (ior 1.5), F90 = 1
 /// (KHR_materials_clearcoat).
-fn coat_fresnel(c: f32) -> f32 {
+pub fn coat_fresnel(c: f32) -> f32 {
     0.04 + 0.96 * (1.0 - c.clamp(0.0, 1.0)).powi(5)
 }
 
@@ -324,32 +335,33 @@ impl Bsdf {
         self.f90.max_element() > 0.0 || self.f0.max_element() > 0.0
     }
 
-    /// What the coat leaves of the layers below it for a viewer at `wo`:
-    /// 1 − coat·F(cos θo).
-    fn coat_scale(&self, wo: V) -> f32 {
-        match self.coat > 0.0 {
+    /// What the layers leave for a viewer at `wo` (computed once per evaluation).
+    fn scales(&self, wo: V) -> Scales {
+        let coat = match self.coat > 0.0 {
             true => 1.0 - self.coat * coat_fresnel(wo.z),
             false => 1.0,
-        }
-    }
-
-    /// What the layers above the base (the coat, then the sheen) leave of it for a viewer
-    /// at `wo`: (1 − coat·F(cos θo))·(1 − max(sheen)·E(cos θo)).
-    fn base_scale(&self, wo: V) -> f32 {
-        let s = self.coat_scale(wo);
-        match self.sheen.max_element() > 0.0 {
-            true => {
-                s * (1.0 - self.sheen.max_element() * sheen::albedo(wo.z, self.sheen_roughness))
-            }
-            false => s,
+        };
+        let sheen_on = self.sheen.max_element() > 0.0;
+        let sheen_e = match sheen_on {
+            true => sheen::albedo(wo.z, self.sheen_roughness),
+            false => 0.0,
+        };
+        let base = match sheen_on {
+            true => coat * (1.0 - self.sheen.max_element() * sheen_e),
+            false => coat,
+        };
+        Scales {
+            coat,
+            sheen_e,
+            base,
         }
     }
 
     /// Lobe selection probabilities: dielectric interface, glossy reflection, diffuse,
     /// sheen, clearcoat.
-    fn lobe_probs(&self, wo: V) -> [f32; 5] {
+    fn lobe_probs(&self, wo: V, sc: &Scales) -> [f32; 5] {
         let f = schlick(self.f0, self.f90, wo.z);
-        let base = self.base_scale(wo);
+        let base = sc.base;
         let mut p = [0.0; 5];
         p[INTERFACE] = base * self.trans * luminance(self.tint).max(0.05);
         if self.spec_on() {
@@ -357,8 +369,7 @@ impl Bsdf {
         }
         p[DIFFUSE] = base * luminance(self.diffuse * (V::ONE - f)).max(0.0);
         if self.sheen.max_element() > 0.0 {
-            let e = sheen::albedo(wo.z, self.sheen_roughness);
-            p[SHEEN] = self.coat_scale(wo) * luminance(self.sheen) * e;
+            p[SHEEN] = sc.coat * luminance(self.sheen) * sc.sheen_e;
         }
         p[COAT] = self.coat * coat_fresnel(wo.z);
         // Summed in this order, the three base lobes' shares are the same bits as without
@@ -375,8 +386,9 @@ impl Bsdf {
         if wo.z <= 0.0 {
             return (V::ZERO, 0.0);
         }
-        let probs = self.lobe_probs(wo);
-        let base = self.base_scale(wo);
+        let sc = self.scales(wo);
+        let probs = self.lobe_probs(wo, &sc);
+        let base = sc.base;
         let mut f = V::ZERO;
         let mut pdf = 0.0;
         if wi.z > 0.0 {
@@ -394,7 +406,7 @@ impl Bsdf {
             }
             if probs[SHEEN] > 0.0 {
                 let a = sheen::alpha(self.sheen_roughness);
-                f += self.sheen * (sheen::brdf(wo, wi, a) * self.coat_scale(wo));
+                f += self.sheen * (sheen::brdf(wo, wi, a) * sc.coat);
                 pdf += probs[SHEEN] * wi.z * FRAC_1_PI;
             }
             if probs[COAT] > 0.0 && self.coat_alpha >= SMOOTH_ALPHA {
@@ -482,15 +494,16 @@ impl Bsdf {
         if wo.z <= 0.0 {
             return None;
         }
-        let probs = self.lobe_probs(wo);
+        let sc = self.scales(wo);
+        let probs = self.lobe_probs(wo, &sc);
         if u_lobe < probs[INTERFACE] {
             let p = probs[INTERFACE];
-            return self.sample_interface(wo, u_lobe / p, u, p);
+            return self.sample_interface(wo, u_lobe / p, u, p, sc.base);
         }
         let lobe = Bsdf::pick(&probs, u_lobe - probs[INTERFACE])?;
         let wi = match lobe {
             SPECULAR if self.alpha < SMOOTH_ALPHA => {
-                let f = schlick(self.f0, self.f90, wo.z) * (1.0 - self.trans) * self.base_scale(wo);
+                let f = schlick(self.f0, self.f90, wo.z) * (1.0 - self.trans) * sc.base;
                 return Some(Bsdf::mirror(wo, f, probs[SPECULAR]));
             }
             COAT if self.coat_alpha < SMOOTH_ALPHA => {
@@ -517,8 +530,16 @@ impl Bsdf {
     }
 
     /// The dielectric interface: reflect with the exact Fresnel, else refract; about a GGX
-    /// microfacet sampled from the visible normals when rough.
-    fn sample_interface(&self, wo: V, u: f32, u2: [f32; 2], p_lobe: f32) -> Option<BsdfSample> {
+    /// microfacet sampled from the visible normals when rough. `base` is what the layers
+    /// above leave of it (`Scales::base`).
+    fn sample_interface(
+        &self,
+        wo: V,
+        u: f32,
+        u2: [f32; 2],
+        p_lobe: f32,
+        base: f32,
+    ) -> Option<BsdfSample> {
         if self.alpha >= SMOOTH_ALPHA {
             let wm = ggx_sample_vn(wo, self.alpha, u2);
             let fr = fresnel_dielectric(wo.dot(wm), self.eta);
@@ -539,7 +560,7 @@ impl Bsdf {
             });
         }
         let fr = fresnel_dielectric(wo.z, self.eta);
-        let trans = self.trans * self.base_scale(wo);
+        let trans = self.trans * base;
         if u < fr {
             return Some(BsdfSample {
                 wi: V::new(-wo.x, -wo.y, wo.z),
@@ -568,7 +589,7 @@ impl Bsdf {
         if wo.z <= 0.0 {
             return (0.0, 0.0);
         }
-        let p = self.lobe_probs(wo);
+        let p = self.lobe_probs(wo, &self.scales(wo));
         let base = match self.alpha < SMOOTH_ALPHA {
             true => p[INTERFACE] + p[SPECULAR],
             false => 0.0,
@@ -603,7 +624,7 @@ impl Bsdf {
 
     /// Whether the BSDF has no non-delta lobe (next-event estimation is useless).
     pub fn has_smooth_only(&self) -> bool {
-        let p = self.lobe_probs(V::Z);
+        let p = self.lobe_probs(V::Z, &self.scales(V::Z));
         let base_smooth = (p[SPECULAR] == 0.0 && p[INTERFACE] == 0.0) || self.alpha < SMOOTH_ALPHA;
         let coat_smooth = p[COAT] == 0.0 || self.coat_alpha < SMOOTH_ALPHA;
         p[DIFFUSE] == 0.0 && p[SHEEN] == 0.0 && base_smooth && coat_smooth
