@@ -29,8 +29,7 @@ With `--env MAP` the scene is lit by Mitsuba's `envmap` of that file (its `scale
 `--env-strength`, turned `--env-rotate` degrees about +Y), as `canopy render --env` lights it.
 With `--sky` it is lit by Mitsuba's `sunsky` (its Z-up frame turned to +Y up) with the sun
 where `canopy render --sky` puts it (`--sun-elevation`, `--sun-azimuth`, `--turbidity`,
-`--ground-albedo`, `--sun-strength` as its `sun_scale`). Mitsuba's sun is Hosek and Wilkie's
-solar model, Canopy's Preetham's: compare the sky alone with `--sun-strength 0`.
+`--ground-albedo`, `--sun-strength` as its `sun_scale`).
 Prints the render time and paths per second (spp × pixels / seconds) and writes a JSON
 beside the EXR, so `canopy render` can be timed against it on the same machine.
 """

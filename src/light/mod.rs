@@ -22,6 +22,7 @@ pub mod env;
 mod env_build;
 pub mod env_tiles;
 pub mod sky;
+mod sun_data;
 mod sun_position;
 pub mod tree;
 

@@ -7,15 +7,12 @@
 //! direction by direction). Below the horizon it is black, as Mitsuba's is.
 //!
 //! The sun is a disk of Mitsuba's aperture (0.5358°), uniformly bright, sampled as the
-//! cone it subtends. Its radiance is Preetham, Shirley and Smits' (1999, appendix) form:
-//! a 5,778 K black body (the sun's effective temperature, so its mean disk radiance)
-//! dimmed by Rayleigh scattering (Leckner's optical depth) and aerosols (Ångström's law
-//! with Preetham's β from the turbidity), over Kasten and Young's air mass, then taken to
-//! linear sRGB through Wyman, Sloan and Shirley's fit of the CIE 1931 observer. Ozone and
-//! water vapour are left out. Mitsuba 3's sun is Hosek and Wilkie's solar model instead,
-//! whose tables no crate carries; the two are compared in docs/environment.md.
+//! cone it subtends. Its radiance is Hosek and Wilkie's solar model (2013) as Mitsuba 3
+//! uses it by default: the disk's irradiance, limb darkening integrated, tabulated over
+//! turbidity and elevation (`sun_data.rs`) and spread evenly over the disk.
 
 use super::env_build::{paged_capacity, Builder, Built};
+use super::sun_data::SUN_IRRADIANCE;
 use super::sun_position::sun_position;
 use anyhow::{bail, Result};
 use chrono::{DateTime, FixedOffset};
@@ -215,53 +212,61 @@ impl Sun {
 }
 
 /// The sun's mean disk radiance in linear sRGB, seen from the ground with the sun
-/// `elevation` degrees up through air of `turbidity`.
+/// `elevation` degrees up through air of `turbidity`: Hosek and Wilkie's solar irradiance
+/// (`sun_data.rs`), interpolated linearly in turbidity and elevation, taken to linear sRGB
+/// through the CIE 1931 observer at the model's wavelengths and spread evenly over the
+/// disk, as Mitsuba 3's `sunsky` does (`complex_sun` off).
 pub fn sun_radiance(elevation: f32, turbidity: f32) -> V {
-    let zenith = 90.0 - elevation as f64;
-    // Kasten and Young (1989): the relative optical air mass.
-    let air_mass = 1.0 / (zenith.to_radians().cos() + 0.50572 * (96.07995 - zenith).powf(-1.6364));
-    // Preetham et al. (1999), appendix: Ångström's β from the turbidity, α = 1.3.
-    let beta = (0.04608 * turbidity as f64 - 0.04586).max(0.0);
-    let mut xyz = [0f64; 3];
-    for nm in 360..=830 {
-        let l = nm as f64;
-        let um = l * 1e-3;
-        let depth = 0.008735 * um.powf(-4.08) + beta * um.powf(-1.3);
-        let le = planck(l, 5778.0) * (-air_mass * depth).exp();
-        for (x, cmf) in xyz.iter_mut().zip(cie_1931(l)) {
-            *x += cmf * le;
-        }
-    }
-    let [x, y, z] = xyz.map(|v| v / CIE_Y_NORMALIZATION as f64);
-    V::new(
-        (3.240_454_2 * x - 1.537_138_5 * y - 0.498_531_4 * z) as f32,
-        (-0.969_266 * x + 1.876_010_8 * y + 0.041_556 * z) as f32,
-        (0.055_643_4 * x - 0.204_025_9 * y + 1.057_225_2 * z) as f32,
-    )
-    .max(V::ZERO)
-}
-
-/// Black-body spectral radiance at `nm` nanometres and `kelvin`, in W m⁻² sr⁻¹ nm⁻¹.
-fn planck(nm: f64, kelvin: f64) -> f64 {
-    const H: f64 = 6.626_070_15e-34;
-    const C: f64 = 299_792_458.0;
-    const K: f64 = 1.380_649e-23;
-    let m = nm * 1e-9;
-    2.0 * H * C * C / m.powi(5) / ((H * C / (m * K * kelvin)).exp() - 1.0) * 1e-9
-}
-
-/// The CIE 1931 colour-matching functions at `nm`, by Wyman, Sloan and Shirley's
-/// multi-lobe fit (JCGT 2013, §2).
-fn cie_1931(nm: f64) -> [f64; 3] {
-    let g = |mu: f64, s1: f64, s2: f64| {
-        let s = if nm < mu { s1 } else { s2 };
-        (-0.5 * ((nm - mu) / s).powi(2)).exp()
+    let lerp_index = |x: f32, last: usize| {
+        let x = x.clamp(0.0, last as f32);
+        let i = (x as usize).min(last - 1);
+        (i, x - i as f32)
     };
-    [
-        1.056 * g(599.8, 37.9, 31.0) + 0.362 * g(442.0, 16.0, 26.7) - 0.065 * g(501.1, 20.4, 26.2),
-        0.821 * g(568.8, 46.9, 40.5) + 0.286 * g(530.9, 16.3, 31.1),
-        1.217 * g(437.0, 11.8, 36.0) + 0.681 * g(459.0, 26.0, 13.8),
-    ]
+    let (t, ft) = lerp_index(turbidity - 1.0, SUN_IRRADIANCE.len() - 1);
+    let (e, fe) = lerp_index((elevation - 2.0) / 3.0, SUN_IRRADIANCE[0].len() - 1);
+    let at = |t: usize, e: usize, k: usize| SUN_IRRADIANCE[t][e][k];
+    let mut rgb = V::ZERO;
+    for (k, xyz) in CIE_1931_AT_MODEL_WAVELENGTHS.iter().enumerate() {
+        let low = at(t, e, k) * (1.0 - fe) + at(t, e + 1, k) * fe;
+        let high = at(t + 1, e, k) * (1.0 - fe) + at(t + 1, e + 1, k) * fe;
+        rgb += xyz_to_linear_srgb(*xyz) * (low * (1.0 - ft) + high * ft);
+    }
+    // Mitsuba's spectral-to-RGB constant for the sun, over the disk's solid angle as
+    // Mitsuba computes it (1 − cos in single precision, 0.2% under the exact value):
+    // the same radiance as Mitsuba's, so that renders compare.
+    const SPEC_TO_RGB_SUN_CONV: f32 = 467.069_3;
+    let half = (0.5 * SUN_APERTURE_DEG).to_radians();
+    let solid_angle = 2.0 * PI * (1.0 - half.cos());
+    let le = rgb / CIE_1931_AT_MODEL_WAVELENGTHS.len() as f32 * SPEC_TO_RGB_SUN_CONV
+        / CIE_Y_NORMALIZATION
+        / solid_angle;
+    // Within a degree or two of the horizon the red sun's blue falls out of the sRGB
+    // gamut; a light is never negative, so it is clamped there (Mitsuba keeps it).
+    le.max(V::ZERO)
+}
+
+/// The CIE 1931 2° colour-matching functions (x̄, ȳ, z̄) at 320, 360, …, 720 nm.
+const CIE_1931_AT_MODEL_WAVELENGTHS: [[f32; 3]; 11] = [
+    [0.0, 0.0, 0.0],
+    [1.299e-4, 3.917e-6, 6.061e-4],
+    [1.431e-2, 3.96e-4, 6.785e-2],
+    [3.4828e-1, 2.3e-2, 1.74706],
+    [9.564e-2, 1.3902e-1, 8.1295e-1],
+    [6.327e-2, 7.1e-1, 7.825e-2],
+    [5.945e-1, 9.95e-1, 3.9e-3],
+    [1.0622, 6.31e-1, 8.0e-4],
+    [4.479e-1, 1.75e-1, 2.0e-5],
+    [4.677e-2, 1.7e-2, 0.0],
+    [2.899_327e-3, 1.047e-3, 0.0],
+];
+
+/// CIE XYZ to linear sRGB (Rec. 709 primaries, D65 white).
+fn xyz_to_linear_srgb([x, y, z]: [f32; 3]) -> V {
+    V::new(
+        3.240_479 * x - 1.537_15 * y - 0.498_535 * z,
+        -0.969_256 * x + 1.875_991 * y + 0.041_556 * z,
+        0.055_648 * x - 0.204_043 * y + 1.057_311 * z,
+    )
 }
 
 #[cfg(test)]
