@@ -16,6 +16,7 @@ mod chunks;
 mod ingest;
 mod instances;
 mod ktx2;
+mod morton;
 mod pages;
 mod partition;
 mod spill;

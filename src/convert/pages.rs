@@ -55,8 +55,27 @@ impl std::hash::Hasher for FastHasher {
 type FastMap<K, V> = HashMap<K, V, std::hash::BuildHasherDefault<FastHasher>>;
 
 /// A page vertex's identity: the bits of its position, normal, texture coordinates and
-/// colour.
-type VertexKey = ([u32; 3], u32, [u32; 2], [u16; 4]);
+/// colour, packed into four words that hash as four multiplications.
+#[derive(PartialEq, Eq)]
+struct VertexKey([u64; 4]);
+
+impl VertexKey {
+    fn new(p: [f32; 3], n: u32, uv: [f32; 2], c: [u16; 4]) -> VertexKey {
+        let pair = |a: u32, b: u32| a as u64 | (b as u64) << 32;
+        let [x, y, z] = p.map(f32::to_bits);
+        let [u, v] = uv.map(f32::to_bits);
+        let c = c.iter().fold(0u64, |w, &k| w << 16 | k as u64);
+        VertexKey([pair(x, y), pair(z, n), pair(u, v), c])
+    }
+}
+
+impl std::hash::Hash for VertexKey {
+    fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
+        for w in self.0 {
+            state.write_u64(w);
+        }
+    }
+}
 
 impl Plan {
     pub fn new(tree: &Tree, roots: Vec<u32>, max_nodes: usize) -> Plan {
@@ -157,7 +176,8 @@ impl Plan {
         let grid = self.grid(tree, page);
         let mut out = PageContents::default();
         let mut externals = Vec::new();
-        let mut verts: FastMap<VertexKey, u16> = FastMap::default();
+        let mut verts: FastMap<VertexKey, u16> =
+            FastMap::with_capacity_and_hasher(2 * p.nodes.len(), Default::default());
         // Quantized bounds of each node's parent, by local index (roots have none).
         let mut parent_q: Vec<Option<[u16; 6]>> = vec![None; p.nodes.len()];
         for (local, &id) in p.nodes.iter().enumerate() {
@@ -198,8 +218,7 @@ impl Plan {
                             let n = if streams.normals { t.n[k] } else { 0 };
                             let uv = if streams.uvs { t.uv[k] } else { [0.0; 2] };
                             let c = if streams.colours { t.colour[k] } else { WHITE };
-                            let key = (t.p[k].map(f32::to_bits), n, uv.map(f32::to_bits), c);
-                            *verts.entry(key).or_insert_with(|| {
+                            *verts.entry(VertexKey::new(t.p[k], n, uv, c)).or_insert_with(|| {
                                 out.verts.push(t.p[k]);
                                 if streams.normals {
                                     out.normals.push(t.n[k]);

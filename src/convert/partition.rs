@@ -20,13 +20,7 @@ fn morton(p: [f32; 3], lo: [f32; 3], hi: [f32; 3]) -> u32 {
         let t = if e > 0.0 { (p[a] - lo[a]) / e } else { 0.0 };
         ((t * cells) as u32).min((1 << MORTON_BITS) - 1)
     });
-    let mut code = 0;
-    for bit in (0..MORTON_BITS).rev() {
-        for v in q {
-            code = (code << 1) | ((v >> bit) & 1);
-        }
-    }
-    code
+    super::morton::code(q) as u32
 }
 
 /// Consecutive Morton-bin ranges, each holding at most `cap` triangles (unless one bin alone

@@ -2,6 +2,7 @@
 //! with exact f32 bounds and aggregated cluster attributes per node.
 
 use super::aggregate::{Cluster, MatTable};
+use super::morton::{self, MAX_BITS};
 use crate::import::SpillTri;
 use glam::Vec3A;
 use obvhs::{bvh2::builder::build_bvh2_from_tris, triangle::Triangle, BvhBuildParams};
@@ -30,12 +31,9 @@ fn split_coincident(tris: Vec<SpillTri>) -> (Vec<SpillTri>, Vec<Vec<SpillTri>>) 
         let q = [0, 1, 2].map(|a| {
             let e = hi[a] - lo[a];
             let f = if e > 0.0 { (c[a] - lo[a]) / e } else { 0.0 };
-            ((f as f64 * (1u64 << 21) as f64) as u64).min((1 << 21) - 1)
+            ((f as f64 * (1u64 << MAX_BITS) as f64) as u64).min((1 << MAX_BITS) - 1) as u32
         });
-        (0..21).rev().fold(0u64, |code, bit| {
-            q.iter()
-                .fold(code, |code, v| (code << 1) | ((v >> bit) & 1))
-        })
+        morton::code(q)
     };
     let mut keyed: Vec<(u64, u32)> = tris
         .iter()
@@ -167,10 +165,7 @@ impl Tree {
                 let f = if e > 0.0 { (c[a] - lo[a]) / e } else { 0.0 };
                 ((f * 1024.0) as u32).min(1023)
             });
-            (0..10).rev().fold(0u32, |code, bit| {
-                q.iter()
-                    .fold(code, |code, v| (code << 1) | ((v >> bit) & 1))
-            })
+            morton::code(q)
         };
         items.sort_by_key(|&i| code(i));
         items

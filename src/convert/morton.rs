@@ -1,0 +1,47 @@
+//! Morton codes: three grid coordinates' bits interleaved, x's highest, so that sorting by
+//! the code walks the grid along a Z-order curve.
+
+/// Bits of each coordinate a code can hold.
+pub const MAX_BITS: u32 = 21;
+
+/// `v`'s low 21 bits spread three apart (bit i to bit 3i).
+fn spread(v: u32) -> u64 {
+    let mut x = v as u64 & 0x1f_ffff;
+    x = (x | x << 32) & 0x1f_0000_0000_ffff;
+    x = (x | x << 16) & 0x1f_0000_ff00_00ff;
+    x = (x | x << 8) & 0x100f_00f0_0f00_f00f;
+    x = (x | x << 4) & 0x10c3_0c30_c30c_30c3;
+    x = (x | x << 2) & 0x1249_2492_4924_9249;
+    x
+}
+
+/// The code of grid cell `q` (each coordinate below 2^21): from the top, x's bit, y's,
+/// z's, for each bit level in turn.
+pub fn code(q: [u32; 3]) -> u64 {
+    spread(q[0]) << 2 | spread(q[1]) << 1 | spread(q[2])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn codes_interleave_the_bits_x_first() {
+        // Bit by bit, as the definition reads.
+        let slow = |q: [u32; 3]| {
+            (0..MAX_BITS).rev().fold(0u64, |code, bit| {
+                q.iter()
+                    .fold(code, |code, &v| (code << 1) | ((v as u64 >> bit) & 1))
+            })
+        };
+        let mut rng = crate::test_rng::TestRng::new(5);
+        let top = (1u32 << MAX_BITS) - 1;
+        for q in [[0, 0, 0], [top, top, top], [top, 0, 0], [0, 0, 1], [1, 0, 0]] {
+            assert_eq!(code(q), slow(q), "{q:?}");
+        }
+        for _ in 0..10_000 {
+            let q = [0; 3].map(|_| (rng.f32() * top as f32) as u32 & top);
+            assert_eq!(code(q), slow(q), "{q:?}");
+        }
+    }
+}
