@@ -292,7 +292,7 @@ impl RadianceWriter {
             raw.extend_from_slice(bytemuck::cast_slice(&c.values));
             self.header.coef_bytes += c.bytes();
         }
-        let packed = zstd::bulk::compress(&raw, 3).map_err(io(&self.path))?;
+        let packed = crate::writer::compress(&raw, 3).map_err(io(&self.path))?;
         self.blocks[i] = BlockEntry {
             offset: self.out.len(),
             compressed_len: packed.len() as u32,

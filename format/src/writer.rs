@@ -99,7 +99,7 @@ pub fn encode_page(
     raw.extend_from_slice(bytemuck::cast_slice(&p.normals));
     raw.extend_from_slice(bytemuck::cast_slice(&p.uvs));
     raw.extend_from_slice(bytemuck::cast_slice(&p.colours));
-    let bytes = zstd::bulk::compress(&raw, zstd_level)?;
+    let bytes = compress(&raw, zstd_level)?;
     Ok(EncodedPage {
         checksum: xxhash_rust::xxh3::xxh3_64(&bytes),
         raw_len: raw.len() as u32,
@@ -107,6 +107,25 @@ pub fn encode_page(
         node_count: header.node_count,
         tri_count: header.tri_count,
         vert_count: header.vert_count,
+    })
+}
+
+/// `raw` compressed at `level` by this thread's zstd context, kept between calls: a fresh
+/// context per page cost its allocation and table setup every time. The output is the
+/// same as a fresh context's (zstd resets the session, not the parameters).
+pub(crate) fn compress(raw: &[u8], level: i32) -> std::io::Result<Vec<u8>> {
+    use std::cell::RefCell;
+    thread_local! {
+        static CONTEXT: RefCell<Option<(i32, zstd::bulk::Compressor<'static>)>> =
+            const { RefCell::new(None) };
+    }
+    CONTEXT.with(|c| {
+        let mut c = c.borrow_mut();
+        let context = match &mut *c {
+            Some((l, z)) if *l == level => z,
+            slot => &mut slot.insert((level, zstd::bulk::Compressor::new(level)?)).1,
+        };
+        context.compress(raw)
     })
 }
 
@@ -120,7 +139,7 @@ pub struct EncodedTile {
 pub fn encode_tile(texels: &[u8], zstd_level: i32) -> std::io::Result<EncodedTile> {
     assert_eq!(texels.len(), TILE_BYTES as usize);
     let stored = crate::codec::tile_filter(texels, TILE as usize);
-    let bytes = zstd::bulk::compress(&stored, zstd_level)?;
+    let bytes = compress(&stored, zstd_level)?;
     Ok(EncodedTile {
         checksum: xxhash_rust::xxh3::xxh3_64(&bytes),
         bytes,
