@@ -15,11 +15,12 @@ pub const MAX_LEAF_TRIS: u32 = canopy_format::validate::MAX_LEAF_TRIANGLES;
 const COINCIDENT_GROUP: usize = 64;
 
 /// Splits off groups of more than `COINCIDENT_GROUP` triangles whose centroids fall in one
-/// cell of a 2²¹-per-axis grid over the centroids' bounds; groups come in Morton order.
-fn split_coincident(tris: Vec<SpillTri>) -> (Vec<SpillTri>, Vec<Vec<SpillTri>>) {
+/// cell of a 2²¹-per-axis grid over the centroids' bounds: the indices of the rest and of
+/// each group, all in Morton order.
+fn split_coincident(tris: &[SpillTri]) -> (Vec<u32>, Vec<Vec<u32>>) {
     let mut lo = [f32::INFINITY; 3];
     let mut hi = [f32::NEG_INFINITY; 3];
-    for t in &tris {
+    for t in tris {
         let c = t.centroid();
         for a in 0..3 {
             lo[a] = lo[a].min(c[a]);
@@ -44,7 +45,7 @@ fn split_coincident(tris: Vec<SpillTri>) -> (Vec<SpillTri>, Vec<Vec<SpillTri>>) 
     let mut plain = Vec::with_capacity(tris.len());
     let mut groups = Vec::new();
     for run in keyed.chunk_by(|a, b| a.0 == b.0) {
-        let members = run.iter().map(|&(_, i)| tris[i as usize]);
+        let members = run.iter().map(|&(_, i)| i);
         if run.len() > COINCIDENT_GROUP {
             groups.push(members.collect());
         } else {
@@ -189,14 +190,14 @@ impl Tree {
     /// rest is built with PLOC (obvhs); a balanced tree in Morton order joins the parts.
     /// `fast` picks obvhs's fast preset (no post-collapse reinsertion) over medium.
     pub fn build(tris: Vec<SpillTri>, mats: &MatTable, fast: bool) -> Tree {
-        let (plain, groups) = split_coincident(tris);
+        let (plain, groups) = split_coincident(&tris);
         let mut tree = match plain.is_empty() {
             true => Tree {
                 nodes: Vec::new(),
                 tris: Vec::new(),
                 root: 0,
             },
-            false => Tree::build_ploc(plain, mats, fast),
+            false => Tree::build_ploc(&tris, &plain, mats, fast),
         };
         let mut roots = if tree.nodes.is_empty() {
             Vec::new()
@@ -206,7 +207,7 @@ impl Tree {
         for group in groups {
             let first = tree.tris.len() as u32;
             let count = group.len() as u32;
-            tree.tris.extend(group);
+            tree.tris.extend(group.iter().map(|&i| tris[i as usize]));
             let leaves: Vec<u32> = (0..count)
                 .step_by(MAX_LEAF_TRIS as usize)
                 .map(|k| tree.leaf(first + k, MAX_LEAF_TRIS.min(count - k), mats))
@@ -218,10 +219,11 @@ impl Tree {
         tree
     }
 
-    /// The hierarchy of `tris` (not empty) by PLOC.
-    fn build_ploc(tris: Vec<SpillTri>, mats: &MatTable, fast: bool) -> Tree {
-        let prims: Vec<Triangle> = tris
+    /// The hierarchy by PLOC of the triangles of `tris` that `subset` names (not empty).
+    fn build_ploc(tris: &[SpillTri], subset: &[u32], mats: &MatTable, fast: bool) -> Tree {
+        let prims: Vec<Triangle> = subset
             .iter()
+            .map(|&i| &tris[i as usize])
             .map(|t| Triangle {
                 v0: Vec3A::from(t.p[0]),
                 v1: Vec3A::from(t.p[1]),
@@ -241,7 +243,7 @@ impl Tree {
             (n.prim_count == 0).then(|| [n.first_index as usize, n.first_index as usize + 1])
         };
         // Pass 1: triangles in depth-first leaf order, so each leaf's range is contiguous.
-        let mut order = Vec::with_capacity(tris.len());
+        let mut order = Vec::with_capacity(subset.len());
         let mut stack = vec![0usize];
         while let Some(i) = stack.pop() {
             match children(i) {
@@ -257,10 +259,13 @@ impl Tree {
         }
         let mut tree = Tree {
             nodes: Vec::with_capacity(bvh.nodes.len()),
-            tris: order.iter().map(|&i| tris[i as usize]).collect(),
+            tris: order
+                .iter()
+                .map(|&i| tris[subset[i as usize] as usize])
+                .collect(),
             root: 0,
         };
-        drop((tris, order));
+        drop(order);
         // Pass 2: post-order, the same leaf order; inner nodes join the two latest results.
         let mut next_tri = 0u32;
         let mut built: Vec<u32> = Vec::new();
