@@ -120,7 +120,7 @@ impl Archive {
         let materials = read_table::<MaterialRecord>(&map, &header.materials);
         let cameras = read_table::<CameraRecord>(&map, &header.cameras);
         let lights = read_table::<LightRecord>(&map, &header.lights);
-        let instances = read_table::<InstanceRecord>(&map, &header.instances);
+        let instances = read_released::<InstanceRecord>(&map, &header.instances);
         let mut materials = materials;
         if header.version_minor < 2 {
             // Before 2.2 these bytes were reserved (zero): no textures.
@@ -385,6 +385,35 @@ impl Archive {
 
 /// A table's records (its range is inside the file: `check_table_ranges`); bytes past the
 /// known record size are a later minor version's and are skipped.
+/// `read_table`, letting the kernel drop each stretch of the table's mapped pages once it
+/// is read: millions of instance records would otherwise be resident twice, as mapped file
+/// pages and as records (were they touched again, they would be read back from the file).
+fn read_released<T: bytemuck::Pod>(map: &memmap2::Mmap, t: &TableRef) -> Vec<T> {
+    const STRETCH: u32 = 1 << 16;
+    let mut out = Vec::with_capacity(t.count as usize);
+    let mut first = 0;
+    while first < t.count {
+        let part = TableRef {
+            offset: t.offset + first as u64 * t.record_size as u64,
+            count: STRETCH.min(t.count - first),
+            ..*t
+        };
+        out.extend(read_table::<T>(map, &part));
+        let len = part.count as usize * part.record_size as usize;
+        // SAFETY: the map is a read-only shared mapping of the file; dropping its pages
+        // changes no byte anyone reads through it.
+        let _ = unsafe {
+            map.unchecked_advise_range(
+                memmap2::UncheckedAdvice::DontNeed,
+                part.offset as usize,
+                len,
+            )
+        };
+        first += part.count;
+    }
+    out
+}
+
 fn read_table<T: bytemuck::Pod>(map: &[u8], t: &TableRef) -> Vec<T> {
     if t.count == 0 {
         // A 2.0 file's instance table is all zero, record size included.

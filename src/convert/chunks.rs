@@ -301,7 +301,7 @@ fn append_pages(writer: &mut ArchiveWriter, enc: EncodedPages) -> Result<u32> {
 
 /// Cuts the subtrees under `roots` into pages, encodes them and appends them. Returns the
 /// archive index of the first (top) page.
-fn write_pages(
+pub(super) fn write_pages(
     writer: &mut ArchiveWriter,
     tree: &Tree,
     roots: Vec<u32>,

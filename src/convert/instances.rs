@@ -1,12 +1,15 @@
 //! Meshes placed more than once: each prototype is built alone through partition and chunk
 //! building (so a prototype larger than a chunk is fine), its root page holding its root as
-//! node 0; each placement becomes an instance record and an instance leaf for the top tree,
-//! whose box and cluster are the prototype root's, transformed.
+//! node 0; each placement becomes an instance record and an instance leaf, whose box and
+//! cluster are the prototype root's, transformed. The leaves, in Morton order, are built
+//! into balanced subtrees of `GROUP` at a time, each written to pages as it is built, so
+//! that memory holds the records and one group's nodes, not a node per instance.
 
 use super::chunks::{self, Chunks};
 use super::ingest::{Prototype, SharedMeshes};
+use super::morton;
 use super::spill::{self, Spill, SpillWriter};
-use super::tree::{BNode, Kind};
+use super::tree::{BNode, Kind, Tree};
 use super::{partition, ConvertOptions, MatTable};
 use crate::progress;
 use anyhow::Result;
@@ -27,7 +30,8 @@ pub struct Build<'a> {
 /// The instances, ready for the top tree and the instance table.
 #[derive(Default)]
 pub struct Placed {
-    pub leaves: Vec<BNode>,
+    /// Roots of the instances' subtrees (their pages written), for the top tree.
+    pub groups: Vec<BNode>,
     pub records: Vec<InstanceRecord>,
     pub prototypes: u64,
     /// Triangles the instances place (a prototype's counted once per instance).
@@ -65,8 +69,9 @@ pub fn build(
             .unwrap_or(0),
         ..Default::default()
     };
+    let mut of_record = Vec::new();
     for (proto, to_world) in instances {
-        let Some((root, page)) = &roots[proto as usize] else {
+        let Some((_, page)) = &roots[proto as usize] else {
             continue;
         };
         let record = InstanceRecord {
@@ -77,20 +82,91 @@ pub fn build(
         if check_transform(&record).is_err() {
             continue;
         }
-        let (lo, hi) = record.world_box(root.lo, root.hi);
-        placed.leaves.push(BNode {
-            lo,
-            hi,
-            kind: Kind::Instance {
-                index: placed.records.len() as u32,
-            },
-            cluster: root.cluster.transformed(&record.matrix()),
-            height: 0,
-        });
         placed.records.push(record);
+        of_record.push(proto);
         placed.instanced_triangles += prototypes[proto as usize].count;
     }
+    let leaf = |i: u32| {
+        let record = &placed.records[i as usize];
+        let (root, _) = roots[of_record[i as usize] as usize]
+            .as_ref()
+            .expect("a placed prototype has a root");
+        let (lo, hi) = record.world_box(root.lo, root.hi);
+        BNode {
+            lo,
+            hi,
+            kind: Kind::Instance { index: i },
+            cluster: root.cluster.transformed(&record.matrix()),
+            height: 0,
+        }
+    };
+    for group in morton_order(placed.records.len() as u32, |i| leaf(i)).chunks(GROUP) {
+        placed
+            .groups
+            .push(subtree(writer, group.iter().map(|&i| leaf(i)), b, opts)?);
+    }
     Ok(placed)
+}
+
+/// Instances per subtree of the top tree built and written at a time: the nodes in memory
+/// stay bounded whatever the instance count.
+const GROUP: usize = 1 << 14;
+
+/// `0..n` sorted by the Morton code of their nodes' box centres (`node(i)`, made on demand:
+/// only the codes are held).
+fn morton_order(n: u32, node: impl Fn(u32) -> BNode) -> Vec<u32> {
+    let centre = |i: u32| {
+        let b = node(i);
+        [0, 1, 2].map(|a| 0.5 * b.lo[a] as f64 + 0.5 * b.hi[a] as f64)
+    };
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for i in 0..n {
+        let c = centre(i);
+        for a in 0..3 {
+            lo[a] = lo[a].min(c[a]);
+            hi[a] = hi[a].max(c[a]);
+        }
+    }
+    let cells = (1u64 << morton::MAX_BITS) as f64;
+    let mut keyed: Vec<(u64, u32)> = (0..n)
+        .map(|i| {
+            let c = centre(i);
+            let q = [0, 1, 2].map(|a| {
+                let e = hi[a] - lo[a];
+                let t = if e > 0.0 { (c[a] - lo[a]) / e } else { 0.0 };
+                ((t * cells) as u64).min((1 << morton::MAX_BITS) - 1) as u32
+            });
+            (morton::code(q), i)
+        })
+        .collect();
+    keyed.sort_unstable();
+    keyed.into_iter().map(|(_, i)| i).collect()
+}
+
+/// A balanced tree over `leaves` (in order) whose pages are written now: its root, standing
+/// for them in the top tree (the leaf itself when there is one).
+fn subtree(
+    writer: &mut ArchiveWriter,
+    leaves: impl Iterator<Item = BNode>,
+    b: &Build,
+    opts: &ConvertOptions,
+) -> Result<BNode> {
+    let mut tree = Tree {
+        nodes: leaves.collect(),
+        tris: Vec::new(),
+        root: 0,
+    };
+    let items: Vec<u32> = (0..tree.nodes.len() as u32).collect();
+    tree.root = tree.balanced(&items);
+    let root = tree.nodes[tree.root as usize].clone();
+    let Kind::Inner(children) = root.kind else {
+        return Ok(root);
+    };
+    let page = chunks::write_pages(writer, &tree, children.to_vec(), opts, b.streams)?;
+    Ok(BNode {
+        kind: Kind::External { page },
+        ..root
+    })
 }
 
 /// One prototype's tree: its triangles copied to their own spill, partitioned and built.

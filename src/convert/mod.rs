@@ -303,7 +303,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         threads,
         show: opts.progress,
     };
-    let (root, root_page) = chunks::build(&mut writer, chunks, placed.leaves, opts)?;
+    let (root, root_page) = chunks::build(&mut writer, chunks, placed.groups, opts)?;
     seconds_build += t2.elapsed().as_secs_f64();
     report.seconds_build = seconds_build;
     let scene = imported.scene;

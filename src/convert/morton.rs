@@ -36,7 +36,13 @@ mod tests {
         };
         let mut rng = crate::test_rng::TestRng::new(5);
         let top = (1u32 << MAX_BITS) - 1;
-        for q in [[0, 0, 0], [top, top, top], [top, 0, 0], [0, 0, 1], [1, 0, 0]] {
+        for q in [
+            [0, 0, 0],
+            [top, top, top],
+            [top, 0, 0],
+            [0, 0, 1],
+            [1, 0, 0],
+        ] {
             assert_eq!(code(q), slow(q), "{q:?}");
         }
         for _ in 0..10_000 {

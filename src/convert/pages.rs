@@ -218,20 +218,22 @@ impl Plan {
                             let n = if streams.normals { t.n[k] } else { 0 };
                             let uv = if streams.uvs { t.uv[k] } else { [0.0; 2] };
                             let c = if streams.colours { t.colour[k] } else { WHITE };
-                            *verts.entry(VertexKey::new(t.p[k], n, uv, c)).or_insert_with(|| {
-                                out.verts.push(t.p[k]);
-                                if streams.normals {
-                                    out.normals.push(t.n[k]);
-                                }
-                                if streams.uvs {
-                                    out.uvs.push(uv);
-                                }
-                                if streams.colours {
-                                    out.colours.push(c);
-                                }
-                                u16::try_from(out.verts.len() - 1)
-                                    .expect("page vertex count fits u16")
-                            })
+                            *verts
+                                .entry(VertexKey::new(t.p[k], n, uv, c))
+                                .or_insert_with(|| {
+                                    out.verts.push(t.p[k]);
+                                    if streams.normals {
+                                        out.normals.push(t.n[k]);
+                                    }
+                                    if streams.uvs {
+                                        out.uvs.push(uv);
+                                    }
+                                    if streams.colours {
+                                        out.colours.push(c);
+                                    }
+                                    u16::try_from(out.verts.len() - 1)
+                                        .expect("page vertex count fits u16")
+                                })
                         });
                         out.tris.push(Tri {
                             v,
