@@ -100,7 +100,7 @@ pub fn build(
             height: 0,
         }
     };
-    for group in morton_order(placed.records.len() as u32, |i| leaf(i)).chunks(GROUP) {
+    for group in morton_order(placed.records.len() as u32, leaf).chunks(GROUP) {
         placed
             .groups
             .push(subtree(writer, group.iter().map(|&i| leaf(i)), b, opts)?);
