@@ -6,8 +6,8 @@ use common::*;
 
 /// Cornell box's small box shrunk a hundredfold and placed 450 × 450 times over the floor
 /// (EXT_mesh_gpu_instancing). Converted under `--mem-budget 98MiB`, the least the converter
-/// accepts, its peak RSS stays within the budget (with a node per instance held in memory
-/// it peaked at 160 MiB for 200,000 bunnies); rendered under the same budget, within the
+/// accepts, its peak RSS stays within the budget (a node per instance held in memory takes
+/// it to 159 MiB); rendered under the same budget, within the
 /// budget plus the film and 64 MiB. Its image matches the flattened archive's (every copy
 /// stored as triangles), pixel for pixel up to the rounding of the transforms.
 #[test]
