@@ -86,12 +86,19 @@ pub fn build(
         of_record.push(proto);
         placed.instanced_triangles += prototypes[proto as usize].count;
     }
-    let leaf = |i: u32| {
-        let record = &placed.records[i as usize];
+    let root = |i: u32| {
         let (root, _) = roots[of_record[i as usize] as usize]
             .as_ref()
             .expect("a placed prototype has a root");
-        let (lo, hi) = record.world_box(root.lo, root.hi);
+        (&placed.records[i as usize], root)
+    };
+    let world_box = |i: u32| {
+        let (record, root) = root(i);
+        record.world_box(root.lo, root.hi)
+    };
+    let leaf = |i: u32| {
+        let (record, root) = root(i);
+        let (lo, hi) = world_box(i);
         BNode {
             lo,
             hi,
@@ -100,7 +107,7 @@ pub fn build(
             height: 0,
         }
     };
-    for group in morton_order(placed.records.len() as u32, leaf).chunks(GROUP) {
+    for group in morton_order(placed.records.len() as u32, world_box).chunks(GROUP) {
         placed
             .groups
             .push(subtree(writer, group.iter().map(|&i| leaf(i)), b, opts)?);
@@ -112,12 +119,12 @@ pub fn build(
 /// stay bounded whatever the instance count.
 const GROUP: usize = 1 << 14;
 
-/// `0..n` sorted by the Morton code of their nodes' box centres (`node(i)`, made on demand:
-/// only the codes are held).
-fn morton_order(n: u32, node: impl Fn(u32) -> BNode) -> Vec<u32> {
+/// `0..n` sorted by the Morton code of their boxes' centres (`world_box(i)`, found on
+/// demand: only the codes are held).
+fn morton_order(n: u32, world_box: impl Fn(u32) -> ([f32; 3], [f32; 3])) -> Vec<u32> {
     let centre = |i: u32| {
-        let b = node(i);
-        [0, 1, 2].map(|a| 0.5 * b.lo[a] as f64 + 0.5 * b.hi[a] as f64)
+        let (lo, hi) = world_box(i);
+        [0, 1, 2].map(|a| 0.5 * lo[a] as f64 + 0.5 * hi[a] as f64)
     };
     let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
     for i in 0..n {
