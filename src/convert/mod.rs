@@ -39,6 +39,10 @@ use std::time::Instant;
 pub const BUILD_BYTES_PER_TRI: u64 = 464;
 /// Memory set aside for everything that is not a chunk (code, buffers, histogram).
 const FIXED_BYTES: u64 = 96 << 20;
+/// Peak bytes one instance costs while the archive is built: its placement as imported
+/// (52, and the vector's growth), its record (64), its prototype's index and its sort key;
+/// 4 M instances peaked at 604 MiB.
+const BYTES_PER_INSTANCE: u64 = 144;
 
 pub struct ConvertOptions {
     pub inputs: Vec<PathBuf>,
@@ -221,6 +225,23 @@ fn write_textures(
     Ok((records, coarse))
 }
 
+/// Most triangles one chunk may hold: what the budget leaves beside the fixed part and the
+/// instances, shared by the threads. A budget that leaves no room is an error naming the
+/// least that does.
+fn chunk_cap(budget: u64, instances: u64, threads: usize) -> Result<u64> {
+    let held = FIXED_BYTES + instances * BYTES_PER_INSTANCE;
+    let least = held + 4096 * BUILD_BYTES_PER_TRI;
+    if budget < least {
+        bail!(
+            "--mem-budget {} is too small for {instances} instances: they take {} while the archive is built; converting them needs at least {}",
+            crate::units::format_size(budget),
+            crate::units::format_size(instances * BYTES_PER_INSTANCE),
+            crate::units::format_size(crate::units::whole_mib(least))
+        );
+    }
+    Ok((budget - held) / BUILD_BYTES_PER_TRI / threads as u64)
+}
+
 pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     let t0 = Instant::now();
     if opts.inputs.is_empty() {
@@ -267,7 +288,8 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     let features = imported.features(&mats.summaries);
 
     let threads = rayon::current_num_threads().max(1);
-    let cap = (opts.mem_budget - FIXED_BYTES) / BUILD_BYTES_PER_TRI / threads as u64;
+    let placements = imported.shared.as_ref().map_or(0, |s| s.2.len() as u64);
+    let cap = chunk_cap(opts.mem_budget, placements, threads)?;
     let streams = Streams::of(features);
     let t2 = Instant::now();
     let placed = match imported.shared {
