@@ -111,8 +111,8 @@ pub fn encode_page(
 }
 
 /// `raw` compressed at `level` by this thread's zstd context, kept between calls: a fresh
-/// context per page cost its allocation and table setup every time. The output is the
-/// same as a fresh context's (zstd resets the session, not the parameters).
+/// context per page would allocate and clear its tables every time. The output is the same
+/// as a fresh context's: each call starts a new frame with the same parameters.
 pub(crate) fn compress(raw: &[u8], level: i32) -> std::io::Result<Vec<u8>> {
     use std::cell::RefCell;
     thread_local! {
