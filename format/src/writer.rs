@@ -8,6 +8,7 @@ use crate::node::{Node, Tri};
 use crate::records::*;
 use bytemuck::Zeroable;
 use std::path::Path;
+use xxhash_rust::xxh3::Xxh3;
 
 /// The decoded contents of one page.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -337,19 +338,21 @@ impl ArchiveWriter {
             e.seal();
         }
         self.pad()?;
-        let base = self.out.len();
-        let mut tables = Vec::new();
-        let materials = append_table(&mut tables, base, &info.materials);
-        let cameras = append_table(&mut tables, base, &info.cameras);
-        let lights = append_table(&mut tables, base, &info.lights);
-        let instances = append_table(&mut tables, base, &info.instances);
-        let textures = append_table(&mut tables, base, &info.textures);
-        let tiles = append_table(&mut tables, base, &self.tiles);
-        let environment = append_table(&mut tables, base, info.environment.as_slice());
-        append_table(&mut tables, base, &info.notes);
-        let tables_checksum = xxhash_rust::xxh3::xxh3_64(&tables);
-        tables.resize((tables.len() as u64).next_multiple_of(ALIGN) as usize, 0);
-        let pages = append_table(&mut tables, base, &self.pages);
+        // The tables go straight to the file, hashed as they go: gathered into one buffer
+        // first, millions of instance records were held twice.
+        let mut hash = Xxh3::new();
+        let out = &mut self.out;
+        let materials = put_table(out, &mut hash, &info.materials)?;
+        let cameras = put_table(out, &mut hash, &info.cameras)?;
+        let lights = put_table(out, &mut hash, &info.lights)?;
+        let instances = put_table(out, &mut hash, &info.instances)?;
+        let textures = put_table(out, &mut hash, &info.textures)?;
+        let tiles = put_table(out, &mut hash, &self.tiles)?;
+        let environment = put_table(out, &mut hash, info.environment.as_slice())?;
+        put_table(out, &mut hash, &info.notes)?;
+        let tables_checksum = hash.digest();
+        self.pad()?;
+        let pages = put_table(&mut self.out, &mut Xxh3::new(), &self.pages)?;
         let mut header = Header {
             magic: MAGIC,
             version_major: VERSION_MAJOR,
@@ -360,7 +363,7 @@ impl ArchiveWriter {
             triangles: self.tris,
             nodes: self.nodes,
             vertices: self.verts,
-            file_len: base + tables.len() as u64,
+            file_len: self.out.len(),
             bounds_min: info.bounds_min,
             bounds_max: info.bounds_max,
             root_page: info.root_page,
@@ -381,19 +384,25 @@ impl ArchiveWriter {
             environment,
         };
         header.header_checksum = xxhash_rust::xxh3::xxh3_64(bytemuck::bytes_of(&header));
-        self.out.write_all(&tables)?;
         self.out.commit(bytemuck::bytes_of(&header))?;
         Ok(())
     }
 }
 
-/// Appends a table's records and returns where they sit; the record size is the type's.
-fn append_table<T: bytemuck::Pod>(tables: &mut Vec<u8>, base: u64, records: &[T]) -> TableRef {
+/// Appends a table's records to `out`, adding them to `hash`, and returns where they sit;
+/// the record size is the type's.
+fn put_table<T: bytemuck::Pod>(
+    out: &mut AtomicFile,
+    hash: &mut Xxh3,
+    records: &[T],
+) -> Result<TableRef> {
     let t = TableRef {
-        offset: base + tables.len() as u64,
+        offset: out.len(),
         count: records.len() as u32,
         record_size: std::mem::size_of::<T>() as u32,
     };
-    tables.extend_from_slice(bytemuck::cast_slice(records));
-    t
+    let bytes = bytemuck::cast_slice(records);
+    hash.update(bytes);
+    out.write_all(bytes)?;
+    Ok(t)
 }

@@ -103,7 +103,7 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
             )
         };
         let instances = gpu_instances(&doc, &node, &buffers).map_err(named)?;
-        if instances.iter().any(|i| !(world * *i).is_finite()) {
+        if instances.iter().any(|i| !(world * i).is_finite()) {
             bail!(
                 "{}: node '{}' has an instance with a non-finite transform",
                 path.display(),
@@ -122,7 +122,7 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
             sink,
         };
         if !shared[mesh.index()] {
-            for instance in instances {
+            for instance in instances.iter() {
                 count += m.push(world * instance)?;
             }
             continue;
@@ -138,7 +138,7 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
         if tris == 0 {
             continue;
         }
-        for instance in instances {
+        for instance in instances.iter() {
             let c = (world * instance).to_cols_array();
             let to_world = std::array::from_fn(|i| c[i / 3 * 4 + i % 3]);
             sink.instance(proto, to_world)?;
@@ -163,7 +163,7 @@ fn shared_meshes(
         for node in doc.nodes() {
             if let Some(m) = node.mesh() {
                 // A bad instancing extension is reported by the walk, naming the node.
-                uses[m.index()] += gpu_instances(doc, &node, buffers).map_or(1, |i| i.len());
+                uses[m.index()] += gpu_instances(doc, &node, buffers).map_or(1, |i| i.n);
             }
         }
     }
@@ -337,16 +337,45 @@ fn check_forest(doc: &gltf::Document) -> Result<()> {
     Ok(())
 }
 
+/// A node's EXT_mesh_gpu_instancing placements: translation, rotation and scale columns
+/// (each optional), made into matrices one at a time as they are used, so that millions of
+/// instances are not held as matrices too.
+struct GpuInstances {
+    t: Option<Vec<Vec3>>,
+    r: Option<Vec<glam::Quat>>,
+    s: Option<Vec<Vec3>>,
+    /// How many (1 without the extension: the identity).
+    n: usize,
+}
+
+impl GpuInstances {
+    /// The transforms in the node's space, in order.
+    fn iter(&self) -> impl Iterator<Item = Mat4> + '_ {
+        (0..self.n).map(|i| {
+            Mat4::from_scale_rotation_translation(
+                self.s.as_ref().map_or(Vec3::ONE, |s| s[i]),
+                self.r.as_ref().map_or(glam::Quat::IDENTITY, |r| r[i]),
+                self.t.as_ref().map_or(Vec3::ZERO, |t| t[i]),
+            )
+        })
+    }
+}
+
 /// A node's EXT_mesh_gpu_instancing transforms (translation, rotation, scale per instance,
 /// in the node's space), or the identity alone.
 fn gpu_instances(
     doc: &gltf::Document,
     node: &gltf::Node,
     buffers: &[Vec<u8>],
-) -> Result<Vec<Mat4>> {
+) -> Result<GpuInstances> {
     use gltf::accessor::{DataType, Dimensions, Iter};
     let Some(ext) = node.extension_value("EXT_mesh_gpu_instancing") else {
-        return Ok(vec![Mat4::IDENTITY]);
+        return Ok(GpuInstances {
+            t: None,
+            r: None,
+            s: None,
+            n: 1,
+        });
     };
     let accessor = |name: &str, dims| -> Result<Option<gltf::Accessor>> {
         let Some(v) = ext["attributes"].get(name) else {
@@ -389,15 +418,7 @@ fn gpu_instances(
     if counts.iter().any(|&c| c != n) {
         bail!("EXT_mesh_gpu_instancing accessors of {counts:?} elements (the spec requires one count)");
     }
-    Ok((0..n)
-        .map(|i| {
-            Mat4::from_scale_rotation_translation(
-                s.as_ref().map_or(Vec3::ONE, |s| s[i]),
-                r.as_ref().map_or(glam::Quat::IDENTITY, |r| r[i]),
-                t.as_ref().map_or(Vec3::ZERO, |t| t[i]),
-            )
-        })
-        .collect())
+    Ok(GpuInstances { t, r, s, n })
 }
 
 /// Notes what the file holds that Canopy does not render, naming where and what is done
