@@ -383,8 +383,6 @@ impl Archive {
     }
 }
 
-/// A table's records (its range is inside the file: `check_table_ranges`); bytes past the
-/// known record size are a later minor version's and are skipped.
 /// `read_table`, letting the kernel drop each stretch of the table's mapped pages once it
 /// is read: millions of instance records would otherwise be resident twice, as mapped file
 /// pages and as records (were they touched again, they would be read back from the file).
@@ -414,6 +412,8 @@ fn read_released<T: bytemuck::Pod>(map: &memmap2::Mmap, t: &TableRef) -> Vec<T> 
     out
 }
 
+/// A table's records (its range is inside the file: `check_table_ranges`); bytes past the
+/// known record size are a later minor version's and are skipped.
 fn read_table<T: bytemuck::Pod>(map: &[u8], t: &TableRef) -> Vec<T> {
     if t.count == 0 {
         // A 2.0 file's instance table is all zero, record size included.

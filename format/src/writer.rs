@@ -342,17 +342,17 @@ impl ArchiveWriter {
         // first, millions of instance records were held twice.
         let mut hash = Xxh3::new();
         let out = &mut self.out;
-        let materials = put_table(out, &mut hash, &info.materials)?;
-        let cameras = put_table(out, &mut hash, &info.cameras)?;
-        let lights = put_table(out, &mut hash, &info.lights)?;
-        let instances = put_table(out, &mut hash, &info.instances)?;
-        let textures = put_table(out, &mut hash, &info.textures)?;
-        let tiles = put_table(out, &mut hash, &self.tiles)?;
-        let environment = put_table(out, &mut hash, info.environment.as_slice())?;
-        put_table(out, &mut hash, &info.notes)?;
+        let materials = put_table(out, Some(&mut hash), &info.materials)?;
+        let cameras = put_table(out, Some(&mut hash), &info.cameras)?;
+        let lights = put_table(out, Some(&mut hash), &info.lights)?;
+        let instances = put_table(out, Some(&mut hash), &info.instances)?;
+        let textures = put_table(out, Some(&mut hash), &info.textures)?;
+        let tiles = put_table(out, Some(&mut hash), &self.tiles)?;
+        let environment = put_table(out, Some(&mut hash), info.environment.as_slice())?;
+        put_table(out, Some(&mut hash), &info.notes)?;
         let tables_checksum = hash.digest();
         self.pad()?;
-        let pages = put_table(&mut self.out, &mut Xxh3::new(), &self.pages)?;
+        let pages = put_table(&mut self.out, None, &self.pages)?;
         let mut header = Header {
             magic: MAGIC,
             version_major: VERSION_MAJOR,
@@ -389,11 +389,11 @@ impl ArchiveWriter {
     }
 }
 
-/// Appends a table's records to `out`, adding them to `hash`, and returns where they sit;
-/// the record size is the type's.
+/// Appends a table's records to `out`, adding them to `hash` if given, and returns where
+/// they sit; the record size is the type's.
 fn put_table<T: bytemuck::Pod>(
     out: &mut AtomicFile,
-    hash: &mut Xxh3,
+    hash: Option<&mut Xxh3>,
     records: &[T],
 ) -> Result<TableRef> {
     let t = TableRef {
@@ -402,7 +402,9 @@ fn put_table<T: bytemuck::Pod>(
         record_size: std::mem::size_of::<T>() as u32,
     };
     let bytes = bytemuck::cast_slice(records);
-    hash.update(bytes);
+    if let Some(hash) = hash {
+        hash.update(bytes);
+    }
     out.write_all(bytes)?;
     Ok(t)
 }

@@ -107,7 +107,12 @@ pub fn build(
             height: 0,
         }
     };
-    for group in morton_order(placed.records.len() as u32, world_box).chunks(GROUP) {
+    let centre = |i: u32| {
+        let (lo, hi) = world_box(i);
+        [0, 1, 2].map(|a| 0.5 * lo[a] as f64 + 0.5 * hi[a] as f64)
+    };
+    let order = morton::order(placed.records.len() as u32, morton::MAX_BITS, centre);
+    for group in order.chunks(GROUP) {
         placed
             .groups
             .push(subtree(writer, group.iter().map(|&i| leaf(i)), b, opts)?);
@@ -118,37 +123,6 @@ pub fn build(
 /// Instances per subtree of the top tree built and written at a time: the nodes in memory
 /// stay bounded whatever the instance count.
 const GROUP: usize = 1 << 14;
-
-/// `0..n` sorted by the Morton code of their boxes' centres (`world_box(i)`, found on
-/// demand: only the codes are held).
-fn morton_order(n: u32, world_box: impl Fn(u32) -> ([f32; 3], [f32; 3])) -> Vec<u32> {
-    let centre = |i: u32| {
-        let (lo, hi) = world_box(i);
-        [0, 1, 2].map(|a| 0.5 * lo[a] as f64 + 0.5 * hi[a] as f64)
-    };
-    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
-    for i in 0..n {
-        let c = centre(i);
-        for a in 0..3 {
-            lo[a] = lo[a].min(c[a]);
-            hi[a] = hi[a].max(c[a]);
-        }
-    }
-    let cells = (1u64 << morton::MAX_BITS) as f64;
-    let mut keyed: Vec<(u64, u32)> = (0..n)
-        .map(|i| {
-            let c = centre(i);
-            let q = [0, 1, 2].map(|a| {
-                let e = hi[a] - lo[a];
-                let t = if e > 0.0 { (c[a] - lo[a]) / e } else { 0.0 };
-                ((t * cells) as u64).min((1 << morton::MAX_BITS) - 1) as u32
-            });
-            (morton::code(q), i)
-        })
-        .collect();
-    keyed.sort_unstable();
-    keyed.into_iter().map(|(_, i)| i).collect()
-}
 
 /// A balanced tree over `leaves` (in order) whose pages are written now: its root, standing
 /// for them in the top tree (the leaf itself when there is one).

@@ -21,6 +21,34 @@ pub fn code(q: [u32; 3]) -> u64 {
     spread(q[0]) << 2 | spread(q[1]) << 1 | spread(q[2])
 }
 
+/// `0..n` sorted by the Morton code of `centre(k)` on a grid of 2^`bits` cells an axis over
+/// the centres' bounds (a flat axis maps to cell 0), ties in index order. The centres are
+/// found on demand, twice each: only the codes are held.
+pub fn order(n: u32, bits: u32, centre: impl Fn(u32) -> [f64; 3]) -> Vec<u32> {
+    let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for k in 0..n {
+        let c = centre(k);
+        for a in 0..3 {
+            lo[a] = lo[a].min(c[a]);
+            hi[a] = hi[a].max(c[a]);
+        }
+    }
+    let cells = (1u64 << bits) as f64;
+    let mut keyed: Vec<(u64, u32)> = (0..n)
+        .map(|k| {
+            let c = centre(k);
+            let q = [0, 1, 2].map(|a| {
+                let e = hi[a] - lo[a];
+                let t = if e > 0.0 { (c[a] - lo[a]) / e } else { 0.0 };
+                ((t * cells) as u64).min((1 << bits) - 1) as u32
+            });
+            (code(q), k)
+        })
+        .collect();
+    keyed.sort_unstable();
+    keyed.into_iter().map(|(_, k)| k).collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

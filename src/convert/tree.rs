@@ -142,36 +142,20 @@ impl Tree {
         self.nodes.len() as u32 - 1
     }
 
-    /// A balanced binary tree over `items` (kept in order), built with `join`.
     /// `items` sorted by the Morton code of their boxes' centres (2¹⁰ cells an axis over
     /// the centres' bounds), for `balanced`.
-    pub fn morton_order(&self, mut items: Vec<u32>) -> Vec<u32> {
-        let centre = |i: u32| {
-            let n = &self.nodes[i as usize];
+    pub fn morton_order(&self, items: Vec<u32>) -> Vec<u32> {
+        let centre = |k: u32| {
+            let n = &self.nodes[items[k as usize] as usize];
             [0, 1, 2].map(|a| 0.5 * n.lo[a] as f64 + 0.5 * n.hi[a] as f64)
         };
-        let mut lo = [f64::INFINITY; 3];
-        let mut hi = [f64::NEG_INFINITY; 3];
-        for &i in &items {
-            let c = centre(i);
-            for a in 0..3 {
-                lo[a] = lo[a].min(c[a]);
-                hi[a] = hi[a].max(c[a]);
-            }
-        }
-        let code = |i: u32| {
-            let c = centre(i);
-            let q = [0, 1, 2].map(|a| {
-                let e = hi[a] - lo[a];
-                let f = if e > 0.0 { (c[a] - lo[a]) / e } else { 0.0 };
-                ((f * 1024.0) as u32).min(1023)
-            });
-            morton::code(q)
-        };
-        items.sort_by_key(|&i| code(i));
-        items
+        morton::order(items.len() as u32, 10, centre)
+            .into_iter()
+            .map(|k| items[k as usize])
+            .collect()
     }
 
+    /// A balanced binary tree over `items` (kept in order), built with `join`.
     pub fn balanced(&mut self, items: &[u32]) -> u32 {
         match items {
             [one] => *one,
