@@ -16,6 +16,7 @@ pub mod metrics;
 pub mod moments;
 pub mod paging;
 pub mod progress;
+pub mod relight;
 pub mod render;
 pub mod sampler;
 pub mod sweep;

@@ -6,6 +6,7 @@ mod bake;
 mod compare;
 mod convert;
 mod inspect;
+mod relight;
 mod render;
 mod sweep;
 
@@ -43,6 +44,7 @@ enum Cmd {
     Compare(compare::CompareArgs),
     Inspect(inspect::InspectArgs),
     Assemble(assemble::AssembleArgs),
+    Relight(relight::RelightArgs),
 }
 
 /// Render settings shared by `render`, `npp` and `eval`.
@@ -278,6 +280,7 @@ pub fn run() -> Result<()> {
         Cmd::Npp(a) => a.settings.mem_budget,
         Cmd::Eval(a) => a.settings.mem_budget,
         Cmd::Bake(a) => a.mem_budget(),
+        Cmd::Relight(_) => None,
         Cmd::Convert(_) | Cmd::Compare(_) | Cmd::Inspect(_) | Cmd::Assemble(_) => None,
     };
     if budget.is_some() {
@@ -303,5 +306,6 @@ pub fn run() -> Result<()> {
         Cmd::Compare(a) => compare::run(a),
         Cmd::Inspect(a) => inspect::run(a, show),
         Cmd::Assemble(a) => assemble::run(a),
+        Cmd::Relight(a) => relight::run(a, show),
     }
 }

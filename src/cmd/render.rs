@@ -50,6 +50,10 @@ pub struct RenderArgs {
     /// 127.0.0.1:14158, tev's default).
     #[arg(long, value_name = "HOST:PORT")]
     display_server: Option<String>,
+    /// A light set (TOML: lamps scaled, punctual lights moved or added, the environment's
+    /// strength) changing the archive's lights; the path tracer only.
+    #[arg(long, value_name = "FILE")]
+    lights: Option<PathBuf>,
     /// Write render statistics as JSON here.
     #[arg(long)]
     stats: Option<PathBuf>,
@@ -93,6 +97,7 @@ impl RenderSettings {
             pixel_split: self.pixel_split,
             display: None,
             env: self.env.options(),
+            lights: None,
             crop: None,
             preview: false,
             exposure: 1.0,
@@ -119,6 +124,7 @@ pub fn run(a: RenderArgs, progress: bool) -> Result<()> {
         stats: a.stats,
         node_stats: a.node_stats,
         display: a.display_server,
+        lights: a.lights,
         ..a.settings
             .options(a.integrator, a.archive, a.output.clone(), spp, progress)
     };

@@ -21,12 +21,14 @@ mod distribution;
 pub mod env;
 mod env_build;
 pub mod env_tiles;
+mod set;
 pub mod sky;
 mod sun_data;
 mod sun_position;
 pub mod tree;
 
 pub use env::Environment;
+pub use set::LightSet;
 
 pub struct Emitter {
     pub p: [V; 3],

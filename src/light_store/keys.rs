@@ -74,6 +74,16 @@ impl Keys {
         self.node(leaf) + (1 + 2 * k as u64 + back as u64) * CELLS + cell
     }
 
+    /// What a key names: its node, and for a cell key the triangle's slot, side and cell.
+    pub fn decode(&self, key: u64) -> (u64, Option<(u32, bool, u64)>) {
+        let (node, rest) = (key / self.stride, key % self.stride);
+        if rest < CELLS {
+            return (node, None);
+        }
+        let side = rest / CELLS - 1;
+        (node, Some(((side / 2) as u32, side % 2 == 1, rest % CELLS)))
+    }
+
     /// Side n of a triangle's n×n cell grid, from its longest edge.
     pub fn grid(&self, tri: &TriW) -> f32 {
         (longest_edge(tri) / self.cell_size)
@@ -154,6 +164,8 @@ mod tests {
         assert!(k.tri(3, 0, false, 0) > k.node(3));
         assert!(k.tri(3, 0, false, CELLS - 1) < k.tri(3, 0, true, 0));
         assert!(k.tri(3, 0, true, CELLS - 1) < k.tri(3, 1, false, 0));
+        assert_eq!(k.decode(k.tri(3, 5, true, 17)), (3, Some((5, true, 17))));
+        assert_eq!(k.decode(k.node(4)), (4, None));
         // Each instance's nodes number after the scene's and the previous instance's.
         assert_eq!(k.placed(NO_INSTANCE, 4), 4);
         assert!(k.tri(k.placed(NO_INSTANCE, 4), 7, true, CELLS - 1) < k.node(k.placed(0, 0)));

@@ -20,7 +20,7 @@ pub fn pull(cache: &PageCache, store: &RadianceStore, keys: Keys) {
     });
     // Each instance's leaf, in the scene's tree, takes its prototype root's new light.
     for changed in &instances {
-        if let Some(page) = page_of(cache, changed[0].2) {
+        if let Some(page) = cache.page_of(changed[0].2) {
             store.mark_dirty(page);
         }
     }
@@ -52,13 +52,6 @@ fn pull_pages(
             }
         });
     }
-}
-
-/// The page holding global node `node` (pages number nodes consecutively in table order).
-fn page_of(cache: &PageCache, node: u64) -> Option<u32> {
-    let i = cache.entries.partition_point(|e| e.first_node <= node);
-    let e = cache.entries.get(i.checked_sub(1)?)?;
-    (node < e.first_node + e.node_count as u64).then_some(i as u32 - 1)
 }
 
 /// One part a node's light is the mean of: a triangle of a leaf or a child node.

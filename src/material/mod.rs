@@ -622,6 +622,15 @@ impl Bsdf {
         self.sample(wo, u_lobe, u2).filter(|s| s.delta)
     }
 
+    /// The diffuse lobe's value at `wo`, the same for every incident direction.
+    pub fn diffuse_lobe(&self, wo: V) -> V {
+        let glossy = Bsdf {
+            diffuse: V::ZERO,
+            ..*self
+        };
+        self.eval(wo, V::Z).0 - glossy.eval(wo, V::Z).0
+    }
+
     /// Whether the BSDF has no non-delta lobe (next-event estimation is useless).
     pub fn has_smooth_only(&self) -> bool {
         let p = self.lobe_probs(V::Z, &self.scales(V::Z));

@@ -576,6 +576,14 @@ impl PageCache {
             .sum()
     }
 
+    /// The page holding global node `node` (pages number nodes consecutively in table
+    /// order).
+    pub fn page_of(&self, node: u64) -> Option<u32> {
+        let i = self.entries.partition_point(|e| e.first_node <= node);
+        let e = self.entries.get(i.checked_sub(1)?)?;
+        (node < e.first_node + e.node_count as u64).then_some(i as u32 - 1)
+    }
+
     pub fn root_page(&self) -> u32 {
         self.archive.header.root_page
     }

@@ -12,7 +12,7 @@ mod setup;
 mod stats;
 
 pub use defaults::{EnvOptions, EnvSource};
-pub use setup::MAX_SIDE;
+pub use setup::{Setup, MAX_SIDE};
 pub use stats::{Checkpoint, RenderStats, Seconds};
 
 use crate::progress::peak_rss_bytes;
@@ -20,7 +20,6 @@ use crate::texture::TextureFilter;
 use display::Display;
 use film::{Film, Sums};
 use pixel_split::PixelSplit;
-use setup::Setup;
 use stats::ancestors_closure;
 
 use crate::image::{Frame, Image};
@@ -59,6 +58,8 @@ pub struct RenderOptions {
     pub pixel_split: Option<u32>,
     /// An environment map lighting the scene from infinitely far away.
     pub env: Option<EnvOptions>,
+    /// A light set (`LightSet`) changing the archive's lights.
+    pub lights: Option<PathBuf>,
     /// tev's address (HOST:PORT), to stream the image to as it converges.
     pub display: Option<String>,
     /// x0, x1, y0, y1 in pixels (half-open).

@@ -7,6 +7,7 @@ use crate::camera::Camera;
 use crate::image::{check_writable, same_file};
 use crate::integrator::{NodeSet, Scene};
 use crate::light::Environment;
+use crate::light::LightSet;
 use crate::light::Lights;
 use crate::material::Material;
 use crate::paging::PageCache;
@@ -135,14 +136,41 @@ fn window(o: &RenderOptions, width: u32, height: u32) -> Result<[u32; 4]> {
     }
 }
 
+/// The archive with `--lights`' changes made to its lights.
+fn open_lit(o: &RenderOptions) -> Result<Archive> {
+    let mut archive = Archive::open(&o.archive)?;
+    let Some(path) = &o.lights else {
+        return Ok(archive);
+    };
+    if o.integrator.kind() != crate::integrator::Kind::Path {
+        bail!(
+            "--lights: only the path tracer renders a changed light set (the cone integrator and PBGI read lamps' light stored in the archive's nodes)"
+        );
+    }
+    let set = LightSet::read(path)?;
+    if set.changes_environment() && o.env.is_some() {
+        bail!(
+            "{}: its [environment] changes the archive's environment, which --env or --sky replace (give their strength and rotation by flags instead)",
+            path.display()
+        );
+    }
+    set.apply(&mut archive)?;
+    Ok(archive)
+}
+
 impl Setup {
     pub fn new(o: &RenderOptions) -> Result<Setup> {
-        let (exr, png) = outputs(o)?;
+        Setup::open(o, outputs(o)?)
+    }
+
+    /// The scene `o` names, for a render whose outputs are `exr` and `png` (checked by the
+    /// caller).
+    pub fn open(o: &RenderOptions, (exr, png): (PathBuf, Option<PathBuf>)) -> Result<Setup> {
         if o.spp == 0 {
             bail!("--spp must be at least 1");
         }
         let pixel_split = o.integrator.pixel_split(o.pixel_split)?;
-        let archive = Arc::new(Archive::open(&o.archive)?);
+        let archive = Arc::new(open_lit(o)?);
         let instances_note = o.integrator.check_archive(&archive)?;
         let framing = framing_camera(&archive);
         let cam = camera(o, &archive, &framing)?;

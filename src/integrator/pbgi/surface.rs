@@ -123,7 +123,7 @@ impl Surface {
 
     /// The diffuse lobe's value (the same for every pair of directions).
     pub(super) fn diffuse_lobe(&self) -> V {
-        self.bsdf.eval(self.wo_l, V::Z).0 - self.glossy().eval(self.wo_l, V::Z).0
+        self.bsdf.diffuse_lobe(self.wo_l)
     }
 
     /// The BSDF without its diffuse lobe.

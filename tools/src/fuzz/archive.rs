@@ -276,6 +276,7 @@ pub fn tiny_render(archive: &Path, dir: &Path, integrator: Settings) -> RenderOp
         exposure: 1.0,
         stats: None,
         node_stats: true,
+        lights: None,
         progress: false,
     }
 }

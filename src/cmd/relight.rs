@@ -1,0 +1,159 @@
+use anyhow::{bail, Result};
+use canopy::relight::{self, PrepareOptions, RelightOptions, Relighter};
+use canopy::units;
+use clap::Args;
+use std::io::Read;
+use std::path::{Path, PathBuf};
+
+/// Relight one view with global illumination: precompute its light transfer once, then
+/// render any light set (lamps scaled, lights moved or added) from it.
+///
+/// `canopy relight ARCHIVE -o VIEW.relight` precomputes; `canopy relight VIEW.relight
+/// --lights L.toml -o out.exr` renders a light set (without --lights: the archive's own
+/// lights).
+#[derive(Args)]
+pub struct RelightArgs {
+    /// A node archive (to precompute) or a .relight file (to render).
+    input: PathBuf,
+    /// Output: VIEW.relight when precomputing; .exr or .png (which also writes the .exr)
+    /// when rendering.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Rendering: a light set (TOML; see docs/relighting.md) changing the archive's lights.
+    #[arg(long, value_name = "FILE")]
+    lights: Option<PathBuf>,
+    /// Rendering: light samples per view sample and per gather point [default: 4].
+    #[arg(long, value_name = "N")]
+    light_samples: Option<u32>,
+    /// Precomputing: camera name (default: the first camera, else the default view).
+    #[arg(long)]
+    camera: Option<String>,
+    /// Precomputing: image width (default: the camera's, else 512 high at its aspect).
+    #[arg(long)]
+    width: Option<u32>,
+    /// Precomputing: image height.
+    #[arg(long)]
+    height: Option<u32>,
+    /// Precomputing: view samples per pixel [default: 4].
+    #[arg(long)]
+    spp: Option<u32>,
+    /// Precomputing: transfer paths per view sample [default: 16].
+    #[arg(long)]
+    paths: Option<u32>,
+    /// Precomputing: the compression's accuracy knob: a node carrying less than this
+    /// fraction of a pixel's transfer is merged into its parent [default: 0.01].
+    #[arg(long)]
+    threshold: Option<f32>,
+    /// Precomputing: seed of the sample sequences [default: 0].
+    #[arg(long)]
+    seed: Option<u32>,
+    /// Memory for decoded pages, e.g. 256MiB (default: unlimited).
+    #[arg(long, value_parser = units::parse_size)]
+    mem_budget: Option<u64>,
+    /// Worker threads (default: all cores).
+    #[arg(long, value_parser = units::parse_threads)]
+    threads: Option<usize>,
+}
+
+/// Whether `path` starts as a relight file does.
+fn is_relight_file(path: &Path) -> bool {
+    let mut magic = [0u8; 8];
+    std::fs::File::open(path)
+        .and_then(|mut f| f.read_exact(&mut magic))
+        .is_ok_and(|()| magic == relight::file::MAGIC)
+}
+
+pub fn run(a: RelightArgs, progress: bool) -> Result<()> {
+    if is_relight_file(&a.input) {
+        render(a)
+    } else {
+        prepare(a, progress)
+    }
+}
+
+fn prepare(a: RelightArgs, progress: bool) -> Result<()> {
+    if let Some(flag) = [
+        a.lights.as_ref().map(|_| "--lights"),
+        a.light_samples.map(|_| "--light-samples"),
+    ]
+    .into_iter()
+    .flatten()
+    .next()
+    {
+        bail!(
+            "{flag} applies when rendering a .relight file; {} is an archive to precompute",
+            a.input.display()
+        );
+    }
+    if a.output.extension().and_then(|e| e.to_str()) != Some("relight") {
+        bail!(
+            "{}: a precompute writes a .relight file (`-o VIEW.relight`)",
+            a.output.display()
+        );
+    }
+    let o = PrepareOptions {
+        archive: a.input,
+        output: a.output.clone(),
+        camera: a.camera,
+        width: a.width,
+        height: a.height,
+        spp: a.spp.unwrap_or(4),
+        paths: a.paths.unwrap_or(16),
+        threshold: a.threshold.unwrap_or(0.01),
+        seed: a.seed.unwrap_or(0),
+        mem_budget: a.mem_budget,
+        threads: a.threads,
+        progress,
+    };
+    let s = relight::prepare(&o)?;
+    println!("{}: {s}", a.output.display());
+    Ok(())
+}
+
+fn render(a: RelightArgs) -> Result<()> {
+    let given = [
+        a.camera.as_ref().map(|_| "--camera"),
+        a.width.map(|_| "--width"),
+        a.height.map(|_| "--height"),
+        a.spp.map(|_| "--spp"),
+        a.paths.map(|_| "--paths"),
+        a.threshold.map(|_| "--threshold"),
+        a.seed.map(|_| "--seed"),
+    ];
+    if let Some(flag) = given.into_iter().flatten().next() {
+        bail!(
+            "{flag} applies when precomputing; {} is a .relight file, precomputed with its own",
+            a.input.display()
+        );
+    }
+    let ext = a.output.extension().and_then(|e| e.to_str());
+    let (exr, png) = match ext {
+        Some("exr") => (a.output.clone(), None),
+        Some("png") => (a.output.with_extension("exr"), Some(a.output.clone())),
+        _ => bail!("{}: output must end in .exr or .png", a.output.display()),
+    };
+    for out in std::iter::once(&exr).chain(&png) {
+        canopy::image::check_writable(out)?;
+    }
+    let o = RelightOptions {
+        view: a.input,
+        lights: a.lights,
+        light_samples: a.light_samples.unwrap_or(4),
+        mem_budget: a.mem_budget,
+        threads: a.threads,
+    };
+    let r = Relighter::open(&o, (exr.clone(), png.clone()))?;
+    let f = r.frame()?;
+    f.image.write_exr(&exr)?;
+    if let Some(png) = &png {
+        f.image.write_png(png, 1.0)?;
+    }
+    println!(
+        "{}: {}x{}, relit in {:.3} s",
+        a.output.display(),
+        f.image.width,
+        f.image.height,
+        f.seconds
+    );
+    Ok(())
+}

@@ -1,0 +1,239 @@
+//! The `.relight` file: one view's samples, the nodes its transfer reads light at (with
+//! the points that light is gathered at) and each pixel's compressed transfer row. Layout
+//! in `format/FORMAT.md` ("Relight files"); everything is checked when it is read: sizes
+//! against the header's counts, the checksum, every index against what it indexes.
+
+use super::tree::GatherPoint;
+use super::view::ViewRay;
+use anyhow::{bail, ensure, Context, Result};
+use bytemuck::{Pod, Zeroable};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use xxhash_rust::xxh3::{xxh3_64, Xxh3};
+
+pub const MAGIC: [u8; 8] = *b"CNPYRLT\0";
+pub const VERSION: u32 = 1;
+/// Longest archive path stored.
+const MAX_PATH: usize = 4096;
+
+#[derive(Clone, Copy, Debug, Pod, Zeroable)]
+#[repr(C)]
+pub struct Header {
+    pub magic: [u8; 8],
+    pub version: u32,
+    pub width: u32,
+    pub height: u32,
+    /// View samples per pixel.
+    pub spp: u32,
+    /// Transfer paths per view sample.
+    pub paths: u32,
+    pub threshold: f32,
+    pub seed: u32,
+    pub path_len: u32,
+    pub views: u64,
+    pub nodes: u64,
+    pub points: u64,
+    pub coefs: u64,
+    pub emits: u64,
+    /// xxh3-64 of the archive's header, so a relight refuses an archive changed since.
+    pub archive_header: u64,
+    /// Camera name, zero-padded (empty: the archive's first, or the default view).
+    pub camera: [u8; 64],
+}
+
+/// One coefficient of a pixel's row: the node (index into the file's nodes) and the light
+/// it carries from that node's mean arriving light E/π to the pixel; or, in a pixel's
+/// emission, a material and the light its lamps send the pixel directly.
+#[derive(Clone, Copy, Debug, Pod, Zeroable)]
+#[repr(C)]
+pub struct Coef {
+    pub index: u32,
+    pub w: [f32; 3],
+}
+
+/// A relight file in memory.
+pub struct RelightFile {
+    pub header: Header,
+    pub archive: PathBuf,
+    pub views: Vec<ViewRay>,
+    /// Per node, its first point; `nodes + 1` entries.
+    pub node_first: Vec<u64>,
+    pub points: Vec<GatherPoint>,
+    /// Per pixel, its first coefficient; `width × height + 1` entries.
+    pub row_first: Vec<u64>,
+    pub coefs: Vec<Coef>,
+    /// Per pixel, its first emission record; `width × height + 1` entries.
+    pub emit_first: Vec<u64>,
+    pub emits: Vec<Coef>,
+}
+
+impl RelightFile {
+    pub fn camera(&self) -> Option<String> {
+        let name = canopy_format::name_str(&self.header.camera);
+        (!name.is_empty()).then_some(name)
+    }
+
+    pub fn write(&self, path: &Path) -> Result<()> {
+        crate::image::write_atomically(path, |tmp| {
+            let f = std::fs::File::create(tmp)?;
+            let mut w = Hashing(std::io::BufWriter::new(f), Xxh3::new());
+            let archive = self.archive.to_string_lossy();
+            w.write_all(bytemuck::bytes_of(&self.header))?;
+            w.write_all(archive.as_bytes())?;
+            w.write_all(bytemuck::cast_slice(&self.views))?;
+            w.write_all(bytemuck::cast_slice(&self.node_first))?;
+            w.write_all(bytemuck::cast_slice(&self.points))?;
+            w.write_all(bytemuck::cast_slice(&self.row_first))?;
+            w.write_all(bytemuck::cast_slice(&self.coefs))?;
+            w.write_all(bytemuck::cast_slice(&self.emit_first))?;
+            w.write_all(bytemuck::cast_slice(&self.emits))?;
+            let sum = w.1.digest();
+            w.0.write_all(&sum.to_le_bytes())?;
+            w.0.flush()?;
+            Ok(())
+        })
+    }
+
+    pub fn read(path: &Path) -> Result<RelightFile> {
+        let bytes =
+            std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
+        parse(&bytes).with_context(|| format!("{}: not a valid relight file", path.display()))
+    }
+}
+
+/// A writer that hashes what it writes.
+struct Hashing<W>(W, Xxh3);
+
+impl<W: Write> Write for Hashing<W> {
+    fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+        let n = self.0.write(b)?;
+        self.1.update(&b[..n]);
+        Ok(n)
+    }
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.0.flush()
+    }
+}
+
+/// Splits `n` items of `T` off the front of `rest`.
+fn take<T: Pod>(rest: &mut &[u8], n: u64) -> Result<Vec<T>> {
+    let len = (n as usize)
+        .checked_mul(std::mem::size_of::<T>())
+        .context("counts overflow")?;
+    ensure!(rest.len() >= len, "truncated");
+    let (a, b) = rest.split_at(len);
+    *rest = b;
+    Ok(bytemuck::pod_collect_to_vec(a))
+}
+
+/// Offsets that start at 0, never fall and end at `count`.
+fn check_offsets(what: &str, first: &[u64], count: u64) -> Result<()> {
+    ensure!(
+        first.first() == Some(&0),
+        "{what}: offsets do not start at 0"
+    );
+    ensure!(
+        first.windows(2).all(|w| w[0] <= w[1]),
+        "{what}: offsets fall"
+    );
+    ensure!(
+        first.last() == Some(&count),
+        "{what}: offsets end at {:?}, not at the {count} stored",
+        first.last()
+    );
+    Ok(())
+}
+
+fn parse(bytes: &[u8]) -> Result<RelightFile> {
+    let hlen = std::mem::size_of::<Header>();
+    ensure!(
+        bytes.len() >= hlen + 8,
+        "{} bytes is shorter than a header",
+        bytes.len()
+    );
+    let header: Header = bytemuck::pod_read_unaligned(&bytes[..hlen]);
+    ensure!(
+        header.magic == MAGIC,
+        "bad magic (a .relight file is written by `canopy relight ARCHIVE -o VIEW.relight`)"
+    );
+    ensure!(
+        header.version == VERSION,
+        "version {} (this canopy reads {VERSION})",
+        header.version
+    );
+    let (body, sum) = bytes.split_at(bytes.len() - 8);
+    let sum = u64::from_le_bytes(sum.try_into().expect("8 bytes"));
+    ensure!(
+        xxh3_64(body) == sum,
+        "checksum mismatch (the file is damaged or truncated)"
+    );
+    let h = &header;
+    let pixels = h.width as u64 * h.height as u64;
+    ensure!(
+        pixels > 0 && h.spp > 0,
+        "an empty view ({}x{}, {} samples per pixel)",
+        h.width,
+        h.height,
+        h.spp
+    );
+    ensure!(
+        h.views == pixels * h.spp as u64,
+        "{} view samples for {pixels} pixels of {} samples",
+        h.views,
+        h.spp
+    );
+    ensure!(
+        (h.path_len as usize) <= MAX_PATH,
+        "archive path of {} bytes",
+        h.path_len
+    );
+    let mut rest = &body[hlen..];
+    let path: Vec<u8> = take(&mut rest, h.path_len as u64)?;
+    let archive = PathBuf::from(String::from_utf8(path).context("archive path is not UTF-8")?);
+    let views = take(&mut rest, h.views)?;
+    let node_first: Vec<u64> = take(&mut rest, h.nodes + 1)?;
+    let points = take(&mut rest, h.points)?;
+    let row_first: Vec<u64> = take(&mut rest, pixels + 1)?;
+    let coefs: Vec<Coef> = take(&mut rest, h.coefs)?;
+    let emit_first: Vec<u64> = take(&mut rest, pixels + 1)?;
+    let emits: Vec<Coef> = take(&mut rest, h.emits)?;
+    ensure!(
+        rest.is_empty(),
+        "{} bytes after the last section",
+        rest.len()
+    );
+    check_offsets("nodes", &node_first, h.points)?;
+    check_offsets("rows", &row_first, h.coefs)?;
+    check_offsets("emission", &emit_first, h.emits)?;
+    if let Some(c) = coefs.iter().find(|c| c.index as u64 >= h.nodes) {
+        bail!("a coefficient names node {} of {}", c.index, h.nodes);
+    }
+    let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
+    ensure!(
+        coefs.iter().chain(&emits).all(|c| finite(&c.w)),
+        "a coefficient is not finite"
+    );
+    ensure!(
+        points
+            .iter()
+            .all(|p: &GatherPoint| finite(&p.p) && finite(&p.n)),
+        "a gather point is not finite"
+    );
+    ensure!(
+        views
+            .iter()
+            .all(|v: &ViewRay| finite(&v.o) && finite(&v.d) && finite(&v.beta)),
+        "a view ray is not finite"
+    );
+    Ok(RelightFile {
+        header,
+        archive,
+        views,
+        node_first,
+        points,
+        row_first,
+        coefs,
+        emit_first,
+        emits,
+    })
+}
