@@ -37,13 +37,13 @@ pub struct RelightArgs {
     /// Precomputing: view samples per pixel [default: 4].
     #[arg(long)]
     spp: Option<u32>,
-    /// Precomputing: transfer paths per view sample [default: 16].
+    /// Precomputing: transfer paths per view sample [default: 64].
     #[arg(long)]
     paths: Option<u32>,
-    /// Precomputing: the compression's accuracy knob: a node carrying less than this
-    /// fraction of a pixel's transfer is merged into its parent [default: 0.01].
+    /// Precomputing: the compression's accuracy knob, the most coefficients a pixel's
+    /// transfer keeps [default: 128].
     #[arg(long)]
-    threshold: Option<f32>,
+    coefficients: Option<u32>,
     /// Precomputing: seed of the sample sequences [default: 0].
     #[arg(long)]
     seed: Option<u32>,
@@ -98,8 +98,8 @@ fn prepare(a: RelightArgs, progress: bool) -> Result<()> {
         width: a.width,
         height: a.height,
         spp: a.spp.unwrap_or(4),
-        paths: a.paths.unwrap_or(16),
-        threshold: a.threshold.unwrap_or(0.01),
+        paths: a.paths.unwrap_or(64),
+        coefficients: a.coefficients.unwrap_or(128),
         seed: a.seed.unwrap_or(0),
         mem_budget: a.mem_budget,
         threads: a.threads,
@@ -117,7 +117,7 @@ fn render(a: RelightArgs) -> Result<()> {
         a.height.map(|_| "--height"),
         a.spp.map(|_| "--spp"),
         a.paths.map(|_| "--paths"),
-        a.threshold.map(|_| "--threshold"),
+        a.coefficients.map(|_| "--coefficients"),
         a.seed.map(|_| "--seed"),
     ];
     if let Some(flag) = given.into_iter().flatten().next() {
@@ -148,12 +148,13 @@ fn render(a: RelightArgs) -> Result<()> {
     if let Some(png) = &png {
         f.image.write_png(png, 1.0)?;
     }
+    let [g, d, p] = f.seconds;
     println!(
-        "{}: {}x{}, relit in {:.3} s",
+        "{}: {}x{}, relit in {:.3} s (light at the cells {g:.3} s, direct light {d:.3} s, transfer {p:.3} s)",
         a.output.display(),
         f.image.width,
         f.image.height,
-        f.seconds
+        f.total()
     );
     Ok(())
 }

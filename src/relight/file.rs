@@ -1,12 +1,13 @@
-//! The `.relight` file: one view's samples, the nodes its transfer reads light at (with
+//! The `.relight` file: one view's samples, the light cells its transfer reads (with
 //! the points that light is gathered at) and each pixel's compressed transfer row. Layout
 //! in `format/FORMAT.md` ("Relight files"); everything is checked when it is read: sizes
 //! against the header's counts, the checksum, every index against what it indexes.
 
-use super::tree::GatherPoint;
+use super::cells::GatherPoint;
 use super::view::ViewRay;
 use anyhow::{bail, ensure, Context, Result};
 use bytemuck::{Pod, Zeroable};
+use half::f16;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use xxhash_rust::xxh3::{xxh3_64, Xxh3};
@@ -27,11 +28,12 @@ pub struct Header {
     pub spp: u32,
     /// Transfer paths per view sample.
     pub paths: u32,
-    pub threshold: f32,
+    /// Most coefficients per pixel.
+    pub coefficients: u32,
     pub seed: u32,
     pub path_len: u32,
     pub views: u64,
-    pub nodes: u64,
+    pub cells: u64,
     pub points: u64,
     pub coefs: u64,
     pub emits: u64,
@@ -41,9 +43,7 @@ pub struct Header {
     pub camera: [u8; 64],
 }
 
-/// One coefficient of a pixel's row: the node (index into the file's nodes) and the light
-/// it carries from that node's mean arriving light E/π to the pixel; or, in a pixel's
-/// emission, a material and the light its lamps send the pixel directly.
+/// A pixel's emission record: a material and the light its lamps send the pixel directly.
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
 #[repr(C)]
 pub struct Coef {
@@ -56,12 +56,15 @@ pub struct RelightFile {
     pub header: Header,
     pub archive: PathBuf,
     pub views: Vec<ViewRay>,
-    /// Per node, its first point; `nodes + 1` entries.
-    pub node_first: Vec<u64>,
+    /// Per cell, its first point; `cells + 1` entries.
+    pub cell_first: Vec<u64>,
     pub points: Vec<GatherPoint>,
     /// Per pixel, its first coefficient; `width × height + 1` entries.
     pub row_first: Vec<u64>,
-    pub coefs: Vec<Coef>,
+    /// Per coefficient of the rows, the cell it reads (index into the cells) and the light
+    /// it carries from that cell's mean arriving light E/π to the pixel.
+    pub coef_cell: Vec<u32>,
+    pub coef_w: Vec<[f16; 3]>,
     /// Per pixel, its first emission record; `width × height + 1` entries.
     pub emit_first: Vec<u64>,
     pub emits: Vec<Coef>,
@@ -81,10 +84,11 @@ impl RelightFile {
             w.write_all(bytemuck::bytes_of(&self.header))?;
             w.write_all(archive.as_bytes())?;
             w.write_all(bytemuck::cast_slice(&self.views))?;
-            w.write_all(bytemuck::cast_slice(&self.node_first))?;
+            w.write_all(bytemuck::cast_slice(&self.cell_first))?;
             w.write_all(bytemuck::cast_slice(&self.points))?;
             w.write_all(bytemuck::cast_slice(&self.row_first))?;
-            w.write_all(bytemuck::cast_slice(&self.coefs))?;
+            w.write_all(bytemuck::cast_slice(&self.coef_cell))?;
+            w.write_all(bytemuck::cast_slice(&self.coef_w))?;
             w.write_all(bytemuck::cast_slice(&self.emit_first))?;
             w.write_all(bytemuck::cast_slice(&self.emits))?;
             let sum = w.1.digest();
@@ -191,10 +195,11 @@ fn parse(bytes: &[u8]) -> Result<RelightFile> {
     let path: Vec<u8> = take(&mut rest, h.path_len as u64)?;
     let archive = PathBuf::from(String::from_utf8(path).context("archive path is not UTF-8")?);
     let views = take(&mut rest, h.views)?;
-    let node_first: Vec<u64> = take(&mut rest, h.nodes + 1)?;
+    let cell_first: Vec<u64> = take(&mut rest, h.cells + 1)?;
     let points = take(&mut rest, h.points)?;
     let row_first: Vec<u64> = take(&mut rest, pixels + 1)?;
-    let coefs: Vec<Coef> = take(&mut rest, h.coefs)?;
+    let coef_cell: Vec<u32> = take(&mut rest, h.coefs)?;
+    let coef_w: Vec<[f16; 3]> = take(&mut rest, h.coefs)?;
     let emit_first: Vec<u64> = take(&mut rest, pixels + 1)?;
     let emits: Vec<Coef> = take(&mut rest, h.emits)?;
     ensure!(
@@ -202,15 +207,15 @@ fn parse(bytes: &[u8]) -> Result<RelightFile> {
         "{} bytes after the last section",
         rest.len()
     );
-    check_offsets("nodes", &node_first, h.points)?;
+    check_offsets("cells", &cell_first, h.points)?;
     check_offsets("rows", &row_first, h.coefs)?;
     check_offsets("emission", &emit_first, h.emits)?;
-    if let Some(c) = coefs.iter().find(|c| c.index as u64 >= h.nodes) {
-        bail!("a coefficient names node {} of {}", c.index, h.nodes);
+    if let Some(c) = coef_cell.iter().find(|&&c| c as u64 >= h.cells) {
+        bail!("a coefficient names cell {c} of {}", h.cells);
     }
     let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
     ensure!(
-        coefs.iter().chain(&emits).all(|c| finite(&c.w)),
+        coef_w.iter().flatten().all(|x| x.is_finite()) && emits.iter().all(|c| finite(&c.w)),
         "a coefficient is not finite"
     );
     ensure!(
@@ -229,10 +234,11 @@ fn parse(bytes: &[u8]) -> Result<RelightFile> {
         header,
         archive,
         views,
-        node_first,
+        cell_first,
         points,
         row_first,
-        coefs,
+        coef_cell,
+        coef_w,
         emit_first,
         emits,
     })

@@ -1,9 +1,10 @@
 //! Relighting with global illumination (seed 001, Kontkanen et al. 2006; carried to large
 //! scenes over a hierarchy by Hašan, Pellacini and Bala 2006): for one fixed view, the
 //! transfer from light arriving at the scene's surfaces to every pixel is precomputed once
-//! (`prepare`), all bounces included and compressed in the node tree's Haar basis; a light
-//! set is then rendered (`Relighter::frame`) as direct light at the view samples plus the
-//! product of the transfer with direct light gathered at the nodes the transfer reads.
+//! (`prepare`), all bounces included, over the light cells of the node tree's leaves and
+//! compressed along the tree's order; a light set is then rendered (`Relighter::frame`) as
+//! direct light at the view samples plus the product of the transfer with direct light
+//! gathered at the cells the transfer reads.
 //! Light transport is linear in the emitters, so the product is exact up to the transfer's
 //! compression and noise: lamps may be scaled and tinted, punctual lights moved, re-aimed
 //! or added, the environment made stronger, each without a new precompute.
@@ -11,17 +12,18 @@
 //! Where light arrives at an interior path vertex it leaves through the diffuse lobe only:
 //! lamps' light reflected by glossy surfaces onto others (and caustics) is not carried.
 
+mod cells;
 pub mod file;
 mod transfer;
-mod tree;
 mod view;
 
 use crate::camera::Camera;
-use crate::integrator::{Scene, ShadingPoint};
+use crate::integrator::{bsdf_term, sample_light_weighted, Receiver, Scene, ShadingPoint};
 use crate::light_store::Keys;
+use crate::material::luminance;
 use crate::render::{RenderOptions, Setup};
 use crate::sampler::{Hash, PixelSampler};
-use crate::trace::Tracer;
+use crate::trace::{Cone, Tracer};
 use anyhow::{bail, Context, Result};
 use file::{Coef, Header, RelightFile};
 use glam::Vec3A as V;
@@ -29,15 +31,17 @@ use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 use std::path::PathBuf;
 use std::time::Instant;
-use tree::Tree;
 use view::Seen;
 
-/// Points light is gathered at per light cell, and per node above the cells.
-const CELL_POINTS: usize = 4;
-const NODE_POINTS: usize = 16;
 /// Camera samples per pixel that measure the lamps it sees directly (their edges need more
 /// than the view samples).
 const EMISSION_SAMPLES: u32 = 64;
+/// Largest coefficient stored (half precision's largest finite value).
+const F16_MAX: f32 = 65504.0;
+/// Seeds of the light samples' sequences at the gather points and the view samples: fixed,
+/// so a light set relit twice gives the same image and a change shows only itself.
+const GATHER_SEED: u32 = 0x11E;
+const DIRECT_SEED: u32 = 0xD1EC7;
 
 /// What one pixel's precompute gives: its view samples, compressed transfer row, and the
 /// lamps it sees by material.
@@ -59,9 +63,8 @@ pub struct PrepareOptions {
     pub spp: u32,
     /// Transfer paths per view sample.
     pub paths: u32,
-    /// A node whose transfer to a pixel is below this fraction of the pixel's total is
-    /// merged into its parent.
-    pub threshold: f32,
+    /// Most coefficients a pixel's transfer row keeps (the compression's accuracy knob).
+    pub coefficients: u32,
     pub seed: u32,
     pub mem_budget: Option<u64>,
     pub threads: Option<usize>,
@@ -73,7 +76,7 @@ pub struct PrepareOptions {
 pub struct PrepareStats {
     pub seconds: f64,
     pub pixels: u64,
-    pub nodes: u64,
+    pub cells: u64,
     pub coefs: u64,
     pub bytes: u64,
 }
@@ -82,9 +85,9 @@ impl std::fmt::Display for PrepareStats {
     fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
         write!(
             f,
-            "{} pixels, {} nodes, {:.1} coefficients per pixel, {}, {:.2} s",
+            "{} pixels, {} light cells, {:.1} coefficients per pixel, {}, {:.2} s",
             self.pixels,
-            self.nodes,
+            self.cells,
             self.coefs as f64 / self.pixels.max(1) as f64,
             crate::units::format_size(self.bytes),
             self.seconds
@@ -140,8 +143,8 @@ pub fn prepare(o: &PrepareOptions) -> Result<PrepareStats> {
     if o.spp == 0 || o.paths == 0 {
         bail!("--spp and --paths must be at least 1");
     }
-    if !(o.threshold > 0.0 && o.threshold < 1.0) {
-        bail!("--threshold {} must lie between 0 and 1", o.threshold);
+    if o.coefficients == 0 {
+        bail!("--coefficients must be at least 1");
     }
     crate::image::check_writable(&o.output)?;
     let ro = scene_options(
@@ -164,7 +167,6 @@ pub fn prepare(o: &PrepareOptions) -> Result<PrepareStats> {
     }
     let keys =
         Keys::new(&archive.header).context("the archive's node numbers do not fit 64-bit keys")?;
-    let tree = Tree::new(&scene.cache, keys);
     let (w, h) = (s.width, s.height);
     let bar = crate::progress::bar(o.progress, h as u64, "relight precompute (rows)");
     let parts: Vec<PixelPart> = s.pool.install(|| {
@@ -173,7 +175,7 @@ pub fn prepare(o: &PrepareOptions) -> Result<PrepareStats> {
             .flat_map_iter(|y| {
                 let mut tr = Tracer::new(&scene.cache);
                 let out: Vec<PixelPart> = (0..w)
-                    .map(|x| pixel(scene, &mut tr, &tree, o, (x, y)))
+                    .map(|x| pixel(scene, &mut tr, &keys, o, (x, y)))
                     .collect();
                 bar.inc(1);
                 out
@@ -192,16 +194,17 @@ pub fn prepare(o: &PrepareOptions) -> Result<PrepareStats> {
         .enumerate()
         .map(|(i, &k)| (k, i as u32))
         .collect();
-    let points: Vec<Vec<tree::GatherPoint>> = s.pool.install(|| {
+    let mut carried = vec![0.0f32; keys_used.len()];
+    for (k, v) in parts.iter().flat_map(|p| &p.row) {
+        carried[index[k] as usize] += luminance(*v);
+    }
+    let count = cells::counts(&carried);
+    let points: Vec<Vec<cells::GatherPoint>> = s.pool.install(|| {
         keys_used
             .par_iter()
-            .map(|&k| {
-                let n = if tree.keys.decode(k).1.is_some() {
-                    CELL_POINTS
-                } else {
-                    NODE_POINTS
-                };
-                tree.points(k, n, &mut Hash::new(k ^ o.seed as u64))
+            .zip(&count)
+            .map(|(&k, &n)| {
+                cells::points(&scene.cache, &keys, k, n, &mut Hash::new(k ^ o.seed as u64))
             })
             .collect()
     });
@@ -210,8 +213,8 @@ pub fn prepare(o: &PrepareOptions) -> Result<PrepareStats> {
     Ok(PrepareStats {
         seconds: t0.elapsed().as_secs_f64(),
         pixels: w as u64 * h as u64,
-        nodes: keys_used.len() as u64,
-        coefs: file.coefs.len() as u64,
+        cells: keys_used.len() as u64,
+        coefs: file.coef_cell.len() as u64,
         bytes: std::fs::metadata(&o.output).map_or(0, |m| m.len()),
     })
 }
@@ -220,7 +223,7 @@ pub fn prepare(o: &PrepareOptions) -> Result<PrepareStats> {
 fn pixel(
     scene: &Scene,
     tr: &mut Tracer,
-    tree: &Tree,
+    keys: &Keys,
     o: &PrepareOptions,
     (x, y): (u32, u32),
 ) -> PixelPart {
@@ -250,14 +253,18 @@ fn pixel(
         views.push(vr);
         for m in 0..o.paths {
             let ps = PixelSampler::new(o.seed ^ 0x5EED, index, s * o.paths + m);
-            transfer::follow(scene, tr, &sp, beta, &ps, (tree, weight), &mut row);
+            transfer::follow(scene, tr, &sp, beta, &ps, (keys, weight), &mut row);
         }
     }
     let mut emits: Vec<(u32, V)> = lamps.into_iter().collect();
     emits.sort_unstable_by_key(|e| e.0);
     PixelPart {
         views,
-        row: transfer::compress(tree, &row, o.threshold),
+        row: transfer::compress(
+            &row,
+            o.coefficients,
+            Hash::new(index as u64 ^ (o.seed as u64) << 32).f32(),
+        ),
         emits,
     }
 }
@@ -269,26 +276,28 @@ fn assemble(
     archive_header: u64,
     parts: &[PixelPart],
     index: &FxHashMap<u64, u32>,
-    points: Vec<Vec<tree::GatherPoint>>,
+    points: Vec<Vec<cells::GatherPoint>>,
 ) -> RelightFile {
     let archive = o
         .archive
         .canonicalize()
         .unwrap_or_else(|_| o.archive.clone());
-    let mut node_first = vec![0u64];
+    let mut cell_first = vec![0u64];
     for p in &points {
-        node_first.push(node_first.last().copied().unwrap_or(0) + p.len() as u64);
+        cell_first.push(cell_first.last().copied().unwrap_or(0) + p.len() as u64);
     }
-    let (mut row_first, mut coefs) = (vec![0u64], Vec::new());
+    let (mut row_first, mut coef_cell, mut coef_w) = (vec![0u64], Vec::new(), Vec::new());
     let (mut emit_first, mut emits) = (vec![0u64], Vec::new());
     let mut views = Vec::new();
     for p in parts {
         views.extend_from_slice(&p.views);
-        coefs.extend(p.row.iter().map(|&(k, v)| Coef {
-            index: index[&k],
-            w: v.into(),
-        }));
-        row_first.push(coefs.len() as u64);
+        coef_cell.extend(p.row.iter().map(|(k, _)| index[k]));
+        coef_w.extend(
+            p.row
+                .iter()
+                .map(|(_, v)| v.to_array().map(|x| half::f16::from_f32(x.min(F16_MAX)))),
+        );
+        row_first.push(coef_cell.len() as u64);
         emits.extend(
             p.emits
                 .iter()
@@ -299,7 +308,7 @@ fn assemble(
     let mut camera = [0u8; 64];
     let name = o.camera.as_deref().unwrap_or("").as_bytes();
     camera[..name.len().min(64)].copy_from_slice(&name[..name.len().min(64)]);
-    let points: Vec<tree::GatherPoint> = points.concat();
+    let points: Vec<cells::GatherPoint> = points.concat();
     RelightFile {
         header: Header {
             magic: file::MAGIC,
@@ -308,23 +317,24 @@ fn assemble(
             height: h,
             spp: o.spp,
             paths: o.paths,
-            threshold: o.threshold,
+            coefficients: o.coefficients,
             seed: o.seed,
             path_len: archive.to_string_lossy().len() as u32,
             views: views.len() as u64,
-            nodes: index.len() as u64,
+            cells: index.len() as u64,
             points: points.len() as u64,
-            coefs: coefs.len() as u64,
+            coefs: coef_cell.len() as u64,
             emits: emits.len() as u64,
             archive_header,
             camera,
         },
         archive,
         views,
-        node_first,
+        cell_first,
         points,
         row_first,
-        coefs,
+        coef_cell,
+        coef_w,
         emit_first,
         emits,
     }
@@ -351,10 +361,17 @@ pub struct Relighter {
     lamp_scale: Vec<V>,
 }
 
-/// One relit image and the time its light-dependent part took.
+/// One relit image and the time its parts took: light gathered at the transfer's cells,
+/// direct light at the view samples, the transfer's product.
 pub struct Frame {
     pub image: crate::image::Image,
-    pub seconds: f64,
+    pub seconds: [f64; 3],
+}
+
+impl Frame {
+    pub fn total(&self) -> f64 {
+        self.seconds.iter().sum()
+    }
 }
 
 impl Relighter {
@@ -416,7 +433,9 @@ impl Relighter {
         let t0 = Instant::now();
         let scene = &self.setup.scene;
         let e = self.setup.pool.install(|| self.gathered());
+        let t1 = Instant::now();
         let direct = self.setup.pool.install(|| self.direct());
+        let t2 = Instant::now();
         let f = &self.file;
         let spp = f.header.spp as usize;
         let pixels: Vec<[f32; 3]> = self.setup.pool.install(|| {
@@ -425,9 +444,10 @@ impl Relighter {
                 .map(|p| {
                     let own: V = direct[p * spp..(p + 1) * spp].iter().sum::<V>() / spp as f32;
                     let (a, b) = (f.row_first[p] as usize, f.row_first[p + 1] as usize);
-                    let gi: V = f.coefs[a..b]
-                        .iter()
-                        .map(|c: &Coef| V::from(c.w) * e[c.index as usize])
+                    let gi: V = (a..b)
+                        .map(|c| {
+                            V::from(f.coef_w[c].map(half::f16::to_f32)) * e[f.coef_cell[c] as usize]
+                        })
                         .sum();
                     let (a, b) = (f.emit_first[p] as usize, f.emit_first[p + 1] as usize);
                     let lamps: V = f.emits[a..b]
@@ -447,46 +467,30 @@ impl Relighter {
                 height: f.header.height,
                 pixels,
             },
-            seconds: t0.elapsed().as_secs_f64(),
+            seconds: [t1 - t0, t2 - t1, t2.elapsed()].map(|d| d.as_secs_f64()),
         })
     }
 
-    /// Per node, the mean direct light E/π arriving over its gather points.
+    /// Per cell, the mean direct light E/π arriving over its gather points, one light
+    /// sample at each (a pixel reads many cells, whose noise it averages).
     fn gathered(&self) -> Vec<V> {
         let f = &self.file;
         let scene = &self.setup.scene;
-        let n = self.light_samples;
-        (0..f.node_first.len() - 1)
+        (0..f.cell_first.len() - 1)
             .into_par_iter()
             .map_init(
                 || Tracer::new(&scene.cache),
                 |tr, i| {
-                    let pts = &f.points[f.node_first[i] as usize..f.node_first[i + 1] as usize];
-                    let mut sum = V::ZERO;
-                    for (k, p) in pts.iter().enumerate() {
-                        let at = V::from(p.p);
-                        let nrm = V::from(p.n);
-                        let rec = crate::integrator::Receiver::surface(
-                            at,
-                            at.abs() * crate::trace::gamma(7),
-                            nrm,
-                        );
-                        for l in 0..n {
-                            let [u0, u1, u2, _] =
-                                PixelSampler::new(0x11E, i as u32, k as u32 * n + l).get4(0);
-                            sum += crate::integrator::sample_light_weighted(
-                                scene,
-                                tr,
-                                &rec,
-                                &crate::trace::Cone::EXACT,
-                                [u0, u1, u2],
-                                |wi, _| {
-                                    V::splat(nrm.dot(wi).max(0.0) * std::f32::consts::FRAC_1_PI)
-                                },
-                            );
-                        }
-                    }
-                    sum / (pts.len().max(1) as u32 * n) as f32
+                    let pts = &f.points[f.cell_first[i] as usize..f.cell_first[i + 1] as usize];
+                    let sum: V = pts
+                        .iter()
+                        .enumerate()
+                        .map(|(k, p)| {
+                            let u = PixelSampler::new(GATHER_SEED, i as u32, k as u32).get4(0);
+                            arriving(scene, tr, p, [u[0], u[1], u[2]])
+                        })
+                        .sum();
+                    sum / pts.len().max(1) as f32
                 },
             )
             .collect()
@@ -505,7 +509,11 @@ impl Relighter {
                 |tr, i| {
                     let beta = V::from(self.file.views[i].beta);
                     let l = match &self.seen[i] {
-                        Seen::Surface(sp) => reflected(scene, tr, sp, i as u32, n),
+                        Seen::Surface(sp) => {
+                            let spp = self.file.header.spp;
+                            let (pixel, s) = (i as u32 / spp, i as u32 % spp);
+                            reflected(scene, tr, sp, (pixel, s * n), n)
+                        }
                         Seen::Sky => crate::integrator::direct::escaped_light(
                             scene,
                             V::from(self.file.views[i].d),
@@ -541,25 +549,34 @@ fn lamp_scale(file: &RelightFile, scene: &Scene) -> Result<Vec<V>> {
         .collect())
 }
 
+/// E/π arriving at gather point `p` from one light sample.
+fn arriving(scene: &Scene, tr: &mut Tracer, p: &cells::GatherPoint, u: [f32; 3]) -> V {
+    let (at, n) = (V::from(p.p), V::from(p.n));
+    let rec = Receiver::surface(at, at.abs() * crate::trace::gamma(7), n);
+    sample_light_weighted(scene, tr, &rec, &Cone::EXACT, u, |wi, _| {
+        V::splat(n.dot(wi).max(0.0) * std::f32::consts::FRAC_1_PI)
+    })
+}
+
 /// Direct light reflected at `sp` toward the camera: `n` light samples (next-event
-/// estimation alone: a light set's lamps are where it puts them).
-fn reflected(scene: &Scene, tr: &mut Tracer, sp: &ShadingPoint, i: u32, n: u32) -> V {
+/// estimation alone: a light set's lamps are where it puts them), numbers `first..` of
+/// the pixel's sequence, so the samples of a pixel's view samples stratify together.
+fn reflected(
+    scene: &Scene,
+    tr: &mut Tracer,
+    sp: &ShadingPoint,
+    (pixel, first): (u32, u32),
+    n: u32,
+) -> V {
     if sp.absorbs || sp.bsdf.has_smooth_only() {
         return V::ZERO;
     }
-    let rec = crate::integrator::Receiver::surface(sp.p, sp.err, sp.ng);
-    let f = crate::integrator::bsdf_term(sp.frame, sp.n, sp.bsdf, sp.wo_l);
+    let rec = Receiver::surface(sp.p, sp.err, sp.ng);
+    let f = bsdf_term(sp.frame, sp.n, sp.bsdf, sp.wo_l);
     let mut sum = V::ZERO;
     for l in 0..n {
-        let [u0, u1, u2, _] = PixelSampler::new(0xD1EC7, i, l).get4(0);
-        sum += crate::integrator::sample_light_weighted(
-            scene,
-            tr,
-            &rec,
-            &crate::trace::Cone::EXACT,
-            [u0, u1, u2],
-            |wi, _| f(wi).0,
-        );
+        let [u0, u1, u2, _] = PixelSampler::new(DIRECT_SEED, pixel, first + l).get4(0);
+        sum += sample_light_weighted(scene, tr, &rec, &Cone::EXACT, [u0, u1, u2], |wi, _| f(wi).0);
     }
     sum / n as f32
 }

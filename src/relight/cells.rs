@@ -1,0 +1,91 @@
+//! Light cells as the transfer's gather elements: a cell of a leaf's triangle, on one side
+//! (`light_store::Keys`, the cells the cone integrator stores light in: a triangle's n×n
+//! grid over its barycentrics, n from its size). A cell's light is the mean over its area
+//! of the direct light arriving there, gathered at points spread over it.
+
+use crate::light_store::{Keys, GRID};
+use crate::paging::{NodeRef, PageCache, TriW};
+use crate::sampler::Hash;
+use glam::Vec3A as V;
+
+/// Fewest points a cell gathers light at, and most.
+const MIN_POINTS: usize = 4;
+const MAX_POINTS: usize = 4096;
+/// Gather points per cell on average: besides each cell's least, the rest go to cells by
+/// the transfer they carry over the whole image, so the light of a cell many pixels read
+/// (whose noise no pixel averages away) is gathered at many points.
+const MEAN_POINTS: usize = 8;
+
+/// A point where light is gathered: position and unit normal of the side lit.
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
+#[repr(C)]
+pub struct GatherPoint {
+    pub p: [f32; 3],
+    pub n: [f32; 3],
+}
+
+/// How many points each cell gathers at, given the transfer each carries summed over the
+/// image (luminance).
+pub fn counts(carried: &[f32]) -> Vec<usize> {
+    let total: f64 = carried.iter().map(|&c| c as f64).sum();
+    let spare = ((MEAN_POINTS - MIN_POINTS) * carried.len()) as f64;
+    carried
+        .iter()
+        .map(|&c| {
+            let share = if total > 0.0 { c as f64 / total } else { 0.0 };
+            MIN_POINTS + ((share * spare).ceil() as usize).min(MAX_POINTS - MIN_POINTS)
+        })
+        .collect()
+}
+
+/// `k` points stratified over the cell `key` names, with the normal of its side (none if
+/// the key names no triangle of the archive).
+pub fn points(
+    cache: &PageCache,
+    keys: &Keys,
+    key: u64,
+    k: usize,
+    rng: &mut Hash,
+) -> Vec<GatherPoint> {
+    let (leaf, Some((slot, back, cell))) = keys.decode(key) else {
+        return Vec::new();
+    };
+    let Some(page) = cache.page_of(leaf).map(|p| cache.get(p)) else {
+        return Vec::new();
+    };
+    let local = (leaf - page.first_node) as usize;
+    let Some(NodeRef::Leaf { first, count }) = page.bvh.get(local).map(|n| n.link()) else {
+        return Vec::new();
+    };
+    let Some(tri) = (slot < count).then(|| page.tri(first + slot)).flatten() else {
+        return Vec::new();
+    };
+    let n = keys.grid(&tri);
+    let (i, j) = ((cell / GRID) as f32, (cell % GRID) as f32);
+    let side = (k as f32).sqrt().ceil() as usize;
+    (0..k)
+        .map(|s| {
+            // Stratified in the cell's square; a diagonal cell's outer half folds back.
+            let x = ((s % side) as f32 + rng.f32()) / side as f32;
+            let y = ((s / side % side) as f32 + rng.f32()) / side as f32;
+            let (x, y) = if i + j + 1.0 >= n && x + y > 1.0 {
+                (1.0 - y, 1.0 - x)
+            } else {
+                (x, y)
+            };
+            let (b1, b2) = ((i + x) / n, (j + y) / n);
+            point_on(&tri, [1.0 - b1 - b2, b1, b2], back)
+        })
+        .collect()
+}
+
+/// The point at barycentrics `b` of `tri`, with its front (or `back`) normal.
+fn point_on(tri: &TriW, b: [f32; 3], back: bool) -> GatherPoint {
+    let p = tri.p.map(V::from);
+    let q = p[0] * b[0] + p[1] * b[1] + p[2] * b[2];
+    let n = (p[1] - p[0]).cross(p[2] - p[0]).normalize_or_zero();
+    GatherPoint {
+        p: q.into(),
+        n: if back { -n } else { n }.into(),
+    }
+}
