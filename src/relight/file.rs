@@ -43,6 +43,8 @@ pub struct Header {
     pub camera: [u8; 64],
 }
 
+const _: () = assert!(std::mem::size_of::<Header>() == 152);
+
 /// A pixel's emission record: a material and the light its lamps send the pixel directly.
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
 #[repr(C)]
