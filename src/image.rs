@@ -155,12 +155,21 @@ impl Image {
 
     /// sRGB PNG: clamp to [0, 1] after `exposure` (a scale), then the sRGB transfer curve.
     pub fn write_png(&self, path: &Path, exposure: f32) -> Result<()> {
-        let bytes: Vec<u8> = self
-            .pixels
+        write_png_rgb(path, self.width, self.height, &self.srgb8(exposure))
+    }
+
+    /// The PNG file `write_png` writes, in memory.
+    pub fn png_bytes(&self, exposure: f32) -> Result<Vec<u8>> {
+        let mut out = Vec::new();
+        encode_png(&mut out, self.width, self.height, &self.srgb8(exposure))?;
+        Ok(out)
+    }
+
+    fn srgb8(&self, exposure: f32) -> Vec<u8> {
+        self.pixels
             .iter()
             .flat_map(|p| p.map(|v| (srgb(v * exposure) * 255.0 + 0.5) as u8))
-            .collect();
-        write_png_rgb(path, self.width, self.height, &bytes)
+            .collect()
     }
 }
 
@@ -210,14 +219,18 @@ fn srgb(v: f32) -> f32 {
 pub fn write_png_rgb(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Result<()> {
     write_atomically(path, |tmp| {
         let file = std::fs::File::create(tmp)?;
-        let mut enc = png::Encoder::new(std::io::BufWriter::new(file), width, height);
-        enc.set_color(png::ColorType::Rgb);
-        enc.set_depth(png::BitDepth::Eight);
-        let mut w = enc.write_header()?;
-        w.write_image_data(rgb)?;
-        w.finish()?;
-        Ok(())
+        encode_png(std::io::BufWriter::new(file), width, height, rgb)
     })
+}
+
+fn encode_png(out: impl std::io::Write, width: u32, height: u32, rgb: &[u8]) -> Result<()> {
+    let mut enc = png::Encoder::new(out, width, height);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut w = enc.write_header()?;
+    w.write_image_data(rgb)?;
+    w.finish()?;
+    Ok(())
 }
 
 fn temp_name(path: &Path) -> Result<std::path::PathBuf> {

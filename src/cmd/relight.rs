@@ -17,8 +17,12 @@ pub struct RelightArgs {
     input: PathBuf,
     /// Output: VIEW.relight when precomputing; .exr or .png (which also writes the .exr)
     /// when rendering.
-    #[arg(short, long)]
-    output: PathBuf,
+    #[arg(short, long, required_unless_present = "serve")]
+    output: Option<PathBuf>,
+    /// Rendering: serve a web page at HOST:PORT (loopback only, e.g. 127.0.0.1:8080) with a
+    /// control per light, showing the relit image as the controls move.
+    #[arg(long, value_name = "HOST:PORT", conflicts_with = "output")]
+    serve: Option<String>,
     /// Rendering: a light set (TOML; see docs/relighting.md) changing the archive's lights.
     #[arg(long, value_name = "FILE")]
     lights: Option<PathBuf>,
@@ -75,6 +79,7 @@ fn prepare(a: RelightArgs, progress: bool) -> Result<()> {
     if let Some(flag) = [
         a.lights.as_ref().map(|_| "--lights"),
         a.light_samples.map(|_| "--light-samples"),
+        a.serve.as_ref().map(|_| "--serve"),
     ]
     .into_iter()
     .flatten()
@@ -85,15 +90,16 @@ fn prepare(a: RelightArgs, progress: bool) -> Result<()> {
             a.input.display()
         );
     }
-    if a.output.extension().and_then(|e| e.to_str()) != Some("relight") {
+    let output = a.output.expect("clap requires -o without --serve");
+    if output.extension().and_then(|e| e.to_str()) != Some("relight") {
         bail!(
             "{}: a precompute writes a .relight file (`-o VIEW.relight`)",
-            a.output.display()
+            output.display()
         );
     }
     let o = PrepareOptions {
         archive: a.input,
-        output: a.output.clone(),
+        output: output.clone(),
         camera: a.camera,
         width: a.width,
         height: a.height,
@@ -106,7 +112,7 @@ fn prepare(a: RelightArgs, progress: bool) -> Result<()> {
         progress,
     };
     let s = relight::prepare(&o)?;
-    println!("{}: {s}", a.output.display());
+    println!("{}: {s}", output.display());
     Ok(())
 }
 
@@ -126,22 +132,30 @@ fn render(a: RelightArgs) -> Result<()> {
             a.input.display()
         );
     }
-    let ext = a.output.extension().and_then(|e| e.to_str());
-    let (exr, png) = match ext {
-        Some("exr") => (a.output.clone(), None),
-        Some("png") => (a.output.with_extension("exr"), Some(a.output.clone())),
-        _ => bail!("{}: output must end in .exr or .png", a.output.display()),
-    };
-    for out in std::iter::once(&exr).chain(&png) {
-        canopy::image::check_writable(out)?;
-    }
     let o = RelightOptions {
-        view: a.input,
+        view: a.input.clone(),
         lights: a.lights,
         light_samples: a.light_samples.unwrap_or(4),
         mem_budget: a.mem_budget,
         threads: a.threads,
     };
+    let Some(output) = a.output else {
+        let addr = a.serve.expect("clap requires --serve without -o");
+        let r = Relighter::open(&o, (a.input.with_extension("exr"), None))?;
+        return relight::serve::serve(r, &addr, |at| {
+            println!("serving http://{at}/ (Ctrl-C ends)");
+            std::io::Write::flush(&mut std::io::stdout()).ok();
+        });
+    };
+    let ext = output.extension().and_then(|e| e.to_str());
+    let (exr, png) = match ext {
+        Some("exr") => (output.clone(), None),
+        Some("png") => (output.with_extension("exr"), Some(output.clone())),
+        _ => bail!("{}: output must end in .exr or .png", output.display()),
+    };
+    for out in std::iter::once(&exr).chain(&png) {
+        canopy::image::check_writable(out)?;
+    }
     let r = Relighter::open(&o, (exr.clone(), png.clone()))?;
     let f = r.frame()?;
     f.image.write_exr(&exr)?;
@@ -151,7 +165,7 @@ fn render(a: RelightArgs) -> Result<()> {
     let [g, d, p] = f.seconds;
     println!(
         "{}: {}x{}, relit in {:.3} s (light at the cells {g:.3} s, direct light {d:.3} s, transfer {p:.3} s)",
-        a.output.display(),
+        output.display(),
         f.image.width,
         f.image.height,
         f.total()

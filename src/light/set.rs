@@ -156,6 +156,16 @@ impl LightSet {
         Ok(())
     }
 
+    /// A light set sent as JSON (the TOML file's tables as JSON objects); `origin` names
+    /// it in errors.
+    pub fn from_json(text: &str, origin: &str) -> Result<LightSet> {
+        let mut set: LightSet =
+            serde_json::from_str(text).with_context(|| format!("{origin}: not a light set"))?;
+        set.path = origin.into();
+        set.check()?;
+        Ok(set)
+    }
+
     /// Whether the set changes the environment (which `--env` and `--sky` then may not
     /// give).
     pub fn changes_environment(&self) -> bool {

@@ -62,13 +62,15 @@ impl ViewRay {
 }
 
 /// The view sample of the camera ray `ray`: its smooth bounces followed (choices drawn
-/// from `s`'s sets 1..), and the shading point reached with its material.
+/// from `s`'s sets 1..), and the shading point reached. `lamp` is told
+/// each lamp met on the way, by material, with the light it sends along the path.
 pub fn view_sample(
     scene: &Scene,
     tr: &mut Tracer,
     mut ray: Ray,
     s: &PixelSampler,
-) -> (ViewRay, Option<(ShadingPoint, u32)>) {
+    lamp: &mut impl FnMut(u32, V),
+) -> (ViewRay, Option<ShadingPoint>) {
     let mut beta = V::ONE;
     let mut passes = 0u32;
     let black = |ray: &Ray| ViewRay {
@@ -101,8 +103,15 @@ pub fn view_sample(
             beta: beta.into(),
             ..at
         };
-        if sp.absorbs || !sp.bsdf.has_smooth_only() {
-            return (at, Some((sp, scatter.hit.tri.material)));
+        let material = scatter.hit.tri.material;
+        if sp.emitted.max_element() > 0.0 {
+            lamp(material, beta * sp.emitted);
+        }
+        // A surface with lobes to sample is the view sample; so is one with none at all
+        // (a black lamp), where the path ends.
+        let smooth = sp.bsdf.has_smooth_only() && sp.bsdf.delta_share(sp.wo_l) > 0.0;
+        if sp.absorbs || !smooth {
+            return (at, Some(sp));
         }
         let Some(bs) = sp.bsdf.sample_delta(sp.wo_l, u_lobe, [u0, u1]) else {
             return (black(&ray), None);
