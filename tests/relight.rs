@@ -129,3 +129,108 @@ fn bad_relight_files_and_flags_are_refused() {
     assert!(fails(&["relight", s(&view), "-o", s(&out)]).contains("has changed since"));
     assert!(!out.exists(), "a refused relight wrote {}", out.display());
 }
+
+/// One HTTP/1.0 exchange with the server at `addr`: (status code, body).
+fn http(addr: &str, request: &str) -> (u16, Vec<u8>) {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(addr).unwrap();
+    // A server that refuses a body early may close before reading all of it.
+    s.write_all(request.as_bytes()).ok();
+    let mut out = Vec::new();
+    s.read_to_end(&mut out).ok();
+    let end = out
+        .windows(4)
+        .position(|w| w == b"\r\n\r\n")
+        .expect("a header")
+        + 4;
+    let head = String::from_utf8_lossy(&out[..end]).into_owned();
+    let code = head.split(' ').nth(1).unwrap().parse().unwrap();
+    (code, out[end..].to_vec())
+}
+
+fn post(addr: &str, body: &str) -> (u16, Vec<u8>) {
+    http(
+        addr,
+        &format!(
+            "POST /render HTTP/1.0\r\nContent-Length: {}\r\n\r\n{body}",
+            body.len()
+        ),
+    )
+}
+
+/// Kills the server when the test ends, however it ends.
+struct Killed(std::process::Child);
+
+impl Drop for Killed {
+    fn drop(&mut self) {
+        self.0.kill().ok();
+        self.0.wait().ok();
+    }
+}
+
+#[test]
+fn the_server_answers_light_sets_and_survives_bad_requests() {
+    use std::io::BufRead;
+    let dir = tempfile::tempdir().unwrap();
+    let (_, view) = prepared(dir.path());
+    assert!(fails(&["relight", s(&view), "--serve", "0.0.0.0:0"]).contains("loopback"));
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_canopy"))
+        .args(["relight", s(&view), "--serve", "127.0.0.1:0"])
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let _server = Killed(child);
+    let addr = line
+        .split("http://")
+        .nth(1)
+        .unwrap()
+        .split('/')
+        .next()
+        .unwrap()
+        .to_string();
+    let (code, page) = http(&addr, "GET / HTTP/1.0\r\n\r\n");
+    assert_eq!(code, 200);
+    assert!(String::from_utf8_lossy(&page).contains("/render"));
+    let (code, lights) = http(&addr, "GET /lights HTTP/1.0\r\n\r\n");
+    assert_eq!(code, 200);
+    assert!(String::from_utf8_lossy(&lights).contains("\"light\""));
+    let bad = [
+        ("garbage", 400),
+        ("{\"emitter\": [{\"material\": 99}]}", 400),
+        ("{\"light\": [{\"type\": \"point\"}]}", 400),
+        ("{\"lamp\": []}", 400),
+        ("{\"environment\": {\"strength\": 2}}", 400),
+    ];
+    for (body, want) in bad {
+        let (code, msg) = post(&addr, body);
+        assert_eq!(code, want, "{body}: {}", String::from_utf8_lossy(&msg));
+        assert!(!msg.is_empty(), "{body}: no reason given");
+    }
+    assert_eq!(http(&addr, "GET /nothing HTTP/1.0\r\n\r\n").0, 404);
+    assert_eq!(http(&addr, "DELETE /render HTTP/1.0\r\n\r\n").0, 405);
+    let huge = "x".repeat((1 << 20) + 10);
+    assert_eq!(post(&addr, &huge).0, 413);
+    // After all that, a good light set still renders: a PNG of the view's size, brighter
+    // under a stronger lamp.
+    let mean = |png: &[u8]| {
+        let img = image::load_from_memory(png).unwrap().to_rgb8();
+        assert_eq!(img.dimensions(), (64, 64));
+        img.pixels().map(|p| p[0] as f64).sum::<f64>() / 4096.0
+    };
+    let (code, one) = post(
+        &addr,
+        "{\"emitter\": [{\"material\": 4, \"strength\": 0.25}]}",
+    );
+    assert_eq!(code, 200);
+    let (_, two) = post(&addr, "{\"emitter\": [{\"material\": 4, \"strength\": 1}]}");
+    assert!(
+        mean(&two) > 1.3 * mean(&one),
+        "{} vs {}",
+        mean(&two),
+        mean(&one)
+    );
+}

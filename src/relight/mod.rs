@@ -338,4 +338,3 @@ fn assemble(
         emits,
     }
 }
-

@@ -119,7 +119,11 @@ impl Relighter {
         let mut archive = canopy_format::Archive::open(&self.file.archive)?;
         set.apply(&mut archive)?;
         let scene = &mut self.setup.scene;
-        let materials: Vec<Material> = archive.materials.iter().map(Material::from_record).collect();
+        let materials: Vec<Material> = archive
+            .materials
+            .iter()
+            .map(Material::from_record)
+            .collect();
         let mean: Vec<Material> = (0..materials.len() as u32)
             .map(|i| scene.textures.mean_shade(&materials[i as usize], i))
             .collect();

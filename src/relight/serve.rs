@@ -59,8 +59,9 @@ fn answer(r: &mut Relighter, lights: &str, mut req: Request) {
     let reply = match (req.method(), req.url()) {
         (Method::Get, "/") => Response::from_string(PAGE)
             .with_header(header("Content-Type", "text/html; charset=utf-8")),
-        (Method::Get, "/lights") => Response::from_string(lights)
-            .with_header(header("Content-Type", "application/json")),
+        (Method::Get, "/lights") => {
+            Response::from_string(lights).with_header(header("Content-Type", "application/json"))
+        }
         (Method::Post, "/render") => render(r, &mut req),
         (_, "/" | "/lights" | "/render") => text(405, "method not allowed"),
         (_, url) => text(404, &format!("{url}: no such page (/, /lights, /render)")),
@@ -73,7 +74,10 @@ fn answer(r: &mut Relighter, lights: &str, mut req: Request) {
 /// A light set's image, or why there is none.
 fn render(r: &mut Relighter, req: &mut Request) -> Response<std::io::Cursor<Vec<u8>>> {
     let mut body = Vec::new();
-    let read = req.as_reader().take(MAX_BODY as u64 + 1).read_to_end(&mut body);
+    let read = req
+        .as_reader()
+        .take(MAX_BODY as u64 + 1)
+        .read_to_end(&mut body);
     if read.is_err() {
         return text(400, "the request's body could not be read");
     }
