@@ -1,11 +1,14 @@
-//! Light cells as the transfer's gather elements: a cell of a leaf's triangle, on one side
-//! (`light_store::Keys`, the cells the cone integrator stores light in: a triangle's n×n
-//! grid over its barycentrics, n from its size). A cell's light is the mean over its area
-//! of the direct light arriving there, gathered at points spread over it.
+//! Light cells as the transfer's gather elements, each on one side of the surface: a cell
+//! of a large triangle (`light_store::Keys`, the cells the cone integrator stores light in:
+//! a triangle's n×n grid over its barycentrics, n from its size), or a whole leaf where its
+//! triangles are smaller than a cell (a scan's fine triangles would otherwise each be a
+//! cell, and gathering light costs rays per cell). A cell's light is the mean over its
+//! area of the direct light arriving there, gathered at points spread over it.
 
-use crate::light_store::{Keys, GRID};
+use crate::light_store::{tri_area, Keys, GRID};
 use crate::paging::{NodeRef, PageCache, TriW};
 use crate::sampler::Hash;
+use crate::trace::Hit;
 use glam::Vec3A as V;
 
 /// Fewest points a cell gathers light at, and most.
@@ -38,6 +41,17 @@ pub fn counts(carried: &[f32]) -> Vec<usize> {
         .collect()
 }
 
+/// The cell a hit on its `back` side (or front) lands in: the triangle's cell, or its
+/// leaf's side where the triangle is a single cell (the key after the leaf's own, `back`
+/// after that: keys the store leaves unused).
+pub fn key(keys: &Keys, hit: &Hit, back: bool) -> u64 {
+    if keys.grid(&hit.tri) > 1.0 {
+        keys.tri(hit.leaf, hit.slot, back, keys.cell_of(&hit.tri, hit.b))
+    } else {
+        keys.node(hit.leaf) + 1 + back as u64
+    }
+}
+
 /// `k` points stratified over the cell `key` names, with the normal of its side (none if
 /// the key names no triangle of the archive).
 pub fn points(
@@ -47,9 +61,7 @@ pub fn points(
     k: usize,
     rng: &mut Hash,
 ) -> Vec<GatherPoint> {
-    let (leaf, Some((slot, back, cell))) = keys.decode(key) else {
-        return Vec::new();
-    };
+    let (leaf, cell) = keys.decode(key);
     let Some(page) = cache.page_of(leaf).map(|p| cache.get(p)) else {
         return Vec::new();
     };
@@ -57,10 +69,47 @@ pub fn points(
     let Some(NodeRef::Leaf { first, count }) = page.bvh.get(local).map(|n| n.link()) else {
         return Vec::new();
     };
-    let Some(tri) = (slot < count).then(|| page.tri(first + slot)).flatten() else {
+    let tris: Vec<TriW> = (first..first + count).filter_map(|t| page.tri(t)).collect();
+    match cell {
+        Some((slot, back, cell)) => match tris.get(slot as usize) {
+            Some(tri) => cell_points(keys, tri, (back, cell), k, rng),
+            None => Vec::new(),
+        },
+        None => leaf_points(&tris, key == keys.node(leaf) + 2, k, rng),
+    }
+}
+
+/// `k` points over a leaf's triangles, each chosen by its area (stratified).
+fn leaf_points(tris: &[TriW], back: bool, k: usize, rng: &mut Hash) -> Vec<GatherPoint> {
+    let total: f32 = tris.iter().map(tri_area).sum();
+    if tris.is_empty() || total <= 0.0 {
         return Vec::new();
-    };
-    let n = keys.grid(&tri);
+    }
+    (0..k)
+        .map(|s| {
+            let mut x = (s as f32 + rng.f32()) / k as f32 * total;
+            let t = tris
+                .iter()
+                .find(|t| {
+                    x -= tri_area(t);
+                    x < 0.0
+                })
+                .unwrap_or(&tris[tris.len() - 1]);
+            let (u, v) = (rng.f32().sqrt(), rng.f32());
+            point_on(t, [1.0 - u, u * (1.0 - v), u * v], back)
+        })
+        .collect()
+}
+
+/// `k` points stratified over cell `cell` of `tri`, on its `back` side or front.
+fn cell_points(
+    keys: &Keys,
+    tri: &TriW,
+    (back, cell): (bool, u64),
+    k: usize,
+    rng: &mut Hash,
+) -> Vec<GatherPoint> {
+    let n = keys.grid(tri);
     let (i, j) = ((cell / GRID) as f32, (cell % GRID) as f32);
     let side = (k as f32).sqrt().ceil() as usize;
     (0..k)
@@ -74,7 +123,7 @@ pub fn points(
                 (x, y)
             };
             let (b1, b2) = ((i + x) / n, (j + y) / n);
-            point_on(&tri, [1.0 - b1 - b2, b1, b2], back)
+            point_on(tri, [1.0 - b1 - b2, b1, b2], back)
         })
         .collect()
 }

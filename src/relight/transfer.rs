@@ -15,6 +15,7 @@
 //! tree's order instead: systematic sampling along it is unbiased, stratified over
 //! subtrees, and its noise falls as the coefficients grow (docs/relighting.md).
 
+use super::cells;
 use crate::integrator::surface::{scattering_hit, Missed};
 use crate::integrator::{on_side, Scene, ShadingPoint};
 use crate::light_store::Keys;
@@ -76,8 +77,7 @@ pub fn follow(
         }
         let albedo = PI * sp.bsdf.diffuse_lobe(sp.wo_l);
         if !sp.absorbs && albedo.max_element() > 0.0 {
-            let cell = keys.cell_of(&hit.tri, hit.b);
-            let key = keys.tri(hit.leaf, hit.slot, !sp.front, cell);
+            let key = cells::key(keys, hit, !sp.front);
             *row.entry(key).or_insert(V::ZERO) += beta * albedo * weight;
         }
         let q = beta.max_element();
