@@ -156,15 +156,15 @@ fn render(a: RelightArgs) -> Result<()> {
     for out in std::iter::once(&exr).chain(&png) {
         canopy::image::check_writable(out)?;
     }
-    let r = Relighter::open(&o, (exr.clone(), png.clone()))?;
+    let mut r = Relighter::open(&o, (exr.clone(), png.clone()))?;
     let f = r.frame()?;
     f.image.write_exr(&exr)?;
     if let Some(png) = &png {
         f.image.write_png(png, 1.0)?;
     }
-    let [g, d, p] = f.seconds;
+    let [t, s, p] = f.seconds;
     println!(
-        "{}: {}x{}, relit in {:.3} s (light at the cells {g:.3} s, direct light {d:.3} s, transfer {p:.3} s)",
+        "{}: {}x{}, relit in {:.3} s (tracing the lights {t:.3} s, summing {s:.3} s, transfer {p:.3} s)",
         output.display(),
         f.image.width,
         f.image.height,

@@ -32,6 +32,8 @@ pub use set::LightSet;
 
 pub struct Emitter {
     pub p: [V; 3],
+    /// The material whose emission it is (0 for a lamp made without one).
+    pub material: u32,
     pub area: f32,
     /// Unit geometric normal (front side).
     pub n: V,
@@ -49,6 +51,7 @@ impl Emitter {
         let area = 0.5 * c.length();
         (area > 0.0 && area.is_finite()).then(|| Emitter {
             p,
+            material: 0,
             area,
             n: c / (2.0 * area),
             le,
@@ -75,6 +78,7 @@ impl Emitter {
     }
 }
 
+#[derive(Clone, Copy, Debug)]
 pub enum Punctual {
     /// Radiant intensity (glTF candela), spot cone cosines (−1 for a point light).
     Spot {
@@ -199,6 +203,7 @@ impl Lights {
                         }
                         let e = Emitter::triangle(tri.p.map(V::from), m.emission, m.double_sided);
                         if let Some(mut e) = e {
+                            e.material = tri.material;
                             if textured(tri.material) {
                                 let uv = page.uvs.get((first + slot) as usize).copied();
                                 e.texel = Some((tri.material, uv.unwrap_or_default()));
@@ -582,7 +587,8 @@ fn spot_falloff(c: f32, cos_outer: f32, cos_inner: f32) -> f32 {
     t * t
 }
 
-fn punctual(l: &LightRecord) -> Option<Punctual> {
+/// A light record as the renderer lights with it (None: it sends no light).
+pub fn punctual(l: &LightRecord) -> Option<Punctual> {
     let color = V::from(l.color).max(V::ZERO) * l.intensity.max(0.0);
     if color.max_element() <= 0.0 {
         return None;

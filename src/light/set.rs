@@ -192,8 +192,8 @@ impl LightSet {
             }
             let c = e.color.unwrap_or([1.0; 3]);
             let s = e.strength.unwrap_or(1.0);
-            for k in 0..3 {
-                m.emission[k] *= s * c[k];
+            for (e, c) in m.emission.iter_mut().zip(c) {
+                *e *= s * c;
             }
         }
         for l in &self.light {

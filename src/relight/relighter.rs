@@ -5,7 +5,7 @@ use super::file::{Coef, RelightFile};
 use super::view::Seen;
 use super::{cells, header_hash, scene_options};
 use crate::integrator::{bsdf_term, sample_light_weighted, Receiver, Scene, ShadingPoint};
-use crate::light::{LightSet, Lights};
+use crate::light::{LightSet, Lights, Punctual};
 use crate::material::Material;
 use crate::render::Setup;
 use crate::sampler::PixelSampler;
@@ -13,6 +13,7 @@ use crate::trace::{Cone, Tracer};
 use anyhow::{bail, Context, Result};
 use glam::Vec3A as V;
 use rayon::prelude::*;
+use rustc_hash::FxHashMap;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -32,7 +33,10 @@ pub struct RelightOptions {
     pub threads: Option<usize>,
 }
 
-/// A view ready to relight: its file, scene and view samples' shading points.
+/// A view ready to relight: its file, scene and view samples' shading points, and each
+/// light's share of the image (light is linear in the lights: a share computed once is
+/// scaled when only a light's strength or colour changes, and traced again only when the
+/// light moves or a new one comes).
 pub struct Relighter {
     pub file: RelightFile,
     pub setup: Setup,
@@ -40,10 +44,68 @@ pub struct Relighter {
     light_samples: u32,
     /// Per material, the factor the light set puts on its lamps' emission.
     lamp_scale: Vec<V>,
+    /// The light set's punctual lights.
+    punctual: Vec<Punctual>,
+    /// The archive's own lamps, by material, and the environment alone: each the lights a
+    /// share is traced under.
+    lamps: FxHashMap<u32, Lights>,
+    env: Option<Lights>,
+    /// The scene's bounding sphere (centre, radius), which a light set's lights are made in.
+    sphere: (V, f32),
+    shares: FxHashMap<Key, Share>,
 }
 
-/// One relit image and the time its parts took: light gathered at the transfer's cells,
-/// direct light at the view samples, the transfer's product.
+/// What a share of the image is the light of: a material's lamps, a punctual light at unit
+/// intensity by its kind, position, direction and cone (bits), or the environment.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
+enum Key {
+    Lamps(u32),
+    Punctual([u32; 9]),
+    Environment,
+}
+
+/// One light's share: direct light at each view sample and E/π at each cell.
+struct Share {
+    direct: Vec<V>,
+    gathered: Vec<V>,
+}
+
+/// A punctual light at unit intensity, its key, and the intensity it had.
+fn unit(p: &Punctual) -> (Punctual, Key, V) {
+    match *p {
+        Punctual::Spot {
+            pos,
+            dir,
+            intensity,
+            cos_outer,
+            cos_inner,
+        } => {
+            let u = Punctual::Spot {
+                pos,
+                dir,
+                intensity: V::ONE,
+                cos_outer,
+                cos_inner,
+            };
+            let b = [
+                0.0, pos.x, pos.y, pos.z, dir.x, dir.y, dir.z, cos_outer, cos_inner,
+            ];
+            (u, Key::Punctual(b.map(f32::to_bits)), intensity)
+        }
+        Punctual::Directional { dir, irradiance } => {
+            let u = Punctual::Directional {
+                dir,
+                irradiance: V::ONE,
+            };
+            let b = [1.0, dir.x, dir.y, dir.z, 0.0, 0.0, 0.0, 0.0, 0.0];
+            (u, Key::Punctual(b.map(f32::to_bits)), irradiance)
+        }
+    }
+}
+
+/// One relit image and the time its parts took: tracing the shares of lights new to this
+/// frame (light gathered at the cells, direct light at the view samples), summing the
+/// shares with their factors, the transfer's product.
 pub struct Frame {
     pub image: crate::image::Image,
     pub seconds: [f64; 3],
@@ -71,7 +133,7 @@ impl Relighter {
             (o.mem_budget, o.threads),
             o.lights.clone(),
         );
-        let setup = Setup::open(&ro, output).with_context(|| {
+        let mut setup = Setup::open(&ro, output).with_context(|| {
             format!(
                 "{}: opening the archive it was precomputed on",
                 o.view.display()
@@ -100,12 +162,24 @@ impl Relighter {
             bail!("{err}");
         }
         let lamp_scale = lamp_scale(&file, scene)?;
+        let own = canopy_format::Archive::open(&file.archive)?;
+        let sphere = bounding_sphere(&own);
+        let lamps = lamps_by_material(&own, scene, sphere)?;
+        let lights = std::mem::take(&mut setup.scene.lights);
+        let env = lights
+            .env
+            .map(|e| Lights::new(Vec::new(), Vec::new(), Some(e), sphere.0, sphere.1));
         Ok(Relighter {
             file,
             setup,
             seen,
             light_samples: o.light_samples,
             lamp_scale,
+            punctual: lights.punctual,
+            lamps,
+            env,
+            sphere,
+            shares: FxHashMap::default(),
         })
     }
 
@@ -119,37 +193,108 @@ impl Relighter {
         let mut archive = canopy_format::Archive::open(&self.file.archive)?;
         set.apply(&mut archive)?;
         let scene = &mut self.setup.scene;
-        let materials: Vec<Material> = archive
+        scene.materials = archive
             .materials
             .iter()
             .map(Material::from_record)
             .collect();
-        let mean: Vec<Material> = (0..materials.len() as u32)
-            .map(|i| scene.textures.mean_shade(&materials[i as usize], i))
-            .collect();
-        let h = &archive.header;
-        let radius = 0.5 * (V::from(h.bounds_max) - V::from(h.bounds_min)).length();
-        let textures = &scene.textures;
-        let lights = Lights::gather(&archive, &mean, |m| textures.emission_textured(m), radius)?;
-        let env = std::mem::take(&mut scene.lights).env;
-        scene.lights = match env {
-            Some(env) => lights.with_environment(env),
-            None => lights,
-        };
-        scene.materials = materials;
         self.lamp_scale = lamp_scale(&self.file, scene)?;
-        let dark = scene.lights.is_empty() && scene.lights.env.is_none();
+        self.punctual = archive
+            .lights
+            .iter()
+            .filter_map(crate::light::punctual)
+            .collect();
+        let lamps_on = self
+            .lamps
+            .keys()
+            .any(|&m| self.lamp_scale[m as usize].max_element() > 0.0);
+        let dark = !lamps_on && self.punctual.is_empty() && self.env.is_none();
         Ok(dark.then(|| "the light set leaves no light on: the image is black".to_string()))
     }
 
-    /// The image under the scene's lights.
-    pub fn frame(&self) -> Result<Frame> {
+    /// The shares the current light set reads, with the factor on each.
+    fn wanted(&self) -> Vec<(Key, V)> {
+        let lamps = self
+            .lamps
+            .keys()
+            .map(|&m| (Key::Lamps(m), self.lamp_scale[m as usize]));
+        let punctual = self.punctual.iter().map(|p| {
+            let (_, key, scale) = unit(p);
+            (key, scale)
+        });
+        let env = self.env.as_ref().map(|_| (Key::Environment, V::ONE));
+        lamps
+            .chain(punctual)
+            .chain(env)
+            .filter(|(_, s)| s.max_element() > 0.0)
+            .collect()
+    }
+
+    /// Traces the share of `key` under its lights alone.
+    fn share(&mut self, key: Key) -> Share {
+        let (c, r) = self.sphere;
+        let lights = match key {
+            Key::Lamps(m) => self.lamps.remove(&m),
+            Key::Environment => self.env.take(),
+            Key::Punctual(_) => self
+                .punctual
+                .iter()
+                .map(unit)
+                .find(|u| u.1 == key)
+                .map(|u| Lights::new(Vec::new(), vec![u.0], None, c, r)),
+        }
+        .expect("a wanted share's lights exist");
+        // A punctual light is one delta: its one light sample is exact.
+        let n = match key {
+            Key::Punctual(_) => 1,
+            _ => self.light_samples,
+        };
+        let others = std::mem::replace(&mut self.setup.scene.lights, lights);
+        let gathered = self.setup.pool.install(|| self.gathered());
+        let direct = self.setup.pool.install(|| self.direct(n));
+        let lights = std::mem::replace(&mut self.setup.scene.lights, others);
+        match key {
+            Key::Lamps(m) => {
+                self.lamps.insert(m, lights);
+            }
+            Key::Environment => self.env = Some(lights),
+            Key::Punctual(_) => {}
+        }
+        Share { direct, gathered }
+    }
+
+    /// The image under the current light set: the shares it reads, traced where they are
+    /// new, summed with their factors and multiplied by the transfer.
+    pub fn frame(&mut self) -> Result<Frame> {
         let t0 = Instant::now();
-        let scene = &self.setup.scene;
-        let e = self.setup.pool.install(|| self.gathered());
+        let wanted = self.wanted();
+        for &(key, _) in &wanted {
+            if !self.shares.contains_key(&key) {
+                let share = self.share(key);
+                self.shares.insert(key, share);
+            }
+        }
+        // Shares no longer read are dropped once they outnumber those read.
+        if self.shares.len() > 2 * wanted.len() + 4 {
+            self.shares.retain(|k, _| wanted.iter().any(|w| w.0 == *k));
+        }
         let t1 = Instant::now();
-        let direct = self.setup.pool.install(|| self.direct());
+        let (mut e, mut direct) = (
+            vec![V::ZERO; self.file.cell_first.len() - 1],
+            vec![V::ZERO; self.seen.len()],
+        );
+        for (key, scale) in &wanted {
+            let share = &self.shares[key];
+            e.par_iter_mut()
+                .zip(&share.gathered)
+                .for_each(|(a, b)| *a += *scale * *b);
+            direct
+                .par_iter_mut()
+                .zip(&share.direct)
+                .for_each(|(a, b)| *a += *scale * *b);
+        }
         let t2 = Instant::now();
+        let scene = &self.setup.scene;
         let f = &self.file;
         let spp = f.header.spp as usize;
         let pixels: Vec<[f32; 3]> = self.setup.pool.install(|| {
@@ -210,12 +355,12 @@ impl Relighter {
             .collect()
     }
 
-    /// Per view sample, the light it sends to the camera: the direct light it reflects (or
-    /// the environment, for a sample that left the scene), times the throughput of the
-    /// smooth bounces before it. Lamps seen directly are the pixel's emission records.
-    fn direct(&self) -> Vec<V> {
+    /// Per view sample, the light it sends to the camera from `n` light samples: the direct
+    /// light it reflects (or the environment, for a sample that left the scene), times the
+    /// throughput of the smooth bounces before it. Lamps seen directly are the pixel's
+    /// emission records.
+    fn direct(&self, n: u32) -> Vec<V> {
         let scene = &self.setup.scene;
-        let n = self.light_samples;
         (0..self.seen.len())
             .into_par_iter()
             .map_init(
@@ -240,6 +385,34 @@ impl Relighter {
             )
             .collect()
     }
+}
+
+/// The centre and radius of the archive's bounding sphere.
+fn bounding_sphere(a: &canopy_format::Archive) -> (V, f32) {
+    let (lo, hi) = (V::from(a.header.bounds_min), V::from(a.header.bounds_max));
+    (0.5 * (lo + hi), 0.5 * (hi - lo).length())
+}
+
+/// The archive's own lamps (its own emission), one set of lights per material.
+fn lamps_by_material(
+    own: &canopy_format::Archive,
+    scene: &Scene,
+    (c, r): (V, f32),
+) -> Result<FxHashMap<u32, Lights>> {
+    let materials: Vec<Material> = own.materials.iter().map(Material::from_record).collect();
+    let mean: Vec<Material> = (0..materials.len() as u32)
+        .map(|i| scene.textures.mean_shade(&materials[i as usize], i))
+        .collect();
+    let textures = &scene.textures;
+    let all = Lights::gather(own, &mean, |m| textures.emission_textured(m), r)?;
+    let mut by: FxHashMap<u32, Vec<crate::light::Emitter>> = FxHashMap::default();
+    for e in all.emitters {
+        by.entry(e.material).or_default().push(e);
+    }
+    Ok(by
+        .into_iter()
+        .map(|(m, es)| (m, Lights::new(es, Vec::new(), None, c, r)))
+        .collect())
 }
 
 /// Per material, the factor on its emission the scene's light set put: the scene's

@@ -25,7 +25,9 @@ pub struct ViewRay {
     pub passes: u32,
 }
 
-/// Where a view ray ends.
+/// Where a view ray ends. Nearly every view sample is a surface, so boxing the shading
+/// point would only add an allocation to each.
+#[allow(clippy::large_enum_variant)]
 pub enum Seen {
     Surface(ShadingPoint),
     /// It left the scene along its direction.
