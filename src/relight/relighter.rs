@@ -27,7 +27,8 @@ const DIRECT_SEED: u32 = 0xD1EC7;
 pub struct RelightOptions {
     pub view: PathBuf,
     pub lights: Option<PathBuf>,
-    /// Light samples per view sample and per gather point.
+    /// Light samples per view sample from each lamp and the environment (a gather point
+    /// takes one, a punctual light one).
     pub light_samples: u32,
     pub mem_budget: Option<u64>,
     pub threads: Option<usize>,
