@@ -183,7 +183,7 @@ fn parse(bytes: &[u8]) -> Result<RelightFile> {
         h.spp
     );
     ensure!(
-        h.views == pixels * h.spp as u64,
+        pixels.checked_mul(h.spp as u64) == Some(h.views),
         "{} view samples for {pixels} pixels of {} samples",
         h.views,
         h.spp
@@ -197,7 +197,10 @@ fn parse(bytes: &[u8]) -> Result<RelightFile> {
     let path: Vec<u8> = take(&mut rest, h.path_len as u64)?;
     let archive = PathBuf::from(String::from_utf8(path).context("archive path is not UTF-8")?);
     let views = take(&mut rest, h.views)?;
-    let cell_first: Vec<u64> = take(&mut rest, h.cells + 1)?;
+    let cell_first: Vec<u64> = take(
+        &mut rest,
+        h.cells.checked_add(1).context("counts overflow")?,
+    )?;
     let points = take(&mut rest, h.points)?;
     let row_first: Vec<u64> = take(&mut rest, pixels + 1)?;
     let coef_cell: Vec<u32> = take(&mut rest, h.coefs)?;
@@ -244,4 +247,102 @@ fn parse(bytes: &[u8]) -> Result<RelightFile> {
         emit_first,
         emits,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::test_rng::TestRng;
+
+    /// A small valid file: a 2×1 view of 1 sample a pixel reading 2 cells.
+    fn small() -> RelightFile {
+        let archive = PathBuf::from("/a.canopy");
+        let view = ViewRay {
+            o: [0.0; 3],
+            d: [0.0, 0.0, 1.0],
+            beta: [1.0; 3],
+            u: 0.5,
+            passes: 0,
+        };
+        let point = GatherPoint {
+            p: [1.0, 2.0, 3.0],
+            n: [0.0, 1.0, 0.0],
+        };
+        let mut camera = [0u8; 64];
+        camera[..4].copy_from_slice(b"main");
+        RelightFile {
+            header: Header {
+                magic: MAGIC,
+                version: VERSION,
+                width: 2,
+                height: 1,
+                spp: 1,
+                paths: 4,
+                coefficients: 8,
+                seed: 0,
+                path_len: archive.to_string_lossy().len() as u32,
+                views: 2,
+                cells: 2,
+                points: 3,
+                coefs: 3,
+                emits: 1,
+                archive_header: 7,
+                camera,
+            },
+            archive,
+            views: vec![view; 2],
+            cell_first: vec![0, 1, 3],
+            points: vec![point; 3],
+            row_first: vec![0, 2, 3],
+            coef_cell: vec![0, 1, 1],
+            coef_w: vec![[f16::from_f32(0.5); 3]; 3],
+            emit_first: vec![0, 0, 1],
+            emits: vec![Coef {
+                index: 0,
+                w: [2.0; 3],
+            }],
+        }
+    }
+
+    #[test]
+    fn a_written_file_reads_back_and_damage_is_refused_not_panicked_on() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("v.relight");
+        small().write(&path).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        let back = parse(&bytes).unwrap();
+        assert_eq!(back.camera().as_deref(), Some("main"));
+        assert_eq!(back.coef_cell, vec![0, 1, 1]);
+        assert_eq!(back.archive, PathBuf::from("/a.canopy"));
+        // Any byte changed, with the checksum made to match: refused with a reason or read
+        // as a file whose every index is in range; never a panic.
+        let mut rng = TestRng::new(5);
+        let body = bytes.len() - 8;
+        let mut refused = 0;
+        for _ in 0..4000 {
+            let mut b = bytes.clone();
+            let at = ((rng.f64() * body as f64) as usize).min(body - 1);
+            b[at] ^= 1 << ((rng.f32() * 8.0) as u32).min(7);
+            let sum = xxh3_64(&b[..body]);
+            b[body..].copy_from_slice(&sum.to_le_bytes());
+            match parse(&b) {
+                Err(_) => refused += 1,
+                Ok(f) => {
+                    assert!(f.coef_cell.iter().all(|&c| (c as u64) < f.header.cells));
+                    assert_eq!(*f.row_first.last().unwrap(), f.header.coefs);
+                }
+            }
+        }
+        assert!(
+            refused > 1000,
+            "only {refused} of 4000 damaged files refused"
+        );
+        // Without the checksum fixed, any change is refused.
+        let mut b = bytes.clone();
+        b[body / 2] ^= 4;
+        let Err(e) = parse(&b) else {
+            panic!("a damaged file was read");
+        };
+        assert!(format!("{e:#}").contains("checksum"));
+    }
 }
