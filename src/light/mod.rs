@@ -40,8 +40,8 @@ pub struct Emitter {
     /// Radiance; a textured lamp's mean over its texture.
     pub le: V,
     pub two_sided: bool,
-    /// A textured lamp's material and vertex texture coordinates.
-    pub texel: Option<(u32, [[f32; 2]; 3])>,
+    /// A textured lamp's vertex texture coordinates (its texture is its material's).
+    pub texel: Option<[[f32; 2]; 3]>,
 }
 
 impl Emitter {
@@ -68,9 +68,9 @@ impl Emitter {
         let q = self.p[0] * b[0] + self.p[1] * b[1] + self.p[2] * b[2];
         let err =
             self.p[0].abs().max(self.p[1].abs()).max(self.p[2].abs()) * crate::trace::gamma(7);
-        let texel = self.texel.map(|(m, uv)| {
+        let texel = self.texel.map(|uv| {
             (
-                m,
+                self.material,
                 std::array::from_fn(|k| b[0] * uv[0][k] + b[1] * uv[1][k] + b[2] * uv[2][k]),
             )
         });
@@ -206,7 +206,7 @@ impl Lights {
                             e.material = tri.material;
                             if textured(tri.material) {
                                 let uv = page.uvs.get((first + slot) as usize).copied();
-                                e.texel = Some((tri.material, uv.unwrap_or_default()));
+                                e.texel = Some(uv.unwrap_or_default());
                             }
                             by_leaf.insert((leaf, slot), emitters.len() as u32);
                             emitters.push(e);

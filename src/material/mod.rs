@@ -624,11 +624,15 @@ impl Bsdf {
 
     /// The diffuse lobe's value at `wo`, the same for every incident direction.
     pub fn diffuse_lobe(&self, wo: V) -> V {
-        let glossy = Bsdf {
+        self.eval(wo, V::Z).0 - self.glossy().eval(wo, V::Z).0
+    }
+
+    /// The same BSDF without its diffuse lobe.
+    pub fn glossy(&self) -> Bsdf {
+        Bsdf {
             diffuse: V::ZERO,
             ..*self
-        };
-        self.eval(wo, V::Z).0 - glossy.eval(wo, V::Z).0
+        }
     }
 
     /// Whether the BSDF has no non-delta lobe (next-event estimation is useless).

@@ -128,10 +128,7 @@ impl Surface {
 
     /// The BSDF without its diffuse lobe.
     pub(super) fn glossy(&self) -> Bsdf {
-        Bsdf {
-            diffuse: V::ZERO,
-            ..self.bsdf
-        }
+        self.bsdf.glossy()
     }
 
     /// Whether the surface has rough specular lobes, which `lobe_ray` samples.
