@@ -343,6 +343,11 @@ impl Lights {
         }
     }
 
+    /// The scene's bounding sphere the lights were made for: centre and radius.
+    pub fn sphere(&self) -> (V, f32) {
+        (self.center, self.radius)
+    }
+
     pub fn is_empty(&self) -> bool {
         self.total <= 0.0
     }

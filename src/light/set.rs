@@ -27,7 +27,7 @@
 //! ```
 
 use anyhow::{bail, Context, Result};
-use canopy_format::{name_str, Archive, LightRecord};
+use canopy_format::{name_str, Archive, LightRecord, MaterialRecord};
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 
@@ -174,16 +174,34 @@ impl LightSet {
 
     /// Makes the changes to `archive`'s material, light and environment records.
     pub fn apply(&self, archive: &mut Archive) -> Result<()> {
+        self.apply_to_lamps(&mut archive.materials, &mut archive.lights)?;
+        if let Some(e) = &self.environment {
+            let Some(env) = archive.environment.as_mut() else {
+                bail!(
+                    "{}: [environment] changes the archive's environment, and {} carries none (give one to the scene file, or light the render with --env or --sky and their strength and rotation flags)",
+                    self.path.display(),
+                    archive.path().display()
+                );
+            };
+            env.strength *= e.strength.unwrap_or(1.0);
+            env.rotate_degrees += e.rotate.unwrap_or(0.0);
+        }
+        Ok(())
+    }
+
+    /// Makes the changes to an archive's material and light records (its lamps and
+    /// punctual lights), leaving its environment as it is.
+    pub fn apply_to_lamps(
+        &self,
+        materials: &mut [MaterialRecord],
+        lights: &mut Vec<LightRecord>,
+    ) -> Result<()> {
         let f = self.path.display();
         for e in &self.emitter {
-            let names: Vec<String> = archive
-                .materials
-                .iter()
-                .map(|m| name_str(&m.name))
-                .collect();
+            let names: Vec<String> = materials.iter().map(|m| name_str(&m.name)).collect();
             let i = find(&e.material, &names)
                 .with_context(|| format!("{f}: {}", missing("material", &e.material, &names)))?;
-            let m = &mut archive.materials[i];
+            let m = &mut materials[i];
             if m.emission.iter().all(|&v| v <= 0.0) {
                 bail!(
                     "{f}: material {i} ({}) emits no light, so it has no lamp to change (only the archive's lamps can be scaled)",
@@ -199,11 +217,10 @@ impl LightSet {
         for l in &self.light {
             match &l.light {
                 Some(name) => {
-                    let names: Vec<String> =
-                        archive.lights.iter().map(|r| name_str(&r.name)).collect();
+                    let names: Vec<String> = lights.iter().map(|r| name_str(&r.name)).collect();
                     let i = find(name, &names)
                         .with_context(|| format!("{f}: {}", missing("light", name, &names)))?;
-                    l.change(&mut archive.lights[i]);
+                    l.change(&mut lights[i]);
                 }
                 None => {
                     let mut r: LightRecord = bytemuck::Zeroable::zeroed();
@@ -211,19 +228,9 @@ impl LightSet {
                     r.direction = [0.0, -1.0, 0.0];
                     r.outer_cone = std::f32::consts::FRAC_PI_4;
                     l.change(&mut r);
-                    archive.lights.push(r);
+                    lights.push(r);
                 }
             }
-        }
-        if let Some(e) = &self.environment {
-            let Some(env) = archive.environment.as_mut() else {
-                bail!(
-                    "{f}: [environment] changes the archive's environment, and {} carries none (give one to the scene file, or light the render with --env or --sky and their strength and rotation flags)",
-                    archive.path().display()
-                );
-            };
-            env.strength *= e.strength.unwrap_or(1.0);
-            env.rotate_degrees += e.rotate.unwrap_or(0.0);
         }
         Ok(())
     }

@@ -37,7 +37,7 @@ pub struct Header {
     pub points: u64,
     pub coefs: u64,
     pub emits: u64,
-    /// xxh3-64 of the archive's header, so a relight refuses an archive changed since.
+    /// The archive's `header_checksum`, so a relight refuses an archive changed since.
     pub archive_header: u64,
     /// Camera name, zero-padded (empty: the archive's first, or the default view).
     pub camera: [u8; 64],

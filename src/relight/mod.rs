@@ -132,10 +132,6 @@ fn scene_options(
     }
 }
 
-fn header_hash(archive: &canopy_format::Archive) -> u64 {
-    xxhash_rust::xxh3::xxh3_64(bytemuck::bytes_of(&archive.header))
-}
-
 /// Precomputes the view and transfer of `o.archive` seen from `o.camera`, into `o.output`.
 pub fn prepare(o: &PrepareOptions) -> Result<PrepareStats> {
     let t0 = Instant::now();
@@ -207,7 +203,14 @@ pub fn prepare(o: &PrepareOptions) -> Result<PrepareStats> {
             })
             .collect()
     });
-    let file = assemble(o, (w, h), header_hash(archive), &parts, &index, points);
+    let file = assemble(
+        o,
+        (w, h),
+        archive.header.header_checksum,
+        &parts,
+        &index,
+        points,
+    );
     file.write(&o.output)?;
     Ok(PrepareStats {
         seconds: t0.elapsed().as_secs_f64(),

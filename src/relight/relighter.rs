@@ -3,14 +3,15 @@
 
 use super::file::{Coef, RelightFile};
 use super::view::Seen;
-use super::{cells, header_hash, scene_options};
+use super::{cells, scene_options};
 use crate::integrator::{bsdf_term, sample_light_weighted, Receiver, Scene, ShadingPoint};
 use crate::light::{LightSet, Lights, Punctual};
 use crate::material::Material;
-use crate::render::Setup;
+use crate::render::{gather_lights, Setup};
 use crate::sampler::PixelSampler;
 use crate::trace::{Cone, Tracer};
 use anyhow::{bail, Context, Result};
+use canopy_format::{LightRecord, MaterialRecord};
 use glam::Vec3A as V;
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
@@ -45,6 +46,8 @@ pub struct Relighter {
     light_samples: u32,
     /// Per material, the factor the light set puts on its lamps' emission.
     lamp_scale: Vec<V>,
+    /// The archive's own material and light records, which a light set changes.
+    own: (Vec<MaterialRecord>, Vec<LightRecord>),
     /// The light set's punctual lights.
     punctual: Vec<Punctual>,
     /// The archive's own lamps, by material, and the environment alone: each the lights a
@@ -140,7 +143,7 @@ impl Relighter {
                 o.view.display()
             )
         })?;
-        if header_hash(&setup.scene.cache.archive) != h.archive_header {
+        if setup.scene.cache.archive.header.header_checksum != h.archive_header {
             bail!(
                 "{}: {} has changed since the view was precomputed (run `canopy relight` on the archive again)",
                 o.view.display(),
@@ -162,10 +165,20 @@ impl Relighter {
         if let Some(err) = scene.error() {
             bail!("{err}");
         }
-        let lamp_scale = lamp_scale(&file, scene)?;
-        let own = canopy_format::Archive::open(&file.archive)?;
-        let sphere = bounding_sphere(&own);
-        let lamps = lamps_by_material(&own, scene, sphere)?;
+        // The archive's own records: the scene's are a light set's when --lights was given.
+        let own = match o.lights {
+            Some(_) => {
+                let a = canopy_format::Archive::open(&file.archive)?;
+                (a.materials, a.lights)
+            }
+            None => {
+                let a = &scene.cache.archive;
+                (a.materials.clone(), a.lights.clone())
+            }
+        };
+        let lamp_scale = lamp_scale(&file, &own.0, &scene.materials)?;
+        let sphere = scene.lights.sphere();
+        let lamps = lamps_by_material(scene, &own.0, sphere)?;
         let lights = std::mem::take(&mut setup.scene.lights);
         let env = lights
             .env
@@ -176,6 +189,7 @@ impl Relighter {
             seen,
             light_samples: o.light_samples,
             lamp_scale,
+            own,
             punctual: lights.punctual,
             lamps,
             env,
@@ -191,20 +205,12 @@ impl Relighter {
         if set.changes_environment() {
             bail!("the environment's strength and rotation are set when the view is opened (--lights)");
         }
-        let mut archive = canopy_format::Archive::open(&self.file.archive)?;
-        set.apply(&mut archive)?;
+        let (mut materials, mut lights) = self.own.clone();
+        set.apply_to_lamps(&mut materials, &mut lights)?;
         let scene = &mut self.setup.scene;
-        scene.materials = archive
-            .materials
-            .iter()
-            .map(Material::from_record)
-            .collect();
-        self.lamp_scale = lamp_scale(&self.file, scene)?;
-        self.punctual = archive
-            .lights
-            .iter()
-            .filter_map(crate::light::punctual)
-            .collect();
+        scene.materials = materials.iter().map(Material::from_record).collect();
+        self.lamp_scale = lamp_scale(&self.file, &self.own.0, &scene.materials)?;
+        self.punctual = lights.iter().filter_map(crate::light::punctual).collect();
         let lamps_on = self
             .lamps
             .keys()
@@ -388,24 +394,14 @@ impl Relighter {
     }
 }
 
-/// The centre and radius of the archive's bounding sphere.
-fn bounding_sphere(a: &canopy_format::Archive) -> (V, f32) {
-    let (lo, hi) = (V::from(a.header.bounds_min), V::from(a.header.bounds_max));
-    (0.5 * (lo + hi), 0.5 * (hi - lo).length())
-}
-
-/// The archive's own lamps (its own emission), one set of lights per material.
+/// The archive's own lamps (its own emission, `own`), one set of lights per material.
 fn lamps_by_material(
-    own: &canopy_format::Archive,
     scene: &Scene,
+    own: &[MaterialRecord],
     (c, r): (V, f32),
 ) -> Result<FxHashMap<u32, Lights>> {
-    let materials: Vec<Material> = own.materials.iter().map(Material::from_record).collect();
-    let mean: Vec<Material> = (0..materials.len() as u32)
-        .map(|i| scene.textures.mean_shade(&materials[i as usize], i))
-        .collect();
-    let textures = &scene.textures;
-    let all = Lights::gather(own, &mean, |m| textures.emission_textured(m), r)?;
+    let materials: Vec<Material> = own.iter().map(Material::from_record).collect();
+    let all = gather_lights(&scene.cache.archive, &materials, &scene.textures)?;
     let mut by: FxHashMap<u32, Vec<crate::light::Emitter>> = FxHashMap::default();
     for e in all.emitters {
         by.entry(e.material).or_default().push(e);
@@ -416,11 +412,14 @@ fn lamps_by_material(
         .collect())
 }
 
-/// Per material, the factor on its emission the scene's light set put: the scene's
-/// emission over the archive's own.
-fn lamp_scale(file: &RelightFile, scene: &Scene) -> Result<Vec<V>> {
-    let own = canopy_format::Archive::open(&file.archive)?;
-    let n = own.materials.len().min(scene.materials.len());
+/// Per material, the factor on its emission a light set put: `materials`' emission over
+/// the archive's own (`own`). Every material a pixel's lamp record names must exist.
+fn lamp_scale(
+    file: &RelightFile,
+    own: &[MaterialRecord],
+    materials: &[Material],
+) -> Result<Vec<V>> {
+    let n = own.len().min(materials.len());
     if let Some(c) = file.emits.iter().find(|c| c.index as usize >= n) {
         bail!(
             "{}: a pixel's lamp names material {} of {n}",
@@ -430,8 +429,8 @@ fn lamp_scale(file: &RelightFile, scene: &Scene) -> Result<Vec<V>> {
     }
     Ok((0..n)
         .map(|m| {
-            let old = V::from(own.materials[m].emission);
-            let new = scene.materials[m].emission;
+            let old = V::from(own[m].emission);
+            let new = materials[m].emission;
             V::select(old.cmpgt(V::ZERO), new / old, V::ZERO)
         })
         .collect())

@@ -243,6 +243,29 @@ fn reserve(b: u64, pages: u64, tiles: u64, instances: u64) -> u64 {
     RESERVE.min(b / 8) + pages * PER_PAGE + tiles * PER_TILE + instances * PER_INSTANCE
 }
 
+/// The lamps of `archive`, emitting as `materials` say, and its punctual lights, in its
+/// bounding sphere. Lamps are chosen by their mean radiance; a textured one's sample then
+/// takes the texel at its point (`Textures::emission_ratio`).
+pub fn gather_lights(
+    archive: &Archive,
+    materials: &[Material],
+    textures: &Textures,
+) -> Result<Lights> {
+    let (lo, hi) = (
+        V::from(archive.header.bounds_min),
+        V::from(archive.header.bounds_max),
+    );
+    let mean: Vec<Material> = (0..materials.len() as u32)
+        .map(|i| textures.mean_shade(&materials[i as usize], i))
+        .collect();
+    Lights::gather(
+        archive,
+        &mean,
+        |m| textures.emission_textured(m),
+        0.5 * (hi - lo).length(),
+    )
+}
+
 /// The scene an archive describes, its pages under `budget` = (total, bytes kept aside for
 /// the integrator's state).
 pub fn open_scene(
@@ -302,21 +325,7 @@ pub fn open_scene(
         .map(Material::from_record)
         .collect();
     let textures = Textures::new(&archive.textures, &archive.materials);
-    let (lo, hi) = (
-        V::from(archive.header.bounds_min),
-        V::from(archive.header.bounds_max),
-    );
-    // Lamps are chosen by their mean radiance; a textured one's sample then takes the texel
-    // at its point (`Textures::emission_ratio`).
-    let mean: Vec<Material> = (0..materials.len() as u32)
-        .map(|i| textures.mean_shade(&materials[i as usize], i))
-        .collect();
-    let lights = Lights::gather(
-        &archive,
-        &mean,
-        |m| textures.emission_textured(m),
-        0.5 * (hi - lo).length(),
-    )?;
+    let lights = gather_lights(&archive, &materials, &textures)?;
     Ok(Scene {
         cache,
         materials,

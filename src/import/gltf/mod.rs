@@ -54,7 +54,7 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
         .or_else(|| doc.scenes().next())
         .ok_or_else(|| anyhow!("{}: no scene", path.display()))?;
     check_forest(&doc).map_err(|e| anyhow!("{}: {e}", path.display()))?;
-    let shared = shared_meshes(&doc, &buffers, scene, base, sink.shares_meshes());
+    let shared = shared_meshes(&doc, scene, base, sink.shares_meshes());
     let mut prototypes: Vec<Option<(u32, u64)>> = vec![None; doc.meshes().len()];
     let mut count = 0u64;
     // Depth-first pre-order, roots and children in the order the file lists them: cameras,
@@ -151,19 +151,12 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
 /// Meshes to store once as prototypes: placed more than once (by several nodes or
 /// EXT_mesh_gpu_instancing) and emitting no light (the light sampler works on world-space
 /// emitters, so emissive meshes are flattened). None when the sink flattens.
-fn shared_meshes(
-    doc: &gltf::Document,
-    buffers: &[Vec<u8>],
-    scene: &SceneDesc,
-    base: u32,
-    sharing: bool,
-) -> Vec<bool> {
+fn shared_meshes(doc: &gltf::Document, scene: &SceneDesc, base: u32, sharing: bool) -> Vec<bool> {
     let mut uses = vec![0usize; doc.meshes().len()];
     if sharing {
         for node in doc.nodes() {
             if let Some(m) = node.mesh() {
-                // A bad instancing extension is reported by the walk, naming the node.
-                uses[m.index()] += gpu_instances(doc, &node, buffers).map_or(1, |i| i.n);
+                uses[m.index()] += gpu_instance_count(doc, &node);
             }
         }
     }
@@ -359,6 +352,22 @@ impl GpuInstances {
             )
         })
     }
+}
+
+/// How many placements a node's EXT_mesh_gpu_instancing makes (1 without it), from its
+/// first accessor's count alone: the columns are read once, by the walk, which reports a
+/// bad extension naming the node (counted here as 1).
+fn gpu_instance_count(doc: &gltf::Document, node: &gltf::Node) -> usize {
+    let Some(ext) = node.extension_value("EXT_mesh_gpu_instancing") else {
+        return 1;
+    };
+    ["TRANSLATION", "ROTATION", "SCALE"]
+        .iter()
+        .find_map(|name| {
+            let i = ext["attributes"].get(name)?.as_u64()?;
+            doc.accessors().nth(i as usize).map(|a| a.count())
+        })
+        .unwrap_or(1)
 }
 
 /// A node's EXT_mesh_gpu_instancing transforms (translation, rotation, scale per instance,
