@@ -65,15 +65,10 @@ pub fn radiance(
             }
             Err(Missed::Degenerate) => break,
         };
-        let Scatter {
-            hit,
-            ng,
-            area,
-            travelled,
-        } = scatter;
+        let sp = scatter.shading(scene, &ray);
+        let length = scatter.length(&ray);
+        let Scatter { hit, ng, area, .. } = scatter;
         let wo = -ray.d.normalize();
-        let sp = ShadingPoint::new(&hit, ng, wo, &scene.material_at_hit(&hit, ray.d));
-        let length = travelled + hit.t * ray.d.length();
         beta *= sp.through(length);
         if sp.emitted != V::ZERO {
             if prev_delta {

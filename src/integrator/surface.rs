@@ -38,6 +38,21 @@ pub struct Scatter {
     pub travelled: f32,
 }
 
+impl Scatter {
+    /// The distance `ray` (the ray that found the hit) ran to reach it, holes included.
+    pub fn length(&self, ray: &Ray) -> f32 {
+        self.travelled + self.hit.t * ray.d.length()
+    }
+
+    /// The hit prepared for shading as `ray` sees it, its material looked up at the camera's
+    /// footprint (`Scene::material_at_hit`).
+    pub fn shading(&self, scene: &Scene, ray: &Ray) -> ShadingPoint {
+        let wo = -ray.d.normalize();
+        let shaded = scene.material_at_hit(&self.hit, ray.d);
+        ShadingPoint::new(&self.hit, self.ng, wo, &shaded)
+    }
+}
+
 /// Why a ray scatters nowhere.
 #[derive(Debug, PartialEq)]
 pub enum Missed {

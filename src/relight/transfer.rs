@@ -69,9 +69,8 @@ pub fn follow(
             Err(Missed::Left | Missed::Degenerate) => return,
         };
         let hit = &scatter.hit;
-        let wo = -ray.d.normalize();
-        sp = ShadingPoint::new(hit, scatter.ng, wo, &scene.material_at_hit(hit, ray.d));
-        beta *= sp.through(scatter.travelled + hit.t * ray.d.length());
+        sp = scatter.shading(scene, &ray);
+        beta *= sp.through(scatter.length(&ray));
         if !beta.is_finite() || beta.max_element() <= 0.0 {
             return;
         }

@@ -52,11 +52,7 @@ impl ViewRay {
         let mut ray = self.ray();
         let mut passes = self.passes;
         match scattering_hit(scene, tr, &mut ray, self.u, &mut passes) {
-            Ok(s) => {
-                let wo = -ray.d.normalize();
-                let shaded = scene.material_at_hit(&s.hit, ray.d);
-                Seen::Surface(ShadingPoint::new(&s.hit, s.ng, wo, &shaded))
-            }
+            Ok(s) => Seen::Surface(s.shading(scene, &ray)),
             Err(Missed::Left) => Seen::Sky,
             Err(Missed::Degenerate) => Seen::Nothing,
         }
@@ -96,11 +92,8 @@ pub fn view_sample(
             Err(Missed::Left) => return (at, None),
             Err(Missed::Degenerate) => return (black(&ray), None),
         };
-        let wo = -ray.d.normalize();
-        let shaded = scene.material_at_hit(&scatter.hit, ray.d);
-        let sp = ShadingPoint::new(&scatter.hit, scatter.ng, wo, &shaded);
-        let length = scatter.travelled + scatter.hit.t * ray.d.length();
-        beta *= sp.through(length);
+        let sp = scatter.shading(scene, &ray);
+        beta *= sp.through(scatter.length(&ray));
         let at = ViewRay {
             beta: beta.into(),
             ..at

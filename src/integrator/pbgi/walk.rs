@@ -120,7 +120,7 @@ fn walk(
         let Some(sp) = Surface::at(scene, &s.hit, ray.d) else {
             break;
         };
-        beta *= sp.through(s.travelled + s.hit.t * ray.d.length());
+        beta *= sp.through(s.length(&ray));
         let page = tr.page_handle(s.hit.page);
         let u = || [0; 6].map(|_| rng.f32());
         let (sends, sampled) = hit_light(scene, tr, &page, &s.hit, ray.d, u);
