@@ -148,15 +148,7 @@ fn render(a: RelightArgs) -> Result<()> {
             std::io::Write::flush(&mut std::io::stdout()).ok();
         });
     };
-    let ext = output.extension().and_then(|e| e.to_str());
-    let (exr, png) = match ext {
-        Some("exr") => (output.clone(), None),
-        Some("png") => (output.with_extension("exr"), Some(output.clone())),
-        _ => bail!("{}: output must end in .exr or .png", output.display()),
-    };
-    for out in std::iter::once(&exr).chain(&png) {
-        canopy::image::check_writable(out)?;
-    }
+    let (exr, png) = canopy::render::image_outputs(&output, false, (&a.input, "the view"))?;
     let mut r = Relighter::open(&o, (exr.clone(), png.clone()))?;
     let f = r.frame()?;
     f.image.write_exr(&exr)?;

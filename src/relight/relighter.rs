@@ -219,6 +219,11 @@ impl Relighter {
         Ok(dark.then(|| "the light set leaves no light on: the image is black".to_string()))
     }
 
+    /// The archive's own material and light records (before any light set).
+    pub fn own_records(&self) -> (&[MaterialRecord], &[LightRecord]) {
+        (&self.own.0, &self.own.1)
+    }
+
     /// The shares the current light set reads, with the factor on each.
     fn wanted(&self) -> Vec<(Key, V)> {
         let lamps = self

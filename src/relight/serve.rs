@@ -8,7 +8,7 @@
 use super::Relighter;
 use crate::light::LightSet;
 use anyhow::{bail, Context, Result};
-use canopy_format::{name_str, Archive};
+use canopy_format::name_str;
 use std::io::Read;
 use std::net::SocketAddr;
 use tiny_http::{Header, Method, Request, Response, Server};
@@ -33,7 +33,7 @@ pub fn serve(mut r: Relighter, addr: &str, ready: impl FnOnce(SocketAddr)) -> Re
         .to_ip()
         .context("the server has no IP address")?;
     ready(bound);
-    let lights = describe(&r)?;
+    let lights = describe(&r);
     for req in server.incoming_requests() {
         let answer = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
             answer(&mut r, &lights, req)
@@ -109,18 +109,16 @@ fn render(r: &mut Relighter, req: &mut Request) -> Response<std::io::Cursor<Vec<
 }
 
 /// The archive's lamps (emissive materials) and punctual lights, and its bounds, as JSON.
-fn describe(r: &Relighter) -> Result<String> {
-    let a = Archive::open(&r.file.archive)?;
-    let lamps: Vec<serde_json::Value> = a
-        .materials
+fn describe(r: &Relighter) -> String {
+    let (materials, lights) = r.own_records();
+    let lamps: Vec<serde_json::Value> = materials
         .iter()
         .enumerate()
         .filter(|(_, m)| m.emission.iter().any(|&v| v > 0.0))
         .map(|(i, m)| serde_json::json!({"material": i, "name": name_str(&m.name)}))
         .collect();
     let kinds = ["point", "spot", "directional"];
-    let punctual: Vec<serde_json::Value> = a
-        .lights
+    let punctual: Vec<serde_json::Value> = lights
         .iter()
         .enumerate()
         .map(|(i, l)| {
@@ -132,11 +130,11 @@ fn describe(r: &Relighter) -> Result<String> {
             })
         })
         .collect();
-    let h = &a.header;
-    Ok(serde_json::json!({
+    let h = &r.setup.scene.cache.archive.header;
+    serde_json::json!({
         "emitter": lamps, "light": punctual,
         "bounds": [h.bounds_min, h.bounds_max],
         "size": [r.file.header.width, r.file.header.height],
     })
-    .to_string())
+    .to_string()
 }

@@ -5,11 +5,10 @@
 use super::defaults::{chosen_environment, light_the_scene};
 use super::setup::open_scene;
 use crate::camera::Camera;
-use crate::image::{check_writable, same_file};
 use crate::integrator::pbgi::bake::{bake_file, BakeSettings};
 use crate::light::Environment;
 use crate::progress::peak_rss_bytes;
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use canopy_format::Archive;
 use std::fmt;
 use std::path::PathBuf;
@@ -64,13 +63,7 @@ impl fmt::Display for BakeReport {
 
 pub fn bake(o: &BakeOptions) -> Result<BakeReport> {
     let t0 = Instant::now();
-    if same_file(&o.output, &o.archive) {
-        bail!(
-            "{}: writing there would overwrite the archive",
-            o.output.display()
-        );
-    }
-    check_writable(&o.output)?;
+    super::setup::not_over(&o.output, (&o.archive, "the archive"))?;
     let archive = Arc::new(Archive::open(&o.archive)?);
     let threads = o.threads.unwrap_or_else(rayon::current_num_threads).max(1);
     let pool = rayon::ThreadPoolBuilder::new()

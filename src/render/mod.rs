@@ -12,7 +12,7 @@ mod setup;
 mod stats;
 
 pub use defaults::{EnvOptions, EnvSource};
-pub use setup::{gather_lights, Setup, MAX_SIDE};
+pub use setup::{gather_lights, image_outputs, Setup, MAX_SIDE};
 pub use stats::{Checkpoint, RenderStats, Seconds};
 
 use crate::progress::peak_rss_bytes;

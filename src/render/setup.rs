@@ -17,7 +17,7 @@ use crate::units::format_size;
 use anyhow::{bail, Context, Result};
 use canopy_format::{Archive, CameraRecord};
 use glam::Vec3A as V;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 /// Largest image side accepted.
@@ -44,29 +44,45 @@ pub struct Setup {
 
 /// Where the EXR and (if asked) the PNG go: `-o x.png` writes x.png and x.exr beside it.
 fn outputs(o: &RenderOptions) -> Result<(PathBuf, Option<PathBuf>)> {
-    let ext = o
-        .output
+    let images = image_outputs(&o.output, o.preview, (&o.archive, "the archive"))?;
+    if let Some(stats) = &o.stats {
+        not_over(stats, (&o.archive, "the archive"))?;
+    }
+    Ok(images)
+}
+
+/// Where an image written to `output` goes: `-o x.png` writes x.png and x.exr beside it,
+/// `preview` a PNG beside an EXR. Each path is checked writable and not to be `input`
+/// (named by the words given).
+pub fn image_outputs(
+    output: &Path,
+    preview: bool,
+    input: (&Path, &str),
+) -> Result<(PathBuf, Option<PathBuf>)> {
+    let ext = output
         .extension()
         .and_then(|e| e.to_str())
         .map(str::to_ascii_lowercase);
     let (exr, png) = match ext.as_deref() {
         Some("exr") => (
-            o.output.clone(),
-            o.preview.then(|| o.output.with_extension("png")),
+            output.to_path_buf(),
+            preview.then(|| output.with_extension("png")),
         ),
-        Some("png") => (o.output.with_extension("exr"), Some(o.output.clone())),
-        _ => bail!("{}: output must end in .exr or .png", o.output.display()),
+        Some("png") => (output.with_extension("exr"), Some(output.to_path_buf())),
+        _ => bail!("{}: output must end in .exr or .png", output.display()),
     };
-    for out in std::iter::once(&exr).chain(&png).chain(&o.stats) {
-        if same_file(out, &o.archive) {
-            bail!(
-                "{}: writing there would overwrite the archive",
-                out.display()
-            );
-        }
-        check_writable(out)?;
+    for out in std::iter::once(&exr).chain(&png) {
+        not_over(out, input)?;
     }
     Ok((exr, png))
+}
+
+/// Fails unless `out` can be written and is not `input` (named by the words given).
+pub(super) fn not_over(out: &Path, (input, what): (&Path, &str)) -> Result<()> {
+    if same_file(out, input) {
+        bail!("{}: writing there would overwrite {what}", out.display());
+    }
+    check_writable(out)
 }
 
 /// The camera `--camera` names, or the first, or `default` where the archive has none.
