@@ -10,7 +10,7 @@
 //! `SurfaceInteraction::ComputeDifferentials`).
 
 use crate::material::Material;
-use crate::paging::{PageCache, TileData};
+use crate::paging::{Corners, PageCache, TileData};
 use canopy_format::codec::{bilinear, texel_to_linear};
 use canopy_format::{MaterialRecord, TextureRecord, TILE};
 use glam::Vec3A as V;
@@ -39,34 +39,121 @@ impl TextureFilter {
     }
 }
 
-/// A material's textures, by `MaterialRecord` slot.
+/// A material's textures, by `MaterialRecord` slot (`SLOTS` order), and how each reads
+/// its texture coordinates.
 #[derive(Clone, Copy, Debug, Default)]
 struct Binding {
-    base: Option<u32>,
-    metallic_roughness: Option<u32>,
+    slots: [Option<u32>; MaterialRecord::SLOTS],
+    /// Per slot, the stream it reads (`MaterialRecord::uv_streams`) and its coordinate map.
+    streams: u16,
+    maps: [[f32; 6]; MaterialRecord::SLOTS],
     /// `ALPHA_MASK` cutoff, or None.
     mask: Option<f32>,
     /// `ALPHA_BLEND`.
     blend: bool,
-    /// The normal texture and its scale.
-    normal: Option<(u32, f32)>,
-    emissive: Option<u32>,
-    /// Clearcoat, clearcoat roughness, sheen colour and sheen roughness
-    /// (`MaterialRecord::layer_textures`).
-    layers: [Option<u32>; 4],
+    normal_scale: f32,
+    coat_normal_scale: f32,
+}
+
+impl Binding {
+    fn of(m: &MaterialRecord, textures: usize) -> Binding {
+        let index = |t: u16| {
+            (t != MaterialRecord::NO_TEXTURE && (t as usize) < textures).then_some(t as u32)
+        };
+        Binding {
+            slots: m.slot_textures().map(index),
+            streams: m.uv_streams,
+            maps: m.uv_transforms,
+            mask: (m.flags & MaterialRecord::ALPHA_MASK != 0).then_some(m.alpha_cutoff),
+            blend: m.flags & MaterialRecord::ALPHA_BLEND != 0,
+            normal_scale: m.normal_scale,
+            coat_normal_scale: m.coat_normal_scale,
+        }
+    }
+
+    fn stream(&self, slot: usize) -> usize {
+        (self.streams >> slot & 1) as usize
+    }
+
+    /// Slot `slot`'s coordinates from its stream's `uv`.
+    fn map(&self, slot: usize, [u, v]: [f32; 2]) -> [f32; 2] {
+        let m = &self.maps[slot];
+        [m[0] * u + m[1] * v + m[2], m[3] * u + m[4] * v + m[5]]
+    }
+
+    /// Slot `slot`'s coordinates and filter width at footprint `fp`: the stream's point and
+    /// axes under the slot's map (its linear part carries the axes).
+    fn at(&self, slot: usize, fp: &Footprint) -> ([f32; 2], f32) {
+        let k = self.stream(slot);
+        let m = &self.maps[slot];
+        let width = fp.axes[k].iter().fold(0.0f32, |w, &[du, dv]| {
+            let (a, b) = (m[0] * du + m[1] * dv, m[3] * du + m[4] * dv);
+            w.max(a.abs()).max(b.abs())
+        });
+        (self.map(slot, fp.at[k]), 2.0 * width)
+    }
+
+    /// How many texture-coordinate streams the slots read: 2 when one reads the second.
+    fn streams(&self) -> usize {
+        match (0..MaterialRecord::SLOTS).any(|s| self.slots[s].is_some() && self.stream(s) == 1) {
+            true => 2,
+            false => 1,
+        }
+    }
+
+    /// Slot `slot`'s coordinates at a triangle's three corners.
+    fn corners(&self, slot: usize, c: &Corners) -> [[f32; 2]; 3] {
+        c.uv[self.stream(slot)].map(|uv| self.map(slot, uv))
+    }
 }
 
 /// A material as shaded at one point of a surface (its opacity apart: `Textures::opacity`).
 pub struct Shaded {
     pub m: Material,
-    /// The normal texture's tangent-space normal there (unit; +z off the surface).
-    pub bump: Option<V>,
+    /// The normal texture's shading normal there (world space, unit, on the side of the
+    /// triangle's front normal), if it has one.
+    pub normal: Option<V>,
+    /// The clearcoat normal texture's, likewise.
+    pub coat_normal: Option<V>,
 }
 
 impl Shaded {
     /// A material that does not vary over its surface.
     pub fn plain(m: Material) -> Shaded {
-        Shaded { m, bump: None }
+        Shaded {
+            m,
+            normal: None,
+            coat_normal: None,
+        }
+    }
+}
+
+/// A point of a triangle in texture space, per texture-coordinate stream: its coordinates
+/// and the two axes of its footprint (texture-space vectors; zero for a point).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Footprint {
+    at: [[f32; 2]; 2],
+    axes: [[[f32; 2]; 2]; 2],
+}
+
+impl Footprint {
+    /// A point of no extent at barycentrics `b` of a triangle whose corners are `c`.
+    pub fn point(c: &Corners, b: [f32; 3]) -> Footprint {
+        Footprint {
+            at: c.uv.map(|uv| uv_at(uv, b)),
+            axes: [[[0.0; 2]; 2]; 2],
+        }
+    }
+
+    /// The footprint `spread` wide (world units, across a ray of direction `d`) at
+    /// barycentrics `b` of a triangle with positions `p` and corners `c`, in the first
+    /// `streams` streams (`footprint_axes`).
+    fn new(p: [V; 3], c: &Corners, b: [f32; 3], d: V, spread: f32, streams: usize) -> Footprint {
+        let mut fp = Footprint::point(c, b);
+        for k in 0..streams {
+            fp.axes[k] = footprint_axes(p, c.uv[k], d, spread);
+        }
+        fp
     }
 }
 
@@ -84,21 +171,9 @@ pub struct Textures {
 impl Textures {
     pub fn new(records: &[TextureRecord], materials: &[MaterialRecord]) -> Textures {
         let level_first = records.iter().map(|t| t.level_first_tiles()).collect();
-        let index = |t: u16| {
-            (t != MaterialRecord::NO_TEXTURE && (t as usize) < records.len()).then_some(t as u32)
-        };
-        let slot = |m: &MaterialRecord, s: usize| index(m.textures[s]);
         let bindings: Vec<Binding> = materials
             .iter()
-            .map(|m| Binding {
-                base: slot(m, MaterialRecord::BASE_COLOR),
-                metallic_roughness: slot(m, MaterialRecord::METALLIC_ROUGHNESS),
-                mask: (m.flags & MaterialRecord::ALPHA_MASK != 0).then_some(m.alpha_cutoff),
-                blend: m.flags & MaterialRecord::ALPHA_BLEND != 0,
-                normal: slot(m, MaterialRecord::NORMAL).map(|t| (t, m.normal_scale)),
-                emissive: slot(m, MaterialRecord::EMISSIVE),
-                layers: m.layer_textures.map(index),
-            })
+            .map(|m| Binding::of(m, records.len()))
             .collect();
         Textures {
             records: records.to_vec(),
@@ -111,37 +186,55 @@ impl Textures {
     /// Whether material `m` varies over its surface (a texture or an alpha mode).
     #[inline]
     pub fn varies(&self, m: u32) -> bool {
-        self.bindings.get(m as usize).is_some_and(|b| {
-            b.base.is_some()
-                || b.metallic_roughness.is_some()
-                || b.mask.is_some()
-                || b.blend
-                || b.normal.is_some()
-                || b.emissive.is_some()
-                || b.layers.iter().any(Option::is_some)
-        })
+        self.bindings
+            .get(m as usize)
+            .is_some_and(|b| b.mask.is_some() || b.blend || b.slots.iter().any(Option::is_some))
     }
 
     /// Whether material `m` tilts its shading normal by a normal texture.
     #[inline]
     pub fn bumped(&self, m: u32) -> bool {
-        self.bindings
-            .get(m as usize)
-            .is_some_and(|b| b.normal.is_some())
+        self.slot(m, MaterialRecord::NORMAL).is_some()
     }
 
-    /// Whether material `m`'s emission comes from a texture.
-    pub fn emission_textured(&self, m: u32) -> bool {
-        self.bindings
-            .get(m as usize)
-            .is_some_and(|b| b.emissive.is_some())
+    /// Material `index`'s texture footprint `spread` wide (world units, across a ray of
+    /// direction `d`) at barycentrics `b` of a triangle with positions `p` and corners `c`.
+    pub fn footprint(
+        &self,
+        index: u32,
+        p: [V; 3],
+        c: &Corners,
+        b: [f32; 3],
+        d: V,
+        spread: f32,
+    ) -> Footprint {
+        let streams = self
+            .bindings
+            .get(index as usize)
+            .map_or(1, Binding::streams);
+        Footprint::new(p, c, b, d, spread, streams)
     }
 
-    /// Material `m`'s emission texel at `uv` over the texture's mean, per channel (0 where
-    /// the mean is 0): what turns a lamp's mean radiance, by which lights are chosen, into
-    /// its radiance at that point. Read at level 0 (a light sample is a point).
+    /// Material `m`'s texture in `slot`, if it has one.
+    fn slot(&self, m: u32, slot: usize) -> Option<u32> {
+        self.bindings.get(m as usize).and_then(|b| b.slots[slot])
+    }
+
+    /// Where material `m`'s emission texture reads at a triangle's corners `c`, if its
+    /// emission comes from a texture: the point a light sample reads is interpolated
+    /// from these (`emission_ratio`).
+    pub fn emission_corners(&self, m: u32, c: &Corners) -> Option<[[f32; 2]; 3]> {
+        let b = self.bindings.get(m as usize)?;
+        b.slots[MaterialRecord::EMISSIVE]?;
+        Some(b.corners(MaterialRecord::EMISSIVE, c))
+    }
+
+    /// Material `m`'s emission texel at `uv` (its emission slot's coordinates) over the
+    /// texture's mean, per channel (0 where the mean is 0): what turns a lamp's mean
+    /// radiance, by which lights are chosen, into its radiance at that point. Read at
+    /// level 0 (a light sample is a point).
     pub fn emission_ratio(&self, look: &mut Lookup, m: u32, uv: [f32; 2]) -> V {
-        let Some(t) = self.bindings.get(m as usize).and_then(|b| b.emissive) else {
+        let Some(t) = self.slot(m, MaterialRecord::EMISSIVE) else {
             return V::ONE;
         };
         let c = look.trilinear(self, t, uv, 0.0);
@@ -163,73 +256,95 @@ impl Textures {
     /// Material `index` with its textures' means in place of texels: what a baked or
     /// clustered value over its whole surface sees.
     pub fn mean_shade(&self, m: &Material, index: u32) -> Material {
-        self.apply(m, index, |t| self.records[t as usize].mean)
+        self.apply(m, index, |_, t| self.records[t as usize].mean)
     }
 
-    /// Material `index` as shaded at texture coordinates `uv` with filter width `width`
-    /// (texture space).
+    /// Material `index` as shaded at footprint `fp` of a triangle with positions `p` and
+    /// corners `c` (each slot read at its coordinates, filtered over its width).
     pub fn shade(
         &self,
         look: &mut Lookup,
         m: &Material,
         index: u32,
-        uv: [f32; 2],
-        width: f32,
+        fp: &Footprint,
+        p: [V; 3],
+        c: &Corners,
     ) -> Shaded {
-        let shaded = self.apply(m, index, |t| look.trilinear(self, t, uv, width));
+        let Some(b) = self.bindings.get(index as usize) else {
+            return Shaded::plain(*m);
+        };
+        let shaded = self.apply(m, index, |slot, t| {
+            let (uv, width) = b.at(slot, fp);
+            look.trilinear(self, t, uv, width)
+        });
         // glTF 2.0 §3.9.3: n = normalize((2·texel − 1) · (scale, scale, 1)). Read at level 0,
         // bilinear, as pbrt-v4's NormalMap reads the full-resolution image: shading is not
         // linear in the normal, so a normal averaged over a footprint biases it (a cone's
-        // wide footprint after a bounce most).
-        let normal = self.bindings.get(index as usize).and_then(|b| b.normal);
-        let bump = normal.and_then(|(t, scale)| {
+        // wide footprint after a bounce most). The coat's normal texture
+        // (KHR_materials_clearcoat) reads the same way in its own slot.
+        let mut bump = |slot: usize, scale: f32| {
+            let t = b.slots[slot]?;
+            let (uv, _) = b.at(slot, fp);
             let c = look.trilinear(self, t, uv, 0.0);
-            let n = V::new(
+            let tn = V::new(
                 (2.0 * c[0] - 1.0) * scale,
                 (2.0 * c[1] - 1.0) * scale,
                 2.0 * c[2] - 1.0,
             )
             .normalize();
-            (n.is_finite() && n.z > 0.0).then_some(n)
-        });
-        Shaded { m: shaded, bump }
+            (tn.is_finite() && tn.z > 0.0).then_some(tn)
+        };
+        let normal = bump(MaterialRecord::NORMAL, b.normal_scale);
+        let coat = bump(MaterialRecord::COAT_NORMAL, b.coat_normal_scale);
+        let world = |slot: usize, tn: V| {
+            let ng = (p[1] - p[0]).cross(p[2] - p[0]).normalize_or_zero();
+            perturb(p, b.corners(slot, c), ng, tn)
+        };
+        Shaded {
+            m: shaded,
+            normal: normal.map(|tn| world(MaterialRecord::NORMAL, tn)),
+            coat_normal: coat.map(|tn| world(MaterialRecord::COAT_NORMAL, tn)),
+        }
     }
 
     /// `m` with each of material `index`'s textures multiplying its factor (glTF 2.0
     /// §3.9: base colour RGB; roughness from G, metalness from B; emission RGB; and the
     /// extensions': clearcoat R, clearcoat roughness G, sheen colour RGB, sheen roughness
-    /// A), `texel(t)` giving texture t's linear RGBA.
-    fn apply(&self, m: &Material, index: u32, mut texel: impl FnMut(u32) -> [f32; 4]) -> Material {
+    /// A), `texel(slot, t)` giving texture t's linear RGBA as slot `slot` reads it.
+    fn apply(
+        &self,
+        m: &Material,
+        index: u32,
+        mut texel: impl FnMut(usize, u32) -> [f32; 4],
+    ) -> Material {
         let mut out = *m;
         let Some(b) = self.bindings.get(index as usize) else {
             return out;
         };
-        if let Some(t) = b.base {
-            let c = texel(t);
+        let mut read = |slot: usize| b.slots[slot].map(|t| texel(slot, t));
+        if let Some(c) = read(MaterialRecord::BASE_COLOR) {
             out.base = (m.base * V::new(c[0], c[1], c[2])).clamp(V::ZERO, V::ONE);
         }
-        if let Some(t) = b.metallic_roughness {
-            let c = texel(t);
+        if let Some(c) = read(MaterialRecord::METALLIC_ROUGHNESS) {
             out.metallic = (m.metallic * c[2]).clamp(0.0, 1.0);
             let r = (m.alpha.sqrt() * c[1]).clamp(0.0, 1.0);
             out.alpha = r * r;
         }
-        if let Some(t) = b.emissive {
-            let c = texel(t);
+        if let Some(c) = read(MaterialRecord::EMISSIVE) {
             out.emission = (m.emission * V::new(c[0], c[1], c[2])).max(V::ZERO);
         }
-        let [coat, coat_roughness, sheen, sheen_roughness] = b.layers.map(|t| t.map(&mut texel));
-        if let Some(c) = coat {
+        const LAYERS: usize = 4;
+        if let Some(c) = read(LAYERS + MaterialRecord::CLEARCOAT) {
             out.clearcoat = (m.clearcoat * c[0]).clamp(0.0, 1.0);
         }
-        if let Some(c) = coat_roughness {
+        if let Some(c) = read(LAYERS + MaterialRecord::CLEARCOAT_ROUGHNESS) {
             let r = (m.coat_alpha.sqrt() * c[1]).clamp(0.0, 1.0);
             out.coat_alpha = r * r;
         }
-        if let Some(c) = sheen {
+        if let Some(c) = read(LAYERS + MaterialRecord::SHEEN_COLOR) {
             out.sheen = (m.sheen * V::new(c[0], c[1], c[2])).clamp(V::ZERO, V::ONE);
         }
-        if let Some(c) = sheen_roughness {
+        if let Some(c) = read(LAYERS + MaterialRecord::SHEEN_ROUGHNESS) {
             out.sheen_roughness = (m.sheen_roughness * c[3]).clamp(0.0, 1.0);
         }
         out
@@ -246,7 +361,7 @@ impl Textures {
         look: &mut Lookup,
         m: &Material,
         index: u32,
-        uv: [f32; 2],
+        at: &Footprint,
         colour_alpha: f32,
     ) -> f32 {
         let Some(b) = self.bindings.get(index as usize) else {
@@ -255,8 +370,9 @@ impl Textures {
         if b.mask.is_none() && !b.blend {
             return 1.0;
         }
-        let alpha =
-            m.opacity * colour_alpha * b.base.map_or(1.0, |t| look.trilinear(self, t, uv, 0.0)[3]);
+        let base = MaterialRecord::BASE_COLOR;
+        let texel = |t: u32| look.trilinear(self, t, b.at(base, at).0, 0.0)[3];
+        let alpha = m.opacity * colour_alpha * b.slots[base].map_or(1.0, texel);
         match b.mask {
             Some(cut) => (alpha >= cut) as u32 as f32,
             None => alpha.clamp(0.0, 1.0),
@@ -321,17 +437,18 @@ impl<'a> Lookup<'a> {
     }
 }
 
-/// Texture coordinates at barycentrics `b` of a triangle with positions `p` and texture
-/// coordinates `uv`, and the texture-space filter width of a footprint `spread` wide
-/// (world units, across a ray of direction `d`) on the triangle's plane.
-pub fn footprint(p: [V; 3], uv: [[f32; 2]; 3], b: [f32; 3], d: V, spread: f32) -> ([f32; 2], f32) {
-    let at = uv_at(uv, b);
+/// The two texture-space axes of a footprint `spread` wide (world units, across a ray of
+/// direction `d`) on the plane of a triangle with positions `p` and texture coordinates
+/// `uv`; zero where either is degenerate. The filter width is twice their largest
+/// component.
+fn footprint_axes(p: [V; 3], uv: [[f32; 2]; 3], d: V, spread: f32) -> [[f32; 2]; 2] {
+    let none = [[0.0; 2]; 2];
     let n = (p[1] - p[0]).cross(p[2] - p[0]);
     let Some((dpdu, dpdv)) = dp_duv(p, uv) else {
-        return (at, 0.0);
+        return none;
     };
     if n == V::ZERO || spread.is_nan() || spread <= 0.0 {
-        return (at, 0.0);
+        return none;
     }
     let n = n.normalize();
     let d = d.normalize();
@@ -354,17 +471,16 @@ pub fn footprint(p: [V; 3], uv: [[f32; 2]; 3], b: [f32; 3], d: V, spread: f32) -
     let ata = [dpdu.dot(dpdu), dpdu.dot(dpdv), dpdv.dot(dpdv)];
     let inv = ata[0] * ata[2] - ata[1] * ata[1];
     if inv.is_nan() || inv == 0.0 {
-        return (at, 0.0);
+        return none;
     }
-    let mut width = 0.0f32;
-    for e in [e1, e2] {
+    [e1, e2].map(|e| {
         let dp = spread * (e - d * (e.dot(n) / dn));
         let (bu, bv) = (dpdu.dot(dp), dpdv.dot(dp));
-        let du = (ata[2] * bu - ata[1] * bv) / inv;
-        let dv = (ata[0] * bv - ata[1] * bu) / inv;
-        width = width.max(du.abs()).max(dv.abs());
-    }
-    (at, 2.0 * width)
+        [
+            (ata[2] * bu - ata[1] * bv) / inv,
+            (ata[0] * bv - ata[1] * bu) / inv,
+        ]
+    })
 }
 
 /// Texture coordinates at barycentrics `b` of a triangle whose vertices have `uv`.
@@ -418,6 +534,19 @@ pub fn perturb(p: [V; 3], uv: [[f32; 2]; 3], n: V, tn: V) -> V {
 mod tests {
     use super::*;
 
+    /// The filter width of a footprint in the first stream, read through `map`.
+    fn width(p: [V; 3], uv: [[f32; 2]; 3], d: V, map: [f32; 6]) -> ([f32; 2], f32) {
+        let mut m = crate::import::default_material("m");
+        m.textures[0] = 0;
+        m.uv_transforms[0] = map;
+        let c = Corners {
+            uv: [uv, [[0.0; 2]; 3]],
+            ..Corners::default()
+        };
+        let b = Binding::of(&m, 1);
+        b.at(0, &Footprint::new(p, &c, [0.5, 0.25, 0.25], d, 0.01, 1))
+    }
+
     #[test]
     fn a_footprint_head_on_maps_to_its_texture_width() {
         // A unit square with uv = xy, seen head on: a footprint of 0.01 spans 0.01 along
@@ -428,7 +557,8 @@ mod tests {
             V::new(0.0, 1.0, 0.0),
         ];
         let uv = [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]];
-        let (at, w) = footprint(p, uv, [0.5, 0.25, 0.25], V::new(0.0, 0.0, -1.0), 0.01);
+        let id = MaterialRecord::IDENTITY_UV;
+        let (at, w) = width(p, uv, V::new(0.0, 0.0, -1.0), id);
         assert!((at[0] - 0.25).abs() < 1e-6 && (at[1] - 0.25).abs() < 1e-6);
         assert!(
             (0.02 / 2f32.sqrt() - 1e-6..=0.02 * 1.0001).contains(&w),
@@ -436,8 +566,46 @@ mod tests {
         );
         // At 60° from the normal the footprint stretches by 1/cos along one axis.
         let d = V::new(0.0, 3f32.sqrt() / 2.0, -0.5);
-        let (_, w) = footprint(p, uv, [0.5, 0.25, 0.25], d, 0.01);
+        let (_, w) = width(p, uv, d, id);
         assert!((w - 0.04).abs() < 1e-5, "width {w}");
+    }
+
+    #[test]
+    fn a_slot_s_map_moves_its_footprint_as_mapped_coordinates_would() {
+        // A slot's map applied to the footprint must give what the footprint of the
+        // triangle's corners mapped first gives: point and width, for rotations, scales,
+        // shears and mirrors, head on and slanted.
+        let p = [
+            V::new(0.0, 0.0, 0.0),
+            V::new(2.0, 0.3, 0.0),
+            V::new(0.1, 1.0, 0.5),
+        ];
+        let uv = [[0.1, 0.2], [0.9, 0.3], [0.2, 0.7]];
+        for map in [
+            [0.0, -1.0, 0.5, 1.0, 0.0, 0.25],
+            [4.0, 0.0, 0.0, 0.0, 0.5, -3.0],
+            [0.6, 0.8, 0.0, -1.6, 1.2, 2.0],
+            [-1.0, 0.3, 1.0, 0.0, 1.0, 0.0],
+        ] {
+            let mapped = uv.map(|[u, v]| {
+                [
+                    map[0] * u + map[1] * v + map[2],
+                    map[3] * u + map[4] * v + map[5],
+                ]
+            });
+            for d in [V::new(0.0, 0.0, -1.0), V::new(0.3, -0.6, -0.5).normalize()] {
+                let (at, w) = width(p, uv, d, map);
+                let (want_at, want) = width(p, mapped, d, MaterialRecord::IDENTITY_UV);
+                assert!(
+                    (at[0] - want_at[0]).abs() < 1e-5 && (at[1] - want_at[1]).abs() < 1e-5,
+                    "{map:?}: {at:?} against {want_at:?}"
+                );
+                assert!(
+                    (w - want).abs() <= 1e-4 * want,
+                    "{map:?}: {w} against {want}"
+                );
+            }
+        }
     }
 
     #[test]

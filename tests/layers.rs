@@ -171,3 +171,103 @@ fn layer_textures_read_their_channels() {
         "layer textures against factors",
     );
 }
+
+/// A clearcoat normal texture tilts the coat, not the base: a level plane whose coat
+/// normal texture leans by a uniform tilt reflects the sky as the plane tilted by that much
+/// (a node rotation) whose coat has none. Black bases, so the smooth coat's mirror is all
+/// that is seen; the lower half of the image, where every pixel meets both planes, each
+/// reflecting the same sky at infinity. The tilt is the texel as glTF decodes it. The level
+/// plane without the texture reflects another part of the sky, at least 5× the tolerance
+/// away, so a coat normal ignored fails.
+#[test]
+fn a_clearcoat_normal_texture_tilts_the_coat_as_tilted_geometry_does() {
+    use common::textured::{plane_gltf, solid_png, Plane};
+    let dir = tempfile::tempdir().unwrap();
+    let theta = 25f64.to_radians();
+    let byte = |x: f64| ((x + 1.0) / 2.0 * 255.0).round() as u8;
+    let texel = [byte(theta.sin()), 128, byte(theta.cos()), 255];
+    solid_png(&dir.path().join("tilt.png"), 4, texel);
+    // glTF 2.0 §3.9.3, scale 1; in the plane's tangent frame t = +x (u runs along x),
+    // b = n × t = −z, n = +y.
+    let [x, y, z] = [0, 1, 2].map(|k| 2.0 * texel[k] as f64 / 255.0 - 1.0);
+    let len = (x * x + y * y + z * z).sqrt();
+    let n = [x / len, z / len, -y / len];
+    // The rotation taking +y to n: about y × n by acos(n·y).
+    let axis = [n[2], 0.0, -n[0]];
+    let s = (axis[0] * axis[0] + axis[2] * axis[2]).sqrt();
+    let half = n[1].acos() / 2.0;
+    let q = [
+        axis[0] / s * half.sin(),
+        0.0,
+        axis[2] / s * half.sin(),
+        half.cos(),
+    ];
+    let plane = Plane {
+        image: "tilt.png",
+        ..Default::default()
+    };
+    let coat = |normal: bool| {
+        let mut c = serde_json::json!({"clearcoatFactor": 1.0, "clearcoatRoughnessFactor": 0.0});
+        if normal {
+            c["clearcoatNormalTexture"] = serde_json::json!({"index": 0});
+        }
+        c
+    };
+    let mut means = Vec::new();
+    for (name, normal, rotation) in [
+        ("textured", true, None),
+        ("tilted", false, Some(q)),
+        ("level", false, None),
+    ] {
+        let gltf = plane_gltf(dir.path(), &format!("{name}.gltf"), &plane);
+        let mut doc: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&gltf).unwrap()).unwrap();
+        doc["materials"][0] = serde_json::json!({
+            "pbrMetallicRoughness": {"baseColorFactor": [0.0, 0.0, 0.0, 1.0], "metallicFactor": 0.0},
+            "extensions": {
+                "KHR_materials_specular": {"specularFactor": 0.0},
+                "KHR_materials_clearcoat": coat(normal)
+            }
+        });
+        doc["extensionsUsed"]
+            .as_array_mut()
+            .unwrap()
+            .push("KHR_materials_clearcoat".into());
+        if let Some(q) = rotation {
+            doc["nodes"][0]["rotation"] = serde_json::json!(q);
+        }
+        std::fs::write(&gltf, doc.to_string()).unwrap();
+        let arc = dir.path().join(format!("{name}.canopy"));
+        convert(&gltf, &arc, None);
+        let out = dir.path().join(format!("{name}.exr"));
+        let flags = [
+            "--spp",
+            "64",
+            "--width",
+            "32",
+            "--height",
+            "32",
+            "--sky",
+            "--sun-strength",
+            "0",
+        ];
+        let (img, _) = render(&arc, &out, &flags);
+        let lower = |c: usize| {
+            let px = &img.pixels[16 * 32..];
+            px.iter().map(|p| p[c] as f64).sum::<f64>() / px.len() as f64
+        };
+        means.push([0, 1, 2].map(lower));
+    }
+    let [textured, tilted, level] = [&means[0], &means[1], &means[2]];
+    for (c, ((&textured, &tilted), &level)) in textured.iter().zip(tilted).zip(level).enumerate() {
+        let tol = 0.005 * tilted;
+        assert!(
+            (textured - tilted).abs() <= tol,
+            "channel {c}: coat normal texture {textured} against tilted plane {tilted}"
+        );
+        assert!(
+            (level - tilted).abs() >= 5.0 * tol,
+            "channel {c}: the level plane {level} is too near the tilted one {tilted} to tell"
+        );
+    }
+}

@@ -783,32 +783,3 @@ fn webp_and_ktx2_only_textures_render_as_their_png_twin() {
     let err = fails(&["convert", s(&broken.join("bumps.gltf")), "-o", s(&out)]);
     assert!(err.contains("KTX2 level 0 declares"), "{err}");
 }
-
-/// A material whose textures read two coordinate sets (the archive stores one a vertex)
-/// keeps the first texture's set: the other texture is dropped with its factor kept, a
-/// warning names it, and the archive is one its reader accepts and renders.
-#[test]
-fn a_texture_on_a_second_coordinate_set_is_dropped_by_name() {
-    let dir = tempfile::tempdir().unwrap();
-    let mut doc: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(scene("bumps/bumps.gltf")).unwrap()).unwrap();
-    doc["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"] =
-        serde_json::json!({"index": 0});
-    doc["materials"][0]["normalTexture"]["texCoord"] = serde_json::json!(1);
-    doc["meshes"][0]["primitives"][0]["attributes"]["TEXCOORD_1"] = serde_json::json!(1);
-    for f in ["bumps.bin", "ridges.png"] {
-        std::fs::copy(scene("bumps").join(f), dir.path().join(f)).unwrap();
-    }
-    let gltf = dir.path().join("two_sets.gltf");
-    std::fs::write(&gltf, doc.to_string()).unwrap();
-    let arc = dir.path().join("two_sets.canopy");
-    let err = succeeds_saying(&["convert", s(&gltf), "-o", s(&arc)]);
-    assert!(
-        err.contains("material 'floor': its normal texture reads texture coordinates 1"),
-        "{err}"
-    );
-    ok(&["inspect", s(&arc)]);
-    let flags = ["--spp", "1", "--width", "16", "--height", "12"];
-    let (img, _) = render(&arc, &dir.path().join("o.exr"), &flags);
-    assert!(all_finite(&img));
-}

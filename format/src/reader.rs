@@ -134,6 +134,14 @@ impl Archive {
                 m.layer_textures = [MaterialRecord::NO_TEXTURE; 4];
             }
         }
+        if header.version_minor < 6 {
+            // Records before 2.6 end before the coat normal and the per-slot coordinate
+            // maps: every slot reads the one stream as stored.
+            for m in &mut materials {
+                m.coat_normal_texture = MaterialRecord::NO_TEXTURE;
+                m.uv_transforms = [MaterialRecord::IDENTITY_UV; MaterialRecord::SLOTS];
+            }
+        }
         let textures = read_table::<TextureRecord>(&map, &header.textures);
         let tiles = read_table::<TileEntry>(&map, &header.tiles);
         let environment = read_table::<EnvironmentRecord>(&map, &header.environment);
@@ -261,7 +269,7 @@ impl Archive {
             || (h.node_count, h.tri_count, h.vert_count, h.coef_bytes)
                 != (e.node_count, e.tri_count, e.vert_count, e.coef_bytes)
             || (h.has_normals != 0) != streams.normals
-            || (h.has_uvs != 0) != streams.uvs
+            || h.has_uvs != streams.uv_sets()
             || (h.has_colours != 0) != streams.colours
         {
             return Err(self.page_err(page, "page header disagrees with the page table"));
@@ -284,11 +292,14 @@ impl Archive {
         } else {
             Vec::new()
         };
-        let uvs: Vec<[f32; 2]> = if streams.uvs {
-            bytemuck::pod_collect_to_vec(take(h.vert_count as usize * 8))
-        } else {
-            Vec::new()
+        let mut uv_stream = |on: bool| -> Vec<[f32; 2]> {
+            match on {
+                true => bytemuck::pod_collect_to_vec(take(h.vert_count as usize * 8)),
+                false => Vec::new(),
+            }
         };
+        let uvs = uv_stream(streams.uvs);
+        let uvs2 = uv_stream(streams.uvs2);
         let colours: Vec<[u16; 4]> = if streams.colours {
             bytemuck::pod_collect_to_vec(take(h.vert_count as usize * 8))
         } else {
@@ -300,6 +311,7 @@ impl Archive {
             verts,
             normals,
             uvs,
+            uvs2,
             colours,
         };
         self.check_indices(page, &contents)?;

@@ -5,7 +5,7 @@ use bytemuck::{Pod, Zeroable};
 
 pub const MAGIC: [u8; 8] = *b"CANOPY\x00\x1a";
 pub const VERSION_MAJOR: u16 = 2;
-pub const VERSION_MINOR: u16 = 5;
+pub const VERSION_MINOR: u16 = 6;
 pub const PAGE_MAGIC: [u8; 4] = *b"PAGE";
 /// Page frames and tables start at multiples of this many bytes, so records can be read in
 /// place from the mapping.
@@ -38,6 +38,9 @@ impl Features {
     /// Pages carry a per-vertex colour stream (required: it changes the page layout).
     /// Version 2.4.
     pub const COLOURS: u64 = 1 << 35;
+    /// Pages carry a second per-vertex texture-coordinate stream after the first (required:
+    /// it changes the page layout; only with TEXCOORDS). Version 2.6.
+    pub const TEXCOORDS2: u64 = 1 << 36;
     pub const REQUIRED: u64 = 0xFFFF_FFFF_0000_0000;
     pub const ALL: u64 = Self::EMITTERS
         | Self::GLOSSY
@@ -47,7 +50,8 @@ impl Features {
         | Self::SHADING_NORMALS
         | Self::INSTANCES
         | Self::TEXCOORDS
-        | Self::COLOURS;
+        | Self::COLOURS
+        | Self::TEXCOORDS2;
 
     pub fn names(bits: u64) -> Vec<&'static str> {
         [
@@ -60,6 +64,7 @@ impl Features {
             (Self::INSTANCES, "instances"),
             (Self::TEXCOORDS, "texcoords"),
             (Self::COLOURS, "vertex-colours"),
+            (Self::TEXCOORDS2, "texcoords2"),
         ]
         .iter()
         .filter(|(b, _)| bits & b != 0)
@@ -389,7 +394,7 @@ pub struct PageHeader {
     pub coef_bytes: u32,
     /// 1 when a shading-normal stream follows the vertices.
     pub has_normals: u32,
-    /// 1 when a texture-coordinate stream follows (version 2.2).
+    /// How many texture-coordinate streams follow (version 2.2: 0 or 1; 2.6: or 2).
     pub has_uvs: u32,
     /// 1 when a vertex-colour stream follows (version 2.4; reserved zero before).
     pub has_colours: u32,
@@ -413,8 +418,8 @@ pub fn name_str(b: &[u8]) -> String {
     String::from_utf8_lossy(&b[..end]).into_owned()
 }
 
-/// glTF metallic-roughness material in full precision (176 bytes; 144 in version 2.4, 128
-/// before).
+/// glTF metallic-roughness material in full precision (400 bytes; 176 in version 2.5, 144
+/// in 2.4, 128 before).
 /// Leaves shade with these.
 #[repr(C)]
 #[derive(Clone, Copy, Debug, PartialEq, Pod, Zeroable)]
@@ -456,14 +461,29 @@ pub struct MaterialRecord {
     /// Version 2.5: texture indices of the clearcoat (R), clearcoat roughness (G), sheen
     /// colour (RGB) and sheen roughness (A) textures (`NO_TEXTURE`: none).
     pub layer_textures: [u16; 4],
+    /// Version 2.6: texture index of KHR_materials_clearcoat's clearcoatNormalTexture
+    /// (`NO_TEXTURE`: the coat takes the base's shading normal).
+    pub coat_normal_texture: u16,
+    /// Version 2.6: bit s set when texture slot s (`SLOTS`) reads the second
+    /// texture-coordinate stream, clear when it reads the first.
+    pub uv_streams: u16,
+    /// Version 2.6: clearcoatNormalTexture.scale (finite with a coat normal texture, 0
+    /// without).
+    pub coat_normal_scale: f32,
+    /// Version 2.6: per texture slot (`SLOTS`), the 2×3 affine map (rows (a, b, c) and
+    /// (d, e, f): u' = a·u + b·v + c, v' = d·u + e·v + f) from the stream's coordinates to
+    /// the texture's (KHR_texture_transform; the identity when there is none).
+    pub uv_transforms: [[f32; 6]; 9],
 }
 
-const _: () = assert!(std::mem::size_of::<MaterialRecord>() == 176);
+const _: () = assert!(std::mem::size_of::<MaterialRecord>() == 400);
 
 /// A material record's size before version 2.4 (no volume fields).
 pub const MATERIAL_RECORD_2_3: usize = 128;
 /// A material record's size in version 2.4 (no clearcoat or sheen).
 pub const MATERIAL_RECORD_2_4: usize = 144;
+/// A material record's size in version 2.5 (no per-slot texture coordinates).
+pub const MATERIAL_RECORD_2_5: usize = 176;
 
 impl MaterialRecord {
     pub const DOUBLE_SIDED: u32 = 1;
@@ -481,10 +501,32 @@ impl MaterialRecord {
     pub const CLEARCOAT_ROUGHNESS: usize = 1;
     pub const SHEEN_COLOR: usize = 2;
     pub const SHEEN_ROUGHNESS: usize = 3;
+    /// Texture slots, in the order of `uv_streams` and `uv_transforms`: `textures`, then
+    /// `layer_textures`, then `coat_normal_texture`.
+    pub const SLOTS: usize = 9;
+    /// The slot of `coat_normal_texture`.
+    pub const COAT_NORMAL: usize = 8;
+    /// The identity texture-coordinate map.
+    pub const IDENTITY_UV: [f32; 6] = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0];
 
-    /// Every texture index the record names: `textures`, then `layer_textures`.
-    pub fn all_textures(&self) -> impl Iterator<Item = u16> + '_ {
-        self.textures.iter().chain(&self.layer_textures).copied()
+    /// Which of a vertex's texture-coordinate streams slot `s` reads (0 or 1).
+    pub fn slot_stream(&self, s: usize) -> usize {
+        (self.uv_streams >> s & 1) as usize
+    }
+
+    /// Slot `s`'s texture coordinates at a point whose streams read `uv`: the slot's stream
+    /// under its coordinate map.
+    pub fn slot_uv(&self, s: usize, uv: [[f32; 2]; 2]) -> [f32; 2] {
+        let [u, v] = uv[self.slot_stream(s)];
+        let m = &self.uv_transforms[s];
+        [m[0] * u + m[1] * v + m[2], m[3] * u + m[4] * v + m[5]]
+    }
+
+    /// The texture index of each slot (`SLOTS`).
+    pub fn slot_textures(&self) -> [u16; 9] {
+        let [b, mr, e, n] = self.textures;
+        let [c, cr, s, sr] = self.layer_textures;
+        [b, mr, e, n, c, cr, s, sr, self.coat_normal_texture]
     }
 }
 

@@ -8,7 +8,7 @@
 
 use crate::node::{Node, NodeFlags};
 use crate::records::*;
-use crate::writer::{raw_page_len, PageContents};
+use crate::writer::{raw_page_len, PageContents, Streams};
 
 /// Most triangles a leaf may hold in a version-1 archive (the node's cluster slots and the
 /// renderer's per-leaf keys assume it).
@@ -54,6 +54,11 @@ pub fn check_header(h: &Header) -> Result<(), String> {
         return Err(format!(
             "required feature bits {unknown:#x} unknown to this reader"
         ));
+    }
+    if h.features & Features::TEXCOORDS2 != 0
+        && (h.features & Features::TEXCOORDS == 0 || h.version_minor < 6)
+    {
+        return Err("a second texture-coordinate stream without the first, or before 2.6".into());
     }
     if h.node_size < NODE_SIZE || !h.node_size.is_multiple_of(8) || h.node_size > 4096 {
         return Err(format!(
@@ -143,6 +148,7 @@ pub fn material_record_size(h: &Header) -> usize {
     match h.version_minor {
         0..=3 => MATERIAL_RECORD_2_3,
         4 => MATERIAL_RECORD_2_4,
+        5 => MATERIAL_RECORD_2_5,
         _ => std::mem::size_of::<MaterialRecord>(),
     }
 }
@@ -310,6 +316,21 @@ pub fn check_material(m: &MaterialRecord) -> Result<(), String> {
             m.normal_scale
         ));
     }
+    let coat_normal = m.coat_normal_texture != MaterialRecord::NO_TEXTURE;
+    if !(m.coat_normal_scale.is_finite() && (coat_normal || m.coat_normal_scale == 0.0)) {
+        return Err(format!(
+            "clearcoat normal scale {} (finite with a clearcoat normal texture, 0 without)",
+            m.coat_normal_scale
+        ));
+    }
+    if m.uv_streams >> MaterialRecord::SLOTS != 0 {
+        return Err(format!("texture-coordinate streams {:#x}", m.uv_streams));
+    }
+    if let Some(s) = (0..MaterialRecord::SLOTS).find(|&s| !finite(&m.uv_transforms[s])) {
+        return Err(format!(
+            "texture slot {s}: its coordinate map is not finite"
+        ));
+    }
     Ok(())
 }
 
@@ -376,7 +397,8 @@ pub fn check_textures(
     }
     for (i, m) in materials.iter().enumerate() {
         if let Some(t) = m
-            .all_textures()
+            .slot_textures()
+            .into_iter()
             .find(|&t| t != MaterialRecord::NO_TEXTURE && t as usize >= textures.len())
         {
             return Err(format!("material {i}: texture {t} of {}", textures.len()));
@@ -559,7 +581,7 @@ pub fn check_entry(h: &Header, page: u32, e: &PageEntry) -> Result<(), String> {
         vert_count: e.vert_count,
         coef_bytes: 0,
         has_normals: (h.features & Features::SHADING_NORMALS != 0) as u32,
-        has_uvs: (h.features & Features::TEXCOORDS != 0) as u32,
+        has_uvs: Streams::of(h.features).uv_sets(),
         has_colours: (h.features & Features::COLOURS != 0) as u32,
     };
     if e.node_count == 0 || e.node_count > h.page_nodes_max {
@@ -706,11 +728,13 @@ pub fn check_page(
     if let Some(i) = c.verts.iter().position(|p| !finite(p)) {
         return Err(format!("vertex {i} is not finite: {:?}", c.verts[i]));
     }
-    if let Some(i) = c.uvs.iter().position(|uv| !finite(uv)) {
-        return Err(format!(
-            "texture coordinate {i} is not finite: {:?}",
-            c.uvs[i]
-        ));
+    for (set, uvs) in [&c.uvs, &c.uvs2].into_iter().enumerate() {
+        if let Some(i) = uvs.iter().position(|uv| !finite(uv)) {
+            return Err(format!(
+                "texture coordinate {i} of set {set} is not finite: {:?}",
+                uvs[i]
+            ));
+        }
     }
     Ok(())
 }

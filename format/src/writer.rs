@@ -20,6 +20,8 @@ pub struct PageContents {
     pub normals: Vec<u32>,
     /// Texture coordinates, one per vertex, or empty.
     pub uvs: Vec<[f32; 2]>,
+    /// The second set of texture coordinates, one per vertex, or empty.
+    pub uvs2: Vec<[f32; 2]>,
     /// Linear RGBA colours (unorm16), one per vertex, or empty.
     pub colours: Vec<[u16; 4]>,
 }
@@ -31,6 +33,8 @@ pub struct Streams {
     pub normals: bool,
     /// TEXCOORDS.
     pub uvs: bool,
+    /// TEXCOORDS2.
+    pub uvs2: bool,
     /// COLOURS.
     pub colours: bool,
 }
@@ -40,8 +44,14 @@ impl Streams {
         Streams {
             normals: features & Features::SHADING_NORMALS != 0,
             uvs: features & Features::TEXCOORDS != 0,
+            uvs2: features & Features::TEXCOORDS2 != 0,
             colours: features & Features::COLOURS != 0,
         }
+    }
+
+    /// How many texture-coordinate sets each vertex carries: a page header's `has_uvs`.
+    pub fn uv_sets(&self) -> u32 {
+        self.uvs as u32 + self.uvs2 as u32
     }
 }
 
@@ -78,6 +88,7 @@ pub fn encode_page(
         if streams.normals { p.verts.len() } else { 0 }
     );
     assert_eq!(p.uvs.len(), if streams.uvs { p.verts.len() } else { 0 });
+    assert_eq!(p.uvs2.len(), if streams.uvs2 { p.verts.len() } else { 0 });
     assert_eq!(
         p.colours.len(),
         if streams.colours { p.verts.len() } else { 0 }
@@ -89,7 +100,7 @@ pub fn encode_page(
         vert_count: p.verts.len() as u32,
         coef_bytes: 0,
         has_normals: streams.normals as u32,
-        has_uvs: streams.uvs as u32,
+        has_uvs: streams.uv_sets(),
         has_colours: streams.colours as u32,
     };
     let mut raw = Vec::with_capacity(raw_page_len(&header, NODE_SIZE));
@@ -99,6 +110,7 @@ pub fn encode_page(
     raw.extend_from_slice(bytemuck::cast_slice(&p.verts));
     raw.extend_from_slice(bytemuck::cast_slice(&p.normals));
     raw.extend_from_slice(bytemuck::cast_slice(&p.uvs));
+    raw.extend_from_slice(bytemuck::cast_slice(&p.uvs2));
     raw.extend_from_slice(bytemuck::cast_slice(&p.colours));
     let bytes = compress(&raw, zstd_level)?;
     Ok(EncodedPage {
@@ -151,7 +163,7 @@ pub fn encode_tile(texels: &[u8], zstd_level: i32) -> std::io::Result<EncodedTil
 pub fn raw_page_len(h: &PageHeader, node_size: u32) -> usize {
     let per_vertex = 12
         + 4 * (h.has_normals != 0) as usize
-        + 8 * (h.has_uvs != 0) as usize
+        + 8 * h.has_uvs.min(2) as usize
         + 8 * (h.has_colours != 0) as usize;
     std::mem::size_of::<PageHeader>()
         + h.node_count as usize * node_size as usize

@@ -205,7 +205,8 @@ impl MatTable {
             let Some(tex) = self.textures.get(m.textures[slot] as usize) else {
                 continue;
             };
-            let c = self.coarse[m.textures[slot] as usize].mean_over(tex, &t.uv);
+            let uv = [0, 1, 2].map(|k| m.slot_uv(slot, [t.uv[k], t.uv2[k]]));
+            let c = self.coarse[m.textures[slot] as usize].mean_over(tex, &uv);
             match slot {
                 MaterialRecord::BASE_COLOR => {
                     (0..4).for_each(|k| rec.base_color[k] *= c[k]);

@@ -223,6 +223,10 @@ impl Imported {
                 self.scene.has_uvs && !self.scene.textures.is_empty(),
                 Features::TEXCOORDS,
             ),
+            (
+                self.scene.has_uvs2 && !self.scene.textures.is_empty(),
+                Features::TEXCOORDS2 | Features::TEXCOORDS,
+            ),
             (self.scene.has_colours, Features::COLOURS),
             (!self.scene.lights.is_empty(), Features::PUNCTUAL_LIGHTS),
             (self.shared.is_some(), Features::INSTANCES),

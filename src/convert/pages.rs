@@ -54,18 +54,18 @@ impl std::hash::Hasher for FastHasher {
 }
 type FastMap<K, V> = HashMap<K, V, std::hash::BuildHasherDefault<FastHasher>>;
 
-/// A page vertex's identity: the bits of its position, normal, texture coordinates and
-/// colour, packed into four words that hash as four multiplications.
+/// A page vertex's identity: the bits of its position, normal, two sets of texture
+/// coordinates and colour, packed into five words that hash as five multiplications.
 #[derive(PartialEq, Eq)]
-struct VertexKey([u64; 4]);
+struct VertexKey([u64; 5]);
 
 impl VertexKey {
-    fn new(p: [f32; 3], n: u32, uv: [f32; 2], c: [u16; 4]) -> VertexKey {
+    fn new(p: [f32; 3], n: u32, uv: [[f32; 2]; 2], c: [u16; 4]) -> VertexKey {
         let pair = |a: u32, b: u32| a as u64 | (b as u64) << 32;
         let [x, y, z] = p.map(f32::to_bits);
-        let [u, v] = uv.map(f32::to_bits);
+        let [[u, v], [u2, v2]] = uv.map(|t| t.map(f32::to_bits));
         let c = c.iter().fold(0u64, |w, &k| w << 16 | k as u64);
-        VertexKey([pair(x, y), pair(z, n), pair(u, v), c])
+        VertexKey([pair(x, y), pair(z, n), pair(u, v), pair(u2, v2), c])
     }
 }
 
@@ -217,9 +217,10 @@ impl Plan {
                         let v = [0, 1, 2].map(|k| {
                             let n = if streams.normals { t.n[k] } else { 0 };
                             let uv = if streams.uvs { t.uv[k] } else { [0.0; 2] };
+                            let uv2 = if streams.uvs2 { t.uv2[k] } else { [0.0; 2] };
                             let c = if streams.colours { t.colour[k] } else { WHITE };
                             *verts
-                                .entry(VertexKey::new(t.p[k], n, uv, c))
+                                .entry(VertexKey::new(t.p[k], n, [uv, uv2], c))
                                 .or_insert_with(|| {
                                     out.verts.push(t.p[k]);
                                     if streams.normals {
@@ -227,6 +228,9 @@ impl Plan {
                                     }
                                     if streams.uvs {
                                         out.uvs.push(uv);
+                                    }
+                                    if streams.uvs2 {
+                                        out.uvs2.push(uv2);
                                     }
                                     if streams.colours {
                                         out.colours.push(c);

@@ -7,7 +7,8 @@
 //! A record is 40 bytes (positions and material). Triangles with shading normals or
 //! curvature add a 16-byte attribute record, flagged in the material's top bit (texture
 //! coordinates a 24-byte one, flagged in the next bit; vertex colours other than white a
-//! 24-byte one, flagged in the bit after), so meshes
+//! 24-byte one, flagged in the bit after; a second set of texture coordinates a 24-byte
+//! one, flagged in the bit after that), so meshes
 //! without normals cost 40 bytes a triangle on disk instead of 56: spill I/O is most of the
 //! time a conversion larger than the page cache's dirty limit spends.
 
@@ -23,7 +24,9 @@ const HAS_ATTR: u32 = 1 << 31;
 const HAS_UV: u32 = 1 << 30;
 /// A 24-byte vertex-colour record follows (after the texture coordinates, if any).
 const HAS_COLOUR: u32 = 1 << 29;
-const FLAGS: u32 = HAS_ATTR | HAS_UV | HAS_COLOUR;
+/// A 24-byte record of the second texture coordinates follows (last).
+const HAS_UV2: u32 = 1 << 28;
+const FLAGS: u32 = HAS_ATTR | HAS_UV | HAS_COLOUR | HAS_UV2;
 
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
@@ -71,13 +74,15 @@ impl SpillWriter {
         let attr = t.n != [0; 3] || t.curvature != 0.0;
         let uv = t.uv != [[0.0; 2]; 3];
         let colour = t.colour != [WHITE; 3];
+        let uv2 = t.uv2 != [[0.0; 2]; 3];
         let flag = |on: bool, bit: u32| if on { bit } else { 0 };
         let rec = Rec {
             p: t.p,
             material: t.material
                 | flag(attr, HAS_ATTR)
                 | flag(uv, HAS_UV)
-                | flag(colour, HAS_COLOUR),
+                | flag(colour, HAS_COLOUR)
+                | flag(uv2, HAS_UV2),
         };
         let mut r = self.out.write_all(bytemuck::bytes_of(&rec));
         if attr && r.is_ok() {
@@ -93,7 +98,10 @@ impl SpillWriter {
         if colour && r.is_ok() {
             r = self.out.write_all(bytemuck::bytes_of(&t.colour));
         }
-        self.written += 40 + 16 * attr as u64 + 24 * uv as u64 + 24 * colour as u64;
+        if uv2 && r.is_ok() {
+            r = self.out.write_all(bytemuck::bytes_of(&t.uv2));
+        }
+        self.written += 40 + 16 * attr as u64 + 24 * (uv as u64 + colour as u64 + uv2 as u64);
         r.with_context(|| format!("{}: writing spill file", self.path.display()))
     }
 
@@ -167,6 +175,10 @@ pub fn for_each_in(
             r.read_exact(bytemuck::bytes_of_mut(&mut t.colour))
                 .with_context(err)?;
         }
+        if rec.material & HAS_UV2 != 0 {
+            r.read_exact(bytemuck::bytes_of_mut(&mut t.uv2))
+                .with_context(err)?;
+        }
         f(&t)?;
     }
     Ok(())
@@ -208,6 +220,11 @@ mod tests {
                 } else {
                     [WHITE; 3]
                 },
+                uv2: if i % 5 == 3 {
+                    [[0.0; 2], [-(i as f32), 2.5], [1.0, 0.0]]
+                } else {
+                    [[0.0; 2]; 3]
+                },
             })
             .collect();
         let mut w = SpillWriter::create(dir.path(), 4096).unwrap();
@@ -226,10 +243,11 @@ mod tests {
             .count() as u64;
         let uvs = tris.iter().filter(|t| t.uv != [[0.0; 2]; 3]).count() as u64;
         let colours = tris.iter().filter(|t| t.colour != [WHITE; 3]).count() as u64;
+        let uvs2 = tris.iter().filter(|t| t.uv2 != [[0.0; 2]; 3]).count() as u64;
         let len = spill.file.metadata().unwrap().len();
         assert_eq!(
             len,
-            tris.len() as u64 * 40 + attrs * 16 + (uvs + colours) * 24
+            tris.len() as u64 * 40 + attrs * 16 + (uvs + colours + uvs2) * 24
         );
         assert_eq!(read_all(&spill).unwrap(), tris);
     }

@@ -30,6 +30,8 @@ pub struct SpillTri {
     pub curvature: f32,
     /// Texture coordinates of the vertices (zero when the input had none).
     pub uv: [[f32; 2]; 3],
+    /// The second set of texture coordinates its material reads (zero when none).
+    pub uv2: [[f32; 2]; 3],
     /// Linear RGBA vertex colours, unorm16 (`WHITE` when the input had none).
     pub colour: [[u16; 4]; 3],
 }
@@ -42,6 +44,7 @@ impl Default for SpillTri {
             material: 0,
             curvature: 0.0,
             uv: [[0.0; 2]; 3],
+            uv2: [[0.0; 2]; 3],
             colour: [WHITE; 3],
         }
     }
@@ -87,6 +90,8 @@ pub struct SceneDesc {
     pub textured: bool,
     /// Some triangle carries texture coordinates.
     pub has_uvs: bool,
+    /// Some triangle carries a second set of texture coordinates.
+    pub has_uvs2: bool,
     /// Some triangle carries vertex colours.
     pub has_colours: bool,
     /// The images materials name, in texture-table order.
@@ -219,6 +224,10 @@ pub fn default_material(name: &str) -> MaterialRecord {
         sheen_color: [0.0; 3],
         sheen_roughness: 0.0,
         layer_textures: [MaterialRecord::NO_TEXTURE; 4],
+        coat_normal_texture: MaterialRecord::NO_TEXTURE,
+        uv_streams: 0,
+        coat_normal_scale: 0.0,
+        uv_transforms: [MaterialRecord::IDENTITY_UV; MaterialRecord::SLOTS],
     }
 }
 

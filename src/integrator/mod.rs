@@ -14,7 +14,7 @@ pub mod surface;
 pub use direct::{
     bsdf_term, mis_weight, power_heuristic, sample_light, sample_light_weighted, Receiver,
 };
-pub use surface::{on_side, shading_frame, ShadingPoint};
+pub use surface::{on_side, ShadingPoint};
 
 use crate::camera::Camera;
 use crate::light::Lights;
@@ -358,9 +358,10 @@ impl Scene {
     ) -> Shaded {
         let m = &self.materials[index as usize];
         let mut shaded = if self.textures.varies(index) {
-            let (at, width) = texture::footprint(tri.map(V::from), c.uv, b, d, spread);
+            let p = tri.map(V::from);
+            let fp = self.textures.footprint(index, p, c, b, d, spread);
             self.textures
-                .shade(&mut Lookup::new(&self.cache), m, index, at, width)
+                .shade(&mut Lookup::new(&self.cache), m, index, &fp, p, c)
         } else {
             Shaded::plain(*m)
         };
@@ -409,9 +410,9 @@ impl Scene {
         }
         let m = &self.materials[index as usize];
         let alpha = c.colour_at(b).map_or(1.0, |rgba| rgba[3]);
-        let at = texture::uv_at(c.uv, b);
+        let at = texture::Footprint::point(c, b);
         self.textures
-            .opacity(&mut Lookup::new(&self.cache), m, index, at, alpha)
+            .opacity(&mut Lookup::new(&self.cache), m, index, &at, alpha)
     }
 
     /// The share of light that survives a ray's `length` along unit `d` to `hit`: less than

@@ -4,7 +4,7 @@
 
 use super::Scene;
 use crate::material::{Bsdf, Frame};
-use crate::texture::{self, Shaded};
+use crate::texture::Shaded;
 use crate::trace::{offset_origin, Hit, Ray, Tracer};
 use glam::Vec3A as V;
 
@@ -127,7 +127,15 @@ impl ShadingPoint {
         let m = &shaded.m;
         let front = ng.dot(wo) > 0.0;
         let (p, err) = hit.point();
-        let frame = shading_frame(hit, ng, front, shaded.bump);
+        let frame = Frame::new(shading_normal(ng, front, shaded.normal));
+        let mut bsdf = m.bsdf(front);
+        // A coat normal tilted past the base's shading normal's horizon is not used.
+        if let Some(c) = shaded.coat_normal {
+            let cn = frame.to_local(shading_normal(ng, front, Some(c)));
+            if cn.z > 0.0 {
+                bsdf.coat_n = cn;
+            }
+        }
         ShadingPoint {
             p,
             err,
@@ -135,7 +143,7 @@ impl ShadingPoint {
             n: if front { ng } else { -ng },
             front,
             frame,
-            bsdf: m.bsdf(front),
+            bsdf,
             wo_l: frame.to_local(wo),
             emitted: m.emitted(front),
             absorbs: m.absorbs(front),
@@ -154,14 +162,15 @@ pub fn on_side(frame: &Frame, n: V, w: V) -> bool {
     frame.n.dot(w) * n.dot(w) > 0.0
 }
 
-/// The shading frame at a triangle hit with unit geometric normal `ng`, on the side
-/// `front` says: the normal texture's `bump` turned into world space (glTF's tangent frame,
-/// see `texture::perturb`), or the side's geometric normal. Seen from the back, the bumped
-/// frame is turned round whole, as a real bump seen from behind is a dent.
-pub fn shading_frame(hit: &Hit, ng: V, front: bool, bump: Option<V>) -> Frame {
-    let n = match bump {
-        Some(tn) => texture::perturb(hit.tri.p.map(V::from), hit.corners.uv, ng, tn),
-        None => ng,
-    };
-    Frame::new(if front { n } else { -n })
+/// The shading normal at a triangle hit with unit geometric normal `ng`, on the side
+/// `front` says: the normal texture's `bumped` normal (`Shaded::normal`), or the side's
+/// geometric normal. Seen from the back, the bumped normal is turned round whole, as a
+/// real bump seen from behind is a dent.
+pub fn shading_normal(ng: V, front: bool, bumped: Option<V>) -> V {
+    let n = bumped.unwrap_or(ng);
+    if front {
+        n
+    } else {
+        -n
+    }
 }

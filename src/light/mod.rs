@@ -8,7 +8,7 @@
 //! flag, so a huge scene with a few lamps loads a few pages.
 
 use crate::material::{cosine_hemisphere, luminance, Frame, Material};
-use crate::paging::{NodeRef, Page};
+use crate::paging::{Corners, NodeRef, Page};
 use crate::trace::{offset_origin, Ray};
 use anyhow::Result;
 use canopy_format::{Archive, LightRecord, NodeFlags};
@@ -167,11 +167,12 @@ fn emitter_power(le: V, area: f32, two_sided: bool) -> f32 {
 
 impl Lights {
     /// The archive's lamps, with `materials`' emission (a texture's mean for those whose
-    /// emission is `textured`).
+    /// emission is textured: `emission_corners` gives where a lamp's emission texture reads
+    /// at its corners).
     pub fn gather(
         archive: &Archive,
         materials: &[Material],
-        textured: impl Fn(u32) -> bool,
+        emission_corners: impl Fn(u32, &Corners) -> Option<[[f32; 2]; 3]>,
         scene_radius: f32,
     ) -> Result<Lights> {
         let mut emitters = Vec::new();
@@ -204,10 +205,7 @@ impl Lights {
                         let e = Emitter::triangle(tri.p.map(V::from), m.emission, m.double_sided);
                         if let Some(mut e) = e {
                             e.material = tri.material;
-                            if textured(tri.material) {
-                                let uv = page.uvs.get((first + slot) as usize).copied();
-                                e.texel = Some(uv.unwrap_or_default());
-                            }
+                            e.texel = emission_corners(tri.material, &page.corners(first + slot));
                             by_leaf.insert((leaf, slot), emitters.len() as u32);
                             emitters.push(e);
                         }

@@ -24,7 +24,9 @@
 //!   scaled by 1 − clearcoat·F(cos θo) (the Khronos sample viewer's form; the extension's
 //!   text takes F at the half vector, the same for a mirror and close for a rough coat).
 //!   A white sheen over a white base under a smooth coat thus reflects all light.
-//!   The coat shares the base's shading normal (a clearcoatNormalTexture is not carried).
+//!   The coat has its own normal (`Bsdf::coat_n`, from a clearcoatNormalTexture): its
+//!   lobe and its Fresnel are taken about that normal, everything beneath about the
+//!   base's shading normal.
 
 mod sheen;
 
@@ -159,6 +161,7 @@ impl Material {
             eta: if front { self.ior } else { 1.0 / self.ior },
             coat: self.clearcoat,
             coat_alpha: self.coat_alpha,
+            coat_n: V::Z,
             sheen: self.sheen,
             sheen_roughness: self.sheen_roughness,
         }
@@ -180,6 +183,8 @@ pub struct Bsdf {
     /// Clearcoat weight and GGX α.
     pub coat: f32,
     pub coat_alpha: f32,
+    /// The coat's normal in this frame (unit; +z unless a clearcoat normal texture tilts it).
+    pub coat_n: V,
     /// Sheen colour (zero: none) and roughness.
     pub sheen: V,
     pub sheen_roughness: f32,
@@ -326,6 +331,7 @@ impl Bsdf {
             eta: 1.0,
             coat: 0.0,
             coat_alpha: 0.0,
+            coat_n: V::Z,
             sheen: V::ZERO,
             sheen_roughness: 0.0,
         }
@@ -335,10 +341,20 @@ impl Bsdf {
         self.f90.max_element() > 0.0 || self.f0.max_element() > 0.0
     }
 
+    /// The coat's frame within this one, None where its normal is this frame's +z.
+    fn coat_frame(&self) -> Option<Frame> {
+        (self.coat_n != V::Z).then(|| Frame::new(self.coat_n))
+    }
+
+    /// The coat's cosine of `wo` (about its own normal).
+    fn coat_cos(&self, wo: V) -> f32 {
+        wo.dot(self.coat_n)
+    }
+
     /// What the layers leave for a viewer at `wo` (computed once per evaluation).
     fn scales(&self, wo: V) -> Scales {
         let coat = match self.coat > 0.0 {
-            true => 1.0 - self.coat * coat_fresnel(wo.z),
+            true => 1.0 - self.coat * coat_fresnel(self.coat_cos(wo)),
             false => 1.0,
         };
         let sheen_on = self.sheen.max_element() > 0.0;
@@ -371,7 +387,9 @@ impl Bsdf {
         if self.sheen.max_element() > 0.0 {
             p[SHEEN] = sc.coat * luminance(self.sheen) * sc.sheen_e;
         }
-        p[COAT] = self.coat * coat_fresnel(wo.z);
+        if self.coat_cos(wo) > 0.0 {
+            p[COAT] = self.coat * coat_fresnel(self.coat_cos(wo));
+        }
         // Summed in this order, the three base lobes' shares are the same bits as without
         // the layers.
         let sum = p[DIFFUSE] + p[SPECULAR] + p[INTERFACE] + p[SHEEN] + p[COAT];
@@ -410,10 +428,9 @@ impl Bsdf {
                 pdf += probs[SHEEN] * wi.z * FRAC_1_PI;
             }
             if probs[COAT] > 0.0 && self.coat_alpha >= SMOOTH_ALPHA {
-                let (a, h) = (self.coat_alpha, h());
-                let fc = self.coat * coat_fresnel(wo.dot(h));
-                f += V::splat(fc * ggx_reflection(wo, wi, h, a));
-                pdf += probs[COAT] * ggx_pdf_vn(wo, h, a) / (4.0 * wo.dot(h));
+                let (fc, pc) = self.eval_coat(wo, wi);
+                f += V::splat(fc);
+                pdf += probs[COAT] * pc;
             }
         }
         if probs[INTERFACE] > 0.0 && self.alpha >= SMOOTH_ALPHA && wi.z != 0.0 {
@@ -422,6 +439,24 @@ impl Bsdf {
             pdf += probs[INTERFACE] * pi;
         }
         (f, pdf)
+    }
+
+    /// The rough coat's value and the pdf of sampling `wi` given its lobe, in the coat's
+    /// frame; zero where either direction is below the coat.
+    fn eval_coat(&self, wo: V, wi: V) -> (f32, f32) {
+        let (wo, wi) = match self.coat_frame() {
+            Some(cf) => (cf.to_local(wo), cf.to_local(wi)),
+            None => (wo, wi),
+        };
+        if wo.z <= 0.0 || wi.z <= 0.0 {
+            return (0.0, 0.0);
+        }
+        let (a, h) = (self.coat_alpha, (wo + wi).normalize());
+        let fc = self.coat * coat_fresnel(wo.dot(h));
+        (
+            fc * ggx_reflection(wo, wi, h, a),
+            ggx_pdf_vn(wo, h, a) / (4.0 * wo.dot(h)),
+        )
     }
 
     /// The rough dielectric interface (Walter et al. 2007, as pbrt-v4
@@ -507,11 +542,23 @@ impl Bsdf {
                 return Some(Bsdf::mirror(wo, f, probs[SPECULAR]));
             }
             COAT if self.coat_alpha < SMOOTH_ALPHA => {
-                let f = V::splat(self.coat * coat_fresnel(wo.z));
-                return Some(Bsdf::mirror(wo, f, probs[COAT]));
+                let f = V::splat(self.coat * coat_fresnel(self.coat_cos(wo)));
+                let wi = reflect(wo, self.coat_n);
+                return (wi.z > 0.0).then(|| BsdfSample {
+                    wi,
+                    weight: f / probs[COAT],
+                    pdf: probs[COAT],
+                    delta: true,
+                });
             }
             SPECULAR => reflect(wo, ggx_sample_vn(wo, self.alpha, u)),
-            COAT => reflect(wo, ggx_sample_vn(wo, self.coat_alpha, u)),
+            COAT => match self.coat_frame() {
+                Some(cf) => {
+                    let wo = cf.to_local(wo);
+                    cf.to_world(reflect(wo, ggx_sample_vn(wo, self.coat_alpha, u)))
+                }
+                None => reflect(wo, ggx_sample_vn(wo, self.coat_alpha, u)),
+            },
             _ => cosine_hemisphere(u),
         };
         if wi.z <= 0.0 {
@@ -645,8 +692,8 @@ impl Bsdf {
 
     /// The parameters of the reflection lobes other than the diffuse as bits: equal
     /// keys, equal glossy reflection.
-    pub fn glossy_key(&self) -> [u32; 15] {
-        let (f0, f90, sh) = (self.f0, self.f90, self.sheen);
+    pub fn glossy_key(&self) -> [u32; 18] {
+        let (f0, f90, sh, cn) = (self.f0, self.f90, self.sheen, self.coat_n);
         [
             f0.x,
             f0.y,
@@ -659,6 +706,9 @@ impl Bsdf {
             self.eta,
             self.coat,
             self.coat_alpha,
+            cn.x,
+            cn.y,
+            cn.z,
             sh.x,
             sh.y,
             sh.z,

@@ -63,6 +63,23 @@ fn layered(m: Material, coat: f32, coat_r: f32, sheen: f32, sheen_r: f32) -> Mat
     }
 }
 
+/// The BSDFs the sampling tests check: `materials`' front sides, and coats whose own
+/// normal (a clearcoat normal texture's) leans away from the base's.
+fn bsdfs() -> Vec<(&'static str, Bsdf)> {
+    let mut out: Vec<_> = materials()
+        .into_iter()
+        .map(|(name, m)| (name, m.bsdf(true)))
+        .collect();
+    let lambert = mat(0.8, 0.0, 1.0, 0.0, 0.0);
+    let tilt = V::new(0.35, -0.2, 0.9).normalize();
+    for (name, coat_r) in [("tilted rough coat", 0.3), ("tilted smooth coat", 0.0)] {
+        let mut b = layered(lambert, 1.0, coat_r, 0.0, 0.0).bsdf(true);
+        b.coat_n = tilt;
+        out.push((name, b));
+    }
+    out
+}
+
 fn materials() -> Vec<(&'static str, Material)> {
     let lambert = mat(0.8, 0.0, 1.0, 0.0, 0.0);
     vec![
@@ -108,8 +125,7 @@ fn dir(cos: f32, phi: f32) -> V {
 #[test]
 fn sample_weights_agree_with_eval() {
     let mut rng = Rng::new(5);
-    for (name, m) in materials() {
-        let b = m.bsdf(true);
+    for (name, b) in bsdfs() {
         let mut checked = 0;
         for k in 0..8 {
             let wo = dir(0.05 + 0.95 * k as f32 / 7.0, 1.3);
@@ -148,8 +164,7 @@ fn sample_weights_agree_with_eval() {
 #[test]
 fn albedo_never_exceeds_one() {
     let mut rng = Rng::new(1);
-    for (name, m) in materials() {
-        let b = m.bsdf(true);
+    for (name, b) in bsdfs() {
         for k in 0..12 {
             let wo = dir(0.02 + 0.98 * k as f32 / 11.0, 0.7);
             let n = 40_000;
@@ -208,8 +223,7 @@ fn sampling_matches_pdf_chi_square() {
     // Sub-samples per bin side when integrating the pdf (glossy lobes are narrow).
     const S: usize = 24;
     let mut rng = Rng::new(7);
-    for (name, m) in materials() {
-        let b = m.bsdf(true);
+    for (name, b) in bsdfs() {
         for cos_o in [0.15f32, 0.6, 0.95] {
             let wo = dir(cos_o, 1.1);
             let n = 300_000;

@@ -150,7 +150,7 @@ pub fn decoded_size(archive: &Archive, e: &PageEntry) -> u64 {
     let streams = canopy_format::Streams::of(archive.header.features);
     let per_tri = std::mem::size_of::<TriW>()
         + 12 * streams.normals as usize
-        + 24 * streams.uvs as usize
+        + 24 * streams.uv_sets() as usize
         + 24 * streams.colours as usize;
     (std::mem::size_of::<Page>()
         + e.node_count as usize * (std::mem::size_of::<Node>() + std::mem::size_of::<TNode>())

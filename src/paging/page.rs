@@ -142,6 +142,8 @@ pub struct Page {
     pub shading: Vec<[u32; 3]>,
     /// Per triangle, its vertices' texture coordinates (empty without TEXCOORDS).
     pub uvs: Vec<[[f32; 2]; 3]>,
+    /// Per triangle, its vertices' second texture coordinates (empty without TEXCOORDS2).
+    pub uvs2: Vec<[[f32; 2]; 3]>,
     /// Per triangle, its vertices' linear unorm16 RGBA colours (empty without COLOURS).
     pub colours: Vec<[[u16; 4]; 3]>,
     /// The page's baked light (empty unless a bake file is attached).
@@ -164,18 +166,19 @@ fn by_triangle<T: Copy>(tris: &[Tri], per_vertex: &[T]) -> Vec<[T; 3]> {
         .collect()
 }
 
-/// What a triangle's vertices carry besides their positions, for shading: texture
-/// coordinates (zero without TEXCOORDS) and colours (`WHITE` without COLOURS).
+/// What a triangle's vertices carry besides their positions, for shading: two streams of
+/// texture coordinates (zero without TEXCOORDS and TEXCOORDS2) and colours (`WHITE`
+/// without COLOURS).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Corners {
-    pub uv: [[f32; 2]; 3],
+    pub uv: [[[f32; 2]; 3]; 2],
     pub colour: [[u16; 4]; 3],
 }
 
 impl Default for Corners {
     fn default() -> Self {
         Corners {
-            uv: [[0.0; 2]; 3],
+            uv: [[[0.0; 2]; 3]; 2],
             colour: [WHITE; 3],
         }
     }
@@ -213,7 +216,7 @@ impl Page {
     #[inline]
     pub fn corners(&self, i: u32) -> Corners {
         Corners {
-            uv: self.uvs.get(i as usize).copied().unwrap_or_default(),
+            uv: [&self.uvs, &self.uvs2].map(|s| s.get(i as usize).copied().unwrap_or_default()),
             colour: self.colours.get(i as usize).copied().unwrap_or([WHITE; 3]),
         }
     }
@@ -262,6 +265,7 @@ impl Page {
             .collect();
         let shading = by_triangle(&c.tris, &c.normals);
         let uvs = by_triangle(&c.tris, &c.uvs);
+        let uvs2 = by_triangle(&c.tris, &c.uvs2);
         let colours = by_triangle(&c.tris, &c.colours);
         let e = &archive.entry(id)?;
         let (tri4, tri_slot) = wide::tri4s(&mut bvh, &tris).ok_or_else(|| {
@@ -282,7 +286,7 @@ impl Page {
             + tri4.capacity() * std::mem::size_of::<wide::Tri4>()
             + tri_slot.capacity() * 4
             + shading.capacity() * 12
-            + uvs.capacity() * 24
+            + (uvs.capacity() + uvs2.capacity()) * 24
             + colours.capacity() * 24) as u64;
         Ok(Page {
             id,
@@ -295,6 +299,7 @@ impl Page {
             tri_slot,
             shading,
             uvs,
+            uvs2,
             colours,
             baked: BakedBlock::default(),
             glossy: coefs::GlossyTexels::default(),
@@ -328,6 +333,7 @@ impl Page {
             tri_slot: Vec::new(),
             shading: Vec::new(),
             uvs: Vec::new(),
+            uvs2: Vec::new(),
             colours: Vec::new(),
             baked: BakedBlock::default(),
             glossy: coefs::GlossyTexels::default(),

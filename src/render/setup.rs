@@ -277,7 +277,7 @@ pub fn gather_lights(
     Lights::gather(
         archive,
         &mean,
-        |m| textures.emission_textured(m),
+        |m, c| textures.emission_corners(m, c),
         0.5 * (hi - lo).length(),
     )
 }

@@ -20,8 +20,8 @@ pub(super) const DRACO: &str = "KHR_draco_mesh_compression";
 pub(super) struct Vertices {
     pub pos: Vec<[f32; 3]>,
     pub nrm: Option<Vec<[f32; 3]>>,
-    /// The texture-coordinate set the material reads, where it has one.
-    pub uv: Option<Vec<[f32; 2]>>,
+    /// The texture-coordinate sets the material reads as its two streams, where it has them.
+    pub uv: [Option<Vec<[f32; 2]>>; 2],
     /// `COLOR_0` as RGBA (alpha 1 for an RGB accessor).
     pub colour: Option<Vec<[f32; 4]>>,
     /// Indices into the vertices (None: the vertices in order).
@@ -62,12 +62,12 @@ fn values<const N: usize>(a: &PointAttribute, points: usize) -> Vec<[f32; N]> {
 }
 
 /// The decoded vertices of a primitive that carries the extension (None if it does not):
-/// positions, normals, texture-coordinate set `uv_set` and vertex colours.
+/// positions, normals, texture-coordinate sets `uv_sets` and vertex colours.
 pub(super) fn decode(
     prim: &gltf::Primitive,
     doc: &gltf::Document,
     buffers: &[Vec<u8>],
-    uv_set: Option<u32>,
+    uv_sets: [Option<u32>; 2],
 ) -> Result<Option<Vertices>> {
     let Some(ext) = prim.extension_value(DRACO) else {
         return Ok(None);
@@ -107,10 +107,11 @@ pub(super) fn decode(
     let Some(pos) = get("POSITION")? else {
         bail!("its {DRACO} extension gives no POSITION");
     };
-    let uv = match uv_set {
-        Some(s) => get(&format!("TEXCOORD_{s}"))?.map(|a| values::<2>(a, points)),
-        None => None,
+    let set = |set: Option<u32>| match set {
+        Some(s) => Ok(get(&format!("TEXCOORD_{s}"))?.map(|a| values::<2>(a, points))),
+        None => Ok::<_, anyhow::Error>(None),
     };
+    let uv = [set(uv_sets[0])?, set(uv_sets[1])?];
     let colour = match get("COLOR_0")? {
         Some(a) if a.num_components() == 4 => Some(values::<4>(a, points)),
         Some(a) => Some(

@@ -439,7 +439,7 @@ pub(super) fn read_floats<const N: usize>(
 }
 
 /// A checked primitive's vertices from its accessors (`check_primitive`): positions,
-/// normals and texture-coordinate set `uv_set`, and its indices; None without positions.
+/// normals and texture-coordinate sets `uv_sets`, and its indices; None without positions.
 /// A `COLOR_0` accessor's colours as RGBA (alpha 1 for VEC3), None for another type.
 fn colours(a: &gltf::Accessor, buffers: &[Vec<u8>]) -> Option<Vec<[f32; 4]>> {
     match a.dimensions() {
@@ -457,16 +457,17 @@ fn colours(a: &gltf::Accessor, buffers: &[Vec<u8>]) -> Option<Vec<[f32; 4]>> {
 pub(super) fn accessor_vertices(
     prim: &gltf::Primitive,
     buffers: &[Vec<u8>],
-    uv_set: Option<u32>,
+    uv_sets: [Option<u32>; 2],
 ) -> Option<Vertices> {
     let attribute = |s: gltf::Semantic| prim.get(&s).and_then(|a| read_floats::<3>(&a, buffers));
     let reader = prim.reader(|b| buffers.get(b.index()).map(|d| &d[..]));
     Some(Vertices {
         pos: attribute(gltf::Semantic::Positions)?,
         nrm: attribute(gltf::Semantic::Normals),
-        uv: uv_set
-            .and_then(|s| prim.get(&gltf::Semantic::TexCoords(s)))
-            .and_then(|a| read_floats::<2>(&a, buffers)),
+        uv: uv_sets.map(|set| {
+            set.and_then(|s| prim.get(&gltf::Semantic::TexCoords(s)))
+                .and_then(|a| read_floats::<2>(&a, buffers))
+        }),
         colour: prim
             .get(&gltf::Semantic::Colors(0))
             .and_then(|a| colours(&a, buffers)),

@@ -9,30 +9,31 @@ use serde_json::Value;
 pub(super) const CLEARCOAT: &str = "KHR_materials_clearcoat";
 pub(super) const SHEEN: &str = "KHR_materials_sheen";
 
+/// A textureInfo's texture and how it reads its texture coordinates.
+pub(super) type TextureInfo<'a> = Option<(Result<UvMap>, gltf::Texture<'a>)>;
+
 /// A material's coat and sheen factors, and the textures of their slots
-/// (`MaterialRecord::CLEARCOAT`…) with how each reads its texture coordinates.
+/// (`MaterialRecord::CLEARCOAT`…, then the coat's normal texture) with how each reads its
+/// texture coordinates.
 pub(super) struct Layers<'a> {
     pub(super) clearcoat: f32,
     pub(super) clearcoat_roughness: f32,
     pub(super) sheen_color: [f32; 3],
     pub(super) sheen_roughness: f32,
-    pub(super) textures: [Option<(Result<UvMap>, gltf::Texture<'a>)>; 4],
+    pub(super) textures: [TextureInfo<'a>; 5],
+    /// clearcoatNormalTexture.scale (1 when it has none).
+    pub(super) coat_normal_scale: f32,
 }
 
-/// The layers of material `m` of `doc` (none: zero factors, no textures). A
-/// clearcoatNormalTexture is not carried (the coat takes the base's shading normal);
-/// `notes` says so.
-pub(super) fn layers<'a>(
-    m: &gltf::Material<'a>,
-    doc: &'a gltf::Document,
-    notes: &mut Vec<String>,
-) -> Result<Layers<'a>> {
+/// The layers of material `m` of `doc` (none: zero factors, no textures).
+pub(super) fn layers<'a>(m: &gltf::Material<'a>, doc: &'a gltf::Document) -> Result<Layers<'a>> {
     let mut out = Layers {
         clearcoat: 0.0,
         clearcoat_roughness: 0.0,
         sheen_color: [0.0; 3],
         sheen_roughness: 0.0,
-        textures: [None, None, None, None],
+        textures: [None, None, None, None, None],
+        coat_normal_scale: 1.0,
     };
     if let Some(c) = m.extension_value(CLEARCOAT) {
         out.clearcoat = factor(c, "clearcoatFactor", 0.0)?;
@@ -40,8 +41,13 @@ pub(super) fn layers<'a>(
         out.textures[MaterialRecord::CLEARCOAT] = texture(c, "clearcoatTexture", doc)?;
         out.textures[MaterialRecord::CLEARCOAT_ROUGHNESS] =
             texture(c, "clearcoatRoughnessTexture", doc)?;
-        if c.get("clearcoatNormalTexture").is_some() {
-            notes.push("its clearcoatNormalTexture is not carried: the coat takes the base's shading normal".into());
+        out.textures[4] = texture(c, "clearcoatNormalTexture", doc)?;
+        if let Some(v) = c.get("clearcoatNormalTexture").and_then(|t| t.get("scale")) {
+            out.coat_normal_scale = v
+                .as_f64()
+                .map(|x| x as f32)
+                .filter(|x| x.is_finite())
+                .ok_or_else(|| anyhow!("clearcoatNormalTexture.scale {v} is not a number"))?;
         }
     }
     if let Some(s) = m.extension_value(SHEEN) {
@@ -78,11 +84,7 @@ fn factor(ext: &Value, key: &str, default: f32) -> Result<f32> {
 }
 
 /// A textureInfo of the extension: its texture and how it reads texture coordinates.
-fn texture<'a>(
-    ext: &Value,
-    key: &str,
-    doc: &'a gltf::Document,
-) -> Result<Option<(Result<UvMap>, gltf::Texture<'a>)>> {
+fn texture<'a>(ext: &Value, key: &str, doc: &'a gltf::Document) -> Result<TextureInfo<'a>> {
     let Some(info) = ext.get(key) else {
         return Ok(None);
     };

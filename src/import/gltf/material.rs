@@ -8,7 +8,7 @@ use anyhow::{anyhow, Context, Result};
 use canopy_format::{name_bytes, MaterialRecord, TextureRecord};
 use std::path::Path;
 
-/// How a material's texture coordinates are read: the set, then KHR_texture_transform's
+/// How a texture reads its texture coordinates: the set, then KHR_texture_transform's
 /// matrix (translation · rotation · scale, rows of a 2×3 affine map).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(super) struct UvMap {
@@ -16,10 +16,14 @@ pub(super) struct UvMap {
     pub(super) m: [[f32; 3]; 2],
 }
 
-/// The material record, its textures added to `scene`, and how its texture coordinates are
-/// read. All textures of a material share one coordinate set and transform (the archive
-/// stores one set per vertex): a texture that reads another is dropped, its factor kept,
-/// and `notes` says so.
+/// Which glTF texture-coordinate sets a material's textures read, as the archive's two
+/// streams (None: the stream is not read).
+pub(super) type UvSets = [Option<u32>; 2];
+
+/// The material record, its textures added to `scene`, and the texture-coordinate sets its
+/// textures read. Each texture slot keeps its own set and KHR_texture_transform; the
+/// archive stores two sets per vertex, so a texture reading a third is dropped, its factor
+/// kept, and `notes` says so.
 pub(super) fn material(
     m: &gltf::Material,
     doc: &gltf::Document,
@@ -27,7 +31,7 @@ pub(super) fn material(
     buffers: &[Vec<u8>],
     dir: &Path,
     notes: &mut Vec<String>,
-) -> Result<(MaterialRecord, Option<UvMap>)> {
+) -> Result<(MaterialRecord, UvSets)> {
     let pbr = m.pbr_metallic_roughness();
     let sg = m.pbr_specular_glossiness();
     let strength = m.emissive_strength().unwrap_or(1.0);
@@ -36,7 +40,7 @@ pub(super) fn material(
     let base_texture = pbr
         .base_color_texture()
         .or_else(|| sg.as_ref().and_then(|s| s.diffuse_texture()));
-    let layers = layers(m, doc, notes)?;
+    let layers = layers(m, doc)?;
     let textured = base_texture.is_some()
         || pbr.metallic_roughness_texture().is_some()
         || m.emissive_texture().is_some()
@@ -54,13 +58,11 @@ pub(super) fn material(
         gltf::material::AlphaMode::Blend => flags |= MaterialRecord::ALPHA_BLEND,
         gltf::material::AlphaMode::Opaque => {}
     }
-    // Slots 0..4 are `textures`, 4..8 `layer_textures`.
-    let mut textures = [MaterialRecord::NO_TEXTURE; 8];
-    let mut uv: Option<UvMap> = None;
     pub(super) fn info(i: gltf::texture::Info<'_>) -> (Result<UvMap>, gltf::Texture<'_>) {
         (Ok(UvMap::of(&i)), i.texture())
     }
-    let [coat, coat_roughness, sheen_color, sheen_roughness] = layers.textures;
+    let [coat, coat_roughness, sheen_color, sheen_roughness, coat_normal] = layers.textures;
+    // In `MaterialRecord::SLOTS` order, with whether each is sRGB.
     let slots = [
         (base_texture.map(info), true),
         (pbr.metallic_roughness_texture().map(info), false),
@@ -73,23 +75,38 @@ pub(super) fn material(
         (coat_roughness, false),
         (sheen_color, true),
         (sheen_roughness, false),
+        (coat_normal, false),
     ];
+    let mut textures = [MaterialRecord::NO_TEXTURE; MaterialRecord::SLOTS];
+    let mut sets: UvSets = [None; 2];
+    let mut uv_streams = 0u16;
+    let mut uv_transforms = [MaterialRecord::IDENTITY_UV; MaterialRecord::SLOTS];
     for (slot, (found, srgb)) in slots.into_iter().enumerate() {
         let Some((map, texture)) = found else {
             continue;
         };
         let map = map?;
-        if let Some(u) = uv.filter(|&u| u != map) {
-            notes.push(format!(
-                "its {} texture reads texture coordinates {} (or another transform) where its other textures read {}; Canopy stores one set per vertex, so it is dropped and its factor kept",
-                SLOT_NAMES[slot], map.set, u.set
-            ));
-            continue;
-        }
-        uv = Some(map);
+        let stream = match sets.iter().position(|&s| s == Some(map.set)) {
+            Some(k) => k,
+            None => match sets.iter().position(Option::is_none) {
+                Some(k) => {
+                    sets[k] = Some(map.set);
+                    k
+                }
+                None => {
+                    notes.push(format!(
+                        "its {} texture reads texture coordinates {} where its other textures read sets {:?}; Canopy stores two sets per vertex, so it is dropped and its factor kept",
+                        SLOT_NAMES[slot], map.set, sets.map(Option::unwrap_or_default)
+                    ));
+                    continue;
+                }
+            },
+        };
+        uv_streams |= (stream as u16) << slot;
+        uv_transforms[slot] = map.record();
         textures[slot] = scene.add_texture(texture_source(&texture, srgb, buffers, dir)?)?;
     }
-    let [b, mr, e, n, c0, c1, s0, s1] = textures;
+    let [b, mr, e, n, c0, c1, s0, s1, cn] = textures;
     let rec = MaterialRecord {
         name: name_bytes(m.name().unwrap_or("")),
         base_color: pbr.base_color_factor(),
@@ -119,13 +136,21 @@ pub(super) fn material(
         sheen_color: layers.sheen_color,
         sheen_roughness: layers.sheen_roughness,
         layer_textures: [c0, c1, s0, s1],
+        coat_normal_texture: cn,
+        uv_streams,
+        // Finite with a coat normal texture, 0 without (a dropped one included).
+        coat_normal_scale: match cn {
+            MaterialRecord::NO_TEXTURE => 0.0,
+            _ => layers.coat_normal_scale,
+        },
+        uv_transforms,
         ..volume(m)
     };
     let rec = match sg {
         Some(sg) => specular_glossiness(rec, &sg, notes),
         None => rec,
     };
-    Ok((if m.unlit() { unlit(rec, notes) } else { rec }, uv))
+    Ok((if m.unlit() { unlit(rec, notes) } else { rec }, sets))
 }
 
 /// KHR_materials_volume's attenuation as a record's volume fields (the rest default): none
@@ -158,7 +183,11 @@ fn volume(m: &gltf::Material) -> MaterialRecord {
 fn unlit(mut rec: MaterialRecord, notes: &mut Vec<String>) -> MaterialRecord {
     let [r, g, b, a] = rec.base_color;
     rec.emission = [r, g, b];
-    rec.textures[MaterialRecord::EMISSIVE] = rec.textures[MaterialRecord::BASE_COLOR];
+    let (base, emissive) = (MaterialRecord::BASE_COLOR, MaterialRecord::EMISSIVE);
+    rec.textures[emissive] = rec.textures[base];
+    rec.uv_transforms[emissive] = rec.uv_transforms[base];
+    let stream = rec.slot_stream(base) as u16;
+    rec.uv_streams = rec.uv_streams & !(1 << emissive) | stream << emissive;
     rec.base_color = [0.0, 0.0, 0.0, a];
     rec.metallic = 0.0;
     rec.specular = 0.0;
@@ -191,8 +220,8 @@ fn specular_glossiness(
     rec
 }
 
-/// The texture slots' names: `MaterialRecord::textures`, then `layer_textures`.
-const SLOT_NAMES: [&str; 8] = [
+/// The texture slots' names, in `MaterialRecord::SLOTS` order.
+const SLOT_NAMES: [&str; 9] = [
     "base colour",
     "metallic-roughness",
     "emissive",
@@ -201,6 +230,7 @@ const SLOT_NAMES: [&str; 8] = [
     "clearcoat roughness",
     "sheen colour",
     "sheen roughness",
+    "clearcoat normal",
 ];
 
 /// Where a glTF texture's image is: a buffer view, a data URI or a file beside the glTF.
@@ -305,7 +335,9 @@ impl UvMap {
         }
     }
 
-    pub(super) fn apply(&self, [u, v]: [f32; 2]) -> [f32; 2] {
-        self.m.map(|r| r[0] * u + r[1] * v + r[2])
+    /// The map as a material record stores it (`MaterialRecord::uv_transforms`).
+    fn record(&self) -> [f32; 6] {
+        let [[a, b, c], [d, e, f]] = self.m;
+        [a, b, c, d, e, f]
     }
 }

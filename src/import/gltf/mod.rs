@@ -18,7 +18,7 @@ mod material;
 mod meshopt;
 mod view;
 use files::{accessor_vertices, check_accessor, check_primitive, load};
-use material::{material, UvMap};
+use material::{material, UvSets};
 use view::{camera, punctual, render_size};
 
 pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -> Result<u64> {
@@ -27,7 +27,7 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
     let (width, height) = render_size(&doc);
     let base = scene.materials.len() as u32;
     let dir = path.parent().unwrap_or(Path::new("."));
-    let mut uv_maps = Vec::new();
+    let mut uv_sets = Vec::new();
     for m in doc.materials() {
         let named = |e: anyhow::Error| {
             anyhow!(
@@ -46,7 +46,7 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
             scene.textured = true;
         }
         scene.add_material(rec)?;
-        uv_maps.push(uv);
+        uv_sets.push(uv);
     }
     let mut default_mat = None;
     let gscene = doc
@@ -115,7 +115,7 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
             doc: &doc,
             mesh: &mesh,
             buffers: &buffers,
-            uv_maps: &uv_maps,
+            uv_sets: &uv_sets,
             base,
             default_mat: &mut default_mat,
             scene,
@@ -182,8 +182,8 @@ struct MeshCtx<'a> {
     mesh: &'a gltf::Mesh<'a>,
     buffers: &'a [Vec<u8>],
     /// The file's first material in the scene's table.
-    /// Per glTF material, how its texture coordinates are read (None: untextured).
-    uv_maps: &'a [Option<UvMap>],
+    /// Per glTF material, the texture-coordinate sets its textures read.
+    uv_sets: &'a [UvSets],
     base: u32,
     default_mat: &'a mut Option<u32>,
     scene: &'a mut SceneDesc,
@@ -216,16 +216,18 @@ impl MeshCtx<'_> {
                     *self.default_mat.insert(m)
                 }
             };
-            let uv_map = prim.material().index().and_then(|i| self.uv_maps[i]);
-            let uv_set = uv_map.map(|m| m.set);
-            let decoded = draco::decode(&prim, self.doc, self.buffers, uv_set)
+            let uv_sets = match prim.material().index() {
+                Some(i) => self.uv_sets[i],
+                None => [None; 2],
+            };
+            let decoded = draco::decode(&prim, self.doc, self.buffers, uv_sets)
                 .map_err(|e| anyhow!("{}: {e}", what(0)))?;
             let v = match decoded {
                 Some(v) => v,
                 None => {
                     check_primitive(&prim, self.buffers)
                         .map_err(|e| anyhow!("{}: {e}", what(0)))?;
-                    let Some(v) = accessor_vertices(&prim, self.buffers, uv_set) else {
+                    let Some(v) = accessor_vertices(&prim, self.buffers, uv_sets) else {
                         continue;
                     };
                     v
@@ -247,14 +249,9 @@ impl MeshCtx<'_> {
             if nrm.is_some() {
                 self.scene.has_normals = true;
             }
-            let uvs: Option<Vec<[f32; 2]>> = match (uv_map, v.uv) {
-                (Some(map), Some(t)) => Some(t.into_iter().map(|uv| map.apply(uv)).collect())
-                    .filter(|t: &Vec<_>| t.len() == pos.len()),
-                _ => None,
-            };
-            if uvs.is_some() {
-                self.scene.has_uvs = true;
-            }
+            let [uvs, uvs2] = v.uv.map(|t| t.filter(|t| t.len() == pos.len()));
+            self.scene.has_uvs |= uvs.is_some() || uvs2.is_some();
+            self.scene.has_uvs2 |= uvs2.is_some();
             let colours: Option<Vec<[u16; 4]>> = v
                 .colour
                 .filter(|c| c.len() == pos.len())
@@ -277,10 +274,12 @@ impl MeshCtx<'_> {
                 let p = tri.map(|i| pos[i as usize].to_array());
                 let n = nrm.as_ref().map(|n| tri.map(|i| n[i as usize].to_array()));
                 let mut st = make_tri(p, n, mat, &|| what(t))?;
-                if let Some(uv) = &uvs {
-                    st.uv = tri.map(|i| uv[i as usize]);
-                    if st.uv.iter().flatten().any(|x| !x.is_finite()) {
-                        bail!("{}: non-finite texture coordinate {:?}", what(t), st.uv);
+                for (uv, out) in [(&uvs, &mut st.uv), (&uvs2, &mut st.uv2)] {
+                    if let Some(uv) = uv {
+                        *out = tri.map(|i| uv[i as usize]);
+                        if out.iter().flatten().any(|x| !x.is_finite()) {
+                            bail!("{}: non-finite texture coordinate {out:?}", what(t));
+                        }
                     }
                 }
                 if let Some(c) = &colours {

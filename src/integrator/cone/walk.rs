@@ -451,7 +451,7 @@ impl ConeIntegrator {
         let wo = at.wo;
         // Stored light is kept per geometric normal: a normal-mapped surface takes the
         // exact step below instead.
-        if shaded.m.is_pure_diffuse() && shaded.bump.is_none() {
+        if shaded.m.is_pure_diffuse() && shaded.normal.is_none() {
             let cell = self.keys.cell_of(&h.tri, h.b);
             return Event::Diffuse(Diffuse {
                 frame: Frame::new(n),

@@ -11,7 +11,6 @@ use crate::integrator::{
 use crate::material::Bsdf;
 use crate::paging::{Corners, WHITE};
 use crate::paging::{NodeRef, Page};
-use crate::texture;
 use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer, NO_INSTANCE};
 use glam::Vec3A as V;
 
@@ -257,9 +256,7 @@ impl<'a> Shading<'a> {
         let shaded = self
             .scene
             .material_at(self.t.material, &self.t.p, &self.c, b, -self.ng, side);
-        let n = shaded
-            .bump
-            .map_or(self.ng, |tn| texture::perturb(v, self.c.uv, self.ng, tn));
+        let n = shaded.normal.unwrap_or(self.ng);
         (shaded.m.bsdf(true).diffuse, n)
     }
 }

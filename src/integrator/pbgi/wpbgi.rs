@@ -45,7 +45,7 @@ pub(super) struct Incident {
 
 /// BRDF tables built on first use, one per distinct reflecting lobe.
 #[derive(Default)]
-pub struct Tables(Mutex<Vec<([u32; 15], Arc<BrdfTable>)>>);
+pub struct Tables(Mutex<Vec<([u32; 18], Arc<BrdfTable>)>>);
 
 impl Tables {
     fn get(&self, g: &Bsdf, threshold: f32) -> Arc<BrdfTable> {
