@@ -343,43 +343,33 @@ fn a_black_image_says_why() {
         .all(|p| *p == [0.0; 3]));
 }
 
-/// Scale: a 16 k × 8 k map (768 MiB as halves; a sky, a sun of 5·10⁴ and fine stripes)
-/// lights the bundled spheres under `--mem-budget 64MiB` with the same image as with no
-/// budget, its tiles paged and evicted. Writes a 0.4 GiB map in the temporary directory
-/// and takes about a minute: `cargo test --release --test environment -- --ignored`.
+/// Scale: a 16 k × 8 k map (768 MiB as halves; a sky, a sun of 5·10⁴ and fine stripes),
+/// as OpenEXR and as Radiance `.hdr`, lights the bundled spheres under `--mem-budget 64MiB`
+/// with the same image as with no budget, its tiles paged and evicted, its resident peak
+/// under the budget. Writes a 0.4 GiB and a 0.5 GiB map in the temporary directory and
+/// takes a few minutes: `cargo test --release --test environment -- --ignored`.
 #[test]
 #[ignore]
 fn a_16k_map_renders_under_64_mib_as_it_does_unlimited() {
-    use exr::prelude::*;
     let dir = tempfile::tempdir().unwrap();
-    let env = dir.path().join("16k.exr");
     let (w, h) = (16384usize, 8192usize);
-    let texel = |p: Vec2<usize>| {
-        let (u, v) = (
-            (p.x() as f32 + 0.5) / w as f32,
-            p.y() as f32 / (h - 1) as f32,
-        );
+    let texel = |x: usize, y: usize| {
+        let (u, v) = ((x as f32 + 0.5) / w as f32, y as f32 / (h - 1) as f32);
         let sun = (u - 0.3).hypot(v - 0.25) < 0.002;
-        let stripe = 1.0 + 0.3 * ((p.x() / 3 + p.y() / 5) % 2) as f32;
+        let stripe = 1.0 + 0.3 * ((x / 3 + y / 5) % 2) as f32;
         match sun {
-            true => (f16::from_f32(5e4), f16::from_f32(4.5e4), f16::from_f32(4e4)),
-            false => (
-                f16::from_f32(0.3 * stripe * (1.0 - v)),
-                f16::from_f32(0.5 * stripe * (1.0 - v)),
-                f16::from_f32(0.9 * stripe),
-            ),
+            true => [5e4, 4.5e4, 4e4],
+            false => [
+                0.3 * stripe * (1.0 - v),
+                0.5 * stripe * (1.0 - v),
+                0.9 * stripe,
+            ],
         }
     };
-    let layer = Layer::new(
-        (w, h),
-        LayerAttributes::default(),
-        Encoding::FAST_LOSSLESS,
-        SpecificChannels::rgb(texel),
-    );
-    exr::image::Image::from_layer(layer)
-        .write()
-        .to_file(&env)
-        .unwrap();
+    let exr = dir.path().join("16k.exr");
+    write_exr(&exr, w, h, texel);
+    let hdr = dir.path().join("16k.hdr");
+    write_hdr(&hdr, w, h, texel);
     let arc = dir.path().join("spheres.canopy");
     ok(&[
         "--quiet",
@@ -388,34 +378,86 @@ fn a_16k_map_renders_under_64_mib_as_it_does_unlimited() {
         "-o",
         s(&arc),
     ]);
-    let args = [
-        "--width",
-        "64",
-        "--height",
-        "48",
-        "--spp",
-        "16",
-        "--threads",
-        "2",
-        "--env",
-        s(&env),
-    ];
-    let (unlimited, whole) = render(&arc, &dir.path().join("a.exr"), &args);
-    let budget = [&args[..], &["--mem-budget", "64MiB"]].concat();
-    let (img, paged) = render(&arc, &dir.path().join("b.exr"), &budget);
-    assert_eq!(img.pixels, unlimited.pixels, "the same image");
-    let evicted = paged["environment"]["env_tiles_evicted"].as_u64().unwrap();
-    assert!(evicted > 0, "{}", paged["environment"]);
-    let peak = |s: &serde_json::Value| s["resident_bytes_peak"].as_u64().unwrap();
-    assert!(peak(&paged) < 64 << 20, "{}", peak(&paged));
-    eprintln!(
-        "unlimited: resident peak {} B, RSS {} B; 64 MiB: resident peak {} B, RSS {} B, {}",
-        peak(&whole),
-        whole["peak_rss_bytes"],
-        peak(&paged),
-        paged["peak_rss_bytes"],
-        paged["environment"]
+    for env in [&exr, &hdr] {
+        let args = [
+            "--width",
+            "64",
+            "--height",
+            "48",
+            "--spp",
+            "16",
+            "--threads",
+            "2",
+            "--env",
+            s(env),
+        ];
+        let (unlimited, whole) = render(&arc, &dir.path().join("a.exr"), &args);
+        let budget = [&args[..], &["--mem-budget", "64MiB"]].concat();
+        let (img, paged) = render(&arc, &dir.path().join("b.exr"), &budget);
+        assert_eq!(
+            img.pixels,
+            unlimited.pixels,
+            "{}: the same image",
+            env.display()
+        );
+        let evicted = paged["environment"]["env_tiles_evicted"].as_u64().unwrap();
+        assert!(evicted > 0, "{}", paged["environment"]);
+        let peak = |s: &serde_json::Value| s["resident_bytes_peak"].as_u64().unwrap();
+        assert!(peak(&paged) < 64 << 20, "{}", peak(&paged));
+        eprintln!(
+            "{}: unlimited: resident peak {} B, RSS {} B; 64 MiB: resident peak {} B, RSS {} B, {}",
+            env.display(),
+            peak(&whole),
+            whole["peak_rss_bytes"],
+            peak(&paged),
+            paged["peak_rss_bytes"],
+            paged["environment"]
+        );
+    }
+}
+
+/// A `w` × `h` OpenEXR map of half-float `texel(x, y)`.
+fn write_exr(path: &Path, w: usize, h: usize, texel: impl Fn(usize, usize) -> [f32; 3] + Sync) {
+    use exr::prelude::*;
+    let half = |p: Vec2<usize>| {
+        let [r, g, b] = texel(p.x(), p.y()).map(f16::from_f32);
+        (r, g, b)
+    };
+    let layer = Layer::new(
+        (w, h),
+        LayerAttributes::default(),
+        Encoding::FAST_LOSSLESS,
+        SpecificChannels::rgb(half),
     );
+    exr::image::Image::from_layer(layer)
+        .write()
+        .to_file(path)
+        .unwrap();
+}
+
+/// A `w` × `h` Radiance map of `texel(x, y)`, flat RGBE scanlines written as they are
+/// computed (the shared exponent of the largest channel, as Radiance's `setcolr` makes it).
+fn write_hdr(path: &Path, w: usize, h: usize, texel: impl Fn(usize, usize) -> [f32; 3]) {
+    use std::io::Write;
+    let mut f = std::io::BufWriter::new(std::fs::File::create(path).unwrap());
+    write!(f, "#?RADIANCE\nFORMAT=32-bit_rle_rgbe\n\n-Y {h} +X {w}\n").unwrap();
+    for y in 0..h {
+        for x in 0..w {
+            let c = texel(x, y);
+            let m = c.into_iter().fold(0.0f32, f32::max);
+            let rgbe = match m < 1e-32 {
+                true => [0; 4],
+                false => {
+                    let e = m.log2().floor() as i32 + 1;
+                    let scale = 256.0 / 2f32.powi(e);
+                    let q = c.map(|v| (v * scale).min(255.0) as u8);
+                    [q[0], q[1], q[2], (e + 128) as u8]
+                }
+            };
+            f.write_all(&rgbe).unwrap();
+        }
+    }
+    f.flush().unwrap();
 }
 
 /// `--sky` at its defaults (sun 45° up, turbidity 3) against Mitsuba 3's `sunsky`

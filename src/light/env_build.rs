@@ -9,7 +9,7 @@ use super::env_tiles::{
 };
 use crate::image::Image;
 use crate::material::luminance;
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, bail, Result};
 use glam::Vec3A as V;
 use half::f16;
 use std::collections::HashMap;
@@ -263,7 +263,8 @@ pub fn paged_capacity(width: usize, height: usize, share: Option<u64>) -> Option
     (whole + tables > share).then(|| (share.saturating_sub(tables) / TILE_COST).max(16))
 }
 
-/// Reads the equirectangular map in `path` (.exr streamed, .hdr whole) into a builder.
+/// Reads the equirectangular map in `path` (.exr a block at a time, .hdr a scanline at a
+/// time) into a builder.
 pub fn read_map(path: &Path, strength: f32, share: Option<u64>) -> Result<Built> {
     let ext = path
         .extension()
@@ -314,17 +315,18 @@ fn read_exr(path: &Path, strength: f32, share: Option<u64>) -> Result<Builder> {
     Ok(read.layer_data.channel_data.pixels)
 }
 
-/// A Radiance RGBE map, decoded whole (the `image` crate reads no part of one) and then
-/// tiled.
+/// A Radiance RGBE map, decoded a scanline at a time.
 fn read_hdr(path: &Path, strength: f32, share: Option<u64>) -> Result<Builder> {
-    let img = image::open(path)
-        .with_context(|| format!("{}: not a readable Radiance .hdr image", path.display()))?
-        .into_rgb32f();
-    let [w, h] = [img.width() as usize, img.height() as usize];
+    let mut r = super::hdr::Reader::open(path)?;
+    let [w, h] = [r.width, r.height];
     check_size(path, w, h)?;
     let mut b = Builder::new(w, h, strength, paged_capacity(w, h, share));
-    for (k, p) in img.pixels().enumerate() {
-        b.put(k % w, k / w, p.0);
+    let mut row = Vec::with_capacity(w);
+    for _ in 0..h {
+        let j = r.row(&mut row)?;
+        for (i, &p) in row.iter().enumerate() {
+            b.put(i, j, p);
+        }
     }
     Ok(b)
 }

@@ -20,6 +20,7 @@ use tree::{LightBounds, LightTree};
 mod distribution;
 pub mod env;
 mod env_build;
+mod hdr;
 pub mod env_tiles;
 mod set;
 pub mod sky;
