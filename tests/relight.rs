@@ -72,6 +72,75 @@ fn relit_light_sets_match_the_path_tracer() {
     }
 }
 
+/// The bundled spheres under `scenes/env/sky.hdr`, the archive's own (a scene file's
+/// `[environment]`, its extra lines `extra`), with their view precomputed at 48×36.
+fn spheres_view(dir: &Path, name: &str, extra: &str) -> (std::path::PathBuf, std::path::PathBuf) {
+    let toml = dir.join(format!("{name}.toml"));
+    let sky = scene("env/sky.hdr");
+    let text = format!("[environment]\nmap = {:?}\n{extra}", sky.to_str().unwrap());
+    std::fs::write(&toml, text).unwrap();
+    let archive = dir.join(format!("{name}.canopy"));
+    convert(&scene("env/spheres.glb"), &archive, Some(&toml));
+    let view = dir.join(format!("{name}.relight"));
+    ok(&[
+        "--quiet",
+        "relight",
+        s(&archive),
+        "-o",
+        s(&view),
+        "--width",
+        "48",
+        "--height",
+        "36",
+    ]);
+    (archive, view)
+}
+
+/// The environment made stronger and turned by a light set: 1.5 times as strong matches
+/// the path tracer under the same set; turned 120° it is the view precomputed with the
+/// environment turned 120° from the start (the precompute never saw that rotation); and a
+/// strength alone scales the relit image exactly.
+#[test]
+fn the_environment_turns_and_scales_without_a_new_precompute() {
+    let dir = tempfile::tempdir().unwrap();
+    let (archive, view) = spheres_view(dir.path(), "sky", "");
+    let stronger = dir.path().join("stronger.toml");
+    std::fs::write(&stronger, "[environment]\nstrength = 1.5\n").unwrap();
+    let img = relit(&view, Some(&stronger), &dir.path().join("stronger.exr"));
+    let extra = ["--width", "48", "--height", "36", "--lights", s(&stronger)];
+    let (pt, _) = render(
+        &archive,
+        &dir.path().join("pt.exr"),
+        &[&extra[..], &["--spp", "1024"]].concat(),
+    );
+    assert_mean_within(&img, &pt, 0.015, "relit under the stronger environment");
+    let turned = dir.path().join("turned.toml");
+    std::fs::write(&turned, "[environment]\nstrength = 1.5\nrotate = 120.0\n").unwrap();
+    let img = relit(&view, Some(&turned), &dir.path().join("turned.exr"));
+    let (_, view120) = spheres_view(
+        dir.path(),
+        "sky120",
+        "rotate_degrees = 120.0\nstrength = 1.5\n",
+    );
+    let opened = relit(&view120, None, &dir.path().join("opened.exr"));
+    let dimmer = dir.path().join("dimmer.toml");
+    std::fs::write(&dimmer, "[environment]\nstrength = 0.5\nrotate = 120.0\n").unwrap();
+    let third = relit(&view, Some(&dimmer), &dir.path().join("dimmer.exr"));
+    for ((a, b), t) in img.pixels.iter().zip(&opened.pixels).zip(&third.pixels) {
+        for c in 0..3 {
+            let tol = 1e-4 * a[c].abs().max(1e-6);
+            assert!(
+                (a[c] - b[c]).abs() <= tol,
+                "turned {a:?} against opened turned {b:?}"
+            );
+            assert!(
+                (a[c] - 3.0 * t[c]).abs() <= tol,
+                "{a:?} against three times {t:?}"
+            );
+        }
+    }
+}
+
 #[test]
 fn light_is_linear_in_the_lamps() {
     // The same view under a lamp twice as strong is the same samples' image twice over.

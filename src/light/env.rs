@@ -154,6 +154,14 @@ impl Environment {
         }
     }
 
+    /// Turns the environment a further `deg` degrees about +Y (its sun with it).
+    pub fn turn(&mut self, deg: f32) {
+        let [s, c] = self.rotation;
+        let (ds, dc) = deg.to_radians().sin_cos();
+        self.rotation = [s * dc + c * ds, c * dc - s * ds];
+        self.id = identity(&[self.id, deg.to_bits() as u64]);
+    }
+
     /// An identity of the environment for bake files: equal for the same map (as stored,
     /// its strength applied), rotation and sampling.
     pub fn id(&self) -> u64 {

@@ -168,8 +168,12 @@ impl LightSet {
 
     /// Whether the set changes the environment (which `--env` and `--sky` then may not
     /// give).
-    pub fn changes_environment(&self) -> bool {
-        self.environment.is_some()
+    /// The environment's change: a factor on its strength and degrees to turn it about
+    /// +Y (1 and 0 where the set leaves it), None where the set has no [environment].
+    pub fn environment_change(&self) -> Option<(f32, f32)> {
+        self.environment
+            .as_ref()
+            .map(|e| (e.strength.unwrap_or(1.0), e.rotate.unwrap_or(0.0)))
     }
 
     /// Makes the changes to `archive`'s material, light and environment records.

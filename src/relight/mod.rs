@@ -7,7 +7,7 @@
 //! gathered at the cells the transfer reads.
 //! Light transport is linear in the emitters, so the product is exact up to the transfer's
 //! compression and noise: lamps may be scaled and tinted, punctual lights moved, re-aimed
-//! or added, the environment made stronger, each without a new precompute.
+//! or added, the environment made stronger or turned, each without a new precompute.
 //!
 //! Where light arrives at an interior path vertex it leaves through the diffuse lobe only:
 //! lamps' light reflected by glossy surfaces onto others (and caustics) is not carried.

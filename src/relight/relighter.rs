@@ -54,18 +54,25 @@ pub struct Relighter {
     /// share is traced under.
     lamps: FxHashMap<u32, Lights>,
     env: Option<Lights>,
+    /// The light set's environment: a factor on its strength, and the degrees it is turned
+    /// from the environment the view was opened with.
+    env_strength: f32,
+    env_turn: f32,
+    /// The degrees the environment in `env` is turned now.
+    env_turned: f32,
     /// The scene's bounding sphere (centre, radius), which a light set's lights are made in.
     sphere: (V, f32),
     shares: FxHashMap<Key, Share>,
 }
 
 /// What a share of the image is the light of: a material's lamps, a punctual light at unit
-/// intensity by its kind, position, direction and cone (bits), or the environment.
+/// intensity by its kind, position, direction and cone (bits), or the environment at unit
+/// strength turned by some degrees (bits).
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
 enum Key {
     Lamps(u32),
     Punctual([u32; 9]),
-    Environment,
+    Environment(u32),
 }
 
 /// One light's share: direct light at each view sample and E/π at each cell.
@@ -193,18 +200,23 @@ impl Relighter {
             punctual: lights.punctual,
             lamps,
             env,
+            env_strength: 1.0,
+            env_turn: 0.0,
+            env_turned: 0.0,
             sphere,
             shares: FxHashMap::default(),
         })
     }
 
     /// Puts `set` in place of the light set the view was opened with: the archive's own
-    /// lamps and punctual lights as `set` changes them (the environment stays as opened).
-    /// Returns a note when the set leaves no light at all (the image is then black).
+    /// lamps, punctual lights and environment as `set` changes them. Returns a note when
+    /// the set leaves no light at all (the image is then black).
     pub fn set_lights(&mut self, set: &LightSet) -> Result<Option<String>> {
-        if set.changes_environment() {
-            bail!("the environment's strength and rotation are set when the view is opened (--lights)");
+        let (strength, turn) = set.environment_change().unwrap_or((1.0, 0.0));
+        if self.env.is_none() && set.environment_change().is_some() {
+            bail!("[environment] changes the view's environment, and it was opened with none");
         }
+        (self.env_strength, self.env_turn) = (strength, turn);
         let (mut materials, mut lights) = self.own.clone();
         set.apply_to_lamps(&mut materials, &mut lights)?;
         let scene = &mut self.setup.scene;
@@ -215,8 +227,14 @@ impl Relighter {
             .lamps
             .keys()
             .any(|&m| self.lamp_scale[m as usize].max_element() > 0.0);
-        let dark = !lamps_on && self.punctual.is_empty() && self.env.is_none();
+        let env_on = self.env.is_some() && self.env_strength > 0.0;
+        let dark = !lamps_on && self.punctual.is_empty() && !env_on;
         Ok(dark.then(|| "the light set leaves no light on: the image is black".to_string()))
+    }
+
+    /// Whether the view was opened with an environment (which a light set may change).
+    pub fn has_environment(&self) -> bool {
+        self.env.is_some()
     }
 
     /// The archive's own material and light records (before any light set).
@@ -234,7 +252,10 @@ impl Relighter {
             let (_, key, scale) = unit(p);
             (key, scale)
         });
-        let env = self.env.as_ref().map(|_| (Key::Environment, V::ONE));
+        let env = self.env.as_ref().map(|_| {
+            let key = Key::Environment(self.env_turn.to_bits());
+            (key, V::splat(self.env_strength))
+        });
         lamps
             .chain(punctual)
             .chain(env)
@@ -247,7 +268,14 @@ impl Relighter {
         let (c, r) = self.sphere;
         let lights = match key {
             Key::Lamps(m) => self.lamps.remove(&m),
-            Key::Environment => self.env.take(),
+            Key::Environment(bits) => self.env.take().map(|mut lights| {
+                let turn = f32::from_bits(bits);
+                if let Some(e) = lights.env.as_mut() {
+                    e.turn(turn - self.env_turned);
+                }
+                self.env_turned = turn;
+                lights
+            }),
             Key::Punctual(_) => self
                 .punctual
                 .iter()
@@ -269,7 +297,7 @@ impl Relighter {
             Key::Lamps(m) => {
                 self.lamps.insert(m, lights);
             }
-            Key::Environment => self.env = Some(lights),
+            Key::Environment(_) => self.env = Some(lights),
             Key::Punctual(_) => {}
         }
         Share { direct, gathered }

@@ -108,7 +108,8 @@ fn render(r: &mut Relighter, req: &mut Request) -> Response<std::io::Cursor<Vec<
     }
 }
 
-/// The archive's lamps (emissive materials) and punctual lights, and its bounds, as JSON.
+/// The archive's lamps (emissive materials), punctual lights and whether the view has an
+/// environment, and its bounds, as JSON.
 fn describe(r: &Relighter) -> String {
     let (materials, lights) = r.own_records();
     let lamps: Vec<serde_json::Value> = materials
@@ -132,7 +133,7 @@ fn describe(r: &Relighter) -> String {
         .collect();
     let h = &r.setup.scene.cache.archive.header;
     serde_json::json!({
-        "emitter": lamps, "light": punctual,
+        "emitter": lamps, "light": punctual, "environment": r.has_environment(),
         "bounds": [h.bounds_min, h.bounds_max],
         "size": [r.file.header.width, r.file.header.height],
     })

@@ -164,7 +164,7 @@ fn open_lit(o: &RenderOptions) -> Result<Archive> {
         );
     }
     let set = LightSet::read(path)?;
-    if set.changes_environment() && o.env.is_some() {
+    if set.environment_change().is_some() && o.env.is_some() {
         bail!(
             "{}: its [environment] changes the archive's environment, which --env or --sky replace (give their strength and rotation by flags instead)",
             path.display()
