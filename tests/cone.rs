@@ -903,7 +903,7 @@ fn stored_light_pulls_through_each_instance_apart() {
             store.add(key, v, 1.0);
             store.add_caustic(key, v);
         }
-        store.mark_dirty_in(inst, pg, via);
+        store.mark_dirty_in(inst, pg, via, leaf);
     };
     Visit {
         cache: &cache,

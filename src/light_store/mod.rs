@@ -86,9 +86,13 @@ pub struct RadianceStore {
     /// Per page: whether stored light under it changed since the last pull.
     dirty: Vec<AtomicBool>,
     /// The same for the pages of prototypes, per instance: (instance, page) → the instance
-    /// leaf's global number.
-    placed_dirty: Mutex<HashMap<(u32, u32), u64>>,
+    /// leaf's global number and the global numbers of the page's nodes whose light changed.
+    placed_dirty: Mutex<HashMap<(u32, u32), Placed>>,
 }
+
+/// What changed in a prototype's page as an instance places it: the instance leaf's global
+/// number, and the page's nodes (global numbers) whose stored light changed.
+pub type Placed = (u64, Vec<u64>);
 
 /// Bytes an entry costs in the map: 8-byte key and 52-byte entry, hash-table overhead at
 /// its 7/8 load factor and one control byte; and at most one block marker (8-byte key, the
@@ -113,27 +117,30 @@ impl RadianceStore {
         }
     }
 
-    /// Notes that stored light under `page` changed, there as placed by `instance` through
-    /// its leaf `via` (`NO_INSTANCE`: a page of the scene's own tree).
-    pub fn mark_dirty_in(&self, instance: u32, page: u32, via: u64) {
+    /// Notes that the stored light of `node` (a global number) in `page` changed, there as
+    /// placed by `instance` through its leaf `via` (`NO_INSTANCE`: a page of the scene's own
+    /// tree, whose pull takes the whole page).
+    pub fn mark_dirty_in(&self, instance: u32, page: u32, via: u64, node: u64) {
         match instance {
             crate::trace::NO_INSTANCE => self.mark_dirty(page),
             i => {
-                self.placed_dirty
-                    .lock()
-                    .expect("dirty")
-                    .insert((i, page), via);
+                let mut d = self.placed_dirty.lock().expect("dirty");
+                let (_, nodes) = d.entry((i, page)).or_insert((via, Vec::new()));
+                if !nodes.contains(&node) {
+                    nodes.push(node);
+                }
             }
         }
     }
 
-    /// The prototype pages marked since the last call: (instance, page, instance leaf).
-    pub fn take_placed_dirty(&self) -> Vec<(u32, u32, u64)> {
+    /// The prototype pages marked since the last call, by instance: (instance, page,
+    /// what changed there).
+    pub fn take_placed_dirty(&self) -> Vec<(u32, u32, Placed)> {
         let mut v: Vec<_> = std::mem::take(&mut *self.placed_dirty.lock().expect("dirty"))
             .into_iter()
-            .map(|((i, p), via)| (i, p, via))
+            .map(|((i, p), placed)| (i, p, placed))
             .collect();
-        v.sort_unstable();
+        v.sort_unstable_by_key(|&(i, p, _)| (i, p));
         v
     }
 

@@ -179,7 +179,7 @@ fn deposit(
         * visible;
     if area > 0.0 {
         store.add_caustic(key, (flux / (PI * area)).to_array());
-        store.mark_dirty_in(hit.instance, hit.page, hit.instance_leaf);
+        store.mark_dirty_in(hit.instance, hit.page, hit.instance_leaf, hit.leaf);
         scene.touch(hit);
     }
 }

@@ -58,10 +58,11 @@ impl Pending {
     }
 }
 
-/// A node's page, the instance placing it (`NO_INSTANCE`: none) and that instance's leaf:
-/// what a change to its stored light marks for the pull.
+/// A node (global number), its page, the instance placing it (`NO_INSTANCE`: none) and
+/// that instance's leaf: what a change to its stored light marks for the pull.
 #[derive(Clone, Copy)]
 struct Place {
+    node: u64,
     page: u32,
     instance: u32,
     via: u64,
@@ -69,7 +70,7 @@ struct Place {
 
 impl Place {
     fn mark(self, store: &RadianceStore) {
-        store.mark_dirty_in(self.instance, self.page, self.via);
+        store.mark_dirty_in(self.instance, self.page, self.via, self.node);
     }
 }
 
@@ -368,6 +369,7 @@ impl ConeIntegrator {
                 ConeHit::Tri(h) => {
                     scene.touch(h);
                     Place {
+                        node: h.leaf,
                         page: h.page,
                         instance: h.instance,
                         via: h.instance_leaf,
@@ -376,6 +378,7 @@ impl ConeIntegrator {
                 ConeHit::Node { node, page, .. } => {
                     scene.touched.insert(*node);
                     Place {
+                        node: *node,
                         page: *page,
                         instance: NO_INSTANCE,
                         via: 0,
