@@ -15,6 +15,7 @@ pub mod node;
 pub mod reader;
 pub mod records;
 pub mod validate;
+mod validate_page;
 pub mod verify;
 pub mod writer;
 
