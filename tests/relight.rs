@@ -6,23 +6,36 @@ use canopy::image::Image;
 use common::*;
 use std::path::Path;
 
-/// The bundled Cornell box converted into `dir`, and its view precomputed at 64×64.
-fn prepared(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
-    let archive = dir.join("cbox.canopy");
-    convert(&scene("cbox.glb"), &archive, None);
-    let view = dir.join("cbox.relight");
-    ok(&[
+/// `input` converted into `dir` (with a scene file, if any) as NAME.canopy, and its view
+/// precomputed as NAME.relight at `size`.
+fn precomputed(
+    dir: &Path,
+    input: &Path,
+    scene_file: Option<&Path>,
+    name: &str,
+    [w, h]: [&str; 2],
+) -> (std::path::PathBuf, std::path::PathBuf) {
+    let archive = dir.join(format!("{name}.canopy"));
+    convert(input, &archive, scene_file);
+    let view = dir.join(format!("{name}.relight"));
+    let args = [
         "--quiet",
         "relight",
         s(&archive),
         "-o",
         s(&view),
         "--width",
-        "64",
+        w,
         "--height",
-        "64",
-    ]);
+        h,
+    ];
+    ok(&args);
     (archive, view)
+}
+
+/// The bundled Cornell box converted into `dir`, and its view precomputed at 64×64.
+fn prepared(dir: &Path) -> (std::path::PathBuf, std::path::PathBuf) {
+    precomputed(dir, &scene("cbox.glb"), None, "cbox", ["64", "64"])
 }
 
 fn relit(view: &Path, lights: Option<&Path>, out: &Path) -> Image {
@@ -79,21 +92,8 @@ fn spheres_view(dir: &Path, name: &str, extra: &str) -> (std::path::PathBuf, std
     let sky = scene("env/sky.hdr");
     let text = format!("[environment]\nmap = {:?}\n{extra}", sky.to_str().unwrap());
     std::fs::write(&toml, text).unwrap();
-    let archive = dir.join(format!("{name}.canopy"));
-    convert(&scene("env/spheres.glb"), &archive, Some(&toml));
-    let view = dir.join(format!("{name}.relight"));
-    ok(&[
-        "--quiet",
-        "relight",
-        s(&archive),
-        "-o",
-        s(&view),
-        "--width",
-        "48",
-        "--height",
-        "36",
-    ]);
-    (archive, view)
+    let spheres = scene("env/spheres.glb");
+    precomputed(dir, &spheres, Some(&toml), name, ["48", "36"])
 }
 
 /// The environment made stronger and turned by a light set: 1.5 times as strong matches
