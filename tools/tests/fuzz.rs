@@ -92,6 +92,7 @@ fn unmutated_side_seeds_are_accepted() {
         Mutation::Bake(s.bake.clone()),
         Mutation::Tile(s.tiles[0].clone()),
         Mutation::Scene(side::SIDE_SCENE.to_string()),
+        Mutation::Map(s.hdr.clone()),
     ] {
         std::fs::create_dir_all(&case).unwrap();
         side::exercise(&s, &case, &m).unwrap_or_else(|e| panic!("{e:#}"));

@@ -40,7 +40,7 @@ impl Rng {
 }
 
 /// The classes of mutation, counted separately in the summary.
-pub const CLASSES: [&str; 15] = [
+pub const CLASSES: [&str; 16] = [
     "archive: random bytes, checksums left stale",
     "archive: truncated or extended",
     "archive: header field, checksums recomputed",
@@ -56,6 +56,7 @@ pub const CLASSES: [&str; 15] = [
     "bake: block bytes (nodes, pyramids, coefficients) or a zero bomb, checksums recomputed",
     "EXR tile: header window, byte or length, for assemble and compare",
     "scene file: a value replaced (cameras, materials, lights)",
+    "environment map: Radiance .hdr header or scanline bytes mutated",
 ];
 
 /// What a run mutates.

@@ -55,6 +55,8 @@ pub struct Seeds {
     pub bake: Vec<u8>,
     pub tiles: [Vec<u8>; 2],
     pub ply: Vec<u8>,
+    /// The bundled sky (`scenes/env/sky.hdr`), adaptive run-length scanlines.
+    pub hdr: Vec<u8>,
 }
 
 /// A scene file that exercises every kind of entry: a camera, a material, three lights.
@@ -103,6 +105,9 @@ impl Seeds {
             bake: std::fs::read(&bake)?,
             tiles,
             ply: ply.1.clone(),
+            hdr: std::fs::read(
+                Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/env/sky.hdr"),
+            )?,
             archive,
             dir,
         })
@@ -128,18 +133,20 @@ pub enum Mutation {
     Bake(Vec<u8>),
     Tile(Vec<u8>),
     Scene(String),
+    Map(Vec<u8>),
 }
 
 /// Mutates one side file; returns its class (an index of `super::CLASSES`).
 pub fn mutate(s: &Seeds, rng: &mut Rng) -> (usize, Mutation) {
-    let which = rng.below(6);
+    let which = rng.below(7);
     let m = match which {
         0 => Mutation::Store(mutate_store_header(&s.store, rng)),
         1 => Mutation::Store(mutate_store_body(&s.store, rng)),
         2 => Mutation::Bake(mutate_bake_tables(&s.bake, rng)),
         3 => Mutation::Bake(mutate_bake_blocks(&s.bake, rng)),
         4 => Mutation::Tile(mutate_exr(&s.tiles[rng.below(2)], rng)),
-        _ => Mutation::Scene(mutate_scene(rng)),
+        5 => Mutation::Scene(mutate_scene(rng)),
+        _ => Mutation::Map(mutate_hdr(&s.hdr, rng)),
     };
     (FIRST + which, m)
 }
@@ -151,7 +158,61 @@ pub fn exercise(s: &Seeds, dir: &Path, m: &Mutation) -> Result<()> {
         Mutation::Bake(b) => bake_case(s, dir, b),
         Mutation::Tile(b) => tile_case(s, dir, b),
         Mutation::Scene(t) => scene_case(s, dir, t),
+        Mutation::Map(b) => map_case(s, dir, b),
     }
+}
+
+/// Renders the seed archive under the mutated map, within the budget.
+fn map_case(s: &Seeds, dir: &Path, bytes: &[u8]) -> Result<()> {
+    let path = dir.join("m.hdr");
+    std::fs::write(&path, bytes)?;
+    let mut o = super::tiny_render(&s.archive, dir, Settings::Path);
+    o.mem_budget = Some(BUDGET);
+    o.env = Some(canopy::render::EnvOptions {
+        source: canopy::render::EnvSource::Map(path),
+        strength: 1.0,
+        rotate: 0.0,
+        uniform_sampling: false,
+    });
+    render(&o).map(drop)
+}
+
+/// A Radiance map with a header line replaced by a hostile one (a resolution, a format, a
+/// header without its blank line), or its scanline bytes flipped, poked or cut.
+fn mutate_hdr(seed: &[u8], rng: &mut Rng) -> Vec<u8> {
+    let body = seed
+        .windows(2)
+        .position(|w| w == b"\n\n")
+        .map_or(0, |k| k + 2);
+    let lines = [
+        "-Y 99999 +X 99999\n",
+        "-Y 0 +X 8\n",
+        "+Y 2 +X 4294967297\n",
+        "-Y 128 +X 7\n",
+        "-X 128 +Y 256\n",
+        "FORMAT=32-bit_rle_xyze\n\n-Y 2 +X 2\n",
+    ];
+    let mut b = seed.to_vec();
+    match rng.below(3) {
+        0 => {
+            let end = b[body..]
+                .iter()
+                .position(|&c| c == b'\n')
+                .map_or(b.len(), |e| body + e + 1);
+            b.splice(body..end, rng.pick(&lines).bytes());
+        }
+        1 => b.truncate(rng.below(b.len())),
+        _ => {
+            for _ in 0..1 + rng.below(8) {
+                let at = body + rng.below(b.len() - body);
+                match rng.below(2) {
+                    0 => b[at] ^= 1 << rng.below(8),
+                    _ => poke(&mut b[at - at % 4..], rng),
+                }
+            }
+        }
+    }
+    b
 }
 
 fn store_case(s: &Seeds, dir: &Path, bytes: &[u8]) -> Result<()> {
