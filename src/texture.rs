@@ -39,20 +39,18 @@ impl TextureFilter {
     }
 }
 
-/// A material's textures, by `MaterialRecord` slot (`SLOTS` order), and how each reads
-/// its texture coordinates.
-#[derive(Clone, Copy, Debug, Default)]
+/// A material's textures, by `MaterialRecord` slot (`SLOTS` order), and its record, which
+/// says how each slot reads its texture coordinates.
+#[derive(Clone, Copy, Debug)]
 struct Binding {
     slots: [Option<u32>; MaterialRecord::SLOTS],
-    /// Per slot, the stream it reads (`MaterialRecord::uv_streams`) and its coordinate map.
-    streams: u16,
-    maps: [[f32; 6]; MaterialRecord::SLOTS],
+    rec: MaterialRecord,
+    /// How many texture-coordinate streams the slots read: 2 when one reads the second.
+    streams: usize,
     /// `ALPHA_MASK` cutoff, or None.
     mask: Option<f32>,
     /// `ALPHA_BLEND`.
     blend: bool,
-    normal_scale: f32,
-    coat_normal_scale: f32,
 }
 
 impl Binding {
@@ -60,50 +58,33 @@ impl Binding {
         let index = |t: u16| {
             (t != MaterialRecord::NO_TEXTURE && (t as usize) < textures).then_some(t as u32)
         };
+        let slots = m.slot_textures().map(index);
+        let second =
+            (0..MaterialRecord::SLOTS).any(|s| slots[s].is_some() && m.slot_stream(s) == 1);
         Binding {
-            slots: m.slot_textures().map(index),
-            streams: m.uv_streams,
-            maps: m.uv_transforms,
+            slots,
+            rec: *m,
+            streams: 1 + second as usize,
             mask: (m.flags & MaterialRecord::ALPHA_MASK != 0).then_some(m.alpha_cutoff),
             blend: m.flags & MaterialRecord::ALPHA_BLEND != 0,
-            normal_scale: m.normal_scale,
-            coat_normal_scale: m.coat_normal_scale,
         }
-    }
-
-    fn stream(&self, slot: usize) -> usize {
-        (self.streams >> slot & 1) as usize
-    }
-
-    /// Slot `slot`'s coordinates from its stream's `uv`.
-    fn map(&self, slot: usize, [u, v]: [f32; 2]) -> [f32; 2] {
-        let m = &self.maps[slot];
-        [m[0] * u + m[1] * v + m[2], m[3] * u + m[4] * v + m[5]]
     }
 
     /// Slot `slot`'s coordinates and filter width at footprint `fp`: the stream's point and
     /// axes under the slot's map (its linear part carries the axes).
     fn at(&self, slot: usize, fp: &Footprint) -> ([f32; 2], f32) {
-        let k = self.stream(slot);
-        let m = &self.maps[slot];
+        let k = self.rec.slot_stream(slot);
+        let m = &self.rec.uv_transforms[slot];
         let width = fp.axes[k].iter().fold(0.0f32, |w, &[du, dv]| {
             let (a, b) = (m[0] * du + m[1] * dv, m[3] * du + m[4] * dv);
             w.max(a.abs()).max(b.abs())
         });
-        (self.map(slot, fp.at[k]), 2.0 * width)
-    }
-
-    /// How many texture-coordinate streams the slots read: 2 when one reads the second.
-    fn streams(&self) -> usize {
-        match (0..MaterialRecord::SLOTS).any(|s| self.slots[s].is_some() && self.stream(s) == 1) {
-            true => 2,
-            false => 1,
-        }
+        (self.rec.map_uv(slot, fp.at[k]), 2.0 * width)
     }
 
     /// Slot `slot`'s coordinates at a triangle's three corners.
     fn corners(&self, slot: usize, c: &Corners) -> [[f32; 2]; 3] {
-        c.uv[self.stream(slot)].map(|uv| self.map(slot, uv))
+        c.uv[self.rec.slot_stream(slot)].map(|uv| self.rec.map_uv(slot, uv))
     }
 }
 
@@ -208,10 +189,7 @@ impl Textures {
         d: V,
         spread: f32,
     ) -> Footprint {
-        let streams = self
-            .bindings
-            .get(index as usize)
-            .map_or(1, Binding::streams);
+        let streams = self.bindings.get(index as usize).map_or(1, |b| b.streams);
         Footprint::new(p, c, b, d, spread, streams)
     }
 
@@ -294,8 +272,8 @@ impl Textures {
             .normalize();
             (tn.is_finite() && tn.z > 0.0).then_some(tn)
         };
-        let normal = bump(MaterialRecord::NORMAL, b.normal_scale);
-        let coat = bump(MaterialRecord::COAT_NORMAL, b.coat_normal_scale);
+        let normal = bump(MaterialRecord::NORMAL, b.rec.normal_scale);
+        let coat = bump(MaterialRecord::COAT_NORMAL, b.rec.coat_normal_scale);
         let world = |slot: usize, tn: V| {
             let ng = (p[1] - p[0]).cross(p[2] - p[0]).normalize_or_zero();
             perturb(p, b.corners(slot, c), ng, tn)

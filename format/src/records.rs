@@ -517,7 +517,11 @@ impl MaterialRecord {
     /// Slot `s`'s texture coordinates at a point whose streams read `uv`: the slot's stream
     /// under its coordinate map.
     pub fn slot_uv(&self, s: usize, uv: [[f32; 2]; 2]) -> [f32; 2] {
-        let [u, v] = uv[self.slot_stream(s)];
+        self.map_uv(s, uv[self.slot_stream(s)])
+    }
+
+    /// Slot `s`'s coordinate map applied to coordinates `uv` of the stream it reads.
+    pub fn map_uv(&self, s: usize, [u, v]: [f32; 2]) -> [f32; 2] {
         let m = &self.uv_transforms[s];
         [m[0] * u + m[1] * v + m[2], m[3] * u + m[4] * v + m[5]]
     }

@@ -166,8 +166,6 @@ impl LightSet {
         Ok(set)
     }
 
-    /// Whether the set changes the environment (which `--env` and `--sky` then may not
-    /// give).
     /// The environment's change: a factor on its strength and degrees to turn it about
     /// +Y (1 and 0 where the set leaves it), None where the set has no [environment].
     pub fn environment_change(&self) -> Option<(f32, f32)> {
@@ -179,7 +177,7 @@ impl LightSet {
     /// Makes the changes to `archive`'s material, light and environment records.
     pub fn apply(&self, archive: &mut Archive) -> Result<()> {
         self.apply_to_lamps(&mut archive.materials, &mut archive.lights)?;
-        if let Some(e) = &self.environment {
+        if let Some((strength, rotate)) = self.environment_change() {
             let Some(env) = archive.environment.as_mut() else {
                 bail!(
                     "{}: [environment] changes the archive's environment, and {} carries none (give one to the scene file, or light the render with --env or --sky and their strength and rotation flags)",
@@ -187,8 +185,8 @@ impl LightSet {
                     archive.path().display()
                 );
             };
-            env.strength *= e.strength.unwrap_or(1.0);
-            env.rotate_degrees += e.rotate.unwrap_or(0.0);
+            env.strength *= strength;
+            env.rotate_degrees += rotate;
         }
         Ok(())
     }

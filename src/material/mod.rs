@@ -514,10 +514,11 @@ impl Bsdf {
         [COAT, SHEEN, DIFFUSE].into_iter().find(|&l| probs[l] > 0.0)
     }
 
-    /// A mirror-direction (delta) sample of a smooth lobe whose reflectance is `f`.
-    fn mirror(wo: V, f: V, p_lobe: f32) -> BsdfSample {
+    /// A delta sample along the mirror direction `wi` of a smooth lobe whose reflectance
+    /// is `f`.
+    fn mirror(wi: V, f: V, p_lobe: f32) -> BsdfSample {
         BsdfSample {
-            wi: V::new(-wo.x, -wo.y, wo.z),
+            wi,
             weight: f / p_lobe,
             pdf: p_lobe,
             delta: true,
@@ -539,17 +540,13 @@ impl Bsdf {
         let wi = match lobe {
             SPECULAR if self.alpha < SMOOTH_ALPHA => {
                 let f = schlick(self.f0, self.f90, wo.z) * (1.0 - self.trans) * sc.base;
-                return Some(Bsdf::mirror(wo, f, probs[SPECULAR]));
+                let wi = V::new(-wo.x, -wo.y, wo.z);
+                return Some(Bsdf::mirror(wi, f, probs[SPECULAR]));
             }
             COAT if self.coat_alpha < SMOOTH_ALPHA => {
                 let f = V::splat(self.coat * coat_fresnel(self.coat_cos(wo)));
                 let wi = reflect(wo, self.coat_n);
-                return (wi.z > 0.0).then(|| BsdfSample {
-                    wi,
-                    weight: f / probs[COAT],
-                    pdf: probs[COAT],
-                    delta: true,
-                });
+                return (wi.z > 0.0).then(|| Bsdf::mirror(wi, f, probs[COAT]));
             }
             SPECULAR => reflect(wo, ggx_sample_vn(wo, self.alpha, u)),
             COAT => match self.coat_frame() {

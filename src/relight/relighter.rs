@@ -212,11 +212,11 @@ impl Relighter {
     /// lamps, punctual lights and environment as `set` changes them. Returns a note when
     /// the set leaves no light at all (the image is then black).
     pub fn set_lights(&mut self, set: &LightSet) -> Result<Option<String>> {
-        let (strength, turn) = set.environment_change().unwrap_or((1.0, 0.0));
-        if self.env.is_none() && set.environment_change().is_some() {
+        let change = set.environment_change();
+        if change.is_some() && self.env.is_none() {
             bail!("[environment] changes the view's environment, and it was opened with none");
         }
-        (self.env_strength, self.env_turn) = (strength, turn);
+        (self.env_strength, self.env_turn) = change.unwrap_or((1.0, 0.0));
         let (mut materials, mut lights) = self.own.clone();
         set.apply_to_lamps(&mut materials, &mut lights)?;
         let scene = &mut self.setup.scene;
