@@ -168,13 +168,11 @@ pub fn summarize(a: &Archive) -> Result<Summary> {
             _ => format!("map {}", e.path()),
         }),
         notes: a.notes.clone(),
-        instances: a.instances.len(),
-        prototypes: {
-            let mut p: Vec<u32> = a.instances.iter().map(|i| i.prototype_page).collect();
-            p.sort_unstable();
-            p.dedup();
-            p.len()
-        },
+        instances: a.header.instances.count as usize,
+        // A prototype's root page is the one page besides the root page without a parent.
+        prototypes: (0..pages.len() as u32)
+            .filter(|&i| i != h.root_page && pages[i as usize].parent_page == canopy_format::NONE)
+            .count(),
         textures: a
             .textures
             .iter()

@@ -820,6 +820,8 @@ type OnLeaf<'a> = &'a mut dyn FnMut(u64, u32, &canopy::paging::TriW, (u32, u32, 
 /// One node of a tree walked below page `pg`'s node `i`, as `instance` places it: leaves
 /// get `on_leaf(leaf's global number, slot, placed triangle)`, every node `on_node(its
 /// placed global number, Σ area·value, Σ area)` over the placed triangles below it.
+use canopy::paging::instance::Instance;
+
 struct Visit<'a> {
     cache: &'a PageCache,
     value: &'a dyn Fn(&canopy::paging::TriW) -> [f64; 3],
@@ -829,32 +831,26 @@ struct Visit<'a> {
 }
 
 impl Visit<'_> {
-    fn node(&mut self, pg: u32, i: u32, (inst, via): (u32, u64)) -> ([f64; 3], f64) {
+    fn node(&mut self, pg: u32, i: u32, (by, via): (Option<&Instance>, u64)) -> ([f64; 3], f64) {
         use canopy::paging::NodeRef;
         let page = self.cache.get(pg);
         let add = |x: ([f64; 3], f64), y: ([f64; 3], f64)| {
             ([0, 1, 2].map(|k| x.0[k] + y.0[k]), x.1 + y.1)
         };
         let here = page.first_node + i as u64;
+        let inst = by.map_or(canopy::trace::NO_INSTANCE, |p| p.number);
         let total = match page.bvh[i as usize].link() {
-            NodeRef::Inner(l, r) => {
-                add(self.node(pg, l, (inst, via)), self.node(pg, r, (inst, via)))
-            }
-            NodeRef::ChildPage(c) => {
-                add(self.node(c, 0, (inst, via)), self.node(c, 1, (inst, via)))
-            }
+            NodeRef::Inner(l, r) => add(self.node(pg, l, (by, via)), self.node(pg, r, (by, via))),
+            NodeRef::ChildPage(c) => add(self.node(c, 0, (by, via)), self.node(c, 1, (by, via))),
             NodeRef::Instance(k) => {
-                let root = self.cache.instances[k as usize].page;
-                self.node(root, 0, (k, here))
+                let placed = page.instances[k as usize].clone();
+                self.node(placed.page, 0, (Some(&placed), here))
             }
             NodeRef::Leaf { first, count } => {
                 let mut acc = ([0.0; 3], 0.0);
                 for k in 0..count {
                     let t = page.tri(first + k).unwrap();
-                    let t = match self.cache.instances.get(inst as usize) {
-                        Some(p) => canopy::trace::placed_tri(p, &t),
-                        None => t,
-                    };
+                    let t = by.map_or(t, |p| canopy::trace::placed_tri(p, &t));
                     (self.on_leaf)(here, k, &t, (inst, pg, via));
                     let area = canopy::light_store::tri_area(&t) as f64;
                     acc = add(acc, ((self.value)(&t).map(|x| x * area), area));
@@ -876,7 +872,6 @@ impl Visit<'_> {
 #[test]
 fn stored_light_pulls_through_each_instance_apart() {
     use canopy::light_store::{pull, Keys, RadianceStore};
-    use canopy::trace::NO_INSTANCE;
     let dir = tempfile::tempdir().unwrap();
     let places = [[0.0; 3], [556.0, 0.0, 0.0], [180.0, 0.0, 60.0]];
     // The small copy's triangles take fewer cells than the prototype's.
@@ -912,7 +907,7 @@ fn stored_light_pulls_through_each_instance_apart() {
         on_node: &mut |_, _, _| {},
         keys,
     }
-    .node(root, 0, (NO_INSTANCE, 0));
+    .node(root, 0, (None, 0));
     pull(&cache, &store, keys);
     let mut checked = 0;
     let mut check = |key: u64, sum: [f64; 3], area: f64| {
@@ -936,7 +931,7 @@ fn stored_light_pulls_through_each_instance_apart() {
         on_node: &mut check,
         keys,
     }
-    .node(root, 0, (NO_INSTANCE, 0));
+    .node(root, 0, (None, 0));
     // The scene's nodes once, the prototype's once per instance.
     assert!(
         checked as u64 > archive.header.nodes,

@@ -31,24 +31,11 @@ fn many_instances_convert_and_render_within_the_budget() {
         assert!(verify.contains("verify              ok"), "{verify}");
         (arc, report)
     };
-    let small = dir.path().join("small.canopy");
-    let err = fails(&[
-        "convert",
-        s(&input),
-        "-o",
-        s(&small),
-        "--mem-budget",
-        "98MiB",
-    ]);
-    assert!(
-        err.contains("202500 instances") && err.contains("at least"),
-        "{err}"
-    );
-    assert!(!small.exists());
-    let (instanced, report) = convert("i.canopy", &["--mem-budget", "128MiB"]);
+    let (instanced, report) = convert("i.canopy", &["--mem-budget", "98MiB"]);
     assert_eq!(report["instances"], 202_500, "{report}");
     let peak = report["peak_rss_bytes"].as_u64().unwrap();
-    assert!(peak <= 128 << 20, "convert: peak RSS {} MiB", peak >> 20);
+    eprintln!("convert: peak RSS {} MiB", peak >> 20);
+    assert!(peak <= 98 << 20, "convert: peak RSS {} MiB", peak >> 20);
     let (flat, _) = convert("f.canopy", &["--flatten-instances"]);
     let flags = ["--spp", "4", "--width", "64", "--height", "64"];
     let (a, stats) = render(
@@ -58,6 +45,11 @@ fn many_instances_convert_and_render_within_the_budget() {
     );
     let film = stats["film_bytes"].as_u64().unwrap();
     let peak = stats["peak_rss_bytes"].as_u64().unwrap();
+    eprintln!(
+        "render: peak RSS {} MiB, film {} MiB",
+        peak >> 20,
+        film >> 20
+    );
     assert!(
         peak <= (98 << 20) + film + (64 << 20),
         "render: peak RSS {} MiB",

@@ -19,6 +19,8 @@ const PAGE_HEADER: usize = 32;
 const TRI_SIZE: usize = 8;
 const LEAF: u8 = 1;
 const CHILD_PAGE: u8 = 2;
+const INSTANCE: u8 = 32;
+const INSTANCE_RECORD: usize = 64;
 const ORDERS: usize = 4;
 
 fn u16_at(b: &[u8], o: usize) -> u16 {
@@ -56,6 +58,7 @@ struct Page {
     raw: Vec<u8>,
     nodes: usize,
     tris: usize,
+    verts: usize,
 }
 
 impl Page {
@@ -82,6 +85,25 @@ impl Page {
         )
     }
 
+    /// Instance record `r` of the page (2.7, PAGED_INSTANCES): after the vertex streams the
+    /// page header announces. Its transform as rows (column 3 the translation) and its
+    /// prototype's root page.
+    fn instance(&self, r: usize) -> ([[f64; 4]; 3], usize) {
+        let streams = 12
+            + 4 * (u32_at(&self.raw, 20) != 0) as usize
+            + 8 * u32_at(&self.raw, 24) as usize
+            + 8 * (u32_at(&self.raw, 28) != 0) as usize;
+        let o = PAGE_HEADER
+            + self.nodes * self.node_size
+            + self.tris * TRI_SIZE
+            + self.verts * streams
+            + r * INSTANCE_RECORD;
+        let m = std::array::from_fn(|row| {
+            std::array::from_fn(|col| f32_at(&self.raw, o + 4 * (3 * col + row)) as f64)
+        });
+        (m, u32_at(&self.raw, o + 48) as usize)
+    }
+
     fn triangle(&self, t: usize) -> [[f32; 3]; 3] {
         let o = PAGE_HEADER + self.nodes * self.node_size + t * TRI_SIZE;
         [0, 1, 2].map(|j| self.vertex(u16_at(&self.raw, o + 2 * j) as usize))
@@ -105,6 +127,7 @@ fn read_pages(file: &[u8]) -> (Vec<Page>, usize) {
                 raw: zstd::bulk::decompress(frame, u32_at(e, 12) as usize).unwrap(),
                 nodes: u32_at(e, 32) as usize,
                 tris: u32_at(e, 36) as usize,
+                verts: u32_at(e, 40) as usize,
             }
         })
         .collect();
@@ -115,12 +138,38 @@ fn inside(outer: &([f32; 3], [f32; 3]), inner: &([f32; 3], [f32; 3])) -> bool {
     (0..3).all(|a| outer.0[a] <= inner.0[a] && inner.1[a] <= outer.1[a])
 }
 
-/// What the walk found: nodes and vertices checked, and every broken promise.
+/// What the walk found: nodes and vertices checked, instance leaves, the prototypes
+/// walked (each once), and every broken promise.
 #[derive(Default)]
 struct Findings {
     nodes: usize,
     vertices: usize,
+    instances: usize,
+    prototypes: std::collections::BTreeSet<usize>,
     broken: Vec<String>,
+}
+
+/// Instance leaf `i` of page `p`: its box holds the prototype's root-page grid mapped by the
+/// record's transform (corners in f64); the prototype's tree is walked once, in its own space.
+fn instance_leaf(pages: &[Page], p: usize, i: usize, k: usize, f: &mut Findings) {
+    let page = &pages[p];
+    let n = page.node(i);
+    let bx = page.decoded_box(i, k);
+    let (m, proto) = page.instance(u32_at(n, 12) as usize);
+    f.instances += 1;
+    let (lo, hi) = (pages[proto].lo, pages[proto].hi);
+    for corner in 0..8 {
+        let c = [0, 1, 2].map(|a| if corner >> a & 1 == 0 { lo[a] } else { hi[a] } as f64);
+        let w = m.map(|row| row[0] * c[0] + row[1] * c[1] + row[2] * c[2] + row[3]);
+        if (0..3).any(|a| w[a] < bx.0[a] as f64 || w[a] > bx.1[a] as f64) {
+            f.broken.push(format!(
+                "order {k}: page {p} instance leaf {i}: prototype corner {w:?} outside {bx:?}"
+            ));
+        }
+    }
+    if f.prototypes.insert(proto) {
+        walk(pages, proto, 0, k, &mut Vec::new(), f);
+    }
 }
 
 /// Walks node `i` of page `p` in decoding order `k`; `spheres` are the ancestors' (and its
@@ -139,7 +188,9 @@ fn walk(
     spheres.push((page.centroid(i, k), f32_at(n, 24)));
     f.nodes += 1;
     let (flags, link) = (n[38], [u32_at(n, 12), u32_at(n, 16)]);
-    if flags & LEAF != 0 {
+    if flags & INSTANCE != 0 {
+        instance_leaf(pages, p, i, k, f);
+    } else if flags & LEAF != 0 {
         for t in link[0]..link[0] + link[1] {
             for v in page.triangle(t as usize) {
                 f.vertices += 1;
@@ -184,9 +235,14 @@ fn walk(
 
 /// Checks an archive in every decoding order; returns the nodes visited per order.
 fn check(archive: &Path) -> usize {
+    check_counting(archive).0
+}
+
+/// `check`, also returning the instance leaves met per order.
+fn check_counting(archive: &Path) -> (usize, usize) {
     let file = std::fs::read(archive).unwrap();
     let (pages, root) = read_pages(&file);
-    let mut visited = 0;
+    let (mut visited, mut instances) = (0, 0);
     for k in 0..ORDERS {
         let mut f = Findings::default();
         walk(&pages, root, 0, k, &mut Vec::new(), &mut f);
@@ -198,9 +254,9 @@ fn check(archive: &Path) -> usize {
             &f.broken[..f.broken.len().min(5)]
         );
         assert!(f.vertices > 0);
-        visited = f.nodes;
+        (visited, instances) = (f.nodes, f.instances);
     }
-    visited
+    (visited, instances)
 }
 
 #[test]
@@ -213,6 +269,44 @@ fn bundled_scenes_keep_every_promise_in_every_decoding_order() {
         let nodes = u64_at(&file, 40) as usize;
         assert_eq!(check(&out), nodes, "{name}: the walk reaches every node");
     }
+}
+
+/// An instanced archive (2.7: the records in the pages that hold their leaves): every node
+/// is reached, scene tree and each prototype once, every instance leaf holds its record's
+/// placed prototype box, and the pages hold as many records as the header counts.
+#[test]
+fn instanced_archives_keep_every_promise_in_every_decoding_order() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid: Vec<[f32; 3]> = (0..40)
+        .flat_map(|i| (0..30).map(move |j| [1.5 * i as f32, 0.1 * j as f32, 1.1 * j as f32]))
+        .collect();
+    let scales: Vec<[f32; 3]> = (0..grid.len())
+        .map(|i| [0.01 + 0.001 * (i % 7) as f32; 3])
+        .collect();
+    let input = gpu_instanced(dir.path(), "field.glb", "smallbox", &grid, &scales);
+    let out = dir.path().join("field.canopy");
+    convert(&input, &out, None);
+    let file = std::fs::read(&out).unwrap();
+    let nodes = u64_at(&file, 40) as usize;
+    // The instance table's count (192 + 8), its record size 0: the records are paged.
+    let (count, size) = (u32_at(&file, 200) as usize, u32_at(&file, 204));
+    assert_eq!((count, size), (grid.len(), 0));
+    let (visited, instances) = check_counting(&out);
+    assert_eq!(visited, nodes, "the walk reaches every node");
+    assert_eq!(instances, count, "one leaf per record");
+    let table = u64_at(&file, HEADER_PAGES) as usize;
+    let stride = u32_at(&file, HEADER_PAGES + 12) as usize;
+    let mut next = 0;
+    for p in 0..u32_at(&file, HEADER_PAGES + 8) as usize {
+        let e = &file[table + p * stride..];
+        assert_eq!(
+            u32_at(e, 92) as usize,
+            next,
+            "page {p} numbers its records on"
+        );
+        next += u32_at(e, 44) as usize;
+    }
+    assert_eq!(next, count);
 }
 
 /// An archive rewritten as a later minor version might write it: every table record 8 bytes

@@ -120,7 +120,11 @@ impl Archive {
         let materials = read_table::<MaterialRecord>(&map, &header.materials);
         let cameras = read_table::<CameraRecord>(&map, &header.cameras);
         let lights = read_table::<LightRecord>(&map, &header.lights);
-        let instances = read_released::<InstanceRecord>(&map, &header.instances);
+        // Paged instance records (2.7) are read with their pages; a table is read whole.
+        let instances = match paged_instances(&header) {
+            true => Vec::new(),
+            false => read_released::<InstanceRecord>(&map, &header.instances),
+        };
         let mut materials = materials;
         if header.version_minor < 2 {
             // Before 2.2 these bytes were reserved (zero): no textures.
@@ -178,8 +182,9 @@ impl Archive {
         Ok(archive)
     }
 
-    /// Every prototype page the instances name is a tree's root page (no parent, level 0,
-    /// one root): one entry read per distinct prototype.
+    /// Every prototype page the instance table names is a tree's root page (no parent,
+    /// level 0, one root): one entry read per distinct prototype. Paged records are
+    /// checked with their page.
     fn check_prototypes(&self) -> Result<()> {
         let mut pages: Vec<u32> = self.instances.iter().map(|i| i.prototype_page).collect();
         pages.sort_unstable();
@@ -266,8 +271,8 @@ impl Archive {
         let h: PageHeader = bytemuck::pod_read_unaligned(&raw[..32]);
         let streams = Streams::of(self.header.features);
         if h.magic != PAGE_MAGIC
-            || (h.node_count, h.tri_count, h.vert_count, h.coef_bytes)
-                != (e.node_count, e.tri_count, e.vert_count, e.coef_bytes)
+            || (h.node_count, h.tri_count, h.vert_count, h.instance_count)
+                != (e.node_count, e.tri_count, e.vert_count, e.instance_count)
             || (h.has_normals != 0) != streams.normals
             || h.has_uvs != streams.uv_sets()
             || (h.has_colours != 0) != streams.colours
@@ -305,6 +310,7 @@ impl Archive {
         } else {
             Vec::new()
         };
+        let instances = bytemuck::pod_collect_to_vec(take(h.instance_count as usize * 64));
         let contents = PageContents {
             nodes,
             tris,
@@ -313,6 +319,7 @@ impl Archive {
             uvs,
             uvs2,
             colours,
+            instances,
         };
         self.check_indices(page, &contents)?;
         Ok(contents)

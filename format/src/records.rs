@@ -5,7 +5,7 @@ use bytemuck::{Pod, Zeroable};
 
 pub const MAGIC: [u8; 8] = *b"CANOPY\x00\x1a";
 pub const VERSION_MAJOR: u16 = 2;
-pub const VERSION_MINOR: u16 = 6;
+pub const VERSION_MINOR: u16 = 7;
 pub const PAGE_MAGIC: [u8; 4] = *b"PAGE";
 /// Page frames and tables start at multiples of this many bytes, so records can be read in
 /// place from the mapping.
@@ -41,6 +41,10 @@ impl Features {
     /// Pages carry a second per-vertex texture-coordinate stream after the first (required:
     /// it changes the page layout; only with TEXCOORDS). Version 2.6.
     pub const TEXCOORDS2: u64 = 1 << 36;
+    /// The instance records travel in the pages that hold their leaves, not in a table
+    /// (required: it changes the page layout and what an instance leaf's link means; only
+    /// with INSTANCES). Version 2.7.
+    pub const PAGED_INSTANCES: u64 = 1 << 37;
     pub const REQUIRED: u64 = 0xFFFF_FFFF_0000_0000;
     pub const ALL: u64 = Self::EMITTERS
         | Self::GLOSSY
@@ -51,7 +55,8 @@ impl Features {
         | Self::INSTANCES
         | Self::TEXCOORDS
         | Self::COLOURS
-        | Self::TEXCOORDS2;
+        | Self::TEXCOORDS2
+        | Self::PAGED_INSTANCES;
 
     pub fn names(bits: u64) -> Vec<&'static str> {
         [
@@ -65,6 +70,7 @@ impl Features {
             (Self::TEXCOORDS, "texcoords"),
             (Self::COLOURS, "vertex-colours"),
             (Self::TEXCOORDS2, "texcoords2"),
+            (Self::PAGED_INSTANCES, "paged-instances"),
         ]
         .iter()
         .filter(|(b, _)| bits & b != 0)
@@ -336,7 +342,9 @@ pub struct PageEntry {
     pub node_count: u32,
     pub tri_count: u32,
     pub vert_count: u32,
-    pub coef_bytes: u32,
+    /// 2.7 with PAGED_INSTANCES: instance records in the page (zero before: version 1's
+    /// never-written coefficient bytes).
+    pub instance_count: u32,
     /// Page holding the node whose children are this page's roots (NONE for the root page).
     pub parent_page: u32,
     /// Local index of that node in the parent page.
@@ -350,7 +358,9 @@ pub struct PageEntry {
     pub bounds_max: [f32; 3],
     /// xxh3-64 of the entry's record with this field zero, as two little-endian words.
     pub entry_checksum: [u32; 2],
-    pub reserved: [u8; 4],
+    /// 2.7 with PAGED_INSTANCES: the number of the page's first instance record; pages
+    /// number instances consecutively in table order (zero before).
+    pub first_instance: u32,
 }
 
 const _: () = assert!(std::mem::size_of::<PageEntry>() == 96);
@@ -391,7 +401,8 @@ pub struct PageHeader {
     pub node_count: u32,
     pub tri_count: u32,
     pub vert_count: u32,
-    pub coef_bytes: u32,
+    /// Instance records after the vertex streams (2.7 with PAGED_INSTANCES; zero before).
+    pub instance_count: u32,
     /// 1 when a shading-normal stream follows the vertices.
     pub has_normals: u32,
     /// How many texture-coordinate streams follow (version 2.2: 0 or 1; 2.6: or 2).

@@ -59,6 +59,18 @@ pub fn check_header(h: &Header) -> Result<(), String> {
     {
         return Err("a second texture-coordinate stream without the first, or before 2.6".into());
     }
+    if paged_instances(h) {
+        let t = h.instances;
+        if h.features & Features::INSTANCES == 0 || h.version_minor < 7 {
+            return Err("paged instance records without instances, or before 2.7".into());
+        }
+        if t.record_size != 0 || t.count == 0 || t.count > MAX_INSTANCES {
+            return Err(format!(
+                "{} paged instances with a table of {}-byte records (1 to {MAX_INSTANCES}, no bytes: the records are in the pages)",
+                t.count, t.record_size
+            ));
+        }
+    }
     if h.node_size < NODE_SIZE || !h.node_size.is_multiple_of(8) || h.node_size > 4096 {
         return Err(format!(
             "node records of {} bytes (at least {NODE_SIZE}, a multiple of 8)",
@@ -125,7 +137,10 @@ pub fn small_tables(h: &Header) -> Vec<(&'static str, TableRef, usize)> {
         ("light", h.lights, std::mem::size_of::<LightRecord>()),
     ];
     if h.version_minor >= 1 {
-        let known = std::mem::size_of::<InstanceRecord>();
+        let known = match paged_instances(h) {
+            true => 0,
+            false => std::mem::size_of::<InstanceRecord>(),
+        };
         t.push(("instance", h.instances, known));
     }
     if h.version_minor >= 2 {
@@ -510,10 +525,20 @@ pub fn check_tables(
 /// Most instances an archive may hold (a node's instance link leaves room for a kind tag).
 pub const MAX_INSTANCES: u32 = 1 << 29;
 
-/// The instance records: a finite, invertible transform, a prototype page in range, zero
-/// reserved bytes; and the INSTANCES feature set exactly when there are some. That each
+/// Whether the archive's instance records travel in its pages (2.7's PAGED_INSTANCES)
+/// rather than in the instance table.
+pub fn paged_instances(h: &Header) -> bool {
+    h.features & Features::PAGED_INSTANCES != 0
+}
+
+/// The instance table (archives before 2.7): each record as `check_instance`, and the
+/// INSTANCES feature set exactly when there are some. With PAGED_INSTANCES the table holds
+/// no records (the header's check) and each page's are checked when it is read. That each
 /// prototype page is a tree's root page is `Archive::open`'s check (it reads entries).
 pub fn check_instances(h: &Header, instances: &[InstanceRecord]) -> Result<(), String> {
+    if paged_instances(h) {
+        return Ok(());
+    }
     if (h.features & Features::INSTANCES != 0) == instances.is_empty() {
         return Err(format!(
             "the instances feature disagrees with the {} instances",
@@ -527,16 +552,23 @@ pub fn check_instances(h: &Header, instances: &[InstanceRecord]) -> Result<(), S
         ));
     }
     for (i, r) in instances.iter().enumerate() {
-        check_transform(r).map_err(|e| format!("instance {i}: {e}"))?;
-        if r.prototype_page >= h.pages.count {
-            return Err(format!(
-                "instance {i}: prototype page {} of {} pages",
-                r.prototype_page, h.pages.count
-            ));
-        }
-        if !zeroed(&r.reserved) {
-            return Err(format!("instance {i}: reserved bytes are not zero"));
-        }
+        check_instance(h, r).map_err(|e| format!("instance {i}: {e}"))?;
+    }
+    Ok(())
+}
+
+/// One instance record: a finite, invertible transform, a prototype page in range, zero
+/// reserved bytes.
+pub fn check_instance(h: &Header, r: &InstanceRecord) -> Result<(), String> {
+    check_transform(r)?;
+    if r.prototype_page >= h.pages.count {
+        return Err(format!(
+            "prototype page {} of {} pages",
+            r.prototype_page, h.pages.count
+        ));
+    }
+    if !zeroed(&r.reserved) {
+        return Err("reserved bytes are not zero".into());
     }
     Ok(())
 }

@@ -4,7 +4,7 @@
 
 use crate::node::{Node, NodeFlags};
 use crate::records::*;
-use crate::validate::{box_ok, finite, non_negative, zeroed};
+use crate::validate::{box_ok, check_instance, finite, non_negative, paged_instances, zeroed};
 use crate::writer::{raw_page_len, PageContents, Streams};
 
 /// One page-table entry (its checksum already checked), in constant time: its bytes inside
@@ -29,7 +29,7 @@ pub fn check_entry(h: &Header, page: u32, e: &PageEntry) -> Result<(), String> {
         node_count: e.node_count,
         tri_count: e.tri_count,
         vert_count: e.vert_count,
-        coef_bytes: 0,
+        instance_count: e.instance_count,
         has_normals: (h.features & Features::SHADING_NORMALS != 0) as u32,
         has_uvs: Streams::of(h.features).uv_sets(),
         has_colours: (h.features & Features::COLOURS != 0) as u32,
@@ -50,8 +50,23 @@ pub fn check_entry(h: &Header, page: u32, e: &PageEntry) -> Result<(), String> {
             e.tri_count, e.vert_count, e.node_count
         ));
     }
-    if raw_page_len(&ph, h.node_size) != e.raw_len as usize || e.coef_bytes != 0 {
+    if raw_page_len(&ph, h.node_size) != e.raw_len as usize {
         return Err("page-table counts are inconsistent".into());
+    }
+    // Each record is named by one instance leaf of the page; pages number them
+    // consecutively (consecutiveness is `verify`'s).
+    let instances = match paged_instances(h) {
+        true => h.instances.count as u64,
+        false => 0,
+    };
+    if e.instance_count > e.node_count
+        || e.first_instance as u64 + e.instance_count as u64 > instances
+        || instances == 0 && e.first_instance != 0
+    {
+        return Err(format!(
+            "instances {}+{} in {} nodes, beyond the archive's {instances} paged instances",
+            e.first_instance, e.instance_count, e.node_count
+        ));
     }
     if e.first_node
         .checked_add(e.node_count as u64)
@@ -67,9 +82,6 @@ pub fn check_entry(h: &Header, page: u32, e: &PageEntry) -> Result<(), String> {
             "bounds {:?}..{:?} are not a finite box",
             e.bounds_min, e.bounds_max
         ));
-    }
-    if !zeroed(&e.reserved) {
-        return Err("reserved bytes are not zero".into());
     }
     if page == h.root_page {
         if (e.parent_page, e.parent_node, e.level, e.root_count) != (NONE, NONE, 0, 1) {
@@ -122,6 +134,8 @@ pub fn check_page(
         .collect();
     let mut parents = vec![0u8; n];
     let mut covered = vec![false; t];
+    let paged = paged_instances(h);
+    let mut named = vec![false; c.instances.len()];
     for (i, node) in c.nodes.iter().enumerate() {
         if (0..3).any(|a| boxes[i].0[a] > boxes[i].1[a]) {
             return Err(format!("node {i}: inverted bounds {:?}", boxes[i]));
@@ -129,7 +143,10 @@ pub fn check_page(
         check_node(h, entry, (page, e), i, node).map_err(|what| format!("node {i}: {what}"))?;
         let [a, b] = node.link.map(|x| x as usize);
         if node.is_instance() {
-            // No triangles of the page: its geometry is the prototype's.
+            // No triangles of the page: its geometry is the prototype's record.
+            if paged && std::mem::replace(&mut named[a], true) {
+                return Err(format!("node {i}: instance record {a} is named twice"));
+            }
         } else if node.is_leaf() {
             if a.checked_add(b).is_none_or(|end| end > t) || b == 0 {
                 return Err(format!(
@@ -168,6 +185,12 @@ pub fn check_page(
     if let Some(i) = covered.iter().position(|c| !c) {
         return Err(format!("triangle {i} is in no leaf"));
     }
+    if let Some(i) = named.iter().position(|c| !c) {
+        return Err(format!("instance record {i} is named by no leaf"));
+    }
+    for (i, r) in c.instances.iter().enumerate() {
+        check_placed(h, entry, r).map_err(|what| format!("instance record {i}: {what}"))?;
+    }
     for (i, tri) in c.tris.iter().enumerate() {
         if tri.v.iter().any(|&x| x as usize >= v) || tri.material as usize >= materials {
             return Err(format!(
@@ -185,6 +208,22 @@ pub fn check_page(
                 uvs[i]
             ));
         }
+    }
+    Ok(())
+}
+
+/// An instance record of a page: as `check_instance`, and its prototype page a tree's root
+/// page (no parent, level 0, one root, not the scene's root page).
+fn check_placed(
+    h: &Header,
+    entry: &dyn Fn(u32) -> Result<PageEntry, String>,
+    r: &InstanceRecord,
+) -> Result<(), String> {
+    check_instance(h, r)?;
+    let p = r.prototype_page;
+    let e = entry(p)?;
+    if p == h.root_page || e.parent_page != NONE || e.root_count != 1 {
+        return Err(format!("page {p} is not a prototype's root page"));
     }
     Ok(())
 }
@@ -230,10 +269,11 @@ fn check_node(
     if node.is_instance() {
         return if !node.is_leaf() || node.has_child_page() {
             Err("an instance that is not a plain leaf".into())
-        } else if node.link[0] >= h.instances.count || node.link[1] != 0 {
+        } else if node.link[0] >= instance_links(h, e) || node.link[1] != 0 {
             Err(format!(
                 "instance {} of {}",
-                node.link[0], h.instances.count
+                node.link[0],
+                instance_links(h, e)
             ))
         } else if node.flags & NodeFlags::EMISSIVE != 0 {
             Err("an emissive instance (emitters are never instanced)".into())
@@ -264,5 +304,14 @@ fn check_node(
             }
         }
         _ => Ok(()),
+    }
+}
+
+/// How many instances an instance leaf of a page may name: its page's records
+/// (PAGED_INSTANCES) or the instance table's.
+fn instance_links(h: &Header, e: &PageEntry) -> u32 {
+    match paged_instances(h) {
+        true => e.instance_count,
+        false => h.instances.count,
     }
 }

@@ -22,8 +22,8 @@ pub struct PageReport {
     pub max_node_depth: u32,
     /// Union of the roots' aggregate flags.
     pub root_flags: u8,
-    /// Instance leaves: (instance, the leaf's aggregate flags).
-    pub instance_leaves: Vec<(u32, u8)>,
+    /// Instance leaves: (instance, its prototype page, the leaf's aggregate flags).
+    pub instance_leaves: Vec<(u32, u32, u8)>,
     /// Exact bounds of the page's vertices (empty box for a page without triangles).
     pub lo: [f32; 3],
     pub hi: [f32; 3],
@@ -72,7 +72,13 @@ impl Archive {
             }
             report.max_node_depth = report.max_node_depth.max(d);
             if node.is_instance() {
-                let inst = &self.instances[node.link[0] as usize];
+                let (number, inst) = match crate::validate::paged_instances(&self.header) {
+                    true => (
+                        e.first_instance + node.link[0],
+                        &c.instances[node.link[0] as usize],
+                    ),
+                    false => (node.link[0], &self.instances[node.link[0] as usize]),
+                };
                 let proto = self.entry(inst.prototype_page)?;
                 let world = inst.world_box(proto.bounds_min, proto.bounds_max);
                 if !contains(&b, &world) {
@@ -82,7 +88,7 @@ impl Archive {
                 }
                 report
                     .instance_leaves
-                    .push((node.link[0], node.flags & AGGREGATE));
+                    .push((number, inst.prototype_page, node.flags & AGGREGATE));
                 report.lo = [0, 1, 2].map(|a| report.lo[a].min(world.0[a]));
                 report.hi = [0, 1, 2].map(|a| report.hi[a].max(world.1[a]));
             } else if node.is_leaf() {
@@ -151,7 +157,7 @@ impl Archive {
         };
         let h = &self.header;
         let entries = self.entries()?;
-        let (mut nodes, mut vertices) = (0u64, 0u64);
+        let (mut nodes, mut vertices, mut instances) = (0u64, 0u64, 0u64);
         for (i, e) in entries.iter().enumerate() {
             if e.first_node != nodes {
                 return Err(corrupt(format!(
@@ -159,8 +165,21 @@ impl Archive {
                     e.first_node
                 )));
             }
+            if e.first_instance as u64 != instances {
+                return Err(corrupt(format!(
+                    "page {i}: first instance {}, expected {instances} (pages number instances consecutively)",
+                    e.first_instance
+                )));
+            }
             nodes += e.node_count as u64;
+            instances += e.instance_count as u64;
             vertices += e.vert_count as u64;
+        }
+        if crate::validate::paged_instances(h) && instances != h.instances.count as u64 {
+            return Err(corrupt(format!(
+                "the pages hold {instances} instance records, the header says {}",
+                h.instances.count
+            )));
         }
         if (nodes, vertices) != (h.nodes, h.vertices) {
             return Err(corrupt(format!(
@@ -171,8 +190,8 @@ impl Archive {
         let mut linked = vec![0u32; entries.len()];
         let mut prototype = vec![false; entries.len()];
         for r in reports {
-            for &(inst, flags) in &r.instance_leaves {
-                let p = self.instances[inst as usize].prototype_page as usize;
+            for &(inst, p, flags) in &r.instance_leaves {
+                let p = p as usize;
                 prototype[p] = true;
                 if reports[p].root_flags != flags {
                     return Err(corrupt(format!(

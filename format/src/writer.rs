@@ -24,6 +24,8 @@ pub struct PageContents {
     pub uvs2: Vec<[f32; 2]>,
     /// Linear RGBA colours (unorm16), one per vertex, or empty.
     pub colours: Vec<[u16; 4]>,
+    /// The records of the page's instance leaves (PAGED_INSTANCES), in link order.
+    pub instances: Vec<InstanceRecord>,
 }
 
 /// Which per-vertex streams follow the positions in every page of an archive.
@@ -63,6 +65,7 @@ pub struct EncodedPage {
     pub node_count: u32,
     pub tri_count: u32,
     pub vert_count: u32,
+    pub instance_count: u32,
 }
 
 /// Where a page sits in the page tree.
@@ -98,7 +101,7 @@ pub fn encode_page(
         node_count: p.nodes.len() as u32,
         tri_count: p.tris.len() as u32,
         vert_count: p.verts.len() as u32,
-        coef_bytes: 0,
+        instance_count: p.instances.len() as u32,
         has_normals: streams.normals as u32,
         has_uvs: streams.uv_sets(),
         has_colours: streams.colours as u32,
@@ -112,6 +115,7 @@ pub fn encode_page(
     raw.extend_from_slice(bytemuck::cast_slice(&p.uvs));
     raw.extend_from_slice(bytemuck::cast_slice(&p.uvs2));
     raw.extend_from_slice(bytemuck::cast_slice(&p.colours));
+    raw.extend_from_slice(bytemuck::cast_slice(&p.instances));
     let bytes = compress(&raw, zstd_level)?;
     Ok(EncodedPage {
         checksum: xxhash_rust::xxh3::xxh3_64(&bytes),
@@ -120,6 +124,7 @@ pub fn encode_page(
         node_count: header.node_count,
         tri_count: header.tri_count,
         vert_count: header.vert_count,
+        instance_count: header.instance_count,
     })
 }
 
@@ -169,6 +174,7 @@ pub fn raw_page_len(h: &PageHeader, node_size: u32) -> usize {
         + h.node_count as usize * node_size as usize
         + h.tri_count as usize * std::mem::size_of::<Tri>()
         + h.vert_count as usize * per_vertex
+        + h.instance_count as usize * std::mem::size_of::<InstanceRecord>()
 }
 
 /// Scene-level values the header carries.
@@ -185,7 +191,6 @@ pub struct SceneInfo {
     pub materials: Vec<MaterialRecord>,
     pub cameras: Vec<CameraRecord>,
     pub lights: Vec<LightRecord>,
-    pub instances: Vec<InstanceRecord>,
     /// Textures whose tiles were appended with `push_tile`, numbered from 0.
     pub textures: Vec<TextureRecord>,
     /// The environment light its scene file gave, if any.
@@ -201,6 +206,7 @@ pub struct ArchiveWriter {
     nodes: u64,
     tris: u64,
     verts: u64,
+    instances: u64,
 }
 
 impl ArchiveWriter {
@@ -213,6 +219,7 @@ impl ArchiveWriter {
             nodes: 0,
             tris: 0,
             verts: 0,
+            instances: 0,
         })
     }
 
@@ -238,7 +245,7 @@ impl ArchiveWriter {
             node_count: page.node_count,
             tri_count: page.tri_count,
             vert_count: page.vert_count,
-            coef_bytes: 0,
+            instance_count: page.instance_count,
             parent_page: meta.parent_page,
             parent_node: meta.parent_node,
             level: 0,
@@ -246,11 +253,22 @@ impl ArchiveWriter {
             bounds_min: meta.bounds_min,
             bounds_max: meta.bounds_max,
             entry_checksum: [0; 2],
-            reserved: [0; 4],
+            first_instance: self.instances as u32,
         });
         self.nodes += page.node_count as u64;
         self.tris += page.tri_count as u64;
         self.verts += page.vert_count as u64;
+        self.instances += page.instance_count as u64;
+        if self.instances > crate::validate::MAX_INSTANCES as u64 {
+            return Err(crate::error::FormatError::Corrupt {
+                path: self.out.path().to_path_buf(),
+                what: format!(
+                    "{} instances are more than an archive holds ({})",
+                    self.instances,
+                    crate::validate::MAX_INSTANCES
+                ),
+            });
+        }
         Ok(self.pages.len() as u32 - 1)
     }
 
@@ -336,7 +354,7 @@ impl ArchiveWriter {
     }
 
     /// Writes the tables and header, syncs, and renames into place. The material, camera,
-    /// light, instance, texture and tile tables go back to back from an aligned offset; the page table, each entry
+    /// light, texture and tile tables go back to back from an aligned offset; the page table, each entry
     /// sealed with its own checksum, from the next aligned offset to the end.
     pub fn finish(mut self, info: &SceneInfo) -> Result<()> {
         if let Some(i) = self.tiles.iter().position(|t| t.raw_len == 0) {
@@ -357,7 +375,16 @@ impl ArchiveWriter {
         let materials = put_table(out, Some(&mut hash), &info.materials)?;
         let cameras = put_table(out, Some(&mut hash), &info.cameras)?;
         let lights = put_table(out, Some(&mut hash), &info.lights)?;
-        let instances = put_table(out, Some(&mut hash), &info.instances)?;
+        // The instance records are in the pages: the table names how many, with no bytes
+        // (an archive without instances has an empty table of the usual record size).
+        let instances = TableRef {
+            offset: out.len(),
+            count: self.instances as u32,
+            record_size: match self.instances {
+                0 => std::mem::size_of::<InstanceRecord>() as u32,
+                _ => 0,
+            },
+        };
         let textures = put_table(out, Some(&mut hash), &info.textures)?;
         let tiles = put_table(out, Some(&mut hash), &self.tiles)?;
         let environment = put_table(out, Some(&mut hash), info.environment.as_slice())?;
@@ -370,7 +397,10 @@ impl ArchiveWriter {
             version_major: VERSION_MAJOR,
             version_minor: VERSION_MINOR,
             header_size: 256,
-            features: info.features,
+            features: match self.instances {
+                0 => info.features & !(Features::INSTANCES | Features::PAGED_INSTANCES),
+                _ => info.features | Features::INSTANCES | Features::PAGED_INSTANCES,
+            },
             input_triangles: info.input_triangles,
             triangles: self.tris,
             nodes: self.nodes,

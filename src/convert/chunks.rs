@@ -9,7 +9,9 @@ use super::{BvhQuality, ConvertOptions, MatTable, AUTO_FAST_ABOVE};
 use crate::import::SpillTri;
 use crate::progress;
 use anyhow::{bail, Context, Result};
-use canopy_format::{encode_page, ArchiveWriter, EncodedPage, PageMeta, Streams, NONE};
+use canopy_format::{
+    encode_page, ArchiveWriter, EncodedPage, InstanceRecord, PageMeta, Streams, NONE,
+};
 use rayon::prelude::*;
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -27,21 +29,24 @@ pub struct Chunks<'a> {
     pub show: bool,
 }
 
-/// Builds every chunk and the top tree over them and the `extra` leaves (instances),
-/// appending all pages to `writer`. Returns the root node and the number of its page, which
-/// holds the root as node 0.
+/// Builds every chunk and the top tree over them and the `extra` nodes (the instances'
+/// subtrees, and bare instance leaves naming the records that come with them), appending
+/// all pages to `writer`. Returns the root node and the number of its page, which holds the
+/// root as node 0.
 pub fn build(
     writer: &mut ArchiveWriter,
     c: Chunks,
-    extra: Vec<BNode>,
+    extra: (Vec<BNode>, Vec<InstanceRecord>),
     opts: &ConvertOptions,
 ) -> Result<(BNode, u32)> {
     let bar = progress::bar(c.show, c.triangles, "building");
     let chunk_count = c.files.len();
+    let (extra, loose) = extra;
     let single = chunk_count == 1 && extra.is_empty();
     let mut top = Tree {
         nodes: Vec::new(),
         tris: Vec::new(),
+        instances: loose,
         root: 0,
     };
     let mut root_page = 0;

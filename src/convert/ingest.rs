@@ -1,6 +1,7 @@
 //! Stage 1, import: every input streams its triangles into one spill file, checked record
 //! by record, while the centroid bounds and the materials used are tracked.
 
+use super::record_spill::{RecordWriter, Records};
 use super::spill::{self, SpillWriter};
 use super::{ConvertOptions, MatSummary};
 use crate::import::{self, SceneDesc, SceneFile, SpillTri, TriangleSink};
@@ -22,16 +23,25 @@ struct Spill {
 }
 
 /// Meshes stored once: their triangles (object space) in one spill file, prototype after
-/// prototype, and the placements.
+/// prototype, and the placements, in another.
 pub struct Shared {
     out: SpillWriter,
     pub prototypes: Vec<Prototype>,
-    pub instances: Vec<(u32, [f32; 12])>,
+    pub instances: RecordWriter<Placement>,
     open: Option<Prototype>,
 }
 
-/// The prototypes' triangles, the prototypes, and the instances (prototype, object-to-world).
-pub type SharedMeshes = (spill::Spill, Vec<Prototype>, Vec<(u32, [f32; 12])>);
+/// One placement of a prototype, as the importer gave it.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct Placement {
+    pub prototype: u32,
+    /// Object-to-world, column-major 3×4 (an instance record's `to_world`).
+    pub to_world: [f32; 12],
+}
+
+/// The prototypes' triangles, the prototypes, and the placements.
+pub type SharedMeshes = (spill::Spill, Vec<Prototype>, Records<Placement>);
 
 /// One prototype's triangles in the shared spill file.
 #[derive(Clone, Copy)]
@@ -98,14 +108,16 @@ impl TriangleSink for Spill {
 
     fn instance(&mut self, prototype: u32, to_world: [f32; 12]) -> Result<()> {
         let s = self.shared.as_mut().context("instances while flattening")?;
-        if prototype as usize >= s.prototypes.len() || s.instances.len() >= MAX_INSTANCES as usize {
+        if prototype as usize >= s.prototypes.len() || s.instances.len() >= MAX_INSTANCES as u64 {
             bail!(
                 "instance {} of prototype {prototype}: out of range (at most {MAX_INSTANCES} instances)",
                 s.instances.len()
             );
         }
-        s.instances.push((prototype, to_world));
-        Ok(())
+        s.instances.push(&Placement {
+            prototype,
+            to_world,
+        })
     }
 }
 
@@ -179,7 +191,7 @@ pub fn import_inputs(opts: &ConvertOptions, file: &SceneFile, dir: &Path) -> Res
             false => Some(Shared {
                 out: SpillWriter::create(dir, 256 << 10)?,
                 prototypes: Vec::new(),
-                instances: Vec::new(),
+                instances: RecordWriter::create(dir)?,
                 open: None,
             }),
         },
@@ -187,7 +199,9 @@ pub fn import_inputs(opts: &ConvertOptions, file: &SceneFile, dir: &Path) -> Res
     import_all(opts, file, &mut scene, &mut spill)?;
     spill.bar.finish_and_clear();
     let shared = match spill.shared {
-        Some(s) if !s.instances.is_empty() => Some((s.out.finish()?, s.prototypes, s.instances)),
+        Some(s) if s.instances.len() > 0 => {
+            Some((s.out.finish()?, s.prototypes, s.instances.finish()?))
+        }
         _ => None,
     };
     Ok(Imported {

@@ -19,6 +19,7 @@ mod ktx2;
 mod morton;
 mod pages;
 mod partition;
+mod record_spill;
 mod spill;
 mod textures;
 mod tree;
@@ -39,10 +40,6 @@ use std::time::Instant;
 pub const BUILD_BYTES_PER_TRI: u64 = 464;
 /// Memory set aside for everything that is not a chunk (code, buffers, histogram).
 const FIXED_BYTES: u64 = 96 << 20;
-/// Peak bytes one instance costs while the archive is built: its placement as imported
-/// (52, and the vector's growth), its record (64), its prototype's index and its sort key;
-/// 4 M instances peak at 512 MiB.
-const BYTES_PER_INSTANCE: u64 = 144;
 
 pub struct ConvertOptions {
     pub inputs: Vec<PathBuf>,
@@ -225,21 +222,10 @@ fn write_textures(
     Ok((records, coarse))
 }
 
-/// Most triangles one chunk may hold: what the budget leaves beside the fixed part and the
-/// instances, shared by the threads. A budget that leaves no room is an error naming the
-/// least that does.
-fn chunk_cap(budget: u64, instances: u64, threads: usize) -> Result<u64> {
-    let held = FIXED_BYTES + instances * BYTES_PER_INSTANCE;
-    let least = held + 4096 * BUILD_BYTES_PER_TRI;
-    if budget < least {
-        bail!(
-            "--mem-budget {} is too small for {instances} instances: they take {} while the archive is built; converting them needs at least {}",
-            crate::units::format_size(budget),
-            crate::units::format_size(instances * BYTES_PER_INSTANCE),
-            crate::units::format_size(crate::units::whole_mib(least))
-        );
-    }
-    Ok((budget - held) / BUILD_BYTES_PER_TRI / threads as u64)
+/// Most triangles one chunk may hold: what the budget leaves beside the fixed part,
+/// shared by the threads (the checks in `convert` leave room for 4096 each).
+fn chunk_cap(budget: u64, threads: usize) -> u64 {
+    (budget - FIXED_BYTES) / BUILD_BYTES_PER_TRI / threads as u64
 }
 
 pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
@@ -288,8 +274,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     let features = imported.features(&mats.summaries);
 
     let threads = rayon::current_num_threads().max(1);
-    let placements = imported.shared.as_ref().map_or(0, |s| s.2.len() as u64);
-    let cap = chunk_cap(opts.mem_budget, placements, threads)?;
+    let cap = chunk_cap(opts.mem_budget, threads).max(4096);
     let streams = Streams::of(features);
     let t2 = Instant::now();
     let placed = match imported.shared {
@@ -300,6 +285,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
                 threads,
                 cap,
                 dir: &dir,
+                run_bytes: (opts.mem_budget - FIXED_BYTES) / 4,
             };
             instances::build(&mut writer, shared, &b, opts)?
         }
@@ -307,7 +293,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     };
     report.input_triangles += placed.instanced_triangles;
     report.prototypes = placed.prototypes;
-    report.instances = placed.records.len() as u64;
+    report.instances = placed.count;
     let mut seconds_build = t2.elapsed().as_secs_f64();
 
     let t1 = Instant::now();
@@ -325,7 +311,8 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         threads,
         show: opts.progress,
     };
-    let (root, root_page) = chunks::build(&mut writer, chunks, placed.groups, opts)?;
+    let extra = (placed.groups, placed.loose);
+    let (root, root_page) = chunks::build(&mut writer, chunks, extra, opts)?;
     seconds_build += t2.elapsed().as_secs_f64();
     report.seconds_build = seconds_build;
     let scene = imported.scene;
@@ -342,7 +329,6 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         materials: scene.materials,
         cameras: scene.cameras,
         lights: scene.lights,
-        instances: placed.records,
         textures,
         environment,
         notes,

@@ -33,20 +33,23 @@ pub fn order(n: u32, bits: u32, centre: impl Fn(u32) -> [f64; 3]) -> Vec<u32> {
             hi[a] = hi[a].max(c[a]);
         }
     }
-    let cells = (1u64 << bits) as f64;
     let mut keyed: Vec<(u64, u32)> = (0..n)
-        .map(|k| {
-            let c = centre(k);
-            let q = [0, 1, 2].map(|a| {
-                let e = hi[a] - lo[a];
-                let t = if e > 0.0 { (c[a] - lo[a]) / e } else { 0.0 };
-                ((t * cells) as u64).min((1 << bits) - 1) as u32
-            });
-            (code(q), k)
-        })
+        .map(|k| (code_in(centre(k), [lo, hi], bits), k))
         .collect();
     keyed.sort_unstable();
     keyed.into_iter().map(|(_, k)| k).collect()
+}
+
+/// The code of point `c` on a grid of 2^`bits` cells an axis over `bounds` (a flat axis
+/// maps to cell 0; points outside clamp to the edge cells).
+pub fn code_in(c: [f64; 3], [lo, hi]: [[f64; 3]; 2], bits: u32) -> u64 {
+    let cells = (1u64 << bits) as f64;
+    let q = [0, 1, 2].map(|a| {
+        let e = hi[a] - lo[a];
+        let t = if e > 0.0 { (c[a] - lo[a]) / e } else { 0.0 };
+        ((t.max(0.0) * cells) as u64).min((1 << bits) - 1) as u32
+    });
+    code(q)
 }
 
 #[cfg(test)]

@@ -203,7 +203,8 @@ impl Plan {
                 },
                 Kind::Instance { index } => {
                     node.flags |= NodeFlags::LEAF | NodeFlags::INSTANCE;
-                    node.link = [index, 0];
+                    node.link = [out.instances.len() as u32, 0];
+                    out.instances.push(tree.instances[index as usize]);
                 }
                 Kind::External { page } => {
                     node.flags |= NodeFlags::CHILD_PAGE;

@@ -4,6 +4,7 @@
 use super::aggregate::{Cluster, MatTable};
 use super::morton::{self, MAX_BITS};
 use crate::import::SpillTri;
+use canopy_format::InstanceRecord;
 use glam::Vec3A;
 use obvhs::{bvh2::builder::build_bvh2_from_tris, triangle::Triangle, BvhBuildParams};
 
@@ -67,7 +68,7 @@ pub enum Kind {
     External {
         page: u32,
     },
-    /// A placement of a prototype: entry `index` of the instance table.
+    /// A placement of a prototype: record `index` of the tree's `instances`.
     Instance {
         index: u32,
     },
@@ -87,6 +88,8 @@ pub struct Tree {
     pub nodes: Vec<BNode>,
     /// Triangles in leaf order.
     pub tris: Vec<SpillTri>,
+    /// The records of the tree's instance leaves (`Kind::Instance`).
+    pub instances: Vec<InstanceRecord>,
     pub root: u32,
 }
 
@@ -179,6 +182,7 @@ impl Tree {
             true => Tree {
                 nodes: Vec::new(),
                 tris: Vec::new(),
+                instances: Vec::new(),
                 root: 0,
             },
             false => Tree::build_ploc(&tris, &plain, mats, fast),
@@ -247,6 +251,7 @@ impl Tree {
                 .iter()
                 .map(|&i| tris[subset[i as usize] as usize])
                 .collect(),
+            instances: Vec::new(),
             root: 0,
         };
         drop(order);

@@ -102,7 +102,7 @@ impl Settings {
                 format!(
                     "{}: PBGI's bake holds the archive's unique meshes; what its {} instances place is lit by paths followed on to them, as the path tracer lights it",
                     archive.path().display(),
-                    archive.instances.len()
+                    archive.header.instances.count
                 )
             })),
         }

@@ -9,6 +9,7 @@
 //! whole pages cost three quarters of a render of 10,000 instances at `--cone-scale 1`.
 
 use super::{weighted_mean, Keys, Placed, RadianceStore};
+use crate::paging::instance::Instance;
 use crate::paging::{deepest_first, NodeRef, Page, PageCache, TriW};
 use crate::trace::{placed_tri, NO_INSTANCE};
 use rayon::prelude::*;
@@ -26,7 +27,7 @@ pub fn pull(cache: &PageCache, store: &RadianceStore, keys: Keys) {
             store.mark_dirty(page);
         }
     }
-    pull_pages(cache, store, keys, store.take_dirty(), NO_INSTANCE);
+    pull_pages(cache, store, keys, store.take_dirty());
 }
 
 /// Pulls, as one instance places them, the nodes above those whose light changed: their
@@ -38,7 +39,13 @@ fn pull_placed(
     keys: Keys,
     changed: &[(u32, u32, Placed)],
 ) {
-    let instance = changed[0].0;
+    // The instance, from its leaf (`via`) in the scene's tree; an evicted leaf page is
+    // not reloaded, as no page is.
+    let via = changed[0].2 .0;
+    let leaf = cache.page_of(via).and_then(|p| cache.get_resident(p));
+    let Some(by) = leaf.as_ref().and_then(|p| p.instance_of(via)) else {
+        return;
+    };
     let mut dirty: HashMap<u32, Vec<u32>> = HashMap::new();
     for (_, page, (_, nodes)) in changed {
         let first = cache.entries[*page as usize].first_node;
@@ -62,7 +69,7 @@ fn pull_placed(
         for id in level {
             if let Some(page) = cache.get_resident(id) {
                 for i in above(&page, &dirty[&id]) {
-                    pull_node(cache, store, keys, &page, instance, i);
+                    pull_node(cache, store, keys, &page, Some(by), i);
                 }
             }
         }
@@ -94,14 +101,8 @@ fn above(page: &Page, nodes: &[u32]) -> Vec<usize> {
     (0..n).rev().filter(|&i| marked[i]).collect()
 }
 
-/// Pulls `pages` and their ancestors, as `instance` places them.
-fn pull_pages(
-    cache: &PageCache,
-    store: &RadianceStore,
-    keys: Keys,
-    mut pages: Vec<u32>,
-    instance: u32,
-) {
+/// Pulls `pages` of the scene's tree and their ancestors.
+fn pull_pages(cache: &PageCache, store: &RadianceStore, keys: Keys, mut pages: Vec<u32>) {
     // A changed page changes its parent page's cut node: pull the ancestors too.
     let mut seen: std::collections::HashSet<u32> = pages.iter().copied().collect();
     let mut i = 0;
@@ -115,7 +116,7 @@ fn pull_pages(
     for level in deepest_first(&cache.entries, pages) {
         level.par_iter().for_each(|&id| {
             if let Some(page) = cache.get_resident(id) {
-                pull_page(cache, store, keys, &page, instance);
+                pull_page(cache, store, keys, &page);
             }
         });
     }
@@ -159,22 +160,22 @@ fn triangle_part(store: &RadianceStore, keys: Keys, leaf: u64, k: u32, t: &TriW)
     }
 }
 
-/// Pulls the nodes of `page`, keyed as `instance` places them (`NO_INSTANCE`: the scene's
-/// own tree), deepest first.
-fn pull_page(cache: &PageCache, store: &RadianceStore, keys: Keys, page: &Page, instance: u32) {
+/// Pulls the nodes of `page` of the scene's tree, deepest first.
+fn pull_page(cache: &PageCache, store: &RadianceStore, keys: Keys, page: &Page) {
     for i in (0..page.bvh.len()).rev() {
-        pull_node(cache, store, keys, page, instance, i);
+        pull_node(cache, store, keys, page, None, i);
     }
 }
 
-/// Pulls node `i` of `page`, keyed as `instance` places it. Placed triangles are moved
+/// Pulls node `i` of `page`, keyed as instance `by` places it (None: the scene's own
+/// tree). Placed triangles are moved
 /// into the world, as hits carry them, so their light cells are the ones the hits keyed.
 fn pull_node(
     cache: &PageCache,
     store: &RadianceStore,
     keys: Keys,
     page: &Page,
-    instance: u32,
+    by: Option<&Instance>,
     i: usize,
 ) {
     let node_part = |node: u64, area: f32| {
@@ -185,37 +186,33 @@ fn pull_node(
             area,
         }
     };
-    let at = |node: u64| keys.placed(instance, node);
+    let at = |node: u64| keys.placed(by.map_or(NO_INSTANCE, |p| p.number), node);
     let here = at(page.first_node + i as u64);
     let link = page.bvh[i].link();
     let parts: Vec<Part> = match link {
         // The prototype root's light as this instance placed it (prototypes hold no
         // instances: one level).
         NodeRef::Instance(k) => {
-            let root = cache
-                .instances
-                .get(k as usize)
-                .and_then(|p| cache.entries.get(p.page as usize));
-            let Some(root) = root.filter(|_| instance == NO_INSTANCE) else {
+            let Some(placed) = page.instances.get(k as usize).filter(|_| by.is_none()) else {
+                return;
+            };
+            let Some(root) = cache.entries.get(placed.page as usize) else {
                 return;
             };
             vec![node_part(
-                keys.placed(k, root.first_node),
+                keys.placed(placed.number, root.first_node),
                 page.nodes[i].area,
             )]
         }
         // A leaf none of whose cells holds light has nothing to pull.
         NodeRef::Leaf { .. } if !store.lit(keys.node(here)) => return,
-        NodeRef::Leaf { first, count } => {
-            let placed_by = cache.instances.get(instance as usize);
-            (0..count)
-                .filter_map(|k| {
-                    let t = page.tri(first + k)?;
-                    let t = placed_by.map_or(t, |p| placed_tri(p, &t));
-                    Some(triangle_part(store, keys, here, k, &t))
-                })
-                .collect()
-        }
+        NodeRef::Leaf { first, count } => (0..count)
+            .filter_map(|k| {
+                let t = page.tri(first + k)?;
+                let t = by.map_or(t, |p| placed_tri(p, &t));
+                Some(triangle_part(store, keys, here, k, &t))
+            })
+            .collect(),
         NodeRef::Inner(l, r) => [l, r]
             .map(|c| node_part(at(page.first_node + c as u64), page.nodes[c as usize].area))
             .into(),

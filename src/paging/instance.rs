@@ -9,6 +9,8 @@ pub type Rows = [[f32; 4]; 3];
 
 #[derive(Clone, Debug)]
 pub struct Instance {
+    /// The instance's number in the archive (what light keys are taken by).
+    pub number: u32,
     /// The page whose node 0 is the prototype's root.
     pub page: u32,
     pub to_world: Rows,
@@ -18,9 +20,9 @@ pub struct Instance {
 }
 
 impl Instance {
-    /// The instance of record `r` (its transform checked invertible when the archive was
-    /// opened).
-    pub fn new(r: &InstanceRecord) -> Instance {
+    /// Instance `number`, of record `r` (its transform checked invertible when the record
+    /// was read).
+    pub fn new(number: u32, r: &InstanceRecord) -> Instance {
         let m = r.matrix();
         let det = r.det();
         let cof = canopy_format::cofactors3(&r.linear());
@@ -36,6 +38,7 @@ impl Instance {
             ]
         });
         Instance {
+            number,
             page: r.prototype_page,
             to_world: m.map(|row| row.map(|x| x as f32)),
             to_object,

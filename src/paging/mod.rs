@@ -99,8 +99,6 @@ pub struct PageCache {
     /// The page table, each entry checked, read once when the cache starts (a renderer
     /// needs every page's level and size to pin and budget; opening the archive does not).
     pub entries: Vec<PageEntry>,
-    /// The archive's instances, by index.
-    pub instances: Vec<instance::Instance>,
     slots: Vec<Slot>,
     tiles: Vec<TileSlot>,
     /// MIP level of each tile, for the stats.
@@ -207,11 +205,6 @@ impl PageCache {
             tile_resident: AtomicU64::new(0),
             tile_resident_peak: AtomicU64::new(0),
             entries,
-            instances: archive
-                .instances
-                .iter()
-                .map(instance::Instance::new)
-                .collect(),
             slots,
             budget: budget.unwrap_or(u64::MAX),
             budget_note: std::sync::OnceLock::new(),

@@ -2,7 +2,9 @@
 //! (`NodeRef`), its triangles four to a block, shading normals, texture coordinates, and
 //! the baked light of an attached bake file.
 
+use super::instance::Instance;
 use super::*;
+use canopy_format::PageContents;
 
 /// Traversal view of a node: decoded bounds and links. The link is packed (kind in the top
 /// two bits of `a`; a leaf's count in the low four bits of `b`, its first block of
@@ -146,6 +148,8 @@ pub struct Page {
     pub uvs2: Vec<[[f32; 2]; 3]>,
     /// Per triangle, its vertices' linear unorm16 RGBA colours (empty without COLOURS).
     pub colours: Vec<[[u16; 4]; 3]>,
+    /// The instances the page's instance leaves place, by the leaves' links.
+    pub instances: Vec<Instance>,
     /// The page's baked light (empty unless a bake file is attached).
     pub baked: BakedBlock,
     /// Per node, its glossy light decoded from `baked.coefs` (empty unless the bake
@@ -227,7 +231,9 @@ impl Page {
     }
 
     pub fn decode(archive: &Archive, id: u32) -> Result<Page> {
-        let c = archive.read_page(id)?;
+        let mut c = archive.read_page(id)?;
+        let e = &archive.entry(id)?;
+        let instances = placed(archive, e, &mut c);
         let grid = archive.grid(id)?;
         if c.nodes.iter().any(|n| n.link[0] >= 1 << 30) {
             bail!(
@@ -267,7 +273,6 @@ impl Page {
         let uvs = by_triangle(&c.tris, &c.uvs);
         let uvs2 = by_triangle(&c.tris, &c.uvs2);
         let colours = by_triangle(&c.tris, &c.colours);
-        let e = &archive.entry(id)?;
         let (tri4, tri_slot) = wide::tri4s(&mut bvh, &tris).ok_or_else(|| {
             anyhow::anyhow!(
                 "{}: page {id}: {} triangles are more than a page can index",
@@ -287,7 +292,8 @@ impl Page {
             + tri_slot.capacity() * 4
             + shading.capacity() * 12
             + (uvs.capacity() + uvs2.capacity()) * 24
-            + colours.capacity() * 24) as u64;
+            + colours.capacity() * 24
+            + instances.capacity() * std::mem::size_of::<Instance>()) as u64;
         Ok(Page {
             id,
             first_node: e.first_node,
@@ -301,10 +307,21 @@ impl Page {
             uvs,
             uvs2,
             colours,
+            instances,
             baked: BakedBlock::default(),
             glossy: coefs::GlossyTexels::default(),
             bytes,
         })
+    }
+
+    /// The instance that the instance leaf `via` (a global node number of this page)
+    /// places.
+    pub fn instance_of(&self, via: u64) -> Option<&Instance> {
+        let node = self.bvh.get(via.checked_sub(self.first_node)? as usize)?;
+        match node.link() {
+            NodeRef::Instance(k) => self.instances.get(k as usize),
+            _ => None,
+        }
     }
 
     /// Adds the page's block of baked light from `r`.
@@ -335,9 +352,30 @@ impl Page {
             uvs: Vec::new(),
             uvs2: Vec::new(),
             colours: Vec::new(),
+            instances: Vec::new(),
             baked: BakedBlock::default(),
             glossy: coefs::GlossyTexels::default(),
             bytes: 0,
         }
     }
+}
+
+/// The instances page `e`'s leaves place: its own records (PAGED_INSTANCES), numbered from
+/// the entry's `first_instance`; or, in an archive with an instance table, the records its
+/// leaves name, the leaves' links rewritten to index them here.
+fn placed(archive: &Archive, e: &PageEntry, c: &mut PageContents) -> Vec<Instance> {
+    if !c.instances.is_empty() {
+        return (e.first_instance..)
+            .zip(&c.instances)
+            .map(|(number, r)| Instance::new(number, r))
+            .collect();
+    }
+    let mut out = Vec::new();
+    for n in c.nodes.iter_mut().filter(|n| n.is_instance()) {
+        // The table was checked at open and the links against it when the page was read.
+        let number = n.link[0];
+        out.push(Instance::new(number, &archive.instances[number as usize]));
+        n.link[0] = out.len() as u32 - 1;
+    }
+    out
 }

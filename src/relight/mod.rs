@@ -153,11 +153,11 @@ pub fn prepare(o: &PrepareOptions) -> Result<PrepareStats> {
     let s = Setup::open(&ro, (o.output.clone(), None))?;
     let scene = &s.scene;
     let archive = &scene.cache.archive;
-    if !archive.instances.is_empty() {
+    if archive.header.instances.count > 0 {
         bail!(
             "{}: relighting reads light per node of the scene's own tree, and the archive places {} instances (convert with instances flattened)",
             o.archive.display(),
-            archive.instances.len()
+            archive.header.instances.count
         );
     }
     let keys =

@@ -247,14 +247,13 @@ const PER_PAGE: u64 = 128;
 /// Per texture tile: its table entry, cache slot and level.
 const PER_TILE: u64 = 72;
 
-/// Per instance: its record as read and its transforms as traversal uses them.
-const PER_INSTANCE: u64 = (std::mem::size_of::<canopy_format::InstanceRecord>()
-    + std::mem::size_of::<crate::paging::instance::Instance>()) as u64;
+/// Per instance of an instance table (archives before 2.7, which is read whole; paged
+/// records count with their pages): its record.
+const PER_INSTANCE: u64 = std::mem::size_of::<canopy_format::InstanceRecord>() as u64;
 
 /// What a budget of `b` bytes keeps back from the page cache for an archive of `pages`
-/// pages, `tiles` texture tiles and `instances` instances, all of whose table entries stay
-/// in memory (without counting them, 200 M triangles at 1 GiB peaked at 1.27 GiB, and
-/// 4 M instances at 1 GiB at 1.15 GiB).
+/// pages, `tiles` texture tiles and `instances` instance-table records, all of which stay
+/// in memory (without counting them, 200 M triangles at 1 GiB peaked at 1.27 GiB).
 fn reserve(b: u64, pages: u64, tiles: u64, instances: u64) -> u64 {
     RESERVE.min(b / 8) + pages * PER_PAGE + tiles * PER_TILE + instances * PER_INSTANCE
 }

@@ -89,7 +89,7 @@ impl<'a> Tracer<'a> {
             },
             stack: Vec::with_capacity(64),
             inner: Vec::with_capacity(64),
-            instanced: !cache.instances.is_empty(),
+            instanced: cache.archive.header.features & canopy_format::Features::INSTANCES != 0,
             rays: 0,
         }
     }
@@ -288,7 +288,11 @@ impl<'a> Tracer<'a> {
     /// The `Hit` of a triangle a walk found, in world space.
     fn hit(&mut self, r: &TriRef) -> Hit {
         let hit = Hit::new(self.held.get(self.cache, r.page), r);
-        match self.cache.instances.get(r.instance as usize) {
+        if r.instance == NO_INSTANCE {
+            return hit;
+        }
+        let leaf = self.cache.page_of(r.via);
+        match leaf.and_then(|p| self.held.get(self.cache, p).instance_of(r.via)) {
             Some(instance) => hit.placed(instance),
             None => hit,
         }

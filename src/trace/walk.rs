@@ -169,7 +169,7 @@ impl Walk<'_> {
         }
     }
 
-    /// Walks the prototype of instance `inst` (reached through the leaf `via`) with the
+    /// Walks the prototype of instance `placed` (reached through the leaf `via`) with the
     /// ray moved into its object space (`Instance::ray_to_object`): hits go to `on_tri` at
     /// their world distance, tagged with the instance, and close `t_max`.
     #[inline(never)]
@@ -177,14 +177,11 @@ impl Walk<'_> {
         &self,
         held: &mut Held,
         stack: &mut Stack,
-        (inst, via): (u32, u64),
+        (placed, via): (Instance, u64),
         t_max: &mut f32,
         on_tri: &mut dyn FnMut(TriRef),
     ) -> bool {
-        let Some(placed) = self.cache.instances.get(inst as usize) else {
-            return false;
-        };
-        let (o, d, dt) = instance::ray_to_object(placed, self.ray.o, self.ray.d);
+        let (o, d, dt) = instance::ray_to_object(&placed, self.ray.o, self.ray.d);
         let local = Ray {
             o,
             d,
@@ -198,7 +195,7 @@ impl Walk<'_> {
         let mut nearest = None;
         let mut tagged = |mut r: TriRef| {
             r.t += dt;
-            r.instance = inst;
+            r.instance = placed.number;
             r.via = via;
             nearest = Some(r.t);
             on_tri(r)
@@ -211,14 +208,12 @@ impl Walk<'_> {
     }
 }
 
-/// The instance of binary node `node` of `page` and the node's global number, if it is an
-/// instance leaf.
+/// The instance binary node `node` of `page` places and the node's global number, if it
+/// is an instance leaf.
 #[inline]
-pub(super) fn instance_at(page: &Page, node: u32) -> Option<(u32, u64)> {
-    match page.bvh.get((node & !wide::INSTANCE) as usize)?.link() {
-        NodeRef::Instance(i) => Some((i, page.first_node + (node & !wide::INSTANCE) as u64)),
-        _ => None,
-    }
+pub(super) fn instance_at(page: &Page, node: u32) -> Option<(Instance, u64)> {
+    let via = page.first_node + (node & !wide::INSTANCE) as u64;
+    Some((page.instance_of(via)?.clone(), via))
 }
 
 /// A stack entry whose kind is `EMPTY` (which no lane pushes) is a binary node of its page.

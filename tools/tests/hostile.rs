@@ -4,8 +4,9 @@
 //! validated structure.
 
 use canopy::render::render;
+use canopy_format::InstanceRecord;
 use canopy_format::{Archive, Node, NodeFlags, NoteRecord};
-use canopy_tools::fuzz::{self, Parts};
+use canopy_tools::fuzz::{self, paged, Parts};
 use std::path::Path;
 
 /// The glb seed (emitter over glass, normals) converted with 3-node pages: several pages,
@@ -184,9 +185,9 @@ fn table_lies(base: &Parts) -> Vec<(&'static str, Edit, &'static str)> {
             "after its end",
         ),
         (
-            "reserved page-table byte",
-            Box::new(|p| p.entries[0].reserved[0] = 1),
-            "reserved",
+            "instance records in an archive without instances",
+            Box::new(|p| p.entries[0].first_instance = 1),
+            "paged instances",
         ),
         (
             "material NaN",
@@ -282,11 +283,24 @@ fn node_lies(base: &Parts) -> Vec<(&'static str, Edit, &'static str)> {
     ]
 }
 
-/// Lies about instances, in the instanced seed (a glass floor placed three times).
+/// An edit of instance `k`'s record, wherever the archive keeps it.
+fn record_edit(k: u32, f: fn(&mut InstanceRecord)) -> Edit {
+    Box::new(move |p: &mut Parts| paged::edit_record(p, k, f))
+}
+
+/// Lies about instances, in the instanced seed (a glass floor placed three times), its
+/// records in its pages or in the instance table.
 fn instance_lies(base: &Parts) -> Vec<(&'static str, Edit, &'static str)> {
-    assert!(base.instances.len() == 3, "the seed has three instances");
-    let root = base.header.root_page as usize;
-    let proto = base.instances[0].prototype_page as usize;
+    assert!(
+        paged::record(base, 2).is_some(),
+        "the seed has three instances"
+    );
+    assert!(
+        paged::record(base, 3).is_none(),
+        "the seed has three instances"
+    );
+    let root = base.header.root_page;
+    let proto = paged::record(base, 0).unwrap().prototype_page as usize;
     let (page, leaf) = (0..base.pages.len())
         .flat_map(|p| (0..base.entries[p].node_count as usize).map(move |k| (p, k)))
         .find(|&(p, k)| node(base, p, k).is_instance())
@@ -304,42 +318,45 @@ fn instance_lies(base: &Parts) -> Vec<(&'static str, Edit, &'static str)> {
     vec![
         (
             "instance of the root page",
-            Box::new(move |p| p.instances[0].prototype_page = root as u32),
+            Box::new(move |p| paged::edit_record(p, 0, |r| r.prototype_page = root)),
             "not a prototype's root page",
         ),
         (
             "instance of a child page",
-            Box::new(move |p| p.instances[1].prototype_page = child as u32),
+            Box::new(move |p| paged::edit_record(p, 1, |r| r.prototype_page = child as u32)),
             "not a prototype's root page",
         ),
         (
             "instance of no page",
-            Box::new(|p| p.instances[2].prototype_page = 1 << 20),
+            record_edit(2, |r| r.prototype_page = 1 << 20),
             "prototype page",
         ),
         (
             "singular transform",
-            Box::new(|p| p.instances[0].to_world[..9].fill(0.0)),
+            record_edit(0, |r| r.to_world[..9].fill(0.0)),
             "invertible",
         ),
         (
             "NaN transform",
-            Box::new(|p| p.instances[1].to_world[10] = f32::NAN),
+            record_edit(1, |r| r.to_world[10] = f32::NAN),
             "invertible",
         ),
         (
             "reserved instance byte",
-            Box::new(|p| p.instances[2].reserved[4] = 1),
+            record_edit(2, |r| r.reserved[4] = 1),
             "reserved",
         ),
         (
             "instances feature cleared",
-            Box::new(|p| p.header.features &= !canopy_format::Features::INSTANCES),
+            Box::new(|p| {
+                use canopy_format::Features;
+                p.header.features &= !(Features::INSTANCES | Features::PAGED_INSTANCES)
+            }),
             "5 input triangles but 3 stored",
         ),
         (
             "instance moved away from its leaf",
-            Box::new(|p| p.instances[0].to_world[9] += 100.0),
+            record_edit(0, |r| r.to_world[9] += 100.0),
             "outside it",
         ),
         (
@@ -350,7 +367,7 @@ fn instance_lies(base: &Parts) -> Vec<(&'static str, Edit, &'static str)> {
         (
             "instance leaf naming no instance",
             node_edit(|n| n.link[0] = 7),
-            "instance 7 of 3",
+            "instance 7 of",
         ),
         (
             "emissive instance leaf",
@@ -365,6 +382,25 @@ fn instance_lies(base: &Parts) -> Vec<(&'static str, Edit, &'static str)> {
     ]
 }
 
+/// Lies only an archive with paged instance records can tell.
+fn paged_lies(base: &Parts) -> Vec<(&'static str, Edit, &'static str)> {
+    let holder = (0..base.entries.len())
+        .find(|&i| base.entries[i].instance_count > 0)
+        .expect("a page with records");
+    vec![
+        (
+            "records numbered past the instance count",
+            Box::new(move |p| p.entries[holder].first_instance += 3),
+            "paged instances",
+        ),
+        (
+            "paged records in a 2.6 archive",
+            Box::new(|p| p.header.version_minor = 6),
+            "before 2.7",
+        ),
+    ]
+}
+
 #[test]
 fn checksum_valid_lies_are_refused() {
     let dir = tempfile::tempdir().unwrap();
@@ -375,14 +411,16 @@ fn checksum_valid_lies_are_refused() {
         table_lies(&base).into_iter().chain(node_lies(&base)),
         dir.path(),
     );
-    let instanced = fuzz::seed_archives(dir.path()).unwrap().pop().unwrap().0;
-    refuse_all(
-        &instanced,
-        instance_lies(&instanced).into_iter(),
-        dir.path(),
-    );
+    // The instanced seed with its records in its pages (2.7) and in the instance table (2.6).
+    let paged = fuzz::seed_archives(dir.path()).unwrap()[3].0.clone();
+    let table = paged::unpaged(&paged);
+    assert!(table.instances.len() == 3 && paged.instances.is_empty());
+    for instanced in [&paged, &table] {
+        refuse_all(instanced, instance_lies(instanced).into_iter(), dir.path());
+    }
+    refuse_all(&paged, paged_lies(&paged).into_iter(), dir.path());
     // The unchanged archives pass, so each refusal above is the edit's doing.
-    for p in [&base, &instanced] {
+    for p in [&base, &paged, &table] {
         std::fs::write(&path, p.assemble()).unwrap();
         assert_eq!(first_error(&path, dir.path()), None);
     }

@@ -115,14 +115,13 @@ impl Parts {
         table(&mut out, cameras, self.cameras.len(), 128, &mut h.cameras);
         let lights = bytemuck::cast_slice(&self.lights);
         table(&mut out, lights, self.lights.len(), 96, &mut h.lights);
+        // Paged instance records travel in the pages: the table counts them in no bytes.
+        let (count, size) = match self.header.features & Features::PAGED_INSTANCES {
+            0 => (self.instances.len(), 64),
+            _ => (self.header.instances.count as usize, 0),
+        };
         let instances = bytemuck::cast_slice(&self.instances);
-        table(
-            &mut out,
-            instances,
-            self.instances.len(),
-            64,
-            &mut h.instances,
-        );
+        table(&mut out, instances, count, size, &mut h.instances);
         let textures = bytemuck::cast_slice(&self.textures);
         table(&mut out, textures, self.textures.len(), 64, &mut h.textures);
         let tile_table = bytemuck::cast_slice(&tiles);
@@ -336,5 +335,10 @@ pub fn seed_archives(dir: &Path) -> Result<Vec<(Parts, Vec<u8>)>> {
         convert(&o).with_context(|| format!("converting the seed {main}"))?;
         out.push((Parts::read(&path)?, std::fs::read(&path)?));
     }
+    // The instanced seed again, as 2.6 wrote it (its records in the instance table).
+    let (paged, _) = out.last().expect("the instanced seed");
+    let table = super::paged::unpaged(paged);
+    let bytes = table.assemble();
+    out.push((table, bytes));
     Ok(out)
 }

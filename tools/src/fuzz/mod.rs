@@ -17,6 +17,7 @@ use std::time::{Duration, Instant};
 pub mod archive;
 pub mod input;
 pub mod mem;
+pub mod paged;
 pub mod side;
 
 pub use archive::*;
