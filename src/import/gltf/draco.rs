@@ -6,6 +6,7 @@
 //! attribute's unique id; the decoded points are the vertices and the faces the triangles,
 //! in place of the primitive's accessors (which keep only their count and type).
 
+use super::buffer::Buffer;
 use super::files::view_bytes;
 use anyhow::{anyhow, bail, Result};
 use draco_core::decoder_buffer::DecoderBuffer;
@@ -66,7 +67,7 @@ fn values<const N: usize>(a: &PointAttribute, points: usize) -> Vec<[f32; N]> {
 pub(super) fn decode(
     prim: &gltf::Primitive,
     doc: &gltf::Document,
-    buffers: &[Vec<u8>],
+    buffers: &[Buffer],
     uv_sets: [Option<u32>; 2],
 ) -> Result<Option<Vertices>> {
     let Some(ext) = prim.extension_value(DRACO) else {

@@ -1,10 +1,12 @@
 //! Reading a glTF file: the JSON or GLB container, its buffers (embedded, data URIs or
 //! side files, each bounded) and the checks on images, primitives and accessors.
 
+use super::buffer::Buffer;
 use super::draco::{Vertices, DRACO};
 use super::meshopt::{self, MESHOPT};
 use anyhow::{anyhow, bail, Context, Result};
 use std::path::Path;
+use std::sync::Arc;
 
 /// KHR_mesh_quantization: positions, normals and texture coordinates as 8- or 16-bit
 /// integers (normalized or not), which `read_floats` reads.
@@ -15,12 +17,39 @@ const MAX_SIDE_FILE: u64 = 16 << 30;
 
 /// Parses the document (the gltf crate's validation runs after our own index checks, as
 /// one of its hooks indexes accessors unchecked) and loads its buffers, each checked
-/// against its declared length. Images are never read: textures are not stored.
-pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Vec<u8>>)> {
-    let bytes = crate::import::read_regular(path, u64::MAX, "glTF file")?;
+/// against its declared length; a GLB's BIN chunk stays mapped from the file (`Buffer`).
+/// Images are never read here: textures are read as they are stored.
+pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Buffer>)> {
+    crate::import::check_regular(path, u64::MAX, "glTF file")?;
+    if std::fs::metadata(path)
+        .map_err(crate::import::context(path))?
+        .len()
+        == 0
+    {
+        bail!(
+            "{}: not a valid glTF file: the file is empty",
+            path.display()
+        );
+    }
+    let file = std::fs::File::open(path).map_err(crate::import::context(path))?;
+    // SAFETY: a read-only private mapping; the file changing underneath during the import
+    // is outside what Canopy guards against (as for every input it reads).
+    let map = Arc::new(unsafe { memmap2::Mmap::map(&file) }.map_err(crate::import::context(path))?);
     let bad = |e: &dyn std::fmt::Display| anyhow!("{}: not a valid glTF file: {e}", path.display());
-    let g = gltf::Gltf::from_slice_without_validation(&bytes).map_err(|e| bad(&e))?;
-    let blob = g.blob;
+    let (json, blob) = match map.starts_with(b"glTF") {
+        true => {
+            let glb = gltf::binary::Glb::from_slice(&map).map_err(|e| bad(&e))?;
+            let blob = glb.bin.as_deref().map(|bin| Buffer::Mapped {
+                map: Arc::clone(&map),
+                at: bin.as_ptr() as usize - map.as_ptr() as usize,
+                len: bin.len(),
+            });
+            (glb.json.into_owned(), blob)
+        }
+        false => (map.to_vec(), None),
+    };
+    let g = gltf::Gltf::from_slice_without_validation(&json).map_err(|e| bad(&e))?;
+    let mut blob = blob;
     let mut json = g.document.into_json();
     // Quantized attributes are read here (`read_floats`), Draco and meshopt data decoded
     // here (`draco`, `meshopt`), not by the gltf crate, whose validation refuses them.
@@ -56,14 +85,15 @@ pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Vec<u8>>)> {
         meshopt::compressed_views(&json).map_err(|e| anyhow!("{}: {e}", path.display()))?;
     let doc = gltf::Document::from_json(json).map_err(|e| bad(&e))?;
     let dir = path.parent().unwrap_or(Path::new("."));
-    let mut buffers = doc
-        .buffers()
-        .map(|b| match fallback[b.index()] {
-            true => meshopt::fallback_bytes(&packed, b.index(), b.length() as u64),
-            false => load_buffer(&b, blob.as_deref(), dir),
-        })
-        .collect::<Result<Vec<_>>>()
-        .with_context(|| path.display().to_string())?;
+    let mut buffers =
+        doc.buffers()
+            .map(|b| match fallback[b.index()] {
+                true => meshopt::fallback_bytes(&packed, b.index(), b.length() as u64)
+                    .map(Buffer::Owned),
+                false => load_buffer(&b, &mut blob, dir),
+            })
+            .collect::<Result<Vec<_>>>()
+            .with_context(|| path.display().to_string())?;
     meshopt::decode(&packed, &mut buffers).with_context(|| path.display().to_string())?;
     Ok((doc, buffers))
 }
@@ -173,10 +203,7 @@ fn check_images(json: &gltf::json::Root) -> Result<()> {
 }
 
 /// A buffer view's bytes, or None where it lies outside its buffer.
-pub(super) fn view_bytes<'a>(
-    view: &gltf::buffer::View,
-    buffers: &'a [Vec<u8>],
-) -> Option<&'a [u8]> {
+pub(super) fn view_bytes<'a>(view: &gltf::buffer::View, buffers: &'a [Buffer]) -> Option<&'a [u8]> {
     buffers
         .get(view.buffer().index())?
         .get(view.offset()..view.offset().checked_add(view.length())?)
@@ -203,20 +230,20 @@ pub(super) fn relative_file(uri: &str) -> Result<String> {
 }
 
 /// One buffer's bytes: the GLB BIN chunk (its length the declared one, padded by at most 3
-/// bytes, as the GLB spec writes it), a base64 data URI, or a regular file beside the glTF.
-fn load_buffer(b: &gltf::Buffer, blob: Option<&[u8]>, dir: &Path) -> Result<Vec<u8>> {
+/// bytes, as the GLB spec writes it; one buffer takes it), a base64 data URI, or a regular
+/// file beside the glTF.
+fn load_buffer(b: &gltf::Buffer, blob: &mut Option<Buffer>, dir: &Path) -> Result<Buffer> {
     let want = b.length();
     let i = b.index();
     let mut data = match b.source() {
         gltf::buffer::Source::Bin => {
-            let bin = blob.ok_or_else(|| anyhow!("buffer {i} refers to a missing BIN chunk"))?;
-            if bin.len() < want || bin.len() > want + 3 {
-                bail!(
-                    "buffer {i} declares {want} bytes, the BIN chunk holds {}",
-                    bin.len()
-                );
+            let Some(Buffer::Mapped { map, at, len }) = blob.take() else {
+                bail!("buffer {i} refers to a missing BIN chunk (or another buffer took it)");
+            };
+            if len < want || len > want + 3 {
+                bail!("buffer {i} declares {want} bytes, the BIN chunk holds {len}");
             }
-            bin.to_vec()
+            return Ok(Buffer::Mapped { map, at, len: want });
         }
         gltf::buffer::Source::Uri(uri) if uri.starts_with("data:") => {
             data_uri(uri).map_err(|e| anyhow!("buffer {i}: {e}"))?
@@ -230,12 +257,12 @@ fn load_buffer(b: &gltf::Buffer, blob: Option<&[u8]>, dir: &Path) -> Result<Vec<
         bail!("buffer {i} declares {want} bytes but holds {}", data.len());
     }
     data.truncate(want);
-    Ok(data)
+    Ok(Buffer::Owned(data))
 }
 
 /// The accessors a primitive's triangles are read from, checked before the gltf crate reads
 /// them (`check_accessor`).
-pub(super) fn check_primitive(prim: &gltf::Primitive, buffers: &[Vec<u8>]) -> Result<()> {
+pub(super) fn check_primitive(prim: &gltf::Primitive, buffers: &[Buffer]) -> Result<()> {
     use gltf::accessor::{DataType, Dimensions};
     use gltf::Semantic;
     let mut wanted: Vec<(gltf::Accessor, &str, &[DataType], Dimensions)> = Vec::new();
@@ -273,7 +300,7 @@ pub(super) fn check_accessor(
     what: &str,
     types: &[gltf::accessor::DataType],
     dims: gltf::accessor::Dimensions,
-    buffers: &[Vec<u8>],
+    buffers: &[Buffer],
 ) -> Result<()> {
     // Only integers may be normalized.
     let float = a.data_type() == gltf::accessor::DataType::F32;
@@ -333,7 +360,7 @@ pub(super) fn check_accessor(
 fn check_sparse(
     a: &gltf::Accessor,
     sp: &gltf::accessor::sparse::Sparse,
-    buffers: &[Vec<u8>],
+    buffers: &[Buffer],
 ) -> Result<()> {
     let n = sp.count();
     if n > a.count() {
@@ -362,7 +389,7 @@ fn check_sparse(
 /// A sparse accessor's substituted element numbers, or None if one is out of range.
 fn sparse_indices(
     sp: &gltf::accessor::sparse::Sparse,
-    buffers: &[Vec<u8>],
+    buffers: &[Buffer],
     count: usize,
 ) -> Option<Vec<usize>> {
     use gltf::accessor::sparse::IndexType;
@@ -389,7 +416,7 @@ fn sparse_indices(
 /// clamped at −1 for signed bytes, c / 255 for unsigned, and the same for 16 bits).
 pub(super) fn read_floats<const N: usize>(
     a: &gltf::Accessor,
-    buffers: &[Vec<u8>],
+    buffers: &[Buffer],
 ) -> Option<Vec<[f32; N]>> {
     use gltf::accessor::DataType;
     let size = a.data_type().size();
@@ -441,7 +468,7 @@ pub(super) fn read_floats<const N: usize>(
 /// A checked primitive's vertices from its accessors (`check_primitive`): positions,
 /// normals and texture-coordinate sets `uv_sets`, and its indices; None without positions.
 /// A `COLOR_0` accessor's colours as RGBA (alpha 1 for VEC3), None for another type.
-fn colours(a: &gltf::Accessor, buffers: &[Vec<u8>]) -> Option<Vec<[f32; 4]>> {
+fn colours(a: &gltf::Accessor, buffers: &[Buffer]) -> Option<Vec<[f32; 4]>> {
     match a.dimensions() {
         gltf::accessor::Dimensions::Vec4 => read_floats::<4>(a, buffers),
         gltf::accessor::Dimensions::Vec3 => Some(
@@ -456,7 +483,7 @@ fn colours(a: &gltf::Accessor, buffers: &[Vec<u8>]) -> Option<Vec<[f32; 4]>> {
 
 pub(super) fn accessor_vertices(
     prim: &gltf::Primitive,
-    buffers: &[Vec<u8>],
+    buffers: &[Buffer],
     uv_sets: [Option<u32>; 2],
 ) -> Option<Vertices> {
     let attribute = |s: gltf::Semantic| prim.get(&s).and_then(|a| read_floats::<3>(&a, buffers));

@@ -1,6 +1,7 @@
 //! glTF materials: metallic-roughness with the KHR extensions Canopy models, their
 //! texture sources and UV transforms.
 
+use super::buffer::Buffer;
 use super::files::{data_uri, relative_file, view_bytes};
 use super::layers::layers;
 use crate::import::{SceneDesc, TextureSource};
@@ -28,7 +29,7 @@ pub(super) fn material(
     m: &gltf::Material,
     doc: &gltf::Document,
     scene: &mut SceneDesc,
-    buffers: &[Vec<u8>],
+    buffers: &[Buffer],
     dir: &Path,
     notes: &mut Vec<String>,
 ) -> Result<(MaterialRecord, UvSets)> {
@@ -237,7 +238,7 @@ const SLOT_NAMES: [&str; 9] = [
 pub(super) fn texture_source(
     t: &gltf::Texture,
     srgb: bool,
-    buffers: &[Vec<u8>],
+    buffers: &[Buffer],
     dir: &Path,
 ) -> Result<TextureSource> {
     use gltf::texture::WrappingMode;

@@ -6,6 +6,7 @@
 //! The decoders are meant for untrusted input: a stream shorter than its count needs is
 //! an error, never a read past its end.
 
+use super::buffer::Buffer;
 use anyhow::{anyhow, bail, Result};
 use gltf::json::Root;
 
@@ -179,20 +180,20 @@ pub(super) fn fallback_bytes(
 }
 
 /// Decodes every compressed view into its place.
-pub(super) fn decode(views: &[Compressed], buffers: &mut [Vec<u8>]) -> Result<()> {
+pub(super) fn decode(views: &[Compressed], buffers: &mut [Buffer]) -> Result<()> {
     for c in views {
         let bytes = decode_view(c, buffers).map_err(|e| anyhow!("buffer view {}: {e}", c.view))?;
         let (b, at) = c.target;
         let dst = buffers
             .get_mut(b)
-            .and_then(|d| d.get_mut(at..at.checked_add(bytes.len())?))
+            .and_then(|d| d.owned().get_mut(at..at.checked_add(bytes.len())?))
             .ok_or_else(|| anyhow!("buffer view {} lies outside buffer {b}", c.view))?;
         dst.copy_from_slice(&bytes);
     }
     Ok(())
 }
 
-fn decode_view(c: &Compressed, buffers: &[Vec<u8>]) -> Result<Vec<u8>> {
+fn decode_view(c: &Compressed, buffers: &[Buffer]) -> Result<Vec<u8>> {
     use meshopt::ffi;
     let (b, at, len) = c.source;
     let src = buffers

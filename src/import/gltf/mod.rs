@@ -5,12 +5,14 @@
 
 use super::{make_tri, unorm16, SceneDesc, TriangleSink};
 use anyhow::{anyhow, bail, Result};
+use buffer::Buffer;
 use canopy_format::MaterialRecord;
 use glam::{Mat3, Mat4, Vec3};
 use gltf::accessor::Dimensions;
 use gltf::mesh::Mode;
 use std::path::Path;
 
+mod buffer;
 mod draco;
 mod files;
 mod layers;
@@ -57,6 +59,7 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
     let shared = shared_meshes(&doc, scene, base, sink.shares_meshes());
     let mut prototypes: Vec<Option<(u32, u64)>> = vec![None; doc.meshes().len()];
     let mut count = 0u64;
+    let mut released = buffer::Releaser::default();
     // Depth-first pre-order, roots and children in the order the file lists them: cameras,
     // lights and triangles keep the file's order (FORMAT.md states it).
     let mut stack: Vec<(gltf::Node, Mat4)> = gscene.nodes().map(|n| (n, Mat4::IDENTITY)).collect();
@@ -103,13 +106,14 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
             )
         };
         let instances = gpu_instances(&doc, &node, &buffers).map_err(named)?;
-        if instances.iter().any(|i| !(world * i).is_finite()) {
-            bail!(
-                "{}: node '{}' has an instance with a non-finite transform",
-                path.display(),
-                node.name().unwrap_or("?")
-            );
-        }
+        // Each placement in world space, checked finite (an error stops the import).
+        let placements = instances.iter().map(|i| {
+            let m = world * i;
+            match m.is_finite() {
+                true => Ok(m),
+                false => Err(named(anyhow!("an instance has a non-finite transform"))),
+            }
+        });
         let mut m = MeshCtx {
             path,
             doc: &doc,
@@ -122,8 +126,10 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
             sink,
         };
         if !shared[mesh.index()] {
-            for instance in instances.iter() {
-                count += m.push(world * instance)?;
+            for placed in placements {
+                let tris = m.push(placed?)?;
+                count += tris;
+                released.read(tris, &buffers);
             }
             continue;
         }
@@ -138,11 +144,12 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
         if tris == 0 {
             continue;
         }
-        for instance in instances.iter() {
-            let c = (world * instance).to_cols_array();
+        for placed in placements {
+            let c = placed?.to_cols_array();
             let to_world = std::array::from_fn(|i| c[i / 3 * 4 + i % 3]);
             sink.instance(proto, to_world)?;
             count += tris;
+            released.read(1, &buffers);
         }
     }
     Ok(count)
@@ -180,7 +187,7 @@ struct MeshCtx<'a> {
     path: &'a Path,
     doc: &'a gltf::Document,
     mesh: &'a gltf::Mesh<'a>,
-    buffers: &'a [Vec<u8>],
+    buffers: &'a [Buffer],
     /// The file's first material in the scene's table.
     /// Per glTF material, the texture-coordinate sets its textures read.
     uv_sets: &'a [UvSets],
@@ -330,24 +337,38 @@ fn check_forest(doc: &gltf::Document) -> Result<()> {
 }
 
 /// A node's EXT_mesh_gpu_instancing placements: translation, rotation and scale columns
-/// (each optional), made into matrices one at a time as they are used, so that millions of
-/// instances are not held as matrices too.
-struct GpuInstances {
-    t: Option<Vec<Vec3>>,
-    r: Option<Vec<glam::Quat>>,
-    s: Option<Vec<Vec3>>,
+/// (each optional, checked), read from their buffers and made into matrices one at a time
+/// as they are used, so that millions of instances are never held in memory.
+struct GpuInstances<'a> {
+    t: Option<gltf::Accessor<'a>>,
+    r: Option<gltf::Accessor<'a>>,
+    s: Option<gltf::Accessor<'a>>,
+    buffers: &'a [Buffer],
     /// How many (1 without the extension: the identity).
     n: usize,
 }
 
-impl GpuInstances {
+impl GpuInstances<'_> {
     /// The transforms in the node's space, in order.
     fn iter(&self) -> impl Iterator<Item = Mat4> + '_ {
-        (0..self.n).map(|i| {
+        use gltf::accessor::Iter;
+        let data = |b: gltf::Buffer| self.buffers.get(b.index()).map(|d| &d[..]);
+        let column =
+            |a: &Option<gltf::Accessor>| a.clone().and_then(|a| Iter::<[f32; 3]>::new(a, data));
+        let mut t = column(&self.t);
+        let mut s = column(&self.s);
+        let mut r = self.r.clone().and_then(|a| Iter::<[f32; 4]>::new(a, data));
+        (0..self.n).map(move |_| {
+            let at = |c: &mut Option<Iter<'_, [f32; 3]>>, or| {
+                c.as_mut().and_then(Iterator::next).map_or(or, Vec3::from)
+            };
+            let q = r.as_mut().and_then(Iterator::next);
             Mat4::from_scale_rotation_translation(
-                self.s.as_ref().map_or(Vec3::ONE, |s| s[i]),
-                self.r.as_ref().map_or(glam::Quat::IDENTITY, |r| r[i]),
-                self.t.as_ref().map_or(Vec3::ZERO, |t| t[i]),
+                at(&mut s, Vec3::ONE),
+                q.map_or(glam::Quat::IDENTITY, |q| {
+                    glam::Quat::from_array(q).normalize()
+                }),
+                at(&mut t, Vec3::ZERO),
             )
         })
     }
@@ -371,17 +392,18 @@ fn gpu_instance_count(doc: &gltf::Document, node: &gltf::Node) -> usize {
 
 /// A node's EXT_mesh_gpu_instancing transforms (translation, rotation, scale per instance,
 /// in the node's space), or the identity alone.
-fn gpu_instances(
-    doc: &gltf::Document,
+fn gpu_instances<'a>(
+    doc: &'a gltf::Document,
     node: &gltf::Node,
-    buffers: &[Vec<u8>],
-) -> Result<GpuInstances> {
-    use gltf::accessor::{DataType, Dimensions, Iter};
+    buffers: &'a [Buffer],
+) -> Result<GpuInstances<'a>> {
+    use gltf::accessor::{DataType, Dimensions};
     let Some(ext) = node.extension_value("EXT_mesh_gpu_instancing") else {
         return Ok(GpuInstances {
             t: None,
             r: None,
             s: None,
+            buffers,
             n: 1,
         });
     };
@@ -402,31 +424,27 @@ fn gpu_instances(
         )?;
         Ok(Some(a))
     };
-    let data = |b: gltf::Buffer| buffers.get(b.index()).map(|d| &d[..]);
-    let read3 = |a: Option<gltf::Accessor>| {
-        a.and_then(|a| Iter::<[f32; 3]>::new(a, data))
-            .map(|it| it.map(Vec3::from).collect::<Vec<_>>())
-    };
-    let t = read3(accessor("TRANSLATION", Dimensions::Vec3)?);
-    let s = read3(accessor("SCALE", Dimensions::Vec3)?);
-    let r: Option<Vec<glam::Quat>> = accessor("ROTATION", Dimensions::Vec4)?
-        .and_then(|a| Iter::<[f32; 4]>::new(a, data))
-        .map(|it| it.map(|q| glam::Quat::from_array(q).normalize()).collect());
-    let counts: Vec<usize> = [
-        t.as_ref().map(Vec::len),
-        r.as_ref().map(Vec::len),
-        s.as_ref().map(Vec::len),
-    ]
-    .into_iter()
-    .flatten()
-    .collect();
+    let t = accessor("TRANSLATION", Dimensions::Vec3)?;
+    let s = accessor("SCALE", Dimensions::Vec3)?;
+    let r = accessor("ROTATION", Dimensions::Vec4)?;
+    let counts: Vec<usize> = [&t, &r, &s]
+        .into_iter()
+        .flatten()
+        .map(gltf::Accessor::count)
+        .collect();
     let Some(&n) = counts.first() else {
         bail!("EXT_mesh_gpu_instancing names no TRANSLATION, ROTATION or SCALE accessor");
     };
     if counts.iter().any(|&c| c != n) {
         bail!("EXT_mesh_gpu_instancing accessors of {counts:?} elements (the spec requires one count)");
     }
-    Ok(GpuInstances { t, r, s, n })
+    Ok(GpuInstances {
+        t,
+        r,
+        s,
+        buffers,
+        n,
+    })
 }
 
 /// Notes what the file holds that Canopy does not render, naming where and what is done
