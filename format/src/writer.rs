@@ -201,7 +201,10 @@ pub struct SceneInfo {
 
 pub struct ArchiveWriter {
     out: AtomicFile,
-    pages: Vec<PageEntry>,
+    /// The page table, in blocks: growing it never copies what it holds (a million
+    /// pages' entries are 96 MB).
+    pages: Vec<Vec<PageEntry>>,
+    page_count: usize,
     tiles: Vec<TileEntry>,
     nodes: u64,
     tris: u64,
@@ -215,6 +218,7 @@ impl ArchiveWriter {
         Ok(Self {
             out: AtomicFile::create(path, 256)?,
             pages: Vec::new(),
+            page_count: 0,
             tiles: Vec::new(),
             nodes: 0,
             tris: 0,
@@ -228,7 +232,7 @@ impl ArchiveWriter {
     }
 
     pub fn page_count(&self) -> u32 {
-        self.pages.len() as u32
+        self.page_count as u32
     }
 
     /// Appends a page; returns its index. Pages get global node numbers in append order.
@@ -236,7 +240,12 @@ impl ArchiveWriter {
         self.pad()?;
         let offset = self.out.len();
         self.out.write_all(&page.bytes)?;
-        self.pages.push(PageEntry {
+        if self.page_count.is_multiple_of(TABLE_BLOCK) {
+            self.pages.push(Vec::with_capacity(TABLE_BLOCK));
+        }
+        self.page_count += 1;
+        let block = self.pages.last_mut().expect("a block was pushed");
+        block.push(PageEntry {
             offset,
             compressed_len: page.bytes.len() as u32,
             raw_len: page.raw_len,
@@ -269,7 +278,7 @@ impl ArchiveWriter {
                 ),
             });
         }
-        Ok(self.pages.len() as u32 - 1)
+        Ok(self.page_count as u32 - 1)
     }
 
     /// Reserves `count` consecutive tile-table entries (a texture's pyramid); returns the
@@ -316,15 +325,16 @@ impl ArchiveWriter {
 
     /// Records a page's parent once it is known (pages below are often written first).
     pub fn set_parent(&mut self, page: u32, parent_page: u32, parent_node: u32) {
-        let e = &mut self.pages[page as usize];
+        let e = self.entry(page as usize);
         e.parent_page = parent_page;
         e.parent_node = parent_node;
     }
 
     /// Page levels from the parent links (parents may come after their children in the file).
     fn fill_levels(&mut self) {
-        let mut level: Vec<Option<u16>> = vec![None; self.pages.len()];
-        for start in 0..self.pages.len() {
+        let n = self.page_count;
+        let mut level: Vec<Option<u16>> = vec![None; n];
+        for start in 0..n {
             let mut chain = Vec::new();
             let mut p = start;
             let mut base = loop {
@@ -332,14 +342,9 @@ impl ArchiveWriter {
                     break l;
                 }
                 chain.push(p);
-                match self.pages[p].parent_page {
+                match self.entry(p).parent_page {
                     NONE => break u16::MAX,
-                    parent
-                        if (parent as usize) < self.pages.len()
-                            && chain.len() <= self.pages.len() =>
-                    {
-                        p = parent as usize
-                    }
+                    parent if (parent as usize) < n && chain.len() <= n => p = parent as usize,
                     _ => break u16::MAX,
                 }
             };
@@ -348,7 +353,7 @@ impl ArchiveWriter {
                 level[q] = Some(base);
             }
         }
-        for (e, l) in self.pages.iter_mut().zip(level) {
+        for (e, l) in self.pages.iter_mut().flatten().zip(level) {
             e.level = l.unwrap_or(0);
         }
     }
@@ -364,7 +369,7 @@ impl ArchiveWriter {
             });
         }
         self.fill_levels();
-        for e in &mut self.pages {
+        for e in self.pages.iter_mut().flatten() {
             e.seal();
         }
         self.pad()?;
@@ -391,7 +396,14 @@ impl ArchiveWriter {
         put_table(out, Some(&mut hash), &info.notes)?;
         let tables_checksum = hash.digest();
         self.pad()?;
-        let pages = put_table(&mut self.out, None, &self.pages)?;
+        let pages = TableRef {
+            offset: self.out.len(),
+            count: self.page_count as u32,
+            record_size: std::mem::size_of::<PageEntry>() as u32,
+        };
+        for block in &self.pages {
+            put_table(&mut self.out, None, block)?;
+        }
         let mut header = Header {
             magic: MAGIC,
             version_major: VERSION_MAJOR,
@@ -428,6 +440,15 @@ impl ArchiveWriter {
         header.header_checksum = xxhash_rust::xxh3::xxh3_64(bytemuck::bytes_of(&header));
         self.out.commit(bytemuck::bytes_of(&header))?;
         Ok(())
+    }
+}
+
+/// Page-table entries a block holds.
+const TABLE_BLOCK: usize = 1 << 16;
+
+impl ArchiveWriter {
+    fn entry(&mut self, page: usize) -> &mut PageEntry {
+        &mut self.pages[page / TABLE_BLOCK][page % TABLE_BLOCK]
     }
 }
 

@@ -19,8 +19,8 @@ pub struct ConvertArgs {
     /// Output archive (.canopy). It appears only once complete.
     #[arg(short, long)]
     output: PathBuf,
-    /// Memory the conversion may use, e.g. 512MiB, 2GiB, 1.5G: at least 98 MiB, and 144
-    /// bytes more per instance.
+    /// Memory the conversion may use, e.g. 512MiB, 2GiB, 1.5G: at least 98 MiB, whatever
+    /// the number of triangles or instances.
     #[arg(long, default_value = "2GiB", value_parser = units::parse_size)]
     mem_budget: u64,
     /// TOML scene file: camera, materials and lights for meshes that carry none.

@@ -34,10 +34,10 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 /// Peak bytes one triangle costs while its chunk is built (spill record, PLOC scratch,
-/// tree nodes, encoded pages); measured with `/usr/bin/time -v`, see README. 440 until
-/// triangles carried texture coordinates (24 bytes more each in memory): the 50 M mesh then
-/// peaked at 2012 MiB of its 2 GiB budget instead of 1883.
-pub const BUILD_BYTES_PER_TRI: u64 = 464;
+/// tree nodes, encoded pages); measured with `/usr/bin/time -v`, see README. At 440 (too
+/// few once triangles carried texture coordinates) the 50 M mesh peaked at 2012 MiB of its
+/// 2 GiB budget; at 464, 250 M triangles in chunks of 4.2 M peaked at 4261 MiB of 4 GiB.
+pub const BUILD_BYTES_PER_TRI: u64 = 496;
 /// Memory set aside for everything that is not a chunk (code, buffers, histogram).
 const FIXED_BYTES: u64 = 96 << 20;
 
@@ -222,10 +222,19 @@ fn write_textures(
     Ok((records, coarse))
 }
 
-/// Most triangles one chunk may hold: what the budget leaves beside the fixed part,
-/// shared by the threads (the checks in `convert` leave room for 4096 each).
-fn chunk_cap(budget: u64, threads: usize) -> u64 {
-    (budget - FIXED_BYTES) / BUILD_BYTES_PER_TRI / threads as u64
+/// Most triangles one chunk may hold: what the budget leaves beside the fixed part and the
+/// page table, shared by the threads (at least 4096 each: `convert` refuses budgets below
+/// that with no page table).
+fn chunk_cap(budget: u64, triangles: u64, instances: u64, threads: usize) -> u64 {
+    let held = FIXED_BYTES + page_table_bytes(triangles, instances);
+    (budget.saturating_sub(held) / BUILD_BYTES_PER_TRI / threads as u64).max(4096)
+}
+
+/// What the writer's page table may grow to: 96 bytes a page, a page per 256 triangles or
+/// 128 instances at the most (pages of 512 nodes held 650 triangles, or 252 instances, in
+/// a conversion of 250 M triangles and 39 M instances).
+fn page_table_bytes(triangles: u64, instances: u64) -> u64 {
+    96 * (triangles / 256 + instances / 128 + 1)
 }
 
 pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
@@ -274,7 +283,8 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     let features = imported.features(&mats.summaries);
 
     let threads = rayon::current_num_threads().max(1);
-    let cap = chunk_cap(opts.mem_budget, threads).max(4096);
+    let placements = imported.shared.as_ref().map_or(0, |s| s.2.len());
+    let cap = chunk_cap(opts.mem_budget, total, placements, threads);
     let streams = Streams::of(features);
     let t2 = Instant::now();
     let placed = match imported.shared {

@@ -34,17 +34,7 @@ struct Args {
     seed: u64,
 }
 
-/// SplitMix64: small, deterministic, good enough for placement jitter.
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> f32 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
-    }
-}
+use canopy_tools::jitter::SplitMix as Rng;
 
 fn main() -> Result<()> {
     let a = Args::parse();
@@ -83,10 +73,10 @@ fn main() -> Result<()> {
     let place: Vec<(f32, f32, [f32; 3])> = (0..copies)
         .map(|c| {
             let (gx, gz) = ((c % side) as f32, (c / side) as f32);
-            let jitter = [rng.next() - 0.5, rng.next() - 0.5];
+            let jitter = [rng.unit() - 0.5, rng.unit() - 0.5];
             (
-                rng.next() * std::f32::consts::TAU,
-                0.7 + 0.6 * rng.next(),
+                rng.unit() * std::f32::consts::TAU,
+                0.7 + 0.6 * rng.unit(),
                 [
                     (gx + 0.3 * jitter[0]) * size * 1.2,
                     0.0,

@@ -50,17 +50,7 @@ struct Args {
     seed: u64,
 }
 
-/// SplitMix64.
-struct Rng(u64);
-impl Rng {
-    fn next(&mut self) -> f32 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
-    }
-}
+use canopy_tools::jitter::SplitMix as Rng;
 
 /// A triangle mesh: positions and indices.
 #[derive(Default)]
@@ -99,12 +89,12 @@ fn cluster(n: u32, r: f32, size: f32, rng: &mut Rng) -> Mesh {
     let mut m = Mesh::default();
     for _ in 0..n {
         let c = loop {
-            let v = [0, 1, 2].map(|_| 2.0 * rng.next() - 1.0);
+            let v = [0, 1, 2].map(|_| 2.0 * rng.unit() - 1.0);
             if v.iter().map(|x| x * x).sum::<f32>() <= 1.0 {
                 break v.map(|x| x * r);
             }
         };
-        let (a, b) = (rng.next() * std::f32::consts::TAU, rng.next() * 3.0);
+        let (a, b) = (rng.unit() * std::f32::consts::TAU, rng.unit() * 3.0);
         let u = [a.cos(), 0.3 * b.sin(), a.sin()].map(|x| x * size);
         let v = [-a.sin() * b.cos(), b.cos().abs() + 0.2, a.cos() * b.sin()].map(|x| x * size);
         let at = |s: f32, t: f32| [0, 1, 2].map(|k| c[k] + s * u[k] + t * v[k]);
@@ -117,7 +107,7 @@ fn cluster(n: u32, r: f32, size: f32, rng: &mut Rng) -> Mesh {
 fn tuft(n: u32, h: f32, r: f32, rng: &mut Rng) -> Mesh {
     let mut m = Mesh::default();
     for _ in 0..n {
-        let (a, d) = (rng.next() * std::f32::consts::TAU, rng.next() * r);
+        let (a, d) = (rng.unit() * std::f32::consts::TAU, rng.unit() * r);
         let (x, z) = (d * a.cos(), d * a.sin());
         let w = 0.05 * h;
         let lean = [0.3 * h * a.cos(), 0.3 * h * a.sin()];
@@ -148,10 +138,10 @@ impl Placements {
             s: Vec::new(),
         };
         for _ in 0..n {
-            p.t.push([0, 1, 2].map(|k| lo[k] + rng.next() * (hi[k] - lo[k])));
-            let (s, c) = (rng.next() * std::f32::consts::PI).sin_cos();
+            p.t.push([0, 1, 2].map(|k| lo[k] + rng.unit() * (hi[k] - lo[k])));
+            let (s, c) = (rng.unit() * std::f32::consts::PI).sin_cos();
             p.r.push([0.0, s, 0.0, c]);
-            p.s.push(scale[0] + rng.next() * (scale[1] - scale[0]));
+            p.s.push(scale[0] + rng.unit() * (scale[1] - scale[0]));
         }
         p
     }
@@ -232,84 +222,11 @@ fn main() -> Result<()> {
     if tris.is_empty() {
         bail!("{}: the mesh is empty (no triangles)", a.input.display());
     }
+    let rock = Mesh { p: verts, i: tris };
     let mut rng = Rng(a.seed);
     let mut glb = Glb::default();
-    let rock = Mesh {
-        p: verts.clone(),
-        i: tris.clone(),
-    };
-    let size = (0..3)
-        .map(|k| {
-            let (lo, hi) = verts
-                .iter()
-                .fold((f32::MAX, f32::MIN), |(l, h), v| (l.min(v[k]), h.max(v[k])));
-            hi - lo
-        })
-        .fold(0.0, f32::max);
-    let meshes = vec![
-        glb.mesh(&trunk(16, 0.12, 0.01), 0),
-        glb.mesh(&cluster(a.leaves, 0.03, 0.006, &mut rng), 1),
-        glb.mesh(&tuft(50, 0.015, 0.01, &mut rng), 2),
-        glb.mesh(&rock, 3),
-        glb.mesh(
-            &{
-                let mut g = Mesh::default();
-                let e = a.side as f32;
-                g.quad([[0.0, 0.0, 0.0], [0.0, 0.0, e], [e, 0.0, e], [e, 0.0, 0.0]]);
-                g
-            },
-            4,
-        ),
-    ];
-    // One set of placements serves every crown, and one every grove's grass and rocks.
-    let crown = Placements::scatter(
-        a.clusters,
-        [-0.05, 0.08, -0.05],
-        [0.05, 0.16, 0.05],
-        [0.6, 1.2],
-        &mut rng,
-    );
-    let grass = Placements::scatter(a.grass, [0.0; 3], [1.0, 0.0, 1.0], [0.7, 1.3], &mut rng);
-    let rocks = Placements::scatter(
-        a.rocks,
-        [0.0; 3],
-        [1.0, 0.0, 1.0],
-        [0.05 / size, 0.15 / size],
-        &mut rng,
-    );
-    let crown = glb.placements(&crown);
-    let grass = glb.placements(&grass);
-    let rocks = glb.placements(&rocks);
-    let mut nodes = vec![
-        json!({"name": "island", "children": []}),
-        json!({"name": "ground", "mesh": 4}),
-    ];
-    let mut island = vec![1];
-    for g in 0..a.side * a.side {
-        let grove = nodes.len();
-        island.push(grove);
-        nodes.push(json!({"name": format!("grove {g}"), "translation": [(g % a.side) as f32, 0.0, (g / a.side) as f32]}));
-        let mut children = Vec::new();
-        for (name, mesh, ext) in [("grass", 2, &grass), ("rocks", 3, &rocks)] {
-            children.push(nodes.len());
-            nodes.push(json!({"name": name, "mesh": mesh, "extensions": ext}));
-        }
-        for _ in 0..a.trees {
-            let (s, c) = (rng.next() * std::f32::consts::PI).sin_cos();
-            let scale = [0.8 + 0.4 * rng.next(); 3];
-            children.push(nodes.len());
-            nodes.push(json!({
-                "mesh": 0,
-                "translation": [rng.next(), 0.0, rng.next()],
-                "rotation": [0.0, s, 0.0, c],
-                "scale": scale,
-                "children": [nodes.len() + 1],
-            }));
-            nodes.push(json!({"mesh": 1, "extensions": crown}));
-        }
-        nodes[grove]["children"] = json!(children);
-    }
-    nodes[0]["children"] = json!(island);
+    let meshes = meshes(&a, &rock, &mut glb, &mut rng);
+    let nodes = nodes(&a, rock_size(&rock), &mut glb, &mut rng);
     let colour = |c: [f32; 3], rough: f32| json!({"pbrMetallicRoughness": {"baseColorFactor": [c[0], c[1], c[2], 1.0], "metallicFactor": 0.0, "roughnessFactor": rough}, "doubleSided": true});
     let doc = json!({
         "asset": {"version": "2.0", "generator": "canopy island"},
@@ -332,6 +249,101 @@ fn main() -> Result<()> {
     let bytes = canopy_tools::glb::glb_join(&doc, &glb.bin);
     std::fs::write(&a.output, bytes)
         .with_context(|| format!("{}: cannot write", a.output.display()))?;
+    let scene = write_scene(&a)?;
+    let groves = (a.side * a.side) as u64;
+    let trees = groves * a.trees as u64;
+    let instances = trees * (1 + a.clusters as u64) + groves * (a.grass + a.rocks) as u64;
+    let triangles = trees * (32 + a.clusters as u64 * 2 * a.leaves as u64)
+        + groves * (a.grass as u64 * 100 + a.rocks as u64 * rock.i.len() as u64)
+        + 2;
+    eprintln!(
+        "{}: {instances} instances placing {triangles} triangles; {} (camera, sky)",
+        a.output.display(),
+        scene.display()
+    );
+    Ok(())
+}
+
+/// The largest extent of the rock mesh.
+fn rock_size(rock: &Mesh) -> f32 {
+    (0..3)
+        .map(|k| {
+            let (lo, hi) = rock
+                .p
+                .iter()
+                .fold((f32::MAX, f32::MIN), |(l, h), v| (l.min(v[k]), h.max(v[k])));
+            hi - lo
+        })
+        .fold(0.0, f32::max)
+}
+
+/// The prototypes, as glTF meshes 0 to 4: trunk, leaf cluster, grass tuft, rock, ground.
+fn meshes(a: &Args, rock: &Mesh, glb: &mut Glb, rng: &mut Rng) -> Vec<Value> {
+    let mut ground = Mesh::default();
+    let e = a.side as f32;
+    ground.quad([[0.0, 0.0, 0.0], [0.0, 0.0, e], [e, 0.0, e], [e, 0.0, 0.0]]);
+    vec![
+        glb.mesh(&trunk(16, 0.12, 0.01), 0),
+        glb.mesh(&cluster(a.leaves, 0.03, 0.006, rng), 1),
+        glb.mesh(&tuft(50, 0.015, 0.01, rng), 2),
+        glb.mesh(rock, 3),
+        glb.mesh(&ground, 4),
+    ]
+}
+
+/// The node forest: the island's root over the ground and the groves, each grove over its
+/// grass, its rocks and its trees, each tree (a trunk) over its crown. One set of
+/// placements serves every crown, and one every grove's grass and rocks.
+fn nodes(a: &Args, rock_size: f32, glb: &mut Glb, rng: &mut Rng) -> Vec<Value> {
+    let crown = Placements::scatter(
+        a.clusters,
+        [-0.05, 0.08, -0.05],
+        [0.05, 0.16, 0.05],
+        [0.6, 1.2],
+        rng,
+    );
+    let grass = Placements::scatter(a.grass, [0.0; 3], [1.0, 0.0, 1.0], [0.7, 1.3], rng);
+    let scale = [0.05 / rock_size, 0.15 / rock_size];
+    let rocks = Placements::scatter(a.rocks, [0.0; 3], [1.0, 0.0, 1.0], scale, rng);
+    let crown = glb.placements(&crown);
+    let grass = glb.placements(&grass);
+    let rocks = glb.placements(&rocks);
+    let mut nodes = vec![
+        json!({"name": "island", "children": []}),
+        json!({"name": "ground", "mesh": 4}),
+    ];
+    let mut island = vec![1];
+    for g in 0..a.side * a.side {
+        let grove = nodes.len();
+        island.push(grove);
+        nodes.push(json!({"name": format!("grove {g}"), "translation": [(g % a.side) as f32, 0.0, (g / a.side) as f32]}));
+        let mut children = Vec::new();
+        for (name, mesh, ext) in [("grass", 2, &grass), ("rocks", 3, &rocks)] {
+            children.push(nodes.len());
+            nodes.push(json!({"name": name, "mesh": mesh, "extensions": ext}));
+        }
+        for _ in 0..a.trees {
+            let (s, c) = (rng.unit() * std::f32::consts::PI).sin_cos();
+            let scale = [0.8 + 0.4 * rng.unit(); 3];
+            children.push(nodes.len());
+            nodes.push(json!({
+                "mesh": 0,
+                "translation": [rng.unit(), 0.0, rng.unit()],
+                "rotation": [0.0, s, 0.0, c],
+                "scale": scale,
+                "children": [nodes.len() + 1],
+            }));
+            nodes.push(json!({"mesh": 1, "extensions": crown}));
+        }
+        nodes[grove]["children"] = json!(children);
+    }
+    nodes[0]["children"] = json!(island);
+    nodes
+}
+
+/// The scene file beside the output: a raised camera over one corner, looking across the
+/// island at 1920 × 800, and a sky.
+fn write_scene(a: &Args) -> Result<PathBuf> {
     let e = a.side as f32;
     let scene = a.output.with_extension("toml");
     std::fs::write(
@@ -346,16 +358,5 @@ fn main() -> Result<()> {
         ),
     )
     .with_context(|| format!("{}: cannot write", scene.display()))?;
-    let groves = (a.side * a.side) as u64;
-    let trees = groves * a.trees as u64;
-    let instances = trees * (1 + a.clusters as u64) + groves * (a.grass + a.rocks) as u64;
-    let triangles = trees * (32 + a.clusters as u64 * 2 * a.leaves as u64)
-        + groves * (a.grass as u64 * 100 + a.rocks as u64 * tris.len() as u64)
-        + 2;
-    eprintln!(
-        "{}: {instances} instances placing {triangles} triangles; {} (camera, sky)",
-        a.output.display(),
-        scene.display()
-    );
-    Ok(())
+    Ok(scene)
 }
