@@ -126,25 +126,8 @@ impl Archive {
             false => read_released::<InstanceRecord>(&map, &header.instances),
         };
         let mut materials = materials;
-        if header.version_minor < 2 {
-            // Before 2.2 these bytes were reserved (zero): no textures.
-            for m in &mut materials {
-                m.textures = [MaterialRecord::NO_TEXTURE; 4];
-            }
-        }
-        if header.version_minor < 5 {
-            // Records before 2.5 end before the layer textures: none.
-            for m in &mut materials {
-                m.layer_textures = [MaterialRecord::NO_TEXTURE; 4];
-            }
-        }
-        if header.version_minor < 6 {
-            // Records before 2.6 end before the coat normal and the per-slot coordinate
-            // maps: every slot reads the one stream as stored.
-            for m in &mut materials {
-                m.coat_normal_texture = MaterialRecord::NO_TEXTURE;
-                m.uv_transforms = [MaterialRecord::IDENTITY_UV; MaterialRecord::SLOTS];
-            }
+        for m in &mut materials {
+            fill_older_fields(header.version_minor, m);
         }
         let textures = read_table::<TextureRecord>(&map, &header.textures);
         let tiles = read_table::<TileEntry>(&map, &header.tiles);
@@ -399,6 +382,25 @@ impl Archive {
     /// The quantization grid of a page.
     pub fn grid(&self, page: u32) -> Result<Grid> {
         Ok(self.entry(page)?.grid())
+    }
+}
+
+/// What a material record of an earlier minor version means by the fields it lacks (or,
+/// before 2.2, held reserved as zero).
+fn fill_older_fields(minor: u16, m: &mut MaterialRecord) {
+    if minor < 2 {
+        // Before 2.2 these bytes were reserved (zero): no textures.
+        m.textures = [MaterialRecord::NO_TEXTURE; 4];
+    }
+    if minor < 5 {
+        // Records before 2.5 end before the layer textures: none.
+        m.layer_textures = [MaterialRecord::NO_TEXTURE; 4];
+    }
+    if minor < 6 {
+        // Records before 2.6 end before the coat normal and the per-slot coordinate maps:
+        // every slot reads the one stream as stored.
+        m.coat_normal_texture = MaterialRecord::NO_TEXTURE;
+        m.uv_transforms = [MaterialRecord::IDENTITY_UV; MaterialRecord::SLOTS];
     }
 }
 
