@@ -31,10 +31,8 @@ const BUFFER: usize = 256 << 10;
 impl<T: Pod> RecordWriter<T> {
     /// An unnamed file of records in `dir`.
     pub fn create(dir: &Path) -> Result<Self> {
-        let file = tempfile::tempfile_in(dir)
-            .with_context(|| format!("{}: cannot create a spill file", dir.display()))?;
         Ok(RecordWriter {
-            out: BufWriter::with_capacity(BUFFER, file),
+            out: BufWriter::with_capacity(BUFFER, super::spill::unnamed(dir)?),
             count: 0,
             path: dir.join("(spill file)"),
             _t: PhantomData,

@@ -53,8 +53,7 @@ pub struct SpillWriter {
 impl SpillWriter {
     /// An unnamed spill file in `dir`.
     pub fn create(dir: &Path, buffer: usize) -> Result<SpillWriter> {
-        let file = tempfile::tempfile_in(dir)
-            .with_context(|| format!("{}: cannot create a spill file", dir.display()))?;
+        let file = unnamed(dir)?;
         Ok(SpillWriter {
             out: BufWriter::with_capacity(buffer, file),
             written: 0,
@@ -118,6 +117,12 @@ impl SpillWriter {
             path: self.path,
         })
     }
+}
+
+/// An unnamed file in `dir` (see the module's notes).
+pub fn unnamed(dir: &Path) -> Result<File> {
+    tempfile::tempfile_in(dir)
+        .with_context(|| format!("{}: cannot create a spill file", dir.display()))
 }
 
 /// A finished spill file.

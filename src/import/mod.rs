@@ -335,7 +335,7 @@ fn raw_mesh_material(
 
 /// A side file's metadata, refusing what is not a regular file (a directory, `/dev/zero`,
 /// a FIFO) or is larger than `max` bytes, before anything is read.
-pub(crate) fn check_regular(path: &Path, max: u64, what: &str) -> Result<()> {
+pub(crate) fn check_regular(path: &Path, max: u64, what: &str) -> Result<std::fs::Metadata> {
     let m = std::fs::metadata(path).map_err(context(path))?;
     if !m.is_file() {
         bail!("{}: the {what} is not a regular file", path.display());
@@ -347,7 +347,7 @@ pub(crate) fn check_regular(path: &Path, max: u64, what: &str) -> Result<()> {
             m.len()
         );
     }
-    Ok(())
+    Ok(m)
 }
 
 /// Reads a whole side file after `check_regular`.

@@ -234,7 +234,7 @@ impl Page {
         let mut c = archive.read_page(id)?;
         let e = &archive.entry(id)?;
         let instances = placed(archive, e, &mut c);
-        let grid = archive.grid(id)?;
+        let grid = e.grid();
         if c.nodes.iter().any(|n| n.link[0] >= 1 << 30) {
             bail!(
                 "{}: page {id}: a link does not fit 30 bits",

@@ -20,12 +20,7 @@ const MAX_SIDE_FILE: u64 = 16 << 30;
 /// against its declared length; a GLB's BIN chunk stays mapped from the file (`Buffer`).
 /// Images are never read here: textures are read as they are stored.
 pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Buffer>)> {
-    crate::import::check_regular(path, u64::MAX, "glTF file")?;
-    if std::fs::metadata(path)
-        .map_err(crate::import::context(path))?
-        .len()
-        == 0
-    {
+    if crate::import::check_regular(path, u64::MAX, "glTF file")?.len() == 0 {
         bail!(
             "{}: not a valid glTF file: the file is empty",
             path.display()
@@ -36,7 +31,7 @@ pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Buffer>)> {
     // is outside what Canopy guards against (as for every input it reads).
     let map = Arc::new(unsafe { memmap2::Mmap::map(&file) }.map_err(crate::import::context(path))?);
     let bad = |e: &dyn std::fmt::Display| anyhow!("{}: not a valid glTF file: {e}", path.display());
-    let (json, blob) = match map.starts_with(b"glTF") {
+    let (json, mut blob) = match map.starts_with(b"glTF") {
         true => {
             let glb = gltf::binary::Glb::from_slice(&map).map_err(|e| bad(&e))?;
             let blob = glb.bin.as_deref().map(|bin| Buffer::Mapped {
@@ -49,7 +44,6 @@ pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Buffer>)> {
         false => (map.to_vec(), None),
     };
     let g = gltf::Gltf::from_slice_without_validation(&json).map_err(|e| bad(&e))?;
-    let mut blob = blob;
     let mut json = g.document.into_json();
     // Quantized attributes are read here (`read_floats`), Draco and meshopt data decoded
     // here (`draco`, `meshopt`), not by the gltf crate, whose validation refuses them.
