@@ -26,6 +26,6 @@ pub use reader::Archive;
 pub use records::*;
 pub use verify::PageReport;
 pub use writer::{
-    encode_page, encode_tile, ArchiveWriter, EncodedPage, EncodedTile, PageContents, PageMeta,
-    SceneInfo, Streams,
+    encode_page, encode_tile, renumber_page, ArchiveWriter, EncodedPage, EncodedTile, PageContents,
+    PageMeta, SceneInfo, Streams, WriterState,
 };

@@ -147,6 +147,36 @@ pub(crate) fn compress(raw: &[u8], level: i32) -> std::io::Result<Vec<u8>> {
     })
 }
 
+/// `page` with `by` added to the number of every child page its nodes name, as if its
+/// pages had been numbered from `by` more when it was encoded: decompressed, changed and
+/// compressed again at `zstd_level`, so its bytes are those `encode_page` gives the changed
+/// contents. Pages built apart (a chunk per process, numbered from 0) move into place so.
+pub fn renumber_page(page: &EncodedPage, by: u32, zstd_level: i32) -> std::io::Result<EncodedPage> {
+    let bad = |what: &str| std::io::Error::new(std::io::ErrorKind::InvalidData, what.to_string());
+    let mut raw = zstd::bulk::decompress(&page.bytes, page.raw_len as usize)?;
+    let header = std::mem::size_of::<PageHeader>();
+    let node = std::mem::size_of::<Node>();
+    let end = header + page.node_count as usize * node;
+    if raw.len() != page.raw_len as usize || raw.len() < end {
+        return Err(bad("the page is shorter than its counts"));
+    }
+    for at in (header..end).step_by(node) {
+        let mut n: Node = bytemuck::pod_read_unaligned(&raw[at..at + node]);
+        if n.has_child_page() {
+            n.link[0] = n.link[0]
+                .checked_add(by)
+                .ok_or_else(|| bad("a child page number overflows"))?;
+            raw[at..at + node].copy_from_slice(bytemuck::bytes_of(&n));
+        }
+    }
+    let bytes = compress(&raw, zstd_level)?;
+    Ok(EncodedPage {
+        checksum: xxhash_rust::xxh3::xxh3_64(&bytes),
+        bytes,
+        ..*page
+    })
+}
+
 /// A texture tile compressed and checksummed, ready to append.
 pub struct EncodedTile {
     pub bytes: Vec<u8>,
@@ -225,6 +255,11 @@ impl ArchiveWriter {
             verts: 0,
             instances: 0,
         })
+    }
+
+    /// Where the archive will appear.
+    pub fn path(&self) -> &Path {
+        self.out.path()
     }
 
     pub fn node_count(&self) -> u64 {
@@ -440,6 +475,116 @@ impl ArchiveWriter {
         header.header_checksum = xxhash_rust::xxh3::xxh3_64(bytemuck::bytes_of(&header));
         self.out.commit(bytemuck::bytes_of(&header))?;
         Ok(())
+    }
+}
+
+/// What an `ArchiveWriter` holds beside the bytes it wrote. `suspend` returns it and `resume`
+/// takes it back, so one process can write the first part of an archive and another finish
+/// it (the conversion stages of a cluster job).
+#[derive(Clone, Debug, Default)]
+pub struct WriterState {
+    pub pages: Vec<PageEntry>,
+    pub tiles: Vec<TileEntry>,
+    pub nodes: u64,
+    pub tris: u64,
+    pub verts: u64,
+    pub instances: u64,
+    /// Bytes written, the reserved header included.
+    pub len: u64,
+}
+
+impl ArchiveWriter {
+    /// Names what was written so far at the writer's path (header zero, no tables: not an
+    /// archive, only `resume` reads it) and returns the rest of the writer's state.
+    pub fn suspend(self) -> Result<WriterState> {
+        let len = self.out.len();
+        self.out.commit(&[0; 256])?;
+        Ok(WriterState {
+            pages: self.pages.into_iter().flatten().collect(),
+            tiles: self.tiles,
+            nodes: self.nodes,
+            tris: self.tris,
+            verts: self.verts,
+            instances: self.instances,
+            len,
+        })
+    }
+
+    /// A writer for `path` that continues the archive `suspend` left in `body` with `state`:
+    /// the body's bytes are copied in and its tables taken back, after checking that they
+    /// describe that body.
+    pub fn resume(path: &Path, body: &Path, state: WriterState) -> Result<Self> {
+        use std::io::{Read, Seek, SeekFrom};
+        let corrupt = |what: String| crate::error::FormatError::Corrupt {
+            path: body.to_path_buf(),
+            what,
+        };
+        let io = |error| crate::error::FormatError::Io {
+            path: body.to_path_buf(),
+            error,
+        };
+        let mut file = std::fs::File::open(body).map_err(io)?;
+        let len = file.metadata().map_err(io)?.len();
+        if len != state.len || len < 256 {
+            return Err(corrupt(format!(
+                "{len} bytes where the writer's state says {}",
+                state.len
+            )));
+        }
+        let within = |offset: u64, bytes: u32| offset >= 256 && offset + bytes as u64 <= len;
+        let sum = |f: fn(&PageEntry) -> u32| state.pages.iter().map(|e| f(e) as u64).sum::<u64>();
+        if let Some(i) = state
+            .pages
+            .iter()
+            .position(|e| !within(e.offset, e.compressed_len))
+        {
+            return Err(corrupt(format!("page {i} lies outside the body")));
+        }
+        if let Some(i) = state
+            .tiles
+            .iter()
+            .position(|t| t.raw_len != 0 && !within(t.offset, t.compressed_len))
+        {
+            return Err(corrupt(format!("texture tile {i} lies outside the body")));
+        }
+        if sum(|e| e.node_count) != state.nodes
+            || sum(|e| e.tri_count) != state.tris
+            || sum(|e| e.vert_count) != state.verts
+            || sum(|e| e.instance_count) != state.instances
+        {
+            return Err(corrupt(
+                "the page counts disagree with the writer's totals".into(),
+            ));
+        }
+        let mut w = Self::create(path)?;
+        file.seek(SeekFrom::Start(256)).map_err(io)?;
+        let mut buf = vec![0u8; 1 << 20];
+        loop {
+            let n = file.read(&mut buf).map_err(io)?;
+            if n == 0 {
+                break;
+            }
+            w.out.write_all(&buf[..n])?;
+        }
+        if w.out.len() != len {
+            return Err(corrupt("the body changed while it was read".into()));
+        }
+        w.page_count = state.pages.len();
+        w.pages = state
+            .pages
+            .chunks(TABLE_BLOCK)
+            .map(|b| {
+                let mut block = Vec::with_capacity(TABLE_BLOCK);
+                block.extend_from_slice(b);
+                block
+            })
+            .collect();
+        w.tiles = state.tiles;
+        w.nodes = state.nodes;
+        w.tris = state.tris;
+        w.verts = state.verts;
+        w.instances = state.instances;
+        Ok(w)
     }
 }
 

@@ -13,7 +13,7 @@ use canopy_format::{MaterialRecord, Node, NodeFlags, TextureRecord};
 pub const REFLECT_COS: [f32; 5] = [0.0, 0.25, 0.5, 0.75, 1.0];
 
 /// What a material contributes to a node, per unit area.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Copy, Debug, Default, serde::Serialize, serde::Deserialize)]
 pub struct MatSummary {
     pub diffuse: [f32; 3],
     pub refractiveness: f32,
@@ -174,6 +174,11 @@ impl MatTable {
         }
     }
 
+    /// The textures' coarse levels, as `new` took them.
+    pub fn into_coarse(self) -> Vec<Coarse> {
+        self.coarse
+    }
+
     /// What triangle `t` contributes per unit area (its vertex colours and the texels
     /// under it applied).
     pub fn of(&self, t: &SpillTri) -> MatSummary {
@@ -232,7 +237,7 @@ impl MatTable {
 }
 
 /// Area-weighted sums; divide by `weight` for the means.
-#[derive(Clone, Copy, Debug, Default)]
+#[derive(Clone, Copy, Debug, Default, serde::Serialize, serde::Deserialize)]
 pub struct Cluster {
     pub area: f32,
     pub weight: f32,

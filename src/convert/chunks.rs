@@ -41,24 +41,12 @@ pub fn build(
 ) -> Result<(BNode, u32)> {
     let bar = progress::bar(c.show, c.triangles, "building");
     let chunk_count = c.files.len();
-    let (extra, loose) = extra;
-    let single = chunk_count == 1 && extra.is_empty();
-    let mut top = Tree {
-        nodes: Vec::new(),
-        tris: Vec::new(),
-        instances: loose,
-        root: 0,
-    };
-    let mut root_page = 0;
-    let mut scene_root: Option<BNode> = None;
+    let mut assembly = Assembly::new(chunk_count == 1 && extra.0.is_empty(), extra.1);
     let job = ChunkJob {
         files: c.files.into_iter().map(|f| Mutex::new(Some(f))).collect(),
         mats: c.mats,
-        single,
-        fast: match opts.bvh {
-            BvhQuality::Auto => c.triangles > AUTO_FAST_ABOVE,
-            q => q == BvhQuality::Fast,
-        },
+        single: assembly.single,
+        fast: fast_build(opts, c.triangles),
         opts,
         streams: c.streams,
         claim: AtomicUsize::new(0),
@@ -86,71 +74,126 @@ pub fn build(
             arrived.insert(i, out?);
             while let Some(out) = arrived.remove(&next) {
                 next += 1;
-                let ChunkOut {
-                    root,
-                    leaf_tris,
-                    pages,
-                    triangles,
-                } = out;
-                let first = append_pages(writer, pages)?;
-                bar.inc(triangles);
-                let Some(root) = root else { continue };
-                if single {
-                    root_page = first;
-                    scene_root = Some(root);
-                } else if let Kind::Leaf { count, .. } = root.kind {
-                    let at = top.tris.len() as u32;
-                    top.tris.extend_from_slice(&leaf_tris);
-                    top.nodes.push(BNode {
-                        kind: Kind::Leaf { first: at, count },
-                        ..root
-                    });
-                } else {
-                    top.nodes.push(BNode {
-                        kind: Kind::External { page: first },
-                        ..root
-                    });
-                }
+                bar.inc(out.triangles);
+                assembly.add(writer, out)?;
             }
         }
         Ok(())
     })?;
     bar.finish_and_clear();
-    if !single {
-        let mut leaves: Vec<u32> = (0..top.nodes.len() as u32).collect();
-        if !extra.is_empty() {
-            top.nodes.extend(extra);
-            leaves = top.morton_order((0..top.nodes.len() as u32).collect());
-        }
-        if leaves.is_empty() {
-            bail!("no triangles in the inputs");
-        }
-        top.root = top.balanced(&leaves);
-        root_page = write_pages(writer, &top, vec![top.root], opts, c.streams)?;
-        scene_root = Some(top.nodes[top.root as usize].clone());
+    assembly.finish(writer, extra.0, opts, c.streams)
+}
+
+/// Whether chunk trees get obvhs's fast build (`--bvh`, `auto` by the triangle count).
+pub fn fast_build(opts: &ConvertOptions, triangles: u64) -> bool {
+    match opts.bvh {
+        BvhQuality::Auto => triangles > AUTO_FAST_ABOVE,
+        q => q == BvhQuality::Fast,
     }
-    let Some(scene_root) = scene_root else {
-        bail!("no triangles in the inputs")
-    };
-    Ok((scene_root, root_page))
+}
+
+/// The top of the scene taking shape as the chunks' pages arrive in chunk order.
+pub struct Assembly {
+    /// One chunk and nothing else: its root is the scene's.
+    single: bool,
+    top: Tree,
+    root_page: u32,
+    scene_root: Option<BNode>,
+}
+
+impl Assembly {
+    /// `loose` are the instance records of bare instance leaves among the extra nodes.
+    pub fn new(single: bool, loose: Vec<InstanceRecord>) -> Assembly {
+        Assembly {
+            single,
+            top: Tree {
+                nodes: Vec::new(),
+                tris: Vec::new(),
+                instances: loose,
+                root: 0,
+            },
+            root_page: 0,
+            scene_root: None,
+        }
+    }
+
+    /// Appends the next chunk's pages (numbered from the writer's next page) and takes its
+    /// root into the top tree.
+    pub fn add(&mut self, writer: &mut ArchiveWriter, out: ChunkOut) -> Result<()> {
+        let ChunkOut {
+            root,
+            leaf_tris,
+            pages,
+            ..
+        } = out;
+        let first = append_pages(writer, pages)?;
+        let Some(root) = root else { return Ok(()) };
+        if self.single {
+            self.root_page = first;
+            self.scene_root = Some(root);
+        } else if let Kind::Leaf { count, .. } = root.kind {
+            let at = self.top.tris.len() as u32;
+            self.top.tris.extend_from_slice(&leaf_tris);
+            self.top.nodes.push(BNode {
+                kind: Kind::Leaf { first: at, count },
+                ..root
+            });
+        } else {
+            self.top.nodes.push(BNode {
+                kind: Kind::External { page: first },
+                ..root
+            });
+        }
+        Ok(())
+    }
+
+    /// Builds and writes the top tree over the chunk roots and `extra`; returns the scene's
+    /// root and the number of its page.
+    pub fn finish(
+        mut self,
+        writer: &mut ArchiveWriter,
+        extra: Vec<BNode>,
+        opts: &ConvertOptions,
+        streams: Streams,
+    ) -> Result<(BNode, u32)> {
+        if !self.single {
+            let top = &mut self.top;
+            let mut leaves: Vec<u32> = (0..top.nodes.len() as u32).collect();
+            if !extra.is_empty() {
+                top.nodes.extend(extra);
+                leaves = top.morton_order((0..top.nodes.len() as u32).collect());
+            }
+            if leaves.is_empty() {
+                bail!("no triangles in the inputs");
+            }
+            top.root = top.balanced(&leaves);
+            self.root_page = write_pages(writer, top, vec![top.root], opts, streams)?;
+            self.scene_root = Some(top.nodes[top.root as usize].clone());
+        }
+        let Some(scene_root) = self.scene_root else {
+            bail!("no triangles in the inputs")
+        };
+        Ok((scene_root, self.root_page))
+    }
 }
 
 /// A chunk's pages, compressed and numbered from `base`, ready to append in order.
-struct EncodedPages {
-    base: u32,
-    pages: Vec<(EncodedPage, PageMeta, Externals)>,
+pub struct EncodedPages {
+    pub base: u32,
+    pub pages: Vec<(EncodedPage, PageMeta, Externals)>,
 }
 
 /// Per cut node of a page: (page holding its children, its local index).
-type Externals = Vec<(u32, u32)>;
+pub type Externals = Vec<(u32, u32)>;
 
-struct ChunkOut {
+/// A chunk built: its pages and what the top tree takes of it.
+pub struct ChunkOut {
     /// The chunk's root (None for an empty chunk).
-    root: Option<BNode>,
+    pub root: Option<BNode>,
     /// The triangles of a root that is a leaf (such a chunk writes no pages).
-    leaf_tris: Vec<SpillTri>,
-    pages: EncodedPages,
-    triangles: u64,
+    pub leaf_tris: Vec<SpillTri>,
+    pub pages: EncodedPages,
+    pub triangles: u64,
 }
 
 /// Next chunk allowed to take page numbers, and the first free number.
@@ -198,20 +241,7 @@ impl ChunkJob<'_> {
     fn chunk(&self, i: usize) -> Result<ChunkOut> {
         let spill = self.files[i].lock().expect("chunk lock").take();
         let tris = spill::read_all(&spill.expect("each chunk is claimed once"))?;
-        let triangles = tris.len() as u64;
-        let tree = (!tris.is_empty()).then(|| Tree::build(tris, self.mats, self.fast));
-        let roots = match &tree {
-            Some(t) if self.single => vec![t.root],
-            Some(t) => match t.nodes[t.root as usize].kind {
-                Kind::Inner(children) => children.to_vec(),
-                _ => Vec::new(),
-            },
-            None => Vec::new(),
-        };
-        let plan = tree
-            .as_ref()
-            .map(|t| Plan::new(t, roots, self.opts.page_nodes));
-        let count = plan.as_ref().map_or(0, |p| p.pages.len() as u32);
+        let built = ChunkTree::build(tris, self.mats, self.single, self.fast, self.opts);
         let base = {
             let mut turn = self.turn.lock().expect("turn lock");
             while turn.next != i && !turn.failed {
@@ -221,28 +251,73 @@ impl ChunkJob<'_> {
                 bail!("stopped: another chunk failed");
             }
             let base = turn.base;
-            turn.base += count;
+            turn.base += built.page_count();
             turn.next += 1;
             base
         };
         self.turn_changed.notify_all();
-        let Some(tree) = tree else {
+        built.encode(base, self.opts, self.streams)
+    }
+}
+
+/// One chunk's tree and its cut into pages, before page numbers are known.
+pub struct ChunkTree {
+    triangles: u64,
+    /// None for an empty chunk.
+    built: Option<(Tree, Plan)>,
+    single: bool,
+}
+
+impl ChunkTree {
+    /// Builds the tree of a chunk's triangles and cuts it into pages: the whole tree when
+    /// the chunk is the scene (`single`), else below its root, which joins the top tree.
+    pub fn build(
+        tris: Vec<SpillTri>,
+        mats: &MatTable,
+        single: bool,
+        fast: bool,
+        opts: &ConvertOptions,
+    ) -> ChunkTree {
+        let triangles = tris.len() as u64;
+        let built = (!tris.is_empty()).then(|| {
+            let tree = Tree::build(tris, mats, fast);
+            let roots = match tree.nodes[tree.root as usize].kind {
+                _ if single => vec![tree.root],
+                Kind::Inner(children) => children.to_vec(),
+                _ => Vec::new(),
+            };
+            let plan = Plan::new(&tree, roots, opts.page_nodes);
+            (tree, plan)
+        });
+        ChunkTree {
+            triangles,
+            built,
+            single,
+        }
+    }
+
+    pub fn page_count(&self) -> u32 {
+        self.built.as_ref().map_or(0, |(_, p)| p.pages.len() as u32)
+    }
+
+    /// The chunk's pages encoded and numbered from `base`.
+    pub fn encode(self, base: u32, opts: &ConvertOptions, streams: Streams) -> Result<ChunkOut> {
+        let empty = |base| EncodedPages {
+            base,
+            pages: Vec::new(),
+        };
+        let count = self.page_count();
+        let Some((tree, plan)) = self.built else {
             return Ok(ChunkOut {
                 root: None,
                 leaf_tris: Vec::new(),
-                pages: EncodedPages {
-                    base,
-                    pages: Vec::new(),
-                },
-                triangles,
+                pages: empty(base),
+                triangles: self.triangles,
             });
         };
-        let pages = match &plan {
-            Some(plan) if count > 0 => encode_pages(&tree, plan, base, self.opts, self.streams)?,
-            _ => EncodedPages {
-                base,
-                pages: Vec::new(),
-            },
+        let pages = match count {
+            0 => empty(base),
+            _ => encode_pages(&tree, &plan, base, opts, streams)?,
         };
         let root = tree.nodes[tree.root as usize].clone();
         let leaf_tris = match root.kind {
@@ -255,7 +330,7 @@ impl ChunkJob<'_> {
             root: Some(root),
             leaf_tris,
             pages,
-            triangles,
+            triangles: self.triangles,
         })
     }
 }

@@ -216,7 +216,15 @@ fn prototype(
 ) -> Result<(BNode, u32)> {
     let mut own = SpillWriter::create(b.dir, 256 << 10)?;
     spill::for_each_in(spilled, p.start, p.count, |t| own.write(t))?;
-    let files = partition::partition(own.finish()?, p.count, [p.lo, p.hi], b.cap, b.dir, false)?;
+    let files = partition::partition(
+        own.finish()?,
+        p.count,
+        [p.lo, p.hi],
+        b.cap,
+        b.dir,
+        None,
+        false,
+    )?;
     let c = Chunks {
         files,
         mats: b.mats,

@@ -21,6 +21,7 @@ mod pages;
 mod partition;
 mod record_spill;
 mod spill;
+pub mod stages;
 mod textures;
 mod tree;
 
@@ -30,8 +31,9 @@ pub use tree::MAX_LEAF_TRIS;
 use crate::import::SceneFile;
 use anyhow::{bail, Context, Result};
 use canopy_format::{ArchiveWriter, SceneInfo, Streams};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
+use tree::BNode;
 
 /// Peak bytes one triangle costs while its chunk is built (spill record, PLOC scratch,
 /// tree nodes, encoded pages); measured with `/usr/bin/time -v`, see README. At 440 (too
@@ -86,7 +88,7 @@ impl ConvertOptions {
 /// How hard the hierarchy builder works (obvhs presets).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum BvhQuality {
-    /// `Medium` for inputs up to `AUTO_FAST_ABOVE` triangles, `Fast` beyond.
+    /// Medium for inputs up to 8 M triangles, fast beyond.
     Auto,
     Fast,
     Medium,
@@ -96,8 +98,10 @@ pub enum BvhQuality {
 /// conversion time, which matters at scale; small scenes keep the better tree.
 const AUTO_FAST_ABOVE: u64 = 8_000_000;
 
-#[derive(Debug, Default, serde::Serialize)]
+#[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
 pub struct ConvertReport {
+    /// The archive written.
+    pub output: PathBuf,
     /// Triangles the inputs place (each instance's counted).
     pub input_triangles: u64,
     /// Meshes stored once, and their placements.
@@ -222,12 +226,16 @@ fn write_textures(
     Ok((records, coarse))
 }
 
+/// Chunks built at once, whatever the number of cores (each chunk's build is parallel
+/// inside): chunk sizes, and so the archive's bytes, do not depend on the machine.
+const CHUNKS_AT_ONCE: u64 = 2;
+
 /// Most triangles one chunk may hold: what the budget leaves beside the fixed part and the
-/// page table, shared by the threads (at least 4096 each: `convert` refuses budgets below
-/// that with no page table).
-fn chunk_cap(budget: u64, triangles: u64, instances: u64, threads: usize) -> u64 {
+/// page table, shared by the chunks built at once (at least 4096 each: `convert` refuses
+/// budgets below that with no page table).
+fn chunk_cap(budget: u64, triangles: u64, instances: u64) -> u64 {
     let held = FIXED_BYTES + page_table_bytes(triangles, instances);
-    (budget.saturating_sub(held) / BUILD_BYTES_PER_TRI / threads as u64).max(4096)
+    (budget.saturating_sub(held) / BUILD_BYTES_PER_TRI / CHUNKS_AT_ONCE).max(4096)
 }
 
 /// What the writer's page table may grow to: 96 bytes a page, a page per 256 triangles or
@@ -237,7 +245,45 @@ fn page_table_bytes(triangles: u64, instances: u64) -> u64 {
     96 * (triangles / 256 + instances / 128 + 1)
 }
 
+/// A conversion up to its chunk builds: the textures and the instances' pages written, the
+/// triangles partitioned into chunk files.
+struct Staged {
+    writer: ArchiveWriter,
+    files: Vec<spill::Spill>,
+    mats: MatTable,
+    placed: instances::Placed,
+    /// The scene's tables and features; the root, bounds and depth are filled in last.
+    info: SceneInfo,
+    /// Triangles stored once (the chunks'), as against those placed.
+    triangles: u64,
+    report: ConvertReport,
+}
+
 pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
+    let t0 = Instant::now();
+    let mut s = stage(opts, None)?;
+    let t = Instant::now();
+    let chunks = chunks::Chunks {
+        files: std::mem::take(&mut s.files),
+        mats: &s.mats,
+        triangles: s.triangles,
+        streams: Streams::of(s.info.features),
+        threads: CHUNKS_AT_ONCE as usize,
+        show: opts.progress,
+    };
+    let extra = (
+        std::mem::take(&mut s.placed.groups),
+        std::mem::take(&mut s.placed.loose),
+    );
+    let top = chunks::build(&mut s.writer, chunks, extra, opts)?;
+    s.report.seconds_build += t.elapsed().as_secs_f64();
+    complete(s, top, t0)
+}
+
+/// Imports the inputs, writes the textures and the instances' pages, and partitions the
+/// triangles into chunks. With `work`, the archive so far is written there (to be
+/// suspended) and the chunk files are named in it, for the cluster stages.
+fn stage(opts: &ConvertOptions, work: Option<&Path>) -> Result<Staged> {
     let t0 = Instant::now();
     if opts.inputs.is_empty() {
         bail!("no input files");
@@ -263,28 +309,30 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
                 .display()
         )
     })?;
-    let mut writer = ArchiveWriter::create(&opts.output)?;
-    let dir = match opts.output.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+    let dir = match (work, opts.output.parent()) {
+        (Some(w), _) => w.to_path_buf(),
+        (None, Some(d)) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => PathBuf::from("."),
     };
-    let imported = ingest::import_inputs(opts, &file, &dir)?;
+    let mut writer = match work {
+        Some(w) => ArchiveWriter::create(&stages::body(w))?,
+        None => ArchiveWriter::create(&opts.output)?,
+    };
+    let mut imported = ingest::import_inputs(opts, &file, &dir)?;
     let total = imported.count;
     let mut report = ConvertReport {
         input_triangles: total,
         seconds_import: t0.elapsed().as_secs_f64(),
         ..Default::default()
     };
-    let mut imported = imported;
     let (textures, coarse) = write_textures(&mut writer, &mut imported.scene, opts)?;
     report.textures = textures.len() as u64;
     report.texture_bytes = writer.tile_bytes();
     let mats = MatTable::new(&imported.scene.materials, &textures, coarse);
     let features = imported.features(&mats.summaries);
 
-    let threads = rayon::current_num_threads().max(1);
     let placements = imported.shared.as_ref().map_or(0, |s| s.2.len());
-    let cap = chunk_cap(opts.mem_budget, total, placements, threads);
+    let cap = chunk_cap(opts.mem_budget, total, placements);
     let streams = Streams::of(features);
     let t2 = Instant::now();
     let placed = match imported.shared {
@@ -292,7 +340,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
             let b = instances::Build {
                 mats: &mats,
                 streams,
-                threads,
+                threads: CHUNKS_AT_ONCE as usize,
                 cap,
                 dir: &dir,
                 run_bytes: (opts.mem_budget - FIXED_BYTES) / 4,
@@ -304,36 +352,30 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     report.input_triangles += placed.instanced_triangles;
     report.prototypes = placed.prototypes;
     report.instances = placed.count;
-    let mut seconds_build = t2.elapsed().as_secs_f64();
+    report.seconds_build = t2.elapsed().as_secs_f64();
 
     let t1 = Instant::now();
     let bounds = [imported.lo, imported.hi];
-    let files = partition::partition(imported.spill, total, bounds, cap, &dir, opts.progress)?;
+    let files = partition::partition(
+        imported.spill,
+        total,
+        bounds,
+        cap,
+        &dir,
+        work,
+        opts.progress,
+    )?;
     report.chunks = files.len() as u64;
     report.seconds_partition = t1.elapsed().as_secs_f64();
-
-    let t2 = Instant::now();
-    let chunks = chunks::Chunks {
-        files,
-        mats: &mats,
-        triangles: total,
-        streams,
-        threads,
-        show: opts.progress,
-    };
-    let extra = (placed.groups, placed.loose);
-    let (root, root_page) = chunks::build(&mut writer, chunks, extra, opts)?;
-    seconds_build += t2.elapsed().as_secs_f64();
-    report.seconds_build = seconds_build;
     let scene = imported.scene;
     let notes = scene.note_records();
     let info = SceneInfo {
         features,
         input_triangles: report.input_triangles,
-        bounds_min: root.lo,
-        bounds_max: root.hi,
-        root_page,
-        depth: root.height.max(placed.depth),
+        bounds_min: [0.0; 3],
+        bounds_max: [0.0; 3],
+        root_page: 0,
+        depth: 0,
         max_leaf_triangles: MAX_LEAF_TRIS,
         page_nodes_max: opts.page_nodes as u32,
         materials: scene.materials,
@@ -343,10 +385,37 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
         environment,
         notes,
     };
+    Ok(Staged {
+        writer,
+        files,
+        mats,
+        placed,
+        info,
+        triangles: total,
+        report,
+    })
+}
+
+/// Writes the tables and header of a conversion whose pages are all written; `top` is the
+/// scene's root and the number of its page.
+fn complete(s: Staged, top: (BNode, u32), t0: Instant) -> Result<ConvertReport> {
+    let Staged {
+        writer,
+        placed,
+        mut info,
+        mut report,
+        ..
+    } = s;
+    let (root, root_page) = top;
+    info.bounds_min = root.lo;
+    info.bounds_max = root.hi;
+    info.root_page = root_page;
+    info.depth = root.height.max(placed.depth);
     report.pages = writer.page_count() as u64;
     report.nodes = writer.node_count();
+    report.output = writer.path().to_path_buf();
     writer.finish(&info)?;
-    report.archive_bytes = std::fs::metadata(&opts.output)
+    report.archive_bytes = std::fs::metadata(&report.output)
         .map(|m| m.len())
         .unwrap_or(0);
     report.seconds_total = t0.elapsed().as_secs_f64();

@@ -3,6 +3,7 @@
 //! distributes the triangles to one file per chunk.
 
 use super::spill::{self, Spill, SpillWriter};
+use super::stages;
 use crate::progress;
 use anyhow::Result;
 use std::path::Path;
@@ -40,17 +41,30 @@ fn chunk_of_bins(hist: &[u64], cap: u64) -> (Vec<u32>, u32) {
 }
 
 /// The chunk files of `total` triangles in `spilled` (centroids inside `lo..hi`), each at
-/// most `cap` triangles unless one Morton bin alone holds more.
+/// most `cap` triangles unless one Morton bin alone holds more. They are unnamed files in
+/// `dir`, or with `named` the work directory's chunk files (`stages::chunk_file`).
 pub fn partition(
     spilled: Spill,
     total: u64,
     [lo, hi]: [[f32; 3]; 2],
     cap: u64,
     dir: &Path,
+    named: Option<&Path>,
     show: bool,
 ) -> Result<Vec<Spill>> {
+    let create = |k: u32, buffer: usize| match named {
+        Some(work) => SpillWriter::create_named(&stages::chunk_file(work, k), buffer),
+        None => SpillWriter::create(dir, buffer),
+    };
     if total <= cap {
-        return Ok(vec![spilled]);
+        return match named {
+            None => Ok(vec![spilled]),
+            Some(_) => {
+                let mut out = create(0, 1 << 20)?;
+                spill::for_each(&spilled, |t| out.write(t))?;
+                Ok(vec![out.finish()?])
+            }
+        };
     }
     let mut hist = vec![0u64; 1 << (3 * MORTON_BITS)];
     spill::for_each(&spilled, |t| {
@@ -63,7 +77,7 @@ pub fn partition(
     // at a small budget there are many chunks, and 256 KiB each would outgrow it.
     let buffer = (BUFFERS / n.max(1) as usize).clamp(16 << 10, 256 << 10);
     let mut outs = (0..n)
-        .map(|_| SpillWriter::create(dir, buffer))
+        .map(|k| create(k, buffer))
         .collect::<Result<Vec<_>>>()?;
     let bar = progress::bar(show, total, "partitioning");
     let mut done = 0u64;

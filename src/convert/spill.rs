@@ -61,6 +61,17 @@ impl SpillWriter {
         })
     }
 
+    /// A spill file named `path` (a cluster conversion's chunk file), replacing what is there.
+    pub fn create_named(path: &Path, buffer: usize) -> Result<SpillWriter> {
+        let file = File::create(path)
+            .with_context(|| format!("{}: cannot create a chunk file", path.display()))?;
+        Ok(SpillWriter {
+            out: BufWriter::with_capacity(buffer, file),
+            written: 0,
+            path: path.to_path_buf(),
+        })
+    }
+
     /// Where the next record will start, for `for_each_in`.
     pub fn position(&self) -> u64 {
         self.written
@@ -129,6 +140,17 @@ pub fn unnamed(dir: &Path) -> Result<File> {
 pub struct Spill {
     file: File,
     path: PathBuf,
+}
+
+impl Spill {
+    /// A named spill file, as `SpillWriter::create_named` wrote it.
+    pub fn open(path: &Path) -> Result<Spill> {
+        let file = File::open(path).with_context(|| format!("{}: cannot open", path.display()))?;
+        Ok(Spill {
+            file,
+            path: path.to_path_buf(),
+        })
+    }
 }
 
 /// Calls `f` on every triangle of a spill file, in order.

@@ -21,6 +21,7 @@ const COARSE: u32 = 64;
 
 /// A texture's coarse levels (each at most `COARSE` on a side), in linear RGBA, for the
 /// converter's per-triangle texture means.
+#[derive(Clone, serde::Serialize, serde::Deserialize)]
 pub struct Coarse {
     /// The pyramid level of `levels[0]`.
     first: u32,

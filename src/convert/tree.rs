@@ -56,7 +56,7 @@ fn split_coincident(tris: &[SpillTri]) -> (Vec<u32>, Vec<Vec<u32>>) {
     (plain, groups)
 }
 
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, serde::Serialize, serde::Deserialize)]
 pub enum Kind {
     Inner([u32; 2]),
     /// Range in the tree's triangle array.
@@ -74,7 +74,7 @@ pub enum Kind {
     },
 }
 
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
 pub struct BNode {
     pub lo: [f32; 3],
     pub hi: [f32; 3],

@@ -1,0 +1,188 @@
+//! `canopy convert` in stages (`--work`, `--chunk K`, `--join`: the cluster path of
+//! `tools/slurm/canopy-convert.sh`, here as separate processes without Slurm): the archive
+//! is byte for byte the one a single process writes, whatever the thread count and the order
+//! the chunks are built in, and missing, stale or damaged work files are refused by name.
+
+mod common;
+use common::*;
+use std::path::Path;
+
+/// Prepares `input` in `work`, builds its chunks last to first, joins; returns the chunk count.
+fn staged(input: &[&str], out: &Path, work: &Path, extra: &[&str]) -> usize {
+    let mut args = vec!["--quiet", "convert"];
+    args.extend(input);
+    args.extend(["-o", s(out), "--work", s(work)]);
+    args.extend(extra);
+    let said = ok(&args);
+    assert!(said.contains("prepared"), "{said}");
+    let chunks = std::fs::read_dir(work)
+        .unwrap()
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .file_name()
+                .to_string_lossy()
+                .ends_with(".tris")
+        })
+        .count();
+    for k in (0..chunks).rev() {
+        ok(&[
+            "--quiet",
+            "convert",
+            "--work",
+            s(work),
+            "--chunk",
+            &k.to_string(),
+        ]);
+    }
+    ok(&["--quiet", "convert", "--work", s(work), "--join"]);
+    chunks
+}
+
+fn same_bytes(a: &Path, b: &Path, what: &str) {
+    let (a, b) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
+    assert!(a == b, "{what}: {} and {} bytes differ", a.len(), b.len());
+}
+
+#[test]
+fn a_staged_conversion_writes_the_single_process_bytes() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let grid: Vec<[f32; 3]> = (0..30)
+        .flat_map(|i| (0..30).map(move |j| [5.0 + 1.2 * i as f32, 0.0, 5.0 + 1.2 * j as f32]))
+        .collect();
+    let instanced = gpu_instanced(d, "carpet.glb", "smallbox", &grid, &vec![[0.01; 3]; 900]);
+    let sponza = scene("sponza_textured/sponza_textured.gltf");
+    let (showroom, bunny) = (scene("showroom.glb"), scene("bunny.ply"));
+    let cases: [(&str, Vec<&str>, &str); 3] = [
+        ("showroom", vec![s(&showroom)], "98MiB"),
+        ("textured sponza", vec![s(&sponza)], "128MiB"),
+        (
+            "instances and a mesh",
+            vec![s(&instanced), s(&bunny)],
+            "98MiB",
+        ),
+    ];
+    for (what, input, budget) in cases {
+        let one = d.join("one.canopy");
+        let mut args = vec!["--quiet", "convert"];
+        args.extend(&input);
+        args.extend(["-o", s(&one), "--mem-budget", budget]);
+        ok(&args);
+        let work = d.join("work");
+        let two = d.join("two.canopy");
+        let chunks = staged(&input, &two, &work, &["--mem-budget", budget]);
+        assert!(chunks > 1, "{what}: {chunks} chunk");
+        same_bytes(&one, &two, what);
+        assert!(!work.exists(), "{what}: the join left its work files");
+    }
+}
+
+#[test]
+fn the_archive_does_not_depend_on_the_thread_count() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut outs = Vec::new();
+    for threads in ["1", "2", "3"] {
+        let out = dir.path().join(format!("t{threads}.canopy"));
+        let run = std::process::Command::new(env!("CARGO_BIN_EXE_canopy"))
+            .args(["--quiet", "convert", s(&scene("bunny.ply")), "-o", s(&out)])
+            .args(["--mem-budget", "98MiB", "--json"])
+            .env("RAYON_NUM_THREADS", threads)
+            .output()
+            .unwrap();
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let report: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+        assert!(report["chunks"].as_u64().unwrap() > 1, "{report}");
+        outs.push(out);
+    }
+    same_bytes(&outs[0], &outs[1], "1 and 2 threads");
+    same_bytes(&outs[0], &outs[2], "1 and 3 threads");
+}
+
+#[test]
+fn missing_stale_or_damaged_work_files_are_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let work = d.join("work");
+    let w = s(&work);
+    let bunny = scene("bunny.ply");
+    let out = d.join("b.canopy");
+    let prepare = || {
+        let said = ok(&[
+            "--quiet",
+            "convert",
+            s(&bunny),
+            "-o",
+            s(&out),
+            "--work",
+            w,
+            "--mem-budget",
+            "98MiB",
+        ]);
+        assert!(said.contains("chunks to build"), "{said}");
+    };
+    let e = fails(&["convert", "--work", s(&d.join("nothing")), "--join"]);
+    assert!(e.contains("no prepared conversion"), "{e}");
+    prepare();
+    let e = fails(&["convert", "--work", w, "--join"]);
+    assert!(
+        e.contains("not built yet") && e.contains("--chunk K"),
+        "{e}"
+    );
+    let e = fails(&["convert", "--work", w, "--chunk", "999"]);
+    assert!(e.contains("chunk 999 asked for"), "{e}");
+    let e = fails(&["convert", "--work", w, "--chunk", "0", "-o", s(&out)]);
+    assert!(e.contains("cannot be used with"), "{e}");
+    let e = fails(&["convert", "--chunk", "0"]);
+    assert!(e.contains("--work"), "{e}");
+    let chunks = std::fs::read_dir(&work)
+        .unwrap()
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .file_name()
+                .to_string_lossy()
+                .ends_with(".tris")
+        })
+        .count();
+    for k in 0..chunks {
+        ok(&["--quiet", "convert", "--work", w, "--chunk", &k.to_string()]);
+    }
+    // A byte of chunk 1's pages changed: its checksum refuses it, and nothing is written.
+    let pages = work.join("chunk-1.pages");
+    let mut bytes = std::fs::read(&pages).unwrap();
+    let last = bytes.len() - 1;
+    bytes[last] ^= 1;
+    std::fs::write(&pages, &bytes).unwrap();
+    let e = fails(&["convert", "--work", w, "--join"]);
+    assert!(e.contains("chunk-1.pages") && e.contains("damaged"), "{e}");
+    assert!(!out.exists());
+    // Pages built before the conversion was prepared again are stale.
+    let old = std::fs::read(work.join("chunk-0.pages")).unwrap();
+    prepare();
+    std::fs::write(work.join("chunk-0.pages"), old).unwrap();
+    for k in 1..chunks {
+        ok(&["--quiet", "convert", "--work", w, "--chunk", &k.to_string()]);
+    }
+    let e = fails(&["convert", "--work", w, "--join"]);
+    assert!(
+        e.contains("chunk-0.pages") && e.contains("another preparation"),
+        "{e}"
+    );
+    assert!(!out.exists());
+    // A truncated state file.
+    let state = work.join("state");
+    let len = std::fs::metadata(&state).unwrap().len();
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open(&state)
+        .unwrap()
+        .set_len(len / 2)
+        .unwrap();
+    let e = fails(&["convert", "--work", w, "--chunk", "0"]);
+    assert!(e.contains("state"), "{e}");
+}
