@@ -22,9 +22,9 @@ impl Cluster {
         self.dir.join("slurm.conf")
     }
 
-    /// Runs `canopy-frame.sh` with `args` against this cluster and waits until its jobs
-    /// are done; returns what the script printed.
-    fn run_frame(&self, args: &[&str]) -> String {
+    /// Runs a script of `tools/slurm/` with `args` against this cluster and waits until its
+    /// jobs are done; returns what the script printed.
+    fn run_script(&self, args: &[&str]) -> String {
         let submit = Command::new("bash")
             .args(args)
             .env("SLURM_CONF", self.conf())
@@ -128,7 +128,7 @@ fn skipped(why: &str) {
 }
 
 #[test]
-fn sponza_as_eight_slurm_tiles_is_the_single_process_image() {
+fn slurm_jobs_write_what_one_process_writes() {
     let marker = Path::new(env!("CARGO_TARGET_TMPDIR")).join("slurm-test-skipped");
     std::fs::remove_file(marker).ok();
     let root = Command::new("id").arg("-u").output().unwrap().stdout == b"0\n";
@@ -164,7 +164,7 @@ fn sponza_as_eight_slurm_tiles_is_the_single_process_image() {
         "256MiB",
     ];
     args.extend(size);
-    let said = cluster.run_frame(&args);
+    let said = cluster.run_script(&args);
     assert!(
         said.contains("tiles: job") && said.contains("assembly: job"),
         "{said}"
@@ -189,7 +189,7 @@ fn sponza_as_eight_slurm_tiles_is_the_single_process_image() {
     let mut args = vec![s(&script), s(&arc), s(&cone_out), "--tiles", "2"];
     args.extend(size);
     args.extend(["--integrator", "cone"]);
-    let said = cluster.run_frame(&args);
+    let said = cluster.run_script(&args);
     assert!(said.contains("pre-pass: job"), "{said}");
     let store = dir.path().join("cone.exr.tiles/light.store");
     assert!(store.exists(), "the pre-pass wrote no light store");
@@ -199,6 +199,90 @@ fn sponza_as_eight_slurm_tiles_is_the_single_process_image() {
     one.extend(size);
     one.extend(["--integrator", "cone", "--store-in", s(&store)]);
     ok(&one);
+    // A conversion as a prepare job, a job array of its chunks and a join: the bytes one
+    // process writes.
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/slurm/canopy-convert.sh");
+    let staged = dir.path().join("staged.canopy");
+    let budget = ["--mem-budget", "98MiB"];
+    let bunny = scene("bunny.ply");
+    let mut args = vec![s(&script), s(&staged), s(&bunny), "--concurrent", "2"];
+    args.extend(budget);
+    let said = cluster.run_script(&args);
+    assert!(said.contains("prepare: job"), "{said}");
+    let jobs = dir.path().join("staged.canopy.work/jobs");
+    let log = |name: &str| std::fs::read_to_string(jobs.join(name)).unwrap_or_default();
+    assert!(
+        staged.exists(),
+        "no archive; prepare: {} join: {}",
+        log("prepare.log"),
+        log("join.log")
+    );
+    assert!(
+        log("prepare.log").contains("chunks: job"),
+        "{}",
+        log("prepare.log")
+    );
+    let single = dir.path().join("single.canopy");
+    let mut one = vec!["--quiet", "convert", s(&bunny), "-o", s(&single)];
+    one.extend(budget);
+    ok(&one);
+    assert!(
+        std::fs::read(&staged).unwrap() == std::fs::read(&single).unwrap(),
+        "the archive the jobs wrote differs from the single process's"
+    );
+    assert!(
+        !dir.path().join("staged.canopy.work/state").exists(),
+        "the join left its work files"
+    );
+}
+
+/// The conversion script refuses bad arguments before it submits anything: each case exits
+/// with status 2 and names what is wrong.
+#[test]
+fn the_slurm_convert_script_refuses_bad_arguments_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("x.canopy");
+    let bunny = scene("bunny.ply");
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tools/slurm/canopy-convert.sh");
+    let missing = dir.path().join("none.ply");
+    let cases: [(&str, Vec<&str>, &str); 5] = [
+        ("no input", vec!["--mem-budget", "1GiB"], "no input files"),
+        (
+            "missing input",
+            vec![s(&missing)],
+            "none.ply: no such input file",
+        ),
+        (
+            "-o",
+            vec![s(&bunny), "-o", "y.canopy"],
+            "-o is set by canopy-convert.sh",
+        ),
+        (
+            "--chunk",
+            vec![s(&bunny), "--chunk", "1"],
+            "--chunk is set by",
+        ),
+        (
+            "--concurrent 0",
+            vec![s(&bunny), "--concurrent", "0"],
+            "--concurrent K must be a positive whole number",
+        ),
+    ];
+    for (what, extra, expect) in cases {
+        let run = Command::new("bash")
+            .args([s(&script), s(&out)])
+            .args(&extra)
+            .env("CANOPY", env!("CARGO_BIN_EXE_canopy"))
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&run.stderr);
+        assert_eq!(run.status.code(), Some(2), "{what}: {err}");
+        assert!(err.contains(expect), "{what}: expected '{expect}' in {err}");
+        assert!(
+            !out.exists() && !dir.path().join("x.canopy.work").exists(),
+            "{what}"
+        );
+    }
 }
 
 /// The script refuses bad arguments before it submits anything (no Slurm needed): each
