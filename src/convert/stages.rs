@@ -22,11 +22,13 @@ use super::{spill, ConvertOptions, ConvertReport, MatTable, Staged};
 use crate::import::SpillTri;
 use anyhow::{bail, Context, Result};
 use bytemuck::Pod;
+use rayon::prelude::*;
 use canopy_format::{
     renumber_page, ArchiveWriter, EncodedPage, PageMeta, SceneInfo, Streams, WriterState, NONE,
 };
 use serde::{Deserialize, Serialize};
-use std::io::{BufReader, BufWriter, Read, Write};
+use canopy_format::atomic::AtomicFile;
+use std::io::{BufReader, Read};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -372,27 +374,11 @@ fn read_chunk(work: &Path, k: u32, state: u64, base: u32, level: i32) -> Result<
         return Err(damaged("its root does not match its pages"));
     }
     let mut pages = Vec::with_capacity(head.pages.len());
+    let mut renumber = Vec::new();
     for (i, h) in head.pages.into_iter().enumerate() {
-        let mut bytes = vec![0; h.len as usize];
-        rest.read_exact(&mut bytes)
-            .with_context(|| format!("{}: page {i} ends early", path.display()))?;
-        if xxhash_rust::xxh3::xxh3_64(&bytes) != h.checksum {
-            bail!("{}: page {i} is damaged (checksum)", path.display());
-        }
-        let [node_count, tri_count, vert_count, instance_count] = h.counts;
-        let mut page = EncodedPage {
-            bytes,
-            raw_len: h.raw_len,
-            checksum: h.checksum,
-            node_count,
-            tri_count,
-            vert_count,
-            instance_count,
-        };
-        if h.names_pages && base > 0 {
-            page = renumber_page(&page, base, level)
-                .with_context(|| format!("{}: page {i}", path.display()))?;
-        }
+        let page = read_page(&mut rest, &h)
+            .with_context(|| format!("{}: page {i}", path.display()))?;
+        renumber.push(h.names_pages && base > 0);
         let meta = PageMeta {
             parent_page: moved(h.parent[0])?,
             parent_node: h.parent[1],
@@ -405,6 +391,16 @@ fn read_chunk(work: &Path, k: u32, state: u64, base: u32, level: i32) -> Result<
             .collect::<Result<_>>()?;
         pages.push((page, meta, externals));
     }
+    pages
+        .par_iter_mut()
+        .zip(renumber)
+        .enumerate()
+        .filter(|(_, (_, r))| *r)
+        .try_for_each(|(i, (p, _))| {
+            p.0 = renumber_page(&p.0, base, level)
+                .with_context(|| format!("{}: page {i}", path.display()))?;
+            Ok::<_, anyhow::Error>(())
+        })?;
     let out = ChunkOut {
         root: head.root,
         leaf_tris,
@@ -429,28 +425,38 @@ fn read_state(work: &Path) -> Result<(State, u64)> {
     Ok((state, xxhash_rust::xxh3::xxh3_64(&bytes)))
 }
 
-/// Writes `magic`, the length and xxh3 of `head`, `head`, then `bodies` back to back, to a
-/// temporary name renamed to `path` once complete.
+/// Writes `magic`, the length and xxh3 of `head`, `head`, then `bodies` back to back, to an
+/// unnamed file named `path` once complete (`AtomicFile`: a killed stage leaves nothing).
 fn write_sealed(path: &Path, magic: &[u8; 8], head: &[u8], bodies: &[&[u8]]) -> Result<()> {
-    let dir = path.parent().unwrap_or(Path::new("."));
-    let tmp = tempfile::NamedTempFile::new_in(dir)
-        .with_context(|| format!("{}: cannot create a file", dir.display()))?;
-    let mut out = BufWriter::new(tmp.as_file());
-    let err = || format!("{}: writing", path.display());
-    out.write_all(magic).with_context(err)?;
-    out.write_all(&(head.len() as u64).to_le_bytes())
-        .with_context(err)?;
-    out.write_all(&xxhash_rust::xxh3::xxh3_64(head).to_le_bytes())
-        .with_context(err)?;
-    out.write_all(head).with_context(err)?;
+    let mut out = AtomicFile::create(path, 0)?;
+    out.write_all(magic)?;
+    out.write_all(&(head.len() as u64).to_le_bytes())?;
+    out.write_all(&xxhash_rust::xxh3::xxh3_64(head).to_le_bytes())?;
+    out.write_all(head)?;
     for b in bodies {
-        out.write_all(b).with_context(err)?;
+        out.write_all(b)?;
     }
-    out.flush().with_context(err)?;
-    drop(out);
-    tmp.as_file().sync_all().with_context(err)?;
-    tmp.persist(path).with_context(err)?;
+    out.commit(&[])?;
     Ok(())
+}
+
+/// A page's bytes as `h` describes them, checked against its checksum.
+fn read_page(from: &mut impl Read, h: &PageHead) -> Result<EncodedPage> {
+    let mut bytes = vec![0; h.len as usize];
+    from.read_exact(&mut bytes).context("ends early")?;
+    if xxhash_rust::xxh3::xxh3_64(&bytes) != h.checksum {
+        bail!("damaged (checksum)");
+    }
+    let [node_count, tri_count, vert_count, instance_count] = h.counts;
+    Ok(EncodedPage {
+        bytes,
+        raw_len: h.raw_len,
+        checksum: h.checksum,
+        node_count,
+        tri_count,
+        vert_count,
+        instance_count,
+    })
 }
 
 /// The checked head of a file `write_sealed` wrote, and a reader of what follows it.
