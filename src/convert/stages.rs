@@ -22,12 +22,12 @@ use super::{spill, ConvertOptions, ConvertReport, MatTable, Staged};
 use crate::import::SpillTri;
 use anyhow::{bail, Context, Result};
 use bytemuck::Pod;
-use rayon::prelude::*;
+use canopy_format::atomic::AtomicFile;
 use canopy_format::{
     renumber_page, ArchiveWriter, EncodedPage, PageMeta, SceneInfo, Streams, WriterState, NONE,
 };
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use canopy_format::atomic::AtomicFile;
 use std::io::{BufReader, Read};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -376,8 +376,8 @@ fn read_chunk(work: &Path, k: u32, state: u64, base: u32, level: i32) -> Result<
     let mut pages = Vec::with_capacity(head.pages.len());
     let mut renumber = Vec::new();
     for (i, h) in head.pages.into_iter().enumerate() {
-        let page = read_page(&mut rest, &h)
-            .with_context(|| format!("{}: page {i}", path.display()))?;
+        let page =
+            read_page(&mut rest, &h).with_context(|| format!("{}: page {i}", path.display()))?;
         renumber.push(h.names_pages && base > 0);
         let meta = PageMeta {
             parent_page: moved(h.parent[0])?,
