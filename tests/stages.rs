@@ -186,3 +186,83 @@ fn missing_stale_or_damaged_work_files_are_refused_by_name() {
     let e = fails(&["convert", "--work", w, "--chunk", "0"]);
     assert!(e.contains("state"), "{e}");
 }
+
+/// A state file changed byte by byte with its checksum made to match (so only the decoding
+/// and the checks after it stand between it and the stages): every chunk and the join either
+/// refuse it with a message or go on; none panics or dies by a signal.
+#[test]
+fn a_forged_state_is_refused_or_read_never_panicked_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let work = dir.path().join("work");
+    let out = dir.path().join("t.canopy");
+    let input = scene("sponza_textured/sponza_textured.gltf");
+    let args = [
+        "--quiet",
+        "convert",
+        s(&input),
+        "-o",
+        s(&out),
+        "--work",
+        s(&work),
+    ];
+    ok(&[&args[..], &["--mem-budget", "128MiB"]].concat());
+    let chunks = std::fs::read_dir(&work)
+        .unwrap()
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .file_name()
+                .to_string_lossy()
+                .ends_with(".tris")
+        })
+        .count();
+    let keep: Vec<_> = std::fs::read_dir(&work)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .map(|p| (p.clone(), std::fs::read(&p).unwrap()))
+        .collect();
+    let state = work.join("state");
+    let clean = std::fs::read(&state).unwrap();
+    let head = 24..clean.len();
+    let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next = || {
+        seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        seed >> 33
+    };
+    let (mut refused, mut written) = (0, 0);
+    // Half the changes fall in the first 256 bytes, where the options, the chunk sizes and
+    // the tables' lengths are.
+    for i in 0..24 {
+        for (p, b) in &keep {
+            std::fs::write(p, b).unwrap();
+        }
+        let mut bytes = clean.clone();
+        for _ in 0..1 + next() % 3 {
+            let span = if i % 2 == 0 { 256 } else { head.len() };
+            let at = head.start + (next() as usize % span);
+            bytes[at] = next() as u8;
+        }
+        let sum = xxhash_rust::xxh3::xxh3_64(&bytes[24..]);
+        bytes[16..24].copy_from_slice(&sum.to_le_bytes());
+        std::fs::write(&state, &bytes).unwrap();
+        let stages = (0..chunks).map(|k| vec!["--chunk".to_string(), k.to_string()]);
+        for stage in stages.chain([vec!["--join".to_string()]]) {
+            let stage: Vec<&str> = stage.iter().map(|a| a.as_str()).collect();
+            let run = canopy(&[&["--quiet", "convert", "--work", s(&work)], &stage[..]].concat());
+            let err = String::from_utf8_lossy(&run.stderr);
+            match run.status.code() {
+                Some(0) => written += (stage[0] == "--join") as u32,
+                Some(1) => {
+                    assert!(err.contains("error:"), "{err}");
+                    refused += 1;
+                    break;
+                }
+                code => panic!("{stage:?} on a forged state: exit {code:?}: {err}"),
+            }
+        }
+        std::fs::create_dir_all(&work).unwrap();
+    }
+    eprintln!("{refused} forged states refused, {written} joined into an archive");
+}

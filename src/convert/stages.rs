@@ -283,6 +283,31 @@ pub fn join(work: &Path, show: bool) -> Result<ConvertReport> {
 }
 
 impl State {
+    /// What the later stages index by is in range: each texture's coarse levels, the
+    /// top nodes' pages and instance records, the options.
+    fn check(&self) -> Result<()> {
+        let textures: Vec<canopy_format::TextureRecord> = records(&self.textures, "textures")?;
+        if textures.len() != self.coarse.len()
+            || textures.iter().zip(&self.coarse).any(|(t, c)| !c.fits(t))
+        {
+            bail!("its textures' coarse levels do not match the textures");
+        }
+        let pages = self.writer_pages.len() / std::mem::size_of::<canopy_format::PageEntry>();
+        let loose = self.loose.len() / std::mem::size_of::<canopy_format::InstanceRecord>();
+        let fits = |n: &BNode| match n.kind {
+            Kind::External { page } => (page as usize) < pages,
+            Kind::Instance { index } => (index as usize) < loose,
+            _ => false,
+        };
+        if !self.groups.iter().all(fits) {
+            bail!("an instance group names a page or record it does not have");
+        }
+        if !(3..=4096).contains(&self.page_nodes) || !(1..=22).contains(&self.zstd_level) {
+            bail!("its page size or compression level is out of range");
+        }
+        Ok(())
+    }
+
     /// The options the later stages use, as prepared.
     fn options(&self) -> ConvertOptions {
         let mut o = ConvertOptions::new(Vec::new(), self.output.clone());
@@ -420,8 +445,11 @@ fn read_state(work: &Path) -> Result<(State, u64)> {
         );
     }
     let (bytes, _) = read_sealed(&path, STATE_MAGIC)?;
-    let state = postcard::from_bytes(&bytes)
+    let state: State = postcard::from_bytes(&bytes)
         .with_context(|| format!("{}: cannot decode the conversion state", path.display()))?;
+    state
+        .check()
+        .with_context(|| format!("{}: not a state this converter wrote", path.display()))?;
     Ok((state, xxhash_rust::xxh3::xxh3_64(&bytes)))
 }
 

@@ -29,6 +29,17 @@ pub struct Coarse {
 }
 
 impl Coarse {
+    /// Whether these levels are texture `t`'s: each level's texel count is the size
+    /// `level_size` gives, and `first` is within the pyramid.
+    pub fn fits(&self, t: &TextureRecord) -> bool {
+        !self.levels.is_empty()
+            && self.first as u64 + self.levels.len() as u64 <= t.levels.max(1) as u64
+            && self.levels.iter().enumerate().all(|(i, l)| {
+                let (w, h) = t.level_size(self.first + i as u32);
+                l.len() as u64 == 4 * w as u64 * h as u64
+            })
+    }
+
     /// The mean of texture `t` over a triangle with texture coordinates `uv`: the triangle
     /// split by its midpoints into four, each read bilinearly at its texture-space centroid
     /// on the level whose texel spans a quarter triangle's extent. A triangle across a
