@@ -18,8 +18,9 @@ const MAX_SIDE_FILE: u64 = 16 << 30;
 /// Parses the document (the gltf crate's validation runs after our own index checks, as
 /// one of its hooks indexes accessors unchecked) and loads its buffers, each checked
 /// against its declared length; a GLB's BIN chunk stays mapped from the file (`Buffer`).
-/// Images are never read here: textures are read as they are stored.
-pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Buffer>)> {
+/// Images are never read here: textures are read as they are stored. Also returns the
+/// textures that have no image Canopy reads, with why (`unsourced_textures`).
+pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Buffer>, Unsourced)> {
     if crate::import::check_regular(path, u64::MAX, "glTF file")?.len() == 0 {
         bail!(
             "{}: not a valid glTF file: the file is empty",
@@ -73,6 +74,7 @@ pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Buffer>)> {
     }
     stand_in_views(&mut json);
     choose_image_sources(&mut json);
+    let unsourced = unsourced_textures(&mut json);
     check_images(&json).map_err(|e| anyhow!("{}: {e}", path.display()))?;
     let fallback = meshopt::fallback_buffers(&json);
     let packed =
@@ -89,7 +91,7 @@ pub(super) fn load(path: &Path) -> Result<(gltf::Document, Vec<Buffer>)> {
             .collect::<Result<Vec<_>>>()
             .with_context(|| path.display().to_string())?;
     meshopt::decode(&packed, &mut buffers).with_context(|| path.display().to_string())?;
-    Ok((doc, buffers))
+    Ok((doc, buffers, unsourced))
 }
 
 /// A Draco primitive's accessors have no buffer view, which the gltf crate's validation
@@ -160,6 +162,41 @@ fn choose_image_sources(json: &mut gltf::json::Root) {
             t.source = gltf::json::Index::new(image);
         }
     }
+}
+
+/// Textures with no image Canopy reads, by index, with why.
+pub(super) type Unsourced = Vec<(usize, String)>;
+
+/// Textures with no image Canopy reads: no `source` and no extension Canopy reads offering
+/// one (glTF leaves that to extensions), or a `source` out of range. Each is pointed at a
+/// stand-in image nothing reads (the gltf crate indexes images unchecked), and materials drop
+/// them by name, keeping their factors (`material`).
+fn unsourced_textures(json: &mut gltf::json::Root) -> Unsourced {
+    let images = json.images.len();
+    let mut out = Vec::new();
+    for (i, t) in json.textures.iter_mut().enumerate() {
+        let why = match t.source.value() {
+            s if s < images => continue,
+            s if s as u32 == u32::MAX => {
+                "it has no image (no `source`, and no extension Canopy reads offers one)"
+                    .to_string()
+            }
+            s => format!("it names image {s} of {images}"),
+        };
+        out.push((i, why));
+        t.source = gltf::json::Index::new(images as u32);
+    }
+    if !out.is_empty() {
+        json.images.push(gltf::json::Image {
+            buffer_view: None,
+            mime_type: None,
+            name: None,
+            uri: Some("data:,".to_string()),
+            extensions: None,
+            extras: Default::default(),
+        });
+    }
+    out
 }
 
 /// Every texture's image and sampler exist, and every image names a buffer view in range

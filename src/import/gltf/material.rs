@@ -27,7 +27,7 @@ pub(super) type UvSets = [Option<u32>; 2];
 /// kept, and `notes` says so.
 pub(super) fn material(
     m: &gltf::Material,
-    doc: &gltf::Document,
+    (doc, unsourced): (&gltf::Document, &super::files::Unsourced),
     scene: &mut SceneDesc,
     buffers: &[Buffer],
     dir: &Path,
@@ -86,6 +86,14 @@ pub(super) fn material(
         let Some((map, texture)) = found else {
             continue;
         };
+        if let Some((_, why)) = unsourced.iter().find(|u| u.0 == texture.index()) {
+            notes.push(format!(
+                "its {} texture (texture {}) is dropped and its factor kept: {why}",
+                SLOT_NAMES[slot],
+                texture.index()
+            ));
+            continue;
+        }
         let map = map?;
         let stream = match sets.iter().position(|&s| s == Some(map.set)) {
             Some(k) => k,

@@ -24,7 +24,7 @@ use material::{material, UvSets};
 use view::{camera, punctual, render_size};
 
 pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -> Result<u64> {
-    let (doc, buffers) = load(path)?;
+    let (doc, buffers, unsourced) = load(path)?;
     name_unsupported(path, &doc, scene);
     let (width, height) = render_size(&doc);
     let base = scene.materials.len() as u32;
@@ -39,7 +39,8 @@ pub fn import(path: &Path, scene: &mut SceneDesc, sink: &mut dyn TriangleSink) -
             )
         };
         let mut notes = Vec::new();
-        let (rec, uv) = material(&m, &doc, scene, &buffers, dir, &mut notes).map_err(named)?;
+        let (rec, uv) =
+            material(&m, (&doc, &unsourced), scene, &buffers, dir, &mut notes).map_err(named)?;
         for note in notes {
             let name = m.name().unwrap_or("?");
             scene.note(format!("{}: material '{name}': {note}", path.display()));
