@@ -175,6 +175,10 @@ pub fn import(
     let mut library: HashMap<String, MtlEntry> = HashMap::new();
     let mut indices: HashMap<String, u32> = HashMap::new();
     let mut material = None;
+    // The mesh's default material, made when a face first needs it.
+    let mut default = None;
+    // Material names met in `usemtl` that no library read defines.
+    let mut unknown = std::collections::HashSet::new();
     let mut count = 0u64;
     let mut face: Vec<(u32, Option<u32>, Option<u32>)> = Vec::new();
     for (ln, line) in lines(f, path) {
@@ -196,16 +200,29 @@ pub fn import(
             }
             "mtllib" => {
                 for lib in rest {
-                    library.extend(read_mtl(&dir.join(lib))?);
+                    let at = dir.join(lib);
+                    if !at.exists() {
+                        scene.note(format!(
+                            "{}:{ln}: material library {} not found; faces naming its materials take the mesh's default material",
+                            path.display(),
+                            at.display()
+                        ));
+                        continue;
+                    }
+                    library.extend(read_mtl(&at)?);
                 }
             }
             "usemtl" => {
                 let name = rest.join(" ");
                 let Some((m, maps)) = library.get(&name) else {
-                    bail!(
-                        "{}:{ln}: material '{name}' is not in any mtllib",
-                        path.display()
-                    );
+                    if unknown.insert(name.clone()) {
+                        scene.note(format!(
+                            "{}:{ln}: material '{name}' is in no material library read; its faces take the mesh's default material",
+                            path.display()
+                        ));
+                    }
+                    material = None;
+                    continue;
                 };
                 if m.flags & MaterialRecord::TEXTURED != 0 {
                     scene.textured = true;
@@ -227,10 +244,12 @@ pub fn import(
                 });
             }
             "f" => {
-                let mat = match material {
-                    Some(m) => m,
-                    None => {
-                        *material.insert(raw_mesh_material(path, scene, file, !colour.is_empty())?)
+                let mat = match (material, default) {
+                    (Some(m), _) => m,
+                    (None, Some(d)) => *material.insert(d),
+                    (None, None) => {
+                        let d = raw_mesh_material(path, scene, file, !colour.is_empty())?;
+                        *material.insert(*default.insert(d))
                     }
                 };
                 face.clear();

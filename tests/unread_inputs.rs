@@ -1,7 +1,9 @@
-//! Textures a glTF names that have no image Canopy reads (no `source` and no extension
-//! Canopy reads offering one, or a `source` out of range) are dropped by name at convert
-//! time: the material keeps its factors, the archive renders as its twin without those
-//! textures does, and `inspect` lists what was dropped.
+//! What an input names but does not hold is dropped by name at convert time, and the rest
+//! converts: a glTF texture with no image Canopy reads (no `source` and no extension Canopy
+//! reads offering one, or a `source` out of range) leaves its material's factors, rendering
+//! as the twin without those textures does; an OBJ's missing material library, or a
+//! material no library defines, leaves the mesh's default material, rendering as the twin
+//! without `mtllib` and `usemtl` does. `inspect` lists what was dropped.
 
 mod common;
 use common::*;
@@ -56,5 +58,38 @@ fn a_texture_without_an_image_is_dropped_by_name_and_its_factor_kept() {
     assert!(
         a.pixels == b.pixels,
         "the archive renders unlike its twin without the textures"
+    );
+}
+
+#[test]
+fn an_obj_whose_material_library_is_missing_takes_the_default_material_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let body = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3\nusemtl other\nf 1 3 4\n";
+    let with = dir.path().join("with.obj");
+    std::fs::write(&with, format!("mtllib gone.mtl\nusemtl shell\n{body}")).unwrap();
+    let twin = dir.path().join("twin.obj");
+    std::fs::write(&twin, body.replace("usemtl other\n", "")).unwrap();
+    let arc = dir.path().join("with.canopy");
+    let said = succeeds_saying(&["convert", s(&with), "-o", s(&arc)]);
+    for expect in [
+        "with.obj:1: material library",
+        "gone.mtl not found; faces naming its materials take the mesh's default material",
+        "with.obj:2: material 'shell' is in no material library read",
+        "with.obj:8: material 'other' is in no material library read",
+    ] {
+        assert!(said.contains(expect), "expected '{expect}' in {said}");
+    }
+    assert!(ok(&["inspect", s(&arc)]).contains("gone.mtl not found"));
+    let twin_arc = dir.path().join("twin.canopy");
+    convert(&twin, &twin_arc, None);
+    let flags = [
+        "--spp", "4", "--width", "24", "--height", "24", "--seed", "3",
+    ];
+    let (a, _) = render(&arc, &dir.path().join("a.exr"), &flags);
+    let (b, _) = render(&twin_arc, &dir.path().join("b.exr"), &flags);
+    assert!(a.pixels.iter().any(|p| p[0] > 0.0), "a black image");
+    assert!(
+        a.pixels == b.pixels,
+        "the OBJ renders unlike its twin without materials"
     );
 }
