@@ -11,18 +11,8 @@ use common::*;
 use serde_json::{json, Value};
 use std::io::{BufRead, Read, Write};
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
-
-/// Kills a child process when the test ends, however it ends.
-struct Killed(Child);
-
-impl Drop for Killed {
-    fn drop(&mut self) {
-        self.0.kill().ok();
-        self.0.wait().ok();
-    }
-}
 
 /// One WebDriver command: `method` on `path` with an optional JSON body; returns `value`.
 /// HTTP/1.1 (ChromeDriver refuses 1.0), one connection per command.
@@ -71,22 +61,6 @@ fn webdriver(port: u16, method: &str, path: &str, body: Option<Value>) -> Value 
     reply["value"].clone()
 }
 
-fn installed(prog: &str) -> bool {
-    Command::new("sh")
-        .args(["-c", &format!("command -v {prog}")])
-        .output()
-        .is_ok_and(|o| o.status.success())
-}
-
-/// Says the test skipped (straight to standard error: the harness holds back `eprintln!`)
-/// and leaves a marker `.ci/run` reads.
-fn skipped(why: &str) {
-    let line = format!("tests/browser.rs SKIPPED: {why}\n");
-    std::io::stderr().write_all(line.as_bytes()).ok();
-    let marker = Path::new(env!("CARGO_TARGET_TMPDIR")).join("browser-test-skipped");
-    std::fs::write(marker, line).ok();
-}
-
 /// Polls `script` in the page until it returns true.
 fn wait_for(port: u16, session: &str, script: &str, what: &str) {
     let start = Instant::now();
@@ -122,11 +96,11 @@ fn shown_red(port: u16, session: &str, element: &str) -> f64 {
 #[test]
 fn the_relight_page_shows_a_brighter_image_when_the_lamp_slider_moves() {
     let marker = Path::new(env!("CARGO_TARGET_TMPDIR")).join("browser-test-skipped");
-    std::fs::remove_file(marker).ok();
+    std::fs::remove_file(&marker).ok();
     if !installed("chromium") || !installed("chromedriver") {
-        skipped(
-            "Chromium or ChromeDriver is not installed (apt-get install chromium chromium-driver)",
-        );
+        let why =
+            "Chromium or ChromeDriver is not installed (apt-get install chromium chromium-driver)";
+        skipped(&marker, "tests/browser.rs", why);
         return;
     }
     let dir = tempfile::tempdir().unwrap();
@@ -139,23 +113,7 @@ fn the_relight_page_shows_a_brighter_image_when_the_lamp_slider_moves() {
         &size[..],
     ]
     .concat());
-    let mut server = Command::new(env!("CARGO_BIN_EXE_canopy"))
-        .args(["relight", s(&view), "--serve", "127.0.0.1:0"])
-        .stdout(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    std::io::BufReader::new(server.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let _server = Killed(server);
-    let at = line
-        .split("http://")
-        .nth(1)
-        .unwrap()
-        .split('/')
-        .next()
-        .unwrap();
+    let (_server, at) = relight_server(&view);
     let url = format!("http://{at}/");
     let port = 21000 + (std::process::id() % 20000) as u16;
     let driver = Command::new("chromedriver")

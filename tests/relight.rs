@@ -227,40 +227,12 @@ fn post(addr: &str, body: &str) -> (u16, Vec<u8>) {
     )
 }
 
-/// Kills the server when the test ends, however it ends.
-struct Killed(std::process::Child);
-
-impl Drop for Killed {
-    fn drop(&mut self) {
-        self.0.kill().ok();
-        self.0.wait().ok();
-    }
-}
-
 #[test]
 fn the_server_answers_light_sets_and_survives_bad_requests() {
-    use std::io::BufRead;
     let dir = tempfile::tempdir().unwrap();
     let (_, view) = prepared(dir.path());
     assert!(fails(&["relight", s(&view), "--serve", "0.0.0.0:0"]).contains("loopback"));
-    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_canopy"))
-        .args(["relight", s(&view), "--serve", "127.0.0.1:0"])
-        .stdout(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let mut line = String::new();
-    std::io::BufReader::new(child.stdout.take().unwrap())
-        .read_line(&mut line)
-        .unwrap();
-    let _server = Killed(child);
-    let addr = line
-        .split("http://")
-        .nth(1)
-        .unwrap()
-        .split('/')
-        .next()
-        .unwrap()
-        .to_string();
+    let (_server, addr) = relight_server(&view);
     let (code, page) = http(&addr, "GET / HTTP/1.0\r\n\r\n");
     assert_eq!(code, 200);
     assert!(String::from_utf8_lossy(&page).contains("/render"));

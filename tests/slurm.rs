@@ -109,35 +109,21 @@ impl Drop for Cluster {
     }
 }
 
-fn installed(prog: &str) -> bool {
-    Command::new("sh")
-        .args(["-c", &format!("command -v {prog}")])
-        .output()
-        .is_ok_and(|o| o.status.success())
-}
-
-/// Says the test skipped where a run's log shows it (straight to standard error: the test
-/// harness would hold back `eprintln!`), and leaves a marker `.ci/run` reads: as root
-/// with Slurm installed, a skip fails the run.
-fn skipped(why: &str) {
-    use std::io::Write;
-    let line = format!("tests/slurm.rs SKIPPED: {why}\n");
-    std::io::stderr().write_all(line.as_bytes()).ok();
-    let marker = Path::new(env!("CARGO_TARGET_TMPDIR")).join("slurm-test-skipped");
-    std::fs::write(marker, line).ok();
-}
-
 #[test]
 fn slurm_jobs_write_what_one_process_writes() {
     let marker = Path::new(env!("CARGO_TARGET_TMPDIR")).join("slurm-test-skipped");
-    std::fs::remove_file(marker).ok();
+    std::fs::remove_file(&marker).ok();
     let root = Command::new("id").arg("-u").output().unwrap().stdout == b"0\n";
     if !["slurmctld", "slurmd", "sbatch"]
         .iter()
         .all(|p| installed(p))
         || !root
     {
-        skipped("Slurm is not installed or this is not root (see tools/slurm/README.md)");
+        skipped(
+            &marker,
+            "tests/slurm.rs",
+            "Slurm is not installed or this is not root (see tools/slurm/README.md)",
+        );
         return;
     }
     let dir = tempfile::tempdir().unwrap();
@@ -269,20 +255,26 @@ fn the_slurm_convert_script_refuses_bad_arguments_by_name() {
         ),
     ];
     for (what, extra, expect) in cases {
-        let run = Command::new("bash")
-            .args([s(&script), s(&out)])
-            .args(&extra)
-            .env("CANOPY", env!("CARGO_BIN_EXE_canopy"))
-            .output()
-            .unwrap();
-        let err = String::from_utf8_lossy(&run.stderr);
-        assert_eq!(run.status.code(), Some(2), "{what}: {err}");
-        assert!(err.contains(expect), "{what}: expected '{expect}' in {err}");
+        let args = [&[s(&script), s(&out)][..], &extra].concat();
+        script_refuses(what, &args, expect);
         assert!(
             !out.exists() && !dir.path().join("x.canopy.work").exists(),
             "{what}"
         );
     }
+}
+
+/// Runs a script of `tools/slurm/` with `args` (no Slurm needed) and checks it exits with
+/// status 2 naming `expect`.
+fn script_refuses(what: &str, args: &[&str], expect: &str) {
+    let run = Command::new("bash")
+        .args(args)
+        .env("CANOPY", env!("CARGO_BIN_EXE_canopy"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(2), "{what}: {err}");
+    assert!(err.contains(expect), "{what}: expected '{expect}' in {err}");
 }
 
 /// The script refuses bad arguments before it submits anything (no Slurm needed): each
@@ -347,15 +339,8 @@ fn the_slurm_script_refuses_bad_arguments_by_name() {
         ),
     ];
     for (what, archive, extra, expect) in cases {
-        let run = Command::new("bash")
-            .args([s(&script), s(archive), s(&out)])
-            .args(&extra)
-            .env("CANOPY", env!("CARGO_BIN_EXE_canopy"))
-            .output()
-            .unwrap();
-        let err = String::from_utf8_lossy(&run.stderr);
-        assert_eq!(run.status.code(), Some(2), "{what}: {err}");
-        assert!(err.contains(expect), "{what}: expected '{expect}' in {err}");
+        let args = [&[s(&script), s(archive), s(&out)][..], &extra].concat();
+        script_refuses(what, &args, expect);
         assert!(
             !out.exists() && !dir.path().join("frame.exr.tiles").exists(),
             "{what}"

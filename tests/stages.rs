@@ -15,16 +15,7 @@ fn staged(input: &[&str], out: &Path, work: &Path, extra: &[&str]) -> usize {
     args.extend(extra);
     let said = ok(&args);
     assert!(said.contains("prepared"), "{said}");
-    let chunks = std::fs::read_dir(work)
-        .unwrap()
-        .filter(|e| {
-            e.as_ref()
-                .unwrap()
-                .file_name()
-                .to_string_lossy()
-                .ends_with(".tris")
-        })
-        .count();
+    let chunks = chunk_count(work);
     for k in (0..chunks).rev() {
         ok(&[
             "--quiet",
@@ -37,6 +28,17 @@ fn staged(input: &[&str], out: &Path, work: &Path, extra: &[&str]) -> usize {
     }
     ok(&["--quiet", "convert", "--work", s(work), "--join"]);
     chunks
+}
+
+/// The chunks a conversion prepared in `work` has (its `chunk-K.tris` files).
+fn chunk_count(work: &Path) -> usize {
+    std::fs::read_dir(work)
+        .unwrap()
+        .filter(|e| {
+            let name = e.as_ref().unwrap().file_name();
+            name.to_string_lossy().ends_with(".tris")
+        })
+        .count()
 }
 
 fn same_bytes(a: &Path, b: &Path, what: &str) {
@@ -139,16 +141,7 @@ fn missing_stale_or_damaged_work_files_are_refused_by_name() {
     assert!(e.contains("cannot be used with"), "{e}");
     let e = fails(&["convert", "--chunk", "0"]);
     assert!(e.contains("--work"), "{e}");
-    let chunks = std::fs::read_dir(&work)
-        .unwrap()
-        .filter(|e| {
-            e.as_ref()
-                .unwrap()
-                .file_name()
-                .to_string_lossy()
-                .ends_with(".tris")
-        })
-        .count();
+    let chunks = chunk_count(&work);
     for k in 0..chunks {
         ok(&["--quiet", "convert", "--work", w, "--chunk", &k.to_string()]);
     }
@@ -206,16 +199,7 @@ fn a_forged_state_is_refused_or_read_never_panicked_on() {
         s(&work),
     ];
     ok(&[&args[..], &["--mem-budget", "128MiB"]].concat());
-    let chunks = std::fs::read_dir(&work)
-        .unwrap()
-        .filter(|e| {
-            e.as_ref()
-                .unwrap()
-                .file_name()
-                .to_string_lossy()
-                .ends_with(".tris")
-        })
-        .count();
+    let chunks = chunk_count(&work);
     let keep: Vec<_> = std::fs::read_dir(&work)
         .unwrap()
         .map(|e| e.unwrap().path())

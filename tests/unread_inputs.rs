@@ -7,6 +7,20 @@
 
 mod common;
 use common::*;
+use std::path::Path;
+
+/// `arc` renders, not black, pixel for pixel as `twin` converted does (same seed).
+fn renders_as_twin(arc: &Path, twin: &Path, dir: &Path, what: &str) {
+    let twin_arc = dir.join("twin.canopy");
+    convert(twin, &twin_arc, None);
+    let flags = [
+        "--spp", "4", "--width", "24", "--height", "24", "--seed", "3",
+    ];
+    let (a, _) = render(arc, &dir.join("a.exr"), &flags);
+    let (b, _) = render(&twin_arc, &dir.join("b.exr"), &flags);
+    assert!(a.pixels.iter().any(|p| p[0] > 0.0), "a black image");
+    assert!(a.pixels == b.pixels, "{what}");
+}
 
 #[test]
 fn a_texture_without_an_image_is_dropped_by_name_and_its_factor_kept() {
@@ -47,17 +61,11 @@ fn a_texture_without_an_image_is_dropped_by_name_and_its_factor_kept() {
     }
     let listed = ok(&["inspect", s(&arc)]);
     assert!(listed.contains("texture 0) is dropped"), "{listed}");
-    let twin_arc = dir.path().join("twin.canopy");
-    convert(&without, &twin_arc, None);
-    let flags = [
-        "--spp", "4", "--width", "24", "--height", "24", "--seed", "3",
-    ];
-    let (a, _) = render(&arc, &dir.path().join("a.exr"), &flags);
-    let (b, _) = render(&twin_arc, &dir.path().join("b.exr"), &flags);
-    assert!(a.pixels.iter().any(|p| p[0] > 0.0), "a black image");
-    assert!(
-        a.pixels == b.pixels,
-        "the archive renders unlike its twin without the textures"
+    renders_as_twin(
+        &arc,
+        &without,
+        dir.path(),
+        "the archive renders unlike its twin without the textures",
     );
 }
 
@@ -80,16 +88,10 @@ fn an_obj_whose_material_library_is_missing_takes_the_default_material_by_name()
         assert!(said.contains(expect), "expected '{expect}' in {said}");
     }
     assert!(ok(&["inspect", s(&arc)]).contains("gone.mtl not found"));
-    let twin_arc = dir.path().join("twin.canopy");
-    convert(&twin, &twin_arc, None);
-    let flags = [
-        "--spp", "4", "--width", "24", "--height", "24", "--seed", "3",
-    ];
-    let (a, _) = render(&arc, &dir.path().join("a.exr"), &flags);
-    let (b, _) = render(&twin_arc, &dir.path().join("b.exr"), &flags);
-    assert!(a.pixels.iter().any(|p| p[0] > 0.0), "a black image");
-    assert!(
-        a.pixels == b.pixels,
-        "the OBJ renders unlike its twin without materials"
+    renders_as_twin(
+        &arc,
+        &twin,
+        dir.path(),
+        "the OBJ renders unlike its twin without materials",
     );
 }

@@ -569,3 +569,49 @@ pub fn edge_rays_case(integrator: &str) {
         "first pass, squared error {first:?}"
     );
 }
+
+/// Whether `prog` is on the PATH.
+pub fn installed(prog: &str) -> bool {
+    std::process::Command::new("sh")
+        .args(["-c", &format!("command -v {prog}")])
+        .output()
+        .is_ok_and(|o| o.status.success())
+}
+
+/// Says `test` skipped, and why, where a run's log shows it (straight to standard error: the
+/// test harness would hold back `eprintln!`), and leaves `marker` for `.ci/run`, which fails
+/// a run where the test skipped although what it needs is installed.
+pub fn skipped(marker: &Path, test: &str, why: &str) {
+    use std::io::Write;
+    let line = format!("{test} SKIPPED: {why}\n");
+    std::io::stderr().write_all(line.as_bytes()).ok();
+    std::fs::write(marker, line).ok();
+}
+
+/// A child process killed when the test ends, however it ends.
+pub struct Killed(pub std::process::Child);
+
+impl Drop for Killed {
+    fn drop(&mut self) {
+        self.0.kill().ok();
+        self.0.wait().ok();
+    }
+}
+
+/// `canopy relight VIEW --serve` on a free loopback port: the server (killed when dropped)
+/// and the address it printed (`127.0.0.1:PORT`).
+pub fn relight_server(view: &Path) -> (Killed, String) {
+    use std::io::BufRead;
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_canopy"))
+        .args(["relight", s(view), "--serve", "127.0.0.1:0"])
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().unwrap())
+        .read_line(&mut line)
+        .unwrap();
+    let server = Killed(child);
+    let at = line.split("http://").nth(1).unwrap().split('/').next();
+    (server, at.unwrap().to_string())
+}

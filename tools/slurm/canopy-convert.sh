@@ -13,15 +13,7 @@
 # default: canopy on PATH). --mem per job is --mem-budget plus 256 MiB (2 GiB budget by
 # default). --concurrent K runs at most K chunk tasks at once (sbatch --array=...%K).
 set -euo pipefail
-
-usage() {
-    sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//' >&2
-    exit 2
-}
-fail() {
-    echo "canopy-convert.sh: $*" >&2
-    exit 2
-}
+. "$(dirname "$0")/lib.sh"
 
 [ $# -ge 2 ] || usage
 case $1 in -h|--help) usage ;; esac
@@ -47,26 +39,15 @@ while [ $# -gt 0 ]; do
         *) inputs+=("$1"); shift ;;
     esac
 done
-whole() { [[ $1 =~ ^[1-9][0-9]*$ ]]; }
 [ ${#inputs[@]} -gt 0 ] || fail "no input files"
 [ -z "$concurrent" ] || whole "$concurrent" || fail "--concurrent K must be a positive whole number"
 for f in "${inputs[@]}"; do [ -f "$f" ] || fail "$f: no such input file"; done
 command -v "$canopy" >/dev/null || fail "$canopy: not found (set CANOPY to the canopy binary)"
 command -v sbatch >/dev/null || fail "sbatch not found: is Slurm installed here?"
 
-# --mem in MiB from a size like 512MiB, 2GiB, 1.5G or a byte count.
-mem_mib() {
-    awk -v s="$1" 'BEGIN {
-        if (match(s, /^[0-9.]+/) == 0) exit 1
-        n = substr(s, 1, RLENGTH); u = toupper(substr(s, RLENGTH + 1)); sub(/I?B$/, "", u)
-        f = (u == "") ? 1 : (u == "K") ? 1024 : (u == "M") ? 1048576 : (u == "G") ? 1073741824 : (u == "T") ? 1099511627776 : -1
-        if (f < 0) exit 1
-        printf "%d\n", n * f / 1048576 + 256 }'
-}
 mem=2304
 [ -z "$budget" ] || mem=$(mem_mib "$budget") || fail "--mem-budget '$budget' is not a size"
 
-abs() { (cd "$(dirname "$1")" && printf '%s/%s\n' "$(pwd -P)" "$(basename "$1")"); }
 mkdir -p "$(dirname "$out")"
 out=$(abs "$out")
 work=${work:-$out.work}
@@ -77,8 +58,6 @@ abs_inputs=()
 for f in "${inputs[@]}"; do abs_inputs+=("$(abs "$f")"); done
 canopy=$(command -v "$canopy")
 
-# Each argument shell-quoted after a space (nothing for none).
-quoted() { for a in "$@"; do printf ' %q' "$a"; done; }
 {
     echo '#!/usr/bin/env bash'
     printf 'exec %q --quiet convert --work %q --chunk "$SLURM_ARRAY_TASK_ID"\n' "$canopy" "$work"

@@ -13,15 +13,7 @@
 # sees it. --mem per task is --mem-budget plus 256 MiB for code, film and buffers (2 GiB
 # without a budget). --concurrent K runs at most K tiles at once (sbatch --array=...%K).
 set -euo pipefail
-
-usage() {
-    sed -n '2,14p' "$0" | sed 's/^# \{0,1\}//' >&2
-    exit 2
-}
-fail() {
-    echo "canopy-frame.sh: $*" >&2
-    exit 2
-}
+. "$(dirname "$0")/lib.sh"
 
 [ $# -ge 2 ] || usage
 case $1 in -h|--help) usage ;; esac
@@ -48,7 +40,6 @@ while [ $# -gt 0 ]; do
         *) opts+=("$1"); shift ;;
     esac
 done
-whole() { [[ $1 =~ ^[1-9][0-9]*$ ]]; }
 whole "$tiles" || fail "--tiles N (a positive whole number) is required"
 whole "$width" && whole "$height" || fail "--width and --height are required (the frame's size decides the tiles)"
 [ "$tiles" -le "$height" ] || fail "--tiles $tiles is more than the $height rows of the frame"
@@ -57,19 +48,9 @@ whole "$width" && whole "$height" || fail "--width and --height are required (th
 command -v "$canopy" >/dev/null || fail "$canopy: not found (set CANOPY to the canopy binary)"
 command -v sbatch >/dev/null || fail "sbatch not found: is Slurm installed here?"
 
-# --mem in MiB from a size like 512MiB, 2GiB, 1.5G or a byte count.
-mem_mib() {
-    awk -v s="$1" 'BEGIN {
-        if (match(s, /^[0-9.]+/) == 0) exit 1
-        n = substr(s, 1, RLENGTH); u = toupper(substr(s, RLENGTH + 1)); sub(/I?B$/, "", u)
-        f = (u == "") ? 1 : (u == "K") ? 1024 : (u == "M") ? 1048576 : (u == "G") ? 1073741824 : (u == "T") ? 1099511627776 : -1
-        if (f < 0) exit 1
-        printf "%d\n", n * f / 1048576 + 256 }'
-}
 mem=2048
 [ -z "$budget" ] || mem=$(mem_mib "$budget") || fail "--mem-budget '$budget' is not a size"
 
-abs() { (cd "$(dirname "$1")" && printf '%s/%s\n' "$(pwd -P)" "$(basename "$1")"); }
 archive=$(abs "$archive")
 mkdir -p "$(dirname "$out")"
 out=$(abs "$out")
@@ -77,8 +58,6 @@ dir="$out.tiles"
 mkdir -p "$dir"
 canopy=$(command -v "$canopy")
 
-# Each argument shell-quoted after a space (nothing for none).
-quoted() { for a in "$@"; do printf ' %q' "$a"; done; }
 shared=()
 after=()
 if [ "$integrator" = cone ]; then
