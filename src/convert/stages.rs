@@ -254,7 +254,8 @@ pub fn join(work: &Path, show: bool) -> Result<ConvertReport> {
     let bar = crate::progress::bar(show, state.chunk_bytes.len() as u64, "joining");
     let mut chunk_seconds = 0.0;
     for k in 0..state.chunk_bytes.len() as u32 {
-        let (out, seconds) = read_chunk(work, k, sum, writer.page_count(), opts.zstd_level)?;
+        let at = writer.page_count();
+        let (out, seconds) = read_chunk(work, k, (sum, state.single), at, opts.zstd_level)?;
         chunk_seconds += seconds;
         assembly.add(&mut writer, out)?;
         bar.inc(1);
@@ -369,8 +370,15 @@ impl PageHead {
     }
 }
 
-/// Chunk `k`'s pages, numbered from `base`, and the seconds its build took.
-fn read_chunk(work: &Path, k: u32, state: u64, base: u32, level: i32) -> Result<(ChunkOut, f64)> {
+/// Chunk `k`'s pages, numbered from `base`, and the seconds its build took; `single`: the
+/// chunk is the whole scene.
+fn read_chunk(
+    work: &Path,
+    k: u32,
+    (state, single): (u64, bool),
+    base: u32,
+    level: i32,
+) -> Result<(ChunkOut, f64)> {
     let path = pages_file(work, k);
     let (head, mut rest) = read_sealed(&path, PAGES_MAGIC)?;
     let head: ChunkHead = postcard::from_bytes(&head)
@@ -389,10 +397,16 @@ fn read_chunk(work: &Path, k: u32, state: u64, base: u32, level: i32) -> Result<
             .ok_or_else(|| damaged("a page number overflows")),
     };
     let leaf_tris = records::<SpillTri>(&head.leaf_tris, "triangles")?;
+    // A chunk's pages hold what is below its root, or the root too when the chunk is the
+    // scene; a leaf root that is not the scene's comes with its triangles instead.
+    let paged = !head.pages.is_empty() && leaf_tris.is_empty();
     let fits = match head.root.as_ref().map(|r| r.kind) {
         None => head.pages.is_empty() && leaf_tris.is_empty(),
-        Some(Kind::Leaf { count, .. }) => leaf_tris.len() == count as usize,
-        Some(Kind::Inner(_)) => !head.pages.is_empty() && leaf_tris.is_empty(),
+        Some(Kind::Leaf { .. }) if single => paged,
+        Some(Kind::Leaf { count, .. }) => {
+            head.pages.is_empty() && leaf_tris.len() == count as usize
+        }
+        Some(Kind::Inner(_)) => paged,
         Some(_) => false,
     };
     if !fits {
