@@ -111,7 +111,7 @@ struct PageHead {
     names_pages: bool,
 }
 
-/// Stage 1: everything up to the chunk builds; returns the number of chunks.
+/// Stage 1: everything up to the chunk builds; its report counts the chunks (`chunks`).
 pub fn prepare(opts: &ConvertOptions, work: &Path) -> Result<ConvertReport> {
     let t0 = Instant::now();
     std::fs::create_dir_all(work)
