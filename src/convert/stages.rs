@@ -8,9 +8,10 @@
 //! 2. `chunk K`: builds chunk K's tree and pages, numbered from 0 (`chunk-K.pages`). The
 //!    chunks are independent: any order, any node, at once.
 //! 3. `join`: resumes the archive, appends each chunk's pages in chunk order, moving the
-//!    child-page numbers of the few pages that name another page by the pages before them
-//!    (`renumber_page`: decompressed, changed, compressed again), builds the top tree over the
-//!    chunk roots and writes the tables; then removes the work files.
+//!    child-page numbers of the pages that name another page (about a quarter of them) by
+//!    the pages before the chunk (`renumber_page`: decompressed, changed, compressed again),
+//!    builds the top tree over the chunk roots and writes the tables; then removes the work
+//!    files.
 //!
 //! Every file carries a checksum; a chunk's pages name the state they were built from, so
 //! stale or damaged files are refused by name.
