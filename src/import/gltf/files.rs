@@ -199,17 +199,11 @@ fn unsourced_textures(json: &mut gltf::json::Root) -> Unsourced {
     out
 }
 
-/// Every texture's image and sampler exist, and every image names a buffer view in range
-/// with its MIME type, or a URI (the gltf crate's accessors unwrap these).
+/// Every texture's sampler exists (its image does, once `unsourced_textures` ran), and every
+/// image names a buffer view in range with its MIME type, or a URI (the gltf crate's
+/// accessors unwrap these).
 fn check_images(json: &gltf::json::Root) -> Result<()> {
     for (i, t) in json.textures.iter().enumerate() {
-        if t.source.value() >= json.images.len() {
-            bail!(
-                "texture {i} names image {} of {}",
-                t.source.value(),
-                json.images.len()
-            );
-        }
         if let Some(s) = t.sampler.filter(|s| s.value() >= json.samplers.len()) {
             bail!(
                 "texture {i} names sampler {} of {}",
