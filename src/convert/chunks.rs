@@ -41,7 +41,7 @@ pub fn build(
 ) -> Result<(BNode, u32)> {
     let bar = progress::bar(c.show, c.triangles, "building");
     let chunk_count = c.files.len();
-    let mut assembly = Assembly::new(chunk_count == 1 && extra.0.is_empty(), extra.1);
+    let mut assembly = Assembly::new(scene_is_one_chunk(chunk_count, &extra.0), extra.1);
     let job = ChunkJob {
         files: c.files.into_iter().map(|f| Mutex::new(Some(f))).collect(),
         mats: c.mats,
@@ -82,6 +82,12 @@ pub fn build(
     })?;
     bar.finish_and_clear();
     assembly.finish(writer, extra.0, opts, c.streams)
+}
+
+/// Whether the scene is one chunk and nothing else (no instance subtrees): that chunk's tree
+/// is paged from its root, which is the scene's; otherwise a top tree joins the roots.
+pub fn scene_is_one_chunk(chunks: usize, instance_groups: &[BNode]) -> bool {
+    chunks == 1 && instance_groups.is_empty()
 }
 
 /// Whether chunk trees get obvhs's fast build (`--bvh`, `auto` by the triangle count).

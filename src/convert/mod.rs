@@ -277,7 +277,7 @@ pub fn convert(opts: &ConvertOptions) -> Result<ConvertReport> {
     );
     let top = chunks::build(&mut s.writer, chunks, extra, opts)?;
     s.report.seconds_build += t.elapsed().as_secs_f64();
-    complete(s, top, t0)
+    complete(s.writer, (s.info, s.report), s.placed.depth, top, t0)
 }
 
 /// Imports the inputs, writes the textures and the instances' pages, and partitions the
@@ -397,20 +397,19 @@ fn stage(opts: &ConvertOptions, work: Option<&Path>) -> Result<Staged> {
 }
 
 /// Writes the tables and header of a conversion whose pages are all written; `top` is the
-/// scene's root and the number of its page.
-fn complete(s: Staged, top: (BNode, u32), t0: Instant) -> Result<ConvertReport> {
-    let Staged {
-        writer,
-        placed,
-        mut info,
-        mut report,
-        ..
-    } = s;
+/// scene's root and the number of its page, `prototype_depth` the deepest prototype tree.
+fn complete(
+    writer: ArchiveWriter,
+    (mut info, mut report): (SceneInfo, ConvertReport),
+    prototype_depth: u32,
+    top: (BNode, u32),
+    t0: Instant,
+) -> Result<ConvertReport> {
     let (root, root_page) = top;
     info.bounds_min = root.lo;
     info.bounds_max = root.hi;
     info.root_page = root_page;
-    info.depth = root.height.max(placed.depth);
+    info.depth = root.height.max(prototype_depth);
     report.pages = writer.page_count() as u64;
     report.nodes = writer.node_count();
     report.output = writer.path().to_path_buf();

@@ -53,23 +53,27 @@ pub struct SpillWriter {
 impl SpillWriter {
     /// An unnamed spill file in `dir`.
     pub fn create(dir: &Path, buffer: usize) -> Result<SpillWriter> {
-        let file = unnamed(dir)?;
-        Ok(SpillWriter {
-            out: BufWriter::with_capacity(buffer, file),
-            written: 0,
-            path: dir.join("(spill file)"),
-        })
+        Ok(SpillWriter::over(
+            unnamed(dir)?,
+            buffer,
+            dir.join("(spill file)"),
+        ))
     }
 
     /// A spill file named `path` (a cluster conversion's chunk file), replacing what is there.
     pub fn create_named(path: &Path, buffer: usize) -> Result<SpillWriter> {
         let file = File::create(path)
             .with_context(|| format!("{}: cannot create a chunk file", path.display()))?;
-        Ok(SpillWriter {
+        Ok(SpillWriter::over(file, buffer, path.to_path_buf()))
+    }
+
+    /// A writer of `file` from its start; `path` names it in messages.
+    fn over(file: File, buffer: usize, path: PathBuf) -> SpillWriter {
+        SpillWriter {
             out: BufWriter::with_capacity(buffer, file),
             written: 0,
-            path: path.to_path_buf(),
-        })
+            path,
+        }
     }
 
     /// Where the next record will start, for `for_each_in`.

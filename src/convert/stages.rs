@@ -144,7 +144,7 @@ pub fn prepare(opts: &ConvertOptions, work: &Path) -> Result<ConvertReport> {
         page_nodes: opts.page_nodes as u32,
         zstd_level: opts.zstd_level,
         fast: super::chunks::fast_build(opts, triangles),
-        single: chunk_bytes.len() == 1 && placed.groups.is_empty(),
+        single: super::chunks::scene_is_one_chunk(chunk_bytes.len(), &placed.groups),
         chunk_bytes,
         coarse: mats.into_coarse(),
         writer_pages: pod_bytes(&w.pages),
@@ -226,7 +226,7 @@ pub fn chunk(work: &Path, k: u32) -> Result<u64> {
 /// adds up the stages' times: what one process would have spent.
 pub fn join(work: &Path, show: bool) -> Result<ConvertReport> {
     let t0 = Instant::now();
-    let (state, sum) = read_state(work)?;
+    let (mut state, sum) = read_state(work)?;
     let missing: Vec<u32> = (0..state.chunk_bytes.len() as u32)
         .filter(|&k| !pages_file(work, k).exists())
         .collect();
@@ -262,24 +262,14 @@ pub fn join(work: &Path, show: bool) -> Result<ConvertReport> {
         bar.inc(1);
     }
     bar.finish_and_clear();
-    let top = assembly.finish(&mut writer, state.groups.clone(), &opts, streams)?;
-    let mats = state.mats()?;
-    let mut report = state.report.clone();
+    let groups = std::mem::take(&mut state.groups);
+    let top = assembly.finish(&mut writer, groups, &opts, streams)?;
+    let info = state.info()?;
+    let mut report = state.report;
+    let prepared_seconds = report.seconds_total;
     report.seconds_build += chunk_seconds + t0.elapsed().as_secs_f64();
-    let staged = Staged {
-        writer,
-        files: Vec::new(),
-        mats,
-        placed: super::instances::Placed {
-            depth: state.placed_depth,
-            ..Default::default()
-        },
-        info: state.info()?,
-        triangles: 0,
-        report,
-    };
-    let mut report = super::complete(staged, top, t0)?;
-    report.seconds_total += state.report.seconds_total + chunk_seconds;
+    let mut report = super::complete(writer, (info, report), state.placed_depth, top, t0)?;
+    report.seconds_total += prepared_seconds + chunk_seconds;
     remove_work(work, true);
     Ok(report)
 }
