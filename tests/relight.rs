@@ -162,6 +162,37 @@ fn light_is_linear_in_the_lamps() {
     }
 }
 
+/// The precompute streams its pixels a band at a time and its rows through scratch files:
+/// the file is the same whatever the thread count or the budget, and nothing but the file
+/// is left beside it.
+#[test]
+fn a_precompute_is_the_same_file_at_any_thread_count_and_budget() {
+    let dir = tempfile::tempdir().unwrap();
+    let archive = dir.path().join("cbox.canopy");
+    convert(&scene("cbox.glb"), &archive, None);
+    let views: Vec<Vec<u8>> = [["1", "unlimited"], ["2", "6MiB"]]
+        .iter()
+        .map(|[threads, budget]| {
+            let view = dir.path().join(format!("{threads}.relight"));
+            let mut args = vec!["--quiet", "relight", s(&archive), "-o", s(&view)];
+            // 80 × 64 pixels: more than one band of 4,096.
+            args.extend(["--width", "80", "--height", "64", "--threads", threads]);
+            if *budget != "unlimited" {
+                args.extend(["--mem-budget", budget]);
+            }
+            ok(&args);
+            std::fs::read(view).unwrap()
+        })
+        .collect();
+    assert!(views[0] == views[1], "the two precomputes differ");
+    let mut left: Vec<String> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    left.sort();
+    assert_eq!(left, ["1.relight", "2.relight", "cbox.canopy"]);
+}
+
 #[test]
 fn bad_relight_files_and_flags_are_refused() {
     let dir = tempfile::tempdir().unwrap();
@@ -170,11 +201,12 @@ fn bad_relight_files_and_flags_are_refused() {
     let bytes = std::fs::read(&view).unwrap();
     let bad = dir.path().join("bad.relight");
     std::fs::write(&bad, &bytes[..bytes.len() / 2]).unwrap();
-    assert!(fails(&["relight", s(&bad), "-o", s(&out)]).contains("checksum"));
+    assert!(fails(&["relight", s(&bad), "-o", s(&out)]).contains("the header's counts make"));
     let mut flipped = bytes.clone();
     flipped[200] ^= 1;
     std::fs::write(&bad, &flipped).unwrap();
-    assert!(fails(&["relight", s(&bad), "-o", s(&out)]).contains("not a valid relight file"));
+    let e = fails(&["relight", s(&bad), "-o", s(&out)]);
+    assert!(e.contains("not a valid relight file") && e.contains("checksum"));
     assert!(fails(&["relight", s(&view), "-o", s(&out), "--paths", "4"])
         .contains("--paths applies when precomputing"));
     assert!(

@@ -1,21 +1,29 @@
 //! The `.relight` file: one view's samples, the light cells its transfer reads (with
 //! the points that light is gathered at) and each pixel's compressed transfer row. Layout
-//! in `format/FORMAT.md` ("Relight files"); everything is checked when it is read: sizes
-//! against the header's counts, the checksum, every index against what it indexes.
+//! in `format/FORMAT.md` ("The relight file"). It is written section by section as the
+//! precompute streams (`Writer`), and read mapped (`RelightFile`): a frame touches the rows
+//! and points in place, so the operating system pages them like the archive's pages and
+//! the file need not fit in memory. Everything is checked when it is opened: sizes against
+//! the header's counts, the checksum, every index against what it indexes.
 
 use super::cells::GatherPoint;
 use super::view::ViewRay;
 use anyhow::{bail, ensure, Context, Result};
 use bytemuck::{Pod, Zeroable};
+use canopy_format::atomic::AtomicFile;
 use half::f16;
-use std::io::Write;
+use std::ops::Range;
 use std::path::{Path, PathBuf};
-use xxhash_rust::xxh3::{xxh3_64, Xxh3};
+use xxhash_rust::xxh3::Xxh3;
 
 pub const MAGIC: [u8; 8] = *b"CNPYRLT\0";
-pub const VERSION: u32 = 1;
+pub const VERSION: u32 = 2;
 /// Longest archive path stored.
 const MAX_PATH: usize = 4096;
+/// Every section starts at a multiple of this (zero bytes pad the one before), so the
+/// mapped file's sections are read in place.
+const ALIGN: usize = 8;
+const HLEN: usize = std::mem::size_of::<Header>();
 
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
 #[repr(C)]
@@ -43,7 +51,13 @@ pub struct Header {
     pub camera: [u8; 64],
 }
 
-const _: () = assert!(std::mem::size_of::<Header>() == 152);
+const _: () = assert!(HLEN == 152 && HLEN % ALIGN == 0);
+
+impl Header {
+    pub fn pixels(&self) -> u64 {
+        self.width as u64 * self.height as u64
+    }
+}
 
 /// A pixel's emission record: a material and the light its lamps send the pixel directly.
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
@@ -53,23 +67,119 @@ pub struct Coef {
     pub w: [f32; 3],
 }
 
-/// A relight file in memory.
+/// Where each section lies in the file, in the order they are written.
+#[derive(Clone, Debug, Default)]
+struct Sections {
+    path: Range<usize>,
+    views: Range<usize>,
+    points: Range<usize>,
+    cell_first: Range<usize>,
+    row_first: Range<usize>,
+    coef_cell: Range<usize>,
+    coef_w: Range<usize>,
+    emit_first: Range<usize>,
+    emits: Range<usize>,
+    /// The file's length, the checksum's 8 bytes included.
+    len: usize,
+}
+
+/// The sections' places for the counts `h` gives.
+fn layout(h: &Header) -> Result<Sections> {
+    let pixels = h.pixels();
+    let mut at = HLEN;
+    let mut next = |n: u64, size: usize| -> Result<Range<usize>> {
+        let len = usize::try_from(n)
+            .ok()
+            .and_then(|n| n.checked_mul(size))
+            .context("counts overflow")?;
+        let start = at;
+        let end = start.checked_add(len).context("counts overflow")?;
+        at = end.checked_next_multiple_of(ALIGN).context("counts overflow")?;
+        Ok(start..end)
+    };
+    let cells = h.cells.checked_add(1).context("counts overflow")?;
+    let mut s = Sections {
+        path: next(h.path_len as u64, 1)?,
+        views: next(h.views, std::mem::size_of::<ViewRay>())?,
+        points: next(h.points, std::mem::size_of::<GatherPoint>())?,
+        cell_first: next(cells, 8)?,
+        row_first: next(pixels + 1, 8)?,
+        coef_cell: next(h.coefs, 4)?,
+        coef_w: next(h.coefs, 6)?,
+        emit_first: next(pixels + 1, 8)?,
+        emits: next(h.emits, std::mem::size_of::<Coef>())?,
+        len: 0,
+    };
+    s.len = at.checked_add(8).context("counts overflow")?;
+    Ok(s)
+}
+
+/// The checksum: xxh3-64 of the bytes after the header (to the checksum), then the header
+/// (written last, once the counts are known).
+fn checksum(body: &[u8], header: &[u8]) -> u64 {
+    let mut h = Xxh3::new();
+    h.update(body);
+    h.update(header);
+    h.digest()
+}
+
+/// Writes a relight file section by section, in the order of `Sections`; nothing appears
+/// at the path until `commit`, which checks the sections against the header's counts.
+pub struct Writer {
+    out: AtomicFile,
+    hash: Xxh3,
+}
+
+impl Writer {
+    /// Starts the file at `path`, its first section the archive's path.
+    pub fn create(path: &Path, archive: &Path) -> Result<Writer> {
+        let out = AtomicFile::create(path, HLEN)
+            .with_context(|| format!("{}: cannot write", path.display()))?;
+        let mut w = Writer {
+            out,
+            hash: Xxh3::new(),
+        };
+        w.put(archive.to_string_lossy().as_bytes())?;
+        w.end()?;
+        Ok(w)
+    }
+
+    /// Appends `items` to the section being written.
+    pub fn put<T: Pod>(&mut self, items: &[T]) -> Result<()> {
+        let bytes: &[u8] = bytemuck::cast_slice(items);
+        self.hash.update(bytes);
+        Ok(self.out.write_all(bytes)?)
+    }
+
+    /// Ends a section: zero bytes to the next multiple of 8.
+    pub fn end(&mut self) -> Result<()> {
+        let pad = (self.out.len() as usize).next_multiple_of(ALIGN) - self.out.len() as usize;
+        self.put(&[0u8; ALIGN][..pad])
+    }
+
+    /// Writes the checksum and `header`, and names the file.
+    pub fn commit(mut self, header: &Header) -> Result<()> {
+        let s = layout(header)?;
+        ensure!(
+            self.out.len() as usize + 8 == s.len,
+            "{} bytes written where the header's counts make {}",
+            self.out.len() + 8,
+            s.len
+        );
+        self.hash.update(bytemuck::bytes_of(header));
+        let sum = self.hash.digest();
+        self.out.write_all(&sum.to_le_bytes())?;
+        self.out.commit(bytemuck::bytes_of(header))?;
+        Ok(())
+    }
+}
+
+/// A relight file, mapped: its sections are read in place.
 pub struct RelightFile {
     pub header: Header,
     pub archive: PathBuf,
-    pub views: Vec<ViewRay>,
-    /// Per cell, its first point; `cells + 1` entries.
-    pub cell_first: Vec<u64>,
-    pub points: Vec<GatherPoint>,
-    /// Per pixel, its first coefficient; `width × height + 1` entries.
-    pub row_first: Vec<u64>,
-    /// Per coefficient of the rows, the cell it reads (index into the cells) and the light
-    /// it carries from that cell's mean arriving light E/π to the pixel.
-    pub coef_cell: Vec<u32>,
-    pub coef_w: Vec<[f16; 3]>,
-    /// Per pixel, its first emission record; `width × height + 1` entries.
-    pub emit_first: Vec<u64>,
-    pub emits: Vec<Coef>,
+    map: memmap2::Mmap,
+    at: Sections,
 }
 
 impl RelightFile {
@@ -78,58 +188,79 @@ impl RelightFile {
         (!name.is_empty()).then_some(name)
     }
 
-    pub fn write(&self, path: &Path) -> Result<()> {
-        crate::image::write_atomically(path, |tmp| {
-            let f = std::fs::File::create(tmp)?;
-            let mut w = Hashing(std::io::BufWriter::new(f), Xxh3::new());
-            let archive = self.archive.to_string_lossy();
-            w.write_all(bytemuck::bytes_of(&self.header))?;
-            w.write_all(archive.as_bytes())?;
-            w.write_all(bytemuck::cast_slice(&self.views))?;
-            w.write_all(bytemuck::cast_slice(&self.cell_first))?;
-            w.write_all(bytemuck::cast_slice(&self.points))?;
-            w.write_all(bytemuck::cast_slice(&self.row_first))?;
-            w.write_all(bytemuck::cast_slice(&self.coef_cell))?;
-            w.write_all(bytemuck::cast_slice(&self.coef_w))?;
-            w.write_all(bytemuck::cast_slice(&self.emit_first))?;
-            w.write_all(bytemuck::cast_slice(&self.emits))?;
-            let sum = w.1.digest();
-            w.0.write_all(&sum.to_le_bytes())?;
-            w.0.flush()?;
-            Ok(())
+    /// The view samples, `spp` per pixel.
+    pub fn views(&self) -> &[ViewRay] {
+        self.slice(&self.at.views)
+    }
+
+    /// The gather points, cell by cell.
+    pub fn points(&self) -> &[GatherPoint] {
+        self.slice(&self.at.points)
+    }
+
+    /// Per cell, its first point; `cells + 1` entries.
+    pub fn cell_first(&self) -> &[u64] {
+        self.slice(&self.at.cell_first)
+    }
+
+    /// Per pixel, its first coefficient; `width × height + 1` entries.
+    pub fn row_first(&self) -> &[u64] {
+        self.slice(&self.at.row_first)
+    }
+
+    /// Per coefficient of the rows, the cell it reads (an index into the cells).
+    pub fn coef_cell(&self) -> &[u32] {
+        self.slice(&self.at.coef_cell)
+    }
+
+    /// Per coefficient, the light it carries from its cell's mean arriving light E/π to
+    /// the pixel.
+    pub fn coef_w(&self) -> &[[f16; 3]] {
+        self.slice(&self.at.coef_w)
+    }
+
+    /// Per pixel, its first emission record; `width × height + 1` entries.
+    pub fn emit_first(&self) -> &[u64] {
+        self.slice(&self.at.emit_first)
+    }
+
+    pub fn emits(&self) -> &[Coef] {
+        self.slice(&self.at.emits)
+    }
+
+    /// A section in place: every section starts at a multiple of 8 of a page-aligned map.
+    fn slice<T: Pod>(&self, r: &Range<usize>) -> &[T] {
+        bytemuck::cast_slice(&self.map[r.clone()])
+    }
+
+    /// Opens and checks the file at `path`, and lets the kernel drop the pages the check
+    /// read (a frame faults back those it reads).
+    pub fn read(path: &Path) -> Result<RelightFile> {
+        let cannot = || format!("{}: cannot read", path.display());
+        // Stat before opening: opening a FIFO for reading would block until a writer came.
+        ensure!(
+            std::fs::metadata(path).with_context(cannot)?.is_file(),
+            "{}: not a file",
+            path.display()
+        );
+        let file = std::fs::File::open(path).with_context(cannot)?;
+        // SAFETY: read-only mapping; every access is within the length checked in `parse`.
+        let map = unsafe { memmap2::Mmap::map(&file) }.with_context(cannot)?;
+        let (header, archive, at) =
+            parse(&map).with_context(|| format!("{}: not a valid relight file", path.display()))?;
+        #[cfg(unix)]
+        // SAFETY: the mapping is read-only and shared; after MADV_DONTNEED a read faults
+        // the same file bytes back in, so no reader can observe a change.
+        unsafe {
+            map.unchecked_advise(memmap2::UncheckedAdvice::DontNeed).ok();
+        }
+        Ok(RelightFile {
+            header,
+            archive,
+            map,
+            at,
         })
     }
-
-    pub fn read(path: &Path) -> Result<RelightFile> {
-        let bytes =
-            std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
-        parse(&bytes).with_context(|| format!("{}: not a valid relight file", path.display()))
-    }
-}
-
-/// A writer that hashes what it writes.
-struct Hashing<W>(W, Xxh3);
-
-impl<W: Write> Write for Hashing<W> {
-    fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
-        let n = self.0.write(b)?;
-        self.1.update(&b[..n]);
-        Ok(n)
-    }
-    fn flush(&mut self) -> std::io::Result<()> {
-        self.0.flush()
-    }
-}
-
-/// Splits `n` items of `T` off the front of `rest`.
-fn take<T: Pod>(rest: &mut &[u8], n: u64) -> Result<Vec<T>> {
-    let len = (n as usize)
-        .checked_mul(std::mem::size_of::<T>())
-        .context("counts overflow")?;
-    ensure!(rest.len() >= len, "truncated");
-    let (a, b) = rest.split_at(len);
-    *rest = b;
-    Ok(bytemuck::pod_collect_to_vec(a))
 }
 
 /// Offsets that start at 0, never fall and end at `count`.
@@ -150,31 +281,24 @@ fn check_offsets(what: &str, first: &[u64], count: u64) -> Result<()> {
     Ok(())
 }
 
-fn parse(bytes: &[u8]) -> Result<RelightFile> {
-    let hlen = std::mem::size_of::<Header>();
+/// The header and the checks that need only it.
+fn parse_header(bytes: &[u8]) -> Result<Header> {
     ensure!(
-        bytes.len() >= hlen + 8,
+        bytes.len() >= HLEN + 8,
         "{} bytes is shorter than a header",
         bytes.len()
     );
-    let header: Header = bytemuck::pod_read_unaligned(&bytes[..hlen]);
+    let h: Header = bytemuck::pod_read_unaligned(&bytes[..HLEN]);
     ensure!(
-        header.magic == MAGIC,
+        h.magic == MAGIC,
         "bad magic (a .relight file is written by `canopy relight ARCHIVE -o VIEW.relight`)"
     );
     ensure!(
-        header.version == VERSION,
-        "version {} (this canopy reads {VERSION})",
-        header.version
+        h.version == VERSION,
+        "version {} (this canopy reads {VERSION}: run `canopy relight` on the archive again)",
+        h.version
     );
-    let (body, sum) = bytes.split_at(bytes.len() - 8);
-    let sum = u64::from_le_bytes(sum.try_into().expect("8 bytes"));
-    ensure!(
-        xxh3_64(body) == sum,
-        "checksum mismatch (the file is damaged or truncated)"
-    );
-    let h = &header;
-    let pixels = h.width as u64 * h.height as u64;
+    let pixels = h.pixels();
     ensure!(
         pixels > 0 && h.spp > 0,
         "an empty view ({}x{}, {} samples per pixel)",
@@ -193,60 +317,76 @@ fn parse(bytes: &[u8]) -> Result<RelightFile> {
         "archive path of {} bytes",
         h.path_len
     );
-    let mut rest = &body[hlen..];
-    let path: Vec<u8> = take(&mut rest, h.path_len as u64)?;
-    let archive = PathBuf::from(String::from_utf8(path).context("archive path is not UTF-8")?);
-    let views = take(&mut rest, h.views)?;
-    let cell_first: Vec<u64> = take(
-        &mut rest,
-        h.cells.checked_add(1).context("counts overflow")?,
-    )?;
-    let points = take(&mut rest, h.points)?;
-    let row_first: Vec<u64> = take(&mut rest, pixels + 1)?;
-    let coef_cell: Vec<u32> = take(&mut rest, h.coefs)?;
-    let coef_w: Vec<[f16; 3]> = take(&mut rest, h.coefs)?;
-    let emit_first: Vec<u64> = take(&mut rest, pixels + 1)?;
-    let emits: Vec<Coef> = take(&mut rest, h.emits)?;
+    Ok(h)
+}
+
+fn parse(bytes: &[u8]) -> Result<(Header, PathBuf, Sections)> {
+    let h = parse_header(bytes)?;
+    let s = layout(&h)?;
     ensure!(
-        rest.is_empty(),
-        "{} bytes after the last section",
-        rest.len()
+        bytes.len() == s.len,
+        "{} bytes where the header's counts make {}",
+        bytes.len(),
+        s.len
     );
-    check_offsets("cells", &cell_first, h.points)?;
-    check_offsets("rows", &row_first, h.coefs)?;
-    check_offsets("emission", &emit_first, h.emits)?;
+    let (body, sum) = bytes.split_at(bytes.len() - 8);
+    let sum = u64::from_le_bytes(sum.try_into().expect("8 bytes"));
+    ensure!(
+        checksum(&body[HLEN..], &body[..HLEN]) == sum,
+        "checksum mismatch (the file is damaged or truncated)"
+    );
+    let sections = [
+        &s.path,
+        &s.views,
+        &s.points,
+        &s.cell_first,
+        &s.row_first,
+        &s.coef_cell,
+        &s.coef_w,
+        &s.emit_first,
+        &s.emits,
+    ];
+    let pads = sections
+        .windows(2)
+        .map(|w| w[0].end..w[1].start)
+        .chain(std::iter::once(s.emits.end..s.len - 8));
+    for pad in pads {
+        ensure!(
+            bytes[pad].iter().all(|&b| b == 0),
+            "padding between sections is not zero"
+        );
+    }
+    let archive = PathBuf::from(
+        std::str::from_utf8(&bytes[s.path.clone()]).context("archive path is not UTF-8")?,
+    );
+    let cast = |r: &Range<usize>| &bytes[r.clone()];
+    check_offsets("cells", bytemuck::cast_slice(cast(&s.cell_first)), h.points)?;
+    check_offsets("rows", bytemuck::cast_slice(cast(&s.row_first)), h.coefs)?;
+    check_offsets("emission", bytemuck::cast_slice(cast(&s.emit_first)), h.emits)?;
+    let coef_cell: &[u32] = bytemuck::cast_slice(cast(&s.coef_cell));
     if let Some(c) = coef_cell.iter().find(|&&c| c as u64 >= h.cells) {
         bail!("a coefficient names cell {c} of {}", h.cells);
     }
     let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
+    let coef_w: &[[f16; 3]] = bytemuck::cast_slice(cast(&s.coef_w));
+    let emits: &[Coef] = bytemuck::cast_slice(cast(&s.emits));
     ensure!(
         coef_w.iter().flatten().all(|x| x.is_finite()) && emits.iter().all(|c| finite(&c.w)),
         "a coefficient is not finite"
     );
+    let points: &[GatherPoint] = bytemuck::cast_slice(cast(&s.points));
     ensure!(
-        points
-            .iter()
-            .all(|p: &GatherPoint| finite(&p.p) && finite(&p.n)),
+        points.iter().all(|p| finite(&p.p) && finite(&p.n)),
         "a gather point is not finite"
     );
+    let views: &[ViewRay] = bytemuck::cast_slice(cast(&s.views));
     ensure!(
         views
             .iter()
-            .all(|v: &ViewRay| finite(&v.o) && finite(&v.d) && finite(&v.beta)),
+            .all(|v| finite(&v.o) && finite(&v.d) && finite(&v.beta)),
         "a view ray is not finite"
     );
-    Ok(RelightFile {
-        header,
-        archive,
-        views,
-        cell_first,
-        points,
-        row_first,
-        coef_cell,
-        coef_w,
-        emit_first,
-        emits,
-    })
+    Ok((h, archive, s))
 }
 
 #[cfg(test)]
@@ -254,8 +394,8 @@ mod tests {
     use super::*;
     use crate::test_rng::TestRng;
 
-    /// A small valid file: a 2×1 view of 1 sample a pixel reading 2 cells.
-    fn small() -> RelightFile {
+    /// Writes a small valid file: a 2×1 view of 1 sample a pixel reading 2 cells.
+    fn small(path: &Path) {
         let archive = PathBuf::from("/a.canopy");
         let view = ViewRay {
             o: [0.0; 3],
@@ -270,50 +410,67 @@ mod tests {
         };
         let mut camera = [0u8; 64];
         camera[..4].copy_from_slice(b"main");
-        RelightFile {
-            header: Header {
-                magic: MAGIC,
-                version: VERSION,
-                width: 2,
-                height: 1,
-                spp: 1,
-                paths: 4,
-                coefficients: 8,
-                seed: 0,
-                path_len: archive.to_string_lossy().len() as u32,
-                views: 2,
-                cells: 2,
-                points: 3,
-                coefs: 3,
-                emits: 1,
-                archive_header: 7,
-                camera,
+        let header = Header {
+            magic: MAGIC,
+            version: VERSION,
+            width: 2,
+            height: 1,
+            spp: 1,
+            paths: 4,
+            coefficients: 8,
+            seed: 0,
+            path_len: archive.to_string_lossy().len() as u32,
+            views: 2,
+            cells: 2,
+            points: 3,
+            coefs: 3,
+            emits: 1,
+            archive_header: 7,
+            camera,
+        };
+        let mut w = Writer::create(path, &archive).unwrap();
+        let sections: [&dyn Fn(&mut Writer) -> Result<()>; 8] = [
+            &|w| w.put(&[view; 2]),
+            &|w| w.put(&[point; 3]),
+            &|w| w.put(&[0u64, 1, 3]),
+            &|w| w.put(&[0u64, 2, 3]),
+            &|w| w.put(&[0u32, 1, 1]),
+            &|w| w.put(&[[f16::from_f32(0.5); 3]; 3]),
+            &|w| w.put(&[0u64, 0, 1]),
+            &|w| {
+                w.put(&[Coef {
+                    index: 0,
+                    w: [2.0; 3],
+                }])
             },
-            archive,
-            views: vec![view; 2],
-            cell_first: vec![0, 1, 3],
-            points: vec![point; 3],
-            row_first: vec![0, 2, 3],
-            coef_cell: vec![0, 1, 1],
-            coef_w: vec![[f16::from_f32(0.5); 3]; 3],
-            emit_first: vec![0, 0, 1],
-            emits: vec![Coef {
-                index: 0,
-                w: [2.0; 3],
-            }],
+        ];
+        for s in sections {
+            s(&mut w).unwrap();
+            w.end().unwrap();
         }
+        w.commit(&header).unwrap();
+    }
+
+    /// `bytes` at an 8-byte-aligned address, as a mapped file is.
+    fn parse_aligned(bytes: &[u8]) -> Result<(Header, PathBuf, Sections)> {
+        let mut words = vec![0u64; bytes.len().div_ceil(8)];
+        let b: &mut [u8] = bytemuck::cast_slice_mut(&mut words);
+        b[..bytes.len()].copy_from_slice(bytes);
+        parse(&b[..bytes.len()])
     }
 
     #[test]
     fn a_written_file_reads_back_and_damage_is_refused_not_panicked_on() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("v.relight");
-        small().write(&path).unwrap();
-        let bytes = std::fs::read(&path).unwrap();
-        let back = parse(&bytes).unwrap();
+        small(&path);
+        let back = RelightFile::read(&path).unwrap();
         assert_eq!(back.camera().as_deref(), Some("main"));
-        assert_eq!(back.coef_cell, vec![0, 1, 1]);
+        assert_eq!(back.coef_cell(), &[0, 1, 1]);
+        assert_eq!(back.cell_first(), &[0, 1, 3]);
+        assert_eq!(back.emits()[0].w, [2.0; 3]);
         assert_eq!(back.archive, PathBuf::from("/a.canopy"));
+        let bytes = std::fs::read(&path).unwrap();
         // Any byte changed, with the checksum made to match: refused with a reason or read
         // as a file whose every index is in range; never a panic.
         let mut rng = TestRng::new(5);
@@ -323,13 +480,15 @@ mod tests {
             let mut b = bytes.clone();
             let at = ((rng.f64() * body as f64) as usize).min(body - 1);
             b[at] ^= 1 << ((rng.f32() * 8.0) as u32).min(7);
-            let sum = xxh3_64(&b[..body]);
+            let sum = checksum(&b[HLEN..body], &b[..HLEN]);
             b[body..].copy_from_slice(&sum.to_le_bytes());
-            match parse(&b) {
+            match parse_aligned(&b) {
                 Err(_) => refused += 1,
-                Ok(f) => {
-                    assert!(f.coef_cell.iter().all(|&c| (c as u64) < f.header.cells));
-                    assert_eq!(*f.row_first.last().unwrap(), f.header.coefs);
+                Ok((h, _, s)) => {
+                    let cells: &[u32] = bytemuck::cast_slice(&b[s.coef_cell.clone()]);
+                    assert!(cells.iter().all(|&c| (c as u64) < h.cells));
+                    let rows: &[u64] = bytemuck::cast_slice(&b[s.row_first.clone()]);
+                    assert_eq!(*rows.last().unwrap(), h.coefs);
                 }
             }
         }
@@ -337,12 +496,32 @@ mod tests {
             refused > 1000,
             "only {refused} of 4000 damaged files refused"
         );
-        // Without the checksum fixed, any change is refused.
+        // Without the checksum fixed, any change is refused, and so is a cut file.
         let mut b = bytes.clone();
         b[body / 2] ^= 4;
-        let Err(e) = parse(&b) else {
-            panic!("a damaged file was read");
-        };
+        let e = parse_aligned(&b).err().expect("a damaged file was read");
         assert!(format!("{e:#}").contains("checksum"));
+        let e = parse_aligned(&bytes[..body - 16]).err().expect("a cut file was read");
+        assert!(format!("{e:#}").contains("header's counts make"));
+    }
+
+    #[test]
+    fn a_writer_whose_sections_disagree_with_the_header_names_no_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("v.relight");
+        let mut w = Writer::create(&path, Path::new("/a.canopy")).unwrap();
+        w.put(&[0u64; 3]).unwrap();
+        let h = Header {
+            magic: MAGIC,
+            version: VERSION,
+            width: 1,
+            height: 1,
+            spp: 1,
+            views: 1,
+            path_len: 9,
+            ..Zeroable::zeroed()
+        };
+        assert!(w.commit(&h).is_err());
+        assert!(!path.exists());
     }
 }

@@ -159,7 +159,7 @@ impl Relighter {
         }
         let scene = &setup.scene;
         let seen = setup.pool.install(|| {
-            file.views
+            file.views()
                 .par_chunks(4096)
                 .flat_map_iter(|c| {
                     let mut tr = Tracer::new(&scene.cache);
@@ -320,7 +320,7 @@ impl Relighter {
         }
         let t1 = Instant::now();
         let (mut e, mut direct) = (
-            vec![V::ZERO; self.file.cell_first.len() - 1],
+            vec![V::ZERO; self.file.cell_first().len() - 1],
             vec![V::ZERO; self.seen.len()],
         );
         for (key, scale) in &wanted {
@@ -337,19 +337,19 @@ impl Relighter {
         let scene = &self.setup.scene;
         let f = &self.file;
         let spp = f.header.spp as usize;
+        let (rows, cells, weights) = (f.row_first(), f.coef_cell(), f.coef_w());
+        let (emit_first, emits) = (f.emit_first(), f.emits());
         let pixels: Vec<[f32; 3]> = self.setup.pool.install(|| {
-            (0..f.row_first.len() - 1)
+            (0..rows.len() - 1)
                 .into_par_iter()
                 .map(|p| {
                     let own: V = direct[p * spp..(p + 1) * spp].iter().sum::<V>() / spp as f32;
-                    let (a, b) = (f.row_first[p] as usize, f.row_first[p + 1] as usize);
+                    let (a, b) = (rows[p] as usize, rows[p + 1] as usize);
                     let gi: V = (a..b)
-                        .map(|c| {
-                            V::from(f.coef_w[c].map(half::f16::to_f32)) * e[f.coef_cell[c] as usize]
-                        })
+                        .map(|c| V::from(weights[c].map(half::f16::to_f32)) * e[cells[c] as usize])
                         .sum();
-                    let (a, b) = (f.emit_first[p] as usize, f.emit_first[p + 1] as usize);
-                    let lamps: V = f.emits[a..b]
+                    let (a, b) = (emit_first[p] as usize, emit_first[p + 1] as usize);
+                    let lamps: V = emits[a..b]
                         .iter()
                         .map(|c: &Coef| V::from(c.w) * self.lamp_scale[c.index as usize])
                         .sum();
@@ -373,14 +373,14 @@ impl Relighter {
     /// Per cell, the mean direct light E/π arriving over its gather points, one light
     /// sample at each (a pixel reads many cells, whose noise it averages).
     fn gathered(&self) -> Vec<V> {
-        let f = &self.file;
+        let (first, points) = (self.file.cell_first(), self.file.points());
         let scene = &self.setup.scene;
-        (0..f.cell_first.len() - 1)
+        (0..first.len() - 1)
             .into_par_iter()
             .map_init(
                 || Tracer::new(&scene.cache),
                 |tr, i| {
-                    let pts = &f.points[f.cell_first[i] as usize..f.cell_first[i + 1] as usize];
+                    let pts = &points[first[i] as usize..first[i + 1] as usize];
                     let sum: V = pts
                         .iter()
                         .enumerate()
@@ -406,7 +406,7 @@ impl Relighter {
             .map_init(
                 || Tracer::new(&scene.cache),
                 |tr, i| {
-                    let beta = V::from(self.file.views[i].beta);
+                    let beta = V::from(self.file.views()[i].beta);
                     let l = match &self.seen[i] {
                         Seen::Surface(sp) => {
                             let spp = self.file.header.spp;
@@ -415,7 +415,7 @@ impl Relighter {
                         }
                         Seen::Sky => crate::integrator::direct::escaped_light(
                             scene,
-                            V::from(self.file.views[i].d),
+                            V::from(self.file.views()[i].d),
                             None,
                         ),
                         Seen::Nothing => V::ZERO,
@@ -453,7 +453,7 @@ fn lamp_scale(
     materials: &[Material],
 ) -> Result<Vec<V>> {
     let n = own.len().min(materials.len());
-    if let Some(c) = file.emits.iter().find(|c| c.index as usize >= n) {
+    if let Some(c) = file.emits().iter().find(|c| c.index as usize >= n) {
         bail!(
             "{}: a pixel's lamp names material {} of {n}",
             file.archive.display(),
