@@ -1,6 +1,7 @@
 //! One relit frame of a precomputed view: every light's strength changed (their shares of
 //! the image kept, scaled: the sum of the shares and the transfer's product), and a point
-//! light added where the frame before had it elsewhere (its share traced, then the same).
+//! light added where the frame before had it elsewhere: its first frame (a slice of its
+//! share traced, then the same) and its complete image (every slice).
 //!
 //! With `CANOPY_RELIGHT_VIEW=VIEW.relight` it relights that view (e.g. the 1 M-triangle
 //! scene of docs/relighting.md); without, the bundled bunny_box at 128², precomputed first.
@@ -99,17 +100,28 @@ fn relight(c: &mut Criterion) {
             r.frame().unwrap()
         })
     });
-    g.bench_function("point light moved", |b| {
+    // A moved light's first frame traces a slice of its share; `image` traces it whole.
+    let moved = |r: &mut Relighter, k: u32| {
+        let t = (k % 16) as f32 / 16.0;
+        let p: Vec<f32> = (0..3)
+            .map(|i| lo[i] + (hi[i] - lo[i]) * (0.2 + 0.6 * t))
+            .collect();
+        let d = (hi[0] - lo[0]).powi(2);
+        let added = format!("{{\"type\": \"point\", \"position\": {p:?}, \"intensity\": {d}}}");
+        r.set_lights(&set(&strength(1.0, &added))).unwrap();
+    };
+    g.bench_function("point light moved, first frame", |b| {
         b.iter(|| {
             k += 1;
-            let t = (k % 16) as f32 / 16.0;
-            let p: Vec<f32> = (0..3)
-                .map(|i| lo[i] + (hi[i] - lo[i]) * (0.2 + 0.6 * t))
-                .collect();
-            let d = (hi[0] - lo[0]).powi(2);
-            let added = format!("{{\"type\": \"point\", \"position\": {p:?}, \"intensity\": {d}}}");
-            r.set_lights(&set(&strength(1.0, &added))).unwrap();
+            moved(&mut r, k);
             r.frame().unwrap()
+        })
+    });
+    g.bench_function("point light moved, complete", |b| {
+        b.iter(|| {
+            k += 1;
+            moved(&mut r, k);
+            r.image().unwrap()
         })
     });
     g.finish();

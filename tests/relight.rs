@@ -233,6 +233,12 @@ fn bad_relight_files_and_flags_are_refused() {
 
 /// One HTTP/1.0 exchange with the server at `addr`: (status code, body).
 fn http(addr: &str, request: &str) -> (u16, Vec<u8>) {
+    let (code, _, body) = exchange(addr, request);
+    (code, body)
+}
+
+/// One HTTP/1.0 exchange with the server at `addr`: (status code, header lines, body).
+fn exchange(addr: &str, request: &str) -> (u16, String, Vec<u8>) {
     use std::io::{Read, Write};
     let mut s = std::net::TcpStream::connect(addr).unwrap();
     // A server that refuses a body early may close before reading all of it.
@@ -246,17 +252,63 @@ fn http(addr: &str, request: &str) -> (u16, Vec<u8>) {
         + 4;
     let head = String::from_utf8_lossy(&out[..end]).into_owned();
     let code = head.split(' ').nth(1).unwrap().parse().unwrap();
-    (code, out[end..].to_vec())
+    (code, head, out[end..].to_vec())
 }
 
 fn post(addr: &str, body: &str) -> (u16, Vec<u8>) {
-    http(
-        addr,
-        &format!(
-            "POST /render HTTP/1.0\r\nContent-Length: {}\r\n\r\n{body}",
-            body.len()
-        ),
+    http(addr, &post_request(body))
+}
+
+fn post_request(body: &str) -> String {
+    format!(
+        "POST /render HTTP/1.0\r\nContent-Length: {}\r\n\r\n{body}",
+        body.len()
     )
+}
+
+/// A light moved or added is traced a slice a frame: the server answers at once with part
+/// of its rays and says so, and the fourth request of the same set gives the image the
+/// command line renders whole. The first frame's mean is the whole image's, within the
+/// noise of a quarter of the samples (a slice left unweighted would be a quarter as bright).
+#[test]
+fn a_moved_light_refines_to_the_image_rendered_whole() {
+    let dir = tempfile::tempdir().unwrap();
+    let (_, view) = prepared(dir.path());
+    let json = "{\"light\": [{\"type\": \"point\", \"position\": [150.0, 300.0, 200.0], \"intensity\": 20000.0}]}";
+    let (_server, addr) = relight_server(&view);
+    let rgb = |png: &[u8]| image::load_from_memory(png).unwrap().to_rgb8().into_raw();
+    let frames: Vec<(bool, Vec<u8>)> = (0..4)
+        .map(|_| {
+            let (code, head, png) = exchange(&addr, &post_request(json));
+            assert_eq!(code, 200, "{}", String::from_utf8_lossy(&png));
+            (head.contains("X-Frame-Complete: 1"), rgb(&png))
+        })
+        .collect();
+    let complete: Vec<bool> = frames.iter().map(|f| f.0).collect();
+    assert_eq!(complete, [false, false, false, true]);
+    let set = dir.path().join("set.toml");
+    let toml =
+        "[[light]]\ntype = \"point\"\nposition = [150.0, 300.0, 200.0]\nintensity = 20000.0\n";
+    std::fs::write(&set, toml).unwrap();
+    let whole = dir.path().join("whole.png");
+    ok(&["relight", s(&view), "--lights", s(&set), "-o", s(&whole)]);
+    // The same samples, summed in one pass or four: equal up to float rounding.
+    let whole = rgb(&std::fs::read(&whole).unwrap());
+    let most = whole
+        .iter()
+        .zip(&frames[3].1)
+        .map(|(&a, &b)| a.abs_diff(b))
+        .max();
+    assert!(
+        most <= Some(1),
+        "the refined frame differs from the image rendered whole by {most:?} of 255"
+    );
+    let mean = |p: &[u8]| p.iter().map(|&v| v as f64).sum::<f64>() / p.len() as f64;
+    let (first, last) = (mean(&frames[0].1), mean(&frames[3].1));
+    assert!(
+        (first / last - 1.0).abs() < 0.05,
+        "first frame's mean {first}, whole {last}"
+    );
 }
 
 #[test]

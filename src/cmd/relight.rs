@@ -150,7 +150,7 @@ fn render(a: RelightArgs) -> Result<()> {
     };
     let (exr, png) = canopy::render::image_outputs(&output, false, (&a.input, "the view"))?;
     let mut r = Relighter::open(&o, (exr.clone(), png.clone()))?;
-    let f = r.frame()?;
+    let f = r.image()?;
     f.image.write_exr(&exr)?;
     if let Some(png) = &png {
         f.image.write_png(png, 1.0)?;

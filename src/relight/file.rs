@@ -51,7 +51,7 @@ pub struct Header {
     pub camera: [u8; 64],
 }
 
-const _: () = assert!(HLEN == 152 && HLEN % ALIGN == 0);
+const _: () = assert!(HLEN == 152 && HLEN.is_multiple_of(ALIGN));
 
 impl Header {
     pub fn pixels(&self) -> u64 {
@@ -94,7 +94,9 @@ fn layout(h: &Header) -> Result<Sections> {
             .context("counts overflow")?;
         let start = at;
         let end = start.checked_add(len).context("counts overflow")?;
-        at = end.checked_next_multiple_of(ALIGN).context("counts overflow")?;
+        at = end
+            .checked_next_multiple_of(ALIGN)
+            .context("counts overflow")?;
         Ok(start..end)
     };
     let cells = h.cells.checked_add(1).context("counts overflow")?;
@@ -252,7 +254,8 @@ impl RelightFile {
         // SAFETY: the mapping is read-only and shared; after MADV_DONTNEED a read faults
         // the same file bytes back in, so no reader can observe a change.
         unsafe {
-            map.unchecked_advise(memmap2::UncheckedAdvice::DontNeed).ok();
+            map.unchecked_advise(memmap2::UncheckedAdvice::DontNeed)
+                .ok();
         }
         Ok(RelightFile {
             header,
@@ -362,7 +365,11 @@ fn parse(bytes: &[u8]) -> Result<(Header, PathBuf, Sections)> {
     let cast = |r: &Range<usize>| &bytes[r.clone()];
     check_offsets("cells", bytemuck::cast_slice(cast(&s.cell_first)), h.points)?;
     check_offsets("rows", bytemuck::cast_slice(cast(&s.row_first)), h.coefs)?;
-    check_offsets("emission", bytemuck::cast_slice(cast(&s.emit_first)), h.emits)?;
+    check_offsets(
+        "emission",
+        bytemuck::cast_slice(cast(&s.emit_first)),
+        h.emits,
+    )?;
     let coef_cell: &[u32] = bytemuck::cast_slice(cast(&s.coef_cell));
     if let Some(c) = coef_cell.iter().find(|&&c| c as u64 >= h.cells) {
         bail!("a coefficient names cell {c} of {}", h.cells);
@@ -393,6 +400,8 @@ fn parse(bytes: &[u8]) -> Result<(Header, PathBuf, Sections)> {
 mod tests {
     use super::*;
     use crate::test_rng::TestRng;
+
+    type Section<'a> = &'a dyn Fn(&mut Writer) -> Result<()>;
 
     /// Writes a small valid file: a 2×1 view of 1 sample a pixel reading 2 cells.
     fn small(path: &Path) {
@@ -429,7 +438,7 @@ mod tests {
             camera,
         };
         let mut w = Writer::create(path, &archive).unwrap();
-        let sections: [&dyn Fn(&mut Writer) -> Result<()>; 8] = [
+        let sections: [Section; 8] = [
             &|w| w.put(&[view; 2]),
             &|w| w.put(&[point; 3]),
             &|w| w.put(&[0u64, 1, 3]),
@@ -499,9 +508,9 @@ mod tests {
         // Without the checksum fixed, any change is refused, and so is a cut file.
         let mut b = bytes.clone();
         b[body / 2] ^= 4;
-        let e = parse_aligned(&b).err().expect("a damaged file was read");
+        let e = parse_aligned(&b).expect_err("a damaged file was read");
         assert!(format!("{e:#}").contains("checksum"));
-        let e = parse_aligned(&bytes[..body - 16]).err().expect("a cut file was read");
+        let e = parse_aligned(&bytes[..body - 16]).expect_err("a cut file was read");
         assert!(format!("{e:#}").contains("header's counts make"));
     }
 

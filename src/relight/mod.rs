@@ -107,4 +107,3 @@ fn scene_options(
         progress: false,
     }
 }
-

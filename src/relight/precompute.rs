@@ -105,7 +105,10 @@ pub fn prepare(o: &PrepareOptions) -> Result<PrepareStats> {
     out.end()?;
     out.put(&rows.row_first)?;
     out.end()?;
-    let coefs = *rows.row_first.last().expect("one offset a pixel and one more");
+    let coefs = *rows
+        .row_first
+        .last()
+        .expect("one offset a pixel and one more");
     copy_coefficients(&mut rows, &cell_keys, coefs, &mut out)?;
     out.put(&rows.emit_first)?;
     out.end()?;
@@ -192,8 +195,11 @@ fn rows(
             }
             coefs += p.row.len() as u64;
             r.row_first.push(coefs);
-            r.emits
-                .extend(p.emits.iter().map(|&(index, v)| Coef { index, w: v.into() }));
+            r.emits.extend(
+                p.emits
+                    .iter()
+                    .map(|&(index, v)| Coef { index, w: v.into() }),
+            );
             r.emit_first.push(r.emits.len() as u64);
         }
         bar.inc((band + BAND).min(pixels) as u64 - band as u64);
@@ -259,7 +265,11 @@ fn copy_coefficients(r: &mut Rows, cell_keys: &[u64], coefs: u64, out: &mut Writ
             .context("reading a scratch file back")?;
         let cells: Vec<u32> = buf[..n]
             .iter()
-            .map(|k| cell_keys.binary_search(k).expect("every row's key is a cell") as u32)
+            .map(|k| {
+                cell_keys
+                    .binary_search(k)
+                    .expect("every row's key is a cell") as u32
+            })
             .collect();
         out.put(&cells)?;
         left -= n;

@@ -8,13 +8,14 @@ use crate::integrator::{bsdf_term, sample_light_weighted, Receiver, Scene, Shadi
 use crate::light::{LightSet, Lights, Punctual};
 use crate::material::Material;
 use crate::render::{gather_lights, Setup};
-use crate::sampler::PixelSampler;
+use crate::sampler::{Hash, PixelSampler};
 use crate::trace::{Cone, Tracer};
 use anyhow::{bail, Context, Result};
 use canopy_format::{LightRecord, MaterialRecord};
 use glam::Vec3A as V;
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
+use std::ops::Range;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -75,10 +76,42 @@ enum Key {
     Environment(u32),
 }
 
-/// One light's share: direct light at each view sample and E/π at each cell.
+/// A share is traced in slices, one a frame: slice 0 is one gather point of each cell (drawn
+/// at random among its points) and view sample 0 of each pixel; slice `d` ≥ 1 every
+/// (`SLICES` − 1)-th of the cell's other points and the pixel's view samples `j` with
+/// `j % SLICES == d`. A light moved or added shows after one ray a cell and a quarter of
+/// the view samples, and its share is complete `SLICES` frames later.
+pub const SLICES: u32 = 4;
+
+/// One light's share: direct light at each view sample and E/π at each cell, over the
+/// slices traced so far.
 struct Share {
+    /// Per view sample, its direct light (zero where its slice is not traced yet).
     direct: Vec<V>,
+    /// Per cell, the mean E/π over its points traced so far.
     gathered: Vec<V>,
+    /// Slices traced.
+    done: u32,
+}
+
+impl Share {
+    /// Per view sample of a pixel (by its number in the pixel), the weight that makes the
+    /// pixel's sum the mean over the samples traced.
+    fn direct_weights(&self, spp: u32) -> Vec<f32> {
+        let traced = |j: u32| j % SLICES < self.done;
+        let count = (0..spp).filter(|&j| traced(j)).count().max(1) as f32;
+        (0..spp)
+            .map(|j| if traced(j) { 1.0 / count } else { 0.0 })
+            .collect()
+    }
+}
+
+/// A cell's points in slice `d`, as places counted from the cell's first-drawn point.
+fn slice_points(n: usize, d: u32) -> std::iter::StepBy<std::ops::Range<usize>> {
+    match d {
+        0 => (0..n.min(1)).step_by(1),
+        d => (d as usize..n).step_by(SLICES as usize - 1),
+    }
 }
 
 /// A punctual light at unit intensity, its key, and the intensity it had.
@@ -114,12 +147,14 @@ fn unit(p: &Punctual) -> (Punctual, Key, V) {
     }
 }
 
-/// One relit image and the time its parts took: tracing the shares of lights new to this
-/// frame (light gathered at the cells, direct light at the view samples), summing the
-/// shares with their factors, the transfer's product.
+/// One relit image and the time its parts took: tracing a slice of the shares not yet
+/// complete (light gathered at the cells, direct light at the view samples), summing the
+/// shares with their factors, the transfer's product; and whether every share it read was
+/// complete.
 pub struct Frame {
     pub image: crate::image::Image,
     pub seconds: [f64; 3],
+    pub complete: bool,
 }
 
 impl Frame {
@@ -263,8 +298,9 @@ impl Relighter {
             .collect()
     }
 
-    /// Traces the share of `key` under its lights alone.
-    fn share(&mut self, key: Key) -> Share {
+    /// Traces the share of `key` under its lights alone, its slices from those done to
+    /// `upto`, in one pass.
+    fn trace_slices(&mut self, key: Key, share: &mut Share, upto: u32) {
         let (c, r) = self.sphere;
         let lights = match key {
             Key::Lamps(m) => self.lamps.remove(&m),
@@ -290,8 +326,12 @@ impl Relighter {
             _ => self.light_samples,
         };
         let others = std::mem::replace(&mut self.setup.scene.lights, lights);
-        let gathered = self.setup.pool.install(|| self.gathered());
-        let direct = self.setup.pool.install(|| self.direct(n));
+        let slices = share.done..upto;
+        self.setup.pool.install(|| {
+            self.gather(share, slices.clone());
+            self.direct(n, share, slices);
+        });
+        share.done = upto;
         let lights = std::mem::replace(&mut self.setup.scene.lights, others);
         match key {
             Key::Lamps(m) => {
@@ -300,53 +340,73 @@ impl Relighter {
             Key::Environment(_) => self.env = Some(lights),
             Key::Punctual(_) => {}
         }
-        Share { direct, gathered }
     }
 
-    /// The image under the current light set: the shares it reads, traced where they are
-    /// new, summed with their factors and multiplied by the transfer.
+    /// The image under the current light set, complete: every share it reads traced whole.
+    pub fn image(&mut self) -> Result<Frame> {
+        self.render(SLICES)
+    }
+
+    /// The next image under the current light set, as the web page shows it: one more
+    /// slice of each share it reads that is not complete.
     pub fn frame(&mut self) -> Result<Frame> {
+        self.render(1)
+    }
+
+    /// The shares the light set reads, each traced `slices` further (where not complete),
+    /// summed with their factors and multiplied by the transfer.
+    fn render(&mut self, slices: u32) -> Result<Frame> {
         let t0 = Instant::now();
         let wanted = self.wanted();
+        let spp = self.file.header.spp;
+        let (cells, samples) = (self.file.cell_first().len() - 1, self.seen.len());
         for &(key, _) in &wanted {
-            if !self.shares.contains_key(&key) {
-                let share = self.share(key);
-                self.shares.insert(key, share);
+            let mut share = self.shares.remove(&key).unwrap_or_else(|| Share {
+                direct: vec![V::ZERO; samples],
+                gathered: vec![V::ZERO; cells],
+                done: 0,
+            });
+            if share.done < SLICES {
+                let upto = (share.done + slices).min(SLICES);
+                self.trace_slices(key, &mut share, upto);
             }
+            self.shares.insert(key, share);
         }
+        let complete = wanted.iter().all(|(k, _)| self.shares[k].done == SLICES);
         // Shares no longer read are dropped once they outnumber those read.
         if self.shares.len() > 2 * wanted.len() + 4 {
             self.shares.retain(|k, _| wanted.iter().any(|w| w.0 == *k));
         }
         let t1 = Instant::now();
-        let (mut e, mut direct) = (
-            vec![V::ZERO; self.file.cell_first().len() - 1],
-            vec![V::ZERO; self.seen.len()],
-        );
+        let (mut e, mut direct) = (vec![V::ZERO; cells], vec![V::ZERO; samples]);
         for (key, scale) in &wanted {
             let share = &self.shares[key];
             e.par_iter_mut()
                 .zip(&share.gathered)
                 .for_each(|(a, b)| *a += *scale * *b);
+            let w = share.direct_weights(spp);
             direct
                 .par_iter_mut()
                 .zip(&share.direct)
-                .for_each(|(a, b)| *a += *scale * *b);
+                .enumerate()
+                .for_each(|(i, (a, b))| *a += *scale * w[i % spp as usize] * *b);
         }
         let t2 = Instant::now();
         let scene = &self.setup.scene;
         let f = &self.file;
-        let spp = f.header.spp as usize;
-        let (rows, cells, weights) = (f.row_first(), f.coef_cell(), f.coef_w());
+        let spp = spp as usize;
+        let (rows, cell_of, weights) = (f.row_first(), f.coef_cell(), f.coef_w());
         let (emit_first, emits) = (f.emit_first(), f.emits());
         let pixels: Vec<[f32; 3]> = self.setup.pool.install(|| {
             (0..rows.len() - 1)
                 .into_par_iter()
                 .map(|p| {
-                    let own: V = direct[p * spp..(p + 1) * spp].iter().sum::<V>() / spp as f32;
+                    let own: V = direct[p * spp..(p + 1) * spp].iter().sum();
                     let (a, b) = (rows[p] as usize, rows[p + 1] as usize);
                     let gi: V = (a..b)
-                        .map(|c| V::from(weights[c].map(half::f16::to_f32)) * e[cells[c] as usize])
+                        .map(|c| {
+                            V::from(weights[c].map(half::f16::to_f32)) * e[cell_of[c] as usize]
+                        })
                         .sum();
                     let (a, b) = (emit_first[p] as usize, emit_first[p + 1] as usize);
                     let lamps: V = emits[a..b]
@@ -367,63 +427,72 @@ impl Relighter {
                 pixels,
             },
             seconds: [t1 - t0, t2 - t1, t2.elapsed()].map(|d| d.as_secs_f64()),
+            complete,
         })
     }
 
-    /// Per cell, the mean direct light E/π arriving over its gather points, one light
+    /// Adds `slices` of each cell's gather points to its mean direct light E/π, one light
     /// sample at each (a pixel reads many cells, whose noise it averages).
-    fn gathered(&self) -> Vec<V> {
+    fn gather(&self, share: &mut Share, slices: Range<u32>) {
         let (first, points) = (self.file.cell_first(), self.file.points());
         let scene = &self.setup.scene;
-        (0..first.len() - 1)
-            .into_par_iter()
-            .map_init(
-                || Tracer::new(&scene.cache),
-                |tr, i| {
-                    let pts = &points[first[i] as usize..first[i + 1] as usize];
-                    let sum: V = pts
-                        .iter()
-                        .enumerate()
-                        .map(|(k, p)| {
-                            let u = PixelSampler::new(GATHER_SEED, i as u32, k as u32).get4(0);
-                            arriving(scene, tr, p, [u[0], u[1], u[2]])
-                        })
-                        .sum();
-                    sum / pts.len().max(1) as f32
-                },
-            )
-            .collect()
+        share.gathered.par_iter_mut().enumerate().for_each_init(
+            || Tracer::new(&scene.cache),
+            |tr, (i, mean)| {
+                let pts = &points[first[i] as usize..first[i + 1] as usize];
+                let n = pts.len();
+                let start =
+                    (Hash::new(i as u64 ^ GATHER_SEED as u64).u64() % n.max(1) as u64) as usize;
+                let sum: V = slices
+                    .clone()
+                    .flat_map(|d| slice_points(n, d))
+                    .map(|m| {
+                        let k = (start + m) % n;
+                        let u = PixelSampler::new(GATHER_SEED, i as u32, k as u32).get4(0);
+                        arriving(scene, tr, &pts[k], [u[0], u[1], u[2]])
+                    })
+                    .sum();
+                let count = |r: Range<u32>| -> usize { r.map(|e| slice_points(n, e).len()).sum() };
+                let (before, after) = (count(0..slices.start), count(0..slices.end));
+                if after > 0 {
+                    *mean = (*mean * before as f32 + sum) / after as f32;
+                }
+            },
+        );
     }
 
-    /// Per view sample, the light it sends to the camera from `n` light samples: the direct
-    /// light it reflects (or the environment, for a sample that left the scene), times the
-    /// throughput of the smooth bounces before it. Lamps seen directly are the pixel's
-    /// emission records.
-    fn direct(&self, n: u32) -> Vec<V> {
+    /// Per view sample of `slices`, the light it sends to the camera from `n` light
+    /// samples: the direct light it reflects (or the environment, for a sample that left the
+    /// scene), times the throughput of the smooth bounces before it. Lamps seen directly
+    /// are the pixel's emission records.
+    fn direct(&self, n: u32, share: &mut Share, slices: Range<u32>) {
         let scene = &self.setup.scene;
-        (0..self.seen.len())
-            .into_par_iter()
-            .map_init(
+        let (views, spp) = (self.file.views(), self.file.header.spp);
+        share
+            .direct
+            .par_chunks_mut(spp as usize)
+            .enumerate()
+            .for_each_init(
                 || Tracer::new(&scene.cache),
-                |tr, i| {
-                    let beta = V::from(self.file.views()[i].beta);
-                    let l = match &self.seen[i] {
-                        Seen::Surface(sp) => {
-                            let spp = self.file.header.spp;
-                            let (pixel, s) = (i as u32 / spp, i as u32 % spp);
-                            reflected(scene, tr, sp, (pixel, s * n), n)
-                        }
-                        Seen::Sky => crate::integrator::direct::escaped_light(
-                            scene,
-                            V::from(self.file.views()[i].d),
-                            None,
-                        ),
-                        Seen::Nothing => V::ZERO,
-                    };
-                    beta * l
+                |tr, (pixel, samples)| {
+                    let traced =
+                        (0..samples.len()).filter(|s| slices.contains(&(*s as u32 % SLICES)));
+                    for s in traced {
+                        let i = pixel * spp as usize + s;
+                        let l = match &self.seen[i] {
+                            Seen::Surface(sp) => {
+                                reflected(scene, tr, sp, (pixel as u32, s as u32 * n), n)
+                            }
+                            Seen::Sky => {
+                                let d = V::from(views[i].d);
+                                crate::integrator::direct::escaped_light(scene, d, None)
+                            }
+                            Seen::Nothing => V::ZERO,
+                        };
+                        samples[s] = V::from(views[i].beta) * l;
+                    }
                 },
-            )
-            .collect()
+            );
     }
 }
 

@@ -2,7 +2,8 @@
 //! that shows the relit image as the controls move. `GET /` is the page, `GET /lights` the
 //! archive's lights as JSON (what the page builds its controls from), `POST /render` takes a
 //! light set as JSON (the TOML file's tables as objects) and answers a PNG, with the
-//! relight's compute time in `X-Frame-Seconds`. A bad request gets a 4xx answer saying why;
+//! relight's compute time in `X-Frame-Seconds` and `X-Frame-Complete: 0` while a light
+//! moved or added is traced only in part (the page asks again for the next slice). A bad request gets a 4xx answer saying why;
 //! the server goes on.
 
 use super::Relighter;
@@ -98,7 +99,11 @@ fn render(r: &mut Relighter, req: &mut Request) -> Response<std::io::Cursor<Vec<
         Ok(png) => {
             let mut resp = Response::from_data(png)
                 .with_header(header("Content-Type", "image/png"))
-                .with_header(header("X-Frame-Seconds", &format!("{:.4}", f.total())));
+                .with_header(header("X-Frame-Seconds", &format!("{:.4}", f.total())))
+                .with_header(header(
+                    "X-Frame-Complete",
+                    if f.complete { "1" } else { "0" },
+                ));
             if let Some(n) = note {
                 resp = resp.with_header(header("X-Note", &n));
             }
