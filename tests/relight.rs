@@ -85,6 +85,31 @@ fn relit_light_sets_match_the_path_tracer() {
     }
 }
 
+/// An instanced archive relights as the path tracer renders it: the Cornell box's small
+/// box placed three times (as it is, mirrored against the other wall, a tenth the size),
+/// each copy with light cells of its own and gather points where it stands.
+#[test]
+fn an_instanced_archive_relights_as_the_path_tracer_renders_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let places = [[0.0; 3], [556.0, 0.0, 0.0], [180.0, 0.0, 60.0]];
+    let scales = [[1.0; 3], [-1.0, 1.0, 1.0], [0.1; 3]];
+    let input = gpu_instanced(dir.path(), "boxes.glb", "smallbox", &places, &scales);
+    let (archive, view) = precomputed(dir.path(), &input, None, "boxes", ["64", "64"]);
+    let img = relit(&view, None, &dir.path().join("relit.exr"));
+    let size = ["--width", "64", "--height", "64"];
+    let spp =
+        |n: &'static str, seed: &'static str| [&size[..], &["--spp", n, "--seed", seed]].concat();
+    let (pt, _) = render(&archive, &dir.path().join("pt.exr"), &spp("1024", "1"));
+    let (pt16, _) = render(&archive, &dir.path().join("pt16.exr"), &spp("16", "7"));
+    // As in `relit_light_sets_match_the_path_tracer`: five standard errors of the difference.
+    assert_mean_within(&img, &pt, 0.015, "relit instances");
+    let (e, e16) = (rmse(&img, &pt), rmse(&pt16, &pt));
+    assert!(
+        e < e16,
+        "relit RMSE {e} is not below the 16-spp path tracer's {e16}"
+    );
+}
+
 /// The bundled spheres under `scenes/env/sky.hdr`, the archive's own (a scene file's
 /// `[environment]`, its extra lines `extra`), with their view precomputed at 48×36.
 fn spheres_view(dir: &Path, name: &str, extra: &str) -> (std::path::PathBuf, std::path::PathBuf) {

@@ -54,6 +54,15 @@ impl Keys {
         }
     }
 
+    /// The instance (`NO_INSTANCE`: none) and node a placed number names: `placed`'s
+    /// inverse.
+    pub fn unplace(&self, placed: u64) -> (u32, u64) {
+        match placed / self.nodes.max(1) {
+            0 => (NO_INSTANCE, placed),
+            i => ((i - 1) as u32, placed % self.nodes),
+        }
+    }
+
     /// Keys in all: every node of the archive and of every instance's placement.
     pub fn count(&self) -> u64 {
         self.total
@@ -168,6 +177,9 @@ mod tests {
         assert_eq!(k.decode(k.node(4)), (4, None));
         // Each instance's nodes number after the scene's and the previous instance's.
         assert_eq!(k.placed(NO_INSTANCE, 4), 4);
+        for (i, n) in [(NO_INSTANCE, 4), (0, 0), (0, 4), (1, 3)] {
+            assert_eq!(k.unplace(k.placed(i, n)), (i, n));
+        }
         assert!(k.tri(k.placed(NO_INSTANCE, 4), 7, true, CELLS - 1) < k.node(k.placed(0, 0)));
         assert!(k.tri(k.placed(0, 4), 7, true, CELLS - 1) < k.node(k.placed(1, 0)));
         // Keys that would not fit in 64 bits are refused, not wrapped.

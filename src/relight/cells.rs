@@ -8,7 +8,7 @@
 use crate::light_store::{tri_area, Keys, GRID};
 use crate::paging::{NodeRef, PageCache, TriW};
 use crate::sampler::Hash;
-use crate::trace::Hit;
+use crate::trace::{placed_tri, Hit, NO_INSTANCE};
 use glam::Vec3A as V;
 
 /// Fewest points a cell gathers light at, and most.
@@ -43,17 +43,19 @@ pub fn counts(carried: &[f32]) -> Vec<usize> {
 
 /// The cell a hit on its `back` side (or front) lands in: the triangle's cell, or its
 /// leaf's side where the triangle is a single cell (the key after the leaf's own, `back`
-/// after that: keys the store leaves unused).
+/// after that: keys the store leaves unused). A prototype's leaf is keyed as the hit's
+/// instance places it, so copies in different light keep their own cells.
 pub fn key(keys: &Keys, hit: &Hit, back: bool) -> u64 {
+    let leaf = keys.placed(hit.instance, hit.leaf);
     if keys.grid(&hit.tri) > 1.0 {
-        keys.tri(hit.leaf, hit.slot, back, keys.cell_of(&hit.tri, hit.b))
+        keys.tri(leaf, hit.slot, back, keys.cell_of(&hit.tri, hit.b))
     } else {
-        keys.node(hit.leaf) + 1 + back as u64
+        keys.node(leaf) + 1 + back as u64
     }
 }
 
-/// `k` points stratified over the cell `key` names, with the normal of its side (none if
-/// the key names no triangle of the archive).
+/// `k` points stratified over the cell `key` names, with the normal of its side, in world
+/// space (none if the key names no triangle of the archive).
 pub fn points(
     cache: &PageCache,
     keys: &Keys,
@@ -61,7 +63,15 @@ pub fn points(
     k: usize,
     rng: &mut Hash,
 ) -> Vec<GatherPoint> {
-    let (leaf, cell) = keys.decode(key);
+    let (placed, cell) = keys.decode(key);
+    let (instance, leaf) = keys.unplace(placed);
+    let inst = match instance {
+        NO_INSTANCE => None,
+        i => match cache.instance(i) {
+            Some(inst) => Some(inst),
+            None => return Vec::new(),
+        },
+    };
     let Some(page) = cache.page_of(leaf).map(|p| cache.get(p)) else {
         return Vec::new();
     };
@@ -69,13 +79,16 @@ pub fn points(
     let Some(NodeRef::Leaf { first, count }) = page.bvh.get(local).map(|n| n.link()) else {
         return Vec::new();
     };
-    let tris: Vec<TriW> = (first..first + count).filter_map(|t| page.tri(t)).collect();
+    let tris: Vec<TriW> = (first..first + count)
+        .filter_map(|t| page.tri(t))
+        .map(|t| inst.as_ref().map_or(t, |i| placed_tri(i, &t)))
+        .collect();
     match cell {
         Some((slot, back, cell)) => match tris.get(slot as usize) {
             Some(tri) => cell_points(keys, tri, (back, cell), k, rng),
             None => Vec::new(),
         },
-        None => leaf_points(&tris, key == keys.node(leaf) + 2, k, rng),
+        None => leaf_points(&tris, key == keys.node(placed) + 2, k, rng),
     }
 }
 

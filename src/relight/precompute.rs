@@ -77,15 +77,13 @@ pub fn prepare(o: &PrepareOptions) -> Result<PrepareStats> {
     );
     let s = Setup::open(&ro, (o.output.clone(), None))?;
     let archive = &s.scene.cache.archive;
-    if archive.header.instances.count > 0 {
-        bail!(
-            "{}: relighting reads light per node of the scene's own tree, and the archive places {} instances (convert with instances flattened)",
+    let keys = Keys::new(&archive.header).with_context(|| {
+        format!(
+            "{}: its nodes, placed by its {} instances, number more than 64-bit light keys hold",
             o.archive.display(),
             archive.header.instances.count
-        );
-    }
-    let keys =
-        Keys::new(&archive.header).context("the archive's node numbers do not fit 64-bit keys")?;
+        )
+    })?;
     let path = o
         .archive
         .canonicalize()
