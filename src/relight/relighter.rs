@@ -77,11 +77,11 @@ enum Key {
 }
 
 /// A share is traced in slices, one a frame: slice 0 is one gather point of each cell (drawn
-/// at random among its points) and view sample 0 of each pixel; slice `d` ≥ 1 every
-/// (`SLICES` − 1)-th of the cell's other points and the pixel's view samples `j` with
-/// `j % SLICES == d`. A light moved or added shows after one ray a cell and a quarter of
-/// the view samples, and its share is complete `SLICES` frames later.
-pub const SLICES: u32 = 4;
+/// at random among its points), slice `d` ≥ 1 every (`SLICES` − 1)-th of the cell's other
+/// points; a pixel's view samples `j` lie in slice `j % SLICES`. A light moved or added
+/// shows after one ray a cell and a quarter of the view samples, and its share is complete
+/// `SLICES` frames later.
+const SLICES: u32 = 4;
 
 /// One light's share: direct light at each view sample and E/π at each cell, over the
 /// slices traced so far.
@@ -107,7 +107,7 @@ impl Share {
 }
 
 /// A cell's points in slice `d`, as places counted from the cell's first-drawn point.
-fn slice_points(n: usize, d: u32) -> std::iter::StepBy<std::ops::Range<usize>> {
+fn slice_points(n: usize, d: u32) -> std::iter::StepBy<Range<usize>> {
     match d {
         0 => (0..n.min(1)).step_by(1),
         d => (d as usize..n).step_by(SLICES as usize - 1),
