@@ -110,6 +110,76 @@ fn an_instanced_archive_relights_as_the_path_tracer_renders_it() {
     );
 }
 
+/// A floor of fine triangles wound every other way (as scans and exported sheets come),
+/// lit by a point light between it and a ceiling the camera looks up at: the ceiling's
+/// indirect light comes off the floor's lit face. The floor's leaves face both ways at
+/// once, so their triangles keep a light cell each; taken as one cell a side, half the
+/// triangles would gather light on their unlit face (the image 18% dark here).
+#[test]
+fn a_floor_wound_both_ways_relights_as_the_path_tracer_renders_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let n = 160;
+    let mut floor = String::new();
+    for j in 0..=n {
+        for i in 0..=n {
+            let (x, z) = (
+                4.0 * i as f32 / n as f32 - 2.0,
+                4.0 * j as f32 / n as f32 - 2.0,
+            );
+            floor += &format!("v {x} 0 {z}\n");
+        }
+    }
+    for j in 0..n {
+        for i in 0..n {
+            let v = |a: usize, b: usize| (j + b) * (n + 1) + i + a + 1;
+            let (q, r) = ((v(0, 0), v(0, 1), v(1, 1)), (v(0, 0), v(1, 1), v(1, 0)));
+            // Every other triangle wound against the floor's upward face.
+            let (a, b) = if (i + j) % 2 == 0 {
+                (q, r)
+            } else {
+                ((q.0, q.2, q.1), (r.0, r.2, r.1))
+            };
+            floor += &format!("f {} {} {}\nf {} {} {}\n", a.0, a.1, a.2, b.0, b.1, b.2);
+        }
+    }
+    let ceiling = "v -2 1 -2\nv 2 1 -2\nv 2 1 2\nv -2 1 2\nf 1 2 3\nf 1 3 4\n".to_string();
+    let toml = r#"
+[[camera]]
+position = [0.0, 0.2, 1.9]
+look_at = [0.0, 1.0, 0.0]
+width = 48
+height = 48
+[[material]]
+name = "white"
+base_color = [0.8, 0.8, 0.8]
+[assign]
+"floor.obj" = "white"
+"ceiling.obj" = "white"
+[[light]]
+type = "point"
+position = [0.0, 0.3, 0.0]
+intensity = 1.0
+"#;
+    let files = [
+        ("floor.obj", floor),
+        ("ceiling.obj", ceiling),
+        ("scene.toml", toml.to_string()),
+    ];
+    let archive = obj_scene(dir.path(), &files, "floor.canopy");
+    let view = dir.path().join("floor.relight");
+    ok(&["--quiet", "relight", s(&archive), "-o", s(&view)]);
+    let img = relit(&view, None, &dir.path().join("relit.exr"));
+    let spp = |n: &'static str, seed: &'static str| ["--spp", n, "--seed", seed];
+    let (pt, _) = render(&archive, &dir.path().join("pt.exr"), &spp("1024", "1"));
+    let (pt16, _) = render(&archive, &dir.path().join("pt16.exr"), &spp("16", "7"));
+    assert_mean_within(&img, &pt, 0.015, "relit floor");
+    let (e, e16) = (rmse(&img, &pt), rmse(&pt16, &pt));
+    assert!(
+        e < e16,
+        "relit RMSE {e} is not below the 16-spp path tracer's {e16}"
+    );
+}
+
 /// The bundled spheres under `scenes/env/sky.hdr`, the archive's own (a scene file's
 /// `[environment]`, its extra lines `extra`), with their view precomputed at 48×36.
 fn spheres_view(dir: &Path, name: &str, extra: &str) -> (std::path::PathBuf, std::path::PathBuf) {

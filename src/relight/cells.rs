@@ -6,9 +6,10 @@
 //! area of the direct light arriving there, gathered at points spread over it.
 
 use crate::light_store::{tri_area, Keys, GRID};
-use crate::paging::{NodeRef, PageCache, TriW};
+use crate::paging::{NodeRef, Page, PageCache, TriW};
 use crate::sampler::Hash;
-use crate::trace::{placed_tri, Hit, NO_INSTANCE};
+use crate::trace::{placed_tri, Hit, Tracer, NO_INSTANCE};
+use canopy_format::codec::snorm16_decode;
 use glam::Vec3A as V;
 
 /// Fewest points a cell gathers light at, and most.
@@ -41,17 +42,48 @@ pub fn counts(carried: &[f32]) -> Vec<usize> {
         .collect()
 }
 
-/// The cell a hit on its `back` side (or front) lands in: the triangle's cell, or its
-/// leaf's side where the triangle is a single cell (the key after the leaf's own, `back`
-/// after that: keys the store leaves unused). A prototype's leaf is keyed as the hit's
-/// instance places it, so copies in different light keep their own cells.
-pub fn key(keys: &Keys, hit: &Hit, back: bool) -> u64 {
+/// Leaves whose triangles' area-weighted mean winding normal is at least this long (1: all
+/// face one way) are one cell a side; the triangles of other leaves keep a cell each.
+const COHERENT: f32 = 0.9;
+
+/// The cell a hit on its `back` side (or front) lands in: the triangle's cell; or, where
+/// the triangle is a single cell and its leaf's triangles face one way, the leaf's side
+/// (the key after the leaf's own, the back after that: keys the store leaves unused),
+/// taken against the leaf's mean normal whatever the winding of the triangle hit. A
+/// prototype's leaf is keyed as the hit's instance places it, so copies in different light
+/// keep their own cells.
+pub fn key(tr: &mut Tracer, keys: &Keys, hit: &Hit, back: bool) -> u64 {
     let leaf = keys.placed(hit.instance, hit.leaf);
     if keys.grid(&hit.tri) > 1.0 {
-        keys.tri(leaf, hit.slot, back, keys.cell_of(&hit.tri, hit.b))
-    } else {
-        keys.node(leaf) + 1 + back as u64
+        return keys.tri(leaf, hit.slot, back, keys.cell_of(&hit.tri, hit.b));
     }
+    let page = tr.page_handle(hit.page);
+    match coherent_leaf(&page, hit.leaf) {
+        Some((mean, first)) => {
+            let flip = page
+                .tri(first + hit.slot)
+                .is_some_and(|t| opposed(&t, mean));
+            keys.node(leaf) + 1 + (back ^ flip) as u64
+        }
+        None => keys.tri(leaf, hit.slot, back, 0),
+    }
+}
+
+/// A leaf (global node `leaf` of `page`) whose triangles face one way: its mean winding
+/// normal and first triangle.
+fn coherent_leaf(page: &Page, leaf: u64) -> Option<(V, u32)> {
+    let local = leaf.checked_sub(page.first_node)? as usize;
+    let mean = V::from(page.nodes.get(local)?.normal.map(snorm16_decode));
+    let Some(NodeRef::Leaf { first, .. }) = page.bvh.get(local).map(|n| n.link()) else {
+        return None;
+    };
+    (mean.length() >= COHERENT).then_some((mean, first))
+}
+
+/// Whether `t` is wound against `normal` (its winding normal points away from it).
+fn opposed(t: &TriW, normal: V) -> bool {
+    let p = t.p.map(V::from);
+    (p[1] - p[0]).cross(p[2] - p[0]).dot(normal) < 0.0
 }
 
 /// `k` points stratified over the cell `key` names, with the normal of its side, in world
@@ -79,37 +111,44 @@ pub fn points(
     let Some(NodeRef::Leaf { first, count }) = page.bvh.get(local).map(|n| n.link()) else {
         return Vec::new();
     };
-    let tris: Vec<TriW> = (first..first + count)
+    // Each triangle placed, and whether it is wound against its leaf's mean normal.
+    let mean = coherent_leaf(&page, leaf).map_or(V::ZERO, |c| c.0);
+    let tris: Vec<(TriW, bool)> = (first..first + count)
         .filter_map(|t| page.tri(t))
-        .map(|t| inst.as_ref().map_or(t, |i| placed_tri(i, &t)))
+        .map(|t| {
+            let placed = inst.as_ref().map_or(t, |i| placed_tri(i, &t));
+            (placed, opposed(&t, mean))
+        })
         .collect();
     match cell {
         Some((slot, back, cell)) => match tris.get(slot as usize) {
-            Some(tri) => cell_points(keys, tri, (back, cell), k, rng),
+            Some((tri, _)) => cell_points(keys, tri, (back, cell), k, rng),
             None => Vec::new(),
         },
         None => leaf_points(&tris, key == keys.node(placed) + 2, k, rng),
     }
 }
 
-/// `k` points over a leaf's triangles, each chosen by its area (stratified).
-fn leaf_points(tris: &[TriW], back: bool, k: usize, rng: &mut Hash) -> Vec<GatherPoint> {
-    let total: f32 = tris.iter().map(tri_area).sum();
+/// `k` points over a leaf's triangles, each chosen by its area (stratified), on the leaf's
+/// `back` side: each triangle's normal turned to its leaf's mean normal (the flag with it)
+/// and then to the back if asked, as `key` takes a leaf's sides.
+fn leaf_points(tris: &[(TriW, bool)], back: bool, k: usize, rng: &mut Hash) -> Vec<GatherPoint> {
+    let total: f32 = tris.iter().map(|t| tri_area(&t.0)).sum();
     if tris.is_empty() || total <= 0.0 {
         return Vec::new();
     }
     (0..k)
         .map(|s| {
             let mut x = (s as f32 + rng.f32()) / k as f32 * total;
-            let t = tris
+            let (t, flip) = tris
                 .iter()
                 .find(|t| {
-                    x -= tri_area(t);
+                    x -= tri_area(&t.0);
                     x < 0.0
                 })
                 .unwrap_or(&tris[tris.len() - 1]);
             let (u, v) = (rng.f32().sqrt(), rng.f32());
-            point_on(t, [1.0 - u, u * (1.0 - v), u * v], back)
+            point_on(t, [1.0 - u, u * (1.0 - v), u * v], back ^ flip)
         })
         .collect()
 }

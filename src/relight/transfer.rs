@@ -76,7 +76,7 @@ pub fn follow(
         }
         let albedo = PI * sp.bsdf.diffuse_lobe(sp.wo_l);
         if !sp.absorbs && albedo.max_element() > 0.0 {
-            let key = cells::key(keys, hit, !sp.front);
+            let key = cells::key(tr, keys, hit, !sp.front);
             *row.entry(key).or_insert(V::ZERO) += beta * albedo * weight;
         }
         let q = beta.max_element();
