@@ -63,26 +63,32 @@ fn relit_light_sets_match_the_path_tracer() {
         if let Some(l) = lights {
             extra.extend(["--lights", s(l)]);
         }
-        let (pt, _) = render(
-            &archive,
-            &dir.path().join("pt.exr"),
-            &[&extra[..], &["--spp", "1024"]].concat(),
-        );
-        let (pt16, _) = render(
-            &archive,
-            &dir.path().join("pt16.exr"),
-            &[&extra[..], &["--spp", "16", "--seed", "7"]].concat(),
-        );
-        // The 1024-spp mean's relative standard error is about 0.1% and the relit image's
-        // (256 transfer paths a pixel, 16 light samples) about 0.3% at 64×64: 1.5% is five
-        // of the difference's standard errors.
-        assert_mean_within(&img, &pt, 0.015, &format!("relit, lights {lights:?}"));
-        let (e, e16) = (rmse(&img, &pt), rmse(&pt16, &pt));
-        assert!(
-            e < e16,
-            "relit RMSE {e} is not below the 16-spp path tracer's {e16} (lights {lights:?})"
-        );
+        let what = format!("relit, lights {lights:?}");
+        assert_relit_like_the_path_tracer(&img, &archive, dir.path(), &extra, &what);
     }
+}
+
+/// `img`, relit from `archive`'s view, against the path tracer rendering `archive` with
+/// `extra` flags: the 1,024-spp mean's relative standard error is about 0.1% and a relit
+/// image's (256 transfer paths a pixel, 16 light samples) about 0.3% at 64×64, so 1.5% is
+/// five of the difference's standard errors; and the relit RMSE below the 16-spp path
+/// tracer's.
+fn assert_relit_like_the_path_tracer(
+    img: &Image,
+    archive: &Path,
+    dir: &Path,
+    extra: &[&str],
+    what: &str,
+) {
+    let spp = |n: &'static str, seed: &'static str| [extra, &["--spp", n, "--seed", seed]].concat();
+    let (pt, _) = render(archive, &dir.join("pt.exr"), &spp("1024", "0"));
+    let (pt16, _) = render(archive, &dir.join("pt16.exr"), &spp("16", "7"));
+    assert_mean_within(img, &pt, 0.015, what);
+    let (e, e16) = (rmse(img, &pt), rmse(&pt16, &pt));
+    assert!(
+        e < e16,
+        "{what}: relit RMSE {e} is not below the 16-spp path tracer's {e16}"
+    );
 }
 
 /// An instanced archive relights as the path tracer renders it: the Cornell box's small
@@ -97,17 +103,7 @@ fn an_instanced_archive_relights_as_the_path_tracer_renders_it() {
     let (archive, view) = precomputed(dir.path(), &input, None, "boxes", ["64", "64"]);
     let img = relit(&view, None, &dir.path().join("relit.exr"));
     let size = ["--width", "64", "--height", "64"];
-    let spp =
-        |n: &'static str, seed: &'static str| [&size[..], &["--spp", n, "--seed", seed]].concat();
-    let (pt, _) = render(&archive, &dir.path().join("pt.exr"), &spp("1024", "1"));
-    let (pt16, _) = render(&archive, &dir.path().join("pt16.exr"), &spp("16", "7"));
-    // As in `relit_light_sets_match_the_path_tracer`: five standard errors of the difference.
-    assert_mean_within(&img, &pt, 0.015, "relit instances");
-    let (e, e16) = (rmse(&img, &pt), rmse(&pt16, &pt));
-    assert!(
-        e < e16,
-        "relit RMSE {e} is not below the 16-spp path tracer's {e16}"
-    );
+    assert_relit_like_the_path_tracer(&img, &archive, dir.path(), &size, "relit instances");
 }
 
 /// A floor of fine triangles wound every other way (as scans and exported sheets come),
@@ -133,7 +129,7 @@ fn a_floor_wound_both_ways_relights_as_the_path_tracer_renders_it() {
         for i in 0..n {
             let v = |a: usize, b: usize| (j + b) * (n + 1) + i + a + 1;
             let (q, r) = ((v(0, 0), v(0, 1), v(1, 1)), (v(0, 0), v(1, 1), v(1, 0)));
-            // Every other triangle wound against the floor's upward face.
+            // Every other quad's triangles wound against the floor's upward face.
             let (a, b) = if (i + j) % 2 == 0 {
                 (q, r)
             } else {
@@ -169,15 +165,7 @@ intensity = 1.0
     let view = dir.path().join("floor.relight");
     ok(&["--quiet", "relight", s(&archive), "-o", s(&view)]);
     let img = relit(&view, None, &dir.path().join("relit.exr"));
-    let spp = |n: &'static str, seed: &'static str| ["--spp", n, "--seed", seed];
-    let (pt, _) = render(&archive, &dir.path().join("pt.exr"), &spp("1024", "1"));
-    let (pt16, _) = render(&archive, &dir.path().join("pt16.exr"), &spp("16", "7"));
-    assert_mean_within(&img, &pt, 0.015, "relit floor");
-    let (e, e16) = (rmse(&img, &pt), rmse(&pt16, &pt));
-    assert!(
-        e < e16,
-        "relit RMSE {e} is not below the 16-spp path tracer's {e16}"
-    );
+    assert_relit_like_the_path_tracer(&img, &archive, dir.path(), &[], "relit floor");
 }
 
 /// The bundled spheres under `scenes/env/sky.hdr`, the archive's own (a scene file's
