@@ -52,7 +52,8 @@ pub struct RelightArgs {
     /// Precomputing: seed of the sample sequences [default: 0].
     #[arg(long)]
     seed: Option<u32>,
-    /// Memory for decoded pages, e.g. 256MiB (default: unlimited).
+    /// Memory budget, e.g. 1GiB (default: unlimited): precomputing, the archive's pages and the
+    /// precompute's tables; rendering, the archive's pages only.
     #[arg(long, value_parser = units::parse_size)]
     mem_budget: Option<u64>,
     /// Worker threads (default: all cores).

@@ -2,9 +2,10 @@
 //! scenes over a hierarchy by Hašan, Pellacini and Bala 2006): for one fixed view, the
 //! transfer from light arriving at the scene's surfaces to every pixel is precomputed once
 //! (`prepare`), all bounces included, over the light cells of the node tree's leaves and
-//! compressed along the tree's order; a light set is then rendered (`Relighter::frame`) as
-//! direct light at the view samples plus the product of the transfer with direct light
-//! gathered at the cells the transfer reads.
+//! compressed along the tree's order; a light set is then rendered (`Relighter::image`, or
+//! a slice of each light's rays a frame by `Relighter::frame`) as direct light at the view
+//! samples plus the product of the transfer with direct light gathered at the cells the
+//! transfer reads.
 //! Light transport is linear in the emitters, so the product is exact up to the transfer's
 //! compression and noise: lamps may be scaled and tinted, punctual lights moved, re-aimed
 //! or added, the environment made stronger or turned, each without a new precompute.
