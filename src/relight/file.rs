@@ -141,8 +141,7 @@ impl Writer {
             out,
             hash: Xxh3::new(),
         };
-        w.put(archive.to_string_lossy().as_bytes())?;
-        w.end()?;
+        w.section(archive.to_string_lossy().as_bytes())?;
         Ok(w)
     }
 
@@ -151,6 +150,12 @@ impl Writer {
         let bytes: &[u8] = bytemuck::cast_slice(items);
         self.hash.update(bytes);
         Ok(self.out.write_all(bytes)?)
+    }
+
+    /// Writes a whole section: `items`, then its padding.
+    pub fn section<T: Pod>(&mut self, items: &[T]) -> Result<()> {
+        self.put(items)?;
+        self.end()
     }
 
     /// Ends a section: zero bytes to the next multiple of 8.
@@ -401,8 +406,6 @@ mod tests {
     use super::*;
     use crate::test_rng::TestRng;
 
-    type Section<'a> = &'a dyn Fn(&mut Writer) -> Result<()>;
-
     /// Writes a small valid file: a 2×1 view of 1 sample a pixel reading 2 cells.
     fn small(path: &Path) {
         let archive = PathBuf::from("/a.canopy");
@@ -438,25 +441,18 @@ mod tests {
             camera,
         };
         let mut w = Writer::create(path, &archive).unwrap();
-        let sections: [Section; 8] = [
-            &|w| w.put(&[view; 2]),
-            &|w| w.put(&[point; 3]),
-            &|w| w.put(&[0u64, 1, 3]),
-            &|w| w.put(&[0u64, 2, 3]),
-            &|w| w.put(&[0u32, 1, 1]),
-            &|w| w.put(&[[f16::from_f32(0.5); 3]; 3]),
-            &|w| w.put(&[0u64, 0, 1]),
-            &|w| {
-                w.put(&[Coef {
-                    index: 0,
-                    w: [2.0; 3],
-                }])
-            },
-        ];
-        for s in sections {
-            s(&mut w).unwrap();
-            w.end().unwrap();
-        }
+        w.section(&[view; 2]).unwrap();
+        w.section(&[point; 3]).unwrap();
+        w.section(&[0u64, 1, 3]).unwrap();
+        w.section(&[0u64, 2, 3]).unwrap();
+        w.section(&[0u32, 1, 1]).unwrap();
+        w.section(&[[f16::from_f32(0.5); 3]; 3]).unwrap();
+        w.section(&[0u64, 0, 1]).unwrap();
+        let emit = Coef {
+            index: 0,
+            w: [2.0; 3],
+        };
+        w.section(&[emit]).unwrap();
         w.commit(&header).unwrap();
     }
 

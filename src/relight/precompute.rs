@@ -99,19 +99,15 @@ pub fn prepare(o: &PrepareOptions) -> Result<PrepareStats> {
     let carried: Vec<f32> = cell_keys.iter().map(|k| rows.carried[k]).collect();
     rows.carried = FxHashMap::default();
     let (points, cell_first) = points(o, &s, &keys, &cell_keys, &carried, &mut out)?;
-    out.put(&cell_first)?;
-    out.end()?;
-    out.put(&rows.row_first)?;
-    out.end()?;
+    out.section(&cell_first)?;
+    out.section(&rows.row_first)?;
     let coefs = *rows
         .row_first
         .last()
         .expect("one offset a pixel and one more");
     copy_coefficients(&mut rows, &cell_keys, coefs, &mut out)?;
-    out.put(&rows.emit_first)?;
-    out.end()?;
-    out.put(&rows.emits)?;
-    out.end()?;
+    out.section(&rows.emit_first)?;
+    out.section(&rows.emits)?;
     let mut camera = [0u8; 64];
     let name = o.camera.as_deref().unwrap_or("").as_bytes();
     camera[..name.len().min(64)].copy_from_slice(&name[..name.len().min(64)]);
@@ -160,14 +156,9 @@ fn rows(
             .with_context(|| format!("{}: cannot create a scratch file", scratch.display()))
     };
     let (mut key_out, mut weight_out) = (BufWriter::new(unnamed()?), BufWriter::new(unnamed()?));
-    let mut r = Rows {
-        row_first: vec![0],
-        emit_first: vec![0],
-        emits: Vec::new(),
-        keys: unnamed()?,
-        weights: unnamed()?,
-        carried: FxHashMap::default(),
-    };
+    let (mut row_first, mut emit_first) = (vec![0u64], vec![0u64]);
+    let mut emits = Vec::new();
+    let mut carried: FxHashMap<u64, f32> = FxHashMap::default();
     let bar = crate::progress::bar(o.progress, pixels as u64, "relight precompute (rows)");
     for band in (0..pixels).step_by(BAND as usize) {
         let parts: Vec<PixelPart> = s.pool.install(|| {
@@ -182,23 +173,23 @@ fn rows(
         if let Some(err) = scene.error() {
             bail!("{err}");
         }
-        let mut coefs = *r.row_first.last().expect("first offset");
+        let mut coefs = *row_first.last().expect("first offset");
         for p in parts {
             out.put(&p.views)?;
             for (k, v) in &p.row {
-                *r.carried.entry(*k).or_insert(0.0) += luminance(*v);
+                *carried.entry(*k).or_insert(0.0) += luminance(*v);
                 key_out.write_all(&k.to_le_bytes())?;
                 let w = v.to_array().map(|x| f16::from_f32(x.min(F16_MAX)));
                 weight_out.write_all(bytemuck::cast_slice(&w))?;
             }
             coefs += p.row.len() as u64;
-            r.row_first.push(coefs);
-            r.emits.extend(
+            row_first.push(coefs);
+            emits.extend(
                 p.emits
                     .iter()
                     .map(|&(index, v)| Coef { index, w: v.into() }),
             );
-            r.emit_first.push(r.emits.len() as u64);
+            emit_first.push(emits.len() as u64);
         }
         bar.inc((band + BAND).min(pixels) as u64 - band as u64);
     }
@@ -209,9 +200,14 @@ fn rows(
         f.rewind()?;
         Ok(f)
     };
-    r.keys = rewound(key_out)?;
-    r.weights = rewound(weight_out)?;
-    Ok(r)
+    Ok(Rows {
+        row_first,
+        emit_first,
+        emits,
+        keys: rewound(key_out)?,
+        weights: rewound(weight_out)?,
+        carried,
+    })
 }
 
 /// The gather points of every cell, in the cells' order, written to `out` a batch at a
