@@ -28,8 +28,8 @@ fn view() -> (PathBuf, Option<tempfile::TempDir>) {
         camera: None,
         width: Some(128),
         height: Some(128),
-        spp: 4,
-        paths: 64,
+        spp: 16,
+        paths: 16,
         coefficients: 128,
         seed: 0,
         mem_budget: None,
@@ -49,7 +49,7 @@ fn relight(c: &mut Criterion) {
     let o = RelightOptions {
         view: view.clone(),
         lights: None,
-        light_samples: 4,
+        light_samples: 1,
         mem_budget: None,
         threads: None,
     };

@@ -27,7 +27,7 @@ pub struct RelightArgs {
     #[arg(long, value_name = "FILE")]
     lights: Option<PathBuf>,
     /// Rendering: light samples per view sample from each lamp and the environment (a
-    /// punctual light takes one, which is exact) [default: 4].
+    /// punctual light takes one, which is exact) [default: 1].
     #[arg(long, value_name = "N")]
     light_samples: Option<u32>,
     /// Precomputing: camera name (default: the first camera, else the default view).
@@ -39,10 +39,10 @@ pub struct RelightArgs {
     /// Precomputing: image height.
     #[arg(long)]
     height: Option<u32>,
-    /// Precomputing: view samples per pixel [default: 4].
+    /// Precomputing: view samples per pixel [default: 16].
     #[arg(long)]
     spp: Option<u32>,
-    /// Precomputing: transfer paths per view sample [default: 64].
+    /// Precomputing: transfer paths per view sample [default: 16].
     #[arg(long)]
     paths: Option<u32>,
     /// Precomputing: the compression's accuracy knob, the most coefficients a pixel's
@@ -105,8 +105,8 @@ fn prepare(a: RelightArgs, progress: bool) -> Result<()> {
         camera: a.camera,
         width: a.width,
         height: a.height,
-        spp: a.spp.unwrap_or(4),
-        paths: a.paths.unwrap_or(64),
+        spp: a.spp.unwrap_or(16),
+        paths: a.paths.unwrap_or(16),
         coefficients: a.coefficients.unwrap_or(128),
         seed: a.seed.unwrap_or(0),
         mem_budget: a.mem_budget,
@@ -137,7 +137,7 @@ fn render(a: RelightArgs) -> Result<()> {
     let o = RelightOptions {
         view: a.input.clone(),
         lights: a.lights,
-        light_samples: a.light_samples.unwrap_or(4),
+        light_samples: a.light_samples.unwrap_or(1),
         mem_budget: a.mem_budget,
         threads: a.threads,
     };

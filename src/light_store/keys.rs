@@ -54,15 +54,6 @@ impl Keys {
         }
     }
 
-    /// The instance (`NO_INSTANCE`: none) and node a placed number names: `placed`'s
-    /// inverse.
-    pub fn unplace(&self, placed: u64) -> (u32, u64) {
-        match placed / self.nodes.max(1) {
-            0 => (NO_INSTANCE, placed),
-            i => ((i - 1) as u32, placed % self.nodes),
-        }
-    }
-
     /// Keys in all: every node of the archive and of every instance's placement.
     pub fn count(&self) -> u64 {
         self.total
@@ -81,16 +72,6 @@ impl Keys {
     /// Key of a cell of the k-th triangle of a leaf, on its front or `back` side.
     pub fn tri(&self, leaf: u64, k: u32, back: bool, cell: u64) -> u64 {
         self.node(leaf) + (1 + 2 * k as u64 + back as u64) * CELLS + cell
-    }
-
-    /// What a key names: its node, and for a cell key the triangle's slot, side and cell.
-    pub fn decode(&self, key: u64) -> (u64, Option<(u32, bool, u64)>) {
-        let (node, rest) = (key / self.stride, key % self.stride);
-        if rest < CELLS {
-            return (node, None);
-        }
-        let side = rest / CELLS - 1;
-        (node, Some(((side / 2) as u32, side % 2 == 1, rest % CELLS)))
     }
 
     /// Side n of a triangle's n×n cell grid, from its longest edge.
@@ -173,13 +154,8 @@ mod tests {
         assert!(k.tri(3, 0, false, 0) > k.node(3));
         assert!(k.tri(3, 0, false, CELLS - 1) < k.tri(3, 0, true, 0));
         assert!(k.tri(3, 0, true, CELLS - 1) < k.tri(3, 1, false, 0));
-        assert_eq!(k.decode(k.tri(3, 5, true, 17)), (3, Some((5, true, 17))));
-        assert_eq!(k.decode(k.node(4)), (4, None));
         // Each instance's nodes number after the scene's and the previous instance's.
         assert_eq!(k.placed(NO_INSTANCE, 4), 4);
-        for (i, n) in [(NO_INSTANCE, 4), (0, 0), (0, 4), (1, 3)] {
-            assert_eq!(k.unplace(k.placed(i, n)), (i, n));
-        }
         assert!(k.tri(k.placed(NO_INSTANCE, 4), 7, true, CELLS - 1) < k.node(k.placed(0, 0)));
         assert!(k.tri(k.placed(0, 4), 7, true, CELLS - 1) < k.node(k.placed(1, 0)));
         // Keys that would not fit in 64 bits are refused, not wrapped.

@@ -577,20 +577,6 @@ impl PageCache {
         (node < e.first_node + e.node_count as u64).then_some(i as u32 - 1)
     }
 
-    /// Instance `number` as the tracer uses it: from the page holding its record (pages
-    /// number their records consecutively), or from the archive's instance table.
-    pub fn instance(&self, number: u32) -> Option<instance::Instance> {
-        if let Some(r) = self.archive.instances.get(number as usize) {
-            return Some(instance::Instance::new(number, r));
-        }
-        let i = self.entries.partition_point(|e| {
-            e.first_instance as u64 + e.instance_count as u64 <= number as u64
-        });
-        let e = self.entries.get(i)?;
-        let k = number.checked_sub(e.first_instance)?;
-        self.get(i as u32).instances.get(k as usize).cloned()
-    }
-
     pub fn root_page(&self) -> u32 {
         self.archive.header.root_page
     }

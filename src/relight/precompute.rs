@@ -1,12 +1,15 @@
 //! The precompute of a view, streamed so that its memory is bounded by the image, not by
 //! the scene: pixels are done a band at a time, their view samples written to the file as
-//! they come and their rows' coefficients to two scratch files; the cells the rows read
-//! are then numbered (sorted by key), their gather points written as they are made, and
-//! the rows copied into the file with their cells' numbers. Only per-pixel offsets, the
-//! lamps seen and one weight per cell stay in memory.
+//! they come and their rows' coefficients (cell, weight, a landing in the cell) to three
+//! scratch files; the cells the rows read are then numbered (sorted by key), their gather
+//! points drawn from the landings in a pass over the scratch files for each range of cells
+//! whose points fit in memory, and the rows copied into the file with their cells'
+//! numbers. Only per-pixel offsets, the lamps seen and a few numbers per cell stay in
+//! memory.
 
 use super::file::{self, Coef, Header, Writer};
-use super::{cells, scene_options, transfer, view, PrepareOptions, PrepareStats};
+use super::cells::{self, GatherPoint};
+use super::{scene_options, transfer, view, PrepareOptions, PrepareStats};
 use crate::camera::Camera;
 use crate::integrator::Scene;
 use crate::light_store::Keys;
@@ -29,30 +32,41 @@ use std::time::Instant;
 const EMISSION_SAMPLES: u32 = 64;
 /// Largest coefficient stored (half precision's largest finite value).
 const F16_MAX: f32 = 65504.0;
-/// Pixels precomputed at once, and cells whose points are made at once.
+/// Pixels precomputed at once.
 const BAND: u32 = 4096;
-const CELL_BATCH: usize = 1 << 16;
-/// Coefficients copied from the scratch files at once.
+/// Coefficients read from the scratch files at once.
 const COPY_BATCH: usize = 1 << 20;
+/// Memory for the gather points of a range of cells, without `--mem-budget` (with it, an
+/// eighth of the budget).
+const POINTS_MEMORY: u64 = 256 << 20;
 
 /// What one pixel's precompute gives: its view samples, compressed transfer row, and the
 /// lamps it sees by material.
 struct PixelPart {
     views: Vec<view::ViewRay>,
-    row: Vec<(u64, V)>,
+    row: Vec<transfer::Coefficient>,
     emits: Vec<(u32, V)>,
 }
 
 /// What the pass over the pixels leaves: per pixel its first coefficient and emission
-/// record, the emission records, the rows' cell keys and weights in scratch files, and per
-/// cell key the transfer it carries over the image (luminance).
+/// record, the emission records, the rows' cell keys, weights and landings in scratch
+/// files, and per cell key what it carries over the image.
 struct Rows {
     row_first: Vec<u64>,
     emit_first: Vec<u64>,
     emits: Vec<Coef>,
     keys: File,
     weights: File,
-    carried: FxHashMap<u64, f32>,
+    landings: File,
+    carried: FxHashMap<u64, Carried>,
+}
+
+/// What a cell carries over the image: the luminance of its coefficients' weights (as
+/// stored, in half precision) and how many coefficients.
+#[derive(Clone, Copy, Default)]
+struct Carried {
+    lum: f32,
+    coefs: u32,
 }
 
 /// Precomputes the view and transfer of `o.archive` seen from `o.camera`, into `o.output`.
@@ -96,16 +110,23 @@ pub fn prepare(o: &PrepareOptions) -> Result<PrepareStats> {
     let mut rows = rows(o, &s, &keys, &mut out, scratch)?;
     let mut cell_keys: Vec<u64> = rows.carried.keys().copied().collect();
     cell_keys.par_sort_unstable();
-    let carried: Vec<f32> = cell_keys.iter().map(|k| rows.carried[k]).collect();
+    let carried: Vec<Carried> = cell_keys.iter().map(|k| rows.carried[k]).collect();
     rows.carried = FxHashMap::default();
-    let (points, cell_first) = points(o, &s, &keys, &cell_keys, &carried, &mut out)?;
-    out.section(&cell_first)?;
-    out.section(&rows.row_first)?;
     let coefs = *rows
         .row_first
         .last()
         .expect("one offset a pixel and one more");
-    copy_coefficients(&mut rows, &cell_keys, coefs, &mut out)?;
+    let mut numbers = number_cells(&mut rows.keys, &cell_keys, coefs, unnamed(scratch)?)?;
+    let memory = o.mem_budget.map_or(POINTS_MEMORY, |b| b / 8);
+    let (points, cell_first) = points(
+        (&cell_keys, &carried, o.seed),
+        (&mut numbers, &mut rows, coefs),
+        memory,
+        &mut out,
+    )?;
+    out.section(&cell_first)?;
+    out.section(&rows.row_first)?;
+    copy_coefficients(&mut numbers, &mut rows.weights, coefs, &mut out)?;
     out.section(&rows.emit_first)?;
     out.section(&rows.emits)?;
     let mut camera = [0u8; 64];
@@ -150,15 +171,12 @@ fn rows(
 ) -> Result<Rows> {
     let scene = &s.scene;
     let pixels = s.width * s.height;
-    // Scratch files have no name: the kernel reclaims them however the process ends.
-    let unnamed = || {
-        tempfile::tempfile_in(scratch)
-            .with_context(|| format!("{}: cannot create a scratch file", scratch.display()))
-    };
-    let (mut key_out, mut weight_out) = (BufWriter::new(unnamed()?), BufWriter::new(unnamed()?));
+    let mut key_out = BufWriter::new(unnamed(scratch)?);
+    let mut weight_out = BufWriter::new(unnamed(scratch)?);
+    let mut landing_out = BufWriter::new(unnamed(scratch)?);
     let (mut row_first, mut emit_first) = (vec![0u64], vec![0u64]);
     let mut emits = Vec::new();
-    let mut carried: FxHashMap<u64, f32> = FxHashMap::default();
+    let mut carried: FxHashMap<u64, Carried> = FxHashMap::default();
     let bar = crate::progress::bar(o.progress, pixels as u64, "relight precompute (rows)");
     for band in (0..pixels).step_by(BAND as usize) {
         let parts: Vec<PixelPart> = s.pool.install(|| {
@@ -176,11 +194,14 @@ fn rows(
         let mut coefs = *row_first.last().expect("first offset");
         for p in parts {
             out.put(&p.views)?;
-            for (k, v) in &p.row {
-                *carried.entry(*k).or_insert(0.0) += luminance(*v);
-                key_out.write_all(&k.to_le_bytes())?;
+            for (k, v, landing) in &p.row {
                 let w = v.to_array().map(|x| f16::from_f32(x.min(F16_MAX)));
+                let c = carried.entry(*k).or_default();
+                c.lum += half_luminance(w);
+                c.coefs += 1;
+                key_out.write_all(&k.to_le_bytes())?;
                 weight_out.write_all(bytemuck::cast_slice(&w))?;
+                landing_out.write_all(bytemuck::bytes_of(landing))?;
             }
             coefs += p.row.len() as u64;
             row_first.push(coefs);
@@ -195,92 +216,216 @@ fn rows(
     }
     bar.finish_and_clear();
     out.end()?;
-    let rewound = |w: BufWriter<File>| -> Result<File> {
-        let mut f = w.into_inner().context("writing a scratch file")?;
-        f.rewind()?;
-        Ok(f)
-    };
     Ok(Rows {
         row_first,
         emit_first,
         emits,
         keys: rewound(key_out)?,
         weights: rewound(weight_out)?,
+        landings: rewound(landing_out)?,
         carried,
     })
 }
 
-/// The gather points of every cell, in the cells' order, written to `out` a batch at a
-/// time; returns how many, and each cell's first.
-fn points(
-    o: &PrepareOptions,
-    s: &Setup,
-    keys: &Keys,
-    cell_keys: &[u64],
-    carried: &[f32],
-    out: &mut Writer,
-) -> Result<(u64, Vec<u64>)> {
-    let count = cells::counts(carried);
-    let mut cell_first = Vec::with_capacity(cell_keys.len() + 1);
-    cell_first.push(0u64);
-    let mut total = 0u64;
-    for (ks, ns) in cell_keys.chunks(CELL_BATCH).zip(count.chunks(CELL_BATCH)) {
-        let batch: Vec<Vec<cells::GatherPoint>> = s.pool.install(|| {
-            ks.par_iter()
-                .zip(ns)
-                .map(|(&k, &n)| {
-                    let rng = &mut Hash::new(k ^ o.seed as u64);
-                    cells::points(&s.scene.cache, keys, k, n, rng)
-                })
-                .collect()
-        });
-        for p in batch {
-            out.put(&p)?;
-            total += p.len() as u64;
-            cell_first.push(total);
-        }
-    }
-    if let Some(err) = s.scene.error() {
-        bail!("{err}");
-    }
-    out.end()?;
-    Ok((total, cell_first))
+/// A scratch file in `dir`. It has no name: the kernel reclaims it however the process
+/// ends.
+fn unnamed(dir: &Path) -> Result<File> {
+    tempfile::tempfile_in(dir)
+        .with_context(|| format!("{}: cannot create a scratch file", dir.display()))
 }
 
-/// The rows' coefficients from the scratch files into `out`: each key as its cell's
-/// number (its place in the sorted `cell_keys`), then the weights as they are.
-fn copy_coefficients(r: &mut Rows, cell_keys: &[u64], coefs: u64, out: &mut Writer) -> Result<()> {
-    let mut keys = BufReader::new(&mut r.keys);
+/// A scratch file written, flushed and rewound for reading.
+fn rewound(w: BufWriter<File>) -> Result<File> {
+    let mut f = w.into_inner().context("writing a scratch file")?;
+    f.rewind()?;
+    Ok(f)
+}
+
+/// The luminance of a weight as stored.
+fn half_luminance(w: [f16; 3]) -> f32 {
+    luminance(V::from(w.map(f16::to_f32)))
+}
+
+/// Each coefficient's cell number (its key's place in the sorted `cell_keys`), from the
+/// keys scratch file into `to`, rewound.
+fn number_cells(keys: &mut File, cell_keys: &[u64], coefs: u64, to: File) -> Result<File> {
+    let mut keys = BufReader::new(keys);
+    let mut to = BufWriter::new(to);
     let mut left = coefs as usize;
     let mut buf = vec![0u64; COPY_BATCH];
     while left > 0 {
         let n = left.min(COPY_BATCH);
         keys.read_exact(bytemuck::cast_slice_mut(&mut buf[..n]))
             .context("reading a scratch file back")?;
-        let cells: Vec<u32> = buf[..n]
-            .iter()
-            .map(|k| {
-                cell_keys
-                    .binary_search(k)
-                    .expect("every row's key is a cell") as u32
-            })
-            .collect();
-        out.put(&cells)?;
+        for k in &buf[..n] {
+            let cell = cell_keys
+                .binary_search(k)
+                .expect("every row's key is a cell") as u32;
+            to.write_all(&cell.to_le_bytes())?;
+        }
         left -= n;
+    }
+    rewound(to)
+}
+
+/// The gather points of every cell, in the cells' order, written to `out` a range of cells
+/// at a time (as many as `memory` holds points for); returns how many, and each cell's
+/// first.
+fn points(
+    (cell_keys, carried, seed): (&[u64], &[Carried], u32),
+    (numbers, rows, coefs): (&mut File, &mut Rows, u64),
+    memory: u64,
+    out: &mut Writer,
+) -> Result<(u64, Vec<u64>)> {
+    let count = point_counts(carried);
+    let mut cell_first = Vec::with_capacity(cell_keys.len() + 1);
+    cell_first.push(0u64);
+    let mut start = 0;
+    while start < count.len() {
+        let mut end = start + 1;
+        let mut bytes = count[start] as u64 * std::mem::size_of::<GatherPoint>() as u64;
+        while end < count.len() && bytes < memory {
+            bytes += (count[end] * std::mem::size_of::<GatherPoint>()) as u64 + 16;
+            end += 1;
+        }
+        let draw = Draw {
+            cells: start..end,
+            keys: &cell_keys[start..end],
+            carried: &carried[start..end],
+            count: &count[start..end],
+            seed,
+        };
+        let files = [&mut *numbers, &mut rows.weights, &mut rows.landings];
+        for p in draw.run(files, coefs)? {
+            out.put(&p)?;
+            cell_first.push(cell_first.last().expect("first offset") + p.len() as u64);
+        }
+        start = end;
     }
     out.end()?;
-    let mut weights = BufReader::new(&mut r.weights);
-    let mut left = coefs as usize * 6;
-    let mut buf = vec![0u8; COPY_BATCH * 6];
-    while left > 0 {
-        let n = left.min(buf.len());
-        weights
-            .read_exact(&mut buf[..n])
-            .context("reading a scratch file back")?;
-        out.put(&buf[..n])?;
-        left -= n;
+    Ok((*cell_first.last().expect("first offset"), cell_first))
+}
+
+/// How many points each cell gathers at: `cells::counts` by the transfer each carries,
+/// but no more than the landings it has.
+fn point_counts(carried: &[Carried]) -> Vec<usize> {
+    let lum: Vec<f32> = carried.iter().map(|c| c.lum).collect();
+    cells::counts(&lum)
+        .into_iter()
+        .zip(carried)
+        .map(|(n, c)| n.min(c.coefs as usize))
+        .collect()
+}
+
+/// The gather points of a range of cells, drawn from their landings by systematic sampling
+/// on the landings' weights in the order the pixels stored them: a cell's points follow
+/// where its transfer lands.
+struct Draw<'a> {
+    cells: std::ops::Range<usize>,
+    keys: &'a [u64],
+    carried: &'a [Carried],
+    count: &'a [usize],
+    seed: u32,
+}
+
+/// A cell's systematic sampling so far: its landings' luminance summed, how many landings
+/// seen, and the first pick's place (in steps).
+#[derive(Clone, Copy)]
+struct Picking {
+    below: f32,
+    seen: u32,
+    u: f32,
+}
+
+impl Draw<'_> {
+    /// One pass over the `coefs` coefficients' scratch files (cell numbers, weights,
+    /// landings; rewound after): the range's points.
+    fn run(&self, files: [&mut File; 3], coefs: u64) -> Result<Vec<Vec<GatherPoint>>> {
+        let mut points: Vec<Vec<GatherPoint>> =
+            self.count.iter().map(|&c| Vec::with_capacity(c)).collect();
+        let mut state: Vec<Picking> = self
+            .keys
+            .iter()
+            .map(|&k| Picking {
+                below: 0.0,
+                seen: 0,
+                u: Hash::new(k ^ self.seed as u64).f32(),
+            })
+            .collect();
+        let [numbers, weights, landings] = files;
+        let (mut nr, mut wr, mut lr) = (
+            BufReader::new(&mut *numbers),
+            BufReader::new(&mut *weights),
+            BufReader::new(&mut *landings),
+        );
+        let mut cells = vec![0u32; COPY_BATCH];
+        let mut w = vec![[f16::ZERO; 3]; COPY_BATCH];
+        let mut l = vec![GatherPoint::default(); COPY_BATCH];
+        let mut left = coefs as usize;
+        while left > 0 {
+            let n = left.min(COPY_BATCH);
+            let read = |r: &mut dyn Read, b: &mut [u8]| {
+                r.read_exact(b).context("reading a scratch file back")
+            };
+            read(&mut nr, bytemuck::cast_slice_mut(&mut cells[..n]))?;
+            read(&mut wr, bytemuck::cast_slice_mut(&mut w[..n]))?;
+            read(&mut lr, bytemuck::cast_slice_mut(&mut l[..n]))?;
+            for i in 0..n {
+                let c = cells[i] as usize;
+                if let Some(j) = c.checked_sub(self.cells.start).filter(|_| c < self.cells.end) {
+                    self.pick(j, (half_luminance(w[i]), &l[i]), &mut state[j], &mut points[j]);
+                }
+            }
+            left -= n;
+        }
+        for f in [numbers, weights, landings] {
+            f.rewind()?;
+        }
+        Ok(points)
     }
-    out.end()
+
+    /// Cell `j`'s next landing (its weight's luminance, the point): picked as often as
+    /// the cell's picks fall in its weight, every pick left taken at the cell's last.
+    fn pick(
+        &self,
+        j: usize,
+        (lum, landing): (f32, &GatherPoint),
+        s: &mut Picking,
+        points: &mut Vec<GatherPoint>,
+    ) {
+        let (k, c) = (self.count[j], &self.carried[j]);
+        let step = c.lum / k as f32;
+        s.below += lum;
+        s.seen += 1;
+        let last = s.seen == c.coefs;
+        while points.len() < k && (last || (s.u + points.len() as f32) * step < s.below) {
+            points.push(*landing);
+        }
+    }
+}
+
+/// The rows' coefficients from the scratch files into `out`: their cell numbers, then
+/// their weights, each as they are.
+fn copy_coefficients(
+    numbers: &mut File,
+    weights: &mut File,
+    coefs: u64,
+    out: &mut Writer,
+) -> Result<()> {
+    for (file, size) in [(numbers, 4), (weights, 6)] {
+        let mut r = BufReader::new(file);
+        let mut left = coefs as usize * size;
+        let mut buf = vec![0u8; COPY_BATCH * size];
+        while left > 0 {
+            let n = left.min(buf.len());
+            r.read_exact(&mut buf[..n])
+                .context("reading a scratch file back")?;
+            out.put(&buf[..n])?;
+            left -= n;
+        }
+        out.end()?;
+    }
+    Ok(())
 }
 
 /// Pixel (x, y)'s view samples, compressed transfer row and lamps seen.

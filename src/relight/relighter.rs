@@ -77,11 +77,19 @@ enum Key {
 }
 
 /// A share is traced in slices, one a frame: slice 0 is one gather point of each cell (drawn
-/// at random among its points), slice `d` ≥ 1 every (`SLICES` − 1)-th of the cell's other
-/// points; a pixel's view samples `j` lie in slice `j % SLICES`. A light moved or added
-/// shows after one ray a cell and a quarter of the view samples, and its share is complete
-/// `SLICES` frames later.
+/// at random among its points) and one view sample of each pixel, slice `d` ≥ 1 every
+/// (`SLICES` − 1)-th of the others (`slice`). A light moved or added shows after one ray a
+/// cell and a pixel, and its share is complete `SLICES` frames later.
 const SLICES: u32 = 4;
+
+/// The slice of a cell's `j`-th point (counted from its first-drawn) or a pixel's `j`-th
+/// view sample.
+fn slice(j: u32) -> u32 {
+    match j {
+        0 => 0,
+        j => 1 + (j - 1) % (SLICES - 1),
+    }
+}
 
 /// One light's share: direct light at each view sample and E/π at each cell, over the
 /// slices traced so far.
@@ -98,7 +106,7 @@ impl Share {
     /// Per view sample of a pixel (by its number in the pixel), the weight that makes the
     /// pixel's sum the mean over the samples traced.
     fn direct_weights(&self, spp: u32) -> Vec<f32> {
-        let traced = |j: u32| j % SLICES < self.done;
+        let traced = |j: u32| slice(j) < self.done;
         let count = (0..spp).filter(|&j| traced(j)).count().max(1) as f32;
         (0..spp)
             .map(|j| if traced(j) { 1.0 / count } else { 0.0 })
@@ -106,7 +114,8 @@ impl Share {
     }
 }
 
-/// A cell's points in slice `d`, as places counted from the cell's first-drawn point.
+/// A cell's points in slice `d` (`slice`), as places counted from the cell's first-drawn
+/// point.
 fn slice_points(n: usize, d: u32) -> std::iter::StepBy<Range<usize>> {
     match d {
         0 => (0..n.min(1)).step_by(1),
@@ -476,7 +485,7 @@ impl Relighter {
                 || Tracer::new(&scene.cache),
                 |tr, (pixel, samples)| {
                     let traced =
-                        (0..samples.len()).filter(|s| slices.contains(&(*s as u32 % SLICES)));
+                        (0..samples.len()).filter(|s| slices.contains(&slice(*s as u32)));
                     for s in traced {
                         let i = pixel * spp as usize + s;
                         let l = match &self.seen[i] {

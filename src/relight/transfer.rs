@@ -4,7 +4,11 @@
 //! arriving there directly (E/π, diffuse, as the cone integrator stores it) leaves through
 //! the surface's diffuse lobe, so the path's throughput times that lobe's albedo is the
 //! weight of that surface's light cell in the pixel. Summed over the pixel's paths, that is
-//! one row of the transfer matrix, a vector over the cells.
+//! one row of the transfer matrix, a vector over the cells. With each weight the row keeps
+//! one point where the pixel's paths landed in the cell, drawn by their weights: the
+//! cell's gather points are drawn from these, so a cell's light is the mean over where
+//! paths land in it, not over its whole area (parts of it no path reaches, buried in other
+//! geometry or in shadow behind it, would darken it).
 //!
 //! The row is then compressed to a fixed number of coefficients (`compress`). 001 §4.4
 //! thresholds the row's Haar coefficients; over the node tree (a node's light the
@@ -15,7 +19,7 @@
 //! tree's order instead: systematic sampling along it is unbiased, stratified over
 //! subtrees, and its noise falls as the coefficients grow (docs/relighting.md).
 
-use super::cells;
+use super::cells::{self, GatherPoint};
 use crate::integrator::surface::{scattering_hit, Missed};
 use crate::integrator::{on_side, Scene, ShadingPoint};
 use crate::light_store::Keys;
@@ -29,11 +33,24 @@ use std::f32::consts::PI;
 /// Longest transfer path in bounces (Russian roulette ends nearly all paths long before).
 const MAX_BOUNCES: u32 = 64;
 
+/// One cell's entry in a pixel's row: the summed weight, and one landing drawn from the
+/// pixel's landings in the cell by their weights (`sum` the luminance drawn over).
+#[derive(Clone, Copy)]
+pub struct Entry {
+    pub w: V,
+    sum: f32,
+    pub landing: GatherPoint,
+}
+
 /// A pixel's transfer row over light cells, before compression.
-pub type Row = FxHashMap<u64, V>;
+pub type Row = FxHashMap<u64, Entry>;
+
+/// A compressed row's coefficient: the cell's key, its weight, a landing in it.
+pub type Coefficient = (u64, V, GatherPoint);
 
 /// Follows one path from the view sample `sp` (throughput `beta`), adding `weight` times
-/// each surface's diffuse weight to its cell in `row`; numbers from `s`'s sets 1...
+/// each surface's diffuse weight to its cell in `row` with the point it landed at (the
+/// side the path came from); numbers from `s`'s sets 1...
 pub fn follow(
     scene: &Scene,
     tr: &mut Tracer,
@@ -47,7 +64,7 @@ pub fn follow(
     let mut passes = 0u32;
     for depth in 0..MAX_BOUNCES {
         let [u_lobe, u0, u1, u_rr] = s.get4(1 + 2 * depth);
-        let [u_hole, ..] = s.get4(2 + 2 * depth);
+        let [u_hole, u_land, ..] = s.get4(2 + 2 * depth);
         if sp.absorbs {
             return;
         }
@@ -77,7 +94,12 @@ pub fn follow(
         let albedo = PI * sp.bsdf.diffuse_lobe(sp.wo_l);
         if !sp.absorbs && albedo.max_element() > 0.0 {
             let key = cells::key(tr, keys, hit, !sp.front);
-            *row.entry(key).or_insert(V::ZERO) += beta * albedo * weight;
+            let w = beta * albedo * weight;
+            let landing = GatherPoint {
+                p: sp.p.into(),
+                n: sp.n.into(),
+            };
+            add(row, key, w, landing, u_land);
         }
         let q = beta.max_element();
         if depth > 0 && q < 1.0 {
@@ -89,23 +111,39 @@ pub fn follow(
     }
 }
 
+/// Adds weight `w` landing at `landing` to cell `key` of `row`; the cell's landing becomes
+/// this one with probability its luminance over the cell's so far (`u` uniform).
+fn add(row: &mut Row, key: u64, w: V, landing: GatherPoint, u: f32) {
+    let lum = luminance(w);
+    let e = row.entry(key).or_insert(Entry {
+        w: V::ZERO,
+        sum: 0.0,
+        landing,
+    });
+    e.w += w;
+    e.sum += lum;
+    if u * e.sum < lum {
+        e.landing = landing;
+    }
+}
+
 /// A row compressed to at most `n` coefficients by systematic sampling along the node
 /// tree's order: with the cells in node order (a subtree's cells lie together), `n` evenly
 /// spaced picks fall on the cumulative weight, each pick of a cell carrying the row's total
 /// over `n` in that cell's colour. The estimate is unbiased and stratified over subtrees;
 /// a cell heavier than a pick's share is kept with its exact weight.
-pub fn compress(row: &Row, n: u32, u: f32) -> Vec<(u64, V)> {
-    let mut cells: Vec<(u64, V)> = row.iter().map(|(&k, &v)| (k, v)).collect();
+pub fn compress(row: &Row, n: u32, u: f32) -> Vec<Coefficient> {
+    let mut cells: Vec<(u64, Entry)> = row.iter().map(|(&k, &e)| (k, e)).collect();
     cells.sort_unstable_by_key(|c| c.0);
-    let total: f32 = cells.iter().map(|c| luminance(c.1)).sum();
+    let total: f32 = cells.iter().map(|c| luminance(c.1.w)).sum();
     if total <= 0.0 || !total.is_finite() {
         return Vec::new();
     }
     let step = total / n as f32;
-    let mut out: Vec<(u64, V)> = Vec::new();
+    let mut out: Vec<Coefficient> = Vec::new();
     let mut next = u * step;
     let mut below = 0.0f32;
-    for (k, w) in cells {
+    for (k, Entry { w, landing, .. }) in cells {
         let lum = luminance(w);
         if lum <= 0.0 {
             continue;
@@ -117,7 +155,7 @@ pub fn compress(row: &Row, n: u32, u: f32) -> Vec<(u64, V)> {
             next += step;
         }
         if picks > 0 {
-            out.push((k, w * (picks as f32 * step / lum)));
+            out.push((k, w * (picks as f32 * step / lum), landing));
         }
     }
     out
