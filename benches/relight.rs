@@ -49,7 +49,7 @@ fn relight(c: &mut Criterion) {
     let o = RelightOptions {
         view: view.clone(),
         lights: None,
-        light_samples: 1,
+        light_samples: 4,
         mem_budget: None,
         threads: None,
     };

@@ -27,7 +27,7 @@ pub struct RelightArgs {
     #[arg(long, value_name = "FILE")]
     lights: Option<PathBuf>,
     /// Rendering: light samples per view sample from each lamp and the environment (a
-    /// punctual light takes one, which is exact) [default: 1].
+    /// punctual light takes one, which is exact) [default: 4].
     #[arg(long, value_name = "N")]
     light_samples: Option<u32>,
     /// Precomputing: camera name (default: the first camera, else the default view).
@@ -137,7 +137,7 @@ fn render(a: RelightArgs) -> Result<()> {
     let o = RelightOptions {
         view: a.input.clone(),
         lights: a.lights,
-        light_samples: a.light_samples.unwrap_or(1),
+        light_samples: a.light_samples.unwrap_or(4),
         mem_budget: a.mem_budget,
         threads: a.threads,
     };

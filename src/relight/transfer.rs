@@ -1,9 +1,10 @@
 //! The transfer from light arriving at the scene's surfaces to a pixel, all bounces
 //! included (001 §4.4's global transport operator, gathered as Hašan et al. 2006 §4 do):
 //! paths leave each view sample by BSDF sampling; at every surface they meet, the light
-//! arriving there directly (E/π, diffuse, as the cone integrator stores it) leaves through
-//! the surface's diffuse lobe, so the path's throughput times that lobe's albedo is the
-//! weight of that surface's light cell in the pixel. Summed over the pixel's paths, that is
+//! arriving there directly (E/π, as the cone integrator stores it) leaves through the
+//! surface's diffuse lobe, and through its glossy lobes as if it arrived evenly over the
+//! hemisphere, so the path's throughput times those lobes' albedo is the weight of that
+//! surface's light cell in the pixel. Summed over the pixel's paths, that is
 //! one row of the transfer matrix, a vector over the cells. With each weight the row keeps
 //! one point where the pixel's paths landed in the cell, drawn by their weights: the
 //! cell's gather points are drawn from these, so a cell's light is the mean over where
@@ -63,8 +64,9 @@ pub fn follow(
     let mut sp = *start;
     let mut passes = 0u32;
     for depth in 0..MAX_BOUNCES {
-        let [u_lobe, u0, u1, u_rr] = s.get4(1 + 2 * depth);
-        let [u_hole, u_land, ..] = s.get4(2 + 2 * depth);
+        let [u_lobe, u0, u1, u_rr] = s.get4(1 + 3 * depth);
+        let [u_hole, u_land, ..] = s.get4(2 + 3 * depth);
+        let [g_lobe, g0, g1, _] = s.get4(3 + 3 * depth);
         if sp.absorbs {
             return;
         }
@@ -91,7 +93,7 @@ pub fn follow(
         if !beta.is_finite() || beta.max_element() <= 0.0 {
             return;
         }
-        let albedo = PI * sp.bsdf.diffuse_lobe(sp.wo_l);
+        let albedo = PI * sp.bsdf.diffuse_lobe(sp.wo_l) + glossy_albedo(&sp, [g_lobe, g0, g1]);
         if !sp.absorbs && albedo.max_element() > 0.0 {
             let key = cells::key(tr, keys, hit, !sp.front);
             let w = beta * albedo * weight;
@@ -109,6 +111,20 @@ pub fn follow(
             beta /= q;
         }
     }
+}
+
+/// An estimate of the light `sp`'s lobes other than the diffuse reflect toward the path
+/// from light arriving evenly over the hemisphere (their directional albedo at `wo`), from
+/// one sample of them: direct light E/π leaves through them as if it arrived so. Exact in
+/// the mean for light from every direction; a lamp's highlight on a glossy surface, seen
+/// in a reflection or thrown onto another surface, is spread over the lobe's albedo.
+fn glossy_albedo(sp: &ShadingPoint, [u_lobe, u0, u1]: [f32; 3]) -> V {
+    sp.bsdf
+        .glossy()
+        .sample(sp.wo_l, u_lobe, [u0, u1])
+        .filter(|g| !g.delta && g.weight.is_finite())
+        .filter(|g| on_side(&sp.frame, sp.n, sp.frame.to_world(g.wi).normalize()))
+        .map_or(V::ZERO, |g| g.weight)
 }
 
 /// Adds weight `w` landing at `landing` to cell `key` of `row`; the cell's landing becomes
