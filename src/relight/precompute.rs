@@ -7,8 +7,8 @@
 //! numbers. Only per-pixel offsets, the lamps seen and a few numbers per cell stay in
 //! memory.
 
-use super::file::{self, Coef, Header, Writer};
 use super::cells::{self, GatherPoint};
+use super::file::{self, Coef, Header, Writer};
 use super::{scene_options, transfer, view, PrepareOptions, PrepareStats};
 use crate::camera::Camera;
 use crate::integrator::Scene;
@@ -372,8 +372,16 @@ impl Draw<'_> {
             read(&mut lr, bytemuck::cast_slice_mut(&mut l[..n]))?;
             for i in 0..n {
                 let c = cells[i] as usize;
-                if let Some(j) = c.checked_sub(self.cells.start).filter(|_| c < self.cells.end) {
-                    self.pick(j, (half_luminance(w[i]), &l[i]), &mut state[j], &mut points[j]);
+                if let Some(j) = c
+                    .checked_sub(self.cells.start)
+                    .filter(|_| c < self.cells.end)
+                {
+                    self.pick(
+                        j,
+                        (half_luminance(w[i]), &l[i]),
+                        &mut state[j],
+                        &mut points[j],
+                    );
                 }
             }
             left -= n;

@@ -2,9 +2,9 @@
 //! gathered at the transfer's cells, and their product with the transfer.
 
 use super::file::{Coef, RelightFile};
-use super::view::Seen;
+use super::view::{Bsdfs, Seen, Surface};
 use super::{cells, scene_options};
-use crate::integrator::{bsdf_term, sample_light_weighted, Receiver, Scene, ShadingPoint};
+use crate::integrator::{bsdf_term, sample_light_weighted, Receiver, Scene};
 use crate::light::{LightSet, Lights, Punctual};
 use crate::material::Material;
 use crate::render::{gather_lights, Setup};
@@ -44,6 +44,7 @@ pub struct Relighter {
     pub file: RelightFile,
     pub setup: Setup,
     seen: Vec<Seen>,
+    bsdfs: Vec<crate::material::Bsdf>,
     light_samples: u32,
     /// Per material, the factor the light set puts on its lamps' emission.
     lamp_scale: Vec<V>,
@@ -91,10 +92,10 @@ fn slice(j: u32) -> u32 {
     }
 }
 
-/// One light's share: direct light at each view sample and E/π at each cell, over the
-/// slices traced so far.
+/// One light's share: direct light at each pixel and E/π at each cell, over the slices
+/// traced so far.
 struct Share {
-    /// Per view sample, its direct light (zero where its slice is not traced yet).
+    /// Per pixel, the direct light its view samples traced so far send, summed.
     direct: Vec<V>,
     /// Per cell, the mean E/π over its points traced so far.
     gathered: Vec<V>,
@@ -103,14 +104,9 @@ struct Share {
 }
 
 impl Share {
-    /// Per view sample of a pixel (by its number in the pixel), the weight that makes the
-    /// pixel's sum the mean over the samples traced.
-    fn direct_weights(&self, spp: u32) -> Vec<f32> {
-        let traced = |j: u32| slice(j) < self.done;
-        let count = (0..spp).filter(|&j| traced(j)).count().max(1) as f32;
-        (0..spp)
-            .map(|j| if traced(j) { 1.0 / count } else { 0.0 })
-            .collect()
+    /// The weight that makes a pixel's sum the mean over its `spp` view samples traced.
+    fn direct_weight(&self, spp: u32) -> f32 {
+        1.0 / (0..spp).filter(|&j| slice(j) < self.done).count().max(1) as f32
     }
 }
 
@@ -202,17 +198,21 @@ impl Relighter {
             );
         }
         let scene = &setup.scene;
-        let seen = setup.pool.install(|| {
+        let chunks: Vec<(Vec<Seen>, Bsdfs)> = setup.pool.install(|| {
             file.views()
                 .par_chunks(4096)
-                .flat_map_iter(|c| {
-                    let mut tr = Tracer::new(&scene.cache);
-                    c.iter()
-                        .map(|v| v.trace(scene, &mut tr))
-                        .collect::<Vec<_>>()
+                .map(|c| {
+                    let (mut tr, mut bsdfs) = (Tracer::new(&scene.cache), Bsdfs::default());
+                    let seen = c.iter().map(|v| v.trace(scene, &mut tr, &mut bsdfs));
+                    (seen.collect(), bsdfs)
                 })
                 .collect()
         });
+        let (mut seen, mut bsdfs) = (Vec::with_capacity(file.views().len()), Bsdfs::default());
+        for (mut s, b) in chunks {
+            bsdfs.merge(&b, &mut s);
+            seen.extend(s);
+        }
         if let Some(err) = scene.error() {
             bail!("{err}");
         }
@@ -238,6 +238,7 @@ impl Relighter {
             file,
             setup,
             seen,
+            bsdfs: bsdfs.list,
             light_samples: o.light_samples,
             lamp_scale,
             own,
@@ -368,10 +369,13 @@ impl Relighter {
         let t0 = Instant::now();
         let wanted = self.wanted();
         let spp = self.file.header.spp;
-        let (cells, samples) = (self.file.cell_first().len() - 1, self.seen.len());
+        let (cells, pixels) = (
+            self.file.cell_first().len() - 1,
+            self.file.row_first().len() - 1,
+        );
         for &(key, _) in &wanted {
             let mut share = self.shares.remove(&key).unwrap_or_else(|| Share {
-                direct: vec![V::ZERO; samples],
+                direct: vec![V::ZERO; pixels],
                 gathered: vec![V::ZERO; cells],
                 done: 0,
             });
@@ -387,30 +391,28 @@ impl Relighter {
             self.shares.retain(|k, _| wanted.iter().any(|w| w.0 == *k));
         }
         let t1 = Instant::now();
-        let (mut e, mut direct) = (vec![V::ZERO; cells], vec![V::ZERO; samples]);
+        let (mut e, mut direct) = (vec![V::ZERO; cells], vec![V::ZERO; pixels]);
         for (key, scale) in &wanted {
             let share = &self.shares[key];
             e.par_iter_mut()
                 .zip(&share.gathered)
                 .for_each(|(a, b)| *a += *scale * *b);
-            let w = share.direct_weights(spp);
+            let w = *scale * share.direct_weight(spp);
             direct
                 .par_iter_mut()
                 .zip(&share.direct)
-                .enumerate()
-                .for_each(|(i, (a, b))| *a += *scale * w[i % spp as usize] * *b);
+                .for_each(|(a, b)| *a += w * *b);
         }
         let t2 = Instant::now();
         let scene = &self.setup.scene;
         let f = &self.file;
-        let spp = spp as usize;
         let (rows, cell_of, weights) = (f.row_first(), f.coef_cell(), f.coef_w());
         let (emit_first, emits) = (f.emit_first(), f.emits());
         let pixels: Vec<[f32; 3]> = self.setup.pool.install(|| {
             (0..rows.len() - 1)
                 .into_par_iter()
                 .map(|p| {
-                    let own: V = direct[p * spp..(p + 1) * spp].iter().sum();
+                    let own = direct[p];
                     let (a, b) = (rows[p] as usize, rows[p + 1] as usize);
                     let gi: V = (a..b)
                         .map(|c| {
@@ -470,38 +472,34 @@ impl Relighter {
         );
     }
 
-    /// Per view sample of `slices`, the light it sends to the camera from `n` light
-    /// samples: the direct light it reflects (or the environment, for a sample that left the
-    /// scene), times the throughput of the smooth bounces before it. Lamps seen directly
-    /// are the pixel's emission records.
+    /// Adds to each pixel the light its view samples of `slices` send to the camera from
+    /// `n` light samples: the direct light each reflects (or the environment, for a sample
+    /// that left the scene), times the throughput of the smooth bounces before it. Lamps
+    /// seen directly are the pixel's emission records.
     fn direct(&self, n: u32, share: &mut Share, slices: Range<u32>) {
         let scene = &self.setup.scene;
-        let (views, spp) = (self.file.views(), self.file.header.spp);
-        share
-            .direct
-            .par_chunks_mut(spp as usize)
-            .enumerate()
-            .for_each_init(
-                || Tracer::new(&scene.cache),
-                |tr, (pixel, samples)| {
-                    let traced =
-                        (0..samples.len()).filter(|s| slices.contains(&slice(*s as u32)));
-                    for s in traced {
-                        let i = pixel * spp as usize + s;
-                        let l = match &self.seen[i] {
-                            Seen::Surface(sp) => {
-                                reflected(scene, tr, sp, (pixel as u32, s as u32 * n), n)
-                            }
-                            Seen::Sky => {
-                                let d = V::from(views[i].d);
-                                crate::integrator::direct::escaped_light(scene, d, None)
-                            }
-                            Seen::Nothing => V::ZERO,
-                        };
-                        samples[s] = V::from(views[i].beta) * l;
-                    }
-                },
-            );
+        let (views, spp) = (self.file.views(), self.file.header.spp as usize);
+        share.direct.par_iter_mut().enumerate().for_each_init(
+            || Tracer::new(&scene.cache),
+            |tr, (pixel, sum)| {
+                let traced = (0..spp).filter(|s| slices.contains(&slice(*s as u32)));
+                for s in traced {
+                    let i = pixel * spp + s;
+                    let l = match &self.seen[i] {
+                        Seen::Surface(x) => {
+                            let b = &self.bsdfs[x.bsdf as usize];
+                            reflected(scene, tr, (x, b), (pixel as u32, s as u32 * n), n)
+                        }
+                        Seen::Sky => {
+                            let d = V::from(views[i].d);
+                            crate::integrator::direct::escaped_light(scene, d, None)
+                        }
+                        Seen::Nothing => V::ZERO,
+                    };
+                    *sum += V::from(views[i].beta) * l;
+                }
+            },
+        );
     }
 }
 
@@ -562,15 +560,13 @@ fn arriving(scene: &Scene, tr: &mut Tracer, p: &cells::GatherPoint, u: [f32; 3])
 fn reflected(
     scene: &Scene,
     tr: &mut Tracer,
-    sp: &ShadingPoint,
+    (x, bsdf): (&Surface, &crate::material::Bsdf),
     (pixel, first): (u32, u32),
     n: u32,
 ) -> V {
-    if sp.absorbs || sp.bsdf.has_smooth_only() {
-        return V::ZERO;
-    }
-    let rec = Receiver::surface(sp.p, sp.err, sp.ng);
-    let f = bsdf_term(sp.frame, sp.n, sp.bsdf, sp.wo_l);
+    let (p, normal) = (V::from(x.p), V::from(x.n));
+    let rec = Receiver::surface(p, V::from(x.err), normal);
+    let f = bsdf_term(x.frame(), normal, *bsdf, V::from(x.wo_l));
     let mut sum = V::ZERO;
     for l in 0..n {
         let [u0, u1, u2, _] = PixelSampler::new(DIRECT_SEED, pixel, first + l).get4(0);

@@ -5,9 +5,11 @@
 
 use crate::integrator::surface::{scattering_hit, Missed};
 use crate::integrator::{Scene, ShadingPoint};
+use crate::material::{Bsdf, Frame};
 use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Ray, Tracer};
 use glam::Vec3A as V;
+use rustc_hash::FxHashMap;
 
 /// Most smooth bounces followed before a view sample (deeper chains end black).
 const MAX_SMOOTH: u32 = 16;
@@ -25,14 +27,66 @@ pub struct ViewRay {
     pub passes: u32,
 }
 
-/// Where a view ray ends. Nearly every view sample is a surface, so boxing the shading
-/// point would only add an allocation to each.
-#[allow(clippy::large_enum_variant)]
+/// Where a view ray ends: a surface that reflects light (one whose lobes are all smooth,
+/// or that absorbs, reflects no direct light and is `Nothing`), or the sky.
 pub enum Seen {
-    Surface(ShadingPoint),
+    Surface(Surface),
     /// It left the scene along its direction.
     Sky,
     Nothing,
+}
+
+/// A view sample's surface as a relight shades it: what next-event estimation reads of
+/// its shading point, kept small (a view holds 16 a pixel), its BSDF by number in a
+/// `Bsdfs` table (most view samples share their material's).
+#[derive(Clone, Copy)]
+pub struct Surface {
+    pub p: [f32; 3],
+    pub err: [f32; 3],
+    /// Unit geometric normal, turned to the side seen.
+    pub n: [f32; 3],
+    /// The shading frame's normal (the frame is made from it alone).
+    pub shading: [f32; 3],
+    pub wo_l: [f32; 3],
+    pub bsdf: u32,
+}
+
+impl Surface {
+    pub fn frame(&self) -> Frame {
+        Frame::new(V::from(self.shading))
+    }
+}
+
+/// Distinct BSDFs, each once.
+#[derive(Default)]
+pub struct Bsdfs {
+    pub list: Vec<Bsdf>,
+    index: FxHashMap<[u32; 24], u32>,
+}
+
+impl Bsdfs {
+    /// `b`'s number, added if new.
+    fn intern(&mut self, b: &Bsdf) -> u32 {
+        let mut key = [0u32; 24];
+        key[..18].copy_from_slice(&b.glossy_key());
+        key[18..21].copy_from_slice(&b.diffuse.to_array().map(f32::to_bits));
+        key[21..].copy_from_slice(&b.tint.to_array().map(f32::to_bits));
+        let n = self.list.len() as u32;
+        *self.index.entry(key).or_insert_with(|| {
+            self.list.push(*b);
+            n
+        })
+    }
+
+    /// Adds `other`'s BSDFs and renumbers `seen`, which numbered them in `other`.
+    pub fn merge(&mut self, other: &Bsdfs, seen: &mut [Seen]) {
+        let numbers: Vec<u32> = other.list.iter().map(|b| self.intern(b)).collect();
+        for s in seen {
+            if let Seen::Surface(x) = s {
+                x.bsdf = numbers[x.bsdf as usize];
+            }
+        }
+    }
 }
 
 impl ViewRay {
@@ -44,18 +98,30 @@ impl ViewRay {
         }
     }
 
-    /// Traces the ray again: the surface it meets, prepared for shading.
-    pub fn trace(&self, scene: &Scene, tr: &mut Tracer) -> Seen {
+    /// Traces the ray again: the surface it meets, prepared for shading, its BSDF numbered
+    /// in `bsdfs`.
+    pub fn trace(&self, scene: &Scene, tr: &mut Tracer, bsdfs: &mut Bsdfs) -> Seen {
         if V::from(self.beta).max_element() <= 0.0 {
             return Seen::Nothing;
         }
         let mut ray = self.ray();
         let mut passes = self.passes;
-        match scattering_hit(scene, tr, &mut ray, self.u, &mut passes) {
-            Ok(s) => Seen::Surface(s.shading(scene, &ray)),
-            Err(Missed::Left) => Seen::Sky,
-            Err(Missed::Degenerate) => Seen::Nothing,
+        let sp = match scattering_hit(scene, tr, &mut ray, self.u, &mut passes) {
+            Ok(s) => s.shading(scene, &ray),
+            Err(Missed::Left) => return Seen::Sky,
+            Err(Missed::Degenerate) => return Seen::Nothing,
+        };
+        if sp.absorbs || sp.bsdf.has_smooth_only() {
+            return Seen::Nothing;
         }
+        Seen::Surface(Surface {
+            p: sp.p.into(),
+            err: sp.err.into(),
+            n: sp.n.into(),
+            shading: sp.frame.n.into(),
+            wo_l: sp.wo_l.into(),
+            bsdf: bsdfs.intern(&sp.bsdf),
+        })
     }
 }
 
