@@ -10,8 +10,9 @@
 //! compression and noise: lamps may be scaled and tinted, punctual lights moved, re-aimed
 //! or added, the environment made stronger or turned, each without a new precompute.
 //!
-//! Where light arrives at an interior path vertex it leaves through the diffuse lobe only:
-//! lamps' light reflected by glossy surfaces onto others (and caustics) is not carried.
+//! Where light arrives at an interior path vertex it leaves through the glossy lobes as if
+//! it arrived evenly over the hemisphere (`transfer`): right in the mean, a lamp's
+//! highlight reflected onto other surfaces spread; caustics are not carried.
 
 mod cells;
 pub mod file;

@@ -281,11 +281,12 @@ fn points(
     let mut cell_first = Vec::with_capacity(cell_keys.len() + 1);
     cell_first.push(0u64);
     let mut start = 0;
+    // A cell's points, their list and its sampling state, in bytes.
+    let cost = |c: usize| (count[c] * std::mem::size_of::<GatherPoint>() + 40) as u64;
     while start < count.len() {
-        let mut end = start + 1;
-        let mut bytes = count[start] as u64 * std::mem::size_of::<GatherPoint>() as u64;
+        let (mut end, mut bytes) = (start + 1, cost(start));
         while end < count.len() && bytes < memory {
-            bytes += (count[end] * std::mem::size_of::<GatherPoint>()) as u64 + 16;
+            bytes += cost(end);
             end += 1;
         }
         let draw = Draw {
