@@ -20,12 +20,15 @@ const MAX_POINTS: usize = 4096;
 /// (whose noise no pixel averages away) is gathered at many points.
 const MEAN_POINTS: usize = 8;
 
-/// A point where light is gathered: position and unit normal of the side lit.
+/// A point where light is gathered: position, unit geometric normal of the side lit, and
+/// the unit shading normal there (normal maps applied), which the diffuse lobe's cosine
+/// takes, as the path tracer's does.
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
 #[repr(C)]
 pub struct GatherPoint {
     pub p: [f32; 3],
     pub n: [f32; 3],
+    pub s: [f32; 3],
 }
 
 /// How many points each cell gathers at, given the transfer each carries summed over the

@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 use xxhash_rust::xxh3::Xxh3;
 
 pub const MAGIC: [u8; 8] = *b"CNPYRLT\0";
-pub const VERSION: u32 = 2;
+pub const VERSION: u32 = 3;
 /// Longest archive path stored.
 const MAX_PATH: usize = 4096;
 /// Every section starts at a multiple of this (zero bytes pad the one before), so the
@@ -388,7 +388,9 @@ fn parse(bytes: &[u8]) -> Result<(Header, PathBuf, Sections)> {
     );
     let points: &[GatherPoint] = bytemuck::cast_slice(cast(&s.points));
     ensure!(
-        points.iter().all(|p| finite(&p.p) && finite(&p.n)),
+        points
+            .iter()
+            .all(|p| finite(&p.p) && finite(&p.n) && finite(&p.s)),
         "a gather point is not finite"
     );
     let views: &[ViewRay] = bytemuck::cast_slice(cast(&s.views));
@@ -419,6 +421,7 @@ mod tests {
         let point = GatherPoint {
             p: [1.0, 2.0, 3.0],
             n: [0.0, 1.0, 0.0],
+            s: [0.0, 0.6, 0.8],
         };
         let mut camera = [0u8; 64];
         camera[..4].copy_from_slice(b"main");

@@ -437,7 +437,8 @@ fn copy_coefficients(
     Ok(())
 }
 
-/// Pixel (x, y)'s view samples, compressed transfer row and lamps seen.
+/// Pixel (x, y)'s view samples, compressed transfer row and lamps seen (straight, or
+/// after perfectly smooth bounces from its surfaces).
 fn pixel(
     scene: &Scene,
     tr: &mut Tracer,
@@ -469,9 +470,11 @@ fn pixel(
             continue;
         }
         views.push(vr);
+        let mut smooth_lamp = |material, l: V| *lamps.entry(material).or_insert(V::ZERO) += l;
         for m in 0..o.paths {
             let ps = PixelSampler::new(o.seed ^ 0x5EED, index, s * o.paths + m);
-            transfer::follow(scene, tr, &sp, beta, &ps, (keys, weight), &mut row);
+            let to = (&mut row, &mut smooth_lamp);
+            transfer::follow(scene, tr, &sp, beta, &ps, (keys, weight), to);
         }
     }
     let mut emits: Vec<(u32, V)> = lamps.into_iter().collect();

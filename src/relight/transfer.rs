@@ -51,7 +51,10 @@ pub type Coefficient = (u64, V, GatherPoint);
 
 /// Follows one path from the view sample `sp` (throughput `beta`), adding `weight` times
 /// each surface's diffuse weight to its cell in `row` with the point it landed at (the
-/// side the path came from); numbers from `s`'s sets 1...
+/// side the path came from); numbers from `s`'s sets 1... A lamp the path meets straight
+/// after a perfectly smooth bounce (a lamp in a mirror, its light focused through glass:
+/// what no light sample reaches) is told to `lamp` by material, `weight` times the light
+/// it sends along the path.
 pub fn follow(
     scene: &Scene,
     tr: &mut Tracer,
@@ -59,7 +62,7 @@ pub fn follow(
     mut beta: V,
     s: &PixelSampler,
     (keys, weight): (&Keys, f32),
-    row: &mut Row,
+    (row, lamp): (&mut Row, &mut impl FnMut(u32, V)),
 ) {
     let mut sp = *start;
     let mut passes = 0u32;
@@ -93,6 +96,9 @@ pub fn follow(
         if !beta.is_finite() || beta.max_element() <= 0.0 {
             return;
         }
+        if bs.delta && sp.emitted.max_element() > 0.0 {
+            lamp(hit.tri.material, beta * sp.emitted * weight);
+        }
         let albedo = PI * sp.bsdf.diffuse_lobe(sp.wo_l) + glossy_albedo(&sp, [g_lobe, g0, g1]);
         if !sp.absorbs && albedo.max_element() > 0.0 {
             let key = cells::key(tr, keys, hit, !sp.front);
@@ -100,6 +106,7 @@ pub fn follow(
             let landing = GatherPoint {
                 p: sp.p.into(),
                 n: sp.n.into(),
+                s: sp.frame.n.into(),
             };
             add(row, key, w, landing, u_land);
         }
