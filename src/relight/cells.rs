@@ -6,11 +6,16 @@
 //! light arriving where the transfer's paths land in it, gathered at points drawn from
 //! those landings (`transfer`, `precompute`).
 
+use crate::integrator::direct::{escaped_light, power_heuristic};
+use crate::integrator::surface::{scattering_hit, Missed};
+use crate::integrator::{mis_weight, sample_light_weighted, Receiver, Scene};
 use crate::light_store::Keys;
+use crate::material::{cosine_hemisphere, Frame};
 use crate::paging::{NodeRef, Page, TriW};
-use crate::trace::{Hit, Tracer};
+use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer};
 use canopy_format::codec::snorm16_decode;
 use glam::Vec3A as V;
+use std::f32::consts::FRAC_1_PI;
 
 /// Fewest points a cell gathers light at, and most.
 const MIN_POINTS: usize = 4;
@@ -87,4 +92,68 @@ fn coherent_leaf(page: &Page, leaf: u64) -> Option<(V, u32)> {
 fn opposed(t: &TriW, normal: V) -> bool {
     let p = t.p.map(V::from);
     (p[1] - p[0]).cross(p[2] - p[0]).dot(normal) < 0.0
+}
+
+/// E/π arriving at gather point `p` from the scene's lights: a light sample and, where the
+/// lights have area (lamps, the environment), a cosine-distributed ray that may meet them,
+/// combined by the power heuristic (Veach 1997 §9.2; `u`: three numbers for the light
+/// sample, two for the ray, one for alpha holes). A point close to a lamp, whose light
+/// samples alone are heavy-tailed, is then estimated as the path tracer estimates it.
+pub fn arriving(scene: &Scene, tr: &mut Tracer, p: &GatherPoint, u: [f32; 6]) -> V {
+    let (at, n, shading) = (V::from(p.p), V::from(p.n), V::from(p.s));
+    let err = at.abs() * crate::trace::gamma(7);
+    // The diffuse lobe's cosine, on the lit side of both normals, over π: also the pdf of
+    // the cosine-distributed ray.
+    let cosine = |wi: V| match n.dot(wi) > 0.0 {
+        true => shading.dot(wi).max(0.0) * FRAC_1_PI,
+        false => 0.0,
+    };
+    let rec = Receiver::surface(at, err, n);
+    let sampled = sample_light_weighted(
+        scene,
+        tr,
+        &rec,
+        &Cone::EXACT,
+        [u[0], u[1], u[2]],
+        |wi, pdf| V::splat(cosine(wi) * mis_weight(pdf, cosine(wi))),
+    );
+    let lights = &scene.lights;
+    if lights.emitters.is_empty() && lights.env.is_none() {
+        return sampled;
+    }
+    let wi = Frame::new(shading)
+        .to_world(cosine_hemisphere([u[3], u[4]]))
+        .normalize();
+    let pdf = cosine(wi);
+    if pdf <= 0.0 {
+        return sampled;
+    }
+    let mut ray = Ray {
+        o: offset_origin(at, err, n, wi),
+        d: wi,
+        t_max: f32::INFINITY,
+    };
+    // The cosine over π is the ray's pdf, so its estimate of E/π is the radiance it meets
+    // (a textured lamp's mean), weighed against the light sampler.
+    let met = match scattering_hit(scene, tr, &mut ray, u[5], &mut 0) {
+        Ok(s) => match lights.emitter_at(s.hit.leaf, s.hit.slot) {
+            Some(i) => {
+                let e = &lights.emitters[i as usize];
+                let cos_l = e.n.dot(wi);
+                let dist = s.length(&ray);
+                match cos_l < 0.0 || e.two_sided {
+                    true => {
+                        let pdf_l =
+                            lights.pdf_li((at, n), Some(i), dist * dist, cos_l.abs(), e.area);
+                        e.le * power_heuristic(pdf, pdf_l)
+                    }
+                    false => V::ZERO,
+                }
+            }
+            None => V::ZERO,
+        },
+        Err(Missed::Left) => escaped_light(scene, wi, Some(((at, n), pdf))),
+        Err(Missed::Degenerate) => V::ZERO,
+    };
+    sampled + met
 }

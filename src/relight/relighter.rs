@@ -339,7 +339,7 @@ impl Relighter {
         let others = std::mem::replace(&mut self.setup.scene.lights, lights);
         let slices = share.done..upto;
         self.setup.pool.install(|| {
-            self.gather(n, share, slices.clone());
+            self.gather(share, slices.clone());
             self.direct(n, share, slices);
         });
         share.done = upto;
@@ -447,10 +447,9 @@ impl Relighter {
         })
     }
 
-    /// Adds `slices` of each cell's gather points to its mean direct light E/π, `samples`
-    /// light samples at each: every pixel reading a cell shares its error, so a lamp sampled once
-    /// from a point close to it would brighten them all.
-    fn gather(&self, samples: u32, share: &mut Share, slices: Range<u32>) {
+    /// Adds `slices` of each cell's gather points to its mean direct light E/π, one sample
+    /// at each (`cells::arriving`; a pixel reads many cells, whose noise it averages).
+    fn gather(&self, share: &mut Share, slices: Range<u32>) {
         let (first, points) = (self.file.cell_first(), self.file.points());
         let scene = &self.setup.scene;
         share.gathered.par_iter_mut().enumerate().for_each_init(
@@ -465,14 +464,9 @@ impl Relighter {
                     .flat_map(|d| slice_points(n, d))
                     .map(|m| {
                         let k = (start + m) % n;
-                        let first = k as u32 * samples;
-                        let sum: V = (first..first + samples)
-                            .map(|l| {
-                                let u = PixelSampler::new(GATHER_SEED, i as u32, l).get4(0);
-                                arriving(scene, tr, &pts[k], [u[0], u[1], u[2]])
-                            })
-                            .sum();
-                        sum / samples as f32
+                        let s = PixelSampler::new(GATHER_SEED, i as u32, k as u32);
+                        let ([u0, u1, u2, u3], [u4, u5, ..]) = (s.get4(0), s.get4(1));
+                        cells::arriving(scene, tr, &pts[k], [u0, u1, u2, u3, u4, u5])
                     })
                     .sum();
                 let count = |r: Range<u32>| -> usize { r.map(|e| slice_points(n, e).len()).sum() };
@@ -555,20 +549,6 @@ fn lamp_scale(
             V::select(old.cmpgt(V::ZERO), new / old, V::ZERO)
         })
         .collect())
-}
-
-/// E/π arriving at gather point `p` from one light sample.
-fn arriving(scene: &Scene, tr: &mut Tracer, p: &cells::GatherPoint, u: [f32; 3]) -> V {
-    let (at, n, shading) = (V::from(p.p), V::from(p.n), V::from(p.s));
-    let rec = Receiver::surface(at, at.abs() * crate::trace::gamma(7), n);
-    // Light on the lit side of both normals, by the shading normal's cosine (`on_side`).
-    sample_light_weighted(scene, tr, &rec, &Cone::EXACT, u, |wi, _| {
-        let cos = shading.dot(wi);
-        match n.dot(wi) > 0.0 && cos > 0.0 {
-            true => V::splat(cos * std::f32::consts::FRAC_1_PI),
-            false => V::ZERO,
-        }
-    })
 }
 
 /// Direct light reflected at `sp` toward the camera: `n` light samples (next-event
