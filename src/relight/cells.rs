@@ -12,6 +12,7 @@ use crate::integrator::{mis_weight, sample_light_weighted, Receiver, Scene};
 use crate::light_store::Keys;
 use crate::material::{cosine_hemisphere, Frame};
 use crate::paging::{NodeRef, Page, TriW};
+use crate::sampler::PixelSampler;
 use crate::trace::{offset_origin, Cone, Hit, Ray, Tracer};
 use canopy_format::codec::snorm16_decode;
 use glam::Vec3A as V;
@@ -96,10 +97,9 @@ fn opposed(t: &TriW, normal: V) -> bool {
 
 /// E/π arriving at gather point `p` from the scene's lights: a light sample and, where the
 /// lights have area (lamps, the environment), a cosine-distributed ray that may meet them,
-/// combined by the power heuristic (Veach 1997 §9.2; `u`: three numbers for the light
-/// sample, two for the ray, one for alpha holes). A point close to a lamp, whose light
+/// combined by the power heuristic (Veach 1997 §9.2; numbers from `s`'s sets 0 and 1). A point close to a lamp, whose light
 /// samples alone are heavy-tailed, is then estimated as the path tracer estimates it.
-pub fn arriving(scene: &Scene, tr: &mut Tracer, p: &GatherPoint, u: [f32; 6]) -> V {
+pub fn arriving(scene: &Scene, tr: &mut Tracer, p: &GatherPoint, s: &PixelSampler) -> V {
     let (at, n, shading) = (V::from(p.p), V::from(p.n), V::from(p.s));
     let err = at.abs() * crate::trace::gamma(7);
     // The diffuse lobe's cosine, on the lit side of both normals, over π: also the pdf of
@@ -109,20 +109,17 @@ pub fn arriving(scene: &Scene, tr: &mut Tracer, p: &GatherPoint, u: [f32; 6]) ->
         false => 0.0,
     };
     let rec = Receiver::surface(at, err, n);
-    let sampled = sample_light_weighted(
-        scene,
-        tr,
-        &rec,
-        &Cone::EXACT,
-        [u[0], u[1], u[2]],
-        |wi, pdf| V::splat(cosine(wi) * mis_weight(pdf, cosine(wi))),
-    );
+    let [u0, u1, u2, _] = s.get4(0);
+    let sampled = sample_light_weighted(scene, tr, &rec, &Cone::EXACT, [u0, u1, u2], |wi, pdf| {
+        V::splat(cosine(wi) * mis_weight(pdf, cosine(wi)))
+    });
     let lights = &scene.lights;
     if lights.emitters.is_empty() && lights.env.is_none() {
         return sampled;
     }
+    let [u3, u4, u5, _] = s.get4(1);
     let wi = Frame::new(shading)
-        .to_world(cosine_hemisphere([u[3], u[4]]))
+        .to_world(cosine_hemisphere([u3, u4]))
         .normalize();
     let pdf = cosine(wi);
     if pdf <= 0.0 {
@@ -135,7 +132,7 @@ pub fn arriving(scene: &Scene, tr: &mut Tracer, p: &GatherPoint, u: [f32; 6]) ->
     };
     // The cosine over π is the ray's pdf, so its estimate of E/π is the radiance it meets
     // (a textured lamp's mean), weighed against the light sampler.
-    let met = match scattering_hit(scene, tr, &mut ray, u[5], &mut 0) {
+    let met = match scattering_hit(scene, tr, &mut ray, u5, &mut 0) {
         Ok(s) => match lights.emitter_at(s.hit.leaf, s.hit.slot) {
             Some(i) => {
                 let e = &lights.emitters[i as usize];

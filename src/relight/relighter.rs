@@ -465,8 +465,7 @@ impl Relighter {
                     .map(|m| {
                         let k = (start + m) % n;
                         let s = PixelSampler::new(GATHER_SEED, i as u32, k as u32);
-                        let ([u0, u1, u2, u3], [u4, u5, ..]) = (s.get4(0), s.get4(1));
-                        cells::arriving(scene, tr, &pts[k], [u0, u1, u2, u3, u4, u5])
+                        cells::arriving(scene, tr, &pts[k], &s)
                     })
                     .sum();
                 let count = |r: Range<u32>| -> usize { r.map(|e| slice_points(n, e).len()).sum() };
