@@ -12,7 +12,9 @@
 //!
 //! Where light arrives at an interior path vertex it leaves through the glossy lobes as if
 //! it arrived evenly over the hemisphere (`transfer`): right in the mean, a lamp's
-//! highlight reflected onto other surfaces spread; caustics are not carried.
+//! highlight reflected onto other surfaces spread. A lamp a path meets after perfectly
+//! smooth bounces is a lamp record of the pixel (its caustics are carried); caustics of
+//! punctual lights and of the environment are not.
 
 mod cells;
 pub mod file;
