@@ -97,8 +97,9 @@ fn opposed(t: &TriW, normal: V) -> bool {
 
 /// E/π arriving at gather point `p` from the scene's lights: a light sample and, where the
 /// lights have area (lamps, the environment), a cosine-distributed ray that may meet them,
-/// combined by the power heuristic (Veach 1997 §9.2; numbers from `s`'s sets 0 and 1). A point close to a lamp, whose light
-/// samples alone are heavy-tailed, is then estimated as the path tracer estimates it.
+/// combined by the power heuristic (Veach 1997 §9.2; numbers from `s`'s sets 0 and 1). A
+/// point close to a lamp, whose light samples alone are heavy-tailed, is then estimated as
+/// the path tracer estimates it.
 pub fn arriving(scene: &Scene, tr: &mut Tracer, p: &GatherPoint, s: &PixelSampler) -> V {
     let (at, n, shading) = (V::from(p.p), V::from(p.n), V::from(p.s));
     let err = at.abs() * crate::trace::gamma(7);

@@ -9,7 +9,7 @@
 //! one point where the pixel's paths landed in the cell, drawn by their weights: the
 //! cell's gather points are drawn from these, so a cell's light is the mean over where
 //! paths land in it, not over its whole area (parts of it no path reaches, buried in other
-//! geometry or in shadow behind it, would darken it).
+//! geometry, would darken it).
 //!
 //! The row is then compressed to a fixed number of coefficients (`compress`). 001 §4.4
 //! thresholds the row's Haar coefficients; over the node tree (a node's light the
