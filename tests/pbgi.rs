@@ -852,33 +852,12 @@ type = "point"
 position = [0.5, 0.6, 0.3]
 intensity = 2.0
 "#;
-    two_obj_scene(dir, [("floor.obj", floor_obj), ("wall.obj", wall)], &toml)
-}
-
-/// Writes two OBJ files and a scene file into `dir` and converts them; returns the archive.
-fn two_obj_scene(
-    dir: &std::path::Path,
-    objs: [(&str, String); 2],
-    toml: &str,
-) -> std::path::PathBuf {
-    for (name, text) in &objs {
-        std::fs::write(dir.join(name), text).unwrap();
-    }
-    std::fs::write(dir.join("scene.toml"), toml).unwrap();
-    let arc = dir.join("scene.canopy");
-    let [a, b] = objs.map(|(name, _)| dir.join(name));
-    let scene_file = dir.join("scene.toml");
-    ok(&[
-        "--quiet",
-        "convert",
-        s(&a),
-        s(&b),
-        "--scene",
-        s(&scene_file),
-        "-o",
-        s(&arc),
-    ]);
-    arc
+    let files = [
+        ("floor.obj", floor_obj),
+        ("wall.obj", wall),
+        ("scene.toml", toml),
+    ];
+    obj_scene(dir, &files, "scene.canopy")
 }
 
 /// A floor scene's bottom half at 32 × 16 pixels against the path tracer's at 4,096 spp
@@ -989,7 +968,12 @@ emission = [5.0, 5.0, 5.0]
 "floor.obj" = "steel"
 "lamp.obj" = "lamp"
 "#;
-    let arc = two_obj_scene(d, [("floor.obj", floor), ("lamp.obj", lamp)], toml);
+    let files = [
+        ("floor.obj", floor),
+        ("lamp.obj", lamp),
+        ("scene.toml", toml.into()),
+    ];
+    let arc = obj_scene(d, &files, "scene.canopy");
     let small = ["--width", "32", "--height", "24", "--max-depth", "2"];
     let run =
         |name: &str, flags: &[&str]| render(&arc, &d.join(name), &[&small[..], flags].concat()).0;
