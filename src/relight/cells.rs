@@ -6,7 +6,7 @@
 //! light arriving where the transfer's paths land in it, gathered at points drawn from
 //! those landings (`transfer`, `precompute`).
 
-use crate::integrator::direct::{escaped_light, power_heuristic};
+use crate::integrator::direct::{emission_weight, escaped_light};
 use crate::integrator::surface::{scattering_hit, Missed};
 use crate::integrator::{mis_weight, sample_light_weighted, Receiver, Scene};
 use crate::light_store::Keys;
@@ -134,22 +134,18 @@ pub fn arriving(scene: &Scene, tr: &mut Tracer, p: &GatherPoint, s: &PixelSample
     // The cosine over π is the ray's pdf, so its estimate of E/π is the radiance it meets
     // (a textured lamp's mean), weighed against the light sampler.
     let met = match scattering_hit(scene, tr, &mut ray, u5, &mut 0) {
-        Ok(s) => match lights.emitter_at(s.hit.leaf, s.hit.slot) {
-            Some(i) => {
-                let e = &lights.emitters[i as usize];
-                let cos_l = e.n.dot(wi);
-                let dist = s.length(&ray);
-                match cos_l < 0.0 || e.two_sided {
-                    true => {
-                        let pdf_l =
-                            lights.pdf_li((at, n), Some(i), dist * dist, cos_l.abs(), e.area);
-                        e.le * power_heuristic(pdf, pdf_l)
-                    }
-                    false => V::ZERO,
+        Ok(s) => {
+            let lamp = lights.emitter_at(s.hit.leaf, s.hit.slot);
+            match lamp.map(|i| &lights.emitters[i as usize]) {
+                // One of the share's lamps, met on a face it emits from.
+                Some(e) if e.n.dot(wi) < 0.0 || e.two_sided => {
+                    let d2 = s.length(&ray).powi(2);
+                    let w = emission_weight(scene, &s.hit, (s.ng, s.area), wi, (at, n), pdf, d2);
+                    e.le * w
                 }
+                _ => V::ZERO,
             }
-            None => V::ZERO,
-        },
+        }
         Err(Missed::Left) => escaped_light(scene, wi, Some(((at, n), pdf))),
         Err(Missed::Degenerate) => V::ZERO,
     };
