@@ -168,6 +168,69 @@ intensity = 1.0
     assert_relit_like_the_path_tracer(&img, &archive, dir.path(), &[], "relit floor");
 }
 
+/// A lamp facing up 30 cm under the ceiling, the floor the camera sees lit
+/// only by the ceiling above the lamp. A gather point there is close to the lamp, where its
+/// light sample is weighed against a cosine ray that meets the lamp; were the ray's hit not
+/// found among the lamp's triangles, the cells over the lamp would lose most of their light
+/// (the image about a quarter dark).
+#[test]
+fn a_lamp_close_under_the_ceiling_relights_as_the_path_tracer_renders_it() {
+    let dir = tempfile::tempdir().unwrap();
+    // Four corners in order, one face: the normal is (v1 − v0) × (v2 − v0).
+    let quad = |v: [[f32; 3]; 4]| {
+        let mut t: String = v
+            .iter()
+            .map(|p| format!("v {} {} {}\n", p[0], p[1], p[2]))
+            .collect();
+        t += "f 1 2 3\nf 1 3 4\n";
+        t
+    };
+    let toml = r#"
+[[camera]]
+position = [0.0, 0.6, 1.9]
+look_at = [0.0, 0.0, 0.0]
+width = 48
+height = 48
+[[material]]
+name = "white"
+base_color = [0.8, 0.8, 0.8]
+[[material]]
+name = "lamp"
+base_color = [0.0, 0.0, 0.0]
+emission = [4.0, 4.0, 4.0]
+double_sided = false
+[assign]
+"floor.obj" = "white"
+"ceiling.obj" = "white"
+"lamp.obj" = "lamp"
+"#;
+    let files = [
+        (
+            "floor.obj",
+            quad([[-2., 0., -2.], [-2., 0., 2.], [2., 0., 2.], [2., 0., -2.]]),
+        ),
+        (
+            "ceiling.obj",
+            quad([[-2., 1., -2.], [2., 1., -2.], [2., 1., 2.], [-2., 1., 2.]]),
+        ),
+        (
+            "lamp.obj",
+            quad([
+                [-0.5, 0.7, -0.5],
+                [-0.5, 0.7, 0.5],
+                [0.5, 0.7, 0.5],
+                [0.5, 0.7, -0.5],
+            ]),
+        ),
+        ("scene.toml", toml.to_string()),
+    ];
+    let archive = obj_scene(dir.path(), &files, "under.canopy");
+    let view = dir.path().join("under.relight");
+    ok(&["--quiet", "relight", s(&archive), "-o", s(&view)]);
+    let img = relit(&view, None, &dir.path().join("relit.exr"));
+    assert_relit_like_the_path_tracer(&img, &archive, dir.path(), &[], "relit under the lamp");
+}
+
 /// The bundled spheres under `scenes/env/sky.hdr`, the archive's own (a scene file's
 /// `[environment]`, its extra lines `extra`), with their view precomputed at 48×36.
 fn spheres_view(dir: &Path, name: &str, extra: &str) -> (std::path::PathBuf, std::path::PathBuf) {

@@ -235,6 +235,36 @@ impl Lights {
         })
     }
 
+    /// The lamps split by material, each set with its own lamps' hit table (what a BSDF
+    /// sample that meets a lamp is weighed by) in the same scene sphere; punctual lights
+    /// and the environment are left out.
+    pub fn by_material(self) -> HashMap<u32, Lights> {
+        // Per emitter, its material's set and its place there.
+        let mut place = Vec::with_capacity(self.emitters.len());
+        let mut groups: HashMap<u32, Vec<Emitter>> = HashMap::new();
+        for e in self.emitters {
+            let g = groups.entry(e.material).or_default();
+            place.push((e.material, g.len() as u32));
+            g.push(e);
+        }
+        let mut tables: HashMap<u32, HashMap<(u64, u32), u32>> = HashMap::new();
+        for (at, i) in self.by_leaf {
+            let (m, j) = place[i as usize];
+            tables.entry(m).or_default().insert(at, j);
+        }
+        let (center, radius) = (self.center, self.radius);
+        groups
+            .into_iter()
+            .map(|(m, es)| {
+                let lights = Lights {
+                    by_leaf: tables.remove(&m).unwrap_or_default(),
+                    ..Lights::new(es, Vec::new(), None, center, radius)
+                };
+                (m, lights)
+            })
+            .collect()
+    }
+
     /// The same lights with `env` as the environment.
     pub fn with_environment(self, env: Environment) -> Lights {
         Lights {

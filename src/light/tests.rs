@@ -278,3 +278,39 @@ fn light_tree_samples_are_unbiased_and_beat_sampling_by_power() {
         );
     }
 }
+
+/// Split by material, every lamp triangle a hit names is found in its material's set, as
+/// the same triangle; a set holds only its material's lamps, and all of them.
+#[test]
+fn lamps_split_by_material_keep_their_hit_table() {
+    let mut rng = Rng::new(11);
+    let mut lights = scattered_lights(&mut rng);
+    for (i, e) in lights.emitters.iter_mut().enumerate() {
+        e.material = (i % 3) as u32;
+    }
+    let table: HashMap<(u64, u32), u32> = (0..lights.emitters.len() as u32)
+        .map(|i| ((7 + i as u64 / 4, i % 4), i))
+        .collect();
+    lights.by_leaf = table.clone();
+    let whole: Vec<(u32, [V; 3])> = lights.emitters.iter().map(|e| (e.material, e.p)).collect();
+    let split = lights.by_material();
+    assert_eq!(split.len(), 3);
+    for (m, set) in &split {
+        let mine = whole.iter().filter(|e| e.0 == *m).count();
+        assert_eq!(
+            set.emitters.len(),
+            mine,
+            "material {m}: its lamps, all of them"
+        );
+        assert!(set.emitters.iter().all(|e| e.material == *m));
+        assert!(set.punctual.is_empty() && set.env.is_none());
+    }
+    for (&(leaf, slot), &i) in &table {
+        let (m, p) = whole[i as usize];
+        let set = &split[&m];
+        let j = set
+            .emitter_at(leaf, slot)
+            .expect("the hit's lamp is in its set");
+        assert_eq!(set.emitters[j as usize].p, p, "the same triangle");
+    }
+}

@@ -230,7 +230,7 @@ impl Relighter {
         };
         let lamp_scale = lamp_scale(&file, &own.0, &scene.materials)?;
         let sphere = scene.lights.sphere();
-        let lamps = lamps_by_material(scene, &own.0, sphere)?;
+        let lamps = lamps_by_material(scene, &own.0)?;
         let lights = std::mem::take(&mut setup.scene.lights);
         let env = lights
             .env
@@ -509,21 +509,10 @@ impl Relighter {
 }
 
 /// The archive's own lamps (its own emission, `own`), one set of lights per material.
-fn lamps_by_material(
-    scene: &Scene,
-    own: &[MaterialRecord],
-    (c, r): (V, f32),
-) -> Result<FxHashMap<u32, Lights>> {
+fn lamps_by_material(scene: &Scene, own: &[MaterialRecord]) -> Result<FxHashMap<u32, Lights>> {
     let materials: Vec<Material> = own.iter().map(Material::from_record).collect();
     let all = gather_lights(&scene.cache.archive, &materials, &scene.textures)?;
-    let mut by: FxHashMap<u32, Vec<crate::light::Emitter>> = FxHashMap::default();
-    for e in all.emitters {
-        by.entry(e.material).or_default().push(e);
-    }
-    Ok(by
-        .into_iter()
-        .map(|(m, es)| (m, Lights::new(es, Vec::new(), None, c, r)))
-        .collect())
+    Ok(all.by_material().into_iter().collect())
 }
 
 /// Per material, the factor on its emission a light set put: `materials`' emission over
