@@ -159,8 +159,12 @@ fn the_relight_page_shows_a_brighter_image_when_the_lamp_slider_moves() {
         &format!("{sp}/url"),
         Some(json!({"url": url})),
     );
+    // Loaded, and refined to the whole image: a frame still refining would be followed by
+    // the next slice's, which a click's new image could not be told from.
     let loaded = "const v = document.getElementById('view'); \
-                  return v.complete && v.naturalWidth == 64 && v.src.startsWith('blob:');";
+                  const s = document.getElementById('status').textContent; \
+                  return v.complete && v.naturalWidth == 64 && v.src.startsWith('blob:') && \
+                  s.includes('ms of compute') && !s.includes('refining');";
     wait_for(port, &session, loaded, "the page showed no relit image");
     let find = |css: &str| {
         let found = webdriver(
@@ -198,8 +202,9 @@ fn the_relight_page_shows_a_brighter_image_when_the_lamp_slider_moves() {
     );
     let changed = format!(
         "const v = document.getElementById('view'); \
-         return v.complete && v.src != {first} && \
-         document.getElementById('status').textContent.includes('ms of compute');"
+         const s = document.getElementById('status').textContent; \
+         return v.complete && v.src != {first} && s.includes('ms of compute') && \
+         !s.includes('refining');"
     );
     wait_for(
         port,
