@@ -11,8 +11,9 @@
 //! or added, the environment made stronger or turned, each without a new precompute.
 //!
 //! Where light arrives at an interior path vertex it leaves through the glossy lobes as if
-//! it arrived evenly over the hemisphere (`transfer`): right in the mean, a lamp's
-//! highlight reflected onto other surfaces spread. A lamp a path meets after perfectly
+//! it arrived evenly over the hemisphere (`transfer`): the light reflected is right in
+//! total but spread over every direction, so a lamp's highlight thrown onto other
+//! surfaces is spread and the image may be off either way. A lamp a path meets after perfectly
 //! smooth bounces is a lamp record of the pixel (its caustics are carried); caustics of
 //! punctual lights and of the environment are not.
 
