@@ -26,8 +26,8 @@ pub struct RelightArgs {
     /// Rendering: a light set (TOML; see docs/relighting.md) changing the archive's lights.
     #[arg(long, value_name = "FILE")]
     lights: Option<PathBuf>,
-    /// Rendering: light samples per view sample from each lamp and the environment (a
-    /// punctual light takes one, which is exact) [default: 4].
+    /// Rendering: light and BSDF samples per view sample for each lamp and the environment
+    /// (a punctual light takes one light sample, which is exact) [default: 4].
     #[arg(long, value_name = "N")]
     light_samples: Option<u32>,
     /// Precomputing: camera name (default: the first camera, else the default view).

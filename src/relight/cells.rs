@@ -126,15 +126,36 @@ pub fn arriving(scene: &Scene, tr: &mut Tracer, p: &GatherPoint, s: &PixelSample
     if pdf <= 0.0 {
         return sampled;
     }
+    // The cosine over π is the ray's pdf, so its estimate of E/π is the radiance it meets.
+    sampled + met_light(scene, tr, (at, err, n), wi, Some(pdf), u5)
+}
+
+/// The light of the scene's lamps and environment that a ray from `from` (point, error
+/// bound, unit normal of the side it leaves) along unit `wi` meets (`u` decides alpha
+/// holes): a lamp's own emission (a textured lamp's mean) on a face it emits from, or the
+/// environment, weighed against the light sampler by the power heuristic for a ray drawn
+/// with solid-angle pdf `pdf` (Veach 1997 §9.2). A ray drawn from a delta lobe (`pdf`
+/// None) meets the environment whole and no lamp: a lamp met after a smooth bounce is a
+/// pixel's lamp record.
+pub fn met_light(
+    scene: &Scene,
+    tr: &mut Tracer,
+    (at, err, n): (V, V, V),
+    wi: V,
+    pdf: Option<f32>,
+    u: f32,
+) -> V {
+    let lights = &scene.lights;
+    if lights.emitters.is_empty() && lights.env.is_none() {
+        return V::ZERO;
+    }
     let mut ray = Ray {
         o: offset_origin(at, err, n, wi),
         d: wi,
         t_max: f32::INFINITY,
     };
-    // The cosine over π is the ray's pdf, so its estimate of E/π is the radiance it meets
-    // (a textured lamp's mean), weighed against the light sampler.
-    let met = match scattering_hit(scene, tr, &mut ray, u5, &mut 0) {
-        Ok(s) => {
+    match (scattering_hit(scene, tr, &mut ray, u, &mut 0), pdf) {
+        (Ok(s), Some(pdf)) => {
             let lamp = lights.emitter_at(s.hit.leaf, s.hit.slot);
             match lamp.map(|i| &lights.emitters[i as usize]) {
                 // One of the share's lamps, met on a face it emits from.
@@ -146,8 +167,7 @@ pub fn arriving(scene: &Scene, tr: &mut Tracer, p: &GatherPoint, s: &PixelSample
                 _ => V::ZERO,
             }
         }
-        Err(Missed::Left) => escaped_light(scene, wi, Some(((at, n), pdf))),
-        Err(Missed::Degenerate) => V::ZERO,
-    };
-    sampled + met
+        (Err(Missed::Left), pdf) => escaped_light(scene, wi, pdf.map(|p| ((at, n), p))),
+        _ => V::ZERO,
+    }
 }

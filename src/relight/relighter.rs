@@ -4,7 +4,7 @@
 use super::file::{Coef, RelightFile};
 use super::view::{Bsdfs, Seen, Surface};
 use super::{cells, scene_options};
-use crate::integrator::{bsdf_term, sample_light_weighted, Receiver, Scene};
+use crate::integrator::{bsdf_term, on_side, sample_light, Receiver, Scene};
 use crate::light::{LightSet, Lights, Punctual};
 use crate::material::Material;
 use crate::render::{gather_lights, Setup};
@@ -30,7 +30,7 @@ const DIRECT_SEED: u32 = 0xD1EC7;
 pub struct RelightOptions {
     pub view: PathBuf,
     pub lights: Option<PathBuf>,
-    /// Light samples per view sample from each lamp and the environment (a gather point
+    /// Light and BSDF samples per view sample for each lamp and the environment (a gather point
     /// takes one, a punctual light one).
     pub light_samples: u32,
     pub mem_budget: Option<u64>,
@@ -539,9 +539,12 @@ fn lamp_scale(
         .collect())
 }
 
-/// Direct light reflected at `sp` toward the camera: `n` light samples (next-event
-/// estimation alone: a light set's lamps are where it puts them), numbers `first..` of
-/// the pixel's sequence, so the samples of a pixel's view samples stratify together.
+/// Direct light reflected at `x` toward the camera, from `n` samples of each of two
+/// strategies combined by the power heuristic, as the path tracer combines them: a light
+/// sample, and a BSDF sample that may meet a lamp or the environment (where the share has
+/// either; a BSDF sample of a smooth lobe meets the environment only, a lamp there being a
+/// lamp record). Numbers `first..` of the pixel's sequence, so the samples of a pixel's view
+/// samples stratify together.
 fn reflected(
     scene: &Scene,
     tr: &mut Tracer,
@@ -549,13 +552,29 @@ fn reflected(
     (pixel, first): (u32, u32),
     n: u32,
 ) -> V {
-    let (p, normal) = (V::from(x.p), V::from(x.n));
-    let rec = Receiver::surface(p, V::from(x.err), normal);
-    let f = bsdf_term(x.frame(), normal, *bsdf, V::from(x.wo_l));
+    let (p, err, normal) = (V::from(x.p), V::from(x.err), V::from(x.n));
+    let (frame, wo_l) = (x.frame(), V::from(x.wo_l));
+    let rec = Receiver::surface(p, err, normal);
+    let f = bsdf_term(frame, normal, *bsdf, wo_l);
+    let lights = &scene.lights;
+    let met = !lights.emitters.is_empty() || lights.env.is_some();
     let mut sum = V::ZERO;
     for l in 0..n {
-        let [u0, u1, u2, _] = PixelSampler::new(DIRECT_SEED, pixel, first + l).get4(0);
-        sum += sample_light_weighted(scene, tr, &rec, &Cone::EXACT, [u0, u1, u2], |wi, _| f(wi).0);
+        let s = PixelSampler::new(DIRECT_SEED, pixel, first + l);
+        let [u0, u1, u2, u3] = s.get4(0);
+        sum += sample_light(scene, tr, &rec, &Cone::EXACT, [u0, u1, u2], &f);
+        if !met {
+            continue;
+        }
+        let [u4, u5, u6, _] = s.get4(1);
+        let Some(bs) = bsdf.sample(wo_l, u3, [u4, u5]) else {
+            continue;
+        };
+        let wi = frame.to_world(bs.wi).normalize();
+        if on_side(&frame, normal, wi) && bs.weight.is_finite() {
+            let pdf = (!bs.delta).then_some(bs.pdf);
+            sum += bs.weight * cells::met_light(scene, tr, (p, err, normal), wi, pdf, u6);
+        }
     }
     sum / n as f32
 }
