@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 use xxhash_rust::xxh3::Xxh3;
 
 pub const MAGIC: [u8; 8] = *b"CNPYRLT\0";
-pub const VERSION: u32 = 3;
+pub const VERSION: u32 = 4;
 /// Longest archive path stored.
 const MAX_PATH: usize = 4096;
 /// Every section starts at a multiple of this (zero bytes pad the one before), so the
@@ -45,13 +45,14 @@ pub struct Header {
     pub points: u64,
     pub coefs: u64,
     pub emits: u64,
+    pub skies: u64,
     /// The archive's `header_checksum`, so a relight refuses an archive changed since.
     pub archive_header: u64,
     /// Camera name, zero-padded (empty: the archive's first, or the default view).
     pub camera: [u8; 64],
 }
 
-const _: () = assert!(HLEN == 152 && HLEN.is_multiple_of(ALIGN));
+const _: () = assert!(HLEN == 160 && HLEN.is_multiple_of(ALIGN));
 
 impl Header {
     pub fn pixels(&self) -> u64 {
@@ -67,6 +68,15 @@ pub struct Coef {
     pub w: [f32; 3],
 }
 
+/// A pixel's record of the environment met after smooth bounces: the direction it was met
+/// along, and the weight on the environment's radiance there.
+#[derive(Clone, Copy, Debug, Pod, Zeroable)]
+#[repr(C)]
+pub struct Sky {
+    pub d: [f32; 3],
+    pub w: [f32; 3],
+}
+
 /// Where each section lies in the file, in the order they are written.
 #[derive(Clone, Debug, Default)]
 struct Sections {
@@ -79,6 +89,8 @@ struct Sections {
     coef_w: Range<usize>,
     emit_first: Range<usize>,
     emits: Range<usize>,
+    sky_first: Range<usize>,
+    skies: Range<usize>,
     /// The file's length, the checksum's 8 bytes included.
     len: usize,
 }
@@ -110,6 +122,8 @@ fn layout(h: &Header) -> Result<Sections> {
         coef_w: next(h.coefs, 6)?,
         emit_first: next(pixels + 1, 8)?,
         emits: next(h.emits, std::mem::size_of::<Coef>())?,
+        sky_first: next(pixels + 1, 8)?,
+        skies: next(h.skies, std::mem::size_of::<Sky>())?,
         len: 0,
     };
     s.len = at.checked_add(8).context("counts overflow")?;
@@ -235,6 +249,17 @@ impl RelightFile {
         self.slice(&self.at.emits)
     }
 
+    /// Per pixel, its first record of the environment met after smooth bounces (one more
+    /// at the end).
+    pub fn sky_first(&self) -> &[u64] {
+        self.slice(&self.at.sky_first)
+    }
+
+    /// The records of the environment met after smooth bounces, pixel by pixel.
+    pub fn skies(&self) -> &[Sky] {
+        self.slice(&self.at.skies)
+    }
+
     /// A section in place: every section starts at a multiple of 8 of a page-aligned map.
     fn slice<T: Pod>(&self, r: &Range<usize>) -> &[T] {
         bytemuck::cast_slice(&self.map[r.clone()])
@@ -353,11 +378,13 @@ fn parse(bytes: &[u8]) -> Result<(Header, PathBuf, Sections)> {
         &s.coef_w,
         &s.emit_first,
         &s.emits,
+        &s.sky_first,
+        &s.skies,
     ];
     let pads = sections
         .windows(2)
         .map(|w| w[0].end..w[1].start)
-        .chain(std::iter::once(s.emits.end..s.len - 8));
+        .chain(std::iter::once(s.skies.end..s.len - 8));
     for pad in pads {
         ensure!(
             bytes[pad].iter().all(|&b| b == 0),
@@ -375,6 +402,7 @@ fn parse(bytes: &[u8]) -> Result<(Header, PathBuf, Sections)> {
         bytemuck::cast_slice(cast(&s.emit_first)),
         h.emits,
     )?;
+    check_offsets("sky", bytemuck::cast_slice(cast(&s.sky_first)), h.skies)?;
     let coef_cell: &[u32] = bytemuck::cast_slice(cast(&s.coef_cell));
     if let Some(c) = coef_cell.iter().find(|&&c| c as u64 >= h.cells) {
         bail!("a coefficient names cell {c} of {}", h.cells);
@@ -382,8 +410,11 @@ fn parse(bytes: &[u8]) -> Result<(Header, PathBuf, Sections)> {
     let finite = |v: &[f32]| v.iter().all(|x| x.is_finite());
     let coef_w: &[[f16; 3]] = bytemuck::cast_slice(cast(&s.coef_w));
     let emits: &[Coef] = bytemuck::cast_slice(cast(&s.emits));
+    let skies: &[Sky] = bytemuck::cast_slice(cast(&s.skies));
     ensure!(
-        coef_w.iter().flatten().all(|x| x.is_finite()) && emits.iter().all(|c| finite(&c.w)),
+        coef_w.iter().flatten().all(|x| x.is_finite())
+            && emits.iter().all(|c| finite(&c.w))
+            && skies.iter().all(|c| finite(&c.w) && finite(&c.d)),
         "a coefficient is not finite"
     );
     let points: &[GatherPoint] = bytemuck::cast_slice(cast(&s.points));
@@ -440,6 +471,7 @@ mod tests {
             points: 3,
             coefs: 3,
             emits: 1,
+            skies: 1,
             archive_header: 7,
             camera,
         };
@@ -456,6 +488,12 @@ mod tests {
             w: [2.0; 3],
         };
         w.section(&[emit]).unwrap();
+        w.section(&[0u64, 1, 1]).unwrap();
+        let sky = Sky {
+            d: [0.0, 1.0, 0.0],
+            w: [0.25; 3],
+        };
+        w.section(&[sky]).unwrap();
         w.commit(&header).unwrap();
     }
 
@@ -477,6 +515,8 @@ mod tests {
         assert_eq!(back.coef_cell(), &[0, 1, 1]);
         assert_eq!(back.cell_first(), &[0, 1, 3]);
         assert_eq!(back.emits()[0].w, [2.0; 3]);
+        assert_eq!(back.sky_first(), &[0, 1, 1]);
+        assert_eq!(back.skies()[0].w, [0.25; 3]);
         assert_eq!(back.archive, PathBuf::from("/a.canopy"));
         let bytes = std::fs::read(&path).unwrap();
         // Any byte changed, with the checksum made to match: refused with a reason or read

@@ -13,9 +13,10 @@
 //! Where light arrives at an interior path vertex it leaves through the glossy lobes as if
 //! it arrived evenly over the hemisphere (`transfer`): the light reflected is right in
 //! total but spread over every direction, so a lamp's highlight thrown onto other
-//! surfaces is spread and the image may be off either way. A lamp a path meets after perfectly
-//! smooth bounces is a lamp record of the pixel (its caustics are carried); caustics of
-//! punctual lights and of the environment are not.
+//! surfaces is spread and the image may be off either way. A lamp a path meets after a
+//! perfectly smooth bounce or through a surface is a lamp record of the pixel, the
+//! environment met so a sky record (their caustics are carried); caustics of punctual
+//! lights are not.
 
 mod cells;
 pub mod file;

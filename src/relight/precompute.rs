@@ -8,7 +8,7 @@
 //! memory.
 
 use super::cells::{self, GatherPoint};
-use super::file::{self, Coef, Header, Writer};
+use super::file::{self, Coef, Header, Sky, Writer};
 use super::{scene_options, transfer, view, PrepareOptions, PrepareStats};
 use crate::camera::Camera;
 use crate::integrator::Scene;
@@ -30,6 +30,8 @@ use std::time::Instant;
 /// Camera samples per pixel that measure the lamps it sees directly (their edges need more
 /// than the view samples).
 const EMISSION_SAMPLES: u32 = 64;
+/// Most records a pixel keeps of the environment met after smooth bounces.
+const MAX_SKIES: usize = 8;
 /// Largest coefficient stored (half precision's largest finite value).
 const F16_MAX: f32 = 65504.0;
 /// Pixels precomputed at once.
@@ -46,6 +48,7 @@ struct PixelPart {
     views: Vec<view::ViewRay>,
     row: Vec<transfer::Coefficient>,
     emits: Vec<(u32, V)>,
+    skies: Vec<Sky>,
 }
 
 /// What the pass over the pixels leaves: per pixel its first coefficient and emission
@@ -55,6 +58,8 @@ struct Rows {
     row_first: Vec<u64>,
     emit_first: Vec<u64>,
     emits: Vec<Coef>,
+    sky_first: Vec<u64>,
+    skies: Vec<Sky>,
     keys: File,
     weights: File,
     landings: File,
@@ -129,6 +134,8 @@ pub fn prepare(o: &PrepareOptions) -> Result<PrepareStats> {
     copy_coefficients(&mut numbers, &mut rows.weights, coefs, &mut out)?;
     out.section(&rows.emit_first)?;
     out.section(&rows.emits)?;
+    out.section(&rows.sky_first)?;
+    out.section(&rows.skies)?;
     let mut camera = [0u8; 64];
     let name = o.camera.as_deref().unwrap_or("").as_bytes();
     camera[..name.len().min(64)].copy_from_slice(&name[..name.len().min(64)]);
@@ -148,6 +155,7 @@ pub fn prepare(o: &PrepareOptions) -> Result<PrepareStats> {
         points,
         coefs,
         emits: rows.emits.len() as u64,
+        skies: rows.skies.len() as u64,
         archive_header: archive.header.header_checksum,
         camera,
     })?;
@@ -174,8 +182,8 @@ fn rows(
     let mut key_out = BufWriter::new(unnamed(scratch)?);
     let mut weight_out = BufWriter::new(unnamed(scratch)?);
     let mut landing_out = BufWriter::new(unnamed(scratch)?);
-    let (mut row_first, mut emit_first) = (vec![0u64], vec![0u64]);
-    let mut emits = Vec::new();
+    let (mut row_first, mut emit_first, mut sky_first) = (vec![0u64], vec![0u64], vec![0u64]);
+    let (mut emits, mut skies) = (Vec::new(), Vec::new());
     let mut carried: FxHashMap<u64, Carried> = FxHashMap::default();
     let bar = crate::progress::bar(o.progress, pixels as u64, "relight precompute (rows)");
     for band in (0..pixels).step_by(BAND as usize) {
@@ -211,6 +219,8 @@ fn rows(
                     .map(|&(index, v)| Coef { index, w: v.into() }),
             );
             emit_first.push(emits.len() as u64);
+            skies.extend(p.skies);
+            sky_first.push(skies.len() as u64);
         }
         bar.inc((band + BAND).min(pixels) as u64 - band as u64);
     }
@@ -220,6 +230,8 @@ fn rows(
         row_first,
         emit_first,
         emits,
+        sky_first,
+        skies,
         keys: rewound(key_out)?,
         weights: rewound(weight_out)?,
         landings: rewound(landing_out)?,
@@ -437,8 +449,8 @@ fn copy_coefficients(
     Ok(())
 }
 
-/// Pixel (x, y)'s view samples, compressed transfer row and lamps seen (straight, or
-/// after perfectly smooth bounces from its surfaces).
+/// Pixel (x, y)'s view samples, compressed transfer row, lamps seen (straight, or after
+/// perfectly smooth bounces from its surfaces) and the environment met after such bounces.
 fn pixel(
     scene: &Scene,
     tr: &mut Tracer,
@@ -452,6 +464,7 @@ fn pixel(
     let mut row = transfer::Row::default();
     let mut views = Vec::new();
     let mut lamps: FxHashMap<u32, V> = FxHashMap::default();
+    let mut skies: Vec<Sky> = Vec::new();
     let samples = o.spp.max(EMISSION_SAMPLES);
     for s in 0..samples {
         let sampler = PixelSampler::new(o.seed, index, s);
@@ -470,22 +483,60 @@ fn pixel(
             continue;
         }
         views.push(vr);
-        let mut smooth_lamp = |material, l: V| *lamps.entry(material).or_insert(V::ZERO) += l;
+        let mut smooth = |met| match met {
+            transfer::Met::Lamp(material, l) => *lamps.entry(material).or_insert(V::ZERO) += l,
+            transfer::Met::Sky(d, w) => skies.push(Sky {
+                d: d.into(),
+                w: w.into(),
+            }),
+        };
         for m in 0..o.paths {
             let ps = PixelSampler::new(o.seed ^ 0x5EED, index, s * o.paths + m);
-            let to = (&mut row, &mut smooth_lamp);
+            let to = (&mut row, &mut smooth);
             transfer::follow(scene, tr, &sp, beta, &ps, (keys, weight), to);
         }
     }
     let mut emits: Vec<(u32, V)> = lamps.into_iter().collect();
     emits.sort_unstable_by_key(|e| e.0);
+    let mut u = Hash::new(index as u64 ^ (o.seed as u64) << 32);
     PixelPart {
         views,
-        row: transfer::compress(
-            &row,
-            o.coefficients,
-            Hash::new(index as u64 ^ (o.seed as u64) << 32).f32(),
-        ),
+        row: transfer::compress(&row, o.coefficients, u.f32()),
         emits,
+        skies: fewer_skies(skies, MAX_SKIES, u.f32()),
     }
+}
+
+/// At most `n` of a pixel's `skies`, by systematic sampling on their weights' luminance
+/// (`u` uniform), each kept one carrying the total over `n` as many times as it is picked:
+/// unbiased, as `transfer::compress` is.
+fn fewer_skies(skies: Vec<Sky>, n: usize, u: f32) -> Vec<Sky> {
+    if skies.len() <= n {
+        return skies;
+    }
+    let lum = |s: &Sky| luminance(V::from(s.w));
+    let total: f32 = skies.iter().map(lum).sum();
+    if total <= 0.0 || !total.is_finite() {
+        return Vec::new();
+    }
+    let step = total / n as f32;
+    let (mut next, mut below) = (u * step, 0.0f32);
+    let mut out = Vec::with_capacity(n);
+    for s in skies {
+        let l = lum(&s);
+        below += l;
+        let mut picks = 0u32;
+        while next < below && l > 0.0 {
+            picks += 1;
+            next += step;
+        }
+        if picks > 0 {
+            let w = V::from(s.w) * (picks as f32 * step / l);
+            out.push(Sky {
+                d: s.d,
+                w: w.into(),
+            });
+        }
+    }
+    out
 }

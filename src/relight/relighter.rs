@@ -4,6 +4,7 @@
 use super::file::{Coef, RelightFile};
 use super::view::{Bsdfs, Seen, Surface};
 use super::{cells, scene_options};
+use crate::integrator::direct::escaped_light;
 use crate::integrator::{bsdf_term, on_side, sample_light, Receiver, Scene};
 use crate::light::{LightSet, Lights, Punctual};
 use crate::material::Material;
@@ -100,6 +101,9 @@ struct Share {
     direct: Vec<V>,
     /// Per cell, the mean E/π over its points traced so far.
     gathered: Vec<V>,
+    /// Per pixel, the environment its transfer met after smooth bounces (the environment's
+    /// share only; empty for the others).
+    sky: Vec<V>,
     /// Slices traced.
     done: u32,
 }
@@ -339,6 +343,9 @@ impl Relighter {
         let others = std::mem::replace(&mut self.setup.scene.lights, lights);
         let slices = share.done..upto;
         self.setup.pool.install(|| {
+            if matches!(key, Key::Environment(_)) && slices.start == 0 {
+                share.sky = self.sky();
+            }
             self.gather(share, slices.clone());
             self.direct(n, share, slices);
         });
@@ -378,6 +385,7 @@ impl Relighter {
             let mut share = self.shares.remove(&key).unwrap_or_else(|| Share {
                 direct: vec![V::ZERO; pixels],
                 gathered: vec![V::ZERO; cells],
+                sky: Vec::new(),
                 done: 0,
             });
             if share.done < SLICES {
@@ -403,6 +411,10 @@ impl Relighter {
                 .par_iter_mut()
                 .zip(&share.direct)
                 .for_each(|(a, b)| *a += w * *b);
+            direct
+                .par_iter_mut()
+                .zip(&share.sky)
+                .for_each(|(a, b)| *a += *scale * *b);
         }
         let t2 = Instant::now();
         let scene = &self.setup.scene;
@@ -445,6 +457,22 @@ impl Relighter {
             seconds: [t1 - t0, t2 - t1, t2.elapsed()].map(|d| d.as_secs_f64()),
             complete,
         })
+    }
+
+    /// Per pixel, the environment (the scene's, as the share has turned it) along the
+    /// directions its transfer met it after smooth bounces, times their weights.
+    fn sky(&self) -> Vec<V> {
+        let scene = &self.setup.scene;
+        let (first, skies) = (self.file.sky_first(), self.file.skies());
+        (0..first.len() - 1)
+            .into_par_iter()
+            .map(|p| {
+                skies[first[p] as usize..first[p + 1] as usize]
+                    .iter()
+                    .map(|s| V::from(s.w) * escaped_light(scene, V::from(s.d), None))
+                    .sum()
+            })
+            .collect()
     }
 
     /// Adds `slices` of each cell's gather points to its mean direct light E/π, one sample

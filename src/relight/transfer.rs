@@ -49,12 +49,21 @@ pub type Row = FxHashMap<u64, Entry>;
 /// A compressed row's coefficient: the cell's key, its weight, a landing in it.
 pub type Coefficient = (u64, V, GatherPoint);
 
+/// Light a transfer path meets straight after a perfectly smooth bounce or through a
+/// surface (a lamp in a mirror, its light focused through glass: what no light sample
+/// reaches), `weight` times
+/// what it sends along the path: a lamp's by material, or the environment's along a
+/// direction (the environment's radiance there, scaled and turned as a light set says,
+/// times the weight).
+pub enum Met {
+    Lamp(u32, V),
+    Sky(V, V),
+}
+
 /// Follows one path from the view sample `sp` (throughput `beta`), adding `weight` times
 /// each surface's diffuse weight to its cell in `row` with the point it landed at (the
-/// side the path came from); numbers from `s`'s sets 1... A lamp the path meets straight
-/// after a perfectly smooth bounce (a lamp in a mirror, its light focused through glass:
-/// what no light sample reaches) is told to `lamp` by material, `weight` times the light
-/// it sends along the path.
+/// side the path came from); numbers from `s`'s sets 1... Light met after a smooth bounce
+/// or through a surface is told to `met`.
 pub fn follow(
     scene: &Scene,
     tr: &mut Tracer,
@@ -62,7 +71,7 @@ pub fn follow(
     mut beta: V,
     s: &PixelSampler,
     (keys, weight): (&Keys, f32),
-    (row, lamp): (&mut Row, &mut impl FnMut(u32, V)),
+    (row, met): (&mut Row, &mut impl FnMut(Met)),
 ) {
     let mut sp = *start;
     let mut passes = 0u32;
@@ -81,6 +90,12 @@ pub fn follow(
             return;
         }
         beta *= bs.weight;
+        // Light the path meets along a smooth lobe, or through the surface (a rough glass's
+        // transmission: the cell's gather takes light from the side the path came from
+        // only), is no cell's: a lamp or the environment met so is told to `met`. From the
+        // view sample itself, only a lamp after a smooth bounce: its direct light samples
+        // its lobes for the rest.
+        let through = bs.delta || sp.n.dot(wi) < 0.0;
         let mut ray = Ray {
             o: offset_origin(sp.p, sp.err, sp.ng, wi),
             d: wi,
@@ -88,7 +103,13 @@ pub fn follow(
         };
         let scatter = match scattering_hit(scene, tr, &mut ray, u_hole, &mut passes) {
             Ok(s) => s,
-            Err(Missed::Left | Missed::Degenerate) => return,
+            Err(Missed::Left) => {
+                if through && depth > 0 {
+                    met(Met::Sky(wi, beta * weight));
+                }
+                return;
+            }
+            Err(Missed::Degenerate) => return,
         };
         let hit = &scatter.hit;
         sp = scatter.shading(scene, &ray);
@@ -96,8 +117,8 @@ pub fn follow(
         if !beta.is_finite() || beta.max_element() <= 0.0 {
             return;
         }
-        if bs.delta && sp.emitted.max_element() > 0.0 {
-            lamp(hit.tri.material, beta * sp.emitted * weight);
+        if (bs.delta || through && depth > 0) && sp.emitted.max_element() > 0.0 {
+            met(Met::Lamp(hit.tri.material, beta * sp.emitted * weight));
         }
         let albedo = PI * sp.bsdf.diffuse_lobe(sp.wo_l) + glossy_albedo(&sp, [g_lobe, g0, g1]);
         if !sp.absorbs && albedo.max_element() > 0.0 {
