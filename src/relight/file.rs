@@ -68,8 +68,9 @@ pub struct Coef {
     pub w: [f32; 3],
 }
 
-/// A pixel's record of the environment met after smooth bounces: the direction it was met
-/// along, and the weight on the environment's radiance there.
+/// A pixel's record of the environment its transfer met after a smooth bounce or through a
+/// surface: the direction it was met along, and the weight on the environment's radiance
+/// there.
 #[derive(Clone, Copy, Debug, Pod, Zeroable)]
 #[repr(C)]
 pub struct Sky {
@@ -249,13 +250,12 @@ impl RelightFile {
         self.slice(&self.at.emits)
     }
 
-    /// Per pixel, its first record of the environment met after smooth bounces (one more
-    /// at the end).
+    /// Per pixel, its first sky record (one more at the end).
     pub fn sky_first(&self) -> &[u64] {
         self.slice(&self.at.sky_first)
     }
 
-    /// The records of the environment met after smooth bounces, pixel by pixel.
+    /// The sky records, pixel by pixel.
     pub fn skies(&self) -> &[Sky] {
         self.slice(&self.at.skies)
     }

@@ -4,8 +4,8 @@
 //! scratch files; the cells the rows read are then numbered (sorted by key), their gather
 //! points drawn from the landings in a pass over the scratch files for each range of cells
 //! whose points fit in memory, and the rows copied into the file with their cells'
-//! numbers. Only per-pixel offsets, the lamps seen and a few numbers per cell stay in
-//! memory.
+//! numbers. Only per-pixel offsets, the lamps seen, up to eight sky records a pixel and a
+//! few numbers per cell stay in memory.
 
 use super::cells::{self, GatherPoint};
 use super::file::{self, Coef, Header, Sky, Writer};
@@ -30,7 +30,8 @@ use std::time::Instant;
 /// Camera samples per pixel that measure the lamps it sees directly (their edges need more
 /// than the view samples).
 const EMISSION_SAMPLES: u32 = 64;
-/// Most records a pixel keeps of the environment met after smooth bounces.
+/// Most sky records a pixel keeps (the environment met after a smooth bounce or through a
+/// surface).
 const MAX_SKIES: usize = 8;
 /// Largest coefficient stored (half precision's largest finite value).
 const F16_MAX: f32 = 65504.0;

@@ -101,7 +101,7 @@ struct Share {
     direct: Vec<V>,
     /// Per cell, the mean E/π over its points traced so far.
     gathered: Vec<V>,
-    /// Per pixel, the environment its transfer met after smooth bounces (the environment's
+    /// Per pixel, the environment its transfer met (its sky records; the environment's
     /// share only; empty for the others).
     sky: Vec<V>,
     /// Slices traced.
@@ -460,7 +460,7 @@ impl Relighter {
     }
 
     /// Per pixel, the environment (the scene's, as the share has turned it) along the
-    /// directions its transfer met it after smooth bounces, times their weights.
+    /// directions of its sky records, times their weights.
     fn sky(&self) -> Vec<V> {
         let scene = &self.setup.scene;
         let (first, skies) = (self.file.sky_first(), self.file.skies());
