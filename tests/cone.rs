@@ -699,13 +699,6 @@ fn a_flat_floor_under_uniform_light_shows_no_cell_pattern() {
 /// The files of a 4 m box of white walls with a grey floor under a ceiling that is all
 /// lamp, seen from under the lamp looking down.
 fn lamp_ceiling_box() -> [(&'static str, String); 4] {
-    let quad = |v: [[f32; 3]; 4]| {
-        let vs: String = v
-            .iter()
-            .map(|p| format!("v {} {} {}\n", p[0], p[1], p[2]))
-            .collect();
-        vs + "f 1 2 3\nf 1 3 4\n"
-    };
     let walls = [
         [[-2., 0., -2.], [2., 0., -2.], [2., 2., -2.], [-2., 2., -2.]],
         [[-2., 0., 2.], [2., 0., 2.], [2., 2., 2.], [-2., 2., 2.]],
@@ -715,12 +708,12 @@ fn lamp_ceiling_box() -> [(&'static str, String); 4] {
     [
         (
             "floor.obj",
-            quad([[-2., 0., -2.], [-2., 0., 2.], [2., 0., 2.], [2., 0., -2.]]),
+            obj_quad([[-2., 0., -2.], [-2., 0., 2.], [2., 0., 2.], [2., 0., -2.]]),
         ),
         (
             "walls.obj",
             walls
-                .map(quad)
+                .map(obj_quad)
                 .iter()
                 .enumerate()
                 .map(|(i, q)| {
@@ -743,7 +736,7 @@ fn lamp_ceiling_box() -> [(&'static str, String); 4] {
         // Facing down: (v1 − v0) × (v2 − v0) = −y.
         (
             "lamp.obj",
-            quad([[-2., 2., -2.], [2., 2., -2.], [2., 2., 2.], [-2., 2., 2.]]),
+            obj_quad([[-2., 2., -2.], [2., 2., -2.], [2., 2., 2.], [-2., 2., 2.]]),
         ),
         (
             "scene.toml",

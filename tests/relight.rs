@@ -181,15 +181,6 @@ intensity = 1.0
 #[test]
 fn a_lamp_close_under_the_ceiling_relights_as_the_path_tracer_renders_it() {
     let dir = tempfile::tempdir().unwrap();
-    // Four corners in order, one face: the normal is (v1 − v0) × (v2 − v0).
-    let quad = |v: [[f32; 3]; 4]| {
-        let mut t: String = v
-            .iter()
-            .map(|p| format!("v {} {} {}\n", p[0], p[1], p[2]))
-            .collect();
-        t += "f 1 2 3\nf 1 3 4\n";
-        t
-    };
     let toml = r#"
 [[camera]]
 position = [0.0, 0.6, 1.9]
@@ -212,15 +203,15 @@ double_sided = false
     let files = [
         (
             "floor.obj",
-            quad([[-2., 0., -2.], [-2., 0., 2.], [2., 0., 2.], [2., 0., -2.]]),
+            obj_quad([[-2., 0., -2.], [-2., 0., 2.], [2., 0., 2.], [2., 0., -2.]]),
         ),
         (
             "ceiling.obj",
-            quad([[-2., 1., -2.], [2., 1., -2.], [2., 1., 2.], [-2., 1., 2.]]),
+            obj_quad([[-2., 1., -2.], [2., 1., -2.], [2., 1., 2.], [-2., 1., 2.]]),
         ),
         (
             "lamp.obj",
-            quad([
+            obj_quad([
                 [-0.5, 0.7, -0.5],
                 [-0.5, 0.7, 0.5],
                 [0.5, 0.7, 0.5],

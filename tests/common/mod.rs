@@ -456,6 +456,16 @@ pub fn sphere_obj(c: [f32; 3], r: f32) -> String {
     s
 }
 
+/// OBJ text of one quad, its four corners in order as two triangles: its face's normal is
+/// (v1 − v0) × (v2 − v0).
+pub fn obj_quad(v: [[f32; 3]; 4]) -> String {
+    let vs: String = v
+        .iter()
+        .map(|p| format!("v {} {} {}\n", p[0], p[1], p[2]))
+        .collect();
+    vs + "f 1 2 3\nf 1 3 4\n"
+}
+
 /// Writes `files` into `dir` and converts their OBJ files, in order, with the
 /// `scene.toml` among them into the archive `name`.
 pub fn obj_scene(
