@@ -508,36 +508,18 @@ fn pixel(
     }
 }
 
-/// At most `n` of a pixel's `skies`, by systematic sampling on their weights' luminance
-/// (`u` uniform), each kept one carrying the total over `n` as many times as it is picked:
-/// unbiased, as `transfer::compress` is.
+/// At most `n` of a pixel's `skies`, by systematic sampling on their weights
+/// (`transfer::systematic`, `u` uniform): unbiased, as `transfer::compress` is.
 fn fewer_skies(skies: Vec<Sky>, n: usize, u: f32) -> Vec<Sky> {
     if skies.len() <= n {
         return skies;
     }
-    let lum = |s: &Sky| luminance(V::from(s.w));
-    let total: f32 = skies.iter().map(lum).sum();
-    if total <= 0.0 || !total.is_finite() {
-        return Vec::new();
-    }
-    let step = total / n as f32;
-    let (mut next, mut below) = (u * step, 0.0f32);
-    let mut out = Vec::with_capacity(n);
-    for s in skies {
-        let l = lum(&s);
-        below += l;
-        let mut picks = 0u32;
-        while next < below && l > 0.0 {
-            picks += 1;
-            next += step;
-        }
-        if picks > 0 {
-            let w = V::from(s.w) * (picks as f32 * step / l);
-            out.push(Sky {
-                d: s.d,
-                w: w.into(),
-            });
-        }
-    }
-    out
+    let weights: Vec<V> = skies.iter().map(|s| V::from(s.w)).collect();
+    transfer::systematic(&weights, n, u)
+        .into_iter()
+        .map(|(i, w)| Sky {
+            d: skies[i].d,
+            w: w.into(),
+        })
+        .collect()
 }

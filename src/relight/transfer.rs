@@ -51,10 +51,9 @@ pub type Coefficient = (u64, V, GatherPoint);
 
 /// Light a transfer path meets straight after a perfectly smooth bounce or through a
 /// surface (a lamp in a mirror, its light focused through glass: what no light sample
-/// reaches), `weight` times
-/// what it sends along the path: a lamp's by material, or the environment's along a
-/// direction (the environment's radiance there, scaled and turned as a light set says,
-/// times the weight).
+/// reaches), `weight` times what it sends along the path: a lamp's by material, or the
+/// environment's along a direction (the environment's radiance there, scaled and turned
+/// as a light set says, times the weight).
 pub enum Met {
     Lamp(u32, V),
     Sky(V, V),
@@ -179,15 +178,27 @@ fn add(row: &mut Row, key: u64, w: V, landing: GatherPoint, u: f32) {
 pub fn compress(row: &Row, n: u32, u: f32) -> Vec<Coefficient> {
     let mut cells: Vec<(u64, Entry)> = row.iter().map(|(&k, &e)| (k, e)).collect();
     cells.sort_unstable_by_key(|c| c.0);
-    let total: f32 = cells.iter().map(|c| luminance(c.1.w)).sum();
+    let weights: Vec<V> = cells.iter().map(|c| c.1.w).collect();
+    systematic(&weights, n as usize, u)
+        .into_iter()
+        .map(|(i, w)| (cells[i].0, w, cells[i].1.landing))
+        .collect()
+}
+
+/// Systematic sampling of `n` picks over `weights` in their order, on their luminance
+/// (`u` uniform, the first pick's place in a step): each weight picked, by its index, with
+/// the total over `n` times its picks in its own colour. Unbiased; none when the total is
+/// not positive and finite.
+pub fn systematic(weights: &[V], n: usize, u: f32) -> Vec<(usize, V)> {
+    let total: f32 = weights.iter().map(|&w| luminance(w)).sum();
     if total <= 0.0 || !total.is_finite() {
         return Vec::new();
     }
     let step = total / n as f32;
-    let mut out: Vec<Coefficient> = Vec::new();
+    let mut out = Vec::new();
     let mut next = u * step;
     let mut below = 0.0f32;
-    for (k, Entry { w, landing, .. }) in cells {
+    for (i, &w) in weights.iter().enumerate() {
         let lum = luminance(w);
         if lum <= 0.0 {
             continue;
@@ -199,7 +210,7 @@ pub fn compress(row: &Row, n: u32, u: f32) -> Vec<Coefficient> {
             next += step;
         }
         if picks > 0 {
-            out.push((k, w * (picks as f32 * step / lum), landing));
+            out.push((i, w * (picks as f32 * step / lum)));
         }
     }
     out
