@@ -381,6 +381,12 @@ impl Lights {
         self.total <= 0.0
     }
 
+    /// Whether a ray may meet any of the lights: a lamp or the environment (punctual lights
+    /// have no area).
+    pub fn has_area(&self) -> bool {
+        !self.emitters.is_empty() || self.env.is_some()
+    }
+
     fn pick(&self, u: f32) -> (usize, f32) {
         let x = u * self.total;
         let i = self

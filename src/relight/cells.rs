@@ -114,10 +114,6 @@ pub fn arriving(scene: &Scene, tr: &mut Tracer, p: &GatherPoint, s: &PixelSample
     let sampled = sample_light_weighted(scene, tr, &rec, &Cone::EXACT, [u0, u1, u2], |wi, pdf| {
         V::splat(cosine(wi) * mis_weight(pdf, cosine(wi)))
     });
-    let lights = &scene.lights;
-    if lights.emitters.is_empty() && lights.env.is_none() {
-        return sampled;
-    }
     let [u3, u4, u5, _] = s.get4(1);
     let wi = Frame::new(shading)
         .to_world(cosine_hemisphere([u3, u4]))
@@ -146,7 +142,7 @@ pub fn met_light(
     u: f32,
 ) -> V {
     let lights = &scene.lights;
-    if lights.emitters.is_empty() && lights.env.is_none() {
+    if !lights.has_area() {
         return V::ZERO;
     }
     let mut ray = Ray {

@@ -584,8 +584,7 @@ fn reflected(
     let (frame, wo_l) = (x.frame(), V::from(x.wo_l));
     let rec = Receiver::surface(p, err, normal);
     let f = bsdf_term(frame, normal, *bsdf, wo_l);
-    let lights = &scene.lights;
-    let met = !lights.emitters.is_empty() || lights.env.is_some();
+    let met = scene.lights.has_area();
     let mut sum = V::ZERO;
     for l in 0..n {
         let s = PixelSampler::new(DIRECT_SEED, pixel, first + l);
