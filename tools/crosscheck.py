@@ -6,8 +6,9 @@ as an independent reference for Canopy.
     python3 tools/crosscheck.py scenes/cbox.glb -o cbox_mitsuba.exr --spp 1024 [--threads N]
 
 Uses the `scalar_rgb` variant and the `path` integrator (unbounded depth, Russian roulette),
-a box pixel filter and the independent sampler, as the bundled references in scenes/refs
-were made. Supported: triangle meshes under node transforms (matrix or TRS, instances),
+a box pixel filter and the independent sampler (`--sampler multijitter` stratifies the
+pixel's samples; scenes/refs/*.json name the sampler where it is not the independent one).
+Supported: triangle meshes under node transforms (matrix or TRS, instances),
 the first perspective camera (resolution from extras.render, else --width/--height),
 metallic-roughness materials (pure Lambert when metallic = 0, roughness = 1 and
 KHR_materials_specular.specularFactor = 0; smooth white glass as `dielectric`; white
@@ -235,6 +236,9 @@ def main():
     ap.add_argument("--height", type=int)
     ap.add_argument("--threads", type=int, default=0, help="0: all cores")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--sampler", default="independent", choices=["independent", "multijitter"],
+                    help="multijitter stratifies each pixel's samples (spp a square): an emitter's "
+                         "edge converges far sooner than with independent samples")
     ap.add_argument("--env", help="equirectangular environment map (.exr, .hdr), as canopy render --env")
     ap.add_argument("--env-strength", type=float, default=1.0)
     ap.add_argument("--env-rotate", type=float, default=0.0, help="degrees about +Y")
@@ -275,7 +279,7 @@ def main():
                 "to_world": mi.ScalarTransform4f((m @ flip).tolist()),
                 "film": {"type": "hdrfilm", "width": width, "height": height,
                          "rfilter": {"type": "box"}, "pixel_format": "rgb"},
-                "sampler": {"type": "independent", "sample_count": a.spp, "seed": a.seed},
+                "sampler": {"type": a.sampler, "sample_count": a.spp, "seed": a.seed},
             }
         if "mesh" in n:
             for p in doc["meshes"][n["mesh"]]["primitives"]:
@@ -345,7 +349,7 @@ def main():
     paths = a.spp * width * height
     info = {"scene": a.scene, "spp": a.spp, "width": width, "height": height,
             "seconds": seconds, "paths_per_s": paths / seconds,
-            "mean": float(np.array(img).mean())}
+            "mean": float(np.array(img).mean()), "sampler": a.sampler, "seed": a.seed}
     json.dump(info, open(a.output.rsplit(".", 1)[0] + ".json", "w"))
     print(json.dumps(info))
 

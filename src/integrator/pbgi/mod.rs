@@ -24,8 +24,8 @@
 //! - hits are shaded once the cut is done, only the nearest of each texel's ray;
 //! - `microbuffer` composites and convolves with x's diffuse lobe (003 eq. 2.1); the
 //!   lobe being constant, the gather is kept as irradiance, and each surface of a pixel
-//!   gathers at most at every `--pbgi-reuse`-th sample landing on it (more often where
-//!   its gathers scatter), its other samples reusing its gathers' mean;
+//!   gathers at every `--pbgi-reuse`-th sample landing on it, its other samples
+//!   reusing its gathers' mean;
 //! - `--pbgi-gather rays`, the default, skips the cut: every texel's ray is traced and
 //!   reads the bake;
 //! - x's rough specular lobes, mostly narrower than a texel, take exact rays sampled
@@ -137,8 +137,6 @@ pub struct PbgiIntegrator {
     onward: bool,
     /// Pairs and bounce rays per glossy receiver, per pixel (`--pbgi-split`).
     split: split::Split,
-    /// v̄ · c_g / c_s for the pixels' gather periods, at the pass's start (see `period`).
-    reuse_target: f32,
     /// WPBGI's BRDF tables, and its gathers and their leaves.
     tables: wpbgi::Tables,
 }
@@ -188,7 +186,6 @@ impl PbgiIntegrator {
             onward: false,
             // With more first hits per pixel only the bounce splits (`Split::new`).
             split: split::Split::new(split, glossy_rays, window, target.pixel_split == 1),
-            reuse_target: 0.0,
             tables: wpbgi::Tables::default(),
         }
     }
@@ -221,7 +218,6 @@ impl Integrator for PbgiIntegrator {
         // the film's, of a pass's mean of a pixel's samples, understates where they split.
         let variance = pass.camera_sample_variance.unwrap_or(pass.variance);
         self.split.begin_pass(variance);
-        self.reuse_target = self.reuse_target(pass, variance);
         if pass.first > 0 {
             let t = Instant::now();
             let refine_rays = self.refine_cache(scene, pass);

@@ -20,8 +20,7 @@ pub(super) struct Gathered {
     pub(super) p: V,
     pub(super) n: V,
     pub(super) sum: V,
-    /// The gathers' luminances (their count is the gathers'): their spread sets the
-    /// surface's period.
+    /// The gathers' luminances (their count is the gathers').
     pub(super) y: Moments,
     /// Samples that landed on it: it gathers at every `period`-th (at its pixel's
     /// phase), and the pixel's first surface also at its first, so a surface's gathers
@@ -45,46 +44,7 @@ impl Gathered {
             && self.n.dot(n) >= SAME_NORMAL
             && (p - self.p).dot(self.n).abs() <= footprint
     }
-
-    /// The variance a gather adds to one sample that takes it, in luminance: the
-    /// gathers' spread times the samples' mean weight, squared; None before two gathers.
-    pub(super) fn spread(&self) -> Option<f32> {
-        if self.y.count < 2 {
-            return None;
-        }
-        let var = self.y.variance() as f32;
-        let w = luminance(self.weight) / self.samples.max(1) as f32;
-        Some(w * w * var)
-    }
-
-    /// How often this surface gathers: every `most`-th sample (`--pbgi-reuse` R) until
-    /// its first gather, and until `PILOT_PERIOD` samples have landed on it; then every
-    /// `PILOT_PERIOD`-th until its second gather (a surface few samples hit is not worth
-    /// two), then at splitting's
-    /// optimum: a sample of variance v̄ and cost c_s, a gather of variance s²
-    /// (`spread`) and cost c_g shared by P samples, have variance × cost
-    /// (v̄ + s² P)(c_s + c_g / P), least at P = √(v̄ c_g / (s² c_s)) (`target` is
-    /// v̄ c_g / c_s), taken down to a power of two so that a longer period's samples are
-    /// a shorter one's, and at most R.
-    pub(super) fn period(&self, most: u64, target: f32) -> u64 {
-        let optimum = match (self.y.count, self.spread()) {
-            (0, _) => return most,
-            (_, None) if (self.samples as u64) < PILOT_PERIOD => return most,
-            (_, None) => return most.min(PILOT_PERIOD),
-            (_, Some(s2)) => (target / s2).sqrt(),
-        };
-        // No v̄ yet (a zero target) or a zero spread (an infinite optimum): R.
-        if !(optimum < most as f32 && target > 0.0) {
-            return most;
-        }
-        1 << (optimum.max(1.0) as u64).ilog2()
-    }
 }
-
-/// A surface's gather period between its first and second gathers, once this many
-/// samples landed on it, when `--pbgi-reuse` is longer: the two give the spread that sets
-/// the period after them.
-pub(super) const PILOT_PERIOD: u64 = 8;
 
 /// Samples of each pixel whose cached receivers are checked for a surface over them.
 pub(super) const PROBED_SAMPLES: u32 = 16;
@@ -136,16 +96,12 @@ impl From<InPixel> for Reuse {
 impl PbgiIntegrator {
     /// The irradiance the cache holds at the receiver when nothing is over it within the
     /// records' reach; else a gather of its own when its sample is its pixel's first or
-    /// falls at its surface's period (at the pixel's phase; [`Gathered::period`]); else
+    /// falls at `--pbgi-reuse`'s period (at the pixel's phase); else
     /// its surface's gathers, or, when the pixel keeps no more surfaces, those of the one
     /// whose normal is closest to its own. A later surface's first gather waits for its
     /// phase like the others: gathering at first sight doubled the gathers of a 60-s
     /// render of sponza under the cut, whose gathers cost 1.6 ms each, for surfaces a few
-    /// samples hit. The period falls below `--pbgi-reuse` where a surface's gathers
-    /// scatter: the pixels the cache leaves to themselves on the showroom (the plinth's
-    /// top under the gold bunny, which sees the bunny's glossy reflection of the panel)
-    /// need a gather every few samples, not every 256th. It depends on earlier gathers
-    /// only; that they also enter the mean leaves a bias of order 1 / gathers.
+    /// samples hit.
     pub(super) fn reuse(&self, tr: &mut Tracer, q: &Pending) -> Reuse {
         if let Some((e, reach)) = self
             .irradiance_cache
@@ -188,15 +144,13 @@ impl PbgiIntegrator {
         {
             Some(i) => {
                 let g = &mut list[i];
-                // WPBGI's gathers keep one period: their light is heavy-tailed (rays
-                // meeting lamp-lit glossy surfaces), and a period set by the spread of a
-                // surface's first gathers sampled more where those had caught a bright
-                // tail, leaving the rest low (the showroom's floor −0.9% at 64 spp
-                // against −0.05% at a fixed 8).
-                let period = match glossy {
-                    true => (self.settings.reuse as u64).min(PILOT_PERIOD),
-                    false => g.period(self.settings.reuse as u64, self.reuse_target),
-                };
+                // One period whatever the gathers read: set by the spread of a surface's
+                // first gathers (splitting's optimum, 1 to 64), it sampled more where they
+                // had caught a bright tail and left the rest low (caustics with the cache
+                // off, 256 spp, seeds 1–3: −1.06%, −1.19%, −1.44% against −0.05%, −0.30%,
+                // −0.72% at 8; WPBGI's gathers on the showroom's floor −0.9% at 64 spp
+                // against −0.05%).
+                let period = self.settings.reuse as u64;
                 let k = g.samples as u64;
                 g.samples += 1;
                 // Each pixel's later gathers fall at its own phase of the period, so a pass
@@ -258,9 +212,8 @@ impl PbgiIntegrator {
         }
     }
 
-    /// Pixel `pixel`'s phase in `--pbgi-reuse`'s period: its gathers after the first fall
-    /// at the samples s with s + phase a multiple of the surface's period
-    /// ([`Gathered::period`]).
+    /// Pixel `pixel`'s phase in `--pbgi-reuse`'s period R: its gathers after the first
+    /// fall at the samples s with s + phase a multiple of R.
     pub(super) fn phase(&self, pixel: usize) -> u64 {
         let r = self.settings.reuse as u64;
         Hash::new(pixel as u64 ^ (self.seed as u64) << 32).u64() % r
@@ -326,54 +279,5 @@ impl PbgiIntegrator {
             .iter()
             .map(|slot| pixel(&slot.lock().unwrap_or_else(PoisonError::into_inner)));
         lists.enumerate().filter(|(_, l)| *l != V::ZERO).collect()
-    }
-}
-
-#[cfg(test)]
-mod period_tests {
-    use super::*;
-
-    /// A surface with `gathers` of luminance-grey irradiance `values`, hit by `samples`
-    /// samples of weight one each.
-    fn surface(values: &[f32], samples: u32) -> Gathered {
-        Gathered {
-            p: V::ZERO,
-            n: V::Z,
-            sum: values.iter().map(|&v| V::splat(v)).sum(),
-            y: Moments::of(values.iter().copied()),
-            samples,
-            weight: V::splat(samples as f32),
-            glossy: false,
-        }
-    }
-
-    /// The period is R until a surface's first gather and until `PILOT_PERIOD` samples
-    /// landed on it, `PILOT_PERIOD` until its second, then √(target / s²) taken down to a
-    /// power of two: shorter as the gathers scatter more, R where they agree or no
-    /// sample variance is known yet, never above R nor below 1.
-    #[test]
-    fn a_surfaces_gather_period_shortens_as_its_gathers_scatter() {
-        let r = 256;
-        assert_eq!(surface(&[], 40).period(r, 1.0), r);
-        assert_eq!(surface(&[1.0], 3).period(r, 1.0), r);
-        assert_eq!(surface(&[1.0], 9).period(r, 1.0), PILOT_PERIOD);
-        assert_eq!(surface(&[1.0], 9).period(4, 1.0), 4);
-        assert_eq!(surface(&[1.0, 1.0, 1.0], 40).period(r, 1.0), r);
-        assert_eq!(surface(&[1.0, 3.0], 40).period(r, 0.0), r);
-        // Spread s² = 2 (values 1 and 3): √(target / 2).
-        assert_eq!(surface(&[1.0, 3.0], 40).period(r, 2.0 * 100.0), 8);
-        assert_eq!(surface(&[1.0, 3.0], 40).period(r, 2.0 * 0.25), 1);
-        assert_eq!(surface(&[1.0, 3.0], 40).period(r, 2.0 * 1e9), r);
-        let mut last = r;
-        for spread in [0.01f32, 0.1, 1.0, 10.0, 100.0] {
-            let g = surface(&[1.0, 1.0 + spread, 1.0 - spread], 40);
-            let p = g.period(r, 50.0);
-            assert!(
-                p.is_power_of_two() && p <= last,
-                "{spread}: {p} after {last}"
-            );
-            last = p;
-        }
-        assert_eq!(last, 1);
     }
 }

@@ -233,19 +233,6 @@ impl PbgiIntegrator {
         pass.rays.saturating_sub(self.bake_samples + cache)
     }
 
-    /// v̄ · c_g / c_s of a pixel surface's gather period (`Gathered::period`): `variance`,
-    /// the image's mean variance of one sample, times a gather's cost over a sample's (the
-    /// records' first gathers as charged, else a ray a texel; the passes' rays over their
-    /// samples, the pixels' further ones counted).
-    pub(super) fn reuse_target(&self, pass: &Pass, variance: f64) -> f32 {
-        let per_sample = self.sampled_rays(pass) as f64 / (pass.samples as f64).max(1.0);
-        let per_gather = match &self.irradiance_cache {
-            Some(cache) => self.gather_cost(cache),
-            None => self.texels.upper.len() as u64,
-        };
-        (variance * per_gather as f64 / per_sample.max(1.0)) as f32
-    }
-
     /// What a gather that traced `rays` is charged, in rays: at least a ray per texel,
     /// since under the cut its splats and rasterized leaves are not rays but cost as much
     /// (sponza with the cut, counted by the rays they traced: 16,852 probes took a
