@@ -555,7 +555,7 @@ fn receivers_in_a_gap_the_records_did_not_see_gather_for_themselves() {
 /// The plinth's top under the showroom's gold bunny is a crevice the cache leaves to the
 /// pixels (the bunny is over it within the records' reach), and its gathers scatter: the
 /// bunny's glossy reflection of the panel falls in a few texels. Those pixels gather at
-/// every `--pbgi-reuse`-th sample (8 by default), and the crop's mean stays with that of
+/// every `--pbgi-reuse`-th sample (8 here), and the crop's mean stays with that of
 /// every sample gathering.
 #[test]
 fn pixels_left_to_themselves_share_gathers_and_keep_the_mean_where_they_scatter() {

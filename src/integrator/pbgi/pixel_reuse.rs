@@ -46,6 +46,9 @@ impl Gathered {
     }
 }
 
+/// Most samples of a pixel's surface that share one of WPBGI's glossy gathers.
+pub(super) const GLOSSY_PERIOD: u64 = 8;
+
 /// Samples of each pixel whose cached receivers are checked for a surface over them.
 pub(super) const PROBED_SAMPLES: u32 = 16;
 
@@ -145,12 +148,18 @@ impl PbgiIntegrator {
             Some(i) => {
                 let g = &mut list[i];
                 // One period whatever the gathers read: set by the spread of a surface's
-                // first gathers (splitting's optimum, 1 to 64), it sampled more where they
+                // first gathers (splitting's optimum, 1 to R), it sampled more where they
                 // had caught a bright tail and left the rest low (caustics with the cache
                 // off, 256 spp, seeds 1–3: −1.06%, −1.19%, −1.44% against −0.05%, −0.30%,
-                // −0.72% at 8; WPBGI's gathers on the showroom's floor −0.9% at 64 spp
-                // against −0.05%).
-                let period = self.settings.reuse as u64;
+                // −0.72% at a fixed 8). WPBGI's glossy gathers keep 8: their light is
+                // heavy-tailed (the showroom's floor −0.9% at 64 spp with the spread's
+                // period against −0.05%). Irradiance gathers take R: at 60 s on sponza, R 8
+                // gave 29 spp and RMSE 1.27e-2, R 64 47 spp and 1.15e-2 (the showroom
+                // 5.66e-3 and 5.97e-3).
+                let period = match glossy {
+                    true => (self.settings.reuse as u64).min(GLOSSY_PERIOD),
+                    false => self.settings.reuse as u64,
+                };
                 let k = g.samples as u64;
                 g.samples += 1;
                 // Each pixel's later gathers fall at its own phase of the period, so a pass

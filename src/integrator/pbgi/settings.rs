@@ -65,8 +65,8 @@ pub struct PbgiSettings {
     #[arg(long = "pbgi-split", help_heading = ADVANCED, value_name = "N", value_parser = clap::value_parser!(u32).range(1..=32))]
     pub split: Option<u32>,
     /// Samples of a pixel's surface that share one gather: it gathers at every R-th; 1
-    /// gathers at every sample [default: 8].
-    #[arg(long = "pbgi-reuse", help_heading = ADVANCED, value_name = "R", default_value_t = 8, hide_default_value = true, value_parser = clap::value_parser!(u32).range(1..))]
+    /// gathers at every sample [default: 64].
+    #[arg(long = "pbgi-reuse", help_heading = ADVANCED, value_name = "R", default_value_t = 64, hide_default_value = true, value_parser = clap::value_parser!(u32).range(1..))]
     pub reuse: u32,
     /// The irradiance cache's error bound (gathers shared between nearby pixels); 0 is
     /// off [default: 0.3].
