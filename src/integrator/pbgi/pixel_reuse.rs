@@ -5,8 +5,6 @@ use super::gather::Strata;
 use super::receiver::Pending;
 use super::surface::Surface;
 use super::PbgiIntegrator;
-use crate::material::luminance;
-use crate::moments::Moments;
 use crate::sampler::Hash;
 use crate::trace::{offset_origin, Ray, Tracer};
 use glam::Vec3A as V;
@@ -20,8 +18,8 @@ pub(super) struct Gathered {
     pub(super) p: V,
     pub(super) n: V,
     pub(super) sum: V,
-    /// The gathers' luminances (their count is the gathers').
-    pub(super) y: Moments,
+    /// Gathers summed in `sum`.
+    pub(super) gathers: u32,
     /// Samples that landed on it: it gathers at every `period`-th (at its pixel's
     /// phase), and the pixel's first surface also at its first, so a surface's gathers
     /// are in proportion to its share of the pixel's samples. One that has none yet
@@ -166,7 +164,7 @@ impl PbgiIntegrator {
                 // does about 1/period of the pixels' gathers instead of all of them every
                 // period-th pass.
                 if (k + self.phase(pixel)).is_multiple_of(period) {
-                    return InPixel::Gather(self.pixel_strata(pixel, i, g.y.count as u32));
+                    return InPixel::Gather(self.pixel_strata(pixel, i, g.gathers));
                 }
                 InPixel::Lend(pixel, i)
             }
@@ -176,7 +174,7 @@ impl PbgiIntegrator {
                     p: q.s.p,
                     n,
                     sum: V::ZERO,
-                    y: Moments::default(),
+                    gathers: 0,
                     samples: 1,
                     weight: V::ZERO,
                     glossy,
@@ -253,14 +251,14 @@ impl PbgiIntegrator {
         match list.iter_mut().find(|g| g.holds(p, n, footprint, glossy)) {
             Some(g) => {
                 g.sum += e;
-                g.y.add(luminance(e));
+                g.gathers += 1;
                 g.weight += weight;
             }
             None if !full => list.push(Gathered {
                 p,
                 n,
                 sum: e,
-                y: Moments::of([luminance(e)]),
+                gathers: 1,
                 samples: 1,
                 weight,
                 glossy,
@@ -276,10 +274,10 @@ impl PbgiIntegrator {
             let mean = |g: &Gathered| {
                 let gathered = list
                     .iter()
-                    .filter(|o| o.y.count > 0 && o.glossy == g.glossy);
+                    .filter(|o| o.gathers > 0 && o.glossy == g.glossy);
                 let closest = gathered.max_by(|a, b| a.n.dot(g.n).total_cmp(&b.n.dot(g.n)));
-                let from = if g.y.count > 0 { Some(g) } else { closest };
-                from.map_or(V::ZERO, |o| g.weight * o.sum / o.y.count as f32)
+                let from = if g.gathers > 0 { Some(g) } else { closest };
+                from.map_or(V::ZERO, |o| g.weight * o.sum / o.gathers as f32)
             };
             list.iter().map(mean).sum::<V>()
         };
