@@ -41,8 +41,8 @@
 //! driver's `--pixel-split`, off by default): on the glossy showroom it pays, as half of
 //! the noise is the sample's position in the pixel, which nothing at one first hit lowers.
 //!
-//! Smooth mirrors and glass are followed exactly (one sampled bounce each, up to
-//! `SMOOTH_DEPTH`), so a perfectly specular surface degrades to the exact estimator
+//! Smooth mirrors and glass are followed exactly (one sampled bounce each, with the path
+//! tracer's Russian roulette), so a perfectly specular surface degrades to the exact estimator
 //! (000 §A.8). The cloud holds every bounce by default, or `--bounces N` (1: direct light
 //! reflected once): compare with `--max-depth` 2 + N of the path tracer (camera → x →
 //! node → … → light). A gather's ray that meets a surface the bake does not cover (glossy,

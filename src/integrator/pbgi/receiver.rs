@@ -12,8 +12,10 @@ use crate::trace::{offset_origin, Ray, Tracer};
 use glam::Vec3A as V;
 use std::sync::atomic::Ordering::Relaxed;
 
-/// Smooth bounces followed before giving up on a path.
-pub(super) const SMOOTH_DEPTH: u32 = 8;
+/// Smooth bounces followed before giving up on a path: a bound against closed mirrors
+/// only, as Russian roulette and refraction out end nearly every path long before (a ray
+/// grazing a glass sphere reflects inside it a dozen times and more).
+pub(super) const SMOOTH_DEPTH: u32 = 1024;
 
 /// The emission seen at a camera ray's first hit, for the edge rays.
 pub(super) fn seen_emission(scene: &Scene, tr: &mut Tracer, r: &Ray, c: &mut Counters) -> V {
@@ -84,7 +86,7 @@ impl PbgiIntegrator {
         let mut passes = 0;
         for depth in 0..SMOOTH_DEPTH {
             // The next bounce's set: its first number also decides alpha holes.
-            let [ud0, ud1, ..] = px.sampler.get4(2 * depth + 2);
+            let [ud0, ud1, u_rr, _] = px.sampler.get4(2 * depth + 2);
             let (hit, travelled) = match scattering_hit(scene, tr, &mut ray, ud0, &mut passes) {
                 Ok(Scatter { hit, travelled, .. }) => (hit, travelled),
                 Err(missed) => {
@@ -126,6 +128,14 @@ impl PbgiIntegrator {
                         break;
                     }
                     beta *= bs.weight;
+                    // Russian roulette after the second bounce, as the path tracer's.
+                    let q = beta.max_element();
+                    if depth > 0 && q < 1.0 {
+                        if u_rr >= q {
+                            break;
+                        }
+                        beta /= q;
+                    }
                     ray = Ray {
                         o: offset_origin(s.p, s.err, s.ng, wi),
                         d: wi,
