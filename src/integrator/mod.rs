@@ -502,6 +502,20 @@ impl NodeSet {
     }
 }
 
+/// Russian roulette on a path's throughput `beta` (pbrt-v4's `PathIntegrator`): where its
+/// largest channel q is below 1 the path goes on with probability q, `beta` divided by q;
+/// `u` draws the uniform only then. Returns whether the path goes on.
+pub fn roulette(beta: &mut V, u: impl FnOnce() -> f32) -> bool {
+    let q = beta.max_element();
+    if q < 1.0 {
+        if u() >= q {
+            return false;
+        }
+        *beta /= q;
+    }
+    true
+}
+
 /// An error for `what` (which reads light aggregated up the tree) on an archive with
 /// instances, naming what does render it.
 pub fn refuse_instances(archive: &canopy_format::Archive, what: &str) -> anyhow::Result<()> {

@@ -10,7 +10,7 @@
 use super::direct::{emission_weight, escaped_light};
 use super::surface::{scattering_hit, Missed, Scatter};
 use super::{
-    bsdf_term, on_side, sample_light, Counters, Integrator, PixelSample, Receiver, Scene,
+    bsdf_term, on_side, roulette, sample_light, Counters, Integrator, PixelSample, Receiver, Scene,
     ShadingPoint, Stats,
 };
 use crate::sampler::PixelSampler;
@@ -126,12 +126,8 @@ pub fn radiance(
             t_max: f32::INFINITY,
         };
         depth += 1;
-        let q = beta.max_element();
-        if depth > 1 && q < 1.0 {
-            if u_rr >= q {
-                break;
-            }
-            beta /= q;
+        if depth > 1 && !roulette(&mut beta, || u_rr) {
+            break;
         }
     }
     c.paths += 1;

@@ -3,7 +3,7 @@
 
 use super::super::direct::escaped_light;
 use super::super::surface::{hole_number, scattering_hit, Missed, Scatter};
-use super::super::{on_side, Counters, PixelSample, Scene};
+use super::super::{on_side, roulette, Counters, PixelSample, Scene};
 use super::surface::{LobeRay, Surface};
 use super::{split, wpbgi, PbgiIntegrator};
 use crate::material::{Bsdf, BsdfSample};
@@ -129,12 +129,8 @@ impl PbgiIntegrator {
                     }
                     beta *= bs.weight;
                     // Russian roulette after the second bounce, as the path tracer's.
-                    let q = beta.max_element();
-                    if depth > 0 && q < 1.0 {
-                        if u_rr >= q {
-                            break;
-                        }
-                        beta /= q;
+                    if depth > 0 && !roulette(&mut beta, || u_rr) {
+                        break;
                     }
                     ray = Ray {
                         o: offset_origin(s.p, s.err, s.ng, wi),

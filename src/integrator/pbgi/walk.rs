@@ -12,7 +12,7 @@
 
 use super::super::direct::escaped_light;
 use super::super::surface::{hole_number, on_side, scattering_hit, Missed};
-use super::super::Scene;
+use super::super::{roulette, Scene};
 use super::surface::{hit_light, Surface};
 use crate::material::{cosine_hemisphere, Frame};
 use crate::sampler::Hash;
@@ -135,12 +135,8 @@ fn walk(
             break;
         };
         (beta, delta) = (beta * weight, is_delta);
-        let q = beta.max_element();
-        if q < 1.0 {
-            if rng.f32() >= q {
-                break;
-            }
-            beta /= q;
+        if !roulette(&mut beta, || rng.f32()) {
+            break;
         }
         ray = next;
     }
