@@ -263,7 +263,7 @@ impl PbgiIntegrator {
         let Some(cache) = self.irradiance_cache.as_ref() else {
             return 0;
         };
-        // Every record has two gathers (its spread) after the second pass's refinement.
+        // The records' spread is known after the second pass's refinement.
         if pass.first < 3 || self.probed >= self.probe_order.len() {
             return 0;
         }
