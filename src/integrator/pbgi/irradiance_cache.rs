@@ -671,12 +671,34 @@ mod tests {
             make(4.0, &[1.0, 1.1], 16.0),
         ]);
         // Spreads 0.005, 2, -, 64/63, 0.005: s² = (0.01 + 2 + 64/63) / 4 = 0.756; gains
-        // s²/6·4 = 0.504, s²/6 = 0.126, ∞ (one gather), 0 (64), s²/6·16 = 2.017.
-        assert_eq!(cache.worth_refining(1.0), vec![2, 4]);
+        // s²/6·4 = 0.504, s²/6 = 0.126, s²/2 = 0.378 (one gather), 0 (64), s²/6·16 = 2.017.
+        let s2 = (0.01 + 2.0 + 64.0 / 63.0) / 4.0;
+        assert!((cache.gather_spread().unwrap() - s2).abs() < 1e-6);
+        assert_eq!(cache.worth_refining(1.0), vec![4]);
+        assert_eq!(cache.worth_refining(0.4), vec![0, 4]);
         assert_eq!(cache.worth_refining(0.3), vec![0, 2, 4]);
         assert_eq!(cache.worth_refining(0.1), vec![0, 1, 2, 4]);
         assert_eq!(cache.worth_refining(0.0), vec![0, 1, 2, 4]);
         assert_eq!(cache.gathers(), 2 + 2 + 1 + 64 + 2);
+        // Records of one gather and no spread known: the sampled ones (every
+        // SPREAD_SAMPLE-th) first, whatever the threshold; once they have their second
+        // gathers, the rest by the spread they give.
+        let mut fresh = IrradianceCache::new(0.3);
+        fresh.extend((0..2 * SPREAD_SAMPLE).map(|i| make(i as f32, &[0.5], 1.0)));
+        assert_eq!(fresh.gather_spread(), None);
+        assert_eq!(fresh.worth_refining(0.0), vec![0, SPREAD_SAMPLE]);
+        fresh.add(0, V::splat(0.7), &Gradients::default());
+        fresh.add(SPREAD_SAMPLE, V::splat(0.3), &Gradients::default());
+        // Each sampled record's spread of two gathers is d²/2; s² is their mean.
+        let s2 = fresh.gather_spread().unwrap();
+        let d2 = |v: f32| (luminance(V::splat(v)) - luminance(V::splat(0.5))) as f64;
+        let expected = (d2(0.7).powi(2) / 2.0 + d2(0.3).powi(2) / 2.0) / 2.0;
+        assert!((s2 - expected).abs() < 1e-7, "{s2} against {expected}");
+        assert!(fresh.worth_refining(s2 / 2.0).is_empty());
+        assert_eq!(
+            fresh.worth_refining(s2 / 2.0 * 0.99).len(),
+            2 * SPREAD_SAMPLE - 2
+        );
         // A dim lobe shows less of a record's error: at half, a quarter of the gain (alone,
         // its spread is the mean: 0.005/6·16/4).
         let mut dim = IrradianceCache::new(0.3);
