@@ -313,7 +313,13 @@ impl MicroBuffer {
     /// Hessian's per-sample terms, Schwarzhaupt, Jensen and Jarosz 2012), which the
     /// harmonic mean, blind to radiance, spreads too far: on room, beside a ceiling hot
     /// spot 0.2 m from a wall, a wall record carried E = 4 across 0.13 m into the corner,
-    /// where it is under 2.
+    /// where it is under 2. Texels whose light was sampled, not baked, are left out of
+    /// the second: their light is one gather's noise, and a reach that shrinks where a
+    /// gather caught a bright sample and grows where it missed spreads the misses: the
+    /// cache made sky_spheres, a sun through a glass sphere, 0.25% bright against every
+    /// sample gathering for itself, and 0.00–0.03% without them (16 spp, 20 seeds).
+    /// caustics, a lamp through glass, pays: −0.42% against −0.21% at 16 spp, −0.12%
+    /// against −0.10% at 256.
     pub fn reach_distance(&self, texels: &Texels, incident: &[Vec3]) -> f32 {
         let (mut inverse, mut lit, mut steep) = (0.0f32, 0.0f32, 0.0f32);
         for &t in &texels.upper {
@@ -325,8 +331,11 @@ impl MicroBuffer {
                 continue;
             }
             let d = self.sorted[first as usize].depth.max(f32::MIN_POSITIVE);
-            let l = luminance(incident[t].into()) * texels.cosine[t];
             inverse += 1.0 / d;
+            if self.sampled.get(t).copied().unwrap_or(false) {
+                continue;
+            }
+            let l = luminance(incident[t].into()) * texels.cosine[t];
             lit += l;
             steep += l / (d * d);
         }
@@ -536,31 +545,36 @@ mod tests {
 
     /// Every texel at depth 2 under even light: R is 2. One texel 0.1 away made very
     /// bright: R falls toward 0.1, as the light's part of E changes that fast. The same
-    /// texel near but dark: the harmonic mean, a shorter R than the light-weighted 2,
-    /// still shortens it.
+    /// texel near but dark, or bright by a light sample rather than baked light: the
+    /// harmonic mean, a shorter R than the light-weighted 2, still shortens it.
     #[test]
     fn reach_follows_bright_light_and_near_geometry() {
         let t = Texels::new(8);
         let near = t.upper[t.upper.len() / 2] as usize;
-        let reach = |near_radiance: f32, near_depth: f32| {
+        let reach = |near_radiance: f32, near_depth: f32, sampled: bool| {
             let mut mb = MicroBuffer::default();
             for &k in &t.upper {
                 let k = k as usize;
-                let (depth, l) = match k == near {
-                    true => (near_depth, near_radiance),
-                    false => (2.0, 1.0),
+                let (depth, l, sampled) = match k == near {
+                    true => (near_depth, near_radiance, sampled),
+                    false => (2.0, 1.0, false),
                 };
-                mb.fill(k, depth, k as u64, Vec3::splat(l), false);
+                mb.fill(k, depth, k as u64, Vec3::splat(l), sampled);
             }
             let incident = mb.resolve(&t, |_| Vec3::ZERO);
             mb.reach_distance(&t, &incident)
         };
-        let even = reach(1.0, 2.0);
+        let even = reach(1.0, 2.0, false);
         assert!((even - 2.0).abs() < 1e-5, "{even}");
-        let bright = reach(1e7, 0.1);
+        let bright = reach(1e7, 0.1, false);
         assert!((bright - 0.1).abs() < 2e-3, "{bright}");
         let harmonic = t.upper.len() as f32 / ((t.upper.len() - 1) as f32 / 2.0 + 10.0);
-        let dark = reach(0.0, 0.1);
+        let sampled = reach(1e7, 0.1, true);
+        assert!(
+            (sampled - harmonic).abs() < 1e-4 * harmonic,
+            "{sampled} vs {harmonic}"
+        );
+        let dark = reach(0.0, 0.1, false);
         assert!(
             (dark - harmonic).abs() < 1e-4 * harmonic,
             "{dark} vs {harmonic}"
