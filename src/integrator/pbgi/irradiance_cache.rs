@@ -691,8 +691,8 @@ mod tests {
         fresh.add(SPREAD_SAMPLE, V::splat(0.3), &Gradients::default());
         // Each sampled record's spread of two gathers is d²/2; s² is their mean.
         let s2 = fresh.gather_spread().unwrap();
-        let d2 = |v: f32| (luminance(V::splat(v)) - luminance(V::splat(0.5))) as f64;
-        let expected = (d2(0.7).powi(2) / 2.0 + d2(0.3).powi(2) / 2.0) / 2.0;
+        let d = |v: f32| (luminance(V::splat(v)) - luminance(V::splat(0.5))) as f64;
+        let expected = (d(0.7).powi(2) / 2.0 + d(0.3).powi(2) / 2.0) / 2.0;
         assert!((s2 - expected).abs() < 1e-7, "{s2} against {expected}");
         assert!(fresh.worth_refining(s2 / 2.0).is_empty());
         assert_eq!(

@@ -255,6 +255,11 @@ impl MicroBuffer {
         self.sampled[texel] = true;
     }
 
+    /// Whether texel `texel`'s light was sampled rather than read from the bake.
+    fn is_sampled(&self, texel: usize) -> bool {
+        self.sampled.get(texel).copied().unwrap_or(false)
+    }
+
     /// Splats a node seen in local direction `dir` (unit) at `depth`, subtending
     /// `solid_angle`, sending `radiance` toward the receiver: a square of that solid angle
     /// on the face `dir` points through, centred on `dir` (moved inside the face where it
@@ -332,7 +337,7 @@ impl MicroBuffer {
             }
             let d = self.sorted[first as usize].depth.max(f32::MIN_POSITIVE);
             inverse += 1.0 / d;
-            if self.sampled.get(t).copied().unwrap_or(false) {
+            if self.is_sampled(t) {
                 continue;
             }
             let l = luminance(incident[t].into()) * texels.cosine[t];
@@ -402,10 +407,9 @@ impl MicroBuffer {
                 false => f32::INFINITY,
             }
         };
-        let sampled = |t: u32| self.sampled.get(t as usize).copied().unwrap_or(false);
         let mut g = Gradients::default();
         for e in &texels.edges {
-            if sampled(e.from) || sampled(e.to) {
+            if self.is_sampled(e.from as usize) || self.is_sampled(e.to as usize) {
                 continue;
             }
             let r = depth(e.from).min(depth(e.to)).max(f32::MIN_POSITIVE);
