@@ -16,7 +16,8 @@ use crate::import::{SpillTri, WHITE};
 use anyhow::{bail, Context, Result};
 use bytemuck::{Pod, Zeroable};
 use std::fs::File;
-use std::io::{BufRead, BufReader, BufWriter, Read, Seek, SeekFrom, Write};
+use std::io::{BufWriter, Write};
+use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 
 const HAS_ATTR: u32 = 1 << 31;
@@ -42,12 +43,87 @@ struct Attr {
     curvature: f32,
 }
 
-pub struct SpillWriter {
-    out: BufWriter<File>,
+/// Triangles between the record starts a spill file keeps (`Spill::parts`).
+pub const MARK_TRIANGLES: u64 = 1 << 20;
+
+/// Writes spill records to a file, or (`At`) to a range of one that several writers share.
+pub struct SpillWriter<W: Write = File> {
+    out: BufWriter<W>,
     /// Bytes written so far: where the next record starts.
     written: u64,
+    /// Triangles written so far.
+    count: u64,
+    /// Where the records of triangles 0, `MARK_TRIANGLES`, 2·`MARK_TRIANGLES`… start.
+    marks: Vec<u64>,
     /// The directory, for messages (the file has no name).
     path: PathBuf,
+}
+
+/// A file written from `offset` on with positioned writes, so that writers on other
+/// threads may fill other ranges of it at once.
+pub struct At<'a> {
+    file: &'a File,
+    offset: u64,
+}
+
+impl Write for At<'_> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.file.write_at(buf, self.offset)?;
+        self.offset += n as u64;
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        Ok(())
+    }
+}
+
+/// The spill record's flags and its length in bytes for `t`.
+fn layout(t: &SpillTri) -> (u32, u64) {
+    let attr = t.n != [0; 3] || t.curvature != 0.0;
+    let uv = t.uv != [[0.0; 2]; 3];
+    let colour = t.colour != [WHITE; 3];
+    let uv2 = t.uv2 != [[0.0; 2]; 3];
+    let flag = |on: bool, bit: u32| if on { bit } else { 0 };
+    let flags =
+        flag(attr, HAS_ATTR) | flag(uv, HAS_UV) | flag(colour, HAS_COLOUR) | flag(uv2, HAS_UV2);
+    let bytes = 40 + 16 * attr as u64 + 24 * (uv as u64 + colour as u64 + uv2 as u64);
+    (flags, bytes)
+}
+
+/// Bytes `t`'s record takes in a spill file.
+pub fn record_bytes(t: &SpillTri) -> u64 {
+    layout(t).1
+}
+
+/// A spill file: unnamed in `dir`, or named `path` (a cluster conversion's chunk file),
+/// replacing what is there.
+pub fn create_file(dir: &Path, named: Option<&Path>) -> Result<File> {
+    match named {
+        None => unnamed(dir),
+        Some(path) => File::create(path)
+            .with_context(|| format!("{}: cannot create a chunk file", path.display())),
+    }
+}
+
+impl<'a> SpillWriter<At<'a>> {
+    /// A writer of `file` from byte `offset`; `path` names it in messages.
+    pub fn at(file: &'a File, offset: u64, buffer: usize, path: &Path) -> SpillWriter<At<'a>> {
+        SpillWriter {
+            out: BufWriter::with_capacity(buffer, At { file, offset }),
+            written: 0,
+            count: 0,
+            marks: Vec::new(),
+            path: path.to_path_buf(),
+        }
+    }
+
+    /// Writes out what is buffered.
+    pub fn flush(mut self) -> Result<()> {
+        self.out
+            .flush()
+            .with_context(|| format!("{}: writing", self.path.display()))
+    }
 }
 
 impl SpillWriter {
@@ -60,20 +136,38 @@ impl SpillWriter {
         ))
     }
 
-    /// A spill file named `path` (a cluster conversion's chunk file), replacing what is there.
-    pub fn create_named(path: &Path, buffer: usize) -> Result<SpillWriter> {
-        let file = File::create(path)
-            .with_context(|| format!("{}: cannot create a chunk file", path.display()))?;
-        Ok(SpillWriter::over(file, buffer, path.to_path_buf()))
-    }
-
     /// A writer of `file` from its start; `path` names it in messages.
-    fn over(file: File, buffer: usize, path: PathBuf) -> SpillWriter {
+    pub fn over(file: File, buffer: usize, path: PathBuf) -> SpillWriter {
         SpillWriter {
             out: BufWriter::with_capacity(buffer, file),
             written: 0,
+            count: 0,
+            marks: Vec::new(),
             path,
         }
+    }
+
+    /// Flushes and returns the spill, ready to read.
+    pub fn finish(self) -> Result<Spill> {
+        let err = || format!("{}: writing", self.path.display());
+        let file = self
+            .out
+            .into_inner()
+            .map_err(|e| e.into_error())
+            .with_context(err)?;
+        Ok(Spill {
+            file,
+            path: self.path,
+            count: Some(self.count),
+            marks: self.marks,
+        })
+    }
+}
+
+impl<W: Write> SpillWriter<W> {
+    /// Triangles written so far.
+    pub fn count(&self) -> u64 {
+        self.count
     }
 
     /// Where the next record will start, for `for_each_in`.
@@ -85,18 +179,17 @@ impl SpillWriter {
         if t.material & FLAGS != 0 {
             bail!("material index {} is out of range", t.material);
         }
-        let attr = t.n != [0; 3] || t.curvature != 0.0;
-        let uv = t.uv != [[0.0; 2]; 3];
-        let colour = t.colour != [WHITE; 3];
-        let uv2 = t.uv2 != [[0.0; 2]; 3];
-        let flag = |on: bool, bit: u32| if on { bit } else { 0 };
+        let (flags, bytes) = layout(t);
+        let attr = flags & HAS_ATTR != 0;
+        let uv = flags & HAS_UV != 0;
+        let colour = flags & HAS_COLOUR != 0;
+        let uv2 = flags & HAS_UV2 != 0;
+        if self.count.is_multiple_of(MARK_TRIANGLES) {
+            self.marks.push(self.written);
+        }
         let rec = Rec {
             p: t.p,
-            material: t.material
-                | flag(attr, HAS_ATTR)
-                | flag(uv, HAS_UV)
-                | flag(colour, HAS_COLOUR)
-                | flag(uv2, HAS_UV2),
+            material: t.material | flags,
         };
         let mut r = self.out.write_all(bytemuck::bytes_of(&rec));
         if attr && r.is_ok() {
@@ -115,22 +208,9 @@ impl SpillWriter {
         if uv2 && r.is_ok() {
             r = self.out.write_all(bytemuck::bytes_of(&t.uv2));
         }
-        self.written += 40 + 16 * attr as u64 + 24 * (uv as u64 + colour as u64 + uv2 as u64);
+        self.written += bytes;
+        self.count += 1;
         r.with_context(|| format!("{}: writing spill file", self.path.display()))
-    }
-
-    /// Flushes and returns the spill, ready to read.
-    pub fn finish(self) -> Result<Spill> {
-        let err = || format!("{}: writing", self.path.display());
-        let file = self
-            .out
-            .into_inner()
-            .map_err(|e| e.into_error())
-            .with_context(err)?;
-        Ok(Spill {
-            file,
-            path: self.path,
-        })
     }
 }
 
@@ -144,6 +224,10 @@ pub fn unnamed(dir: &Path) -> Result<File> {
 pub struct Spill {
     file: File,
     path: PathBuf,
+    /// Its triangles, when this process wrote it.
+    count: Option<u64>,
+    /// Where the records of triangles 0, `MARK_TRIANGLES`, 2·`MARK_TRIANGLES`… start (empty when not known).
+    marks: Vec<u64>,
 }
 
 impl Spill {
@@ -153,7 +237,37 @@ impl Spill {
         Ok(Spill {
             file,
             path: path.to_path_buf(),
+            count: None,
+            marks: Vec::new(),
         })
+    }
+
+    /// A spill file of `count` triangles that writers `at` its ranges filled.
+    pub fn written(file: File, path: &Path, count: u64) -> Spill {
+        Spill {
+            file,
+            path: path.to_path_buf(),
+            count: Some(count),
+            marks: Vec::new(),
+        }
+    }
+
+    /// The records split into at most `n` consecutive ranges of whole `MARK_TRIANGLES`s, as (start,
+    /// triangles) for `for_each_in`; the last runs to the end.
+    pub fn parts(&self, n: usize) -> Vec<(u64, u64)> {
+        let marks = self.marks.len().max(1);
+        let n = n.clamp(1, marks);
+        (0..n)
+            .map(|p| {
+                let first = p * marks / n;
+                let start = self.marks.get(first).copied().unwrap_or(0);
+                let count = match p + 1 == n {
+                    true => u64::MAX,
+                    false => ((p + 1) * marks / n - first) as u64 * MARK_TRIANGLES,
+                };
+                (start, count)
+            })
+            .collect()
     }
 }
 
@@ -163,7 +277,7 @@ pub fn for_each(spill: &Spill, f: impl FnMut(&SpillTri) -> Result<()>) -> Result
 }
 
 /// Calls `f` on the `count` triangles (or up to the end) from byte `start`, a record start
-/// `SpillWriter::position` returned.
+/// `SpillWriter::position` returned. Records are parsed from 1 MiB blocks read at once.
 pub fn for_each_in(
     spill: &Spill,
     start: u64,
@@ -171,52 +285,98 @@ pub fn for_each_in(
     mut f: impl FnMut(&SpillTri) -> Result<()>,
 ) -> Result<()> {
     let path = &spill.path;
-    let mut file = &spill.file;
-    file.seek(SeekFrom::Start(start))
-        .with_context(|| format!("{}: seeking", path.display()))?;
-    let mut r = BufReader::with_capacity(1 << 20, file);
+    let mut r = Blocks {
+        file: &spill.file,
+        offset: start,
+        buf: vec![0; 1 << 20],
+        pos: 0,
+        end: 0,
+    };
     let err = || format!("{}: reading spill", path.display());
     for _ in 0..count {
-        if r.fill_buf().with_context(err)?.is_empty() {
-            if count == u64::MAX {
+        if !r.hold(40).with_context(err)? {
+            if count == u64::MAX && r.pos == r.end {
                 return Ok(());
             }
             bail!("{}: the spill file ends early", path.display());
         }
-        let mut rec = Rec::zeroed();
-        r.read_exact(bytemuck::bytes_of_mut(&mut rec))
-            .with_context(err)?;
+        let rec: Rec = bytemuck::pod_read_unaligned(&r.buf[r.pos..r.pos + 40]);
+        let flags = rec.material;
+        let extra = 16 * (flags & HAS_ATTR != 0) as usize
+            + 24 * ((flags & HAS_UV != 0) as usize
+                + (flags & HAS_COLOUR != 0) as usize
+                + (flags & HAS_UV2 != 0) as usize);
+        if !r.hold(40 + extra).with_context(err)? {
+            bail!("{}: the spill file ends early", path.display());
+        }
         let mut t = SpillTri {
             p: rec.p,
-            material: rec.material & !FLAGS,
+            material: flags & !FLAGS,
             ..Default::default()
         };
-        if rec.material & HAS_ATTR != 0 {
-            let mut a = Attr::zeroed();
-            r.read_exact(bytemuck::bytes_of_mut(&mut a))
-                .with_context(err)?;
+        let mut at = r.pos + 40;
+        let mut take = |n: usize| {
+            at += n;
+            &r.buf[at - n..at]
+        };
+        if flags & HAS_ATTR != 0 {
+            let a: Attr = bytemuck::pod_read_unaligned(take(16));
             t.n = a.n;
             t.curvature = a.curvature;
         }
-        if rec.material & HAS_UV != 0 {
-            r.read_exact(bytemuck::bytes_of_mut(&mut t.uv))
-                .with_context(err)?;
+        if flags & HAS_UV != 0 {
+            t.uv = bytemuck::pod_read_unaligned(take(24));
         }
-        if rec.material & HAS_COLOUR != 0 {
-            r.read_exact(bytemuck::bytes_of_mut(&mut t.colour))
-                .with_context(err)?;
+        if flags & HAS_COLOUR != 0 {
+            t.colour = bytemuck::pod_read_unaligned(take(24));
         }
-        if rec.material & HAS_UV2 != 0 {
-            r.read_exact(bytemuck::bytes_of_mut(&mut t.uv2))
-                .with_context(err)?;
+        if flags & HAS_UV2 != 0 {
+            t.uv2 = bytemuck::pod_read_unaligned(take(24));
         }
+        r.pos += 40 + extra;
         f(&t)?;
     }
     Ok(())
 }
 
+/// A file read in blocks from `offset` on (positioned reads, so that readers on other
+/// threads may share the file): `buf[pos..end]` holds the bytes not yet parsed.
+struct Blocks<'a> {
+    file: &'a File,
+    offset: u64,
+    buf: Vec<u8>,
+    pos: usize,
+    end: usize,
+}
+
+impl Blocks<'_> {
+    /// Makes at least `n` unparsed bytes available (moving the rest to the front and reading
+    /// on); false when the file ends first.
+    fn hold(&mut self, n: usize) -> std::io::Result<bool> {
+        if self.end - self.pos >= n {
+            return Ok(true);
+        }
+        self.buf.copy_within(self.pos..self.end, 0);
+        self.end -= self.pos;
+        self.pos = 0;
+        while self.end < n {
+            match self.file.read_at(&mut self.buf[self.end..], self.offset) {
+                Ok(0) => return Ok(false),
+                Ok(k) => {
+                    self.end += k;
+                    self.offset += k as u64;
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(true)
+    }
+}
+
+/// Every triangle of a spill file, in order.
 pub fn read_all(spill: &Spill) -> Result<Vec<SpillTri>> {
-    let mut out = Vec::new();
+    let mut out = Vec::with_capacity(spill.count.unwrap_or(0) as usize);
     for_each(spill, |t| {
         out.push(*t);
         Ok(())
