@@ -12,7 +12,7 @@ use canopy_format::{Features, NodeFlags};
 use std::path::Path;
 
 struct Spill {
-    out: SpillWriter,
+    out: spill::Background,
     count: u64,
     lo: [f32; 3],
     hi: [f32; 3],
@@ -60,17 +60,22 @@ impl TriangleSink for Spill {
             self.materials_used.resize(m + 1, false);
         }
         self.materials_used[m] = true;
-        let (out, count, lo, hi) = match &mut self.shared {
+        let (count, lo, hi) = match &mut self.shared {
             Some(Shared {
                 out, open: Some(p), ..
-            }) => (out, &mut p.count, &mut p.lo, &mut p.hi),
-            _ => (&mut self.out, &mut self.count, &mut self.lo, &mut self.hi),
+            }) => {
+                out.write(&t)?;
+                (&mut p.count, &mut p.lo, &mut p.hi)
+            }
+            _ => {
+                self.out.write(&t)?;
+                (&mut self.count, &mut self.lo, &mut self.hi)
+            }
         };
         for (a, c) in t.centroid().into_iter().enumerate() {
             lo[a] = lo[a].min(c);
             hi[a] = hi[a].max(c);
         }
-        out.write(&t)?;
         *count += 1;
         if count.is_multiple_of(65536) {
             self.bar.inc(65536);
@@ -180,7 +185,7 @@ pub fn import_inputs(opts: &ConvertOptions, file: &SceneFile, dir: &Path) -> Res
         ..Default::default()
     };
     let mut spill = Spill {
-        out: SpillWriter::create(dir, 1 << 20)?,
+        out: spill::Background::new(SpillWriter::create(dir, 1 << 20)?),
         count: 0,
         lo: [f32::INFINITY; 3],
         hi: [f32::NEG_INFINITY; 3],

@@ -19,6 +19,8 @@ use std::fs::File;
 use std::io::{BufWriter, Write};
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
+use std::sync::mpsc::{sync_channel, Receiver, SyncSender};
+use std::thread::JoinHandle;
 
 const HAS_ATTR: u32 = 1 << 31;
 /// A 24-byte texture-coordinate record follows (after the attribute record, if any).
@@ -211,6 +213,83 @@ impl<W: Write> SpillWriter<W> {
         self.written += bytes;
         self.count += 1;
         r.with_context(|| format!("{}: writing spill file", self.path.display()))
+    }
+}
+
+/// A spill writer on a thread of its own: triangles go to it in batches, so that encoding
+/// and writing them overlaps the work that produces them (an importer's parsing).
+pub struct Background {
+    batch: Vec<SpillTri>,
+    to: Option<SyncSender<Vec<SpillTri>>>,
+    /// Batches the writer is done with, to be filled again.
+    back: Receiver<Vec<SpillTri>>,
+    writer: Option<JoinHandle<Result<Spill>>>,
+}
+
+/// Triangles a batch holds (128 KiB of them).
+const BATCH: usize = 1024;
+
+impl Background {
+    /// A writer of `w`'s file on its own thread.
+    pub fn new(mut w: SpillWriter) -> Background {
+        let (to, from) = sync_channel::<Vec<SpillTri>>(8);
+        let (give_back, back) = sync_channel(8);
+        let writer = std::thread::spawn(move || {
+            for mut batch in from {
+                batch.iter().try_for_each(|t| w.write(t))?;
+                batch.clear();
+                // The producer may be gone or have batches enough.
+                let _ = give_back.try_send(batch);
+            }
+            w.finish()
+        });
+        Background {
+            batch: Vec::with_capacity(BATCH),
+            to: Some(to),
+            back,
+            writer: Some(writer),
+        }
+    }
+
+    pub fn write(&mut self, t: &SpillTri) -> Result<()> {
+        self.batch.push(*t);
+        if self.batch.len() == BATCH {
+            self.send()?;
+        }
+        Ok(())
+    }
+
+    /// Sends the batch; a writer that stopped returns its error.
+    fn send(&mut self) -> Result<()> {
+        let next = self
+            .back
+            .try_recv()
+            .unwrap_or_else(|_| Vec::with_capacity(BATCH));
+        let batch = std::mem::replace(&mut self.batch, next);
+        let sent = self.to.as_ref().map(|to| to.send(batch).is_ok());
+        if sent != Some(true) {
+            self.to = None;
+            return self.join().map(drop);
+        }
+        Ok(())
+    }
+
+    /// The writer's result once it has written everything sent.
+    fn join(&mut self) -> Result<Spill> {
+        self.to = None;
+        match self.writer.take().map(JoinHandle::join) {
+            Some(Ok(result)) => result,
+            Some(Err(_)) => bail!("the spill writer thread panicked"),
+            None => bail!("the spill writer has stopped"),
+        }
+    }
+
+    /// Writes what is left and returns the spill, ready to read.
+    pub fn finish(mut self) -> Result<Spill> {
+        if !self.batch.is_empty() {
+            self.send()?;
+        }
+        self.join()
     }
 }
 
@@ -451,5 +530,75 @@ mod tests {
         let spill = w.finish().unwrap();
         spill.file.set_len(30).unwrap();
         assert!(read_all(&spill).is_err());
+    }
+
+    /// Triangles `0..n`, told apart by their first vertex's x.
+    fn numbered(n: u32) -> Vec<SpillTri> {
+        (0..n)
+            .map(|i| SpillTri {
+                p: [[i as f32, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+                curvature: (i % 2) as f32,
+                ..Default::default()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_background_writer_writes_what_the_writer_writes() {
+        let dir = tempfile::tempdir().unwrap();
+        let tris = numbered(5 * BATCH as u32 + 17);
+        let mut w = Background::new(SpillWriter::create(dir.path(), 4096).unwrap());
+        tris.iter().for_each(|t| w.write(t).unwrap());
+        let spill = w.finish().unwrap();
+        assert_eq!(spill.count, Some(tris.len() as u64));
+        assert_eq!(read_all(&spill).unwrap(), tris);
+        // Marks where ranges may start: the first record, and none beyond the triangles.
+        assert_eq!(spill.marks, vec![0]);
+        assert_eq!(spill.parts(2), vec![(0, u64::MAX)]);
+    }
+
+    #[test]
+    fn a_background_writer_reports_the_writers_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut w = Background::new(SpillWriter::create(dir.path(), 4096).unwrap());
+        let bad = SpillTri {
+            material: HAS_UV,
+            ..Default::default()
+        };
+        w.write(&bad).unwrap();
+        let more = numbered(3 * BATCH as u32);
+        let sent: Result<()> = more.iter().try_for_each(|t| w.write(t));
+        let err = sent.and_then(|_| w.finish().map(drop)).unwrap_err();
+        assert!(format!("{err:#}").contains("out of range"), "{err:#}");
+    }
+
+    #[test]
+    fn ranges_start_at_the_marked_records() {
+        let dir = tempfile::tempdir().unwrap();
+        let n = 2 * MARK_TRIANGLES + 5;
+        let mut w = SpillWriter::create(dir.path(), 1 << 20).unwrap();
+        for i in 0..n {
+            let t = SpillTri {
+                p: [[i as f32, 0.0, 0.0]; 3],
+                curvature: (i % 3 == 0) as u32 as f32,
+                ..Default::default()
+            };
+            w.write(&t).unwrap();
+        }
+        let spill = w.finish().unwrap();
+        assert_eq!(spill.marks.len(), 3);
+        let parts = spill.parts(2);
+        assert_eq!(parts.len(), 2);
+        assert_eq!(parts[0], (0, MARK_TRIANGLES));
+        let mut seen = 0u64;
+        for (start, count) in parts {
+            for_each_in(&spill, start, count, |t| {
+                assert_eq!(t.p[0][0], seen as f32);
+                seen += 1;
+                Ok(())
+            })
+            .unwrap();
+        }
+        assert_eq!(seen, n);
     }
 }
