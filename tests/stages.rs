@@ -115,6 +115,55 @@ fn the_archive_does_not_depend_on_the_thread_count() {
     same_bytes(&outs[0], &outs[2], "1 and 3 threads");
 }
 
+/// Above 2²⁰ triangles the partition reads and writes the spill in two ranges at once; the
+/// chunk files, and so the archive, are what one pass writes, in one process or in stages.
+#[test]
+fn a_spill_partitioned_in_ranges_gives_the_same_bytes() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let grid = d.join("grid.ply");
+    grid_ply(&grid, 750);
+    let mut outs = Vec::new();
+    for threads in ["1", "2"] {
+        let out = d.join(format!("t{threads}.canopy"));
+        let run = std::process::Command::new(env!("CARGO_BIN_EXE_canopy"))
+            .args(["--quiet", "convert", s(&grid), "-o", s(&out)])
+            .args(["--mem-budget", "256MiB", "--json"])
+            .env("RAYON_NUM_THREADS", threads)
+            .output()
+            .unwrap();
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let report: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+        assert_eq!(
+            report["input_triangles"].as_u64(),
+            Some(1_125_000),
+            "{report}"
+        );
+        assert!(report["chunks"].as_u64().unwrap() > 1, "{report}");
+        outs.push(out);
+    }
+    same_bytes(&outs[0], &outs[1], "1 and 2 threads");
+    let staged_out = d.join("staged.canopy");
+    staged(
+        &[s(&grid)],
+        &staged_out,
+        &d.join("work"),
+        &["--mem-budget", "256MiB"],
+    );
+    same_bytes(&outs[0], &staged_out, "one process and stages");
+    let said = ok(&["inspect", "--verify", s(&outs[0])]);
+    let stored = said
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("stored triangles"))
+        .and_then(|r| r.split_whitespace().next())
+        .unwrap_or_else(|| panic!("{said}"));
+    assert_eq!(stored, "1125000", "every triangle stored once: {said}");
+}
+
 #[test]
 fn missing_stale_or_damaged_work_files_are_refused_by_name() {
     let dir = tempfile::tempdir().unwrap();
