@@ -41,6 +41,22 @@ fn chunk_count(work: &Path) -> usize {
         .count()
 }
 
+/// Converts `input` to `out` under `budget` with `threads` threads; returns the report.
+fn convert_on(threads: &str, input: &Path, out: &Path, budget: &str) -> serde_json::Value {
+    let run = std::process::Command::new(env!("CARGO_BIN_EXE_canopy"))
+        .args(["--quiet", "convert", s(input), "-o", s(out)])
+        .args(["--mem-budget", budget, "--json"])
+        .env("RAYON_NUM_THREADS", threads)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    serde_json::from_slice(&run.stdout).unwrap()
+}
+
 fn same_bytes(a: &Path, b: &Path, what: &str) {
     let (a, b) = (std::fs::read(a).unwrap(), std::fs::read(b).unwrap());
     assert!(a == b, "{what}: {} and {} bytes differ", a.len(), b.len());
@@ -96,18 +112,7 @@ fn the_archive_does_not_depend_on_the_thread_count() {
     let mut outs = Vec::new();
     for threads in ["1", "2", "3"] {
         let out = dir.path().join(format!("t{threads}.canopy"));
-        let run = std::process::Command::new(env!("CARGO_BIN_EXE_canopy"))
-            .args(["--quiet", "convert", s(&scene("bunny.ply")), "-o", s(&out)])
-            .args(["--mem-budget", "98MiB", "--json"])
-            .env("RAYON_NUM_THREADS", threads)
-            .output()
-            .unwrap();
-        assert!(
-            run.status.success(),
-            "{}",
-            String::from_utf8_lossy(&run.stderr)
-        );
-        let report: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+        let report = convert_on(threads, &scene("bunny.ply"), &out, "98MiB");
         assert!(report["chunks"].as_u64().unwrap() > 1, "{report}");
         outs.push(out);
     }
@@ -126,18 +131,7 @@ fn a_spill_partitioned_in_ranges_gives_the_same_bytes() {
     let mut outs = Vec::new();
     for threads in ["1", "2"] {
         let out = d.join(format!("t{threads}.canopy"));
-        let run = std::process::Command::new(env!("CARGO_BIN_EXE_canopy"))
-            .args(["--quiet", "convert", s(&grid), "-o", s(&out)])
-            .args(["--mem-budget", "256MiB", "--json"])
-            .env("RAYON_NUM_THREADS", threads)
-            .output()
-            .unwrap();
-        assert!(
-            run.status.success(),
-            "{}",
-            String::from_utf8_lossy(&run.stderr)
-        );
-        let report: serde_json::Value = serde_json::from_slice(&run.stdout).unwrap();
+        let report = convert_on(threads, &grid, &out, "256MiB");
         assert_eq!(
             report["input_triangles"].as_u64(),
             Some(1_125_000),

@@ -6,6 +6,7 @@ use super::spill::{self, Spill, SpillWriter};
 use super::stages;
 use crate::progress;
 use anyhow::Result;
+use rayon::prelude::*;
 use std::fs::File;
 use std::path::{Path, PathBuf};
 
@@ -71,17 +72,10 @@ pub fn partition(
         };
     }
     let parts = spilled.parts(PARTS);
-    let spill_ref = &spilled;
-    let counted = std::thread::scope(|s| {
-        let handles: Vec<_> = parts
-            .iter()
-            .map(|&(start, count)| s.spawn(move || histogram(spill_ref, start, count, [lo, hi])))
-            .collect();
-        handles
-            .into_iter()
-            .map(|h| h.join().expect("histogram thread"))
-            .collect::<Result<Vec<_>>>()
-    })?;
+    let counted = parts
+        .par_iter()
+        .map(|&(start, count)| histogram(&spilled, start, count, [lo, hi]))
+        .collect::<Result<Vec<_>>>()?;
     let mut hist = vec![0u64; 1 << (3 * MORTON_BITS)];
     for (part, _) in &counted {
         hist.iter_mut().zip(part).for_each(|(h, p)| *h += p);
@@ -225,17 +219,11 @@ impl Split<'_> {
                 at
             })
             .collect();
-        let counts = std::thread::scope(|s| {
-            let handles: Vec<_> = parts
-                .iter()
-                .zip(&starts)
-                .map(|(&part, at)| s.spawn(move || self.range(part, at, BUFFERS / parts.len())))
-                .collect();
-            handles
-                .into_iter()
-                .map(|h| h.join().expect("partition thread"))
-                .collect::<Result<Vec<_>>>()
-        })?;
+        let counts = parts
+            .par_iter()
+            .zip(&starts)
+            .map(|(&part, at)| self.range(part, at, BUFFERS / parts.len()))
+            .collect::<Result<Vec<_>>>()?;
         Ok((0..self.files.len())
             .map(|k| counts.iter().map(|c| c[k]).sum())
             .collect())
