@@ -406,8 +406,8 @@ fn gpu_instanced_meshes_are_stored_once() {
 /// whole) under `--mem-budget 98MiB`, the least it accepts, peak at no more than the
 /// budget in resident memory, code and buffers included (the process's own high-water
 /// mark); without a budget the same conversion peaks near 710 MiB. At this budget the
-/// partition writes 887 chunk files, whose write buffers share 16 MiB (at 256 KiB each
-/// they held 125 MiB).
+/// partition writes 489 chunk files, whose write buffers share 16 MiB (at 256 KiB each
+/// they would take 122 MiB).
 #[test]
 fn geometry_converts_within_the_memory_budget() {
     let dir = tempfile::tempdir().unwrap();
