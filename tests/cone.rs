@@ -931,3 +931,41 @@ fn stored_light_pulls_through_each_instance_apart() {
         "{checked} nodes checked"
     );
 }
+
+/// Edge rays average the emission a camera ray sees; where nothing a camera ray can see
+/// emits (a mesh under a sun, no environment) the cone and PBGI integrators trace none:
+/// the same rays and the same image as with `--edge-rays 0`. In the Cornell box, whose
+/// lamp is seen, they are traced.
+#[test]
+fn edge_rays_are_traced_only_where_emission_can_be_seen() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let toml = d.join("sun.toml");
+    std::fs::write(
+        &toml,
+        "[[light]]\ntype = \"directional\"\ndirection = [0.3, -1.0, -0.2]\nintensity = 3.0\n",
+    )
+    .unwrap();
+    let sunlit = d.join("sunlit.canopy");
+    convert(&scene("bunny.ply"), &sunlit, Some(&toml));
+    let lamp = converted(d, "cbox");
+    for (arc, seen) in [(&sunlit, false), (&lamp, true)] {
+        for integrator in ["cone", "pbgi"] {
+            let run = |edge: &str| {
+                let out = d.join(format!("{integrator}{edge}.exr"));
+                let flags = ["--integrator", integrator, "--spp", "2", "--width", "48"];
+                let more = ["--height", "48", "--threads", "1", "--edge-rays", edge];
+                let args: Vec<&str> = flags.iter().chain(&more).copied().collect();
+                render(arc, &out, &args)
+            };
+            let ((with, ws), (without, wos)) = (run("8"), run("0"));
+            let (a, b) = (ws["rays"].as_u64().unwrap(), wos["rays"].as_u64().unwrap());
+            if seen {
+                assert!(a > b, "{integrator}, a lamp in view: {a} rays against {b}");
+            } else {
+                assert_eq!(a, b, "{integrator}, nothing emitting in view");
+                assert_eq!(with.pixels, without.pixels, "{integrator}: the same image");
+            }
+        }
+    }
+}

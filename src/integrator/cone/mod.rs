@@ -201,7 +201,7 @@ impl ConeIntegrator {
                 .photons
                 .unwrap_or(target.pixels.clamp(1, u32::MAX as u64) as u32),
             deposits: 0,
-            edge: EdgeRays::new(settings.edge_rays, scene, target),
+            edge: EdgeRays::new(settings.edge_rays, scene, target, false),
             pull_s: 0.0,
             light_s: 0.0,
         })

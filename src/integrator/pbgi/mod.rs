@@ -168,7 +168,7 @@ impl PbgiIntegrator {
             seed,
             bake_s: 0.0,
             gathered: Vec::new(),
-            edge: EdgeRays::new(settings.edge_rays, scene, target),
+            edge: EdgeRays::new(settings.edge_rays, scene, target, true),
             window: target.window,
             irradiance_cache: None,
             radiance_cache: None,
