@@ -7,6 +7,7 @@
 //! in the first pass, before any sample found a silhouette, every pixel takes them (on the
 //! showroom at 20 s, about 490 passes, that one sample of the panel's silhouette seen
 //! without them held a quarter of PBGI's squared error there: RMSE 2.59e-3 → 2.48e-3).
+//! Where no camera ray can see emission, none are traced (`EdgeRays::new`).
 //! The cone and PBGI integrators use it; the path tracer, being the reference, does not.
 
 use super::{Counters, PixelSample, Scene, Target};
