@@ -113,6 +113,11 @@ impl EdgeRays {
         self.tally_apron(scene, first, count, seen)
     }
 
+    /// Whether edge rays are traced at all.
+    pub fn traced(&self) -> bool {
+        self.rays > 0
+    }
+
     /// Counts whether a primary sample of image pixel (x, y) saw emission.
     pub fn tally(&self, x: u32, y: u32, v: V) {
         let [x0, x1, y0, _] = self.apron;

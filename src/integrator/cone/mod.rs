@@ -249,9 +249,16 @@ fn light_pass(mode: LightPass, scene: &Scene) -> (bool, String) {
 }
 
 impl Integrator for ConeIntegrator {
-    /// One sample per pass: the store is pulled between passes.
-    fn pass_samples(&self, _spp: u32) -> u32 {
-        1
+    /// One sample per pass where something happens between passes: the store's pull (cones
+    /// that stop at nodes), the light pass before each eye pass, the edge rays' masks from
+    /// earlier passes. Otherwise every sample in one pass, as the path tracer takes them:
+    /// under a budget smaller than the frame's pages each pass over the frame loads them
+    /// again (a far-field scene at 4 spp under 256 MiB: 234 K pages loaded against 320 K).
+    fn pass_samples(&self, spp: u32) -> u32 {
+        match self.settings.scale > 0.0 || self.light_pass.0 || self.edge.traced() {
+            true => 1,
+            false => spp,
+        }
     }
 
     fn begin_pass(&mut self, scene: &Scene, pass: &Pass) -> anyhow::Result<u64> {
