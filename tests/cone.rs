@@ -965,6 +965,11 @@ fn edge_rays_are_traced_only_where_emission_can_be_seen() {
             } else {
                 assert_eq!(a, b, "{integrator}, nothing emitting in view");
                 assert_eq!(with.pixels, without.pixels, "{integrator}: the same image");
+                let said = ws["passes"].to_string();
+                assert!(
+                    said.contains("nothing a camera ray can see emits"),
+                    "{said}"
+                );
             }
         }
     }

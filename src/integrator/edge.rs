@@ -45,6 +45,8 @@ pub type SeenEmission<'a> = dyn Fn(&mut Tracer, &Ray, &mut Counters) -> V + 'a;
 pub struct EdgeRays {
     /// Rays per sample on silhouette pixels (0: off).
     rays: u32,
+    /// Whether a camera ray can see emission (else no edge rays, whatever was asked).
+    visible: bool,
     seed: u32,
     /// Per pixel of the apron: primary samples that saw emission and that did not.
     seen: Vec<[AtomicU32; 2]>,
@@ -79,6 +81,7 @@ impl EdgeRays {
         let pixels = w as usize * h as usize;
         EdgeRays {
             rays,
+            visible,
             seed: target.seed,
             seen: (0..pixels).map(|_| Default::default()).collect(),
             window,
@@ -173,8 +176,10 @@ impl EdgeRays {
 
     /// The stats' line saying what edge rays did.
     pub fn describe(&self) -> String {
-        if self.rays == 0 {
-            return "edge rays: off (--edge-rays 0)".into();
+        match (self.rays, self.visible) {
+            (0, false) => return "edge rays: off (nothing a camera ray can see emits)".into(),
+            (0, true) => return "edge rays: off (--edge-rays 0)".into(),
+            _ => {}
         }
         format!(
             "edge rays: {} per sample average the emission seen on the {} pixels found at an emitter's silhouette",
