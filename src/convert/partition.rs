@@ -77,15 +77,11 @@ pub fn partition(
         .map(|&(start, count)| histogram(&spilled, start, count, [lo, hi]))
         .collect::<Result<Vec<_>>>()?;
     let mut hist = vec![0u64; 1 << (3 * MORTON_BITS)];
-    for (part, _) in &counted {
+    for part in &counted {
         hist.iter_mut().zip(part).for_each(|(h, p)| *h += p);
     }
     let (chunk, n) = chunk_of_bins(&hist, cap);
     drop(hist);
-    let lengths = counted.iter().map(|c| c.1).reduce(|a, b| match a == b {
-        true => a,
-        false => None,
-    });
     let files = (0..n)
         .map(|k| spill::create_file(dir, name(k).as_deref()))
         .collect::<Result<Vec<_>>>()?;
@@ -101,12 +97,12 @@ pub fn partition(
         paths: &paths,
         bar: &bar,
     };
-    let counts = match lengths.flatten() {
+    let counts = match spilled.record_len() {
         Some(len) => {
             // Each range's share of each chunk, and where it starts in the chunk's file.
             let shares: Vec<Vec<u64>> = counted
                 .iter()
-                .map(|(part, _)| {
+                .map(|part| {
                     let mut share = vec![0u64; n as usize];
                     part.iter()
                         .zip(&chunk)
@@ -134,24 +130,14 @@ pub fn partition(
 /// Ranges of the spill read at once in each pass.
 const PARTS: usize = 2;
 
-/// The Morton histogram of the triangles of one range of a spill, and the length of their
-/// records if all have one (`None` if not, or if the range is empty).
-fn histogram(
-    spilled: &Spill,
-    start: u64,
-    count: u64,
-    [lo, hi]: [[f32; 3]; 2],
-) -> Result<(Vec<u64>, Option<u64>)> {
+/// The Morton histogram of the triangles of one range of a spill.
+fn histogram(spilled: &Spill, start: u64, count: u64, [lo, hi]: [[f32; 3]; 2]) -> Result<Vec<u64>> {
     let mut hist = vec![0u64; 1 << (3 * MORTON_BITS)];
-    let (mut short, mut long) = (u64::MAX, 0);
     spill::for_each_in(spilled, start, count, |t| {
         hist[morton(t.centroid(), lo, hi) as usize] += 1;
-        let len = spill::record_bytes(t);
-        short = short.min(len);
-        long = long.max(len);
         Ok(())
     })?;
-    Ok((hist, (short == long).then_some(long)))
+    Ok(hist)
 }
 
 /// The second pass: the spill's triangles written to their chunks' files.

@@ -57,6 +57,8 @@ pub struct SpillWriter<W: Write = File> {
     count: u64,
     /// Where the records of triangles 0, `MARK_TRIANGLES`, 2·`MARK_TRIANGLES`… start.
     marks: Vec<u64>,
+    /// The shortest and the longest record written.
+    lengths: [u64; 2],
     /// The directory, for messages (the file has no name).
     path: PathBuf,
 }
@@ -89,13 +91,14 @@ fn layout(t: &SpillTri) -> (u32, u64) {
     let flag = |on: bool, bit: u32| if on { bit } else { 0 };
     let flags =
         flag(attr, HAS_ATTR) | flag(uv, HAS_UV) | flag(colour, HAS_COLOUR) | flag(uv2, HAS_UV2);
-    let bytes = 40 + 16 * attr as u64 + 24 * (uv as u64 + colour as u64 + uv2 as u64);
-    (flags, bytes)
+    (flags, record_len(flags))
 }
 
-/// Bytes `t`'s record takes in a spill file.
-pub fn record_bytes(t: &SpillTri) -> u64 {
-    layout(t).1
+/// Bytes a record with these flags takes: 40, 16 more with attributes, 24 more for each of
+/// the texture coordinates, the colours and the second texture coordinates.
+fn record_len(flags: u32) -> u64 {
+    let has = |bit: u32| (flags & bit != 0) as u64;
+    40 + 16 * has(HAS_ATTR) + 24 * (has(HAS_UV) + has(HAS_COLOUR) + has(HAS_UV2))
 }
 
 /// A spill file: unnamed in `dir`, or named `path` (a cluster conversion's chunk file),
@@ -116,6 +119,7 @@ impl<'a> SpillWriter<At<'a>> {
             written: 0,
             count: 0,
             marks: Vec::new(),
+            lengths: [u64::MAX, 0],
             path: path.to_path_buf(),
         }
     }
@@ -145,6 +149,7 @@ impl SpillWriter {
             written: 0,
             count: 0,
             marks: Vec::new(),
+            lengths: [u64::MAX, 0],
             path,
         }
     }
@@ -157,11 +162,13 @@ impl SpillWriter {
             .into_inner()
             .map_err(|e| e.into_error())
             .with_context(err)?;
+        let [short, long] = self.lengths;
         Ok(Spill {
             file,
             path: self.path,
             count: Some(self.count),
             marks: self.marks,
+            record_len: (short == long).then_some(long),
         })
     }
 }
@@ -212,6 +219,7 @@ impl<W: Write> SpillWriter<W> {
         }
         self.written += bytes;
         self.count += 1;
+        self.lengths = [self.lengths[0].min(bytes), self.lengths[1].max(bytes)];
         r.with_context(|| format!("{}: writing spill file", self.path.display()))
     }
 }
@@ -307,6 +315,8 @@ pub struct Spill {
     count: Option<u64>,
     /// Where the records of triangles 0, `MARK_TRIANGLES`, 2·`MARK_TRIANGLES`… start (empty when not known).
     marks: Vec<u64>,
+    /// The length of every record, when all have one and this process wrote them.
+    record_len: Option<u64>,
 }
 
 impl Spill {
@@ -318,6 +328,7 @@ impl Spill {
             path: path.to_path_buf(),
             count: None,
             marks: Vec::new(),
+            record_len: None,
         })
     }
 
@@ -328,7 +339,14 @@ impl Spill {
             path: path.to_path_buf(),
             count: Some(count),
             marks: Vec::new(),
+            record_len: None,
         }
+    }
+
+    /// The length of every record, when all have one (known for spills this process wrote
+    /// through one writer).
+    pub fn record_len(&self) -> Option<u64> {
+        self.record_len
     }
 
     /// The records split into at most `n` consecutive ranges of whole `MARK_TRIANGLES`s, as (start,
@@ -381,11 +399,8 @@ pub fn for_each_in(
         }
         let rec: Rec = bytemuck::pod_read_unaligned(&r.buf[r.pos..r.pos + 40]);
         let flags = rec.material;
-        let extra = 16 * (flags & HAS_ATTR != 0) as usize
-            + 24 * ((flags & HAS_UV != 0) as usize
-                + (flags & HAS_COLOUR != 0) as usize
-                + (flags & HAS_UV2 != 0) as usize);
-        if !r.hold(40 + extra).with_context(err)? {
+        let len = record_len(flags) as usize;
+        if !r.hold(len).with_context(err)? {
             bail!("{}: the spill file ends early", path.display());
         }
         let mut t = SpillTri {
@@ -412,7 +427,7 @@ pub fn for_each_in(
         if flags & HAS_UV2 != 0 {
             t.uv2 = bytemuck::pod_read_unaligned(take(24));
         }
-        r.pos += 40 + extra;
+        r.pos += len;
         f(&t)?;
     }
     Ok(())
