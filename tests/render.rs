@@ -293,7 +293,8 @@ fn quarter_budget_gives_the_same_image_within_its_memory() {
     let hit = ps["page_hit_rate"].as_f64().unwrap();
     assert!(hit > 0.0 && hit < 1.0, "hit rate {hit}");
     assert!(ps["resident_bytes_peak"].as_u64().unwrap() <= decoded / 4 + decoded / 8);
-    // The cone integrator under the same budget (its stored light takes a quarter of it):
+    // The cone integrator under the same budget (its stored light takes back what it
+    // fills of the quarter lent to the pages):
     // evictions, the same RSS bound, and the unlimited cone render's mean (its images
     // depend on thread order, so not pixel for pixel).
     let cone_args = [&args[..], &["--integrator", "cone"]].concat();

@@ -59,7 +59,7 @@ impl Settings {
         }
     }
 
-    /// The part of a memory budget the integrator keeps for its own state (the pages get
+    /// The part of a memory budget the integrator's own state may take (the pages get
     /// the rest): a quarter for the cone integrator's stored light and for PBGI's per-pixel
     /// tables and records. PBGI's baked light (96 bytes a node) rides in the pages, so the
     /// page cache's share holds it.
@@ -68,6 +68,14 @@ impl Settings {
             Settings::Path => 0,
             Settings::Cone(_) | Settings::Pbgi(_) => budget / 4,
         }
+    }
+
+    /// Whether the state's share is lent to the page cache, the state taking it back as it
+    /// grows (the cone integrator's stored light, which grows with the nodes paths reach
+    /// and often fills a small part of it), rather than kept aside whole (PBGI's tables,
+    /// sized before the render).
+    pub fn lends_state(&self) -> bool {
+        matches!(self, Settings::Cone(_))
     }
 
     /// `--pixel-split` (1 unless given): the most camera samples a pass takes of a pixel.

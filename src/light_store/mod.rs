@@ -14,9 +14,10 @@ mod pull;
 pub use keys::{tri_area, Keys, CELLS, CELL_FRACTION, GRID};
 pub use pull::pull;
 
+use crate::paging::PageCache;
 use std::collections::{HashMap, HashSet};
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering::Relaxed};
-use std::sync::Mutex;
+use std::sync::{Arc, Mutex};
 
 const SHARDS: usize = 64;
 
@@ -88,11 +89,16 @@ pub struct RadianceStore {
     /// The same for the pages of prototypes, per instance: (instance, page) → the instance
     /// leaf's global number and the global numbers of the page's nodes whose light changed.
     placed_dirty: Mutex<HashMap<(u32, u32), Placed>>,
+    /// The page cache the store's bytes are charged to as it grows (`charging`).
+    cache: Option<Arc<PageCache>>,
 }
 
 /// What changed in a prototype's page as an instance places it: the instance leaf's global
 /// number, and the page's nodes (global numbers) whose stored light changed.
 pub type Placed = (u64, Vec<u64>);
+
+/// Entries charged to the page cache at a time (80 KiB).
+const CHARGE_ENTRIES: usize = 1024;
 
 /// Bytes an entry costs in the map: 8-byte key and 52-byte entry, hash-table overhead at
 /// its 7/8 load factor and one control byte; and at most one block marker (8-byte key, the
@@ -114,6 +120,16 @@ impl RadianceStore {
             passes: AtomicU32::new(0),
             dirty: (0..pages).map(|_| AtomicBool::new(false)).collect(),
             placed_dirty: Mutex::new(HashMap::new()),
+            cache: None,
+        }
+    }
+
+    /// The store, its bytes taken from the share `cache` was lent for them
+    /// (`PageCache::lending`) as it grows, `CHARGE_ENTRIES` entries ahead.
+    pub fn charging(self, cache: Arc<PageCache>) -> RadianceStore {
+        RadianceStore {
+            cache: Some(cache),
+            ..self
         }
     }
 
@@ -165,7 +181,14 @@ impl RadianceStore {
                 self.refused.fetch_add(1, Relaxed);
                 return None;
             }
-            self.entries.fetch_add(1, Relaxed);
+            let n = self.entries.fetch_add(1, Relaxed);
+            if let Some(cache) = self
+                .cache
+                .as_ref()
+                .filter(|_| n.is_multiple_of(CHARGE_ENTRIES))
+            {
+                cache.charge(CHARGE_ENTRIES as u64 * ENTRY_BYTES);
+            }
             m.blocks.insert(node / self.block);
         }
         Some(m.map.entry(node).or_default())
@@ -412,6 +435,45 @@ mod tests {
         let e = s.get(1).unwrap();
         assert_eq!((e.n, e.weight), (2, 1.0));
         assert_eq!(e.value(), Some(([2.5; 3], 2)));
+    }
+
+    /// A store charging the page cache takes its bytes out of the pages' budget as it
+    /// grows, a block of entries ahead and never past the share lent, and the cache
+    /// evicts pages to stay within its budget.
+    #[test]
+    fn a_charging_store_takes_its_bytes_back_from_the_page_cache() {
+        let dir = tempfile::tempdir().unwrap();
+        let archive = pull::tests::bunny_archive(dir.path());
+        let load_all = |cache: &PageCache| {
+            for pg in 0..archive.page_count() {
+                cache.get(pg);
+            }
+            cache.resident_bytes()
+        };
+        let all = load_all(&PageCache::new(Arc::clone(&archive), None, 1).unwrap());
+        let block = CHARGE_ENTRIES as u64 * ENTRY_BYTES;
+        let lent = 3 * block;
+        let cache = PageCache::lending(Arc::clone(&archive), Some(all - block), lent, 1).unwrap();
+        // Every page fits while the lent share is unused.
+        assert_eq!(load_all(&cache), all);
+        assert_eq!(cache.stats().pages_evicted, 0);
+        let store = RadianceStore::new(100, Some(lent), 0, 1).charging(Arc::clone(&cache));
+        store.add(0, [1.0; 3], 1.0);
+        assert_eq!(cache.charged(), block, "the first entry charges a block");
+        assert_eq!(cache.stats().pages_evicted, 0);
+        let entries = 3 * CHARGE_ENTRIES as u64;
+        for key in 1..entries + 5 {
+            store.add(key, [1.0; 3], 1.0);
+        }
+        assert_eq!(store.refused(), 5, "the share holds {entries} entries");
+        assert_eq!(cache.charged(), lent, "charged past the share lent");
+        assert!(cache.stats().pages_evicted > 0, "no page made room");
+        assert!(
+            cache.resident_bytes() <= all - block + lent,
+            "{} resident, over the budget {}",
+            cache.resident_bytes(),
+            all - block + lent
+        );
     }
 
     #[test]

@@ -251,7 +251,7 @@ fn pull_node(
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
     use crate::paging::TriW;
     use canopy_format::Archive;
@@ -282,20 +282,15 @@ mod tests {
         }
     }
 
-    /// The renderer's pull on the bunny's pages: with every cell of a triangle holding one
-    /// diffuse sample and one caustic deposit of that triangle's own value, each node's
-    /// pulled light, diffuse and caustic, must be the area-weighted mean of the values of
-    /// the triangles below it — the root's times the total area is the scene's energy.
-    #[test]
-    fn pull_gives_every_node_the_area_weighted_mean_of_its_triangles() {
-        let dir = tempfile::tempdir().unwrap();
-        let toml = dir.path().join("s.toml");
+    /// The bunny converted in `dir`, its camera close by.
+    pub(in crate::light_store) fn bunny_archive(dir: &std::path::Path) -> Arc<Archive> {
+        let toml = dir.join("s.toml");
         std::fs::write(
             &toml,
             "[[camera]]\nposition = [0.0, 0.1, 0.4]\nlook_at = [0.0, 0.1, 0.0]\n",
         )
         .unwrap();
-        let arc = dir.path().join("b.canopy");
+        let arc = dir.join("b.canopy");
         let bunny = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("scenes/bunny.ply");
         let mut o = crate::convert::ConvertOptions::new(vec![bunny], arc.clone());
         o.scene = Some(toml);
@@ -306,6 +301,17 @@ mod tests {
             "{} pages",
             archive.page_count() as usize
         );
+        archive
+    }
+
+    /// The renderer's pull on the bunny's pages: with every cell of a triangle holding one
+    /// diffuse sample and one caustic deposit of that triangle's own value, each node's
+    /// pulled light, diffuse and caustic, must be the area-weighted mean of the values of
+    /// the triangles below it — the root's times the total area is the scene's energy.
+    #[test]
+    fn pull_gives_every_node_the_area_weighted_mean_of_its_triangles() {
+        let dir = tempfile::tempdir().unwrap();
+        let archive = bunny_archive(dir.path());
         let cache = PageCache::new(Arc::clone(&archive), None, 1).unwrap();
         let value = |t: &TriW| {
             let x =

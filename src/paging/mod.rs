@@ -107,7 +107,11 @@ pub struct PageCache {
     tile_evictions: AtomicU64,
     tile_resident: AtomicU64,
     tile_resident_peak: AtomicU64,
+    /// Pages' bytes at most, with the lent bytes the integrator's state has not taken back.
     budget: u64,
+    /// Bytes of the budget lent by the integrator's state, and those it took back.
+    lent: u64,
+    charged: AtomicU64,
     /// How the command's `--mem-budget` was split to give `budget`, for errors.
     budget_note: std::sync::OnceLock<String>,
     /// Worker threads the minimum budget was computed for.
@@ -160,6 +164,17 @@ impl PageCache {
     /// budget that cannot hold the pinned pages plus a working set is an error naming the
     /// minimum.
     pub fn new(archive: Arc<Archive>, budget: Option<u64>, threads: usize) -> Result<Arc<Self>> {
+        Self::lending(archive, budget, 0, threads)
+    }
+
+    /// As `new`, with `lent` bytes more that the integrator's state takes back as it grows
+    /// (`charge`): the pages use them until then. `budget` alone must hold the minimum.
+    pub fn lending(
+        archive: Arc<Archive>,
+        budget: Option<u64>,
+        lent: u64,
+        threads: usize,
+    ) -> Result<Arc<Self>> {
         let entries = archive.entries()?;
         let n = entries.len();
         let slots: Vec<Slot> = entries
@@ -206,7 +221,9 @@ impl PageCache {
             tile_resident_peak: AtomicU64::new(0),
             entries,
             slots,
-            budget: budget.unwrap_or(u64::MAX),
+            budget: budget.map_or(u64::MAX, |b| b + lent),
+            lent: budget.map_or(0, |_| lent),
+            charged: AtomicU64::new(0),
             budget_note: std::sync::OnceLock::new(),
             threads,
             resident: AtomicU64::new(0),
@@ -434,8 +451,8 @@ impl PageCache {
             .get_or_insert_with(|| format!("{e:#}"));
     }
 
-    /// Counts `bytes` just made resident in CLOCK slot `slot` (pages, then tiles), evicting
-    /// others while over budget.
+    /// Counts `bytes` just made resident in CLOCK slot `slot` (pages, then tiles; `u32::MAX`
+    /// for state charged), evicting others while over budget.
     fn admit(&self, bytes: u64, slot: u32) {
         let now = self.resident.fetch_add(bytes, Relaxed) + bytes;
         if now > self.budget {
@@ -443,6 +460,26 @@ impl PageCache {
         }
         self.resident_peak
             .fetch_max(self.resident.load(Relaxed), Relaxed);
+    }
+
+    /// Takes back up to `bytes` of the lent share for the integrator's state (no more than
+    /// is left of it), evicting pages while the cache is over its budget; returns the
+    /// bytes taken.
+    pub fn charge(&self, bytes: u64) -> u64 {
+        let before = self
+            .charged
+            .fetch_update(Relaxed, Relaxed, |c| Some(c + bytes.min(self.lent - c)))
+            .expect("the update always succeeds");
+        let taken = bytes.min(self.lent - before);
+        if taken > 0 {
+            self.admit(taken, u32::MAX);
+        }
+        taken
+    }
+
+    /// Bytes the integrator's state has taken back of its lent share.
+    pub fn charged(&self) -> u64 {
+        self.charged.load(Relaxed)
     }
 
     /// Drops tile `i` if its reference bit is clear (clearing it otherwise).

@@ -3,7 +3,7 @@
 //! --bake-in` pages in with the nodes.
 
 use super::defaults::{chosen_environment, light_the_scene};
-use super::setup::open_scene;
+use super::setup::{open_scene, Budget};
 use crate::camera::Camera;
 use crate::integrator::pbgi::bake::{bake_file, BakeSettings};
 use crate::light::Environment;
@@ -80,7 +80,11 @@ pub fn bake(o: &BakeOptions) -> Result<BakeReport> {
     let mut scene = open_scene(
         Arc::clone(&archive),
         camera,
-        o.mem_budget.map(|b| (b, aside)),
+        o.mem_budget.map(|total| Budget {
+            total,
+            aside,
+            lent: 0,
+        }),
         threads,
         None,
     )?;

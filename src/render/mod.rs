@@ -456,7 +456,8 @@ fn summarize(
         true => Some(ancestors_closure(scene)?),
         false => None,
     };
-    let state = integ.state_bytes();
+    // State taken back from the page cache's budget counts in its resident bytes.
+    let state = integ.state_bytes().saturating_sub(scene.cache.charged());
     let mut cache = scene.cache.stats();
     let environment = scene.lights.env.as_ref().map(Environment::stats);
     let env = environment.map_or(0, |e| e.env_bytes_peak);

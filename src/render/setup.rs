@@ -205,12 +205,16 @@ impl Setup {
         // Under a budget, the map's share is kept aside with the state.
         let (env, env_note) = chosen_environment(o.env.as_ref(), &archive, o.mem_budget)?;
         notes.extend(env_note);
-        let aside = state_bytes.unwrap_or(0) + env.as_ref().map_or(0, Environment::bytes);
+        let (kept, lent) = match o.integrator.lends_state() {
+            true => (0, state_bytes.unwrap_or(0)),
+            false => (state_bytes.unwrap_or(0), 0),
+        };
+        let aside = kept + env.as_ref().map_or(0, Environment::bytes);
         let camera = Camera::new(cam, width, height);
         let mut scene = open_scene(
             archive,
             camera,
-            o.mem_budget.map(|b| (b, aside)),
+            o.mem_budget.map(|total| Budget { total, aside, lent }),
             threads,
             o.max_depth,
         )?;
@@ -291,12 +295,22 @@ pub fn gather_lights(
     )
 }
 
-/// The scene an archive describes, its pages under `budget` = (total, bytes kept aside for
-/// the integrator's state).
+/// How a memory budget is split for a scene's pages.
+#[derive(Clone, Copy, Debug)]
+pub struct Budget {
+    pub total: u64,
+    /// Bytes kept aside for the integrator's state and the environment map.
+    pub aside: u64,
+    /// Bytes the integrator's state takes back from the page cache as it grows
+    /// (`PageCache::charge`); the pages may use them until then.
+    pub lent: u64,
+}
+
+/// The scene an archive describes, its pages under `budget`.
 pub fn open_scene(
     archive: Arc<Archive>,
     camera: Camera,
-    budget: Option<(u64, u64)>,
+    budget: Option<Budget>,
     threads: usize,
     max_depth: Option<u32>,
 ) -> Result<Scene> {
@@ -310,8 +324,14 @@ pub fn open_scene(
     }
     let touched = NodeSet::new(archive.header.nodes);
     // The page cache's budget, and how `--mem-budget` was split to give it (for errors).
+    let lent = budget.map_or(0, |b| b.lent);
     let (budget, note) = match budget {
-        Some((b, state)) => {
+        Some(Budget {
+            total: b,
+            aside,
+            lent,
+        }) => {
+            let state = aside + lent;
             let others = touched.bytes()
                 + state
                 + reserve(
@@ -328,8 +348,15 @@ pub fn open_scene(
                     format_size(others - state)
                 )
             })?;
+            let lending = match lent {
+                0 => String::new(),
+                l => format!(
+                    " and the state's {} until the state needs it",
+                    format_size(l)
+                ),
+            };
             let note = format!(
-                "--mem-budget {} keeps {} for the integrator's state and the environment map and {} for node statistics and tables (pages, tiles, instances), leaving the page cache {}",
+                "--mem-budget {} keeps {} for the integrator's state and the environment map and {} for node statistics and tables (pages, tiles, instances), leaving the page cache {}{lending}",
                 format_size(b),
                 format_size(state),
                 format_size(others - state),
@@ -339,7 +366,7 @@ pub fn open_scene(
         }
         None => (None, None),
     };
-    let cache = PageCache::new(Arc::clone(&archive), budget, threads)
+    let cache = PageCache::lending(Arc::clone(&archive), budget, lent, threads)
         .with_context(|| note.clone().unwrap_or_default())?;
     if let Some(note) = note {
         cache.note_budget(note);

@@ -49,6 +49,7 @@ use crate::material::Material;
 use crate::trace::{Cone, Hit, Ray, Tracer};
 use anyhow::Context;
 use glam::Vec3A as V;
+use std::sync::Arc;
 use std::time::Instant;
 use walk::seen_emission;
 
@@ -179,14 +180,25 @@ impl ConeIntegrator {
         let archive = &scene.cache.archive;
         let cam = &scene.camera;
         let keys = keys(archive)?;
+        let edge = EdgeRays::new(settings.edge_rays, scene, target, false);
+        // Under a budget the state's share is lent to the page cache (`Settings::lends_state`):
+        // the edge rays' tables take theirs back now, the store its own as it grows.
+        let cap = target.state_bytes.map(|share| {
+            let tables = scene.cache.charge(edge.bytes());
+            share - tables
+        });
+        let store = RadianceStore::new(
+            settings.samples.unwrap_or(u32::MAX),
+            cap,
+            archive.page_count() as usize,
+            keys.block(),
+        );
         Ok(ConeIntegrator {
             settings: settings.clone(),
-            store: RadianceStore::new(
-                settings.samples.unwrap_or(u32::MAX),
-                target.state_bytes,
-                archive.page_count() as usize,
-                keys.block(),
-            ),
+            store: match cap {
+                Some(_) => store.charging(Arc::clone(&scene.cache)),
+                None => store,
+            },
             keys,
             primary: Cone {
                 r0: cam.cone().0,
@@ -201,7 +213,7 @@ impl ConeIntegrator {
                 .photons
                 .unwrap_or(target.pixels.clamp(1, u32::MAX as u64) as u32),
             deposits: 0,
-            edge: EdgeRays::new(settings.edge_rays, scene, target, false),
+            edge,
             pull_s: 0.0,
             light_s: 0.0,
         })
