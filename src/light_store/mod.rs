@@ -15,7 +15,8 @@ pub use keys::{tri_area, Keys, CELLS, CELL_FRACTION, GRID};
 pub use pull::pull;
 
 use crate::paging::PageCache;
-use std::collections::{HashMap, HashSet};
+use rustc_hash::{FxHashMap, FxHashSet};
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering::Relaxed};
 use std::sync::{Arc, Mutex};
 
@@ -61,8 +62,8 @@ impl Entry {
 /// keys) holding any of them.
 #[derive(Default)]
 struct Shard {
-    map: HashMap<u64, Entry>,
-    blocks: HashSet<u64>,
+    map: FxHashMap<u64, Entry>,
+    blocks: FxHashSet<u64>,
     /// Reads of a mean (`read`) and samples counted (`add`), for the reuse figure.
     reads: u64,
     adds: u64,
