@@ -266,10 +266,10 @@ pub struct Pass {
 }
 
 pub trait Integrator: Send + Sync {
-    /// Samples per pixel one pass takes when `spp` are asked for (the driver takes one per
-    /// pass under a time limit).
-    fn pass_samples(&self, spp: u32) -> u32 {
-        spp
+    /// Samples per pixel the next pass takes, `done` taken and `left` more asked for (the
+    /// driver takes one per pass under a time limit).
+    fn pass_samples(&self, left: u32, _done: u32) -> u32 {
+        left
     }
     /// Before a pass; returns the rays it traces.
     fn begin_pass(&mut self, _scene: &Scene, _pass: &Pass) -> anyhow::Result<u64> {

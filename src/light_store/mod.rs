@@ -17,7 +17,7 @@ pub use pull::pull;
 use crate::paging::PageCache;
 use rustc_hash::{FxHashMap, FxHashSet};
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, AtomicUsize, Ordering::Relaxed};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering::Relaxed};
 use std::sync::{Arc, Mutex};
 
 const SHARDS: usize = 64;
@@ -83,8 +83,6 @@ pub struct RadianceStore {
     refused: AtomicU64,
     /// Photons the light pass has emitted in all (M of 004 eq. 4.29).
     photons: AtomicU64,
-    /// Eye passes begun.
-    passes: AtomicU32,
     /// Per page: whether stored light under it changed since the last pull.
     dirty: Vec<AtomicBool>,
     /// The same for the pages of prototypes, per instance: (instance, page) → the instance
@@ -118,7 +116,6 @@ impl RadianceStore {
             entries: AtomicUsize::new(0),
             refused: AtomicU64::new(0),
             photons: AtomicU64::new(0),
-            passes: AtomicU32::new(0),
             dirty: (0..pages).map(|_| AtomicBool::new(false)).collect(),
             placed_dirty: Mutex::new(HashMap::new()),
             cache: None,
@@ -297,15 +294,6 @@ impl RadianceStore {
     pub fn caustic(&self, e: &Entry) -> Option<[f32; 3]> {
         let m = self.photons.load(Relaxed);
         (m > 0).then(|| e.caustic.map(|c| c / m as f32))
-    }
-
-    /// Marks the start of an eye pass; `passes` counts them from 1.
-    pub fn begin_pass(&self, passes: u32) {
-        self.passes.store(passes, Relaxed);
-    }
-
-    pub fn passes(&self) -> u32 {
-        self.passes.load(Relaxed).max(1)
     }
 
     pub fn add_photons(&self, n: u64) {

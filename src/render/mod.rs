@@ -245,10 +245,10 @@ fn pass_count(o: &RenderOptions, integ: &dyn Integrator, split: &PixelSplit, don
         (Some(_), _) => 1,
         // Passes that end on powers of two, where the noise is measured.
         (None, Some(_)) => integ
-            .pass_samples(o.spp - done)
+            .pass_samples(o.spp - done, done)
             .min(done.max(1))
             .min(o.spp - done),
-        (None, None) => integ.pass_samples(o.spp),
+        (None, None) => integ.pass_samples(o.spp - done, done).min(o.spp - done),
     };
     // The pixel split decides a pass's camera samples from the passes before it.
     match split.most() {

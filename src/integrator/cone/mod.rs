@@ -220,6 +220,19 @@ impl ConeIntegrator {
     }
 }
 
+/// Whether the store is pulled once `done` samples per pixel are taken: at 1, 2, 4, 8 and
+/// every 8th, as stored light fills in.
+fn pulls_after(done: u32) -> bool {
+    done.is_power_of_two() || done.is_multiple_of(8)
+}
+
+/// Samples per pixel from `done` to the next pull.
+fn to_next_pull(done: u32) -> u32 {
+    (done + 1..)
+        .find(|&d| pulls_after(d))
+        .map_or(1, |d| d - done)
+}
+
 /// The archive's stored-light keys, or why they do not fit in 64 bits.
 pub fn keys(archive: &canopy_format::Archive) -> anyhow::Result<Keys> {
     let h = &archive.header;
@@ -261,15 +274,19 @@ fn light_pass(mode: LightPass, scene: &Scene) -> (bool, String) {
 }
 
 impl Integrator for ConeIntegrator {
-    /// One sample per pass where something happens between passes: the store's pull (cones
-    /// that stop at nodes), the light pass before each eye pass, the edge rays' masks from
-    /// earlier passes. Otherwise every sample in one pass, as the path tracer takes them:
-    /// under a budget smaller than the frame's pages each pass over the frame loads them
-    /// again (a far-field scene at 4 spp under 256 MiB: 234 K pages loaded against 320 K).
-    fn pass_samples(&self, spp: u32) -> u32 {
-        match self.settings.scale > 0.0 || self.light_pass.0 || self.edge.traced() {
-            true => 1,
-            false => spp,
+    /// One sample per pass where something happens before every pass: the light pass, the
+    /// edge rays' masks from earlier passes. Cones that stop at nodes take the samples up
+    /// to the next pull (`pulls_after`) in one pass. Otherwise every sample in one pass, as
+    /// the path tracer takes them: under a budget smaller than the frame's pages each pass
+    /// over the frame loads them again (a far-field scene at 4 spp under 256 MiB: 234 K
+    /// pages loaded against 320 K).
+    fn pass_samples(&self, left: u32, done: u32) -> u32 {
+        if self.light_pass.0 || self.edge.traced() {
+            return 1;
+        }
+        match self.settings.scale > 0.0 {
+            true => to_next_pull(done).min(left),
+            false => left,
         }
     }
 
@@ -279,7 +296,6 @@ impl Integrator for ConeIntegrator {
             crate::light_store::file::load(&self.store, &scene.cache.archive.header, path)?;
         }
         let start = Instant::now();
-        self.store.begin_pass(first + count);
         let mut rays = 0;
         if self.light_pass.0 {
             let lp = light_pass::light_pass(
@@ -324,7 +340,7 @@ impl Integrator for ConeIntegrator {
     /// triangles, whose cells are never pulled: no pull (on the 1 G-triangle forest it
     /// took 26 of 28 seconds, each instance's prototype pulled apart).
     fn end_pass(&mut self, scene: &Scene, done: u32) {
-        if self.settings.scale > 0.0 && (done.is_power_of_two() || done.is_multiple_of(8)) {
+        if self.settings.scale > 0.0 && pulls_after(done) {
             let t = Instant::now();
             pull(&scene.cache, &self.store, self.keys);
             self.pull_s += t.elapsed().as_secs_f64();
@@ -374,5 +390,25 @@ impl Integrator for ConeIntegrator {
 
     fn seconds(&self) -> Vec<(&'static str, f64)> {
         vec![("pull", self.pull_s), ("light", self.light_s)]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Passes of `to_next_pull` samples end on every pull and only there: 1, 2, 4, 8 and
+    /// every 8th.
+    #[test]
+    fn passes_end_at_every_pull() {
+        let mut ends = Vec::new();
+        let mut done = 0;
+        while done < 40 {
+            done += to_next_pull(done);
+            ends.push(done);
+        }
+        assert_eq!(ends, [1, 2, 4, 8, 16, 24, 32, 40]);
+        let pulls: Vec<u32> = (1..=40).filter(|&d| pulls_after(d)).collect();
+        assert_eq!(ends, pulls);
     }
 }

@@ -203,10 +203,10 @@ impl Integrator for PbgiIntegrator {
     /// so time budgets count the bake.
     /// One sample per pass when edge rays or the cache are on: a pass's edge mask comes
     /// from the passes before it, and the records are refined between passes.
-    fn pass_samples(&self, spp: u32) -> u32 {
+    fn pass_samples(&self, left: u32, _done: u32) -> u32 {
         // Edge rays and the cache's refinement work between passes.
         match (self.settings.edge_rays, self.settings.cache) {
-            (0, 0.0) => spp,
+            (0, 0.0) => left,
             _ => 1,
         }
     }
