@@ -6,7 +6,9 @@ use super::morton::{self, MAX_BITS};
 use crate::import::SpillTri;
 use canopy_format::InstanceRecord;
 use glam::Vec3A;
-use obvhs::{bvh2::builder::build_bvh2_from_tris, triangle::Triangle, BvhBuildParams};
+use obvhs::aabb::Aabb;
+use obvhs::bvh2::{leaf_collapser::collapse, reinsertion::ReinsertionOptimizer, Bvh2};
+use obvhs::{ploc::PlocBuilder, BvhBuildParams};
 
 /// Most triangles a leaf holds: the most a version-1 archive allows (readers refuse more,
 /// and the cone integrator keys stored light by a leaf's triangle slot).
@@ -178,103 +180,196 @@ impl Tree {
     /// `fast` picks obvhs's fast preset (no post-collapse reinsertion) over medium.
     pub fn build(tris: Vec<SpillTri>, mats: &MatTable, fast: bool) -> Tree {
         let (plain, groups) = split_coincident(&tris);
-        let mut tree = match plain.is_empty() {
-            true => Tree {
-                nodes: Vec::new(),
-                tris: Vec::new(),
-                instances: Vec::new(),
-                root: 0,
-            },
-            false => Tree::build_ploc(&tris, &plain, mats, fast),
+        let ploc = (!plain.is_empty()).then(|| Ploc::new(&tris, &plain, fast));
+        // Triangles in leaf order, PLOC's leaves first, then each group's; the input is
+        // dropped before the nodes are built.
+        let leaf_order = ploc
+            .iter()
+            .flat_map(|h| h.order.iter().map(|&k| plain[k as usize]));
+        // Nodes: the hierarchy's, and under 2 per group leaf and group.
+        let group_nodes = 2 * groups.iter().map(|g| g.len() / 8 + 2).sum::<usize>();
+        let mut tree = Tree {
+            nodes: Vec::with_capacity(ploc.as_ref().map_or(0, |h| h.steps.len()) + group_nodes),
+            tris: leaf_order
+                .chain(groups.iter().flatten().copied())
+                .map(|i| tris[i as usize])
+                .collect(),
+            instances: Vec::new(),
+            root: 0,
         };
-        let mut roots = if tree.nodes.is_empty() {
-            Vec::new()
-        } else {
-            vec![tree.root]
-        };
+        drop(tris);
+        let mut roots: Vec<u32> = ploc
+            .map(|h| tree.replay(&h.steps, mats))
+            .into_iter()
+            .collect();
+        let mut first = plain.len() as u32;
         for group in groups {
-            let first = tree.tris.len() as u32;
             let count = group.len() as u32;
-            tree.tris.extend(group.iter().map(|&i| tris[i as usize]));
             let leaves: Vec<u32> = (0..count)
                 .step_by(MAX_LEAF_TRIS as usize)
                 .map(|k| tree.leaf(first + k, MAX_LEAF_TRIS.min(count - k), mats))
                 .collect();
-            let root = tree.balanced(&leaves);
-            roots.push(root);
+            roots.push(tree.balanced(&leaves));
+            first += count;
         }
         tree.root = tree.balanced(&roots);
         tree
     }
 
-    /// The hierarchy by PLOC of the triangles of `tris` that `subset` names (not empty).
-    fn build_ploc(tris: &[SpillTri], subset: &[u32], mats: &MatTable, fast: bool) -> Tree {
-        let prims: Vec<Triangle> = subset
-            .iter()
-            .map(|&i| &tris[i as usize])
-            .map(|t| Triangle {
-                v0: Vec3A::from(t.p[0]),
-                v1: Vec3A::from(t.p[1]),
-                v2: Vec3A::from(t.p[2]),
-            })
-            .collect();
-        let mut params = if fast {
-            BvhBuildParams::fast_build()
-        } else {
-            BvhBuildParams::medium_build()
-        };
-        params.max_prims_per_leaf = MAX_LEAF_TRIS;
-        let bvh = build_bvh2_from_tris(&prims, params, &mut Default::default());
-        drop(prims);
-        let children = |i: usize| {
-            let n = &bvh.nodes[i];
-            (n.prim_count == 0).then(|| [n.first_index as usize, n.first_index as usize + 1])
-        };
-        // Pass 1: triangles in depth-first leaf order, so each leaf's range is contiguous.
-        let mut order = Vec::with_capacity(subset.len());
-        let mut stack = vec![0usize];
-        while let Some(i) = stack.pop() {
-            match children(i) {
-                Some([l, r]) => stack.extend([r, l]),
-                None => {
-                    let n = &bvh.nodes[i];
-                    order.extend_from_slice(
-                        &bvh.primitive_indices
-                            [n.first_index as usize..(n.first_index + n.prim_count) as usize],
-                    );
-                }
-            }
-        }
-        let mut tree = Tree {
-            nodes: Vec::with_capacity(bvh.nodes.len()),
-            tris: order
-                .iter()
-                .map(|&i| tris[subset[i as usize] as usize])
-                .collect(),
-            instances: Vec::new(),
-            root: 0,
-        };
-        drop(order);
-        // Pass 2: post-order, the same leaf order; inner nodes join the two latest results.
+    /// Builds the nodes of a hierarchy from its post-order steps (`Ploc::steps`) over the
+    /// triangles from the first on; returns its root.
+    fn replay(&mut self, steps: &[u32], mats: &MatTable) -> u32 {
         let mut next_tri = 0u32;
         let mut built: Vec<u32> = Vec::new();
-        let mut stack = vec![(0usize, false)];
-        while let Some((i, visited)) = stack.pop() {
-            match children(i) {
-                None => {
-                    let count = bvh.nodes[i].prim_count;
-                    built.push(tree.leaf(next_tri, count, mats));
-                    next_tri += count;
-                }
-                Some(_) if visited => {
+        for &count in steps {
+            let node = match count {
+                0 => {
                     let r = built.pop().expect("right child");
                     let l = built.pop().expect("left child");
-                    built.push(tree.join(l, r));
+                    self.join(l, r)
                 }
-                Some([l, r]) => stack.extend([(i, true), (r, false), (l, false)]),
+                _ => {
+                    next_tri += count;
+                    self.leaf(next_tri - count, count, mats)
+                }
+            };
+            built.push(node);
+        }
+        built[0]
+    }
+}
+
+/// A PLOC hierarchy, as the order of its leaves' triangles and its post-order steps.
+struct Ploc {
+    /// Positions in `subset` of the triangles, leaf by leaf, depth first.
+    order: Vec<u32>,
+    /// Per node in post-order: the triangles of a leaf, or 0 for an inner node, which joins
+    /// the two latest nodes.
+    steps: Vec<u32>,
+}
+
+impl Ploc {
+    /// The hierarchy of the triangles of `tris` that `subset` names (not empty).
+    fn new(tris: &[SpillTri], subset: &[u32], fast: bool) -> Ploc {
+        let boxes: Vec<Aabb> = subset
+            .iter()
+            .map(|&i| {
+                let p = tris[i as usize].p.map(Vec3A::from);
+                Aabb::new(p[0].min(p[1]).min(p[2]), p[0].max(p[1]).max(p[2]))
+            })
+            .collect();
+        let (bvh, leaf_size) = ploc_hierarchy(&boxes, fast);
+        drop(boxes);
+        let mut ploc = Ploc {
+            order: Vec::with_capacity(subset.len()),
+            steps: Vec::new(),
+        };
+        let mut stack = vec![(0usize, false)];
+        while let Some((i, visited)) = stack.pop() {
+            let first = bvh.nodes[i].first_index as usize;
+            match (leaf_size[i], visited) {
+                (0, false) => stack.extend([(i, true), (first + 1, false), (first, false)]),
+                (0, true) => ploc.steps.push(0),
+                (count, _) => {
+                    ploc.steps.push(count);
+                    ploc.gather(&bvh, i);
+                }
             }
         }
-        tree.root = built[0];
-        tree
+        ploc
     }
+
+    /// Appends the triangles under node `i` of `bvh`, its leaves' in depth-first order.
+    fn gather(&mut self, bvh: &Bvh2, i: usize) {
+        let mut stack = vec![i];
+        while let Some(i) = stack.pop() {
+            let n = &bvh.nodes[i];
+            let first = n.first_index as usize;
+            match n.is_leaf() {
+                false => stack.extend([first + 1, first]),
+                true => self.order.extend_from_slice(
+                    &bvh.primitive_indices[first..first + n.prim_count as usize],
+                ),
+            }
+        }
+    }
+}
+
+/// obvhs's binary PLOC hierarchy over `boxes` (its fast or medium preset, `MAX_LEAF_TRIS` a
+/// leaf) and, per node, the triangles it holds as a leaf (0 for an inner node; nodes below a
+/// leaf are never read). obvhs's build with its steps spelled out: PLOC, reinsertion, the
+/// SAH leaf collapse, reinsertion again. When the second reinsertion does not run (the fast
+/// preset) the collapse is only recorded, not applied: the same leaves without compacting
+/// the node array, which took as long as the PLOC itself.
+fn ploc_hierarchy(boxes: &[Aabb], fast: bool) -> (Bvh2, Vec<u32>) {
+    let mut params = match fast {
+        true => BvhBuildParams::fast_build(),
+        false => BvhBuildParams::medium_build(),
+    };
+    params.max_prims_per_leaf = MAX_LEAF_TRIS;
+    let mut bvh = PlocBuilder::with_capacity(boxes.len()).build(
+        params.ploc_search_distance,
+        boxes,
+        (0..boxes.len() as u32).collect(),
+        params.sort_precision,
+        params.search_depth_threshold,
+    );
+    let mut reinsertion = ReinsertionOptimizer::default();
+    reinsertion.run(&mut bvh, params.reinsertion_batch_ratio, None);
+    let after =
+        params.reinsertion_batch_ratio * params.post_collapse_reinsertion_batch_ratio_multiplier;
+    let leaf_size = if after > 0.0 {
+        collapse(
+            &mut bvh,
+            params.max_prims_per_leaf,
+            params.collapse_traversal_cost,
+        );
+        reinsertion.run(&mut bvh, after, None);
+        bvh.nodes.iter().map(|n| n.prim_count).collect()
+    } else {
+        collapsed_leaves(
+            &bvh,
+            params.max_prims_per_leaf,
+            params.collapse_traversal_cost,
+        )
+    };
+    (bvh, leaf_size)
+}
+
+/// The leaves obvhs's `leaf_collapser::collapse` would make, as triangles per node (0 for an
+/// inner node): bottom up, two sibling leaves merge into their parent when they hold at most
+/// `max_prims` together and the parent's SAH cost as a leaf, half-area × (count − `traversal`),
+/// is no more than theirs. Its early exits are kept, so the trees are the same.
+fn collapsed_leaves(bvh: &Bvh2, max_prims: u32, traversal: f32) -> Vec<u32> {
+    let mut size: Vec<u32> = bvh.nodes.iter().map(|n| n.prim_count).collect();
+    let nodes = bvh.nodes.len();
+    if max_prims <= 1
+        || nodes as u32 <= max_prims * 2 + 1
+        || bvh.primitive_indices.len() as u32 <= max_prims
+        || bvh.nodes[0].is_leaf()
+    {
+        return size;
+    }
+    let mut stack = vec![(0usize, false)];
+    while let Some((i, visited)) = stack.pop() {
+        let n = &bvh.nodes[i];
+        let first = n.first_index as usize;
+        match (n.is_leaf(), visited) {
+            (true, _) => {}
+            (false, false) => stack.extend([(i, true), (first + 1, false), (first, false)]),
+            (false, true) => {
+                let (l, r) = (&bvh.nodes[first], &bvh.nodes[first + 1]);
+                let (lc, rc) = (size[first], size[first + 1]);
+                let total = lc + rc;
+                if lc > 0 && rc > 0 && total <= max_prims {
+                    let merged = n.aabb().half_area() * (total as f32 - traversal);
+                    let apart = l.aabb().half_area() * lc as f32 + r.aabb().half_area() * rc as f32;
+                    if merged <= apart {
+                        size[i] = total;
+                    }
+                }
+            }
+        }
+    }
+    size
 }
