@@ -59,13 +59,18 @@ pub fn build(
     };
     // One chunk per worker at a time (the chunk size was divided accordingly). Workers build
     // and compress pages concurrently; page numbers are handed out in chunk order and pages
-    // are appended in chunk order, so the archive does not depend on scheduling.
+    // are appended in chunk order, so the archive does not depend on scheduling. Each worker
+    // runs its chunk's parallel loops on a pool of its own share of the cores: on the shared
+    // pool the workers' loops stole from each other and the build took 10% longer.
     std::thread::scope(|s| -> Result<()> {
         let (tx, rx) = std::sync::mpsc::channel();
-        for _ in 0..c.threads.min(chunk_count) {
+        let workers = c.threads.min(chunk_count);
+        let inner = (rayon::current_num_threads() / workers).max(1);
+        for _ in 0..workers {
             let tx = tx.clone();
             let job = &job;
-            s.spawn(move || job.work(tx));
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(inner).build()?;
+            s.spawn(move || job.work(tx, pool));
         }
         drop(tx);
         let mut arrived = BTreeMap::new();
@@ -224,13 +229,13 @@ struct ChunkJob<'a> {
 
 impl ChunkJob<'_> {
     /// Claims chunks in increasing order until none is left, sending each result.
-    fn work(&self, tx: Sender<(usize, Result<ChunkOut>)>) {
+    fn work(&self, tx: Sender<(usize, Result<ChunkOut>)>, pool: rayon::ThreadPool) {
         loop {
             let i = self.claim.fetch_add(1, Ordering::Relaxed);
             if i >= self.files.len() {
                 return;
             }
-            let out = self.chunk(i);
+            let out = pool.install(|| self.chunk(i));
             let failed = out.is_err();
             // Send before raising the flag, so the first error received is the real one.
             let gone = tx.send((i, out)).is_err();
