@@ -19,19 +19,23 @@ const COINCIDENT_GROUP: usize = 64;
 
 /// Splits off groups of more than `COINCIDENT_GROUP` triangles whose centroids fall in one
 /// cell of a 2²¹-per-axis grid over the centroids' bounds: the indices of the rest and of
-/// each group, all in Morton order.
+/// each group. When there is no such group every triangle is in the rest, in input order;
+/// otherwise the rest and the groups are in Morton order.
 fn split_coincident(tris: &[SpillTri]) -> (Vec<u32>, Vec<Vec<u32>>) {
     let mut lo = [f32::INFINITY; 3];
     let mut hi = [f32::NEG_INFINITY; 3];
-    for t in tris {
-        let c = t.centroid();
-        for a in 0..3 {
-            lo[a] = lo[a].min(c[a]);
-            hi[a] = hi[a].max(c[a]);
-        }
-    }
-    let key = |t: &SpillTri| {
-        let c = t.centroid();
+    let centroids: Vec<[f32; 3]> = tris
+        .iter()
+        .map(|t| {
+            let c = t.centroid();
+            for a in 0..3 {
+                lo[a] = lo[a].min(c[a]);
+                hi[a] = hi[a].max(c[a]);
+            }
+            c
+        })
+        .collect();
+    let key = |c: &[f32; 3]| {
         let q = [0, 1, 2].map(|a| {
             let e = hi[a] - lo[a];
             let f = if e > 0.0 { (c[a] - lo[a]) / e } else { 0.0 };
@@ -39,11 +43,12 @@ fn split_coincident(tris: &[SpillTri]) -> (Vec<u32>, Vec<Vec<u32>>) {
         });
         morton::code(q)
     };
-    let mut keyed: Vec<(u64, u32)> = tris
-        .iter()
-        .enumerate()
-        .map(|(i, t)| (key(t), i as u32))
-        .collect();
+    let keys: Vec<u64> = centroids.iter().map(key).collect();
+    drop(centroids);
+    if !may_share_a_cell(&keys) {
+        return ((0..tris.len() as u32).collect(), Vec::new());
+    }
+    let mut keyed: Vec<(u64, u32)> = keys.into_iter().zip(0..).collect();
     keyed.sort_unstable();
     let mut plain = Vec::with_capacity(tris.len());
     let mut groups = Vec::new();
@@ -56,6 +61,20 @@ fn split_coincident(tris: &[SpillTri]) -> (Vec<u32>, Vec<Vec<u32>>) {
         }
     }
     (plain, groups)
+}
+
+/// Whether more than `COINCIDENT_GROUP` of `keys` may be equal: counts keys by a hash into
+/// twice as many saturating counters as keys. Equal keys raise one counter together, so
+/// when none passes `COINCIDENT_GROUP` no key is that common; collisions only ever say
+/// "may". The sort that finds the groups cost a twentieth of a chunk's build.
+fn may_share_a_cell(keys: &[u64]) -> bool {
+    let bits = (2 * keys.len()).next_power_of_two().trailing_zeros().max(1);
+    let mut counts = vec![0u8; 1 << bits];
+    keys.iter().any(|&k| {
+        let slot = (k.wrapping_mul(0x9e37_79b9_7f4a_7c15) >> (64 - bits)) as usize;
+        counts[slot] = counts[slot].saturating_add(1);
+        counts[slot] as usize > COINCIDENT_GROUP
+    })
 }
 
 #[derive(Clone, Copy, Debug, serde::Serialize, serde::Deserialize)]
