@@ -279,8 +279,13 @@ impl Ploc {
             .collect();
         let (bvh, leaf_size) = ploc_hierarchy(&boxes, fast);
         drop(boxes);
+        Ploc::walk(&bvh, &leaf_size)
+    }
+
+    /// The leaf order and steps of `bvh` whose leaves are the nodes of non-zero `leaf_size`.
+    fn walk(bvh: &Bvh2, leaf_size: &[u32]) -> Ploc {
         let mut ploc = Ploc {
-            order: Vec::with_capacity(subset.len()),
+            order: Vec::with_capacity(bvh.primitive_indices.len()),
             steps: Vec::new(),
         };
         let mut stack = vec![(0usize, false)];
@@ -291,7 +296,7 @@ impl Ploc {
                 (0, true) => ploc.steps.push(0),
                 (count, _) => {
                     ploc.steps.push(count);
-                    ploc.gather(&bvh, i);
+                    ploc.gather(bvh, i);
                 }
             }
         }
@@ -391,4 +396,106 @@ fn collapsed_leaves(bvh: &Bvh2, max_prims: u32, traversal: f32) -> Vec<u32> {
         }
     }
     size
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::test_rng::TestRng;
+
+    /// Triangles in a few clusters of varied sizes (so PLOC's leaves vary in size).
+    fn scattered(rng: &mut TestRng, n: usize) -> Vec<SpillTri> {
+        (0..n)
+            .map(|i| {
+                let c = rng.v(10.0) * (1 + i % 3) as f32;
+                let s = 0.01 + rng.f32() * 0.5;
+                SpillTri {
+                    p: [0, 1, 2].map(|_| (c + rng.v(s)).to_array()),
+                    ..Default::default()
+                }
+            })
+            .collect()
+    }
+
+    /// A bumpy height field of `k`×`k` quads, two triangles each, as scans are.
+    fn surface(k: usize) -> Vec<SpillTri> {
+        let at = |x: usize, y: usize| {
+            let (u, v) = (x as f32 / k as f32, y as f32 / k as f32);
+            [u, v, 0.1 * (9.0 * u).sin() * (7.0 * v).cos()]
+        };
+        let tri = |p| SpillTri {
+            p,
+            ..Default::default()
+        };
+        (0..k * k)
+            .flat_map(|q| {
+                let (x, y) = (q % k, q / k);
+                [
+                    tri([at(x, y), at(x + 1, y), at(x + 1, y + 1)]),
+                    tri([at(x, y), at(x + 1, y + 1), at(x, y + 1)]),
+                ]
+            })
+            .collect()
+    }
+
+    /// The collapse recorded in the walk gives the leaves obvhs's own collapse makes: the
+    /// same post-order steps and the same triangles in the same order.
+    #[test]
+    fn the_recorded_collapse_makes_obvhs_leaves() {
+        let mut rng = TestRng::new(5);
+        let cases = [3, 9, 17, 200, 5000].map(|n| scattered(&mut rng, n));
+        let mut eights = 0;
+        for tris in cases.into_iter().chain([surface(4), surface(60)]) {
+            let n = tris.len();
+            let all: Vec<u32> = (0..n as u32).collect();
+            let ours = Ploc::new(&tris, &all, true);
+            let boxes: Vec<Aabb> = tris
+                .iter()
+                .map(|t| {
+                    let p = t.p.map(Vec3A::from);
+                    Aabb::new(p[0].min(p[1]).min(p[2]), p[0].max(p[1]).max(p[2]))
+                })
+                .collect();
+            let mut params = BvhBuildParams::fast_build();
+            params.max_prims_per_leaf = MAX_LEAF_TRIS;
+            let bvh = obvhs::bvh2::builder::build_bvh2(&boxes, params, &mut Default::default());
+            let sizes: Vec<u32> = bvh.nodes.iter().map(|n| n.prim_count).collect();
+            let theirs = Ploc::walk(&bvh, &sizes);
+            assert_eq!(ours.steps, theirs.steps, "{n} triangles: steps");
+            assert_eq!(ours.order, theirs.order, "{n} triangles: leaf order");
+            assert!(ours.steps.iter().all(|&c| c <= MAX_LEAF_TRIS));
+            assert_eq!(ours.steps.iter().sum::<u32>(), n as u32);
+            eights += ours.steps.iter().filter(|&&c| c == MAX_LEAF_TRIS).count();
+        }
+        assert!(eights > 0, "no case made a full leaf");
+    }
+
+    /// A cell holding more than `COINCIDENT_GROUP` centroids is always found; a chunk
+    /// without one keeps its input order.
+    #[test]
+    fn coincident_groups_are_always_found() {
+        let mut rng = TestRng::new(9);
+        let mut tris = scattered(&mut rng, 3000);
+        let (plain, groups) = split_coincident(&tris);
+        assert!(groups.is_empty());
+        assert_eq!(plain, (0..3000).collect::<Vec<u32>>());
+        for extra in [COINCIDENT_GROUP + 1, 500] {
+            let copy = tris[17];
+            let mut with = tris.clone();
+            for k in 0..extra {
+                with.insert((k * 37) % with.len(), copy);
+            }
+            let (plain, groups) = split_coincident(&with);
+            assert_eq!(groups.len(), 1, "{extra} copies");
+            assert_eq!(
+                groups[0].len(),
+                extra + 1,
+                "{extra} copies and the original"
+            );
+            assert!(groups[0].iter().all(|&i| with[i as usize] == copy));
+            assert_eq!(plain.len() + groups[0].len(), with.len());
+        }
+        tris.truncate(10);
+        assert!(split_coincident(&tris).1.is_empty());
+    }
 }
