@@ -277,55 +277,48 @@ impl Ploc {
                 Aabb::new(p[0].min(p[1]).min(p[2]), p[0].max(p[1]).max(p[2]))
             })
             .collect();
-        let (bvh, leaf_size) = ploc_hierarchy(&boxes, fast);
+        let (bvh, collapse) = ploc_hierarchy(&boxes, fast);
         drop(boxes);
-        Ploc::walk(&bvh, &leaf_size)
+        Ploc::walk(&bvh, collapse)
     }
 
-    /// The leaf order and steps of `bvh` whose leaves are the nodes of non-zero `leaf_size`.
-    fn walk(bvh: &Bvh2, leaf_size: &[u32]) -> Ploc {
+    /// The leaf order and steps of `bvh`, with `collapse` applied on the way if given.
+    fn walk(bvh: &Bvh2, collapse: Option<Collapse>) -> Ploc {
         let mut ploc = Ploc {
             order: Vec::with_capacity(bvh.primitive_indices.len()),
             steps: Vec::new(),
         };
         let mut stack = vec![(0usize, false)];
         while let Some((i, visited)) = stack.pop() {
-            let first = bvh.nodes[i].first_index as usize;
-            match (leaf_size[i], visited) {
-                (0, false) => stack.extend([(i, true), (first + 1, false), (first, false)]),
-                (0, true) => ploc.steps.push(0),
-                (count, _) => {
-                    ploc.steps.push(count);
-                    ploc.gather(bvh, i);
+            let n = &bvh.nodes[i];
+            let first = n.first_index as usize;
+            match (n.is_leaf(), visited) {
+                (true, _) => {
+                    ploc.steps.push(n.prim_count);
+                    ploc.order.extend_from_slice(
+                        &bvh.primitive_indices[first..first + n.prim_count as usize],
+                    );
                 }
+                (false, false) => stack.extend([(i, true), (first + 1, false), (first, false)]),
+                (false, true) => match collapse.and_then(|c| c.merged(bvh, i, &ploc.steps)) {
+                    Some(total) => {
+                        ploc.steps.truncate(ploc.steps.len() - 2);
+                        ploc.steps.push(total);
+                    }
+                    None => ploc.steps.push(0),
+                },
             }
         }
         ploc
     }
-
-    /// Appends the triangles under node `i` of `bvh`, its leaves' in depth-first order.
-    fn gather(&mut self, bvh: &Bvh2, i: usize) {
-        let mut stack = vec![i];
-        while let Some(i) = stack.pop() {
-            let n = &bvh.nodes[i];
-            let first = n.first_index as usize;
-            match n.is_leaf() {
-                false => stack.extend([first + 1, first]),
-                true => self.order.extend_from_slice(
-                    &bvh.primitive_indices[first..first + n.prim_count as usize],
-                ),
-            }
-        }
-    }
 }
 
 /// obvhs's binary PLOC hierarchy over `boxes` (its fast or medium preset, `MAX_LEAF_TRIS` a
-/// leaf) and, per node, the triangles it holds as a leaf (0 for an inner node; nodes below a
-/// leaf are never read). obvhs's build with its steps spelled out: PLOC, reinsertion, the
-/// SAH leaf collapse, reinsertion again. When the second reinsertion does not run (the fast
-/// preset) the collapse is only recorded, not applied: the same leaves without compacting
-/// the node array, which took as long as the PLOC itself.
-fn ploc_hierarchy(boxes: &[Aabb], fast: bool) -> (Bvh2, Vec<u32>) {
+/// leaf), built as obvhs builds it with the steps spelled out: PLOC, reinsertion, the SAH
+/// leaf collapse, reinsertion again. When the second reinsertion does not run (the fast
+/// preset) the collapse is returned rather than applied, for the walk to apply: the same
+/// leaves without compacting the node array, which took as long as the PLOC itself.
+fn ploc_hierarchy(boxes: &[Aabb], fast: bool) -> (Bvh2, Option<Collapse>) {
     let mut params = match fast {
         true => BvhBuildParams::fast_build(),
         false => BvhBuildParams::medium_build(),
@@ -340,62 +333,53 @@ fn ploc_hierarchy(boxes: &[Aabb], fast: bool) -> (Bvh2, Vec<u32>) {
     );
     let mut reinsertion = ReinsertionOptimizer::default();
     reinsertion.run(&mut bvh, params.reinsertion_batch_ratio, None);
+    let (max_prims, traversal) = (params.max_prims_per_leaf, params.collapse_traversal_cost);
     let after =
         params.reinsertion_batch_ratio * params.post_collapse_reinsertion_batch_ratio_multiplier;
-    let leaf_size = if after > 0.0 {
-        collapse(
-            &mut bvh,
-            params.max_prims_per_leaf,
-            params.collapse_traversal_cost,
-        );
+    if after > 0.0 {
+        collapse(&mut bvh, max_prims, traversal);
         reinsertion.run(&mut bvh, after, None);
-        bvh.nodes.iter().map(|n| n.prim_count).collect()
-    } else {
-        collapsed_leaves(
-            &bvh,
-            params.max_prims_per_leaf,
-            params.collapse_traversal_cost,
-        )
+        return (bvh, None);
+    }
+    // obvhs's early exits: small trees and a root leaf are left as they are.
+    let collapses = max_prims > 1
+        && bvh.nodes.len() as u32 > max_prims * 2 + 1
+        && bvh.primitive_indices.len() as u32 > max_prims
+        && !bvh.nodes[0].is_leaf();
+    let rule = Collapse {
+        max_prims,
+        traversal,
     };
-    (bvh, leaf_size)
+    (bvh, collapses.then_some(rule))
 }
 
-/// The leaves obvhs's `leaf_collapser::collapse` would make, as triangles per node (0 for an
-/// inner node): bottom up, two sibling leaves merge into their parent when they hold at most
-/// `max_prims` together and the parent's SAH cost as a leaf, half-area × (count − `traversal`),
-/// is no more than theirs. Its early exits are kept, so the trees are the same.
-fn collapsed_leaves(bvh: &Bvh2, max_prims: u32, traversal: f32) -> Vec<u32> {
-    let mut size: Vec<u32> = bvh.nodes.iter().map(|n| n.prim_count).collect();
-    let nodes = bvh.nodes.len();
-    if max_prims <= 1
-        || nodes as u32 <= max_prims * 2 + 1
-        || bvh.primitive_indices.len() as u32 <= max_prims
-        || bvh.nodes[0].is_leaf()
-    {
-        return size;
-    }
-    let mut stack = vec![(0usize, false)];
-    while let Some((i, visited)) = stack.pop() {
-        let n = &bvh.nodes[i];
-        let first = n.first_index as usize;
-        match (n.is_leaf(), visited) {
-            (true, _) => {}
-            (false, false) => stack.extend([(i, true), (first + 1, false), (first, false)]),
-            (false, true) => {
-                let (l, r) = (&bvh.nodes[first], &bvh.nodes[first + 1]);
-                let (lc, rc) = (size[first], size[first + 1]);
-                let total = lc + rc;
-                if lc > 0 && rc > 0 && total <= max_prims {
-                    let merged = n.aabb().half_area() * (total as f32 - traversal);
-                    let apart = l.aabb().half_area() * lc as f32 + r.aabb().half_area() * rc as f32;
-                    if merged <= apart {
-                        size[i] = total;
-                    }
-                }
-            }
+/// obvhs's SAH leaf collapse (`leaf_collapser::collapse`): bottom up, two sibling leaves
+/// merge into their parent when they hold at most `max_prims` together and the parent's
+/// cost as a leaf, half-area × (count − `traversal`), is no more than theirs.
+#[derive(Clone, Copy)]
+struct Collapse {
+    max_prims: u32,
+    traversal: f32,
+}
+
+impl Collapse {
+    /// The triangles inner node `i` holds if its children merge into it, given the post-order
+    /// steps so far: a leaf is one step, so when the right child is a leaf the last two steps
+    /// are the children's.
+    fn merged(self, bvh: &Bvh2, i: usize, steps: &[u32]) -> Option<u32> {
+        let [.., lc, rc] = *steps else {
+            return None;
+        };
+        let total = lc + rc;
+        if lc == 0 || rc == 0 || total > self.max_prims {
+            return None;
         }
+        let first = bvh.nodes[i].first_index as usize;
+        let (l, r) = (&bvh.nodes[first], &bvh.nodes[first + 1]);
+        let merged = bvh.nodes[i].aabb().half_area() * (total as f32 - self.traversal);
+        let apart = l.aabb().half_area() * lc as f32 + r.aabb().half_area() * rc as f32;
+        (merged <= apart).then_some(total)
     }
-    size
 }
 
 #[cfg(test)]
@@ -459,8 +443,7 @@ mod tests {
             let mut params = BvhBuildParams::fast_build();
             params.max_prims_per_leaf = MAX_LEAF_TRIS;
             let bvh = obvhs::bvh2::builder::build_bvh2(&boxes, params, &mut Default::default());
-            let sizes: Vec<u32> = bvh.nodes.iter().map(|n| n.prim_count).collect();
-            let theirs = Ploc::walk(&bvh, &sizes);
+            let theirs = Ploc::walk(&bvh, None);
             assert_eq!(ours.steps, theirs.steps, "{n} triangles: steps");
             assert_eq!(ours.order, theirs.order, "{n} triangles: leaf order");
             assert!(ours.steps.iter().all(|&c| c <= MAX_LEAF_TRIS));
