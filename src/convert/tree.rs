@@ -258,6 +258,12 @@ impl Tree {
     }
 }
 
+/// A triangle's bounding box.
+fn bounds(t: &SpillTri) -> Aabb {
+    let p = t.p.map(Vec3A::from);
+    Aabb::new(p[0].min(p[1]).min(p[2]), p[0].max(p[1]).max(p[2]))
+}
+
 /// A PLOC hierarchy, as the order of its leaves' triangles and its post-order steps.
 struct Ploc {
     /// Positions in `subset` of the triangles, leaf by leaf, depth first.
@@ -270,13 +276,7 @@ struct Ploc {
 impl Ploc {
     /// The hierarchy of the triangles of `tris` that `subset` names (not empty).
     fn new(tris: &[SpillTri], subset: &[u32], fast: bool) -> Ploc {
-        let boxes: Vec<Aabb> = subset
-            .iter()
-            .map(|&i| {
-                let p = tris[i as usize].p.map(Vec3A::from);
-                Aabb::new(p[0].min(p[1]).min(p[2]), p[0].max(p[1]).max(p[2]))
-            })
-            .collect();
+        let boxes: Vec<Aabb> = subset.iter().map(|&i| bounds(&tris[i as usize])).collect();
         let (bvh, collapse) = ploc_hierarchy(&boxes, fast);
         drop(boxes);
         Ploc::walk(&bvh, collapse)
@@ -433,13 +433,7 @@ mod tests {
             let n = tris.len();
             let all: Vec<u32> = (0..n as u32).collect();
             let ours = Ploc::new(&tris, &all, true);
-            let boxes: Vec<Aabb> = tris
-                .iter()
-                .map(|t| {
-                    let p = t.p.map(Vec3A::from);
-                    Aabb::new(p[0].min(p[1]).min(p[2]), p[0].max(p[1]).max(p[2]))
-                })
-                .collect();
+            let boxes: Vec<Aabb> = tris.iter().map(bounds).collect();
             let mut params = BvhBuildParams::fast_build();
             params.max_prims_per_leaf = MAX_LEAF_TRIS;
             let bvh = obvhs::bvh2::builder::build_bvh2(&boxes, params, &mut Default::default());
